@@ -1,0 +1,80 @@
+"""The voxel grid and the project's single axis / coordinate convention.
+
+Convention (used everywhere in dipnet)
+--------------------------------------
+* A volume is a tensor indexed ``[z, y, x]`` in 3D and ``[y, x]`` in 2D, matching
+  ``torch.nn.functional.grid_sample``'s ``(D, H, W)`` / ``(H, W)`` layout.
+* Physical coordinates are millimetres, with the grid centred on the origin. A point is
+  written ``(x, y[, z])`` (the order of ``grid_sample``'s last grid dimension).
+* Voxel ``i`` along an axis has its centre at ``-extent/2 + (i + 0.5) * voxel_size``.
+* The *working region* is the ball of radius ``extent/2 - voxel_size`` around the origin:
+  every rotation keeps it inside the grid, so operators ignore voxels outside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A cubic (3D) or square (2D) voxel grid centred on the origin.
+
+    Args:
+        n: voxels per axis (``N``).
+        ndim: 2 or 3.
+        extent: side length of the grid in mm.
+    """
+
+    n: int
+    ndim: int = 3
+    extent: float = 100.0
+
+    def __post_init__(self) -> None:
+        if int(self.n) != self.n or self.n < 4:
+            raise ValueError(f"grid resolution n must be an integer >= 4, got {self.n!r}")
+        if self.ndim not in (2, 3):
+            raise ValueError(f"grid ndim must be 2 or 3, got {self.ndim!r}")
+        if not self.extent > 0:
+            raise ValueError(f"grid extent must be positive (mm), got {self.extent!r}")
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Volume shape, ``(N, N)`` or ``(N, N, N)``."""
+        return (self.n,) * self.ndim
+
+    @property
+    def voxel_size(self) -> float:
+        """Voxel edge length in mm."""
+        return self.extent / self.n
+
+    @property
+    def voxel_volume(self) -> float:
+        """Voxel volume in mm^ndim (an area in 2D)."""
+        return self.voxel_size**self.ndim
+
+    @property
+    def radius(self) -> float:
+        """Radius of the working region (mm)."""
+        return self.extent / 2 - self.voxel_size
+
+    def axis(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """Voxel centre coordinates along one axis, shape ``(N,)``, in mm."""
+        h = self.voxel_size
+        return -self.extent / 2 + (torch.arange(self.n, dtype=dtype) + 0.5) * h
+
+    def centers(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """Voxel centres, shape ``(*shape, ndim)`` with the last axis ordered ``(x, y[, z])``, mm."""
+        a = self.axis(dtype)
+        mesh = torch.meshgrid(*([a] * self.ndim), indexing="ij")  # (z, y, x) order
+        return torch.stack(mesh[::-1], dim=-1)
+
+    def working_mask(self) -> torch.Tensor:
+        """Boolean mask of the voxels whose centre lies in the working region, shape ``shape``."""
+        return self.centers().norm(dim=-1) <= self.radius
+
+    def to_dict(self) -> dict:
+        """Plain metadata, for files."""
+        return {"n": self.n, "ndim": self.ndim, "extent": self.extent}

@@ -1,0 +1,148 @@
+"""DipMeasurement: what solvers consume, and its file format.
+
+File format (version 1): one ``.npz`` holding the arrays ``directions`` ``(K, d)``,
+``profiles`` ``(K, M)`` (slab volumes, mm^3; mm^2 in 2D), ``offsets`` ``(K,)`` (mm, the
+height ``t`` of the lower edge of slab 0 in the object frame), optional ``sigma``
+(``(K, M)``, mm^3, noise standard deviation per slab) and ``metadata`` (a JSON string with
+``format``, ``version``, ``slab_thickness`` in mm and free-form provenance).
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+FORMAT_NAME = "dipnet.measurement"
+FORMAT_VERSION = 1
+
+
+class MeasurementFileError(ValueError):
+    """A measurement file is missing, unreadable or inconsistent."""
+
+
+@dataclass
+class DipMeasurement:
+    """Uniform slab volumes per orientation.
+
+    Attributes:
+        directions: unit "up" vectors in the object frame, ``(K, d)`` float64.
+        profiles: slab volumes in mm^3 (mm^2 in 2D), ``(K, M)`` float64, ordered by height.
+        slab_thickness: slab thickness in mm.
+        offsets: height ``t`` (mm) of the lower edge of slab 0 per orientation, ``(K,)``.
+        sigma: optional noise standard deviation per slab (mm^3), ``(K, M)``.
+        metadata: provenance (source, shape, noise settings, ...), JSON-serialisable.
+    """
+
+    directions: torch.Tensor
+    profiles: torch.Tensor
+    slab_thickness: float
+    offsets: torch.Tensor
+    sigma: torch.Tensor | None = None
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.directions = torch.as_tensor(self.directions, dtype=torch.float64)
+        self.profiles = torch.as_tensor(self.profiles, dtype=torch.float64)
+        self.offsets = torch.as_tensor(self.offsets, dtype=torch.float64).reshape(-1)
+        if self.sigma is not None:
+            self.sigma = torch.as_tensor(self.sigma, dtype=torch.float64).expand_as(self.profiles).clone()
+        self.validate()
+
+    @property
+    def n_orientations(self) -> int:
+        return int(self.profiles.shape[0])
+
+    @property
+    def n_slabs(self) -> int:
+        return int(self.profiles.shape[1])
+
+    @property
+    def ndim(self) -> int:
+        return int(self.directions.shape[1])
+
+    def validate(self) -> None:
+        """Raise :class:`MeasurementFileError` naming the first inconsistency."""
+        d, p, o = self.directions, self.profiles, self.offsets
+        if d.ndim != 2 or d.shape[1] not in (2, 3):
+            raise MeasurementFileError(f"directions must have shape (K, 2) or (K, 3), got {tuple(d.shape)}")
+        if p.ndim != 2 or p.shape[0] != d.shape[0]:
+            raise MeasurementFileError(
+                f"profiles must have shape (K, M) with K = {d.shape[0]} orientations, got {tuple(p.shape)}")
+        if p.shape[1] < 2:
+            raise MeasurementFileError(f"profiles need at least 2 slabs, got {p.shape[1]}")
+        if o.shape[0] != d.shape[0]:
+            raise MeasurementFileError(f"offsets must have shape ({d.shape[0]},), got {tuple(o.shape)}")
+        if not np.isfinite(self.slab_thickness) or self.slab_thickness <= 0:
+            raise MeasurementFileError(f"slab_thickness must be a positive number of mm, got {self.slab_thickness}")
+        if not torch.isfinite(p).all() or not torch.isfinite(d).all() or not torch.isfinite(o).all():
+            raise MeasurementFileError("measurement holds NaN or infinite values")
+        if (d.norm(dim=1) < 1e-9).any():
+            raise MeasurementFileError("directions contain a zero vector")
+        if self.sigma is not None and self.sigma.shape != p.shape:
+            raise MeasurementFileError(f"sigma must have the profiles' shape {tuple(p.shape)}")
+
+    def volume_estimate(self) -> float:
+        """Object volume (mm^3): the median over orientations of each profile's sum."""
+        return float(self.profiles.sum(1).median())
+
+    def resampled(self, edges: torch.Tensor) -> torch.Tensor:
+        """Slab volumes on other slab boundaries ``edges`` ``(M' + 1,)`` (mm, same for every
+        orientation), by linear interpolation of the cumulative volume; ``(K, M')``."""
+        k, m = self.profiles.shape
+        cum = torch.cat([torch.zeros(k, 1, dtype=torch.float64), torch.cumsum(self.profiles, 1)], 1)
+        src = self.offsets[:, None] + self.slab_thickness * torch.arange(m + 1, dtype=torch.float64)
+        out = np.stack([np.interp(edges.numpy(), src[i].numpy(), cum[i].numpy()) for i in range(k)])
+        return torch.from_numpy(np.diff(out, axis=1))
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> Path:
+        """Write the measurement to ``path`` (``.npz``); returns the path."""
+        path = Path(path)
+        meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
+                "slab_thickness": float(self.slab_thickness), **{"provenance": self.metadata}}
+        arrays = {"directions": self.directions.numpy(), "profiles": self.profiles.numpy(),
+                  "offsets": self.offsets.numpy(), "metadata": np.array(json.dumps(meta))}
+        if self.sigma is not None:
+            arrays["sigma"] = self.sigma.numpy()
+        with open(path, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "DipMeasurement":
+        """Read a file written by :meth:`save`; malformed files raise :class:`MeasurementFileError`."""
+        path = Path(path)
+        if not path.is_file():
+            raise MeasurementFileError(f"measurement file not found: {path}")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+            raise MeasurementFileError(f"{path}: not a readable .npz measurement file ({exc})") from exc
+        missing = {"directions", "profiles", "offsets", "metadata"} - set(arrays)
+        if missing:
+            raise MeasurementFileError(f"{path}: missing array(s) {sorted(missing)}")
+        try:
+            meta = json.loads(str(arrays["metadata"]))
+        except json.JSONDecodeError as exc:
+            raise MeasurementFileError(f"{path}: metadata is not valid JSON ({exc})") from exc
+        if meta.get("format") != FORMAT_NAME:
+            raise MeasurementFileError(f"{path}: not a dipnet measurement (format={meta.get('format')!r})")
+        if meta.get("version") != FORMAT_VERSION:
+            raise MeasurementFileError(f"{path}: unsupported format version {meta.get('version')!r}")
+        try:
+            return cls(directions=torch.from_numpy(arrays["directions"]),
+                       profiles=torch.from_numpy(arrays["profiles"]),
+                       slab_thickness=float(meta["slab_thickness"]),
+                       offsets=torch.from_numpy(arrays["offsets"]),
+                       sigma=torch.from_numpy(arrays["sigma"]) if "sigma" in arrays else None,
+                       metadata=meta.get("provenance", {}))
+        except MeasurementFileError as exc:
+            raise MeasurementFileError(f"{path}: {exc}") from exc
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MeasurementFileError(f"{path}: malformed measurement ({exc})") from exc
