@@ -1,0 +1,44 @@
+"""The solver interface: ``solve(measurement, operator) -> Reconstruction``.
+
+Solvers never read files or configs; scripts and Hydra build them.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import torch
+
+from dipnet.measurement import DipMeasurement
+from dipnet.operators.base import DipOperator
+from dipnet.reconstruction import Reconstruction
+
+
+class Solver(ABC):
+    """Reconstructs an occupancy volume from a measurement through a dip operator."""
+
+    name: str = "solver"
+
+    @abstractmethod
+    def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
+        """Return the reconstruction on ``operator.grid``."""
+
+
+def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor:
+    """The measured slab volumes on the operator's slabs, ``(K, M)`` float64, mm^3.
+
+    The measurement's orientations must be the operator's (same order); its slabs are
+    resampled onto :meth:`DipOperator.slab_edges` when thickness or offsets differ.
+    """
+    if measurement.n_orientations != operator.n_orientations or measurement.ndim != operator.grid.ndim:
+        raise ValueError(
+            f"measurement has {measurement.n_orientations} orientations in {measurement.ndim}D, "
+            f"the operator {operator.n_orientations} in {operator.grid.ndim}D")
+    dirs = measurement.directions / measurement.directions.norm(dim=1, keepdim=True)
+    if not torch.allclose(dirs, operator.directions.to(dirs), atol=1e-6):
+        raise ValueError("the measurement's orientations differ from the operator's")
+    edges = operator.slab_edges()
+    same = (measurement.n_slabs == operator.n_slabs
+            and abs(measurement.slab_thickness - operator.slab_thickness) < 1e-9 * operator.slab_thickness
+            and torch.allclose(measurement.offsets, edges[:1].expand_as(measurement.offsets), atol=1e-9))
+    return measurement.profiles.clone() if same else measurement.resampled(edges)
