@@ -1,0 +1,1 @@
+"""dipnet's Hydra configuration tree (shipped as the package ``dipnet.conf``)."""
