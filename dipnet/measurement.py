@@ -50,7 +50,9 @@ class DipMeasurement:
         self.profiles = torch.as_tensor(self.profiles, dtype=torch.float64)
         self.offsets = torch.as_tensor(self.offsets, dtype=torch.float64).reshape(-1)
         if self.sigma is not None:
-            self.sigma = torch.as_tensor(self.sigma, dtype=torch.float64).expand_as(self.profiles).clone()
+            self.sigma = torch.as_tensor(self.sigma, dtype=torch.float64)
+            if self.sigma.numel() == 1:
+                self.sigma = self.sigma.reshape(1, 1).expand_as(self.profiles).clone()
         self.validate()
 
     @property

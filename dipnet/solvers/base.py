@@ -40,5 +40,5 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
     edges = operator.slab_edges()
     same = (measurement.n_slabs == operator.n_slabs
             and abs(measurement.slab_thickness - operator.slab_thickness) < 1e-9 * operator.slab_thickness
-            and torch.allclose(measurement.offsets, edges[:1].expand_as(measurement.offsets), atol=1e-9))
+            and torch.allclose(measurement.offsets.double(), edges[:1].expand_as(measurement.offsets), atol=1e-9))
     return measurement.profiles.clone() if same else measurement.resampled(edges)
