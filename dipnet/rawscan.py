@@ -1,0 +1,437 @@
+"""RawScan: what a dipping rig (or the simulator) records, and its append-only file format.
+
+A raw scan holds, per orientation, every reading taken while the object was lowered step by
+step: the commanded stage position (mm, *increasing = lowered further*), the sensor value
+(water level in mm, or balance reading in g, see :attr:`ScanHeader.quantity`), the time (s)
+and flags (e.g. ``"unstable"``). :mod:`dipnet.preprocess` turns it into a
+:class:`~dipnet.measurement.DipMeasurement`.
+
+File format (version 1, JSON Lines, UTF-8, one JSON object per line)
+--------------------------------------------------------------------
+::
+
+    {"type": "header", "format": "dipnet.rawscan", "version": 1, "quantity": "level_mm", ...}
+    {"type": "orientation", "k": 0, "direction": [x, y, z], "tilt_deg": 10.0, "spin_deg": 0.0, "meta": {}}
+    {"type": "reading", "k": 0, "stage_mm": 0.0, "value": 150.0, "time_s": 0.0, "flags": []}
+    ...
+    {"type": "complete", "k": 0, "n_readings": 87}
+    {"type": "orientation", "k": 1, ...}
+
+The writer flushes (and by default fsyncs) after every line, so a crash loses at most the
+line being written. The reader tolerates a truncated last line, and an orientation whose
+``complete`` line is missing is reported as incomplete: a scan resumes after its last complete
+orientation (:meth:`RawScan.complete_orientations`, :meth:`RawScan.next_orientation`). A new
+``orientation`` line for an index that was started but not completed restarts that
+orientation (its earlier readings are dropped). Any other malformed line raises
+:class:`RawScanFileError` naming the file and the line number.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dipnet.orientations import rig_to_direction
+
+FORMAT_NAME = "dipnet.rawscan"
+FORMAT_VERSION = 1
+QUANTITIES = {"level_mm": "mm", "mass_g": "g"}
+WATER_DENSITY_G_PER_MM3 = 1e-3
+
+
+class RawScanFileError(ValueError):
+    """A raw scan file is missing, malformed or inconsistent (the message names file and line)."""
+
+
+@dataclass
+class ScanHeader:
+    """Scan-wide metadata (the first line of a raw scan file).
+
+    Attributes:
+        quantity: ``"level_mm"`` (water level, mm) or ``"mass_g"`` (balance under the tank, g).
+        ndim: 3 for real objects; 2 for planar simulations, where volumes are areas (mm^2)
+            and the tank cross-section is a width (mm).
+        tank_cross_section_mm2: free cross-section ``A`` of the tank at the water line, mm^2
+            (mm in 2D); ``None`` when unknown (preprocessing then needs it explicitly).
+        step_mm: nominal stage step (mm); the per-reading stage positions are authoritative.
+        density_g_per_mm3: liquid density, used to turn balance readings into volumes.
+        t_start_mm: water line height (mm, object frame) at stage position 0 before any rise,
+            when the rig geometry fixes it for every orientation; orientations may override
+            it in their ``meta`` (key ``t_start_mm``).
+        noise_sigma: standard deviation of the reading noise (quantity's unit) if known;
+            orientations may override it in their ``meta`` (key ``noise_sigma``).
+        resolution: reading quantum (quantity's unit), if known.
+        rig: identity of the rig / simulator that recorded the scan.
+        config: the acquisition settings (sensor, timing, ...), free-form JSON.
+        metadata: anything else (object name, operator notes, ...), free-form JSON.
+        created: ISO 8601 creation time.
+    """
+
+    quantity: str = "level_mm"
+    ndim: int = 3
+    tank_cross_section_mm2: float | None = None
+    step_mm: float | None = None
+    density_g_per_mm3: float = WATER_DENSITY_G_PER_MM3
+    t_start_mm: float | None = None
+    noise_sigma: float | None = None
+    resolution: float | None = None
+    rig: str = "unknown"
+    config: dict = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
+    created: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+
+    def __post_init__(self) -> None:
+        if self.quantity not in QUANTITIES:
+            raise ValueError(f"quantity must be one of {sorted(QUANTITIES)}, got {self.quantity!r}")
+        if self.ndim not in (2, 3):
+            raise ValueError(f"ndim must be 2 or 3, got {self.ndim!r}")
+        for name in ("tank_cross_section_mm2", "step_mm"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number or None, got {value!r}")
+        if not self.density_g_per_mm3 > 0:
+            raise ValueError(f"density_g_per_mm3 must be positive, got {self.density_g_per_mm3!r}")
+
+    @property
+    def units(self) -> dict[str, str]:
+        """Units of every recorded field."""
+        return {"stage": "mm", "value": QUANTITIES[self.quantity], "time": "s", "angles": "deg",
+                "tank_cross_section": "mm^2" if self.ndim == 3 else "mm"}
+
+    def to_json(self) -> dict[str, Any]:
+        """The header line's JSON object."""
+        return {"type": "header", "format": FORMAT_NAME, "version": FORMAT_VERSION, **asdict(self),
+                "units": self.units}
+
+    @classmethod
+    def from_json(cls, obj: dict[str, Any]) -> "ScanHeader":
+        """Inverse of :meth:`to_json` (raises ``ValueError`` / ``TypeError`` on bad content)."""
+        if obj.get("format") != FORMAT_NAME:
+            raise ValueError(f"not a dipnet raw scan (format={obj.get('format')!r})")
+        if obj.get("version") != FORMAT_VERSION:
+            raise ValueError(f"unsupported raw scan format version {obj.get('version')!r}")
+        known = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in obj.items() if k in known})
+
+    def compatible_with(self, other: "ScanHeader") -> bool:
+        """Whether a scan with header ``other`` may be appended to one with this header."""
+        keys = ("quantity", "ndim", "tank_cross_section_mm2", "step_mm", "density_g_per_mm3", "t_start_mm")
+        return all(getattr(self, k) == getattr(other, k) for k in keys)
+
+
+@dataclass
+class OrientationScan:
+    """The readings of one orientation.
+
+    Attributes:
+        k: orientation index (file order).
+        direction: unit "up" vector in the object frame, ``(ndim,)`` float64, or ``None`` when
+            only rig angles are known (then :attr:`unit_direction` derives it).
+        tilt_deg, spin_deg: rig angles (degrees), see :func:`~dipnet.orientations.rig_to_direction`.
+        meta: per-orientation metadata (e.g. ``t_start_mm``, ``noise_sigma``).
+        stage_mm: commanded stage positions, ``(n,)`` float64, mm, increasing = lowered.
+        values: sensor readings, ``(n,)`` float64, unit of the header's quantity.
+        time_s: reading times, ``(n,)`` float64, s.
+        flags: per-reading flag lists, length ``n``.
+        complete: whether the orientation's ``complete`` record was written.
+    """
+
+    k: int
+    direction: np.ndarray | None = None
+    tilt_deg: float | None = None
+    spin_deg: float | None = None
+    meta: dict = field(default_factory=dict)
+    stage_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    values: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    flags: list[list[str]] = field(default_factory=list)
+    complete: bool = False
+
+    def __post_init__(self) -> None:
+        if self.direction is not None:
+            self.direction = np.asarray(self.direction, dtype=np.float64).reshape(-1)
+        elif self.tilt_deg is None or self.spin_deg is None:
+            raise ValueError(f"orientation {self.k}: give a direction or both tilt_deg and spin_deg")
+        self.stage_mm = np.asarray(self.stage_mm, dtype=np.float64).reshape(-1)
+        self.values = np.asarray(self.values, dtype=np.float64).reshape(-1)
+        self.time_s = np.asarray(self.time_s, dtype=np.float64).reshape(-1)
+        if not self.flags:
+            self.flags = [[] for _ in range(len(self.stage_mm))]
+        n = len(self.stage_mm)
+        if not (len(self.values) == len(self.time_s) == len(self.flags) == n):
+            raise ValueError(f"orientation {self.k}: stage_mm, values, time_s and flags differ in length")
+
+    @property
+    def n_readings(self) -> int:
+        return len(self.stage_mm)
+
+    @property
+    def unit_direction(self) -> np.ndarray:
+        """The unit "up" vector, ``(ndim,)`` float64 (from the rig angles if no direction was given)."""
+        if self.direction is not None:
+            return self.direction / np.linalg.norm(self.direction)
+        return rig_to_direction(self.tilt_deg, self.spin_deg)[0].numpy()
+
+    def orientation_json(self) -> dict[str, Any]:
+        """The ``orientation`` line's JSON object."""
+        return {"type": "orientation", "k": self.k,
+                "direction": None if self.direction is None else self.direction.tolist(),
+                "tilt_deg": self.tilt_deg, "spin_deg": self.spin_deg, "meta": self.meta}
+
+    def _append(self, stage_mm: float, value: float, time_s: float, flags: list[str]) -> None:
+        self.stage_mm = np.append(self.stage_mm, float(stage_mm))
+        self.values = np.append(self.values, float(value))
+        self.time_s = np.append(self.time_s, float(time_s))
+        self.flags.append(list(flags))
+
+
+@dataclass
+class RawScan:
+    """A whole raw scan: header plus orientations (in memory; :meth:`save` writes the file).
+
+    Attributes:
+        header: scan-wide metadata.
+        orientations: per-orientation readings, in acquisition order.
+        truncated: the file it was read from ended with a truncated line (a crash mid-write).
+        path: the file it was read from, if any.
+    """
+
+    header: ScanHeader
+    orientations: list[OrientationScan] = field(default_factory=list)
+    truncated: bool = False
+    path: Path | None = None
+
+    def complete_orientations(self) -> list[int]:
+        """Indices ``k`` of the orientations whose scan finished, in file order."""
+        return [o.k for o in self.orientations if o.complete]
+
+    def next_orientation(self) -> int:
+        """Index at which an interrupted scan resumes: one past the last complete orientation."""
+        done = self.complete_orientations()
+        return max(done) + 1 if done else 0
+
+    def completed(self) -> list[OrientationScan]:
+        """The complete orientations, in file order."""
+        return [o for o in self.orientations if o.complete]
+
+    def directions(self, complete_only: bool = True) -> torch.Tensor:
+        """Unit directions ``(K, ndim)`` float64 of the (complete) orientations."""
+        scans = self.completed() if complete_only else self.orientations
+        if not scans:
+            return torch.zeros(0, self.header.ndim, dtype=torch.float64)
+        return torch.from_numpy(np.stack([o.unit_direction for o in scans]))
+
+    def save(self, path: str | Path, fsync: bool = False) -> Path:
+        """Write the whole scan to ``path`` (overwriting it) in the JSON Lines format."""
+        with RawScanWriter(path, self.header, resume=False, overwrite=True, fsync=fsync) as writer:
+            for o in self.orientations:
+                writer.begin_orientation(o.k, direction=o.direction, tilt_deg=o.tilt_deg,
+                                         spin_deg=o.spin_deg, meta=o.meta)
+                for i in range(o.n_readings):
+                    writer.append_reading(o.stage_mm[i], o.values[i], o.time_s[i], o.flags[i])
+                if o.complete:
+                    writer.complete_orientation()
+        return Path(path)
+
+
+class RawScanWriter:
+    """Append-only writer: one JSON line per record, flushed (and fsynced) at once.
+
+    Args:
+        path: the ``.jsonl`` file.
+        header: scan metadata; written as the first line of a new file.
+        resume: if the file exists, read it (tolerating a truncated last line, which is cut
+            off), check that ``header`` is compatible with the stored one, and append. The
+            scan read so far is :attr:`scan`; continue at ``writer.scan.next_orientation()``.
+        overwrite: if the file exists and ``resume`` is false, replace it (else
+            ``FileExistsError``).
+        fsync: call ``os.fsync`` after every line (survives power loss, slower).
+
+    Usage::
+
+        with RawScanWriter("scan.jsonl", ScanHeader(tank_cross_section_mm2=6e4, step_mm=1)) as w:
+            for k in range(w.scan.next_orientation(), n_orientations):
+                w.begin_orientation(k, tilt_deg=..., spin_deg=...)
+                for ...: w.append_reading(stage_mm, level_mm, time_s, flags=[])
+                w.complete_orientation()
+    """
+
+    def __init__(self, path: str | Path, header: ScanHeader, resume: bool = True, *,
+                 overwrite: bool = False, fsync: bool = True) -> None:
+        self.path = Path(path)
+        self.fsync = fsync
+        self._current: OrientationScan | None = None
+        if self.path.exists() and resume:
+            self.scan = read_rawscan(self.path)
+            if not self.scan.header.compatible_with(header):
+                raise RawScanFileError(f"{self.path}: cannot resume, the stored header "
+                                       f"{self.scan.header.to_json()} differs from {header.to_json()}")
+            position, prefix = _append_position(self.path)
+            self._fh = open(self.path, "r+b")
+            self._fh.seek(position)
+            self._fh.truncate()
+            self._fh.write(prefix)
+        else:
+            if self.path.exists() and not overwrite:
+                raise FileExistsError(f"{self.path} exists: pass resume=True to continue it or overwrite=True")
+            self.scan = RawScan(header=header, path=self.path)
+            self._fh = open(self.path, "wb")
+            self._write(header.to_json())
+
+    # ---------------------------------------------------------------- records
+    def begin_orientation(self, k: int, *, direction=None, tilt_deg: float | None = None,
+                          spin_deg: float | None = None, meta: dict | None = None) -> None:
+        """Start orientation ``k`` (restarting it if it was begun but not completed)."""
+        if k in self.scan.complete_orientations():
+            raise ValueError(f"orientation {k} is already complete in {self.path}")
+        o = OrientationScan(k=int(k), direction=None if direction is None else np.asarray(direction, float),
+                            tilt_deg=None if tilt_deg is None else float(tilt_deg),
+                            spin_deg=None if spin_deg is None else float(spin_deg), meta=dict(meta or {}))
+        self._write(o.orientation_json())
+        self.scan.orientations = [x for x in self.scan.orientations if x.k != o.k] + [o]
+        self._current = o
+
+    def append_reading(self, stage_mm: float, value: float, time_s: float, flags=()) -> None:
+        """Record one reading of the current orientation (stage mm, value, time s, flag names)."""
+        o = self._require_current()
+        record = {"type": "reading", "k": o.k, "stage_mm": float(stage_mm), "value": float(value),
+                  "time_s": float(time_s), "flags": [str(f) for f in flags]}
+        self._write(record)
+        o._append(stage_mm, value, time_s, record["flags"])
+
+    def complete_orientation(self) -> None:
+        """Mark the current orientation as complete."""
+        o = self._require_current()
+        self._write({"type": "complete", "k": o.k, "n_readings": o.n_readings})
+        o.complete = True
+        self._current = None
+
+    # ---------------------------------------------------------------- plumbing
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()
+
+    def __enter__(self) -> "RawScanWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _require_current(self) -> OrientationScan:
+        if self._current is None:
+            raise RuntimeError("call begin_orientation() first")
+        return self._current
+
+    def _write(self, obj: dict) -> None:
+        self._fh.write((json.dumps(obj, allow_nan=False) + "\n").encode("utf-8"))
+        self._fh.flush()
+        if self.fsync:
+            os.fsync(self._fh.fileno())
+
+
+def _append_position(path: Path) -> tuple[int, bytes]:
+    """Where appending to ``path`` starts, and the bytes to write first.
+
+    A truncated (unparseable) last line is cut off; a complete but unterminated one gets its
+    newline.
+    """
+    data = path.read_bytes()
+    end = data.rfind(b"\n") + 1
+    tail = data[end:]
+    if not tail.strip():
+        return end, b""
+    try:
+        json.loads(tail)
+    except ValueError:
+        return end, b""
+    return len(data), b"\n"
+
+
+def read_rawscan(path: str | Path) -> RawScan:
+    """Read a raw scan file written by :class:`RawScanWriter`.
+
+    A truncated last line is ignored (``RawScan.truncated`` is set); orientations without a
+    ``complete`` record are kept with ``complete=False``. Every other defect raises
+    :class:`RawScanFileError` with ``"<path>:<line>: <problem>"``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RawScanFileError(f"raw scan file not found: {path}")
+    try:
+        lines = path.read_bytes().decode("utf-8").split("\n")
+    except UnicodeDecodeError as exc:
+        raise RawScanFileError(f"{path}: not a UTF-8 text file ({exc})") from exc
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if not lines:
+        raise RawScanFileError(f"{path}: empty file, expected a raw scan header line")
+    scan: RawScan | None = None
+    by_k: dict[int, OrientationScan] = {}
+    for lineno, text in enumerate(lines, start=1):
+        if not text.strip():
+            continue
+        try:
+            obj = json.loads(text)
+        except json.JSONDecodeError as exc:
+            if lineno == len(lines) and scan is not None:
+                scan.truncated = True  # a crash mid-write: the last line is cut short
+                break
+            raise RawScanFileError(f"{path}:{lineno}: not valid JSON ({exc.msg})") from exc
+        try:
+            if not isinstance(obj, dict) or "type" not in obj:
+                raise ValueError("expected a JSON object with a 'type' field")
+            kind = obj["type"]
+            if scan is None:
+                if kind != "header":
+                    raise ValueError(f"the first line must be the header, got type {kind!r}")
+                scan = RawScan(header=ScanHeader.from_json(obj), path=path)
+            elif kind == "orientation":
+                k = int(obj["k"])
+                if k in by_k and by_k[k].complete:
+                    raise ValueError(f"orientation {k} is begun again after it was completed")
+                o = OrientationScan(k=k, direction=obj.get("direction"), tilt_deg=obj.get("tilt_deg"),
+                                    spin_deg=obj.get("spin_deg"), meta=dict(obj.get("meta") or {}))
+                if o.direction is not None and o.direction.shape != (scan.header.ndim,):
+                    raise ValueError(f"direction must have {scan.header.ndim} components")
+                scan.orientations = [x for x in scan.orientations if x.k != k] + [o]
+                by_k[k] = o
+            elif kind == "reading":
+                o = _open_orientation(by_k, obj)
+                values = [float(obj[key]) for key in ("stage_mm", "value", "time_s")]
+                if not all(np.isfinite(values)):
+                    raise ValueError("reading holds a non-finite number")
+                flags = obj.get("flags", [])
+                if not isinstance(flags, list):
+                    raise ValueError("flags must be a list of strings")
+                o._append(*values, [str(f) for f in flags])
+            elif kind == "complete":
+                o = _open_orientation(by_k, obj)
+                if "n_readings" in obj and int(obj["n_readings"]) != o.n_readings:
+                    raise ValueError(f"orientation {o.k} is marked complete with {obj['n_readings']} "
+                                     f"readings but {o.n_readings} were recorded")
+                o.complete = True
+            elif kind == "header":
+                raise ValueError("a second header line")
+            else:
+                raise ValueError(f"unknown record type {kind!r}")
+        except (KeyError, TypeError, ValueError) as exc:
+            detail = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise RawScanFileError(f"{path}:{lineno}: {detail}") from exc
+    assert scan is not None  # the first non-blank line either parses as a header or raised
+    return scan
+
+
+def _open_orientation(by_k: dict[int, OrientationScan], obj: dict) -> OrientationScan:
+    k = int(obj["k"])
+    if k not in by_k:
+        raise ValueError(f"record for orientation {k}, which was never begun")
+    if by_k[k].complete:
+        raise ValueError(f"record for orientation {k} after it was completed")
+    return by_k[k]
