@@ -1,0 +1,67 @@
+"""Built-in shapes that need no files, scaled to a given radius.
+
+``chamber_box`` is the default in 2D and 3D: a box with an inner chamber reached only through a
+narrow channel. Water fills the chamber, so dips measure it, while no camera can see it, which
+is the point of the dip transform.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from dipnet.shapes.analytic import Ball, Box, ChamberBox, Disk, Torus
+from dipnet.shapes.base import Shape, ShapeError
+from dipnet.shapes.silhouettes import elephant
+
+DEFAULT_SHAPE = "chamber_box"
+
+
+def _chamber_box(ndim: int, radius: float) -> ChamberBox:
+    a = radius / np.sqrt(ndim)  # a cube / square whose corners are at `radius`
+    return ChamberBox([a] * ndim, chamber_half_sizes=0.5 * a, channel_half_width=0.15 * a)
+
+
+def _box(radius: float) -> Box:
+    ratios = np.array([1.0, 0.7, 0.5])
+    return Box(ratios * radius / np.linalg.norm(ratios))
+
+
+_REGISTRY: dict[int, dict[str, Callable[[float], Shape]]] = {
+    3: {
+        "chamber_box": lambda r: _chamber_box(3, r),
+        "ball": lambda r: Ball(r),
+        "box": _box,
+        "torus": lambda r: Torus(0.65 * r, 0.35 * r),
+    },
+    2: {
+        "chamber_box": lambda r: _chamber_box(2, r),
+        "disk": lambda r: Disk(r),
+        "elephant": elephant,
+    },
+}
+
+
+def builtin_names(ndim: int) -> list[str]:
+    """Names of the built-in shapes of dimension ``ndim`` (2 or 3)."""
+    if ndim not in _REGISTRY:
+        raise ShapeError(f"built-in shapes exist in 2D and 3D, not {ndim!r}D")
+    return list(_REGISTRY[ndim])
+
+
+def builtin_shape(name: str, ndim: int, radius: float) -> Shape:
+    """A built-in shape centred on the origin whose farthest point is ``radius`` mm away.
+
+    Args:
+        name: one of :func:`builtin_names` (3D: chamber_box, ball, box, torus;
+            2D: chamber_box, disk, elephant).
+        ndim: 2 or 3.
+        radius: mm, e.g. ``0.9 * grid.radius``.
+    """
+    names = builtin_names(ndim)
+    if name not in names:
+        raise ShapeError(f"unknown built-in {ndim}D shape {name!r}; choose one of {names}")
+    if not radius > 0:
+        raise ShapeError(f"shape radius must be positive (mm), got {radius!r}")
+    return _REGISTRY[ndim][name](float(radius))

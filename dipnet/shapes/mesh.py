@@ -1,0 +1,268 @@
+"""Triangle meshes as shapes: loading, cheap repair, sealed voids, inside test, exact dips.
+
+* Inside test: the generalized winding number (libigl ``fast_winding_number``) >= 0.5, which
+  stays sensible on meshes with holes, loose shells and flipped faces.
+* ``volume_below``: closed form from the triangles by the divergence theorem
+  (:mod:`dipnet.shapes.divergence`); exact for a watertight mesh.
+* Sealed voids: a closed shell nested inside another shell bounds a cavity that water never
+  reaches, so by default such inner shells are dropped (the void is filled) and a note says so.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import igl
+import numpy as np
+import torch
+import trimesh
+
+from dipnet.shapes.base import Shape, ShapeError, check_dips
+from dipnet.shapes.divergence import boundary_volume_below
+
+
+class MeshShape(Shape):
+    """A 3D shape bounded by a triangle mesh (mm, grid frame).
+
+    Use :func:`load_mesh` for files and :func:`from_trimesh` for in-memory meshes: they repair,
+    fill sealed voids and position the mesh. The constructor takes the mesh as it is.
+
+    Args:
+        mesh: outward-oriented triangle mesh in mm.
+        name: a label.
+        notes: what was changed when the mesh was prepared.
+        exact: False when the mesh is not watertight (volumes are then approximate).
+    """
+
+    ndim = 3
+
+    def __init__(
+        self, mesh: trimesh.Trimesh, name: str = "mesh", notes: list[str] | None = None,
+        exact: bool = True,
+    ) -> None:
+        if len(mesh.faces) == 0:
+            raise ShapeError(f"mesh {name!r} has no faces")
+        self.mesh = mesh
+        self.name = name
+        self.notes = list(notes or [])
+        self.exact = exact
+        self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+        self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        self.volume = float(mesh.volume)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Generalized winding number >= 0.5: ``points`` (P, 3) mm -> (P,) bool."""
+        q = np.ascontiguousarray(points, dtype=np.float64)
+        return igl.fast_winding_number(self._vertices, self._faces, q) >= 0.5
+
+    def volume_below(self, directions: torch.Tensor, heights: torch.Tensor) -> torch.Tensor:
+        """Volume of ``{x . theta < h}`` by the divergence theorem; (K, 3), (H,) -> (K, H) mm^3."""
+        d, t = check_dips(directions, heights, 3)
+        return torch.from_numpy(boundary_volume_below(self._vertices[self._faces], d, t))
+
+    def radius(self) -> float:
+        return float(np.linalg.norm(self._vertices, axis=1).max())
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._vertices.min(axis=0), self._vertices.max(axis=0)
+
+
+def load_mesh(
+    path: str | Path, radius: float | None = None, fill_sealed_voids: bool = True,
+    center: bool = True, name: str | None = None,
+) -> MeshShape:
+    """Read a mesh file (anything trimesh reads: PLY, STL, OBJ, OFF, GLB, ...) as a shape.
+
+    Args:
+        path: the file. A scene (e.g. GLB) is flattened into one mesh.
+        radius: scale so the farthest vertex is ``radius`` mm from the centre; ``None`` keeps
+            the file's units (taken as mm).
+        fill_sealed_voids: fill cavities bounded by closed inner shells (water cannot reach them).
+        center: move the volume centroid (bounding-box centre if the volume is not meaningful)
+            to the origin.
+        name: label (default: the file stem).
+
+    Raises:
+        ShapeError: the file is missing, unreadable, empty, or encloses no volume (the message
+            names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ShapeError(f"mesh file not found: {path}")
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as err:  # trimesh raises many types for bad files
+        raise ShapeError(f"cannot read mesh file {path}: {err}") from err
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ShapeError(f"mesh file {path} contains no triangles")
+    return from_trimesh(
+        mesh, radius=radius, fill_sealed_voids=fill_sealed_voids, center=center,
+        name=name or path.stem, source=str(path),
+    )
+
+
+def from_trimesh(
+    mesh: trimesh.Trimesh, radius: float | None = None, fill_sealed_voids: bool = True,
+    center: bool = True, name: str = "mesh", source: str | None = None,
+) -> MeshShape:
+    """Repair, fill sealed voids, centre and scale an in-memory mesh (a copy) into a shape.
+
+    Args: as :func:`load_mesh`; ``source`` names the origin of the mesh in messages.
+    """
+    where = source or name
+    if radius is not None and not radius > 0:
+        raise ShapeError(f"radius must be positive (mm), got {radius!r}")
+    mesh = trimesh.Trimesh(
+        vertices=np.asarray(mesh.vertices, dtype=np.float64),
+        faces=np.asarray(mesh.faces, dtype=np.int64), process=False,
+    )
+    if len(mesh.faces) == 0 or not np.isfinite(mesh.vertices).all():
+        raise ShapeError(f"mesh {where} has no faces or non-finite vertices")
+    problems: list[str] = []
+    mesh = _repair(mesh, problems)
+    if len(mesh.faces) == 0:
+        raise ShapeError(f"mesh {where} has only degenerate faces: no volume to fill")
+    with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by zero volumes
+        mesh, notes = _orient_shells(mesh, fill_sealed_voids, problems)
+        volume = abs(mesh.volume)
+    scale = float(np.ptp(mesh.vertices, axis=0).max())
+    if not volume > 1e-9 * scale**3:
+        raise ShapeError(f"mesh {where} encloses no volume (flat, open or empty surface)")
+    if center:
+        mesh.apply_translation(-_centre(mesh))
+    if radius is not None:
+        mesh.apply_scale(radius / float(np.linalg.norm(mesh.vertices, axis=1).max()))
+    shape = MeshShape(mesh, name=name, exact=mesh.is_watertight)
+    if problems:
+        tail = "" if mesh.is_watertight else "; volumes and dips are approximate"
+        shape._warn(f"mesh {where}: " + "; ".join(problems) + tail)
+    for note in notes:
+        shape._warn(f"mesh {where}: {note}")
+    return shape
+
+
+def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> trimesh.Trimesh:
+    """Cheap repairs (in place where possible), appending what was wrong to ``problems``."""
+    mesh.merge_vertices()  # STL files repeat every vertex: not a problem worth a warning
+    n_f = len(mesh.faces)
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.update_faces(mesh.unique_faces())
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) < n_f:
+        problems.append(f"removed {n_f - len(mesh.faces)} degenerate or duplicate faces")
+    if not mesh.is_winding_consistent:
+        before = mesh.faces.copy()
+        trimesh.repair.fix_winding(mesh)
+        flipped = int(np.any(mesh.faces != before, axis=1).sum())
+        if 2 * flipped > len(mesh.faces):  # keep the orientation most faces had in the file
+            mesh.invert()
+            flipped = len(mesh.faces) - flipped
+        problems.append(f"fixed the winding of {flipped} flipped faces")
+    if not mesh.is_watertight:
+        n_open = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+        n_f = len(mesh.faces)
+        trimesh.repair.fill_holes(mesh)
+        filled = len(mesh.faces) - n_f
+        msg = f"not watertight ({n_open} boundary edges)"
+        if filled:
+            msg += f", filled small holes with {filled} faces"
+        if not mesh.is_watertight:
+            left = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+            msg += f", {left} boundary edges remain (inside test by winding numbers)"
+        problems.append(msg)
+    return mesh
+
+
+def _orient_shells(
+    mesh: trimesh.Trimesh, fill_sealed_voids: bool, problems: list[str]
+) -> tuple[trimesh.Trimesh, list[str]]:
+    """Orient every shell by its nesting depth and fill (drop) the sealed voids.
+
+    A shell at even depth (0: outermost) bounds solid and must enclose positive volume; at odd
+    depth it bounds a sealed void and must enclose negative volume. With ``fill_sealed_voids``
+    every nested shell is dropped (voids filled, and solid islands inside them become redundant).
+    """
+    shells = [s for s in mesh.split(only_watertight=False) if s.area > 0]
+    if len(shells) <= 1:
+        shell = shells[0] if shells else mesh
+        if shell.volume < 0:
+            shell.invert()
+            problems.append("the surface was inside out (inverted)")
+        return shell, []
+    depth = _nesting_depths(shells)
+    notes: list[str] = []
+    inverted = 0
+    kept = []
+    for shell, k in zip(shells, depth):
+        if fill_sealed_voids and k > 0:
+            continue
+        if (shell.volume < 0) != (k % 2 == 1):
+            shell.invert()
+            inverted += 1
+        kept.append(shell)
+    if inverted:
+        problems.append(f"inverted {inverted} of {len(shells)} shells to match their nesting")
+    voids = [abs(s.volume) for s, k in zip(shells, depth) if k % 2 == 1]
+    if voids:
+        total = float(np.sum(voids))
+        if fill_sealed_voids:
+            notes.append(
+                f"filled {len(voids)} sealed inner void(s) of total volume {total:.6g} mm^3 "
+                "(water cannot reach them, so they displace water like solid)"
+            )
+        else:
+            notes.append(
+                f"kept {len(voids)} sealed inner void(s) of total volume {total:.6g} mm^3 "
+                "(fill_sealed_voids=False: they are counted as water, which is unphysical)"
+            )
+    merged = trimesh.util.concatenate(kept)
+    if fill_sealed_voids and len(kept) > 1:
+        merged = _union_overlapping(kept, merged, problems)
+    return merged, notes
+
+
+def _union_overlapping(
+    shells: list[trimesh.Trimesh], merged: trimesh.Trimesh, problems: list[str]
+) -> trimesh.Trimesh:
+    """Boolean union of outer shells that overlap (their volumes would otherwise count twice)."""
+    if not all(s.is_watertight for s in shells):
+        problems.append(
+            f"{len(shells)} separate outer shells, not all closed: overlaps may count twice"
+        )
+        return merged
+    try:
+        union = trimesh.boolean.union(shells, engine="manifold")
+    except Exception as err:  # engine missing or failed: keep the shells as they are
+        problems.append(f"{len(shells)} outer shells could not be merged ({err})")
+        return merged
+    overlap = merged.volume - union.volume
+    if overlap <= 1e-9 * merged.volume:
+        return merged
+    problems.append(
+        f"merged {len(shells)} overlapping outer shells (overlap {overlap:.6g} mm^3)"
+    )
+    return union
+
+
+def _nesting_depths(shells: list[trimesh.Trimesh], n_probe: int = 16) -> np.ndarray:
+    """Number of other shells that contain each shell (majority vote over probe vertices)."""
+    picks = [np.linspace(0, len(s.vertices) - 1, n_probe).astype(int) for s in shells]
+    probes = np.ascontiguousarray(
+        np.concatenate([s.vertices[i] for s, i in zip(shells, picks)]), dtype=np.float64
+    )
+    depth = np.zeros(len(shells), dtype=int)
+    for j, outer in enumerate(shells):
+        v = np.ascontiguousarray(outer.vertices, dtype=np.float64)
+        f = np.ascontiguousarray(outer.faces, dtype=np.int64)
+        w = np.abs(igl.fast_winding_number(v, f, probes)).reshape(len(shells), n_probe)
+        inside = np.median(w, axis=1) >= 0.5
+        inside[j] = False
+        depth += inside
+    return depth
+
+
+def _centre(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Volume centroid (mm) of a watertight mesh, bounding-box centre otherwise."""
+    if mesh.is_watertight and mesh.volume > 0:
+        return np.asarray(mesh.center_mass, dtype=np.float64)
+    return mesh.bounds.mean(axis=0)
