@@ -1,0 +1,211 @@
+"""The paper's linear baseline: the minimum-norm solution of ``B f = g``, then Otsu.
+
+``B`` is the dip operator (slab volumes in mm^3 from occupancy fractions, so ``f`` is an
+occupancy and needs no rescaling), ``g`` the measured profiles flattened to ``K*M``.
+Every method solves the same Tikhonov problem
+
+    min_f ||B f - g||^2 + s ||f||^2,   s = tikhonov * mean(diag(B B^T)),
+
+whose solution ``f = B^T (B B^T + s I)^{-1} g`` tends to the minimum-norm solution
+``B^+ g`` as ``s -> 0``. ``tikhonov`` is relative to the mean squared row norm of ``B``, so
+it does not depend on units or grid size. ``tikhonov=0`` is the paper's plain minimum-norm
+solution; the default ``1e-3`` costs almost nothing on data made by the operator itself
+(IoU 0.999 -> 0.997 on a hollow ball at 32^3, 100 orientations) but keeps noise and model
+mismatch from exploding: with noise of 0.05% of the largest slab volume plain min-norm
+falls to IoU 0.26 (``1e-3``: 0.997), and on the exact slab areas of a disk (64^2, 20
+angles: voxelisation is the only error) to IoU 0.22 (``1e-3``: 0.987).
+
+Methods
+-------
+* ``cholesky``: the explicit sparse ``B`` (the splat backend's matrix, i.e. exactly the
+  operator's discretisation), dense ``B B^T + s I`` and a Cholesky factorisation. ``B B^T``
+  is singular in practice - every profile sums to the object volume, so the rows of
+  different orientations are linearly dependent, and slabs outside the working ball are
+  empty rows - so the shift also makes the factorisation possible. With ``tikhonov=0``, or
+  if the factorisation still fails, the rank-revealing fallback is an eigendecomposition of
+  ``B B^T`` that drops eigenvalues below ``rcond * max``: the exact pseudo-inverse.
+  Memory: ``8 (K M)^2`` bytes.
+* ``lsqr`` / ``lsmr``: scipy's iterative solvers on the matrix-free operator (any backend),
+  started at zero, so they converge to the minimum-norm (damped) solution; the damping is
+  ``sqrt(s)`` with ``mean(diag(B B^T))`` estimated by seeded Hutchinson probes (within
+  about 10%: the damping is a regularisation weight, not a precise constant).
+* ``auto``: ``cholesky`` when ``K*M <= max_cholesky_rows``, else ``lsmr``.
+
+The result keeps the raw least-squares values (they leave ``[0, 1]``); the threshold is
+Otsu's over the working-region voxels (or a given number).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+from skimage.filters import threshold_otsu
+from tqdm.auto import tqdm
+
+from dipnet.measurement import DipMeasurement
+from dipnet.operators import DipOperator, make_operator
+from dipnet.reconstruction import Reconstruction
+from dipnet.solvers.base import Solver, measured_profiles
+
+METHODS = ("auto", "cholesky", "lsqr", "lsmr")
+_HUTCHINSON_PROBES = 16
+
+
+def operator_matrix(operator: DipOperator) -> scipy.sparse.csr_matrix:
+    """The explicit ``(K*M, N^d)`` CSR matrix of ``operator``'s discretisation (float64).
+
+    Uses the backend's own ``to_sparse`` when it has one, else the splat backend built for
+    the same grid, directions and slabs (the backends share one discretisation).
+    """
+    if hasattr(operator, "to_sparse"):
+        return operator.to_sparse()
+    return make_operator(operator.grid, operator.directions, operator.n_slabs, backend="splat").to_sparse()
+
+
+def otsu_threshold(values: np.ndarray) -> float:
+    """Otsu's threshold of ``values`` (any shape); a constant array gives its value."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    if values.size == 0 or np.ptp(values) == 0:
+        return float(values[0]) if values.size else 0.0
+    return float(threshold_otsu(values))
+
+
+class MinNormSolver(Solver):
+    """Minimum-norm (optionally Tikhonov-damped) least squares, then a threshold.
+
+    Args:
+        method: ``"auto"``, ``"cholesky"``, ``"lsqr"`` or ``"lsmr"`` (see the module docstring).
+        tikhonov: relative Tikhonov weight ``s / mean(diag(B B^T))``, >= 0.
+        iter_lim: iteration limit of ``lsqr`` / ``lsmr``.
+        atol, btol: stopping tolerances of ``lsqr`` / ``lsmr`` (scipy's meaning).
+        max_cholesky_rows: largest ``K*M`` for which ``auto`` picks ``cholesky``.
+        rcond: relative eigenvalue cut-off of the pseudo-inverse fallback.
+        threshold: ``"otsu"`` or a fixed occupancy level.
+        progress: show a progress bar.
+    """
+
+    name = "minnorm"
+
+    def __init__(self, method: str = "auto", tikhonov: float = 1e-3, iter_lim: int = 300,
+                 atol: float = 1e-6, btol: float = 1e-6, max_cholesky_rows: int = 6000,
+                 rcond: float = 1e-10, threshold: str | float = "otsu", progress: bool = True) -> None:
+        if method not in METHODS:
+            raise ValueError(f"unknown minnorm method {method!r}; choose one of {METHODS}")
+        if not tikhonov >= 0:
+            raise ValueError(f"tikhonov must be >= 0, got {tikhonov}")
+        if int(iter_lim) < 1 or int(max_cholesky_rows) < 1:
+            raise ValueError("iter_lim and max_cholesky_rows must be positive")
+        if threshold != "otsu" and not isinstance(threshold, (int, float)):
+            raise ValueError(f"threshold must be 'otsu' or a number, got {threshold!r}")
+        self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), int(iter_lim)
+        self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
+        self.max_cholesky_rows, self.threshold, self.progress = int(max_cholesky_rows), threshold, progress
+
+    # ------------------------------------------------------------------ public
+    def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
+        """Reconstruct on ``operator.grid``; ``info`` holds method, seconds, iterations, residual."""
+        g = measured_profiles(measurement, operator).reshape(-1).numpy()
+        start = time.perf_counter()
+        method = self.method
+        if method == "auto":
+            method = "cholesky" if g.size <= self.max_cholesky_rows else "lsmr"
+        if method == "cholesky":
+            f, info = self._solve_cholesky(operator, g)
+        else:
+            f, info = self._solve_iterative(operator, g, method)
+        seconds = time.perf_counter() - start
+        vol = torch.from_numpy(f.reshape(operator.grid.shape))
+        with torch.no_grad():
+            fitted = operator(vol).reshape(-1).numpy()
+        residual = float(np.linalg.norm(fitted - g) / max(np.linalg.norm(g), 1e-300))
+        mask = operator.mask.cpu().numpy()
+        level = otsu_threshold(f.reshape(operator.grid.shape)[mask]) if self.threshold == "otsu" \
+            else float(self.threshold)
+        info = {"solver": self.name, "method": method, "tikhonov": self.tikhonov, "seconds": seconds,
+                "relative_residual": residual, **info}
+        return Reconstruction(occupancy=vol.to(torch.float32), grid=operator.grid, threshold=level, info=info)
+
+    # ------------------------------------------------------------------ methods
+    def _solve_cholesky(self, operator: DipOperator, g: np.ndarray) -> tuple[np.ndarray, dict]:
+        with tqdm(total=3, desc="minnorm cholesky", disable=not self.progress, leave=False) as bar:
+            mat = operator_matrix(operator)
+            bar.update()
+            gram = _dense_gram(mat)
+            bar.update()
+            diag = np.diag_indices_from(gram)
+            shift = self.tikhonov * float(gram[diag].mean())
+            y, factorisation = None, "eigh-pinv"
+            if shift > 0:
+                gram[diag] += shift
+                try:
+                    factor = scipy.linalg.cho_factor(gram, lower=True, overwrite_a=True, check_finite=False)
+                    y, factorisation = scipy.linalg.cho_solve(factor, g, check_finite=False), "cholesky"
+                except np.linalg.LinAlgError:
+                    gram = _dense_gram(mat)  # the failed factorisation overwrote it
+            if y is None:
+                w, u = scipy.linalg.eigh(gram, overwrite_a=True, check_finite=False)
+                keep = w > self.rcond * max(w.max(), 1e-300)
+                y = u[:, keep] @ ((u[:, keep].T @ g) / (w[keep] + shift))
+            bar.update()
+        return mat.T @ y, {"iterations": 0, "shift": shift, "factorisation": factorisation}
+
+    def _solve_iterative(self, operator: DipOperator, g: np.ndarray, method: str) -> tuple[np.ndarray, dict]:
+        base = operator.as_linear_operator()
+        damp = float(np.sqrt(self.tikhonov * _mean_gram_diagonal(operator))) if self.tikhonov > 0 else 0.0
+        with tqdm(total=self.iter_lim, desc=f"minnorm {method}", disable=not self.progress, leave=False) as bar:
+            def rmatvec(y: np.ndarray) -> np.ndarray:
+                bar.update()  # one adjoint per iteration
+                return base.rmatvec(y)
+
+            op = scipy.sparse.linalg.LinearOperator(base.shape, matvec=base.matvec, rmatvec=rmatvec,
+                                                    dtype=np.float64)
+            tol = {"damp": damp, "atol": self.atol, "btol": self.btol}
+            out = (scipy.sparse.linalg.lsqr(op, g, iter_lim=self.iter_lim, **tol) if method == "lsqr"
+                   else scipy.sparse.linalg.lsmr(op, g, maxiter=self.iter_lim, **tol))
+        return out[0], {"iterations": int(out[2]), "stop_reason": int(out[1]), "damp": damp}
+
+
+def _dense_gram(mat: scipy.sparse.csr_matrix, block_rows: int = 512) -> np.ndarray:
+    """Dense ``B B^T`` ``(R, R)`` float64, built in row blocks so that the (nearly dense)
+    sparse product never exists whole: peak memory stays close to ``8 R^2`` bytes."""
+    rows = mat.shape[0]
+    out = np.empty((rows, rows))
+    right = mat.T.tocsc()
+    for r0 in range(0, rows, block_rows):
+        out[r0:r0 + block_rows] = (mat[r0:r0 + block_rows] @ right).toarray()
+    return out
+
+
+def _mean_gram_diagonal(operator: DipOperator, seed: int = 0) -> float:
+    """``mean(diag(B B^T)) = ||B||_F^2 / (K M)`` by Hutchinson's estimator: the mean of
+    ``||B z||^2`` over seeded Rademacher probes ``z`` (one at a time, to bound memory)."""
+    gen = torch.Generator().manual_seed(seed)
+    total = 0.0
+    with torch.no_grad():
+        for _ in range(_HUTCHINSON_PROBES):
+            z = torch.randint(0, 2, operator.grid.shape, generator=gen).to(torch.float64) * 2 - 1
+            total += float(operator(z).pow(2).sum())
+    return total / _HUTCHINSON_PROBES / (operator.n_orientations * operator.n_slabs)
+
+
+class LSQRSolver(MinNormSolver):
+    """:class:`MinNormSolver` with ``method="lsqr"``."""
+
+    name = "lsqr"
+
+    def __init__(self, **options) -> None:
+        super().__init__(method="lsqr", **options)
+
+
+class LSMRSolver(MinNormSolver):
+    """:class:`MinNormSolver` with ``method="lsmr"``."""
+
+    name = "lsmr"
+
+    def __init__(self, **options) -> None:
+        super().__init__(method="lsmr", **options)
