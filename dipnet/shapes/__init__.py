@@ -6,7 +6,7 @@ Every shape follows :class:`~dipnet.shapes.base.Shape`: ``occupancy(grid, supers
 
 from dipnet.shapes.analytic import Ball, Box, ChamberBox, Disk, Torus
 from dipnet.shapes.base import Shape, ShapeError, ShapeWarning
-from dipnet.shapes.builtin import DEFAULT_SHAPE, builtin_names, builtin_shape
+from dipnet.shapes.builtin import DEFAULT_SHAPE, builtin_names, builtin_shape, shape_from_file
 from dipnet.shapes.divergence import boundary_volume_below
 from dipnet.shapes.mesh import MeshShape, from_trimesh, load_mesh
 from dipnet.shapes.silhouettes import PolygonShape, elephant, project_mesh
@@ -30,4 +30,5 @@ __all__ = [
     "from_trimesh",
     "load_mesh",
     "project_mesh",
+    "shape_from_file",
 ]

@@ -13,7 +13,8 @@ import numpy as np
 
 from dipnet.shapes.analytic import Ball, Box, ChamberBox, Disk, Torus
 from dipnet.shapes.base import Shape, ShapeError
-from dipnet.shapes.silhouettes import elephant
+from dipnet.shapes.mesh import load_mesh
+from dipnet.shapes.silhouettes import elephant, project_mesh
 
 DEFAULT_SHAPE = "chamber_box"
 
@@ -65,3 +66,22 @@ def builtin_shape(name: str, ndim: int, radius: float) -> Shape:
     if not radius > 0:
         raise ShapeError(f"shape radius must be positive (mm), got {radius!r}")
     return _REGISTRY[ndim][name](float(radius))
+
+
+def shape_from_file(path: str, ndim: int, radius: float | None = None, fill_sealed_voids: bool = True,
+                    axis: str = "z") -> Shape:
+    """A mesh file as a 3D shape, or (``ndim=2``) its silhouette projected along ``axis``.
+
+    Args:
+        path: any mesh file trimesh reads (PLY, STL, OBJ, OFF, GLB).
+        ndim: 3 for the solid, 2 for its projection.
+        radius: scale so the farthest point is ``radius`` mm from the centroid (None: keep mm).
+        fill_sealed_voids: treat sealed inner voids as solid (water cannot reach them).
+        axis: projection axis for 2D.
+    """
+    shape = load_mesh(path, radius=radius, fill_sealed_voids=fill_sealed_voids)
+    if ndim == 3:
+        return shape
+    if ndim != 2:
+        raise ShapeError(f"shapes exist in 2D and 3D, not {ndim!r}D")
+    return project_mesh(shape, axis=axis)  # a projection never lies farther out than the solid

@@ -1,0 +1,146 @@
+"""The reconstruction job behind ``scripts/reconstruct.py``: config in, files and metrics out.
+
+Data flow: shape -> measurement (simulated from the shape's own geometry, or read from a
+file) -> operator -> solver -> reconstruction -> mesh, volume, metrics and figures, all
+written into one output directory.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from dipnet import export, metrics, plots
+from dipnet.grid import Grid
+from dipnet.measurement import DipMeasurement
+from dipnet.orientations import make_directions
+from dipnet.reconstruction import Reconstruction
+from dipnet.shapes import Shape
+
+log = logging.getLogger(__name__)
+
+
+class ConfigError(ValueError):
+    """A configuration value is out of range or inconsistent."""
+
+
+@dataclass
+class JobResult:
+    """What one reconstruction job produced."""
+
+    measurement: DipMeasurement
+    reconstruction: Reconstruction
+    metrics: dict[str, Any]
+    output_dir: Path
+
+
+def build_grid(cfg: DictConfig) -> Grid:
+    """The grid from ``ndim``, ``resolution`` and ``extent_mm``; clear errors on bad values."""
+    for key in ("resolution", "n_dips"):
+        value = cfg.get(key)
+        if not isinstance(value, int) or value < 1:
+            raise ConfigError(f"{key} must be a positive integer, got {value!r}")
+    if cfg.resolution < 4:
+        raise ConfigError(f"resolution must be at least 4 voxels, got {cfg.resolution}")
+    if not float(cfg.extent_mm) > 0:
+        raise ConfigError(f"extent_mm must be positive, got {cfg.extent_mm!r}")
+    if cfg.ndim not in (2, 3):
+        raise ConfigError(f"ndim must be 2 or 3, got {cfg.ndim!r}")
+    if cfg.get("n_slabs") is not None and (not isinstance(cfg.n_slabs, int) or cfg.n_slabs < 2):
+        raise ConfigError(f"n_slabs must be an integer >= 2 or null, got {cfg.n_slabs!r}")
+    if not 0 < float(cfg.fill) <= 1:
+        raise ConfigError(f"fill must be in (0, 1], got {cfg.fill!r}")
+    return Grid(int(cfg.resolution), int(cfg.ndim), float(cfg.extent_mm))
+
+
+def acquire(cfg: DictConfig, grid: Grid, out: Path) -> tuple[DipMeasurement, Shape | None]:
+    """The measurement and (for simulated sources) the true shape."""
+    n_slabs = cfg.n_slabs or grid.n
+    if cfg.source.kind == "recorded":
+        read = instantiate(cfg.source.reader)
+        measurement = read(grid=grid, n_slabs=n_slabs)
+        return measurement, None
+    shape: Shape = instantiate(cfg.shape, ndim=grid.ndim, radius=float(cfg.fill) * grid.radius)
+    if shape.radius() > grid.radius * (1 + 1e-6):
+        raise ConfigError(f"shape {shape.name!r} (radius {shape.radius():.1f} mm) does not fit the working "
+                          f"ball of radius {grid.radius:.1f} mm: increase extent_mm or lower fill")
+    directions = make_directions(cfg.orientations, cfg.n_dips, grid.ndim, cfg.seed)
+    simulate = instantiate(cfg.source.simulator)
+    raw, measurement = simulate(shape, directions, grid=grid, n_slabs=n_slabs, seed=cfg.seed,
+                                progress=cfg.output.progress)
+    raw.save(out / "rawscan.jsonl")
+    return measurement, shape
+
+
+def run(cfg: DictConfig, out: Path) -> JobResult:
+    """Run one reconstruction job and write its outputs into ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(int(cfg.seed))
+    grid = build_grid(cfg)
+    measurement, shape = acquire(cfg, grid, out)
+    measurement.save(out / "measurement.npz")
+
+    t0 = time.perf_counter()
+    operator = instantiate(cfg.operator)(grid, measurement.directions, cfg.n_slabs or grid.n)
+    solver = instantiate(cfg.solver)
+    recon = solver.solve(measurement, operator)
+    seconds = time.perf_counter() - t0
+    recon.save(out / "reconstruction.npz")
+
+    scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
+                              "seconds": seconds, "n_dips": measurement.n_orientations,
+                              "resolution": grid.n, "ndim": grid.ndim,
+                              "measured_volume_mm3": measurement.volume_estimate(),
+                              "reconstructed_volume_mm3": float(recon.binary.sum() * grid.voxel_volume)}
+    truth = None
+    if shape is not None:
+        truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
+        scores.update(shape=shape.name, snr_db=cfg.get("snr_db"))
+        scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None)))
+        scores.update(metrics.false_rates(recon.binary, truth > 0.5))
+    (out / "metrics.json").write_text(json.dumps(scores, indent=2))
+    write_outputs(cfg, out, measurement, operator, recon, truth)
+    log.info("metrics: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                      for k, v in scores.items()))
+    return JobResult(measurement, recon, scores, out)
+
+
+def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, truth) -> None:
+    """Meshes (3D) and PNG figures of one job."""
+    grid = recon.grid
+    meshes = []
+    if grid.ndim == 3:
+        if truth is not None:
+            meshes.append((export.volume_to_mesh(truth, grid, 0.5), "truth"))
+        meshes.append((export.volume_to_mesh(recon.occupancy.numpy(), grid, recon.threshold), "reconstruction"))
+        for mesh, name in meshes:
+            if len(mesh.faces):
+                for fmt in cfg.output.mesh_formats:
+                    export.save_mesh(mesh, out / f"{name}.{fmt}")
+    if not cfg.output.figures:
+        return
+    with torch.no_grad():
+        predicted = operator(torch.as_tensor(recon.binary, dtype=torch.float64))
+    plots.plot_sinogram(measurement.profiles.numpy(), out / "sinogram.png")
+    plots.plot_profiles(measurement.profiles.numpy(), predicted.numpy(), out / "profiles.png")
+    if truth is not None:
+        plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png")
+    if recon.history:
+        plots.plot_history(recon.history, out / "loss.png")
+    if meshes:
+        plots.plot_mesh([m for m, _ in meshes], out / "mesh.png", titles=[t for _, t in meshes])
+
+
+def config_summary(cfg: DictConfig) -> str:
+    """The resolved config as YAML (for logs and headers)."""
+    return OmegaConf.to_yaml(cfg, resolve=True)
