@@ -1,6 +1,22 @@
 """Reconstruction solvers behind one interface (:class:`Solver`)."""
 
+from __future__ import annotations
+
 from dipnet.solvers.base import Solver, measured_profiles
 from dipnet.solvers.minnorm import LSMRSolver, LSQRSolver, MinNormSolver
 
-__all__ = ["LSMRSolver", "LSQRSolver", "MinNormSolver", "Solver", "measured_profiles"]
+SOLVERS: dict[str, type[Solver]] = {
+    "minnorm": MinNormSolver,
+    "lsqr": LSQRSolver,
+    "lsmr": LSMRSolver,
+}
+
+
+def make_solver(name: str, **options) -> Solver:
+    """The solver called ``name`` (a key of :data:`SOLVERS`) built with ``options``."""
+    if name not in SOLVERS:
+        raise ValueError(f"unknown solver {name!r}; choose one of {sorted(SOLVERS)}")
+    return SOLVERS[name](**options)
+
+
+__all__ = ["LSMRSolver", "LSQRSolver", "MinNormSolver", "SOLVERS", "Solver", "make_solver", "measured_profiles"]
