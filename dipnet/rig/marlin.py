@@ -1,0 +1,212 @@
+"""Marlin 2.x dialect: pure line parsers and the :class:`MarlinController` driver.
+
+Protocol facts (Marlin 2.x)
+---------------------------
+* Every line is acknowledged by ``ok`` (optionally ``ok N.. P.. B..`` with ADVANCED_OK).
+* While a long command runs (``G28``, ``M400``) the firmware sends ``echo:busy: processing``
+  every couple of seconds (HOST_KEEPALIVE): the host must keep waiting.
+* Lines may carry a line number and checksum, ``N12 G1 Z5*57`` (checksum = XOR of every byte
+  before ``*``); ``M110 N0`` sets the expected number. A bad line is answered by
+  ``Error:checksum mismatch, Last Line: 11`` / ``Error:Line Number is not Last Line Number+1``,
+  then ``Resend: 12`` and ``ok``: the host resends from that line.
+* ``M114`` reports ``X:0.00 Y:0.00 Z:10.00 E:0.00 Count X:0 Y:0 Z:4000``; ``M400`` returns when
+  every move has finished; ``M410`` quick-stops; ``G28`` homes.
+* ``start`` is printed after a reset; ``Error:Printer halted. kill() called!`` means halted.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass
+
+from dipnet.rig.controller import (AlarmError, Controller, ControllerError, Position, ResetError, RigTimeout,
+                                   require_link)
+
+_RESEND = re.compile(r"^(?:Resend:|rs)\s*N?(?P<n>\d+)", re.IGNORECASE)
+_AXIS = re.compile(r"(?P<axis>[A-Z]):\s*(?P<value>[-+]?\d+(?:\.\d*)?)")
+_FATAL = ("halted", "kill()", "stopped")
+
+
+@dataclass(frozen=True)
+class MarlinLine:
+    """One classified line from a Marlin controller.
+
+    Attributes:
+        kind: ``"ok" | "busy" | "resend" | "error" | "fatal" | "start" | "position" | "echo" | "other"``.
+        text: the line as received (stripped).
+        number: the line number of a ``Resend``.
+        payload: the message text after ``Error:`` / ``echo:``.
+    """
+
+    kind: str
+    text: str
+    number: int | None = None
+    payload: str = ""
+
+
+def checksum(text: str) -> int:
+    """Marlin's line checksum: XOR of every byte of ``text`` (the part before ``*``)."""
+    value = 0
+    for byte in text.encode("ascii"):
+        value ^= byte
+    return value
+
+
+def numbered(n: int, command: str) -> str:
+    """``N<n> <command>*<checksum>`` (pure)."""
+    text = f"N{n} {command}"
+    return f"{text}*{checksum(text)}"
+
+
+def classify(line: str) -> MarlinLine:
+    """Classify one received line (pure)."""
+    text = line.strip()
+    if text == "ok" or text.startswith("ok ") or text.startswith("ok\t"):
+        return MarlinLine("ok", text)
+    low = text.lower()
+    if low.startswith("echo:busy") or low.startswith("busy:"):
+        return MarlinLine("busy", text)
+    m = _RESEND.match(text)
+    if m:
+        return MarlinLine("resend", text, number=int(m["n"]))
+    if low.startswith("error:") or text.startswith("!!"):
+        payload = text.split(":", 1)[1] if ":" in text else text
+        return MarlinLine("fatal" if any(w in low for w in _FATAL) or text.startswith("!!") else "error",
+                          text, payload=payload.strip())
+    if text == "start":
+        return MarlinLine("start", text)
+    if low.startswith("echo:"):
+        return MarlinLine("echo", text, payload=text[5:].strip())
+    if parse_position(text):
+        return MarlinLine("position", text)
+    return MarlinLine("other", text)
+
+
+def parse_position(line: str) -> dict[str, float]:
+    """Axis positions of an ``M114`` reply, ``{"X": 0.0, ..., "E": 0.0}`` (the part before
+    ``Count``, i.e. the planner's logical position); ``{}`` if the line is not one (pure)."""
+    head = line.split("Count", 1)[0]
+    if not re.match(r"^\s*[A-Z]:", head):
+        return {}
+    return {m["axis"]: float(m["value"]) for m in _AXIS.finditer(head)}
+
+
+class MarlinController(Controller):
+    """Marlin 2.x driver (see the module docstring).
+
+    Args (beyond :class:`~dipnet.rig.controller.Controller`'s):
+        line_numbers: send ``N.. *checksum`` lines and honour ``Resend:``.
+        max_resends: give up (``ControllerError``) after this many resends of one line.
+        home_command: the homing line (``G28``, or ``G28 Z`` to home the lowering axis only).
+        startup_s: time to wait for the ``start`` banner after opening (boards reset on open);
+            0 to skip.
+    """
+
+    dialect = "marlin"
+
+    def __init__(self, url: str, axes=None, *, line_numbers: bool = True, max_resends: int = 3,
+                 home_command: str = "G28", startup_s: float = 0.0, **options) -> None:
+        super().__init__(url, axes, **options)
+        self.line_numbers = line_numbers
+        self.max_resends = int(max_resends)
+        self.home_command = home_command
+        self.startup_s = float(startup_s)
+        self._next = 1
+        self._sent: dict[int, str] = {}
+        self.resends = 0
+
+    def identity(self) -> dict:
+        return {**super().identity(), "line_numbers": self.line_numbers}
+
+    # ------------------------------------------------------------------ lines
+    def _frame(self, line: str) -> str:
+        if not self.line_numbers:
+            return line
+        n = self._next
+        self._next += 1
+        self._sent = {k: v for k, v in self._sent.items() if k > n - 16}
+        self._sent[n] = numbered(n, line)
+        return self._sent[n]
+
+    def command(self, line: str, timeout: float | None = None) -> list[str]:
+        link = require_link(self)
+        limit = self.timeout if timeout is None else float(timeout)
+        link.write_line(self._frame(line))
+        received, error, resend, tries = [], None, None, 0
+        while True:
+            reply = classify(link.read_line(limit))
+            if reply.kind == "busy":
+                continue  # keep-alive: the read above restarts its time limit
+            if reply.kind == "start":
+                raise ResetError(f"controller was reset unexpectedly ('start' while waiting for {line!r})")
+            if reply.kind == "fatal":
+                raise AlarmError(f"controller halted: {reply.payload}")
+            if reply.kind == "error":
+                error = reply.payload
+            elif reply.kind == "resend":
+                resend = reply.number
+            elif reply.kind == "ok":
+                if resend is not None:
+                    tries += 1
+                    if resend not in self._sent or tries > self.max_resends:
+                        raise ControllerError(f"controller asks to resend line {resend} of {line!r} "
+                                              f"({error or 'no reason given'}); giving up")
+                    for n in sorted(k for k in self._sent if k >= resend):
+                        link.write_line(self._sent[n])
+                    error, resend = None, None
+                    self.resends += 1
+                    continue
+                if error is not None:
+                    raise ControllerError(f"controller rejected {line!r}: {error}")
+                return received
+            else:
+                if reply.kind in ("echo", "other") and reply.text:
+                    self.messages.append(reply.text)
+                received.append(reply.text)
+
+    # ------------------------------------------------------------------ interface
+    def _handshake(self) -> None:
+        link = require_link(self)
+        if self.startup_s > 0:
+            deadline = time.monotonic() + self.startup_s
+            try:
+                while classify(link.read_line(max(deadline - time.monotonic(), 1e-3))).kind != "start":
+                    pass
+            except RigTimeout:
+                pass
+        link.discard_input()
+        self._reset_numbers()
+        self.command("G90")
+
+    def _reset_numbers(self) -> None:
+        if self.line_numbers:
+            self._next, self._sent = 0, {}
+            self.command("M110 N0")  # this line itself is N0; the next expected is N1
+
+    def _recover(self) -> None:
+        for _ in range(3):
+            try:
+                self.position()
+                break
+            except AlarmError:
+                self.command("M999")  # restart after "Printer stopped due to errors"
+            except (ResetError, ControllerError):
+                self._reset_numbers()  # after a reset the firmware expects line N1 again
+        self.command("G90")
+
+    def home(self) -> None:
+        self.command(self.home_command, timeout=self.home_timeout)
+
+    def wait_idle(self, timeout: float | None = None) -> None:
+        self.command("M400", timeout=self.move_timeout if timeout is None else timeout)
+
+    def position(self) -> Position:
+        for text in self.command("M114"):
+            pos = parse_position(text)
+            if pos:
+                return self.axes.rig_position(pos)
+        raise ControllerError("M114 gave no position line")
+
+    def stop(self) -> None:
+        self.command("M410")

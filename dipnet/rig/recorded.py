@@ -1,0 +1,415 @@
+"""From recordings to measurements: readers and the real-data steps of the paper's section 5.2.
+
+Readers
+-------
+* :func:`read_scan`: dipnet's own raw scan files (:func:`dipnet.rawscan.read_rawscan`), or
+  the CSV of the authors' robot (:func:`read_authors_csv`, columns
+  ``SN,R1_deg,R2_deg,Height_mm,WaterLevel_mm``; R1 = tilt, R2 = spin, Height decreasing as the
+  object goes down), both as a :class:`~dipnet.rawscan.RawScan`.
+
+Real-data steps (used by :func:`read_recorded`, the ``source=recorded`` reader)
+------------------------------------------------------------------------------
+1. fixture subtraction (:func:`subtract_fixture`) when a fixture-only recording is given;
+2. truncated dips (the object still going under when the scan stopped) are detected
+   (:func:`truncated_orientations`) and kept or dropped;
+3. tilt / start-offset correction (:func:`pivot_start_heights`): the tilt pivot sits ``p`` mm
+   above the object's origin on its axis, so tilting raises the object and the water line at
+   stage 0 is ``t_start(tilt) = T + p cos(tilt)`` in the object frame. ``T`` and ``p`` are
+   fitted to the profile centroids of the complete dips (the centroid of a dip profile is
+   ``c . theta``, and ``c`` lies on the symmetry axis), or ``p`` is given (the authors used 180);
+4. rise -> volume with the tank cross-section, non-uniform -> uniform slabs and the 5-tap
+   Gaussian smoothing (:func:`dipnet.preprocess.preprocess`);
+5. symmetry exploitation (:func:`expand_symmetry`): every profile is copied to the
+   directions a declared symmetry group (n-fold rotation about z, optionally with mirror
+   planes: D3 for the three cats) maps it to; coinciding directions are merged (averaged);
+6. interpolation of missing orientations (:func:`interpolate_orientations`);
+plus :func:`calibrate_cross_section` (the tank cross-section from a dip of a reference object
+of known volume).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dipnet.grid import Grid
+from dipnet.measurement import DipMeasurement
+from dipnet.orientations import fibonacci_hemisphere
+from dipnet.preprocess import preprocess
+from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, read_rawscan
+
+AUTHORS_COLUMNS = ("SN", "R1_deg", "R2_deg", "Height_mm", "WaterLevel_mm")
+AUTHORS_TANK_MM2 = 540.0 * 340.0  # the authors' value for the 3 mm cats recording
+AUTHORS_QUANTUM_MM = 0.04
+
+
+# ============================================================================ readers
+def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_TANK_MM2) -> RawScan:
+    """The authors' robot CSV as a raw scan.
+
+    Rows are grouped into orientations by consecutive equal ``(R1, R2)``; ``stage_mm =
+    -Height_mm`` (increasing = lowered), ``values`` = water level (mm), tilt = R1, spin = R2.
+    Every orientation is complete; times are unknown (the row index is stored as time).
+
+    Raises:
+        RawScanFileError: missing file, wrong columns, non-numeric values (message names the
+            file and line).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RawScanFileError(f"CSV file not found: {path}")
+    with open(path, newline="", encoding="ascii", errors="replace") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or tuple(c.strip() for c in rows[0]) != AUTHORS_COLUMNS:
+        raise RawScanFileError(f"{path}:1: expected the header {','.join(AUTHORS_COLUMNS)}, "
+                               f"got {','.join(rows[0]) if rows else 'an empty file'}")
+    data = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        if not row or not "".join(row).strip():
+            continue
+        if len(row) != 5:
+            raise RawScanFileError(f"{path}:{lineno}: expected 5 fields, got {len(row)}")
+        try:
+            data.append([float(x) for x in row])
+        except ValueError as exc:
+            raise RawScanFileError(f"{path}:{lineno}: {exc}") from exc
+    if not data:
+        raise RawScanFileError(f"{path}: no data rows")
+    a = np.asarray(data)
+    change = np.flatnonzero(np.any(np.diff(a[:, 1:3], axis=0) != 0, axis=1)) + 1
+    blocks = np.split(np.arange(len(a)), change)
+    steps = np.diff(-a[:, 3])[np.diff(-a[:, 3]) > 0]
+    header = ScanHeader(
+        quantity="level_mm", ndim=3, tank_cross_section_mm2=float(tank_cross_section_mm2),
+        step_mm=float(np.median(steps)) if steps.size else None, resolution=AUTHORS_QUANTUM_MM,
+        rig="Aberman et al. 2017 dipping robot (Kewiee/DipTransform)",
+        metadata={"source": str(path), "format": "authors_csv", "columns": list(AUTHORS_COLUMNS)})
+    scan = RawScan(header=header, path=path)
+    for k, idx in enumerate(blocks):
+        scan.orientations.append(OrientationScan(
+            k=k, tilt_deg=float(a[idx[0], 1]), spin_deg=float(a[idx[0], 2]), stage_mm=-a[idx, 3],
+            values=a[idx, 4], time_s=a[idx, 0], meta={"rows": [int(a[idx[0], 0]), int(a[idx[-1], 0])]},
+            complete=True))
+    return scan
+
+
+def read_scan(path: str | Path, tank_cross_section_mm2: float | None = None) -> RawScan:
+    """A dipnet raw scan (``.jsonl``) or an authors' CSV (``.csv``) as a :class:`RawScan`."""
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        return read_authors_csv(path, tank_cross_section_mm2 or AUTHORS_TANK_MM2)
+    raw = read_rawscan(path)
+    if tank_cross_section_mm2 is not None:
+        raw.header = replace(raw.header, tank_cross_section_mm2=float(tank_cross_section_mm2))
+    return raw
+
+
+# ============================================================================ helpers
+def submerged_volume(o: OrientationScan, scale: float, n_baseline: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """``(stage (n,), V (n,))``: the stage positions (mm) and the submerged volume ``V`` (mm^3,
+    made non-decreasing, zero at the first ``n_baseline`` readings' mean) of one orientation;
+    ``scale`` turns readings into volumes (``A`` for levels, ``1 / density`` for balances)."""
+    values = np.maximum.accumulate(o.values)
+    volume = scale * (values - values[:n_baseline].mean())
+    return o.stage_mm, np.maximum(volume, 0.0)
+
+
+def _level_scale(header: ScanHeader, area: float) -> tuple[float, float]:
+    """``(reading -> volume factor, area)``."""
+    return (area if header.quantity == "level_mm" else 1.0 / header.density_g_per_mm3), area
+
+
+def truncated_orientations(raw: RawScan, tail_fraction: float = 0.1, tail_tol: float = 0.04) -> list[int]:
+    """Orientations ``k`` whose reading still rose at the end of the scan: the rise over the last
+    ``tail_fraction`` of the readings exceeds ``tail_tol`` x the total rise."""
+    out = []
+    for o in raw.orientations:
+        v = np.maximum.accumulate(o.values)
+        n = max(2, int(round(tail_fraction * len(v))))
+        total = v[-1] - v[0]
+        if total > 0 and v[-1] - v[-n] > tail_tol * total:
+            out.append(o.k)
+    return out
+
+
+def calibrate_cross_section(levels, volume_mm3: float, n_baseline: int = 3, n_plateau: int = 3) -> float:
+    """Tank free cross-section (mm^2) from a dip of a reference object of known volume.
+
+    Args:
+        levels: water levels (mm) of one full dip, ``(n,)`` (or an :class:`OrientationScan`):
+            the first ``n_baseline`` readings with the object clear of the water, the last
+            ``n_plateau`` with it fully under (and nothing else going under).
+        volume_mm3: the reference volume (e.g. a ball: ``pi d^3 / 6``).
+
+    Returns ``A = V / rise``; the rise is plateau mean minus baseline mean.
+    """
+    values = np.asarray(levels.values if isinstance(levels, OrientationScan) else levels, dtype=np.float64)
+    if values.size < n_baseline + n_plateau:
+        raise ValueError(f"need at least {n_baseline + n_plateau} readings, got {values.size}")
+    rise = values[-n_plateau:].mean() - values[:n_baseline].mean()
+    if not rise > 0:
+        raise ValueError(f"the level did not rise ({rise:g} mm): not a dip of the reference object")
+    return float(volume_mm3) / rise
+
+
+def subtract_fixture(raw: RawScan, fixture: RawScan, area: float | None = None, n_baseline: int = 3) -> RawScan:
+    """Remove a fixture's contribution from every orientation of ``raw``.
+
+    ``fixture`` is a recording of the fixture alone on the same rig (same stage coordinates);
+    each orientation uses the fixture orientation of nearest tilt (then spin). The fixture's
+    submerged volume ``F(u)`` is a function of the water line ``u = s + V / A`` relative to stage 0,
+    so the object's volume is ``V_i - F(u_i)``. To keep the water line right for
+    preprocessing, the stage positions become ``s_i + F(u_i) / A`` and the readings drop by
+    ``F(u_i)`` (in reading units).
+    """
+    area = float(area or raw.header.tank_cross_section_mm2 or 0.0)
+    if not area > 0:
+        raise ValueError("fixture subtraction needs the tank cross-section")
+    if raw.header.quantity != fixture.header.quantity:
+        raise ValueError(f"the fixture recording measures {fixture.header.quantity}, the scan {raw.header.quantity}")
+    scale, _ = _level_scale(raw.header, area)
+    curves = []
+    for f in fixture.orientations:
+        s, v = submerged_volume(f, scale, n_baseline)
+        curves.append(((f.tilt_deg or 0.0, f.spin_deg or 0.0), s + v / area, v))
+    out = RawScan(header=replace(raw.header, metadata={**raw.header.metadata, "fixture_subtracted": True}),
+                  path=raw.path)
+    for o in raw.orientations:
+        tilt, spin = (o.tilt_deg or 0.0, o.spin_deg or 0.0)
+        _, uf, vf = min(curves, key=lambda c: (abs(c[0][0] - tilt), abs(c[0][1] - spin)))
+        s, v = submerged_volume(o, scale, n_baseline)
+        f_i = np.interp(s + v / area, uf, vf)
+        out.orientations.append(replace(o, stage_mm=o.stage_mm + f_i / area, values=o.values - f_i / scale,
+                                        flags=[list(x) for x in o.flags]))
+    return out
+
+
+def profile_centroids(raw: RawScan, area: float) -> np.ndarray:
+    """Per orientation, the volume-weighted mean water line ``u`` (mm, relative to stage 0)."""
+    out = []
+    for o in raw.orientations:
+        scale, _ = _level_scale(raw.header, area)
+        s, v = submerged_volume(o, scale)
+        u = s + v / area
+        dv = np.diff(v)
+        if dv.sum() <= 0:
+            raise ValueError(f"orientation {o.k}: the reading never rises")
+        out.append(float(np.sum(0.5 * (u[1:] + u[:-1]) * dv) / dv.sum()))
+    return np.asarray(out)
+
+
+def pivot_start_heights(raw: RawScan, area: float, pivot_mm: float | str = "fit", fit: list[int] | None = None,
+                        centre: str = "extent") -> tuple[np.ndarray, dict]:
+    """Per-orientation water line at stage 0, ``t_start_k = T + p cos(tilt_k)`` (mm, object frame).
+
+    Args:
+        raw: the scan (orientations with ``tilt_deg``).
+        area: tank cross-section (mm^2).
+        pivot_mm: ``"fit"``, or the pivot's distance above the profiles' centroid along the axis.
+        fit: orientations used for the fit (default: all); use complete dips only.
+        centre: where the object frame's origin goes on the axis: ``"centroid"`` (the mean
+            profile centroid) or ``"extent"`` (midway between first contact and full submersion
+            of the least tilted dips, which centres the object in the grid).
+
+    Returns:
+        ``(t_start (K,), info)`` with ``info`` = ``T``, ``pivot_mm`` (above the chosen origin),
+        the fit residual (mm) and the centroids.
+    """
+    tilt = np.radians([o.tilt_deg or 0.0 for o in raw.orientations])
+    cent = profile_centroids(raw, area)
+    idx = np.arange(len(cent)) if fit is None else np.asarray(sorted(fit), dtype=int)
+    if idx.size < 1:
+        raise ValueError("no orientation to fit the start heights to")
+    if pivot_mm == "fit":
+        if np.ptp(np.cos(tilt[idx])) < 1e-3:
+            raise ValueError("fitting the pivot needs complete dips at several tilts; give pivot_mm")
+        design = np.stack([np.ones(idx.size), np.cos(tilt[idx])], axis=1)
+        (a, b), *_ = np.linalg.lstsq(design, cent[idx], rcond=None)
+    else:
+        b = -float(pivot_mm)
+        a = float(np.mean(cent[idx] - b * np.cos(tilt[idx])))
+    residual = cent[idx] - (a + b * np.cos(tilt[idx]))
+    z0 = 0.0
+    if centre == "extent":
+        low = idx[np.isclose(tilt[idx], tilt[idx].min())]
+        mids = []
+        for k in low:
+            o = raw.orientations[k]
+            scale, _ = _level_scale(raw.header, area)
+            s, v = submerged_volume(o, scale)
+            u = s + v / area
+            mids.append(0.5 * (np.interp(0.01 * v[-1], v, u) + np.interp(0.99 * v[-1], v, u)))
+        z0 = (float(np.mean(mids)) - float(np.mean(cent[low]))) / math.cos(tilt[low[0]])
+    elif centre != "centroid":
+        raise ValueError(f"centre must be 'centroid' or 'extent', got {centre!r}")
+    # origin at centroid + z0 along the axis: t = u - (a + (b + z0) cos tilt)
+    t_start = -(a + (b + z0) * np.cos(tilt))
+    info = {"T_mm": float(-a), "pivot_mm": float(-(b + z0)), "centre": centre, "origin_above_centroid_mm": z0,
+            "fit_rms_mm": float(np.sqrt(np.mean(residual**2))), "fit_orientations": [int(i) for i in idx],
+            "centroids_mm": [float(c) for c in cent]}
+    return t_start, info
+
+
+# ============================================================================ orientations
+def symmetry_group(n_fold: int = 1, mirror: bool = False, mirror_azimuth_deg: float = 0.0) -> np.ndarray:
+    """The rotation matrices ``(G, 3, 3)`` of the cyclic group ``C_n`` about z, or with
+    ``mirror`` the dihedral group ``D_n`` (mirror planes through z, one at ``mirror_azimuth_deg``
+    measured from +x towards +y; for n = 3, D3 has order 6)."""
+    if int(n_fold) < 1:
+        raise ValueError(f"n_fold must be >= 1, got {n_fold}")
+    mats = []
+    for i in range(int(n_fold)):
+        a = 2 * math.pi * i / n_fold
+        mats.append(np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1.0]]))
+    if mirror:
+        p = 2 * math.radians(mirror_azimuth_deg)
+        m = np.array([[math.cos(p), math.sin(p), 0], [math.sin(p), -math.cos(p), 0], [0, 0, 1.0]])
+        mats += [r @ m for r in mats]
+    return np.stack(mats)
+
+
+def _merge(directions: np.ndarray, profiles: np.ndarray, groups_of: np.ndarray, tol_deg: float):
+    """Merge directions closer than ``tol_deg`` (averaging their profiles); returns arrays and counts."""
+    keep_dirs, keep_prof, counts = [], [], []
+    cos_tol = math.cos(math.radians(tol_deg))
+    for d, p in zip(directions, profiles):
+        for j, e in enumerate(keep_dirs):
+            if float(d @ e) >= cos_tol:
+                keep_prof[j] = keep_prof[j] + p
+                counts[j] += 1
+                break
+        else:
+            keep_dirs.append(d)
+            keep_prof.append(p.copy())
+            counts.append(1)
+    prof = np.stack(keep_prof) / np.asarray(counts, dtype=np.float64)[:, None]
+    return np.stack(keep_dirs), prof, np.asarray(counts)
+
+
+def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: float = 0.5) -> DipMeasurement:
+    """Copy every profile to the directions ``g theta`` for ``g`` in ``group`` ``(G, 3, 3)``.
+
+    Valid when the object is invariant under the group about the frame's origin, which must lie
+    on the symmetry axis (heights ``t`` along ``g theta`` of the image equal those along
+    ``theta``, so profiles and offsets are unchanged). Directions within ``tol_deg`` of each
+    other (including measured repeats) are merged and their profiles averaged.
+    """
+    m = measurement
+    if m.ndim != 3:
+        raise ValueError("symmetry expansion is for 3D measurements")
+    if not np.allclose(m.offsets.numpy(), m.offsets[0].item()):
+        raise ValueError("symmetry expansion needs profiles on common slabs (equal offsets)")
+    d = m.directions.numpy() / np.linalg.norm(m.directions.numpy(), axis=1, keepdims=True)
+    images = np.einsum("gij,kj->gki", np.asarray(group, dtype=np.float64), d).reshape(-1, 3)
+    profiles = np.tile(m.profiles.numpy(), (len(group), 1))
+    dirs, prof, counts = _merge(images, profiles, None, tol_deg)
+    sigma = None
+    if m.sigma is not None:
+        _, sig, _ = _merge(images, np.tile(m.sigma.numpy(), (len(group), 1)), None, tol_deg)
+        sigma = sig / np.sqrt(counts)[:, None]
+    return DipMeasurement(dirs, prof, m.slab_thickness, np.full(len(dirs), m.offsets[0].item()), sigma,
+                          {**m.metadata, "symmetry_group_order": int(len(group)),
+                           "measured_orientations": m.n_orientations, "symmetry_orientations": int(len(dirs))})
+
+
+def interpolate_orientations(measurement: DipMeasurement, targets, k: int = 3, max_angle_deg: float = 10.0,
+                             tol_deg: float = 0.5) -> DipMeasurement:
+    """Add profiles for ``targets`` ``(T, 3)`` interpolated from the ``k`` nearest measured
+    directions (weights inversely proportional to the angle), for targets within
+    ``max_angle_deg`` of a measured direction and not closer than ``tol_deg`` to one.
+
+    The measured profiles are kept as they are; the result has them first.
+    """
+    m = measurement
+    d = m.directions.numpy() / np.linalg.norm(m.directions.numpy(), axis=1, keepdims=True)
+    t = np.asarray(torch.as_tensor(targets, dtype=torch.float64).numpy())
+    t = t / np.linalg.norm(t, axis=1, keepdims=True)
+    angles = np.degrees(np.arccos(np.clip(t @ d.T, -1.0, 1.0)))  # (T, K)
+    nearest = angles.min(axis=1)
+    use = (nearest <= max_angle_deg) & (nearest > tol_deg)
+    if not use.any():
+        return m
+    ang = angles[use]
+    idx = np.argsort(ang, axis=1)[:, :k]
+    w = 1.0 / np.take_along_axis(ang, idx, axis=1)
+    w = w / w.sum(axis=1, keepdims=True)
+    new = np.einsum("tk,tkm->tm", w, m.profiles.numpy()[idx])
+    dirs = np.concatenate([d, t[use]])
+    prof = np.concatenate([m.profiles.numpy(), new])
+    sigma = None
+    if m.sigma is not None:
+        sigma = np.concatenate([m.sigma.numpy(), np.einsum("tk,tkm->tm", w, m.sigma.numpy()[idx])])
+    return DipMeasurement(dirs, prof, m.slab_thickness, np.full(len(dirs), m.offsets[0].item()), sigma,
+                          {**m.metadata, "interpolated_orientations": int(use.sum())})
+
+
+# ============================================================================ the reader
+def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
+                  cross_section_mm2: float | None = None, fixture: str | Path | None = None,
+                  t_start: str | float = "pivot", pivot_mm: float | str = "fit", centre: str = "extent",
+                  truncated: str = "drop", tail_fraction: float = 0.1, tail_tol: float = 0.04,
+                  smooth: bool = True, symmetry: dict | None = None, interpolate: dict | None = None
+                  ) -> DipMeasurement:
+    """A recorded scan (dipnet ``.jsonl`` or the authors' ``.csv``) as a measurement on ``grid``.
+
+    Args:
+        path: the recording.
+        grid, n_slabs: the reconstruction grid and slab count (default ``grid.n``).
+        cross_section_mm2: tank free cross-section (default: the file's; the authors' CSV: 183,600).
+        fixture: a fixture-only recording to subtract (:func:`subtract_fixture`).
+        t_start: ``"pivot"`` (:func:`pivot_start_heights`), or any ``t_start`` of
+            :func:`dipnet.preprocess.preprocess` (``"metadata"`` for calibrated dipnet rigs).
+        pivot_mm, centre: see :func:`pivot_start_heights`.
+        truncated: ``"drop"`` or ``"keep"`` dips that were still rising when the scan stopped
+            (:func:`truncated_orientations` with ``tail_fraction``, ``tail_tol``); kept ones
+            are continued flat, which puts no volume beyond the scanned range.
+        smooth: the paper's 5-tap Gaussian.
+        symmetry: ``{n_fold, mirror, mirror_azimuth_deg, tol_deg}`` for :func:`expand_symmetry`.
+        interpolate: ``{n, k, max_angle_deg}``: Fibonacci-hemisphere targets for
+            :func:`interpolate_orientations`.
+
+    Returns:
+        The measurement, ``metadata["recorded"]`` holding what was done (fit, dropped dips, counts).
+    """
+    raw = read_scan(path, cross_section_mm2)
+    area = float(raw.header.tank_cross_section_mm2 or 0.0)
+    if not area > 0:
+        raise ValueError(f"{path}: the tank cross-section is unknown: set cross_section_mm2")
+    if fixture is not None:
+        raw = subtract_fixture(raw, read_scan(fixture, cross_section_mm2), area)
+    raw.orientations = [o for o in raw.orientations if o.complete]
+    cut = truncated_orientations(raw, tail_fraction, tail_tol)
+    info: dict = {"truncated": cut, "truncated_policy": truncated}
+    if truncated == "drop":
+        if len(cut) == len(raw.orientations):
+            raise ValueError(f"{path}: every dip is truncated; use truncated='keep'")
+        raw.orientations = [o for o in raw.orientations if o.k not in cut]
+    elif truncated != "keep":
+        raise ValueError(f"truncated must be 'drop' or 'keep', got {truncated!r}")
+    if t_start == "pivot":
+        complete = [i for i, o in enumerate(raw.orientations) if o.k not in cut]
+        starts, fit = pivot_start_heights(raw, area, pivot_mm, complete, centre)
+        for o, t0 in zip(raw.orientations, starts):
+            o.meta = {**o.meta, "t_start_mm": float(t0)}
+        info["pivot_fit"] = fit
+        t_start = "metadata"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        m = preprocess(raw, grid=grid, n_slabs=n_slabs, cross_section_mm2=area, t_start=t_start, smooth=smooth)
+    info["measured_orientations"] = m.n_orientations
+    if symmetry:
+        sym = dict(symmetry)
+        tol = float(sym.pop("tol_deg", 0.5))
+        m = expand_symmetry(m, symmetry_group(**sym), tol)
+    if interpolate:
+        opts = dict(interpolate)
+        m = interpolate_orientations(m, fibonacci_hemisphere(int(opts.pop("n"))), **opts)
+    m.metadata = {**m.metadata, "recorded": info, "path": str(path)}
+    return m
+

@@ -1,0 +1,365 @@
+"""Sensors of a dipping rig, one interface: ``read() -> Reading(value, unit, stable)``.
+
+* :class:`LineSensor`: a water-level sensor on an ASCII line stream (a regex with a named
+  group ``value`` and optionally ``unit``; a configurable terminator; streaming, or polled
+  with a query string).
+* :class:`ModbusLevelSensor`: a level transducer read over Modbus RTU (function 0x03, read
+  holding registers), with register address, data type, word order, scale and offset. The RTU
+  frame is a dozen bytes plus a CRC16, written here over plain pyserial.
+* :class:`BalanceSensor`: a laboratory balance under the tank, A&D style (``Q`` ->
+  ``ST,+00123.45  g``) or Mettler-Toledo MT-SICS (``SI`` -> ``S S     100.00 g``); values in g.
+* :class:`AveragingSensor`: the mean of ``n`` readings, stable only if every reading is and
+  their spread is within a tolerance.
+
+The parsers (:func:`parse_ad`, :func:`parse_sics`, :func:`parse_line`, the Modbus frame
+functions) are pure.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+import time
+from abc import ABC, abstractmethod
+from typing import NamedTuple
+
+import numpy as np
+import serial
+
+from dipnet.rig.controller import LineChannel, RigDisconnected, RigError, RigTimeout, open_port
+
+
+class SensorError(RigError):
+    """The sensor reported an error (overload, syntax error, Modbus exception, bad frame)."""
+
+
+class Reading(NamedTuple):
+    """One sensor reading: ``value`` in ``unit`` (``"mm"`` or ``"g"``), and its stability flag."""
+
+    value: float
+    unit: str
+    stable: bool
+
+
+GRAMS = {"g": 1.0, "kg": 1000.0, "mg": 1e-3}
+
+
+# ----------------------------------------------------------------------------- parsers
+def parse_line(line: str, pattern: str | re.Pattern, unit: str = "mm") -> Reading | None:
+    """Match ``pattern`` (named group ``value``, optional ``unit`` and ``flag``: a non-empty
+    ``flag`` group marks the reading unstable) against ``line``; ``None`` if it does not match."""
+    m = re.search(pattern, line)
+    if m is None:
+        return None
+    groups = m.groupdict()
+    return Reading(float(groups["value"]), groups.get("unit") or unit, not groups.get("flag"))
+
+
+def _grams(value: str, unit: str, line: str) -> float:
+    unit = unit.strip()
+    if unit not in GRAMS:
+        raise SensorError(f"balance reports unknown unit {unit!r} in {line!r}")
+    return float(value) * GRAMS[unit]
+
+
+def parse_ad(line: str) -> Reading:
+    """An A&D balance line ``ST,+00123.45  g`` (``ST`` stable, ``US`` unstable, ``QT`` count,
+    ``OL`` overload); value in g (pure)."""
+    m = re.match(r"^\s*(?P<head>ST|US|QT|OL)\s*,\s*(?P<value>[-+]?[\d.E+]+)\s*(?P<unit>[a-zA-Z]*)\s*$", line)
+    if m is None:
+        raise SensorError(f"not an A&D balance line: {line!r}")
+    if m["head"] == "OL":
+        raise SensorError(f"balance overload: {line.strip()!r}")
+    if m["head"] == "QT":
+        raise SensorError(f"balance is in counting mode (QT), expected weighing: {line.strip()!r}")
+    return Reading(_grams(m["value"], m["unit"] or "g", line), "g", m["head"] == "ST")
+
+
+def parse_sics(line: str) -> Reading:
+    """An MT-SICS ``S``/``SI`` reply ``S S     100.00 g`` (``S`` stable, ``D`` dynamic); errors
+    ``S I`` (busy), ``S +``/``S -`` (over/underload), ``ES``/``ET``/``EL`` raise (pure)."""
+    text = line.strip()
+    if text in ("ES", "ET", "EL"):
+        raise SensorError(f"balance rejected the command ({text}: "
+                          f"{ {'ES': 'syntax error', 'ET': 'transmission error', 'EL': 'logical error'}[text]})")
+    m = re.match(r"^S\s+(?P<status>[SDI+\-])(?:\s+(?P<value>[-+]?[\d.]+)\s*(?P<unit>[a-zA-Z]+))?\s*$", text)
+    if m is None:
+        raise SensorError(f"not an MT-SICS weight reply: {line!r}")
+    status = m["status"]
+    if status in "+-":
+        raise SensorError(f"balance {'overload' if status == '+' else 'underload'}: {text!r}")
+    if status == "I" or m["value"] is None:
+        return Reading(float("nan"), "g", False)  # busy: no value now
+    return Reading(_grams(m["value"], m["unit"], line), "g", status == "S")
+
+
+# ----------------------------------------------------------------------------- Modbus RTU
+def crc16(data: bytes) -> int:
+    """Modbus CRC-16 (polynomial 0xA001 reflected, initial 0xFFFF) of ``data`` (pure)."""
+    crc = 0xFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+def with_crc(body: bytes) -> bytes:
+    """``body`` followed by its CRC, low byte first."""
+    return body + struct.pack("<H", crc16(body))
+
+
+def read_holding_request(slave: int, address: int, count: int) -> bytes:
+    """RTU frame of function 0x03 (read ``count`` holding registers from ``address``), 8 bytes."""
+    if not (1 <= slave <= 247 and 0 <= address <= 0xFFFF and 1 <= count <= 125):
+        raise ValueError(f"invalid Modbus request: slave {slave}, address {address}, count {count}")
+    return with_crc(struct.pack(">BBHH", slave, 0x03, address, count))
+
+
+def response_length(count: int) -> int:
+    """Bytes in a normal reply to a read of ``count`` registers."""
+    return 5 + 2 * count
+
+
+def parse_read_response(frame: bytes, slave: int, count: int) -> list[int]:
+    """Registers of a function-0x03 reply; CRC, address, length and exceptions checked (pure)."""
+    if len(frame) >= 5 and frame[1] == 0x83:
+        if crc16(frame[:5]) == 0:
+            raise SensorError(f"Modbus exception {frame[2]} from slave {frame[0]}")
+    if len(frame) != response_length(count):
+        raise SensorError(f"Modbus reply has {len(frame)} bytes, expected {response_length(count)}: {frame.hex()}")
+    if crc16(frame) != 0:
+        raise SensorError(f"Modbus CRC mismatch in {frame.hex()}")
+    if frame[0] != slave or frame[1] != 0x03 or frame[2] != 2 * count:
+        raise SensorError(f"unexpected Modbus reply header {frame[:3].hex()} (slave {slave}, {count} registers)")
+    return list(struct.unpack(f">{count}H", frame[3:-2]))
+
+
+DATA_TYPES = {"uint16": (1, "H"), "int16": (1, "h"), "uint32": (2, "I"), "int32": (2, "i"), "float32": (2, "f")}
+
+
+def decode_registers(registers: list[int], data_type: str = "int32", word_order: str = "big") -> float:
+    """Registers (16-bit, big-endian bytes each) to a number; ``word_order="little"`` puts the
+    low word first (pure)."""
+    if data_type not in DATA_TYPES:
+        raise ValueError(f"data_type must be one of {sorted(DATA_TYPES)}, got {data_type!r}")
+    if word_order not in ("big", "little"):
+        raise ValueError(f"word_order must be 'big' or 'little', got {word_order!r}")
+    words, code = DATA_TYPES[data_type]
+    regs = list(registers[:words])
+    if word_order == "little":
+        regs.reverse()
+    return float(struct.unpack(f">{code}", struct.pack(f">{words}H", *regs))[0])
+
+
+def encode_registers(value: float, data_type: str = "int32", word_order: str = "big") -> list[int]:
+    """Inverse of :func:`decode_registers` (integer types round ``value``)."""
+    words, code = DATA_TYPES[data_type]
+    raw = struct.pack(f">{code}", value if code == "f" else int(round(value)))
+    regs = list(struct.unpack(f">{words}H", raw))
+    return regs[::-1] if word_order == "little" else regs
+
+
+# ----------------------------------------------------------------------------- sensors
+class Sensor(ABC):
+    """A sensor on a pyserial URL. ``read()`` returns one :class:`Reading`."""
+
+    quantity = "level_mm"
+
+    def __init__(self, url: str, *, baudrate: int = 9600, timeout: float = 1.0) -> None:
+        self.url = url
+        self.baudrate = baudrate
+        self.timeout = float(timeout)
+        self.link: LineChannel | None = None
+
+    def connect(self) -> None:
+        self.link = LineChannel(open_port(self.url, baudrate=self.baudrate), self.terminator_bytes())
+
+    def reconnect(self) -> None:
+        self.close()
+        self.connect()
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+            self.link = None
+
+    def terminator_bytes(self) -> bytes:
+        return b"\n"
+
+    def identity(self) -> dict:
+        return {"kind": type(self).__name__, "url": self.url, "quantity": self.quantity}
+
+    def _link(self) -> LineChannel:
+        if self.link is None:
+            raise RigDisconnected(f"sensor {self.url} is not connected: call connect() first")
+        return self.link
+
+    @abstractmethod
+    def read(self) -> Reading:
+        """One reading."""
+
+
+class LineSensor(Sensor):
+    """A level sensor sending ASCII lines.
+
+    Args:
+        url: pyserial URL.
+        pattern: regex with a named group ``value`` (and optionally ``unit``, ``flag``).
+        terminator: line terminator (``"\\n"``, ``"\\r"``, ``"\\r\\n"``; escapes accepted).
+        query: string sent before each reading (polled sensors); ``None`` for a stream, whose
+            stale input is discarded first so the reading is fresh.
+        unit: the unit when the pattern captures none.
+        max_lines: lines to try before giving up on a match.
+    """
+
+    def __init__(self, url: str, pattern: str = r"(?P<value>[-+]?\d+(?:\.\d+)?)\s*(?P<unit>mm)?",
+                 terminator: str = "\n", query: str | None = None, unit: str = "mm", max_lines: int = 5,
+                 **options) -> None:
+        super().__init__(url, **options)
+        self.pattern = re.compile(pattern)
+        self.terminator = terminator.encode("ascii").decode("unicode_escape")
+        self.query = None if query is None else query.encode("ascii").decode("unicode_escape")
+        self.unit = unit
+        self.max_lines = int(max_lines)
+
+    def terminator_bytes(self) -> bytes:
+        return self.terminator.encode("ascii")
+
+    def identity(self) -> dict:
+        return {**super().identity(), "pattern": self.pattern.pattern, "query": self.query}
+
+    def read(self) -> Reading:
+        link = self._link()
+        if self.query is None:
+            link.discard_input()
+        else:
+            link.write(self.query.encode("ascii"))
+        for _ in range(self.max_lines):
+            reading = parse_line(link.read_line(self.timeout), self.pattern, self.unit)
+            if reading is not None:
+                return reading
+        raise SensorError(f"sensor {self.url}: no line matched {self.pattern.pattern!r} in {self.max_lines} lines")
+
+
+class BalanceSensor(Sensor):
+    """A balance under the tank; readings in g (apparent mass of the displaced water).
+
+    Args:
+        url: pyserial URL.
+        style: ``"ad"`` (A&D) or ``"sics"`` (Mettler-Toledo MT-SICS).
+        command: the query (default ``Q`` for A&D, ``SI`` for MT-SICS: immediate, with the
+            stability flag).
+        busy_retries: MT-SICS ``S I`` (busy) replies tolerated per reading.
+    """
+
+    quantity = "mass_g"
+
+    def __init__(self, url: str, style: str = "ad", command: str | None = None, busy_retries: int = 5,
+                 **options) -> None:
+        super().__init__(url, **options)
+        if style not in ("ad", "sics"):
+            raise ValueError(f"balance style must be 'ad' or 'sics', got {style!r}")
+        self.style = style
+        self.command = command or ("Q" if style == "ad" else "SI")
+        self.busy_retries = int(busy_retries)
+
+    def identity(self) -> dict:
+        return {**super().identity(), "style": self.style, "command": self.command}
+
+    def read(self) -> Reading:
+        link = self._link()
+        parse = parse_ad if self.style == "ad" else parse_sics
+        for _ in range(self.busy_retries + 1):
+            link.discard_input()
+            link.write((self.command + "\r\n").encode("ascii"))
+            reading = parse(link.read_line(self.timeout))
+            if np.isfinite(reading.value):
+                return reading
+        raise SensorError(f"balance {self.url} stayed busy for {self.busy_retries + 1} queries")
+
+
+class ModbusLevelSensor(Sensor):
+    """A level transducer on Modbus RTU (function 0x03).
+
+    Args:
+        url: pyserial URL.
+        slave: slave address (1-247).
+        address: first holding register (0-based protocol address).
+        data_type: ``uint16 | int16 | uint32 | int32 | float32``.
+        word_order: ``"big"`` (high word first) or ``"little"``.
+        scale, offset: ``value = raw * scale + offset`` (e.g. 0.001 for a reading in um).
+        unit: unit of the scaled value.
+    """
+
+    def __init__(self, url: str, slave: int = 1, address: int = 0, data_type: str = "int32",
+                 word_order: str = "big", scale: float = 0.001, offset: float = 0.0, unit: str = "mm",
+                 **options) -> None:
+        super().__init__(url, **options)
+        if data_type not in DATA_TYPES:
+            raise ValueError(f"data_type must be one of {sorted(DATA_TYPES)}, got {data_type!r}")
+        self.slave, self.address = int(slave), int(address)
+        self.data_type, self.word_order = data_type, word_order
+        self.scale, self.offset, self.unit = float(scale), float(offset), unit
+        self.count = DATA_TYPES[data_type][0]
+
+    def identity(self) -> dict:
+        return {**super().identity(), "slave": self.slave, "address": self.address, "data_type": self.data_type,
+                "word_order": self.word_order, "scale": self.scale, "offset": self.offset}
+
+    def read(self) -> Reading:
+        link = self._link()
+        link.discard_input()
+        link.write(read_holding_request(self.slave, self.address, self.count))
+        want = response_length(self.count)
+        frame = bytearray()
+        deadline = time.monotonic() + self.timeout
+        while len(frame) < want:
+            if time.monotonic() > deadline:
+                raise RigTimeout(f"Modbus slave {self.slave} on {self.url}: {len(frame)} of {want} bytes "
+                                 f"within {self.timeout:g} s")
+            try:
+                frame += link.port.read(want - len(frame))
+            except (serial.SerialException, OSError) as exc:
+                raise RigDisconnected(f"lost the link to {self.url}: {exc}") from exc
+            if len(frame) >= 5 and frame[1] == 0x83:
+                break
+        raw = decode_registers(parse_read_response(bytes(frame), self.slave, self.count), self.data_type,
+                               self.word_order)
+        return Reading(raw * self.scale + self.offset, self.unit, True)
+
+
+class AveragingSensor:
+    """The mean of ``n`` readings of ``sensor``; stable when every reading is stable and their
+    spread (max - min) is at most ``max_spread`` (``None``: no spread check).
+
+    Args:
+        sensor: the underlying :class:`Sensor`.
+        n: readings per averaged value.
+        max_spread: tolerance of the spread, in the sensor's unit.
+        interval_s: pause between readings (s).
+    """
+
+    def __init__(self, sensor: Sensor, n: int = 1, max_spread: float | None = None, interval_s: float = 0.0) -> None:
+        if int(n) < 1:
+            raise ValueError(f"n must be >= 1, got {n}")
+        self.sensor, self.n, self.max_spread, self.interval_s = sensor, int(n), max_spread, float(interval_s)
+
+    @property
+    def quantity(self) -> str:
+        return self.sensor.quantity
+
+    def identity(self) -> dict:
+        return {**self.sensor.identity(), "average_n": self.n, "max_spread": self.max_spread}
+
+    def read(self) -> Reading:
+        readings = []
+        for i in range(self.n):
+            if i and self.interval_s:
+                time.sleep(self.interval_s)
+            readings.append(self.sensor.read())
+        values = np.array([r.value for r in readings])
+        stable = all(r.stable for r in readings)
+        if self.max_spread is not None and np.ptp(values) > self.max_spread:
+            stable = False
+        return Reading(float(values.mean()), readings[0].unit, stable)

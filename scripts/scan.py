@@ -1,0 +1,43 @@
+"""Scan an object on a dipping rig (Hydra entry point).
+
+    python scripts/scan.py                                    # fake GRBL rig + level sensor
+    python scripts/scan.py rig=grbl rig.controller.url=/dev/ttyUSB0 rig.sensor_url=/dev/ttyUSB1
+    python scripts/scan.py rig=fake_marlin sensor=sics name=test
+
+The raw scan goes to ``scans/<name>/rawscan.jsonl`` (appended and flushed reading by reading).
+Run the same command again to resume after the last complete orientation. On a fault the
+object is lifted to the safe height and the script exits with code 3 and a one-line message.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from dipnet.cli import user_errors
+from dipnet.rig.runner import ScanAborted, scan_from_config
+
+log = logging.getLogger("dipnet")
+
+
+@hydra.main(version_base="1.3", config_path="pkg://dipnet.conf", config_name="scan")
+def main(cfg: DictConfig) -> None:
+    path = Path(HydraConfig.get().runtime.output_dir) / "rawscan.jsonl"
+    with user_errors():
+        try:
+            scan = scan_from_config(cfg, path)
+        except ScanAborted as exc:
+            log.error("%s", exc)
+            print(f"error: {exc}", file=sys.stderr)
+            raise SystemExit(3) from None
+    n = sum(o.n_readings for o in scan.orientations)
+    log.info("scan complete: %d orientations, %d readings in %s", len(scan.completed()), n, path)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
