@@ -110,6 +110,10 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         scores.update(metrics.false_rates(recon.binary, truth > 0.5))
     (out / "metrics.json").write_text(json.dumps(scores, indent=2))
     write_outputs(cfg, out, measurement, operator, recon, truth)
+    if cfg.output.get("report"):
+        from dipnet.report import write_run_report  # optional extra: plotly
+
+        write_run_report(out)
     log.info("metrics: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                       for k, v in scores.items()))
     return JobResult(measurement, recon, scores, out)
@@ -136,6 +140,7 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
     if truth is not None:
         plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png")
     if recon.history:
+        (out / "history.json").write_text(json.dumps(recon.history))
         plots.plot_history(recon.history, out / "loss.png")
     if meshes:
         plots.plot_mesh([m for m, _ in meshes], out / "mesh.png", titles=[t for _, t in meshes])

@@ -15,9 +15,11 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from dipnet.cli import user_errors
+from dipnet.experiments import guarded_job
 from dipnet.pipeline import run
 
 log = logging.getLogger("dipnet")
@@ -26,6 +28,9 @@ log = logging.getLogger("dipnet")
 @hydra.main(version_base="1.3", config_path="pkg://dipnet.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
     out = Path(HydraConfig.get().runtime.output_dir)
+    if HydraConfig.get().mode == RunMode.MULTIRUN:
+        # a failed job writes error.txt and returns None (Optuna: failed trial); the sweep goes on
+        return guarded_job(lambda: run(cfg, out).metrics.get("chamfer"), out)
     with user_errors():
         result = run(cfg, out)
     log.info("outputs written to %s", out)

@@ -1,0 +1,97 @@
+"""Compare the jobs of one or more sweeps: CSV, Markdown table, plots and an HTML page.
+
+    python scripts/reconstruct.py -m solver=minnorm,lsmr n_dips=41,123 hydra.sweep.dir=sweeps/a
+    python scripts/compare.py sweeps/a                    # writes sweeps/a/compare/
+    python scripts/compare.py sweeps/a sweeps/b -o results --x dips_percent --html
+
+Writes into the output directory: ``runs.csv`` (one row per job, failed and unfinished ones
+included), ``summary.csv`` and ``summary.md`` (mean ± std per solver x n_dips x snr_db, then the
+failed/unfinished jobs), ``vs_dips.png`` (IoU and Chamfer vs dips, paper Fig. 13a),
+``vs_snr.png`` (false positives / negatives vs SNR, Fig. 13b; only when a sweep has noise
+levels), ``montage.png`` (reconstructions vs dips, Figs. 10/11) and with ``--html``
+``report.html`` (plus each job's own ``report.html``). Exit status 2 when a directory holds
+no job, 1 when no job finished.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from dipnet import experiments
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dirs", nargs="+", type=Path, help="multirun (sweep) directories or job directories")
+    parser.add_argument("-o", "--out", type=Path, help="output directory (default: <first dir>/compare)")
+    parser.add_argument("--by", nargs="+", default=list(experiments.GROUP_BY),
+                        help="columns to group by (default: solver n_dips snr_db)")
+    parser.add_argument("--x", choices=("n_dips", "dips_percent"), default="n_dips",
+                        help="horizontal axis of the error-vs-dips plot")
+    parser.add_argument("--rows", nargs="+", help="montage rows: run columns such as solver or shape "
+                        "(default: those of shape and solver that vary)")
+    parser.add_argument("--html", action="store_true", help="also write HTML pages (needs plotly)")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        runs = experiments.collect_runs(args.dirs)
+    except experiments.NoRunsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    root = args.dirs[0] if len(args.dirs) == 1 else None
+    out = args.out or args.dirs[0] / "compare"
+    out.mkdir(parents=True, exist_ok=True)
+    rows = experiments.run_rows(runs, root)
+    groups = experiments.aggregate(rows, args.by)
+    experiments.write_csv(rows, out / "runs.csv")
+    problems = experiments.markdown_problems(runs, root)
+    n_ok = len(runs) - len(experiments.problems(runs))
+    print(f"{n_ok} of {len(runs)} jobs finished")
+    if problems:
+        print(problems, end="")
+    if not n_ok:
+        print(f"error: no job in {', '.join(map(str, args.dirs))} finished (no metrics.json); "
+              f"see {out / 'runs.csv'}", file=sys.stderr)
+        return 1
+    experiments.write_csv(groups, out / "summary.csv")
+    table = experiments.markdown_table(groups, args.by)
+    (out / "summary.md").write_text(table + ("\n" + problems if problems else ""))
+    print(table, end="")
+    written = [out / "runs.csv", out / "summary.csv", out / "summary.md"]
+
+    labelled = experiments.label_series(rows)
+    written.append(experiments.plot_vs_dips(experiments.aggregate(labelled, ("series", args.x)),
+                                            out / "vs_dips.png", line="series", x=args.x))
+    if any(isinstance(r.get("snr_db"), float) for r in rows if r["status"] == "ok"):
+        written.append(experiments.plot_vs_snr(experiments.aggregate(rows, ("solver", "snr_db")),
+                                               out / "vs_snr.png"))
+    else:
+        print("no noise levels in these runs: skipping vs_snr.png (see experiment=snr_sweep)")
+    try:
+        written.append(experiments.plot_montage(runs, out / "montage.png", row_key=args.rows or experiments.varying(rows)))
+    except ValueError as exc:
+        print(f"skipping montage.png: {exc}")
+    if args.html:
+        from dipnet import report
+
+        try:
+            report.require_plotly()
+        except ImportError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        for run in runs:
+            if run.status == "ok":
+                report.write_run_report(run.path)
+        written.append(report.write_sweep_report(runs, out / "report.html", root=root or out, by=args.by,
+                                                 images=[out / "montage.png"]))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
