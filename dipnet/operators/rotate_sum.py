@@ -74,12 +74,16 @@ class RotateSumOperator(DipOperator):
         self.planes = planes_per_slab(grid, self.n_slabs)
         self.chunk = int(chunk)
         self.register_buffer("voxel_index", torch.nonzero(self.mask.reshape(-1)).squeeze(1))
-        pts = grid.centers().reshape(-1, grid.ndim)[self.voxel_index]  # (n_points, d), mm
-        rotated = torch.einsum("kij,pj->kpi", orthonormal_frame(self.directions), pts)
         # grid_sample, align_corners=False: normalised coordinate = mm / (extent / 2) on every
         # rotated axis (the rotated grid has the same extent as the object grid).
-        norm = rotated / (grid.extent / 2)
-        self.register_buffer("sample_grid", norm.reshape(self.n_orientations, *([1] * (grid.ndim - 1)), -1, grid.ndim))
+        self.register_buffer("points", grid.centers().reshape(-1, grid.ndim)[self.voxel_index] / (grid.extent / 2))
+        self.register_buffer("frames", orthonormal_frame(self.directions))
+
+    def _sample_grid(self, k0: int, k1: int, dtype: torch.dtype) -> torch.Tensor:
+        """Voxel centres in the rotated frames of orientations ``k0..k1``, as a ``grid_sample``
+        grid ``(kc, 1, [1,] n_points, d)`` (built per chunk: memory ``O(chunk N^d)``)."""
+        rotated = torch.einsum("kij,pj->kpi", self.frames[k0:k1], self.points).to(dtype)
+        return rotated.reshape(k1 - k0, *([1] * (self.grid.ndim - 1)), -1, self.grid.ndim)
 
     def _rotated_shape(self) -> tuple[int, ...]:
         return (self.n_slabs * self.planes,) + (self.grid.n,) * (self.grid.ndim - 1)
@@ -93,7 +97,7 @@ class RotateSumOperator(DipOperator):
             planes = profiles[:, k0:k1].repeat_interleave(self.planes, dim=-1)  # (B, kc, M P)
             rot = planes.transpose(0, 1).reshape(k1 - k0, b, -1, *([1] * (self.grid.ndim - 1)))
             rot = rot.expand(k1 - k0, b, *self._rotated_shape())
-            g = self.sample_grid[k0:k1].to(profiles.dtype)
+            g = self._sample_grid(k0, k1, profiles.dtype)
             sampled = F.grid_sample(rot, g, mode="bilinear", padding_mode="zeros", align_corners=False)
             out = out + sampled.reshape(k1 - k0, b, -1).sum(0)
         return out * self.grid.voxel_volume
@@ -105,7 +109,7 @@ class RotateSumOperator(DipOperator):
         for k0 in range(0, self.n_orientations, self.chunk):
             k1 = min(k0 + self.chunk, self.n_orientations)
             rot = values.new_zeros(k1 - k0, b, *self._rotated_shape(), requires_grad=True)
-            g = self.sample_grid[k0:k1].to(values.dtype)
+            g = self._sample_grid(k0, k1, values.dtype)
             sampled = F.grid_sample(rot, g, mode="bilinear", padding_mode="zeros", align_corners=False)
             weights = values.unsqueeze(0).expand(k1 - k0, b, -1).reshape(sampled.shape)
             (rotated_volume,) = torch.autograd.grad(sampled, rot, grad_outputs=weights)
