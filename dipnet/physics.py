@@ -127,14 +127,16 @@ class LevelSensor(Sensor):
     Attributes:
         sigma_mm: white noise standard deviation per reading (mm); ignored if ``snr_db`` is set.
         snr_db: noise from a signal-to-noise ratio instead (see :meth:`Sensor.noise_sigma`).
-        quantum_mm: reading resolution (mm); 0 for none. The authors' robot: 0.04 mm.
+        quantum_mm: reading resolution (mm); 0 (default) for none. The authors' robot: 0.04 mm.
+            Mind the scale: one quantum is ``quantum_mm * A`` mm^3 (600 mm^3 for 0.01 mm in a
+            300 x 200 mm tank), which for a small object is several percent of a slab.
         drift_mm_per_s: slow linear drift of the reading (mm/s).
         seed: default random seed of the noise.
     """
 
     sigma_mm: float = 0.0
     snr_db: float | None = None
-    quantum_mm: float = 0.01
+    quantum_mm: float = 0.0
     drift_mm_per_s: float = 0.0
     seed: int = 0
     quantity: ClassVar[str] = "level_mm"
@@ -278,7 +280,7 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
         shape: a :class:`~dipnet.shapes.Shape` (its exact ``volume_below`` is the physics).
         directions: unit "up" vectors ``(K, ndim)`` (torch or numpy).
         tank: default :meth:`Tank.default` for the shape's ``ndim``.
-        sensor: default ``LevelSensor()`` (noise-free, 0.01 mm quantum).
+        sensor: default ``LevelSensor()`` (ideal: no noise, no quantisation).
         protocol: default ``DipProtocol()`` (1 mm steps).
         seed: noise seed (default the sensor's); orientation ``k`` uses the stream ``(seed, k)``.
         progress: show a progress bar over orientations.

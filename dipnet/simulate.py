@@ -4,8 +4,8 @@ Defaults, for an object of about 100 mm
 ---------------------------------------
 * tank: 300 x 200 mm (free cross-section ``A`` = 60,000 mm^2), 150 mm of water; in 2D a
   300 mm wide slot (``A`` = 300 mm, so areas in mm^2 / 300 mm = level rise in mm);
-* sensor: a water-level transducer with 0.01 mm resolution and no noise (pass
-  ``LevelSensor(snr_db=...)`` or ``sigma_mm=...`` for noise, or a :class:`Balance`);
+* sensor: an ideal water-level transducer (no noise, no quantisation; pass
+  ``LevelSensor(snr_db=..., quantum_mm=...)`` or ``sigma_mm=...`` for a real one, or a :class:`Balance`);
 * protocol: 1 mm steps, starting 3 mm below the object's bounding sphere, 3 extra readings
   once the object is under water, 2 s per step;
 * slabs: the operator's slabs of ``grid`` (``[-L/2, L/2]`` in ``n_slabs`` slabs) so the
