@@ -2,7 +2,8 @@
 
 * ``.npz``: a :class:`~dipnet.measurement.DipMeasurement` file (solvers resample its slabs
   onto the operator's);
-* ``.jsonl``: a dipnet raw scan (from ``scripts/scan.py``), preprocessed onto the grid's slabs.
+* ``.jsonl`` (a dipnet raw scan from ``scripts/scan.py``) or ``.csv`` (the authors' robot):
+  preprocessed onto the grid's slabs by :func:`dipnet.rig.recorded.read_recorded`.
 """
 
 from __future__ import annotations
@@ -11,24 +12,23 @@ from pathlib import Path
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement, MeasurementFileError
-from dipnet.preprocess import preprocess_file
+from dipnet.rig.recorded import read_recorded as read_raw_recording
 
 
-def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, t_start: str | float = "centroid",
-                  smooth: bool = False) -> DipMeasurement:
+def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) -> DipMeasurement:
     """Read a recorded measurement for reconstruction on ``grid``.
 
     Args:
-        path: ``.npz`` measurement or ``.jsonl`` raw scan.
-        grid, n_slabs: the reconstruction grid and slab count (raw scans are resampled onto them).
-        t_start: how raw scans are placed along each direction (see :func:`dipnet.preprocess.preprocess`).
-        smooth: the paper's 5-tap Gaussian on raw scans.
+        path: ``.npz`` measurement, ``.jsonl`` raw scan or the authors' ``.csv``.
+        grid, n_slabs: the reconstruction grid and slab count (raw recordings are resampled).
+        options: preprocessing options for raw recordings (see
+            :func:`dipnet.rig.recorded.read_recorded`: cross-section, smoothing, symmetry...).
     """
     p = Path(path)
     if not p.is_file():
         raise MeasurementFileError(f"measurement file not found: {p}")
     if p.suffix == ".npz":
         return DipMeasurement.load(p)
-    if p.suffix == ".jsonl":
-        return preprocess_file(p, grid=grid, n_slabs=n_slabs, t_start=t_start, smooth=smooth)
-    raise MeasurementFileError(f"{p}: unknown measurement file type {p.suffix!r} (expected .npz or .jsonl)")
+    if p.suffix in (".jsonl", ".csv"):
+        return read_raw_recording(p, grid, n_slabs, **options)
+    raise MeasurementFileError(f"{p}: unknown measurement file type {p.suffix!r} (expected .npz, .jsonl or .csv)")
