@@ -32,6 +32,8 @@ from hydra.core.utils import JobReturn, JobStatus  # noqa: E402
 from hydra.experimental.callback import Callback  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
+from dipnet.plots import save_figure  # noqa: E402
+
 log = logging.getLogger(__name__)
 
 ERROR_FILE = "error.txt"
@@ -378,14 +380,6 @@ def mean_series(groups: Sequence[dict], line: str, x: str, metric: str) -> dict[
     return series
 
 
-def _save(fig: plt.Figure, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
-
-
 def _errorbar_panels(groups: Sequence[dict], x: str, panels: Sequence[str], path: str | Path, *,
                      line: str, xlabel: str, title: str, logx: bool) -> Path:
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
@@ -400,7 +394,7 @@ def _errorbar_panels(groups: Sequence[dict], x: str, panels: Sequence[str], path
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, title=LABELS.get(line, line), title_fontsize=8)
     fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_vs_dips(groups: Sequence[dict], path: str | Path, *, metrics: Sequence[str] = ("iou", "chamfer"),
@@ -514,7 +508,7 @@ def plot_montage(runs: Sequence[Run], path: str | Path, *, row_key: str | Sequen
             if j == 0:
                 ax.set_ylabel(format_cell(r), fontsize=9)
     fig.suptitle(f"reconstructions vs {LABELS.get(col_key, col_key)}")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- sweep jobs

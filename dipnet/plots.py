@@ -26,7 +26,8 @@ def _numpy(x: np.ndarray | torch.Tensor) -> np.ndarray:
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-def _save(fig: plt.Figure, path: str | Path) -> Path:
+def save_figure(fig: plt.Figure, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` (PNG, parents created), close it and return the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
@@ -62,7 +63,7 @@ def plot_sinogram(profiles: np.ndarray | torch.Tensor, path: str | Path, *,
                    extent=(height[0], height[1], rows[0], rows[1]))
     ax.set(xlabel=height[2], ylabel=rows[2], title=title)
     fig.colorbar(im, ax=ax, label="slab volume")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _mid_slices(vol: np.ndarray) -> list[tuple[str, np.ndarray]]:
@@ -92,7 +93,7 @@ def plot_slices(truth: np.ndarray | torch.Tensor, recon: np.ndarray | torch.Tens
             ax.set_xticks([])
             ax.set_yticks([])
         fig.colorbar(im, ax=row[2], fraction=0.046)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
@@ -144,7 +145,7 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
                zlim=(centre[2] - half, centre[2] + half), xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)")
         ax.set_box_aspect((1, 1, 1))
         ax.view_init(elev=elev, azim=azim)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_history(history: dict[str, Sequence[float]], path: str | Path, *, title: str = "loss") -> Path:
@@ -164,7 +165,7 @@ def plot_history(history: dict[str, Sequence[float]], path: str | Path, *, title
         ax.legend()
     else:
         ax.text(0.5, 0.5, "no history", ha="center", transform=ax.transAxes)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_profiles(measured: np.ndarray | torch.Tensor, predicted: np.ndarray | torch.Tensor | None,
@@ -195,4 +196,4 @@ def plot_profiles(measured: np.ndarray | torch.Tensor, predicted: np.ndarray | t
             ax.plot(x, pred[i], "-", color=colour, label=f"{labels[1]} #{i}")
     ax.set(xlabel="height t (mm)" if slab_edges is not None else "slab", ylabel="slab volume", title="dip profiles")
     ax.legend(fontsize=7, ncol=2)
-    return _save(fig, path)
+    return save_figure(fig, path)
