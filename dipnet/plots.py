@@ -115,7 +115,8 @@ def _decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
 def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | Path, *,
               titles: Sequence[str] | None = None, max_faces: int = MAX_RENDER_FACES,
               elev: float = 25.0, azim: float = -60.0) -> Path:
-    """Shaded renderings of one or several meshes side by side (Lambert shading, one light).
+    """Shaded renderings of one or several meshes side by side (Lambert shading, one light),
+    all in the same box.
 
     Meshes with more than ``max_faces`` faces are decimated for drawing; empty meshes are
     drawn as an empty panel saying so.
@@ -124,6 +125,11 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
     titles = list(titles) if titles is not None else [""] * len(meshes)
     if len(titles) != len(meshes):
         raise ValueError(f"got {len(titles)} titles for {len(meshes)} meshes")
+    drawn = [m for m in meshes if len(m.faces)]
+    if drawn:  # one box for every panel, so sizes compare
+        lo = np.min([m.bounds[0] for m in drawn], axis=0)
+        hi = np.max([m.bounds[1] for m in drawn], axis=0)
+        centre, half = (lo + hi) / 2, (hi - lo).max() / 2
     fig = plt.figure(figsize=(4.5 * len(meshes), 4.5))
     for i, (mesh, title) in enumerate(zip(meshes, titles)):
         ax = fig.add_subplot(1, len(meshes), i + 1, projection="3d")
@@ -139,8 +145,6 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
         shade = 0.25 + 0.75 * np.clip(normals @ _LIGHT, 0.0, 1.0)
         colors = np.column_stack([0.35 * shade, 0.55 * shade, 0.85 * shade, np.ones_like(shade)])
         ax.add_collection3d(Poly3DCollection(tris, facecolors=colors, edgecolors="none"))
-        lo, hi = m.bounds
-        centre, half = (lo + hi) / 2, (hi - lo).max() / 2
         ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
                zlim=(centre[2] - half, centre[2] + half), xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)")
         ax.set_box_aspect((1, 1, 1))
