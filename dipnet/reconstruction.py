@@ -21,6 +21,8 @@ class Reconstruction:
         threshold: the level that separates inside from outside (e.g. Otsu's).
         history: loss terms per iteration, ``{name: [values]}`` (empty for direct solvers).
         info: solver name, wall time (s), iterations and other facts, JSON-serialisable.
+        fine: optionally the same result sampled on a finer grid (implicit solver's
+            ``output_upsample``), else ``None``.
     """
 
     occupancy: torch.Tensor
@@ -28,6 +30,7 @@ class Reconstruction:
     threshold: float = 0.5
     history: dict[str, list[float]] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    fine: "Reconstruction | None" = None
 
     @property
     def binary(self) -> np.ndarray:

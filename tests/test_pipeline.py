@@ -22,7 +22,7 @@ def _cfg(*overrides):
 
 
 @pytest.mark.parametrize("group,options", [
-    ("solver", ["minnorm", "lsqr", "lsmr"]),
+    ("solver", ["minnorm", "lsqr", "lsmr", "voxel", "implicit"]),
     ("operator", ["auto", "splat", "rotate_sum"]),
 ])
 def test_config_groups_compose_and_instantiate(group, options):
@@ -79,3 +79,12 @@ def test_malformed_measurement_and_unknown_option(tmp_path):
     assert proc.returncode == 2 and "bad.npz" in proc.stderr and "Traceback" not in proc.stderr
     proc = _cli(tmp_path / "b", "solver=nonsense")
     assert proc.returncode != 0 and "solver" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_prior_weights_and_warm_start_override_from_the_command_line():
+    cfg = _cfg("solver=voxel", "solver.priors.tv.weight=0.1", "solver.priors.symmetry.weight=0.5",
+               "solver.priors.symmetry.plane_normal=[1,0,0]",
+               "+solver.warm_start={_target_: dipnet.solvers.MinNormSolver, progress: false}")
+    solver = instantiate(cfg.solver)
+    assert cfg.solver.priors.tv.weight == 0.1
+    assert type(solver).__name__ == "VoxelSolver"

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import LSMRSolver, LSQRSolver, MinNormSolver
+from dipnet.solvers.optimize import OptimisationSolver
+from dipnet.solvers.voxel import VoxelSolver
 
 SOLVERS: dict[str, type[Solver]] = {
     "minnorm": MinNormSolver,
     "lsqr": LSQRSolver,
     "lsmr": LSMRSolver,
+    "voxel": VoxelSolver,
+    "implicit": ImplicitSolver,
 }
 
 
@@ -19,4 +24,4 @@ def make_solver(name: str, **options) -> Solver:
     return SOLVERS[name](**options)
 
 
-__all__ = ["LSMRSolver", "LSQRSolver", "MinNormSolver", "SOLVERS", "Solver", "make_solver", "measured_profiles"]
+__all__ = ["ImplicitSolver", "LSMRSolver", "LSQRSolver", "MinNormSolver", "OptimisationSolver", "SOLVERS", "VoxelSolver", "Solver", "make_solver", "measured_profiles"]

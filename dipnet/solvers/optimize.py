@@ -1,0 +1,350 @@
+"""The optimisation loop shared by the voxel and implicit solvers.
+
+Objective (every term dimensionless, so weights mean the same at any resolution and unit):
+
+    L = sum_km w_km (A o - g)_km^2 / sum_km w_km g_km^2  +  sum_p lambda_p R_p(o)
+
+``A`` is the dip operator, ``o`` the occupancy on its grid, ``g`` the measured slab volumes
+(:func:`~dipnet.solvers.base.measured_profiles`), ``w = 1 / sigma^2`` when the measurement
+gives its noise ``sigma`` (else 1), and ``R_p`` the priors of :mod:`dipnet.solvers.priors`.
+The data term is the (weighted) squared relative residual: 1 for an empty volume, about
+``10^(-SNR/10)`` at the noise floor.
+
+:class:`OptimisationSolver` holds the options shared by both solvers; :func:`optimise` runs
+Adam (with a cosine, step or constant learning-rate schedule) or L-BFGS, stops early when
+the loss stops changing, shows the terms in a progress bar and returns their history.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from contextlib import contextmanager
+from typing import NamedTuple
+
+import torch
+from torch import nn
+from tqdm.auto import tqdm
+
+from dipnet.grid import Grid
+from dipnet.measurement import DipMeasurement
+from dipnet.operators import BACKENDS, DipOperator
+from dipnet.reconstruction import Reconstruction
+from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers.priors import build_priors
+
+OPTIMIZERS = ("adam", "lbfgs")
+SCHEDULES = ("cosine", "step", "constant")
+_SIGMA_FLOOR = 1e-3  # sigma below this fraction of its median is clamped (no infinite weights)
+
+Priors = list[tuple[str, float, nn.Module]]
+
+
+class Problem(NamedTuple):
+    """What a solver optimises on one grid."""
+
+    data: "DataTerm"
+    priors: Priors
+    volume_fraction: float  # measured object volume / grid cube volume
+    support: torch.Tensor  # bool, grid.shape: voxels that may be occupied
+
+
+class DataTerm(nn.Module):
+    """Weighted squared relative residual ``sum w (A o - g)^2 / sum w g^2`` (see module docstring).
+
+    Args:
+        operator: the dip operator ``A``.
+        target: measured slab volumes ``(K, M)`` on the operator's slabs, mm^3.
+        sigma: optional noise standard deviation ``(K, M)``, mm^3.
+        dtype: arithmetic dtype of the residual.
+    """
+
+    def __init__(self, operator: DipOperator, target: torch.Tensor, sigma: torch.Tensor | None = None,
+                 dtype: torch.dtype = torch.float32) -> None:
+        super().__init__()
+        self.operator = operator
+        if sigma is None:
+            weight = torch.ones_like(target)
+        else:
+            sigma = sigma.to(target.dtype)
+            floor = _SIGMA_FLOOR * float(sigma[sigma > 0].median()) if bool((sigma > 0).any()) else 1.0
+            weight = sigma.clamp(min=floor).pow(-2)
+        weight = weight / float((weight * target.pow(2)).sum().clamp(min=1e-300))
+        self.register_buffer("target", target.to(dtype))
+        self.register_buffer("weight", weight.to(dtype))
+
+    def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
+        residual = self.operator(occupancy) - self.target
+        return (self.weight * residual.pow(2)).sum()
+
+
+def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edges: torch.Tensor,
+                 rel_tol: float = 0.005, margin: float = 1.5, chunk: int = 32) -> torch.Tensor:
+    """Voxels that can hold material: the working ball cut by every orientation's slab support.
+
+    For orientation ``k`` the object lies between the lower edge of its first and the upper
+    edge of its last non-empty slab (a slab is empty when its volume is at most ``rel_tol``
+    times the profile's largest); voxel centres beyond that range by more than ``margin``
+    voxels cannot be occupied. The intersection over all orientations is a polytope around
+    the object's convex hull, found from the data alone. Noise only makes empty slabs look
+    full, which widens the hull (safe); a threshold from the noise sigma would instead cut
+    the object's thin tips, whose slabs hold less than a few sigma, so none is used.
+
+    Args:
+        target: measured slab volumes ``(K, M)``, mm^3.
+        grid: the grid of the mask (any resolution).
+        directions: unit directions ``(K, d)``.
+        edges: slab edges ``(M + 1,)`` in mm.
+        rel_tol: emptiness threshold relative to each profile's maximum.
+        margin: slack in voxels.
+        chunk: orientations tested at once (memory).
+
+    Returns:
+        Boolean mask ``grid.shape`` (a subset of the working ball).
+    """
+    full = target > rel_tol * target.abs().amax(dim=1, keepdim=True)  # (K, M) non-empty slabs
+    edges = edges.to(target.dtype)
+    m = full.shape[1]
+    first = torch.argmax(full.to(torch.int8), dim=1)
+    last = m - 1 - torch.argmax(full.flip(1).to(torch.int8), dim=1)
+    slack = margin * grid.voxel_size
+    lo = torch.where(full.any(1), edges[first] - slack, edges[0] - slack)
+    hi = torch.where(full.any(1), edges[last + 1] + slack, edges[-1] + slack)
+    points = grid.centers(target.dtype).reshape(-1, grid.ndim)
+    inside = grid.working_mask().reshape(-1)
+    dirs = directions.to(target.dtype)
+    for k0 in range(0, dirs.shape[0], chunk):
+        t = points @ dirs[k0:k0 + chunk].T
+        inside &= ((t >= lo[k0:k0 + chunk]) & (t <= hi[k0:k0 + chunk])).all(dim=1)
+    return inside.reshape(grid.shape)
+
+
+def target_and_sigma(measurement: DipMeasurement, operator: DipOperator) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Measured slab volumes on the operator's slabs ``(K, M)`` and their noise sigma (``None``
+    when unknown, or when the slabs were resampled and the per-slab sigma no longer applies)."""
+    target = measured_profiles(measurement, operator)
+    same = measurement.sigma is not None and measurement.sigma.shape == target.shape
+    return target, measurement.sigma if same else None
+
+
+def volume_fraction(measurement: DipMeasurement, operator: DipOperator) -> float:
+    """Measured object volume (median profile sum) / volume of the grid cube."""
+    return max(measurement.volume_estimate(), 0.0) / operator.grid.extent ** operator.grid.ndim
+
+
+def plain(value):
+    """``value`` with every mapping turned into a dict and every non-string sequence into a
+    list, recursively (Hydra passes ``DictConfig`` / ``ListConfig``)."""
+    if isinstance(value, Mapping):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return [plain(v) for v in value]
+    return value
+
+
+def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: DataTerm, priors: Priors, *,
+             iterations: int, lr: float, optimizer: str = "adam", schedule: str = "cosine",
+             tol: float = 1e-5, window: int = 25, progress: bool = True, desc: str = "optimise",
+             before_step: Callable[[float], None] | None = None) -> dict[str, list[float]]:
+    """Minimise ``data(o) + sum weight * prior(o)`` over ``parameters``, with ``o = occupancy()``.
+
+    Args:
+        parameters: tensors or param-group dicts (a group may set its own ``lr``).
+        occupancy: builds the occupancy volume on ``data.operator.grid`` from the parameters.
+        data, priors: the data term and ``[(name, weight, module)]``.
+        iterations: maximum number of steps (L-BFGS: outer steps with one line search each).
+        lr: learning rate (Adam) / initial step (L-BFGS, typically 1).
+        optimizer: ``"adam"`` or ``"lbfgs"``.
+        schedule: Adam's learning-rate schedule: ``"cosine"`` (to 1% of ``lr``), ``"step"``
+            (x0.3 at 50% and 75% of ``iterations``) or ``"constant"``.
+        tol: stop when the mean loss of the last ``window`` steps differs from that of the
+            ``window`` before by less than ``tol`` relative (``tol=0``: never stop early).
+        progress: show a progress bar with the current terms.
+        desc: progress-bar label.
+        before_step: called with the progress fraction ``i / iterations`` before each step
+            (annealing hooks).
+
+    Returns:
+        History ``{"loss": total, "data": ..., <prior name>: unweighted value, ...}`` per step.
+    """
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
+    if schedule not in SCHEDULES:
+        raise ValueError(f"unknown schedule {schedule!r}; choose one of {SCHEDULES}")
+    iterations = int(iterations)
+    params = list(parameters)
+    history: dict[str, list[float]] = {"loss": [], "data": [], **{name: [] for name, _, _ in priors}}
+    last: dict[str, torch.Tensor] = {}
+
+    def objective() -> torch.Tensor:
+        opt.zero_grad(set_to_none=True)
+        occ = occupancy()
+        terms = {"data": data(occ), **{name: module(occ) for name, _, module in priors}}
+        total = terms["data"] + sum(weight * terms[name] for name, weight, _ in priors)
+        total.backward()
+        last.update(terms, loss=total)
+        return total
+
+    if optimizer == "adam":
+        opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=lr)
+        sched = _scheduler(opt, schedule, iterations)
+    else:
+        flat = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
+        opt = torch.optim.LBFGS(flat, lr=lr, max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
+                                tolerance_grad=0.0, tolerance_change=0.0)
+        sched = None
+    with tqdm(total=iterations, desc=desc, disable=not progress, leave=False) as bar:
+        for i in range(iterations):
+            if before_step is not None:
+                before_step(i / max(iterations, 1))
+            if optimizer == "adam":
+                objective()
+                opt.step()
+            else:
+                opt.step(objective)
+            if sched is not None:
+                sched.step()
+            for key in history:
+                history[key].append(float(last[key].detach()))
+            if i % 10 == 0 or i == iterations - 1:
+                bar.set_postfix({k: f"{v[-1]:.3g}" for k, v in history.items()}, refresh=False)
+            bar.update()
+            if not math.isfinite(history["loss"][-1]):
+                raise FloatingPointError(f"{desc}: the loss became {history['loss'][-1]} at step {i}")
+            if _converged(history["loss"], tol, window):
+                break
+    return history
+
+
+def _scheduler(opt: torch.optim.Optimizer, schedule: str, iterations: int):
+    if schedule == "cosine":
+        return torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda i: 0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(i / iterations, 1.0))))
+    if schedule == "step":
+        return torch.optim.lr_scheduler.MultiStepLR(opt, [iterations // 2, (3 * iterations) // 4], gamma=0.3)
+    return None
+
+
+def _converged(loss: list[float], tol: float, window: int) -> bool:
+    if tol <= 0 or len(loss) < 2 * window:
+        return False
+    prev = sum(loss[-2 * window:-window]) / window
+    cur = sum(loss[-window:]) / window
+    return abs(prev - cur) <= tol * max(abs(prev), 1e-30)
+
+
+def merge_histories(*histories: Mapping[str, list[float]]) -> dict[str, list[float]]:
+    """Concatenate loss histories of consecutive stages (coarse then fine)."""
+    out: dict[str, list[float]] = {}
+    for hist in histories:
+        for key, values in hist.items():
+            out.setdefault(key, []).extend(values)
+    return out
+
+
+def backend_name(operator: DipOperator) -> str:
+    """The :data:`~dipnet.operators.BACKENDS` name of ``operator``'s class."""
+    for name, cls in BACKENDS.items():
+        if type(operator) is cls:
+            return name
+    raise ValueError(f"operator type {type(operator).__name__} is not a registered backend")
+
+
+@contextmanager
+def seeded(seed: int):
+    """Run a block with torch's global RNG seeded, restoring its state afterwards."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(seed))
+        yield
+
+
+class OptimisationSolver(Solver):
+    """Options and plumbing shared by the optimisation solvers.
+
+    Args:
+        iterations: maximum optimisation steps.
+        lr: learning rate (Adam) / initial step (L-BFGS).
+        optimizer: ``"adam"`` or ``"lbfgs"``.
+        schedule: ``"cosine"``, ``"step"`` or ``"constant"`` (Adam).
+        tol, window: early stopping on the relative loss change (see :func:`optimise`).
+        priors: ``{name: {"weight": w, **options}}`` (see :func:`~dipnet.solvers.priors.build_priors`).
+        warm_start: initial occupancy: ``None`` (uniform, at the measured volume), a tensor
+            ``grid.shape``, a solver (its ``solve(measurement, operator)`` result, e.g. a
+            ``MinNormSolver``), or a callable ``(measurement, operator) -> tensor | Reconstruction``.
+            A reconstruction's values are shifted so its threshold maps to 0.5, then clipped to [0, 1].
+        hull_tol: voxels outside the data's :func:`support_hull` (with this ``rel_tol``) are
+            fixed empty; ``None``: only the working ball.
+        seed: seed of every random choice (initial weights, features).
+        threshold: occupancy level of the final binary shape.
+        progress: show progress bars.
+    """
+
+    name = "optimisation"
+
+    def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
+                 tol: float = 1e-5, window: int = 25, priors: Mapping[str, Mapping] | None = None,
+                 warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
+                 progress: bool = True) -> None:
+        if optimizer not in OPTIMIZERS:
+            raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
+        if schedule not in SCHEDULES:
+            raise ValueError(f"unknown schedule {schedule!r}; choose one of {SCHEDULES}")
+        if int(iterations) < 1 or not lr > 0 or int(window) < 1:
+            raise ValueError("iterations and window must be positive integers and lr positive")
+        priors = plain(priors or {})
+        build_priors(priors, volume_fraction=1.0)  # validate names and options now
+        self.iterations, self.lr, self.optimizer, self.schedule = int(iterations), float(lr), optimizer, schedule
+        self.tol, self.window = float(tol), int(window)
+        self.priors = priors
+        if hull_tol is not None and not 0 <= hull_tol < 1:
+            raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
+        self.warm_start, self.seed, self.threshold, self.progress = warm_start, int(seed), float(threshold), progress
+        self.hull_tol = None if hull_tol is None else float(hull_tol)
+
+    def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
+              before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:
+        return optimise(parameters, occupancy, data, priors, iterations=iterations, lr=self.lr * lr_scale,
+                        optimizer=self.optimizer, schedule=self.schedule, tol=self.tol, window=self.window,
+                        progress=self.progress, desc=desc, before_step=before_step)
+
+    def _problem(self, measurement: DipMeasurement, operator: DipOperator) -> Problem:
+        """Data term, priors, measured volume fraction and support mask for ``operator``."""
+        target, sigma = target_and_sigma(measurement, operator)
+        fraction = volume_fraction(measurement, operator)
+        support = self.support(target, operator, operator.grid)
+        return Problem(DataTerm(operator, target, sigma), build_priors(self.priors, fraction), fraction, support)
+
+    def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
+        """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),
+        from the measured slab volumes ``target`` on ``operator``'s slabs."""
+        if self.hull_tol is None:
+            return grid.working_mask()
+        return support_hull(target, grid, operator.directions, operator.slab_edges(), self.hull_tol)
+
+    def _initial_occupancy(self, measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor | None:
+        """The warm-start occupancy on ``operator.grid`` (float32, in [0, 1]) or ``None``."""
+        start = self.warm_start
+        if start is None:
+            return None
+        if isinstance(start, torch.Tensor):
+            pass
+        elif hasattr(start, "solve"):
+            start = start.solve(measurement, operator)
+        elif callable(start):
+            start = start(measurement, operator)
+        if isinstance(start, Reconstruction):
+            start = start.occupancy.detach().float() - start.threshold + 0.5
+        start = torch.as_tensor(start, dtype=torch.float32)
+        if tuple(start.shape) != operator.grid.shape:
+            raise ValueError(f"warm start has shape {tuple(start.shape)}, the grid {operator.grid.shape}")
+        return start.clamp(0, 1)
+
+    def _result(self, occupancy: torch.Tensor, operator: DipOperator, history: dict, started: float,
+                **info) -> Reconstruction:
+        steps = len(history.get("loss", []))
+        info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,
+                "final": {k: v[-1] for k, v in history.items() if v}, "optimizer": self.optimizer,
+                "seed": self.seed, **info}
+        return Reconstruction(occupancy=occupancy.detach().float() * operator.mask, grid=operator.grid,
+                              threshold=self.threshold, history=history, info=info)
