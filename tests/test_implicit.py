@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import itertools
-
 import pytest
 import torch
 import torch.nn.functional as F
 
 from dipnet.grid import Grid
+from solver_helpers import one_thread, partial_volume  # noqa: F401 (autouse fixture)
 from dipnet.measurement import DipMeasurement
 from dipnet.metrics import iou
 from dipnet.operators import make_operator
@@ -17,23 +16,6 @@ from dipnet.solvers.fields import OccupancyField, make_encoding
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.priors import symmetry_maps
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small problems run faster on one thread, and the test machine is shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def partial_volume(grid: Grid, inside, sub: int = 3) -> torch.Tensor:
-    """Occupancy fractions of an analytic solid ``inside(points (..., d) mm) -> bool``, float64."""
-    centres, acc = grid.centers(), torch.zeros(grid.shape, dtype=torch.float64)
-    for s in itertools.product(range(sub), repeat=grid.ndim):
-        acc += inside(centres + ((torch.tensor(s, dtype=torch.float64) + 0.5) / sub - 0.5) * grid.voxel_size)
-    return acc / sub**grid.ndim
 
 
 def crescent_2d(p: torch.Tensor) -> torch.Tensor:
