@@ -5,12 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dipnet.grid import Grid
-from solver_helpers import one_thread, partial_volume  # noqa: F401 (autouse fixture)
-from dipnet.measurement import DipMeasurement
+from solver_helpers import noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from dipnet.metrics import iou
-from dipnet.operators import make_operator
-from dipnet.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.optimize import DataTerm, optimise, support_hull
 from dipnet.solvers.voxel import VoxelSolver
@@ -27,23 +23,9 @@ def blobs_2d(p: torch.Tensor) -> torch.Tensor:
     return (ellipse & ~hole) | square | bar
 
 
-def hollow_ellipsoid(p: torch.Tensor) -> torch.Tensor:
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    return ((x / 32) ** 2 + (y / 22) ** 2 + (z / 16) ** 2 < 1) & ((x - 8) ** 2 + (y + 4) ** 2 + (z - 2) ** 2 >= 81)
-
-
 def problem(ndim: int):
-    """``(truth occupancy, operator, noise-free measurement)``: 48^2 with 6 angles or 24^3 with 20."""
-    if ndim == 2:
-        grid, dirs, inside = Grid(48, 2), directions_2d(angles_2d(6, start_deg=10.0)), blobs_2d
-    else:
-        grid, dirs, inside = Grid(24, 3), fibonacci_hemisphere(20), hollow_ellipsoid
-    truth = partial_volume(grid, inside)
-    op = make_operator(grid, dirs, backend="splat")
-    with torch.no_grad():
-        profiles = op(truth)
-    k = op.n_orientations
-    return truth, op, DipMeasurement(op.directions, profiles, op.slab_thickness, op.slab_edges()[:1].expand(k))
+    """``(truth, operator, measurement)`` for this file's 2D shape or the hollow ellipsoid."""
+    return noise_free_problem(ndim, blobs_2d)
 
 
 @pytest.fixture(scope="module", params=[2, 3], ids=["2d", "3d"])

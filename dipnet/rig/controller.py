@@ -254,8 +254,7 @@ class Controller(ABC):
 
     def reconnect(self) -> None:
         """Close and reopen the port (after a disconnect)."""
-        if self.link is not None:
-            self.link.close()
+        self.close()
         self.connect()
 
     def close(self) -> None:
