@@ -219,7 +219,27 @@ def open_port(url: str, timeout: float = 0.05, baudrate: int = 115200, **options
 
 
 # ----------------------------------------------------------------------------- interface
-class Controller(ABC):
+class SerialDevice(ABC):
+    """A device behind one serial line (:class:`LineChannel` in ``self.link``, ``None`` when closed)."""
+
+    link: LineChannel | None = None
+
+    @abstractmethod
+    def connect(self) -> None:
+        """Open the port and bring the device to a known state."""
+
+    def reconnect(self) -> None:
+        """Close and reopen the port (after a disconnect)."""
+        self.close()
+        self.connect()
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+            self.link = None
+
+
+class Controller(SerialDevice):
     """A motion controller of a dipping rig (one firmware dialect).
 
     Args:
@@ -251,16 +271,6 @@ class Controller(ABC):
         """Open the port and bring the controller to a known state."""
         self.link = LineChannel(open_port(self.url, baudrate=self.baudrate))
         self._handshake()
-
-    def reconnect(self) -> None:
-        """Close and reopen the port (after a disconnect)."""
-        self.close()
-        self.connect()
-
-    def close(self) -> None:
-        if self.link is not None:
-            self.link.close()
-            self.link = None
 
     def identity(self) -> dict:
         """What the rig header records about this controller."""

@@ -20,13 +20,13 @@ from __future__ import annotations
 import re
 import struct
 import time
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from typing import NamedTuple
 
 import numpy as np
 import serial
 
-from dipnet.rig.controller import LineChannel, RigDisconnected, RigError, RigTimeout, open_port
+from dipnet.rig.controller import LineChannel, RigDisconnected, RigError, RigTimeout, SerialDevice, open_port
 
 
 class SensorError(RigError):
@@ -161,7 +161,7 @@ def encode_registers(value: float, data_type: str = "int32", word_order: str = "
 
 
 # ----------------------------------------------------------------------------- sensors
-class Sensor(ABC):
+class Sensor(SerialDevice):
     """A sensor on a pyserial URL. ``read()`` returns one :class:`Reading`."""
 
     quantity = "level_mm"
@@ -174,15 +174,6 @@ class Sensor(ABC):
 
     def connect(self) -> None:
         self.link = LineChannel(open_port(self.url, baudrate=self.baudrate), self.terminator_bytes())
-
-    def reconnect(self) -> None:
-        self.close()
-        self.connect()
-
-    def close(self) -> None:
-        if self.link is not None:
-            self.link.close()
-            self.link = None
 
     def terminator_bytes(self) -> bytes:
         return b"\n"
