@@ -11,6 +11,7 @@ A small scripting API (see README, "Python API")::
     recon = dipnet.make_solver("minnorm").solve(meas, op)
 """
 
+from dipnet import datasets  # registers the ${dipnet_data:...} config resolver
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement, MeasurementFileError
 from dipnet.operators import BACKENDS, DipOperator, make_operator

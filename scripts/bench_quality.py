@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dipnet.datasets import MESHES_DIR
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.metrics import evaluate
@@ -41,7 +42,7 @@ from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
 
 SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver}
-DEFAULT_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+DEFAULT_MESHES = MESHES_DIR
 
 
 def parse_args(argv=None) -> argparse.Namespace:

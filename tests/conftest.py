@@ -6,8 +6,7 @@ from pathlib import Path
 
 import pytest
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-MESHES = SHARED / "meshes"
+from dipnet.datasets import MESHES_DIR
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -26,7 +25,5 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 @pytest.fixture(scope="session")
 def meshes_dir() -> Path:
-    """The shared development meshes (tests using it are skipped when absent)."""
-    if not MESHES.is_dir():
-        pytest.skip("shared/meshes not found beside the repository")
-    return MESHES
+    """The bundled example meshes (``dipnet/data/meshes``)."""
+    return MESHES_DIR

@@ -21,7 +21,7 @@ from dipnet.operators.analytic import ball_occupancy, ball_profiles
 from dipnet.operators.box_model import box_voxel_profiles
 from dipnet.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 
-MESHES = Path("/work/shared/meshes")
+from dipnet.datasets import MESHES_DIR as MESHES
 ALL = [(name, ndim) for name in BACKENDS for ndim in (2, 3)]
 IDS = [f"{name}-{ndim}d" for name, ndim in ALL]
 
@@ -131,8 +131,8 @@ def test_invalid_shapes_raise(backend, ndim):
 @functools.lru_cache(maxsize=4)
 def _mesh_volume(n: int, name: str) -> torch.Tensor:
     """``name`` from the shared meshes, scaled into the working ball and voxelised (winding number)."""
-    trimesh = pytest.importorskip("trimesh")
-    igl = pytest.importorskip("igl")
+    import igl
+    import trimesh
     mesh = trimesh.load(MESHES / f"{name}.ply", force="mesh")
     grid = Grid(n)
     v = np.asarray(mesh.vertices, dtype=np.float64)
@@ -143,7 +143,6 @@ def _mesh_volume(n: int, name: str) -> torch.Tensor:
     return torch.from_numpy(wn > 0.5).to(torch.float64).reshape(grid.shape)
 
 
-@pytest.mark.skipif(not MESHES.is_dir(), reason="shared meshes absent")
 @pytest.mark.parametrize("mesh", ["bunny", "hand", "hollow_cube"])  # hand: the largest difference
 @pytest.mark.parametrize("backend", sorted(BACKENDS))
 def test_agrees_with_reference_on_mesh(backend, mesh):

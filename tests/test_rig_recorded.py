@@ -20,13 +20,11 @@ from dipnet.rig.recorded import (calibrate_cross_section, expand_symmetry, inter
 from dipnet.shapes import Ball, Box
 from dipnet.simulate import simulate_measurement
 
-CSV = Path(__file__).resolve().parents[2] / "shared" / "real" / "3cats_fixture_3mm.csv"
+from dipnet.datasets import CATS_CSV as CSV
 
 
 @pytest.fixture(scope="module")
 def cats_csv() -> Path:
-    if not CSV.is_file():
-        pytest.skip("shared/real/3cats_fixture_3mm.csv not found beside the repository")
     return CSV
 
 

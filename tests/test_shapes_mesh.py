@@ -11,9 +11,9 @@ import trimesh
 from dipnet.grid import Grid
 from dipnet.shapes import Ball, MeshShape, ShapeError, ShapeWarning, from_trimesh, load_mesh
 
-MESHES = Path("/work/shared/meshes")
-needs_meshes = pytest.mark.skipif(not MESHES.is_dir(), reason="shared meshes not available")
-SHARED = sorted(MESHES.glob("*.ply")) if MESHES.is_dir() else []
+from dipnet.datasets import MESHES_DIR as MESHES
+
+SHARED = sorted(MESHES.glob("*.ply"))
 
 
 def unit_directions(k: int, seed: int) -> torch.Tensor:
@@ -21,7 +21,6 @@ def unit_directions(k: int, seed: int) -> torch.Tensor:
     return v / v.norm(dim=1, keepdim=True)
 
 
-@needs_meshes
 @pytest.mark.parametrize("path", SHARED, ids=lambda p: p.stem)
 def test_shared_meshes_volume_and_dips(path):
     expected = trimesh.load(path).volume
@@ -38,7 +37,6 @@ def test_shared_meshes_volume_and_dips(path):
     assert (v.diff(dim=1) >= -1e-9 * shape.volume).all()
 
 
-@needs_meshes
 @pytest.mark.parametrize("stem", ["bunny", "spot", "torus"])
 def test_shared_mesh_occupancy_matches_volume(stem):
     grid = Grid(40, 3, 100.0)
@@ -49,7 +47,6 @@ def test_shared_mesh_occupancy_matches_volume(stem):
     assert occ.sum().item() * grid.voxel_volume == pytest.approx(shape.volume, rel=0.03)
 
 
-@needs_meshes
 def test_hollow_cube_sealed_void_is_filled_by_default():
     with pytest.warns(ShapeWarning, match="filled 1 sealed"):
         filled = load_mesh(MESHES / "hollow_cube.ply")
