@@ -535,6 +535,7 @@ def guarded_job(task: Callable[[], T], out: str | Path) -> T | None:
 
 
 def job_summary(metrics: dict, keys: Sequence[str] = ("iou", "chamfer", "false_positive", "false_negative",
+                                                       "profile_residual", "volume_ratio", "consistency",
                                                        "seconds")) -> str:
     """``key=value`` pairs of the given metrics that are present, 4 significant digits."""
     return " ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics[k], float) else f"{k}={metrics[k]}"

@@ -19,7 +19,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from dipnet import export, metrics, plots
+from dipnet import consistency, export, metrics, plots, resolvability
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.orientations import make_directions
@@ -99,9 +99,10 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
 
     scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
                               "seconds": seconds, "n_dips": measurement.n_orientations,
-                              "resolution": grid.n, "ndim": grid.ndim,
-                              "measured_volume_mm3": measurement.volume_estimate(),
-                              "reconstructed_volume_mm3": float(recon.binary.sum() * grid.voxel_volume)}
+                              "resolution": grid.n, "ndim": grid.ndim}
+    scores.update(consistency.check_consistency(measurement, operator, recon).metrics())
+    if cfg.output.get("resolvability", True):
+        scores.update(resolvability.write_resolvability(measurement, grid, out, figure=cfg.output.figures))
     truth = None
     if shape is not None:
         truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
