@@ -275,6 +275,8 @@ class OptimisationSolver(Solver):
             A reconstruction's values are shifted so its threshold maps to 0.5, then clipped to [0, 1].
         hull_tol: voxels outside the data's :func:`support_hull` (with this ``rel_tol``) are
             fixed empty; ``None``: only the working ball.
+        hull_margin: the hull's slack in voxels; raise it when the profiles' start heights
+            are uncertain by more than about a voxel (real rigs before calibration).
         seed: seed of every random choice (initial weights, features).
         threshold: occupancy level of the final binary shape.
         progress: show progress bars.
@@ -285,7 +287,7 @@ class OptimisationSolver(Solver):
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
                  tol: float = 1e-5, window: int = 25, priors: Mapping[str, Mapping] | None = None,
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
-                 progress: bool = True) -> None:
+                 progress: bool = True, hull_margin: float = 1.5) -> None:
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
         if schedule not in SCHEDULES:
@@ -301,6 +303,9 @@ class OptimisationSolver(Solver):
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
         self.warm_start, self.seed, self.threshold, self.progress = warm_start, int(seed), float(threshold), progress
         self.hull_tol = None if hull_tol is None else float(hull_tol)
+        if not hull_margin >= 0:
+            raise ValueError(f"hull_margin must be >= 0 voxels, got {hull_margin}")
+        self.hull_margin = float(hull_margin)
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
               before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:
@@ -320,7 +325,7 @@ class OptimisationSolver(Solver):
         from the measured slab volumes ``target`` on ``operator``'s slabs."""
         if self.hull_tol is None:
             return grid.working_mask()
-        return support_hull(target, grid, operator.directions, operator.slab_edges(), self.hull_tol)
+        return support_hull(target, grid, operator.directions, operator.slab_edges(), self.hull_tol, self.hull_margin)
 
     def _initial_occupancy(self, measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor | None:
         """The warm-start occupancy on ``operator.grid`` (float32, in [0, 1]) or ``None``."""
