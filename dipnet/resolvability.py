@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dipnet.consistency import estimate_slab_sigma
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.orientations import fibonacci_hemisphere
@@ -56,6 +57,13 @@ class Resolvability:
             angle (angle of ``k`` from the vertical axis), ``(B,)`` each.
         frequency_coverage, polar_coverage, azimuthal_coverage: covered shares (0..1).
         diameter_mm: the object size ``D`` used by the coverage criterion.
+        ring_polar_deg, ring_rms: per ring of measured directions at one polar angle (with at
+            least two azimuths), the rms deviation of its profiles from the ring's mean (mm^3);
+            empty without a measurement.
+        azimuthal_signal_ratio: the largest ``ring_rms`` over the noise sigma estimated from the
+            profiles (:func:`dipnet.consistency.estimate_slab_sigma`): about 1 when turning the
+            object about its axis (the rig's spin) changes nothing beyond noise; ``None``
+            without rings.
     """
 
     directions: np.ndarray
@@ -71,12 +79,16 @@ class Resolvability:
     polar_coverage: float
     azimuthal_coverage: float
     diameter_mm: float
+    ring_polar_deg: np.ndarray
+    ring_rms: np.ndarray
+    azimuthal_signal_ratio: float | None
 
     def metrics(self) -> dict:
         """Summary numbers for ``metrics.json``."""
         return {"missing_cone_deg": self.missing_cone_deg, "mean_direction_gap_deg": self.mean_gap_deg,
                 "frequency_coverage": self.frequency_coverage, "polar_coverage": self.polar_coverage,
-                "azimuthal_coverage": self.azimuthal_coverage, "resolvability_diameter_mm": self.diameter_mm}
+                "azimuthal_coverage": self.azimuthal_coverage, "resolvability_diameter_mm": self.diameter_mm,
+                "azimuthal_signal_ratio": self.azimuthal_signal_ratio}
 
     def save(self, path: str | Path) -> Path:
         """Write every array and number to an ``.npz`` file; returns the path."""
@@ -84,7 +96,8 @@ class Resolvability:
         np.savez_compressed(path, directions=self.directions, sphere=self.sphere, gap_deg=self.gap_deg,
                             uncovered_direction=self.uncovered_direction, coverage=self.coverage,
                             polar_deg=self.polar_deg, coverage_by_polar=self.coverage_by_polar,
-                            **{k: np.float64(v) for k, v in self.metrics().items()})
+                            ring_polar_deg=self.ring_polar_deg, ring_rms=self.ring_rms,
+                            **{k: np.float64(np.nan if v is None else v) for k, v in self.metrics().items()})
         return path
 
 
@@ -165,7 +178,39 @@ def resolvability(directions, grid: Grid, measurement: DipMeasurement | None = N
         uncovered_direction=sphere[int(gap.argmax())], coverage=covered.reshape(grid.shape),
         polar_deg=0.5 * (edges[1:] + edges[:-1]), coverage_by_polar=by_polar,
         frequency_coverage=_share(covered, inside), polar_coverage=_share(covered, inside & (polar <= BAND_DEG)),
-        azimuthal_coverage=_share(covered, inside & (polar >= 90.0 - BAND_DEG)), diameter_mm=float(diameter_mm))
+        azimuthal_coverage=_share(covered, inside & (polar >= 90.0 - BAND_DEG)), diameter_mm=float(diameter_mm),
+        **_rings(measurement))
+
+
+def ring_variation(measurement: DipMeasurement, tol_deg: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """``(polar_deg (R,), rms (R,))``: for every ring of directions at one polar angle (within
+    ``tol_deg``, angle from the last axis) holding at least two distinct directions, the rms
+    deviation (mm^3) of its profiles from their mean. Directions repeated within ``tol_deg``
+    are one azimuth."""
+    d = measurement.directions.numpy()
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    polar = np.degrees(np.arccos(np.clip(np.abs(d[:, -1]), 0.0, 1.0)))
+    key = np.round(polar / tol_deg).astype(int)
+    profiles = measurement.profiles.numpy()
+    angles, rms = [], []
+    for k in np.unique(key):
+        ring = np.flatnonzero(key == k)
+        if np.degrees(angle_to_plan(d[ring], d[ring[:1]])).max() <= tol_deg:
+            continue  # a single azimuth (repeats of one direction)
+        dev = profiles[ring] - profiles[ring].mean(axis=0)
+        angles.append(float(polar[ring].mean()))
+        rms.append(float(np.sqrt((dev**2).mean())))
+    return np.asarray(angles), np.asarray(rms)
+
+
+def _rings(measurement: DipMeasurement | None) -> dict:
+    """The ring fields of :class:`Resolvability` for ``measurement`` (empty without one)."""
+    if measurement is None:
+        return {"ring_polar_deg": np.zeros(0), "ring_rms": np.zeros(0), "azimuthal_signal_ratio": None}
+    angles, rms = ring_variation(measurement)
+    sigma = estimate_slab_sigma(measurement.profiles)
+    ratio = float(rms.max() / sigma) if rms.size and sigma > 0 else None
+    return {"ring_polar_deg": angles, "ring_rms": rms, "azimuthal_signal_ratio": ratio}
 
 
 def _share(covered: np.ndarray, where: np.ndarray) -> float:

@@ -4,8 +4,11 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from dipnet.grid import Grid
+from dipnet.measurement import DipMeasurement
+from dipnet.operators import make_operator
 from dipnet.orientations import directions_2d, fibonacci_hemisphere, rig_to_direction
 from dipnet.resolvability import Resolvability, plot_resolvability, resolvability
 
@@ -65,3 +68,26 @@ def test_outputs_are_written(tmp_path):
 def test_bad_plans_are_refused(directions, message):
     with pytest.raises(ValueError, match=message):
         resolvability(directions, GRID)
+
+
+def _ring_measurement(centre_x_mm: float) -> DipMeasurement:
+    """A ball of radius 20 mm at ``(centre_x, 0, 0)`` dipped at tilt 30 deg and 6 spins, plus
+    white noise of 1% of the largest slab."""
+    grid = Grid(24, 3, 100.0)
+    operator = make_operator(grid, rig_to_direction(np.full(6, 30.0), np.arange(0, 360, 60.0)))
+    ball = ((grid.centers() - torch.tensor([centre_x_mm, 0.0, 0.0], dtype=torch.float64)).norm(dim=-1) <= 20).double()
+    with torch.no_grad():
+        profiles = operator(ball)
+    noise = 0.01 * float(profiles.max()) * torch.randn(profiles.shape, generator=torch.Generator().manual_seed(0),
+                                                         dtype=torch.float64)
+    return DipMeasurement(operator.directions, profiles + noise, operator.slab_thickness,
+                          torch.full((6,), float(operator.slab_edges()[0])))
+
+
+def test_spin_signal_is_noise_for_an_axisymmetric_object_and_large_otherwise():
+    on_axis = resolvability(_ring_measurement(0.0).directions, GRID, _ring_measurement(0.0))
+    off_axis = resolvability(_ring_measurement(15.0).directions, GRID, _ring_measurement(15.0))
+    assert on_axis.ring_polar_deg == pytest.approx([30.0]) and len(on_axis.ring_rms) == 1
+    assert on_axis.azimuthal_signal_ratio < 2.0
+    assert off_axis.azimuthal_signal_ratio > 3 * max(on_axis.azimuthal_signal_ratio, 1.0)
+    assert resolvability(fibonacci_hemisphere(50), GRID).azimuthal_signal_ratio is None
