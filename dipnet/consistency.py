@@ -133,6 +133,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     voxel = operator.grid.voxel_volume
     mask = operator.mask
     measured, spread = robust_volume(measurement.profiles)
+    if not measured > 0:
+        raise ValueError(f"the measurement's profiles hold no volume ({measured:g} mm^3): nothing to check against")
     on_grid, _ = robust_volume(target)
     sigma = measurement.sigma if measurement.sigma is not None and measurement.sigma.shape == target.shape else None
     if sigma is not None:
@@ -147,10 +149,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         profile_residual_expected=expected, residual_limit=max(residual_factor * expected, residual_floor),
         noise_source=source, measured_volume_mm3=measured, reconstructed_volume_mm3=recon_volume,
         continuous_volume_mm3=float((occupancy.double() * mask).sum()) * voxel,
-        volume_ratio=recon_volume / measured if measured > 0 else math.inf,
-        volume_ratio_noise=spread / measured if measured > 0 else math.inf,
-        volume_limit=max(volume_tol, 3 * spread / measured) if measured > 0 else volume_tol,
-        grid_volume_fraction=on_grid / measured if measured > 0 else 1.0)
+        volume_ratio=recon_volume / measured, volume_ratio_noise=spread / measured,
+        volume_limit=max(volume_tol, 3 * spread / measured), grid_volume_fraction=on_grid / measured)
     result.warnings = _findings(result)
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:

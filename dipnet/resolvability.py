@@ -252,15 +252,14 @@ def plot_resolvability(res: Resolvability, path: str | Path, title: str = "what 
     cov = np.fft.fftshift(res.coverage)
     n = cov.shape[0]
     extent = (-1, 1, -1, 1)
-    slices = [("k_x", "k_z", cov[:, n // 2, :] if three_d else cov)]
-    if three_d:
-        slices.append(("k_x", "k_y", cov[n // 2, :, :]))
-    for ax, (xl, yl, img) in zip(axes[1:], slices):
+    slices = [("k_x", "k_z", cov[:, n // 2, :], ""), ("k_x", "k_y", cov[n // 2, :, :], ", k_z = 0")] if three_d \
+        else [("k_x", "k_y", cov, "")]
+    for ax, (xl, yl, img, note) in zip(axes[1:], slices):
         ax.imshow(img, origin="lower", extent=extent, cmap="Greens", vmin=0, vmax=1.5, interpolation="nearest")
         ax.add_patch(plt.Circle((0, 0), 1.0, fill=False, color="k", lw=0.5))
         ax.set_xlabel(f"{xl} / Nyquist")
         ax.set_ylabel(f"{yl} / Nyquist")
-        ax.set_title(f"covered frequencies ({xl}, {yl})" + (", k_z = 0" if yl == "k_y" else ""))
+        ax.set_title(f"covered frequencies ({xl}, {yl}){note}")
     ax = axes[-1]
     ax.plot(res.polar_deg, res.coverage_by_polar, "o-")
     ax.set_xlabel("frequency angle from the vertical axis (deg)")

@@ -128,3 +128,16 @@ def test_real_cats_keep_the_measured_volume_and_the_old_priors_are_flagged(tmp_p
     scores, caught = _cats(tmp_path / "old", "solver.priors.binary.weight=0")
     assert scores["volume_ratio"] < 0.8 and scores["consistency"] == "inconsistent"
     assert any("the dips measure" in str(w.message) for w in caught)
+
+
+def test_an_object_beyond_the_grid_and_an_empty_measurement_are_named(problem):
+    operator, ball, measurement = problem
+    shifted = DipMeasurement(measurement.directions, measurement.profiles, measurement.slab_thickness,
+                             measurement.offsets + 40.0)  # the profiles start 40 mm higher: beyond the slabs
+    result, caught = _check(shifted, operator, ball)
+    assert result.grid_volume_fraction < 0.9
+    assert any("beyond the working range" in str(w.message) for w in caught)
+    empty = DipMeasurement(measurement.directions, torch.zeros_like(measurement.profiles),
+                           measurement.slab_thickness, measurement.offsets)
+    with pytest.raises(ValueError, match="no volume"):
+        check_consistency(empty, operator, Reconstruction(occupancy=ball.float(), grid=GRID))
