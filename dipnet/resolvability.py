@@ -26,8 +26,8 @@ profiles of one tilt change with the spin, against the noise (``azimuthal_signal
 The map is per frequency, not per voxel: plane integrals along parallel planes are
 shift-invariant, so every voxel of the working ball sees the same covered frequencies (a
 per-voxel ``diag(A^T A)`` is flat up to partial-volume ripple: 1.9% rms over the working
-ball for the cats plan at 24^3). Everything here is
-geometry: no operator is applied, so it costs about 0.1 s at 40^3.
+ball for the cats plan at 24^3). Everything here is geometry: no operator is applied, so it
+costs about 0.1 s at 40^3.
 """
 
 from __future__ import annotations
