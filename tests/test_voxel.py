@@ -129,3 +129,12 @@ def test_support_hull_holds_the_object_and_carves_the_ball(ndim):
     rec = VoxelSolver(iterations=5, progress=False).solve(meas, op)
     assert float(rec.occupancy[~hull].abs().max()) == 0.0
     assert rec.info["support_voxels"] == int(hull.sum())
+
+
+def test_hull_margin_widens_the_support_and_is_validated():
+    truth, op, meas = problem(3)
+    tight = VoxelSolver(progress=False).support(meas.profiles, op, op.grid)
+    loose = VoxelSolver(progress=False, hull_margin=4.0).support(meas.profiles, op, op.grid)
+    assert bool((loose | ~tight).all()) and int(loose.sum()) > int(tight.sum())  # a superset, strictly larger
+    with pytest.raises(ValueError, match="hull_margin"):
+        VoxelSolver(hull_margin=-1.0)
