@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import serial
 
-from dipnet.rig.controller import LineChannel, RigDisconnected, RigError, RigTimeout, SerialDevice, open_port
+from dipnet.rig.controller import LineChannel, RigDisconnected, RigError, RigTimeout, SerialDevice, open_channel
 
 
 class SensorError(RigError):
@@ -173,7 +173,7 @@ class Sensor(SerialDevice):
         self.link: LineChannel | None = None
 
     def connect(self) -> None:
-        self.link = LineChannel(open_port(self.url, baudrate=self.baudrate), self.terminator_bytes())
+        self.link = open_channel(self.url, self.terminator_bytes(), self.baudrate)
 
     def terminator_bytes(self) -> bytes:
         return b"\n"
