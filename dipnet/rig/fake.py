@@ -487,7 +487,8 @@ class GrblDevice(Device):
     def report(self) -> None:
         w = self.world
         mpos = w.machine_position()
-        text = f"<{self.state()}|MPos:{','.join(f'{mpos[a]:.3f}' for a in w.status_axes)}|FS:0,0>"
+        kind = "MPos" if int(w.grbl_settings.get(10, 1)) & 1 else "WPos"  # work offsets are 0 here
+        text = f"<{self.state()}|{kind}:{','.join(f'{mpos[a]:.3f}' for a in w.status_axes)}|FS:0,0>"
         if self.status_fault == "corrupt_status":  # as in t3f.log: '|' read as ':'
             text = text.replace("|FS", ":FS")
         elif self.status_fault == "split_status":  # as in t3g.log: one byte became a newline

@@ -88,6 +88,10 @@ class GrblStatus:
     mpos: dict[str, float] | None = None
 
 
+class AxisCountError(ValueError):
+    """A status report carries another number of coordinates than the configured axes."""
+
+
 def classify(line: str) -> GrblLine:
     """Classify one received line (pure)."""
     text = line.strip()
@@ -136,7 +140,7 @@ def parse_status(line: str, axes: str = "XYZAB") -> GrblStatus:
             return None
         values = [float(v) for v in fields[key].split(",")]
         if len(values) != len(axes):
-            raise ValueError(f"{key} has {len(values)} coordinates but the axes are {axes!r}: {line!r}")
+            raise AxisCountError(f"{key} has {len(values)} coordinates but the axes are {axes!r}: {line!r}")
         return dict(zip(axes.upper(), values))
 
     mpos = coords("MPos")
@@ -223,6 +227,10 @@ class GrblController(Controller):
             self._reports += 1
             try:
                 self.last_status = parse_status(reply.text, self.status_axes)
+            except AxisCountError as exc:
+                raise ControllerError(f"the board's status reports do not fit status_axes={self.status_axes!r} "
+                                      f"({exc}): set rig.controller.status_axes to one letter per reported "
+                                      f"coordinate (a stock GRBL has 3 axes: use rig=grbl_3axis)") from None
             except ValueError as exc:
                 self.last_status = None
                 log.warning("corrupted status report %r (%s)", reply.text, exc)

@@ -280,6 +280,7 @@ class ScanRunner:
         ctl = self.controller
         if self.marker.exists():
             previous = json.loads(self.marker.read_text()).get("reason", "unknown")
+            ctl.position_lost = None  # the marker says more than the controller's own state
             ctl.lose_position(f"the previous run lost the position ({previous})")
         if self.home:
             self.where = "homing"
@@ -351,7 +352,7 @@ class ScanRunner:
                 here = ctl.position()
                 ctl.stop()
                 self.marker.unlink(missing_ok=True)
-                return (f"object lifted: the controller reports lower {here.lower_mm:.3f} mm "
+                return (f"object lifted: the controller reports lower {round(here.lower_mm, 3) + 0.0:.3f} mm "
                         f"(safe height {safe:g} mm)")
             except PositionUnknown as err:
                 self._mark_position_lost(str(err))
