@@ -361,7 +361,12 @@ class Controller(SerialDevice):
     # -- lifecycle
     def connect(self) -> None:
         """Lock and open the port and bring the controller to a known state."""
-        self.link = open_channel(self.url, baudrate=self.baudrate)
+        self.attach(open_channel(self.url, baudrate=self.baudrate))
+
+    def attach(self, link: LineChannel) -> None:
+        """Talk over an open channel (e.g. a recorded-trace replay) and bring the controller to a
+        known state."""
+        self.link = link
         self._target = {}
         self._handshake()
 

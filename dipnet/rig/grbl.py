@@ -393,23 +393,25 @@ class GrblController(Controller):
         deadline = time.monotonic() + limit
         seq = self.send("G4 P0") if self.wait == "dwell" else None
         interval = max(self.poll_s, 0.05)
-        while True:
-            if seq is not None:
-                try:
-                    self.wait_for(seq, "G4 P0", min(interval, max(deadline - time.monotonic(), 0.0)))
-                    seq = None
-                except RigTimeout:
-                    self._abandoned.discard(seq)  # still ours: keep waiting for it below
-            st = self.status()
-            if seq is None and st.state == "Idle":
-                return
-            self._check_state(st)
-            if time.monotonic() > deadline:
+        try:
+            while True:
                 if seq is not None:
-                    self._abandoned.add(seq)
-                raise RigTimeout(f"the move did not finish within {limit:g} s (state {st.state})")
-            if seq is None:
-                time.sleep(self.poll_s)
+                    try:
+                        self.wait_for(seq, "G4 P0", min(interval, max(deadline - time.monotonic(), 0.0)))
+                        seq = None
+                    except RigTimeout:
+                        self._abandoned.discard(seq)  # still ours: keep waiting for it below
+                st = self.status()
+                if seq is None and st.state == "Idle":
+                    return
+                self._check_state(st)
+                if time.monotonic() > deadline:
+                    raise RigTimeout(f"the move did not finish within {limit:g} s (state {st.state})")
+                if seq is None:
+                    time.sleep(self.poll_s)
+        finally:
+            if seq is not None and self._answers.pop(seq, None) is None:
+                self._abandoned.add(seq)  # given up: its reply, when it comes, is accounted as late
 
     def position(self) -> Position:
         st = self.status()
