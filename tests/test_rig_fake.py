@@ -148,3 +148,22 @@ def test_scan_config_runs_through_hydra(tmp_path):
     assert stored.header.quantity == "mass_g" and stored.header.rig == "fake-marlin"
     assert stored.orientations[0].meta["t_start_mm"] == -cfg.rig.geometry.origin_height_mm
     assert stored.header.config["scan"]["sensor"]["device"]["style"] == "sics"
+
+
+def test_stock_3axis_preset_works_out_of_the_box(meshes_dir, tmp_path):
+    from hydra import compose, initialize_config_module
+
+    from dipnet.rig.runner import scan_from_config
+
+    overrides = ["rig=grbl_3axis", "rig.controller.url=fakerig://stock3/grbl", "rig.sensor_url=fakerig://stock3/level",
+                 "rig.controller.timeout=0.3", "orientations.n=3", "protocol.step_mm=20", "fsync=false",
+                 "progress=false"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="scan", overrides=overrides)
+    # a factory-set 3-axis board: no homing ($22=0), no soft limits, MPos in reports
+    world = make_world(meshes_dir, "stock3", status_axes="XYZ", axes=dict(cfg.rig.controller.axes),
+                       grbl_settings={22: 0})
+    assert not world.alarm
+    raw = scan_from_config(cfg, tmp_path / "rawscan.jsonl")
+    assert len(raw.completed()) == 3 and world.position().lower_mm == 0.0
+    assert raw.header.config["controller"]["status_axes"] == "XYZ"

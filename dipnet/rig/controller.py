@@ -381,6 +381,10 @@ class Controller(SerialDevice):
         will visit. Dialects that cannot read settings return ``[]``."""
         return []
 
+    def can_home(self) -> bool:
+        """Whether the board can home (settings read at connect; ``True`` when unknown)."""
+        return True
+
     def lose_position(self, reason: str) -> None:
         """Record that the position can no longer be trusted (see the class docstring)."""
         if self.position_lost is None:

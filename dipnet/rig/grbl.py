@@ -345,6 +345,9 @@ class GrblController(Controller):
         if state != "Alarm":
             self.command("G90")
 
+    def can_home(self) -> bool:
+        return bool(self.settings.get(22, 1))
+
     def check_board(self, home: bool, targets: dict[str, tuple[float, float]]) -> list[str]:
         return check_settings(self.settings, self.last_status, self.status_axes, self.axes, home, targets)
 

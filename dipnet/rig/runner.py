@@ -181,7 +181,8 @@ class ScanRunner:
         path: the raw scan file (``.jsonl``); resumed if it exists.
         header: scan metadata; its ``config`` gains the plan and the controller's and sensor's
             identity (dialect, URL, axis mapping, sensor settings) unless already there.
-        home: home the controller before the first orientation.
+        home: home the controller before the first orientation; ``None``: home when the board has
+            homing enabled (:meth:`Controller.can_home`, e.g. GRBL ``$22=1``).
         progress: show a progress bar with ETA.
         fsync: fsync the file after every reading (survives power loss; a few ms per reading).
         rehome_on_fault: after a fault that loses the position, home (which lifts the lowering
@@ -191,7 +192,7 @@ class ScanRunner:
     """
 
     def __init__(self, controller: Controller, sensor, plan: ScanPlan, path: str | Path, header: ScanHeader,
-                 home: bool = True, progress: bool = True, fsync: bool = True, rehome_on_fault: bool = False,
+                 home: bool | None = True, progress: bool = True, fsync: bool = True, rehome_on_fault: bool = False,
                  confirm_position: bool = False) -> None:
         self.controller, self.sensor, self.plan = controller, sensor, plan
         self.path = Path(path)
@@ -267,6 +268,8 @@ class ScanRunner:
         tilts = [t for t, _ in self.plan.orientations]
         spins = [s for _, s in self.plan.orientations]
         lowers = [self.plan.safe_mm, float(stages[0]), float(stages[-1])]
+        if self.home is None:
+            self.home = self.controller.can_home()
         problems = self.controller.check_board(self.home, {
             "lower": (min(lowers), max(lowers)), "tilt": (min(tilts), max(tilts)), "spin": (min(spins), max(spins))})
         for problem in problems:
@@ -407,7 +410,8 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
                     **OmegaConf.to_container(cfg.protocol, resolve=True),
                     origin_height_mm=geometry.get("origin_height_mm"), pivot_mm=float(geometry.get("pivot_mm", 0.0)))
     header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
-    return ScanRunner(controller, sensor, plan, path, header, home=bool(cfg.home),
+    home = cfg.get("home")
+    return ScanRunner(controller, sensor, plan, path, header, home=None if home is None else bool(home),
                       progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
                       rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
                       confirm_position=bool(cfg.get("confirm_position", False))).run()
