@@ -28,7 +28,8 @@ def make_sensor(world: FakeRig, kind: str):
     if kind == "level":
         return AveragingSensor(LineSensor(url, pattern=r"L=(?P<value>[-+\d.]+)\s*(?P<unit>mm)"), n=3, max_spread=0.05)
     if kind == "modbus":
-        return AveragingSensor(ModbusLevelSensor(url, data_type="int32", scale=0.001), n=2, max_spread=0.05)
+        return AveragingSensor(ModbusLevelSensor(url, data_type="int32", scale=0.001, baudrate=115200), n=2,
+                               max_spread=0.05)
     return BalanceSensor(url, style=kind)
 
 

@@ -16,7 +16,8 @@ from dipnet.rawscan import ScanHeader, read_rawscan
 from dipnet.rig.fake import serve
 from dipnet.rig.grbl import GrblController
 from dipnet.rig.runner import ScanAborted, ScanRunner, direction_to_rig
-from dipnet.rig.sensors import LineSensor
+from dipnet.rig.controller import RigTimeout
+from dipnet.rig.sensors import LineSensor, ModbusLevelSensor, SensorError
 from dipnet.solvers.minnorm import MinNormSolver
 from rig_helpers import AREA, make_world, plan_for, scan
 
@@ -167,3 +168,21 @@ def test_stock_3axis_preset_works_out_of_the_box(meshes_dir, tmp_path):
     raw = scan_from_config(cfg, tmp_path / "rawscan.jsonl")
     assert len(raw.completed()) == 3 and world.position().lower_mm == 0.0
     assert raw.header.config["controller"]["status_axes"] == "XYZ"
+
+
+def test_modbus_sensor_reads_real_frames_and_reports_faults(world):
+    world.reset()
+    good = ModbusLevelSensor(world.url("modbus"), data_type="int32", scale=0.001, timeout=0.2)
+    good.connect()
+    assert good.read().value == pytest.approx(world.tank.rest_level_mm, abs=1e-3)
+    good.close()
+    wrong_register = ModbusLevelSensor(world.url("modbus"), address=7, timeout=0.2)  # exception 2 from the slave
+    wrong_register.connect()
+    with pytest.raises(SensorError, match="IllegalRequestError"):
+        wrong_register.read()
+    wrong_register.close()
+    wrong_slave = ModbusLevelSensor(world.url("modbus"), slave=9, timeout=0.1)  # a real slave stays silent
+    wrong_slave.connect()
+    with pytest.raises(RigTimeout):
+        wrong_slave.read()
+    wrong_slave.close()

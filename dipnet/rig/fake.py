@@ -776,6 +776,21 @@ class LevelDevice(Device):
             self.stream_line()
 
 
+def crc16(data: bytes) -> int:
+    """Modbus CRC-16 (polynomial 0xA001 reflected, initial 0xFFFF) of ``data`` (pure)."""
+    crc = 0xFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+def with_crc(body: bytes) -> bytes:
+    """``body`` followed by its CRC, low byte first (a Modbus RTU frame)."""
+    return body + struct.pack("<H", crc16(body))
+
+
 class ModbusDevice(Device):
     """A Modbus RTU slave holding the level in its registers (function 0x03 only)."""
 
@@ -783,19 +798,19 @@ class ModbusDevice(Device):
         fmt = self.world.sensor_format
         while len(self._inbuf) >= 8:
             frame, self._inbuf = bytes(self._inbuf[:8]), self._inbuf[8:]
-            if sensors.crc16(frame) != 0 or frame[0] != fmt.modbus_slave:
+            if crc16(frame) != 0 or frame[0] != fmt.modbus_slave:
                 continue  # a real slave stays silent on bad frames
             _, function, address, count = struct.unpack(">BBHH", frame[:6])
             if function != 0x03:
-                self.emit(sensors.with_crc(bytes([frame[0], function | 0x80, 1])))
+                self.emit(with_crc(bytes([frame[0], function | 0x80, 1])))
                 continue
             words = sensors.DATA_TYPES[fmt.modbus_data_type][0]
             if address != fmt.modbus_address or count != words:
-                self.emit(sensors.with_crc(bytes([frame[0], 0x83, 2])))
+                self.emit(with_crc(bytes([frame[0], 0x83, 2])))
                 continue
             value, _ = self.world.read("level_mm")
             regs = sensors.encode_registers(value / fmt.modbus_scale, fmt.modbus_data_type, fmt.modbus_word_order)
-            self.emit(sensors.with_crc(struct.pack(f">BBB{count}H", frame[0], 3, 2 * count, *regs)))
+            self.emit(with_crc(struct.pack(f">BBB{count}H", frame[0], 3, 2 * count, *regs)))
 
 
 class BalanceDevice(Device):
