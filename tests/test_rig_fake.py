@@ -10,7 +10,7 @@ from dipnet.grid import Grid
 from dipnet.metrics import iou
 from dipnet.operators import make_operator
 from dipnet.orientations import rig_to_direction
-from dipnet.physics import Tank, solve_dip
+from dipnet.physics import solve_dip
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import ScanHeader, read_rawscan
 from dipnet.rig.fake import serve

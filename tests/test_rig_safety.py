@@ -237,6 +237,31 @@ def test_second_writer_on_a_scan_file_fails_at_once(tmp_path):
     assert read_rawscan(path).orientations[0].n_readings == 3  # whole records, nothing truncated
 
 
+def test_records_stay_whole_under_a_writer_that_ignores_the_lock(tmp_path):
+    import json
+    import threading
+
+    path = tmp_path / "scan.jsonl"
+    writer = RawScanWriter(path, ScanHeader(tank_cross_section_mm2=1e4, step_mm=1.0))
+    writer.begin_orientation(0, tilt_deg=0.0, spin_deg=0.0)
+    rogue = os.open(path, os.O_WRONLY | os.O_APPEND)  # misuse: no flock, appends whole lines
+
+    def misuse():
+        for i in range(300):
+            os.write(rogue, (json.dumps({"type": "note", "i": i, "pad": "x" * 200}) + "\n").encode())
+
+    thread = threading.Thread(target=misuse)
+    thread.start()
+    for i in range(300):
+        writer.append_reading(float(i), 150.0, float(i), ["x" * 50])
+    thread.join()
+    writer.close()
+    os.close(rogue)
+    lines = path.read_text().splitlines()
+    records = [json.loads(line) for line in lines]  # every line is one whole JSON record
+    assert len(records) == 1 + 1 + 300 + 300 and sum(r["type"] == "reading" for r in records) == 300
+
+
 def test_second_scan_on_the_same_port_fails_at_once(world, tmp_path):
     world.reset()
     with serve(world, ["grbl", "level"]) as server:

@@ -53,14 +53,14 @@ import struct
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from dipnet.orientations import rig_to_direction
 from dipnet.physics import Tank
-from dipnet.rig import grbl, marlin, sensors
+from dipnet.rig import marlin, sensors
 from dipnet.rig.controller import AxisMap, Position
 
 DEVICES = ("grbl", "marlin", "level", "modbus", "ad", "sics")

@@ -59,16 +59,17 @@ SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasat
 
 
 class on_signals:
-    """Context manager: while active, SIGTERM and SIGHUP call ``handler(signum, frame)``
-    (Python handles signals in the main thread only; elsewhere nothing changes)."""
+    """Context manager: while active, ``signals`` (default SIGTERM and SIGHUP) call
+    ``handler(signum, frame)`` (Python handles signals in the main thread only; elsewhere
+    nothing changes)."""
 
-    def __init__(self, handler) -> None:
-        self.handler = handler
+    def __init__(self, handler, signals: tuple = SIGNALS) -> None:
+        self.handler, self.signals = handler, signals
 
     def __enter__(self) -> "on_signals":
         self.saved = {}
         try:
-            for sig in SIGNALS:
+            for sig in self.signals:
                 self.saved[sig] = signal.signal(sig, self.handler)
         except ValueError:  # not the main thread
             self.saved = {}
@@ -326,7 +327,7 @@ class ScanRunner:
             cause = "interrupted (Ctrl-C)"
         else:
             cause = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-        with on_signals(defer_signal):
+        with on_signals(defer_signal, SIGNALS + (signal.SIGINT,)):
             outcome = self._safe_stop()
         raise ScanAborted(f"scan stopped at {self.where}: {cause}; {outcome}; kept {kept} readings "
                           f"({done} complete orientations) in {self.path}; run the same command again "
