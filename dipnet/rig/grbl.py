@@ -427,7 +427,7 @@ class GrblController(Controller):
         GRBL asks for; a hold is let finish (``Hold:0``) and then cancelled by a reset, which keeps
         the position; a running move is held first; an alarm is unlocked only when it did not
         lose the position (``ALARM:2``)."""
-        require_link(self).drain(quiet_s=0.05, limit_s=0.5)  # bytes the fault left; accounted below
+        self._absorb()
         for _ in range(4):
             try:
                 if self.needs_reset:
@@ -451,6 +451,18 @@ class GrblController(Controller):
             except (AlarmError, ResetError):
                 continue
         raise PositionUnknown(self.position_lost or "the controller did not settle after 4 attempts")
+
+    def _absorb(self, quiet_s: float = 0.05, limit_s: float = 0.5) -> None:
+        """Account for what a fault left in transit (late replies, alarms, banners: each is
+        recorded by :meth:`_pump`) until the line is quiet for ``quiet_s``."""
+        deadline = time.monotonic() + limit_s
+        while time.monotonic() < deadline:
+            try:
+                self._pump(quiet_s)
+            except RigTimeout:
+                return
+            except (AlarmError, ResetError):
+                continue
 
     def _resynchronise(self) -> bool:
         """Idle with lines still unanswered: wait ``timeout`` for their late replies; if some
