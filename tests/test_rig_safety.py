@@ -13,7 +13,7 @@ from dipnet.rawscan import RawScanLocked, RawScanWriter, ScanHeader, read_rawsca
 from dipnet.rig.controller import Axis, AxisMap, ControllerError, PortBusy, PortLock, PositionUnknown
 from dipnet.rig.fake import serve
 from dipnet.rig.grbl import GrblController
-from dipnet.rig.runner import ScanAborted
+from dipnet.rig.runner import RigConfigError, ScanAborted
 from dipnet.rig.sensors import Reading
 from rig_helpers import make_runner, make_sensor, make_world, plan_for, scan
 
@@ -272,7 +272,7 @@ def test_second_scan_on_the_same_port_fails_at_once(world, tmp_path):
             ctl = GrblController(server.urls["grbl"], timeout=0.3)
             runner = make_runner(world, "grbl", "level", plan_for(1, step=10.0), tmp_path / "scan.jsonl")
             runner.controller = ctl
-            with pytest.raises(ScanAborted, match="PortBusy.*nothing had moved"):
+            with pytest.raises(PortBusy, match="another scan is running on this rig"):
                 runner.run()
         finally:
             held.release()
@@ -293,3 +293,16 @@ def test_position_unknown_blocks_moves(world):
     with pytest.raises(PositionUnknown, match="alarm state"):
         ctl.move_to(lower_mm=10.0)
     ctl.close()
+
+
+def test_config_mismatch_fails_before_anything_moves(world, tmp_path):
+    world.reset()
+    world.grbl_settings.update({22: 0})
+    try:
+        world.alarm = False
+        runner = make_runner(world, "grbl", "level", plan_for(1), tmp_path / "scan.jsonl", home=True)
+        with pytest.raises(RigConfigError, match=r"\(1\) home=true but homing is disabled"):
+            runner.run()
+    finally:
+        world.grbl_settings.update({22: 1})
+    assert world.motion_count == 0

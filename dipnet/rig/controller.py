@@ -75,8 +75,9 @@ class MotionHeld(RigError):
     """The controller is in a feed hold or a safety-door state (an operator or a sensor stopped it)."""
 
 
-class PortBusy(RigError):
-    """Another process holds the lock of this port (a second scan on the same rig)."""
+class PortBusy(RigError, ValueError):
+    """Another process holds the lock of this port (a second scan on the same rig); a user
+    error (the CLI prints ``error: ...`` and exits 2)."""
 
 
 # ----------------------------------------------------------------------------- config

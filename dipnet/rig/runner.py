@@ -39,7 +39,8 @@ from tqdm.auto import tqdm
 
 from dipnet.orientations import make_directions
 from dipnet.rawscan import RawScan, RawScanFileError, RawScanWriter, ScanHeader
-from dipnet.rig.controller import Controller, MotionHeld, PositionUnknown, RigDisconnected, RigError, SensorUnstable
+from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
+                                   SensorUnstable)
 from dipnet.rig.sensors import AveragingSensor, Reading, SensorError
 
 log = logging.getLogger(__name__)
@@ -217,6 +218,8 @@ class ScanRunner:
             with on_signals(raise_scan_signal):
                 try:
                     self._scan(writer, first)
+                except (RigConfigError, PortBusy):
+                    raise  # before any motion: a user error (exit 2), nothing to stop
                 except BaseException as exc:  # noqa: BLE001 - every exception ends in the safe stop
                     self._abort(writer, exc)
             return writer.scan
