@@ -133,17 +133,16 @@ def test_homing_disabled_gives_error5_and_config_check(world):
 
 
 def test_soft_limit_travel_check():
-    from dipnet.rig.grbl import check_settings, parse_status
+    from dipnet.rig.grbl import check_settings
 
     settings = {10: 1, 20: 1, 22: 1, 130: 200.0, 131: 400.0, 132: 100.0}
     axes = AxisMap(lower=Axis("Z", sign=-1), tilt=Axis("X"), spin=Axis("Y"))
-    status = parse_status("<Idle|MPos:0.000,0.000,0.000|FS:0,0>", "XYZ")
     ranges = {"lower": (0.0, 110.0), "tilt": (0.0, 90.0), "spin": (0.0, 350.0)}
-    problems = check_settings(settings, status, "XYZ", axes, True, ranges)
+    problems = check_settings(settings, "XYZ", axes, True, ranges)
     assert len(problems) == 3 and all("soft limits" in p for p in problems)  # Z to -110, X/Y positive
     fitted = AxisMap(lower=Axis("Z", sign=-1), tilt=Axis("X", sign=-1), spin=Axis("Y", offset=-360.0))
     ranges["lower"] = (0.0, 100.0)
-    assert check_settings(settings, status, "XYZ", fitted, True, ranges) == []
+    assert check_settings(settings, "XYZ", fitted, True, ranges) == []
 
 
 def test_rotary_axis_takes_the_short_way(world):

@@ -349,7 +349,7 @@ class GrblController(Controller):
         return bool(self.settings.get(22, 1))
 
     def check_board(self, home: bool, targets: dict[str, tuple[float, float]]) -> list[str]:
-        return check_settings(self.settings, self.last_status, self.status_axes, self.axes, home, targets)
+        return check_settings(self.settings, self.status_axes, self.axes, home, targets)
 
     # ------------------------------------------------------------------ interface
     def home(self) -> None:
@@ -519,25 +519,22 @@ def read_settings(lines: list[str]) -> dict[int, float]:
     return out
 
 
-def check_settings(settings: dict[int, float], status: GrblStatus | None, status_axes: str, axes, home: bool,
+def check_settings(settings: dict[int, float], status_axes: str, axes, home: bool,
                    targets: dict[str, tuple[float, float]]) -> list[str]:
     """One message per mismatch between the driver's configuration and a GRBL board (pure).
 
     Args:
         settings: ``$$`` values.
-        status: a status report of the board (for the number of reported axes).
         status_axes: the configured letters of the reported coordinates.
         axes: the :class:`~dipnet.rig.controller.AxisMap`.
         home: whether the scan homes.
         targets: rig ``(min, max)`` per axis name (``lower``, ``tilt``, ``spin``) the scan visits.
+
+    The number of reported axes is checked where every status report is parsed
+    (:class:`AxisCountError`).
     """
     problems = []
     board = "XYZABC"
-    if status is not None and status.fields.get("MPos", status.fields.get("WPos")) is not None:
-        n = len(status.fields.get("MPos", status.fields.get("WPos")).split(","))
-        if n != len(status_axes):
-            problems.append(f"the board reports {n} axes but status_axes is {status_axes!r}: set "
-                            f"rig.controller.status_axes={board[:n]} (a stock GRBL has 3 axes: use rig=grbl_3axis)")
     for name in ("lower", "tilt", "spin"):
         letter = getattr(axes, name).letter.upper()
         if letter not in status_axes:
