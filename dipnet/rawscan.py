@@ -28,6 +28,7 @@ orientation (its earlier readings are dropped). Any other malformed line raises
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import time
@@ -254,6 +255,11 @@ class RawScanWriter:
             ``FileExistsError``).
         fsync: call ``os.fsync`` after every line (survives power loss, slower).
 
+    The file is locked (``fcntl.flock``, exclusive, non-blocking) from opening to :meth:`close`:
+    a second writer on the same file fails at once with :class:`RawScanLocked`. Every record is
+    one ``os.write`` on a file opened with ``O_APPEND``, so even a writer that ignores the lock
+    cannot interleave fragments of records.
+
     Usage::
 
         with RawScanWriter("scan.jsonl", ScanHeader(tank_cross_section_mm2=6e4, step_mm=1)) as w:
@@ -268,22 +274,27 @@ class RawScanWriter:
         self.path = Path(path)
         self.fsync = fsync
         self._current: OrientationScan | None = None
-        if self.path.exists() and resume:
-            self.scan = read_rawscan(self.path)
-            if not self.scan.header.compatible_with(header):
-                raise RawScanFileError(f"{self.path}: cannot resume, the stored header "
-                                       f"{self.scan.header.to_json()} differs from {header.to_json()}")
-            position, prefix = _append_position(self.path)
-            self._fh = open(self.path, "r+b")
-            self._fh.seek(position)
-            self._fh.truncate()
-            self._fh.write(prefix)
-        else:
-            if self.path.exists() and not overwrite:
-                raise FileExistsError(f"{self.path} exists: pass resume=True to continue it or overwrite=True")
-            self.scan = RawScan(header=header, path=self.path)
-            self._fh = open(self.path, "wb")
-            self._write(header.to_json())
+        existed = self.path.exists()
+        if existed and not resume and not overwrite:
+            raise FileExistsError(f"{self.path} exists: pass resume=True to continue it or overwrite=True")
+        self._fd: int | None = _open_locked(self.path)
+        try:
+            if existed and resume and os.fstat(self._fd).st_size > 0:
+                self.scan = read_rawscan(self.path)
+                if not self.scan.header.compatible_with(header):
+                    raise RawScanFileError(f"{self.path}: cannot resume, the stored header "
+                                           f"{self.scan.header.to_json()} differs from {header.to_json()}")
+                position, prefix = _append_position(self.path)
+                os.ftruncate(self._fd, position)
+                if prefix:
+                    _write_all(self._fd, prefix)
+            else:
+                os.ftruncate(self._fd, 0)
+                self.scan = RawScan(header=header, path=self.path)
+                self._write(header.to_json())
+        except BaseException:
+            self.close()
+            raise
 
     # ---------------------------------------------------------------- records
     def begin_orientation(self, k: int, *, direction=None, tilt_deg: float | None = None,
@@ -315,8 +326,10 @@ class RawScanWriter:
 
     # ---------------------------------------------------------------- plumbing
     def close(self) -> None:
-        if not self._fh.closed:
-            self._fh.close()
+        """Release the lock and close the file (idempotent)."""
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor releases the flock
+            self._fd = None
 
     def __enter__(self) -> "RawScanWriter":
         return self
@@ -330,10 +343,35 @@ class RawScanWriter:
         return self._current
 
     def _write(self, obj: dict) -> None:
-        self._fh.write((json.dumps(obj, allow_nan=False) + "\n").encode("utf-8"))
-        self._fh.flush()
+        if self._fd is None:
+            raise ValueError(f"{self.path} is closed")
+        _write_all(self._fd, (json.dumps(obj, allow_nan=False) + "\n").encode("utf-8"))
         if self.fsync:
-            os.fsync(self._fh.fileno())
+            os.fsync(self._fd)
+
+
+class RawScanLocked(RawScanFileError):
+    """Another writer (a second scan) holds the raw scan file."""
+
+
+def _open_locked(path: Path) -> int:
+    """Open ``path`` for appending (created if missing) and lock it exclusively, or raise
+    :class:`RawScanLocked` at once."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise RawScanLocked(f"{path} is being written by another scan (it is locked): wait for that scan to "
+                            f"finish or stop it, or choose another name") from None
+    return fd
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    """One ``os.write`` per record (looping only on a short write, which regular files do not do)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
 
 
 def _append_position(path: Path) -> tuple[int, bytes]:

@@ -5,8 +5,11 @@
     python scripts/scan.py rig=fake_marlin sensor=sics name=test
 
 The raw scan goes to ``scans/<name>/rawscan.jsonl`` (appended and flushed reading by reading).
-Run the same command again to resume after the last complete orientation. On a fault the
-object is lifted to the safe height and the script exits with code 3 and a one-line message.
+Run the same command again to resume after the last complete orientation. On a fault, Ctrl-C,
+SIGTERM or SIGHUP the runner stops the motion and lifts the object only to a position the
+controller confirms (see :mod:`dipnet.rig.runner`); the script exits with code 3 and a one-line
+message saying what happened and what to do. A scan file or port in use by another scan, or a
+rig config that does not fit the board, exits with code 2 (``error: ...``) before anything moves.
 """
 
 from __future__ import annotations

@@ -10,49 +10,22 @@ from dipnet.grid import Grid
 from dipnet.metrics import iou
 from dipnet.operators import make_operator
 from dipnet.orientations import rig_to_direction
-from dipnet.physics import Tank, solve_dip
+from dipnet.physics import solve_dip
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import ScanHeader, read_rawscan
-from dipnet.rig.fake import FakeRig, serve
+from dipnet.rig.fake import serve
 from dipnet.rig.grbl import GrblController
-from dipnet.rig.marlin import MarlinController
-from dipnet.rig.runner import ScanAborted, ScanPlan, ScanRunner, direction_to_rig, plan_orientations
-from dipnet.rig.sensors import AveragingSensor, BalanceSensor, LineSensor, ModbusLevelSensor
+from dipnet.rig.runner import ScanAborted, ScanRunner, direction_to_rig
+from dipnet.rig.controller import RigTimeout
+from dipnet.rig.sensors import LineSensor, ModbusLevelSensor, SensorError
 from dipnet.solvers.minnorm import MinNormSolver
+from rig_helpers import AREA, make_world, plan_for, scan
 
-AREA = 20000.0  # tank cross-section (mm^2): a 200 x 100 mm tank
-ORIGIN = 50.0   # object origin above the water at lower_mm = 0 (mm)
-CONTROLLERS = {"grbl": GrblController, "marlin": MarlinController}
 
 
 @pytest.fixture(scope="module")
 def world(meshes_dir):
-    from dipnet.shapes import load_mesh
-
-    shape = load_mesh(meshes_dir / "torus.ply", radius=42.0)
-    return FakeRig(shape, tank=Tank(cross_section_mm2=AREA), origin_height_mm=ORIGIN).register("testrig")
-
-
-def make_sensor(world: FakeRig, kind: str):
-    url = world.url(kind)
-    if kind == "level":
-        return AveragingSensor(LineSensor(url, pattern=r"L=(?P<value>[-+\d.]+)\s*(?P<unit>mm)"), n=3, max_spread=0.05)
-    if kind == "modbus":
-        return AveragingSensor(ModbusLevelSensor(url, data_type="int32", scale=0.001), n=2, max_spread=0.05)
-    return BalanceSensor(url, style=kind)
-
-
-def scan(world, dialect, sensor, plan, path, **options):
-    ctl = CONTROLLERS[dialect](world.url(dialect), timeout=0.3, move_timeout=2.0)
-    sensor = make_sensor(world, sensor)
-    header = ScanHeader(quantity=sensor.quantity, tank_cross_section_mm2=AREA, step_mm=plan.step_mm,
-                        resolution=0.001, rig=f"fake-{dialect}")
-    return ScanRunner(ctl, sensor, plan, path, header, progress=False, fsync=False, **options).run()
-
-
-def plan_for(k: int, step: float = 3.0) -> ScanPlan:
-    return ScanPlan(plan_orientations("fibonacci", k), start_mm=0.0, stop_mm=100.0, step_mm=step, safe_mm=0.0,
-                    origin_height_mm=ORIGIN)
+    return make_world(meshes_dir, "testrig")
 
 
 def test_direction_rig_round_trip():
@@ -109,8 +82,9 @@ def test_marlin_resend_is_recovered(world, tmp_path):
     assert len(raw.completed()) == 1 and world.fired and world.fired[0].kind == "resend"
 
 
-FAULT_CASES = [("grbl", k) for k in ("drop", "error", "alarm", "reset", "disconnect", "unstable")] + \
-              [("marlin", k) for k in ("drop", "error", "alarm", "reset", "disconnect")]
+# faults after which the position is still trustworthy (ALARM:2 keeps it; GRBL asks for a reset)
+FAULT_CASES = [("grbl", k) for k in ("drop", "error", "alarm", "disconnect", "unstable", "hold", "late_ok")] + \
+              [("marlin", k) for k in ("drop", "error", "disconnect")]
 
 
 @pytest.mark.parametrize("dialect,kind", FAULT_CASES)
@@ -118,14 +92,17 @@ def test_fault_stops_safely_and_keeps_readings(world, tmp_path, dialect, kind):
     plan = plan_for(3, step=5.0)  # 21 readings and 25 moves per orientation
     world.reset()
     clean = scan(world, dialect, "level", plan, tmp_path / "clean.jsonl")
-    world.reset(faults=[{"kind": kind, "at_move": 40, "code": 2}])
+    world.reset(faults=[{"kind": kind, "at_move": 40, "code": 2, "delay_s": 0.6}])
     with pytest.raises(ScanAborted) as info:
-        scan(world, dialect, "level", plan, tmp_path / "faulty.jsonl")
+        scan(world, dialect, "level", plan, tmp_path / "faulty.jsonl", move_timeout=0.4)
     message = str(info.value)
-    assert "\n" not in message and "lifted to the safe height" in message and "resume" in message
+    assert "\n" not in message and "resume" in message
+    assert "object lifted: the controller reports lower 0.000 mm" in message.replace("-0.000", "0.000")
     assert world.fired and world.fired[0].kind == kind
     assert world.position().lower_mm == pytest.approx(plan.safe_mm) and not world.moving()
     assert world.max_lower_seen > plan.start_mm  # the fault hit while the object was dipped
+    if kind == "hold":  # reported where the hold stopped the lowering (half-way from 50 to 55 mm)
+        assert "feed hold" in message and "Hold:1 at lower 52.500 mm" in message
     kept = read_rawscan(tmp_path / "faulty.jsonl")
     assert kept.complete_orientations() == [0]
     partial = kept.orientations[-1]
@@ -141,8 +118,8 @@ def test_kill_and_resume_equals_uninterrupted(world, tmp_path):
     plan = plan_for(4, step=5.0)
     world.reset()
     clean = scan(world, "grbl", "modbus", plan, tmp_path / "clean.jsonl")
-    world.reset(faults=[{"kind": "reset", "at_move": 60}])
-    with pytest.raises(ScanAborted, match="ResetError"):
+    world.reset(faults=[{"kind": "disconnect", "at_move": 60}])
+    with pytest.raises(ScanAborted, match="RigDisconnected"):
         scan(world, "grbl", "modbus", plan, tmp_path / "resumed.jsonl")
     first = read_rawscan(tmp_path / "resumed.jsonl")
     assert 0 < len(first.completed()) < 4
@@ -172,3 +149,40 @@ def test_scan_config_runs_through_hydra(tmp_path):
     assert stored.header.quantity == "mass_g" and stored.header.rig == "fake-marlin"
     assert stored.orientations[0].meta["t_start_mm"] == -cfg.rig.geometry.origin_height_mm
     assert stored.header.config["scan"]["sensor"]["device"]["style"] == "sics"
+
+
+def test_stock_3axis_preset_works_out_of_the_box(meshes_dir, tmp_path):
+    from hydra import compose, initialize_config_module
+
+    from dipnet.rig.runner import scan_from_config
+
+    overrides = ["rig=grbl_3axis", "rig.controller.url=fakerig://stock3/grbl", "rig.sensor_url=fakerig://stock3/level",
+                 "rig.controller.timeout=0.3", "orientations.n=3", "protocol.step_mm=20", "fsync=false",
+                 "progress=false"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="scan", overrides=overrides)
+    # a factory-set 3-axis board: no homing ($22=0), no soft limits, MPos in reports
+    world = make_world(meshes_dir, "stock3", status_axes="XYZ", axes=dict(cfg.rig.controller.axes),
+                       grbl_settings={22: 0})
+    assert not world.alarm
+    raw = scan_from_config(cfg, tmp_path / "rawscan.jsonl")
+    assert len(raw.completed()) == 3 and world.position().lower_mm == 0.0
+    assert raw.header.config["controller"]["status_axes"] == "XYZ"
+
+
+def test_modbus_sensor_reads_real_frames_and_reports_faults(world):
+    world.reset()
+    good = ModbusLevelSensor(world.url("modbus"), data_type="int32", scale=0.001, timeout=0.2)
+    good.connect()
+    assert good.read().value == pytest.approx(world.tank.rest_level_mm, abs=1e-3)
+    good.close()
+    wrong_register = ModbusLevelSensor(world.url("modbus"), address=7, timeout=0.2)  # exception 2 from the slave
+    wrong_register.connect()
+    with pytest.raises(SensorError, match="IllegalRequestError"):
+        wrong_register.read()
+    wrong_register.close()
+    wrong_slave = ModbusLevelSensor(world.url("modbus"), slave=9, timeout=0.1)  # a real slave stays silent
+    wrong_slave.connect()
+    with pytest.raises(RigTimeout):
+        wrong_slave.read()
+    wrong_slave.close()

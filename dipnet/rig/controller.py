@@ -13,10 +13,16 @@ into machine coordinates: ``machine = sign * scale * value + offset`` per axis.
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import logging
+import os
+import re
+import tempfile
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import serial
 
@@ -60,6 +66,20 @@ class SensorUnstable(RigError):
     """The sensor did not give a stable reading within the allowed retries."""
 
 
+class PositionUnknown(RigError):
+    """The controller's position cannot be trusted (an alarm or reset that can lose steps):
+    nothing may move until the machine is homed or the operator confirms the position."""
+
+
+class MotionHeld(RigError):
+    """The controller is in a feed hold or a safety-door state (an operator or a sensor stopped it)."""
+
+
+class PortBusy(RigError, ValueError):
+    """Another process holds the lock of this port (a second scan on the same rig); a user
+    error (the CLI prints ``error: ...`` and exits 2)."""
+
+
 # ----------------------------------------------------------------------------- config
 @dataclass(frozen=True)
 class Axis:
@@ -70,18 +90,31 @@ class Axis:
         scale: machine units per rig unit (mm per mm, or machine units per degree).
         sign: +1 or -1 (e.g. -1 when the machine's Z grows upwards but ``lower_mm`` grows down).
         offset: machine coordinate of rig value 0.
+        wrap: period of a rotary axis that may turn freely (e.g. 360 degrees): moves take the
+            short way to an equivalent value; ``None`` for a linear or cable-limited axis.
     """
 
     letter: str
     scale: float = 1.0
     sign: int = 1
     offset: float = 0.0
+    wrap: float | None = None
 
     def __post_init__(self) -> None:
         if len(self.letter) != 1 or not self.letter.isalpha():
             raise ValueError(f"axis letter must be one letter, got {self.letter!r}")
         if self.sign not in (1, -1) or not self.scale > 0:
             raise ValueError(f"axis {self.letter}: sign must be +1/-1 and scale positive")
+        if self.wrap is not None and not self.wrap > 0:
+            raise ValueError(f"axis {self.letter}: wrap must be a positive period or null, got {self.wrap!r}")
+
+    def nearest(self, value: float, current: float | None) -> float:
+        """The rig value equivalent to ``value`` (modulo :attr:`wrap`) closest to ``current``:
+        the short way round. Unchanged for axes that do not wrap or when ``current`` is unknown."""
+        if self.wrap is None or current is None:
+            return float(value)
+        turns = round((float(current) - float(value)) / self.wrap)
+        return float(value) + turns * self.wrap
 
     def to_machine(self, value: float) -> float:
         return self.sign * self.scale * float(value) + self.offset
@@ -145,9 +178,10 @@ class LineChannel:
         terminator: line terminator of incoming lines (``\\r`` before it is stripped too).
     """
 
-    def __init__(self, port, terminator: bytes = b"\n") -> None:
+    def __init__(self, port, terminator: bytes = b"\n", lock: "PortLock | None" = None) -> None:
         self.port = port
         self.terminator = terminator
+        self.lock = lock
         self._buffer = bytearray()
 
     def write(self, data: bytes) -> None:
@@ -205,6 +239,57 @@ class LineChannel:
             self.port.close()
         except (serial.SerialException, OSError):
             pass
+        if self.lock is not None:
+            self.lock.release()
+
+
+class PortLock:
+    """An exclusive, non-blocking lock on one port URL, held by this process until
+    :meth:`release` (``fcntl.flock`` on a lock file in ``<tmp>/dipnet-port-locks``; the kernel
+    drops it when the process dies). ``fakerig://`` URLs live inside one process and are not locked.
+
+    Raises:
+        PortBusy: another process holds the port.
+    """
+
+    directory = Path(tempfile.gettempdir()) / "dipnet-port-locks"
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.fd: int | None = None
+        if url.startswith("fakerig://"):
+            return
+        self.directory.mkdir(parents=True, exist_ok=True)
+        name = re.sub(r"[^A-Za-z0-9._-]+", "_", url).strip("_")[:80]
+        self.path = self.directory / f"{name}-{hashlib.sha1(url.encode()).hexdigest()[:8]}.lock"
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode("ascii", "replace").strip() or "another process"
+            os.close(fd)
+            raise PortBusy(f"port {url} is in use by {holder} (lock {self.path}): "
+                           f"another scan is running on this rig; wait for it or stop it") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}\n".encode("ascii"), 0)
+        self.fd = fd
+
+    def release(self) -> None:
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+
+def open_channel(url: str, terminator: bytes = b"\n", baudrate: int = 115200) -> LineChannel:
+    """Lock ``url`` (:class:`PortLock`), open it (:func:`open_port`) and wrap it in a
+    :class:`LineChannel` that releases the lock when closed."""
+    lock = PortLock(url)
+    try:
+        return LineChannel(open_port(url, baudrate=baudrate), terminator, lock)
+    except BaseException:
+        lock.release()
+        raise
 
 
 def open_port(url: str, timeout: float = 0.05, baudrate: int = 115200, **options):
@@ -250,6 +335,11 @@ class Controller(SerialDevice):
         move_timeout: time limit for a move to finish (s).
         home_timeout: time limit for homing (s).
         feed: feed rate of ``G1`` moves (machine units per minute); ``None`` uses ``G0``.
+
+    Safety state: :attr:`position_lost` holds why the position cannot be trusted (an alarm or
+    reset that can lose steps), or ``None``; while it is set, :meth:`move_to` refuses to move
+    (:class:`PositionUnknown`) until :meth:`home` succeeds or the operator calls
+    :meth:`confirm_position`. :attr:`moved` says whether any motion was commanded.
     """
 
     dialect = "base"
@@ -265,11 +355,20 @@ class Controller(SerialDevice):
         self.feed = feed
         self.messages: list[str] = []  # informational lines pushed by the controller
         self.link: LineChannel | None = None
+        self.position_lost: str | None = None
+        self.moved = False
+        self._target: dict[str, float] = {}  # last commanded rig values (for wrap-around)
 
     # -- lifecycle
     def connect(self) -> None:
-        """Open the port and bring the controller to a known state."""
-        self.link = LineChannel(open_port(self.url, baudrate=self.baudrate))
+        """Lock and open the port and bring the controller to a known state."""
+        self.attach(open_channel(self.url, baudrate=self.baudrate))
+
+    def attach(self, link: LineChannel) -> None:
+        """Talk over an open channel (e.g. a recorded-trace replay) and bring the controller to a
+        known state."""
+        self.link = link
+        self._target = {}
         self._handshake()
 
     def identity(self) -> dict:
@@ -277,31 +376,69 @@ class Controller(SerialDevice):
         return {"dialect": self.dialect, "url": self.url, "axes": {
             name: vars(getattr(self.axes, name)) for name in ("lower", "tilt", "spin")}}
 
+    def check_board(self, home: bool, targets: dict[str, tuple[float, float]]) -> list[str]:
+        """Mismatches between this configuration and the board's settings (read at connect), one
+        message each; ``targets`` gives the rig range ``(min, max)`` per axis name that the scan
+        will visit. Dialects that cannot read settings return ``[]``."""
+        return []
+
+    def can_home(self) -> bool:
+        """Whether the board can home (settings read at connect; ``True`` when unknown)."""
+        return True
+
+    def lose_position(self, reason: str) -> None:
+        """Record that the position can no longer be trusted (see the class docstring)."""
+        if self.position_lost is None:
+            self.position_lost = reason
+        self._target = {}
+
+    def confirm_position(self) -> None:
+        """The operator states that the machine position is right (after checking it by hand)."""
+        self.position_lost = None
+
     # -- motion
     def move_to(self, lower_mm: float | None = None, tilt_deg: float | None = None,
                 spin_deg: float | None = None) -> None:
-        """Queue an absolute move of the given axes (``None`` = leave the axis where it is)."""
-        words = self.axes.words(lower_mm, tilt_deg, spin_deg)
+        """Queue an absolute move of the given axes (``None`` = leave the axis where it is);
+        a wrapping rotary axis (:attr:`Axis.wrap`) goes the short way round.
+
+        Raises:
+            PositionUnknown: the position was lost and the machine has not been re-homed.
+        """
+        if self.position_lost is not None:
+            raise PositionUnknown(f"refusing to move: {self.position_lost}")
+        target = {"lower": lower_mm, "tilt": tilt_deg, "spin": spin_deg}
+        for name, value in target.items():
+            axis = getattr(self.axes, name)
+            if value is not None and axis.wrap is not None:
+                if name not in self._target:
+                    here = self.position()
+                    self._target.update(lower=here.lower_mm, tilt=here.tilt_deg, spin=here.spin_deg)
+                target[name] = axis.nearest(value, self._target.get(name))
+        words = self.axes.words(target["lower"], target["tilt"], target["spin"])
         if not words:
             return
         motion = "G0" if self.feed is None else "G1"
         feed = "" if self.feed is None else f" F{self.feed:g}"
+        self.moved = True
         self.command(f"{motion} {words}{feed}")
-
-    def safe_lift(self, lower_mm: float) -> None:
-        """Recover from a fault if the dialect needs it, then lift to ``lower_mm`` and wait."""
-        self.messages += require_link(self).drain()
-        self._recover()
-        self.move_to(lower_mm=lower_mm)
-        self.wait_idle()
+        self._target.update({k: v for k, v in target.items() if v is not None})
 
     @abstractmethod
     def _handshake(self) -> None:
-        """After opening: wait for / provoke the banner, clear buffers, select absolute moves (G90)."""
+        """After opening: wait for / provoke the banner, clear buffers, read the settings,
+        select absolute moves (G90) unless the controller is in an alarm state."""
 
     @abstractmethod
-    def _recover(self) -> None:
-        """Make the controller accept motion after an alarm / reset / error."""
+    def settle(self) -> Position:
+        """After a fault: stop any motion, resynchronise the line protocol, clear what can be
+        cleared without losing the position, and return the position a status report confirms.
+
+        Raises:
+            PositionUnknown: the position cannot be trusted (:attr:`position_lost`).
+            MotionHeld: a safety door is open.
+            RigError: the controller does not answer.
+        """
 
     @abstractmethod
     def command(self, line: str, timeout: float | None = None) -> list[str]:
@@ -309,7 +446,7 @@ class Controller(SerialDevice):
 
     @abstractmethod
     def home(self) -> None:
-        """Home the machine (blocks until done)."""
+        """Home the machine (blocks until done); the position is trusted again afterwards."""
 
     @abstractmethod
     def wait_idle(self, timeout: float | None = None) -> None:
@@ -317,11 +454,11 @@ class Controller(SerialDevice):
 
     @abstractmethod
     def position(self) -> Position:
-        """The current rig position."""
+        """The current rig position (from a status report)."""
 
     @abstractmethod
     def stop(self) -> None:
-        """Halt motion at once and flush queued moves."""
+        """Halt motion and flush queued moves without losing the position where possible."""
 
 
 def require_link(controller) -> LineChannel:

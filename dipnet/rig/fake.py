@@ -25,7 +25,22 @@ Faults (:class:`Fault`) fire once, on the n-th motion command the controller rec
 ``drop`` (the reply is lost), ``error`` (GRBL ``error:N`` / Marlin ``Error:``), ``alarm``
 (GRBL ``ALARM:N`` / Marlin stopped), ``reset`` (banner mid-scan), ``disconnect`` (the link
 dies), ``resend`` (Marlin: a corrupted line, answered by ``Resend:``), ``unstable`` (the
-sensor is noisy and reports "unstable" for the next ``count`` readings).
+sensor is noisy and reports "unstable" for the next ``count`` readings), and for GRBL:
+``hold`` (a feed hold lands half-way through the move), ``door`` (the safety door opens),
+``late_ok`` (the next ``G4 P0`` is acknowledged ``delay_s`` late), ``corrupt_status`` /
+``split_status`` (the next status report has one byte corrupted / turned into a newline).
+
+The fake GRBL follows the real firmware's recorded behaviour (``tests/data/grbl-traces``): it
+has ``$$`` settings (:data:`GRBL_SETTINGS`, ``grbl_settings`` overrides them), answers ``$I``,
+starts in ``Alarm`` when homing is enabled (``$22=1``) and rejects ``$H`` with ``error:5`` when
+it is not; ``ALARM:1`` / ``ALARM:2`` (also from soft limits, ``$20=1``: machine space
+``[-$13N, 0]``) are followed by ``[MSG:Reset to continue]`` and silence, even to ``?``, until a
+soft reset; a reset while moving (or in ``Hold:1``) gives ``ALARM:3``; a held ``G4 P0`` is
+acknowledged only after ``~`` or a reset.
+
+Sensor noise is drawn from a generator keyed by the seed, the stage position and the count of
+readings since the last move command, so a resumed scan reads the same noise as an
+uninterrupted one.
 """
 
 from __future__ import annotations
@@ -38,18 +53,24 @@ import struct
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from dipnet.orientations import rig_to_direction
 from dipnet.physics import Tank
-from dipnet.rig import grbl, marlin, sensors
+from dipnet.rig import marlin, sensors
 from dipnet.rig.controller import AxisMap, Position
 
 DEVICES = ("grbl", "marlin", "level", "modbus", "ad", "sics")
-FAULTS = ("drop", "error", "alarm", "reset", "disconnect", "resend", "unstable")
+FAULTS = ("drop", "error", "alarm", "reset", "disconnect", "resend", "unstable", "hold", "door", "late_ok",
+          "corrupt_status", "split_status")
+#: Stock GRBL 1.1 settings (as read from the firmware, ``tests/data/grbl-traces/t1.log``) with
+#: homing enabled; per-axis ``$10N``..``$13N`` are repeated for every status axis.
+GRBL_SETTINGS = {0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0, 20: 0, 21: 0,
+                 22: 1, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0}
+_GRBL_AXIS_SETTINGS = {100: 250.0, 110: 500.0, 120: 10.0, 130: 200.0}
 WORLDS: dict[str, "FakeRig"] = {}
 
 _GRBL_BANNER = "Grbl 1.1h ['$' for help]"
@@ -65,12 +86,14 @@ class Fault:
         at_move: 1-based count of motion commands (``G0``/``G1``) over the world's lifetime.
         code: the GRBL error / alarm number.
         count: for ``unstable``: how many sensor readings are affected.
+        delay_s: for ``late_ok``: how late the acknowledgement comes (s).
     """
 
     kind: str
     at_move: int
     code: int = 1
     count: int = 50
+    delay_s: float = 1.0
 
     def __post_init__(self) -> None:
         if self.kind not in FAULTS:
@@ -124,6 +147,7 @@ class FakeRig:
         faults: faults to inject.
         sensor_format: :class:`SensorFormat`.
         seed: noise seed.
+        grbl_settings: ``$$`` values overriding :data:`GRBL_SETTINGS` (e.g. ``{22: 0}``: no homing).
     """
 
     def __init__(self, shape, *, radius: float | None = None, tank: Tank | None = None,
@@ -132,7 +156,7 @@ class FakeRig:
                  balance_sigma_g: float = 0.0, balance_quantum_g: float = 0.001, density_g_per_mm3: float = 1e-3,
                  unstable_sigma: float = 0.5, latency_s: float = 0.0, move_s: float = 0.0, keepalive_s: float = 2.0,
                  faults: list[Fault | dict] | None = None, sensor_format: SensorFormat | dict | None = None,
-                 seed: int = 0, name: str = "fakerig") -> None:
+                 seed: int = 0, name: str = "fakerig", grbl_settings: dict | None = None) -> None:
         if isinstance(shape, str):
             from dipnet.shapes import load_mesh
 
@@ -154,21 +178,26 @@ class FakeRig:
         self.sensor_format = sensor_format if isinstance(sensor_format, SensorFormat) \
             else SensorFormat(**dict(sensor_format or {}))
         self.seed = seed
+        self.grbl_settings = {**GRBL_SETTINGS, **{
+            base + i: value for i in range(len(self.status_axes)) for base, value in _GRBL_AXIS_SETTINGS.items()},
+            **{int(k): v for k, v in dict(grbl_settings or {}).items()}}
         self.lock = threading.RLock()
         self._tables: dict[tuple[float, float], tuple[np.ndarray, np.ndarray, float]] = {}
         self.reset(self.faults)
 
     def reset(self, faults: list[Fault | dict] | None = None) -> "FakeRig":
-        """Back to the initial state (stage at 0, no alarm, counters zero, noise re-seeded) with
-        new ``faults``; the cached physics tables are kept. Returns itself."""
+        """Back to the power-up state (stage at 0, counters zero, noise re-seeded; in ``Alarm`` if
+        homing is enabled, as GRBL) with new ``faults``; the cached physics tables are kept.
+        Returns itself."""
         with self.lock:
             self.faults = [f if isinstance(f, Fault) else Fault(**f) for f in (faults or [])]
             self.fired = []
-            self.rng = np.random.default_rng(self.seed)
+            self.reads_since_move = 0
             self.motion_count = 0
             self.reads = 0  # sensor readings served
             self.unstable_left = 0
-            self.alarm = False
+            self.alarm = bool(self.grbl_settings.get(22))
+            self.critical = False  # GRBL after ALARM:1/2: silent until a soft reset
             self.max_lower_seen = 0.0  # deepest lowering reached (mm)
             self._move = (Position(0.0, 0.0, 0.0), Position(0.0, 0.0, 0.0), 0.0, 0.0)  # start, end, t0, t1
         return self
@@ -210,6 +239,7 @@ class FakeRig:
             end = Position(*(here.__dict__[k] if target.get(k) is None else float(target[k])
                              for k in ("lower_mm", "tilt_deg", "spin_deg")))
             self._move = (here, end, now, now + self.move_s)
+            self.reads_since_move = 0
             self.max_lower_seen = max(self.max_lower_seen, end.lower_mm)
 
     def halt(self) -> None:
@@ -282,10 +312,19 @@ class FakeRig:
         stage, rise, full = self._table(pos.tilt_deg, pos.spin_deg)
         return float(np.interp(pos.lower_mm, stage, rise, left=0.0, right=full))
 
+    def noise(self) -> np.random.Generator:
+        """The generator of the next reading's noise: keyed by the seed, the stage position and
+        the number of readings since the last move command (see the module docstring)."""
+        self.reads_since_move += 1
+        pos = self.position()
+        key = [int(round(v * 1000)) % 2 ** 40 for v in (pos.lower_mm, pos.tilt_deg, pos.spin_deg)]
+        return np.random.default_rng([int(self.seed), self.reads_since_move, *key])
+
     def read(self, quantity: str) -> tuple[float, bool]:
         """A noisy, quantised reading: ``("level_mm" -> mm | "mass_g" -> g, stable)``."""
         with self.lock:
             self.reads += 1
+            rng = self.noise()
             rise = self.rise_mm()
             unstable = self.unstable_left > 0
             self.unstable_left = max(0, self.unstable_left - 1)
@@ -297,7 +336,7 @@ class FakeRig:
             if unstable:
                 sigma = max(sigma, self.unstable_sigma)
             if sigma > 0:
-                value += float(self.rng.normal(0.0, sigma))
+                value += float(rng.normal(0.0, sigma))
             if q > 0:
                 value = round(value / q) * q
             return value, not unstable
@@ -320,11 +359,22 @@ class Device:
     def on_open(self) -> None:
         """Called once when the link opens (banners)."""
 
-    def emit(self, text: str | bytes, at: float | None = None, terminator: bytes = b"\r\n") -> None:
+    def emit(self, text: str | bytes, at: float | None = None, terminator: bytes = b"\r\n",
+             realtime: bool = False) -> None:
+        """Queue output ready at ``at`` (default now) plus the latency. Ordinary output keeps its
+        order (a reply scheduled late holds back the replies after it, as a firmware answering
+        lines in order does); ``realtime`` output (status reports) overtakes it."""
         data = text if isinstance(text, bytes) else text.encode("ascii") + terminator
         ready = (time.monotonic() if at is None else at) + self.world.latency_s
         with self.cond:
-            self.out.append((ready, data))
+            if realtime:
+                i = len(self.out)
+                while i and self.out[i - 1][0] > ready:
+                    i -= 1
+                self.out.insert(i, (ready, data))
+            else:
+                ready = max([ready] + [t for t, _ in self.out])
+                self.out.append((ready, data))
             self.cond.notify_all()
 
     def receive(self, data: bytes) -> None:
@@ -387,10 +437,17 @@ def _words(line: str) -> dict[str, float]:
 
 
 class GrblDevice(Device):
-    """A GRBL 1.1 controller (resets when the port opens, like an Arduino on DTR)."""
+    """A GRBL 1.1 controller (resets when the port opens, like an Arduino on DTR); see the
+    module docstring for what it reproduces from the recorded firmware."""
 
     def on_open(self) -> None:
-        self.hold = False
+        self.hold = None  # None, or the substate to report next (1 while decelerating, then 0)
+        self.held_target: dict | None = None  # the rest of the held move
+        self.held_dwell = False  # a G4 P0 waiting for the hold to end
+        self.door = False
+        self.late_s = 0.0
+        self.status_fault: str | None = None
+        self.world.critical = False
         self.banner()
 
     def banner(self) -> None:
@@ -405,79 +462,187 @@ class GrblDevice(Device):
             for i, byte in enumerate(self._inbuf):  # real-time commands act at once, even mid-line
                 if byte in b"?!~\x18":
                     del self._inbuf[i]
-                    self.realtime(byte)
+                    with w.lock:
+                        self.realtime(byte)
                     break
             else:
                 break
         for line in self.lines():
-            if line:
+            if line and not w.critical:
                 with w.lock:
                     self.line(line)
 
+    def state(self) -> str:
+        w = self.world
+        if w.alarm:
+            return "Alarm"
+        if self.door:
+            return "Door:1"
+        if self.hold is not None:
+            state = f"Hold:{self.hold}"
+            self.hold = 0  # the hold completes after one report of Hold:1
+            return state
+        return "Run" if w.moving() else "Idle"
+
+    def report(self) -> None:
+        w = self.world
+        mpos = w.machine_position()
+        kind = "MPos" if int(w.grbl_settings.get(10, 1)) & 1 else "WPos"  # work offsets are 0 here
+        text = f"<{self.state()}|{kind}:{','.join(f'{mpos[a]:.3f}' for a in w.status_axes)}|FS:0,0>"
+        if self.status_fault == "corrupt_status":  # as in t3f.log: '|' read as ':'
+            text = text.replace("|FS", ":FS")
+        elif self.status_fault == "split_status":  # as in t3g.log: one byte became a newline
+            cut = text.rindex("|") + 2
+            text = text[:cut] + "\n" + text[cut + 1:]
+        self.status_fault = None
+        self.emit(text, realtime=True)
+
     def realtime(self, byte: int) -> None:
         w = self.world
-        if byte == ord("?"):
-            state = "Alarm" if w.alarm else "Hold:0" if self.hold else "Run" if w.moving() else "Idle"
-            mpos = w.machine_position()
-            coords = ",".join(f"{mpos[a]:.3f}" for a in w.status_axes)
-            self.emit(f"<{state}|MPos:{coords}|FS:0,0>")
-        elif byte == ord("!"):
-            w.halt()
-            self.hold = True
-        elif byte == ord("~"):
-            self.hold = False
-        else:  # soft reset: abort motion; a reset while moving loses position (ALARM:3)
-            if w.moving():
-                w.alarm = True
-            w.halt()
-            self.hold = False
-            self.clear_output()
-            self.banner()
+        if byte == 0x18:
+            self.soft_reset()
+        elif w.critical:
+            return  # only a reset is heard
+        elif byte == ord("?"):
+            self.report()
+        elif byte == ord("!") and w.moving() and self.hold is None:
+            self.start_hold(dict(zip(("lower_mm", "tilt_deg", "spin_deg"), vars(w._move[1]).values())))
+        elif byte == ord("~") and self.hold is not None and not self.door:
+            self.hold = None
+            if self.held_target is not None:
+                w.start_move(self.held_target)
+                self.held_target = None
+            if self.held_dwell:
+                self.held_dwell = False
+                self.emit("ok", at=w.move_end())
 
-    def line(self, line: str) -> None:
+    def start_hold(self, target: dict) -> None:
+        self.world.halt()
+        self.hold, self.held_target = 1, target
+
+    def soft_reset(self) -> None:
+        """0x18: stop at once; a reset while moving or decelerating loses the position (ALARM:3);
+        a held dwell is answered first, as the recorded firmware does."""
         w = self.world
-        upper = line.upper()
+        self.clear_output()
+        if w.moving() or self.hold == 1:
+            w.alarm = True
+            self.emit("ALARM:3")
+        w.halt()
+        if self.held_dwell:
+            self.emit("ok")
+        self.hold, self.held_target, self.held_dwell = None, None, False
+        w.critical = False
+        self.banner()
+
+    def alarm(self, code: int) -> None:
+        w = self.world
+        w.halt()
+        w.alarm = True
+        self.emit(f"ALARM:{code}")
+        if code in (1, 2):
+            self.emit("[MSG:Reset to continue]")
+            w.critical = True
+
+    def system(self, upper: str) -> None:
+        """``$`` commands."""
+        w = self.world
+        settings = w.grbl_settings
         if upper == "$X":
             w.alarm = False
             self.emit("[MSG:Caution: Unlocked]")
             self.emit("ok")
         elif upper == "$H":
+            if not settings.get(22):
+                self.emit("error:5")
+                return
             w.start_move({"lower_mm": 0.0, "tilt_deg": 0.0, "spin_deg": 0.0})
             w.alarm = False
             self.emit("ok", at=w.move_end())
-        elif upper.startswith("$"):
+        elif upper == "$$":
+            for key in sorted(settings):
+                value = settings[key]
+                self.emit(f"${key}={value:.3f}" if isinstance(value, float) else f"${key}={value}")
             self.emit("ok")
+        elif upper == "$I":
+            self.emit("[VER:1.1h.20190830:]")
+            self.emit("[OPT:V,15,128]")
+            self.emit("ok")
+        elif re.match(r"^\$\d+=", upper):
+            key, value = upper[1:].split("=", 1)
+            settings[int(key)] = float(value) if "." in value else int(value)
+            self.emit("ok")
+        else:
+            self.emit("ok")
+
+    def outside_soft_limits(self, words: dict[str, float]) -> bool:
+        settings = self.world.grbl_settings
+        if not (settings.get(20) and settings.get(22)):
+            return False
+        return any(not (-settings.get(130 + "XYZABC".index(a), 0.0) <= v <= 0.0) for a, v in words.items()
+                   if a in "XYZABC")
+
+    def line(self, line: str) -> None:
+        w = self.world
+        upper = line.upper()
+        if upper.startswith("$"):
+            self.system(upper)
         elif w.alarm:
             self.emit("error:9")
         elif re.search(r"\bG0*4\b", upper):
-            self.emit("ok", at=w.move_end())
+            if self.hold is not None or self.door:
+                self.held_dwell = True
+            else:
+                self.emit("ok", at=w.move_end() + self.late_s)
+            self.late_s = 0.0
         elif re.search(r"\bG0*[01]\b", upper):
-            fault = w.on_motion()
-            kind = None if fault is None else fault.kind
-            if kind == "error":
-                self.emit(f"error:{fault.code}")
-                return
-            if kind == "disconnect":
-                self.dead = True
-                return
-            if kind == "reset":
-                w.alarm = True
-                w.halt()
-                self.banner()
-                return
-            w.start_move(w.target_from_words(_words(re.sub(r"\bG\d+\b|\bF[-+\d.]+", "", upper))))
-            if kind == "alarm":
-                w.halt()
-                w.alarm = True
-                self.emit(f"ALARM:{fault.code}")
-                self.emit("[MSG:Reset to continue]")
-                return
-            if kind != "drop":
-                self.emit("ok")
+            self.motion(upper)
         elif re.match(r"^(G9[01]|G2[01]|G5[4-9]|M[0-9]+)\b", upper):
             self.emit("ok")
         else:
             self.emit("error:20")
+
+    def motion(self, upper: str) -> None:
+        w = self.world
+        fault = w.on_motion()
+        kind = None if fault is None else fault.kind
+        if kind == "error":
+            self.emit(f"error:{fault.code}")
+            return
+        if kind == "disconnect":
+            self.dead = True
+            return
+        if kind == "reset":  # a power glitch: the board restarts
+            w.halt()
+            w.alarm = bool(w.grbl_settings.get(22))
+            self.on_open()
+            return
+        words = _words(re.sub(r"\bG\d+\b|\bF[-+\d.]+", "", upper))
+        if self.outside_soft_limits(words):
+            self.alarm(2)
+            return
+        target = w.target_from_words(words)
+        if kind == "alarm":
+            w.start_move(target)
+            self.alarm(fault.code)
+            return
+        if kind == "hold":  # lands half-way
+            here = w.position()
+            half = {k: None if v is None else (getattr(here, k) + v) / 2 for k, v in target.items()}
+            w.start_move(half)
+            self.emit("ok")
+            self.start_hold(target)
+            return
+        w.start_move(target)
+        if kind == "door":
+            w.halt()
+            self.door = True
+        elif kind == "late_ok":
+            self.late_s = fault.delay_s
+        elif kind in ("corrupt_status", "split_status"):
+            self.status_fault = kind
+        if kind != "drop":
+            self.emit("ok")
 
 
 class MarlinDevice(Device):
@@ -611,6 +776,21 @@ class LevelDevice(Device):
             self.stream_line()
 
 
+def crc16(data: bytes) -> int:
+    """Modbus CRC-16 (polynomial 0xA001 reflected, initial 0xFFFF) of ``data`` (pure)."""
+    crc = 0xFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+def with_crc(body: bytes) -> bytes:
+    """``body`` followed by its CRC, low byte first (a Modbus RTU frame)."""
+    return body + struct.pack("<H", crc16(body))
+
+
 class ModbusDevice(Device):
     """A Modbus RTU slave holding the level in its registers (function 0x03 only)."""
 
@@ -618,19 +798,19 @@ class ModbusDevice(Device):
         fmt = self.world.sensor_format
         while len(self._inbuf) >= 8:
             frame, self._inbuf = bytes(self._inbuf[:8]), self._inbuf[8:]
-            if sensors.crc16(frame) != 0 or frame[0] != fmt.modbus_slave:
+            if crc16(frame) != 0 or frame[0] != fmt.modbus_slave:
                 continue  # a real slave stays silent on bad frames
             _, function, address, count = struct.unpack(">BBHH", frame[:6])
             if function != 0x03:
-                self.emit(sensors.with_crc(bytes([frame[0], function | 0x80, 1])))
+                self.emit(with_crc(bytes([frame[0], function | 0x80, 1])))
                 continue
             words = sensors.DATA_TYPES[fmt.modbus_data_type][0]
             if address != fmt.modbus_address or count != words:
-                self.emit(sensors.with_crc(bytes([frame[0], 0x83, 2])))
+                self.emit(with_crc(bytes([frame[0], 0x83, 2])))
                 continue
             value, _ = self.world.read("level_mm")
             regs = sensors.encode_registers(value / fmt.modbus_scale, fmt.modbus_data_type, fmt.modbus_word_order)
-            self.emit(sensors.with_crc(struct.pack(f">BBB{count}H", frame[0], 3, 2 * count, *regs)))
+            self.emit(with_crc(struct.pack(f">BBB{count}H", frame[0], 3, 2 * count, *regs)))
 
 
 class BalanceDevice(Device):

@@ -8,18 +8,27 @@ Protocol facts (GRBL 1.1 interface docs)
 * Real-time characters are not lines and get no ``ok``: ``?`` asks for a status report
   ``<State|MPos:x,y,z|FS:f,s|WCO:...>`` (fields vary with ``$10``: parse them by key),
   ``!`` feed hold, ``~`` resume, ``0x18`` soft reset.
+* States: ``Hold:1`` is a hold still decelerating (a reset then throws ``ALARM:3``),
+  ``Hold:0`` a completed hold (a reset keeps the position); ``Door:N`` a safety door.
+* After ``ALARM:1`` (hard limit) or ``ALARM:2`` (soft limit) GRBL prints
+  ``[MSG:Reset to continue]`` and answers nothing until a soft reset; after a reset it stays
+  in ``Alarm`` ("``'$H'|'$X' to unlock``"). Alarms 1, 3 and 6-10 lose the position (re-home).
 * ``$H`` homes, ``$X`` unlocks an alarm. ``G4 P0`` is acknowledged only when the planner
   buffer is empty, i.e. when every earlier move has finished.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
-from dipnet.rig.controller import (AlarmError, Controller, ControllerError, Position, ResetError, RigTimeout,
-                                   require_link)
+from dipnet.rig.controller import (AlarmError, Controller, ControllerError, MotionHeld, Position, PositionUnknown,
+                                   ResetError, RigTimeout, require_link)
+
+log = logging.getLogger(__name__)
 
 SOFT_RESET = b"\x18"
 STATUS_QUERY = b"?"
@@ -27,13 +36,19 @@ FEED_HOLD = b"!"
 
 #: A few GRBL 1.1 error codes, for readable messages.
 ERRORS = {1: "expected command letter", 2: "bad number format", 3: "invalid $ statement",
-          8: "not idle", 9: "G-code locked out during alarm or jog state", 15: "travel exceeded (soft limit)",
-          20: "unsupported or invalid g-code command", 22: "feed rate not set", 33: "invalid target"}
+          5: "homing is not enabled ($22=0)", 8: "not idle", 9: "G-code locked out during alarm or jog state",
+          10: "soft limits need homing enabled ($22=1)", 15: "travel exceeded (soft limit)",
+          20: "unsupported or invalid g-code command", 22: "feed rate not set", 25: "a g-code word repeated in the block",
+          33: "invalid target"}
 #: GRBL 1.1 alarm codes.
 ALARMS = {1: "hard limit triggered", 2: "soft limit: target exceeds machine travel",
           3: "reset while in motion (position lost)", 4: "probe fail", 5: "probe fail",
           6: "homing fail: reset during homing", 7: "homing fail: door opened", 8: "homing fail: pull-off",
           9: "homing fail: switch not found", 10: "homing fail: second switch not found"}
+#: Alarms after which GRBL's alarm table says the machine position is likely lost (re-home).
+POSITION_LOST_ALARMS = frozenset({1, 3, 6, 7, 8, 9, 10})
+#: Critical alarms: GRBL answers nothing, not even ``?``, until a soft reset.
+RESET_ALARMS = frozenset({1, 2})
 
 _BANNER = re.compile(r"^Grbl\s+(?P<version>\S+)")
 _CODE = re.compile(r"^(?P<kind>error|ALARM):(?P<code>\d+)\s*$", re.IGNORECASE)
@@ -71,6 +86,10 @@ class GrblStatus:
     substate: int | None
     fields: dict[str, str] = field(default_factory=dict)
     mpos: dict[str, float] | None = None
+
+
+class AxisCountError(ValueError):
+    """A status report carries another number of coordinates than the configured axes."""
 
 
 def classify(line: str) -> GrblLine:
@@ -121,7 +140,7 @@ def parse_status(line: str, axes: str = "XYZAB") -> GrblStatus:
             return None
         values = [float(v) for v in fields[key].split(",")]
         if len(values) != len(axes):
-            raise ValueError(f"{key} has {len(values)} coordinates but the axes are {axes!r}: {line!r}")
+            raise AxisCountError(f"{key} has {len(values)} coordinates but the axes are {axes!r}: {line!r}")
         return dict(zip(axes.upper(), values))
 
     mpos = coords("MPos")
@@ -140,17 +159,24 @@ def describe(kind: str, code: int) -> str:
 class GrblController(Controller):
     """GRBL 1.1 driver (see the module docstring for the protocol).
 
+    Every line sent is queued in :attr:`unacked` until its own ``ok`` / ``error:N`` arrives
+    (GRBL answers lines strictly in order), so a reply that arrives after its command timed
+    out is attributed to that command and never taken by a later one; ``?`` queries are
+    counted the same way, so a status report is never older than the query it answers. A soft
+    reset (banner) empties both queues, as it empties GRBL's buffers.
+
     Args (beyond :class:`~dipnet.rig.controller.Controller`'s):
         status_axes: the letters of the coordinates in status reports, in order.
-        wait: ``"dwell"`` (``G4 P0`` then one status check) or ``"poll"`` (``?`` until ``Idle``).
+        wait: ``"dwell"`` (``G4 P0``, polling ``?`` meanwhile) or ``"poll"`` (``?`` until ``Idle``).
         poll_s: interval between status polls (s).
         reset_on_connect: send a soft reset on connect and wait for the banner.
+        status_retries: re-queries of a corrupted or split status report before giving up.
     """
 
     dialect = "grbl"
 
     def __init__(self, url: str, axes=None, *, status_axes: str = "XYZAB", wait: str = "dwell",
-                 poll_s: float = 0.02, reset_on_connect: bool = True, **options) -> None:
+                 poll_s: float = 0.02, reset_on_connect: bool = True, status_retries: int = 3, **options) -> None:
         super().__init__(url, axes, **options)
         if wait not in ("dwell", "poll"):
             raise ValueError(f"wait must be 'dwell' or 'poll', got {wait!r}")
@@ -158,111 +184,237 @@ class GrblController(Controller):
         self.wait = wait
         self.poll_s = float(poll_s)
         self.reset_on_connect = reset_on_connect
+        self.status_retries = int(status_retries)
         self.version: str | None = None
+        self.settings: dict[int, float] = {}
+        self.build_info: list[str] = []
         self.last_status: GrblStatus | None = None
+        self.alarm: int | None = None  # last alarm code seen, until a reset / unlock / homing clears it
+        self.needs_reset = False  # GRBL asked for a reset ([MSG:Reset to continue])
+        self.unacked: deque[tuple[int, str]] = deque()
+        self.late: list[str] = []  # replies that arrived after their command had given up
+        self._seq = 0
+        self._answers: dict[int, GrblLine] = {}
+        self._abandoned: set[int] = set()
+        self._queries = 0  # '?' sent and not yet answered
+        self._expect_banner = False
+        self._reports = 0  # status reports received (valid or not)
 
     def identity(self) -> dict:
         return {**super().identity(), "firmware": self.version, "status_axes": self.status_axes}
 
+    # ------------------------------------------------------------------ reading
+    def _pump(self, timeout: float, collect: list[str] | None = None) -> GrblLine:
+        """Read and account for one line: ``ok`` / ``error`` answer the oldest unacknowledged
+        line, status reports answer the oldest ``?``; pushed alarms and unexpected banners raise
+        after the state is recorded."""
+        reply = classify(require_link(self).read_line(timeout))
+        if reply.kind in ("ok", "error"):
+            if not self.unacked:
+                self.late.append(reply.text)
+                log.warning("GRBL sent %r with no command outstanding", reply.text)
+                return reply
+            seq, line = self.unacked.popleft()
+            if seq in self._abandoned:
+                self._abandoned.discard(seq)
+                self.late.append(f"{line} -> {reply.text}")
+                log.warning("late reply %r to %r (its wait had timed out)", reply.text, line)
+            else:
+                self._answers[seq] = reply
+            return reply
+        if reply.text.startswith("<"):
+            self._queries = max(0, self._queries - 1)
+            self._reports += 1
+            try:
+                self.last_status = parse_status(reply.text, self.status_axes)
+            except AxisCountError as exc:
+                raise ControllerError(f"the board's status reports do not fit status_axes={self.status_axes!r} "
+                                      f"({exc}): set rig.controller.status_axes to one letter per reported "
+                                      f"coordinate (a stock GRBL has 3 axes: use rig=grbl_3axis)") from None
+            except ValueError as exc:
+                self.last_status = None
+                log.warning("corrupted status report %r (%s)", reply.text, exc)
+            return reply
+        if reply.kind == "alarm":
+            self.alarm = reply.code
+            self.needs_reset = self.needs_reset or reply.code in RESET_ALARMS
+            if reply.code in POSITION_LOST_ALARMS:
+                self.lose_position(f"the controller raised {describe('alarm', reply.code)}")
+            raise AlarmError(f"controller {describe('alarm', reply.code)}", reply.code)
+        if reply.kind == "banner":
+            self.version = reply.payload
+            expected, self._expect_banner = self._expect_banner, False
+            self._after_reset()
+            if expected:
+                raise ResetError("controller reset (as requested)")
+            self.lose_position("the controller was reset unexpectedly (a power glitch, or another program): "
+                               "its position is unknown")
+            raise ResetError(f"controller was reset unexpectedly (banner {reply.text!r})")
+        if reply.text:
+            self.messages.append(reply.text)
+            if collect is not None:
+                collect.append(reply.text)
+            if reply.text == "[MSG:Reset to continue]":
+                self.needs_reset = True
+        return reply
+
+    def _after_reset(self) -> None:
+        """GRBL empties its buffers on a reset: nothing sent before will be answered."""
+        self.unacked.clear()
+        self._abandoned.clear()
+        self._queries = 0
+        self.needs_reset = False
+        self._target = {}
+
     # ------------------------------------------------------------------ lines
-    def _handle(self, line: GrblLine, expect_banner: bool = False) -> None:
-        """React to pushed lines: raise on alarms and unexpected resets, keep messages."""
-        if line.kind == "alarm":
-            raise AlarmError(f"controller {describe('alarm', line.code)}", line.code)
-        if line.kind == "banner":
-            self.version = line.payload
-            if not expect_banner:
-                raise ResetError(f"controller was reset unexpectedly (banner {line.text!r})")
-        elif line.kind in ("msg", "feedback", "other") and line.text:
-            self.messages.append(line.text)
-        elif line.kind == "status":
-            self.last_status = parse_status(line.text, self.status_axes)
+    def send(self, line: str) -> int:
+        """Send one line without waiting; returns its sequence number (see :meth:`wait_for`)."""
+        self._seq += 1
+        self.unacked.append((self._seq, line))
+        require_link(self).write_line(line)
+        return self._seq
+
+    def wait_for(self, seq: int, line: str, timeout: float, collect: list[str] | None = None) -> None:
+        """Wait for the reply to line ``seq``; earlier late replies are accounted for on the way.
+        On a timeout the line stays queued, so its late reply cannot be taken by a later one."""
+        deadline = time.monotonic() + timeout
+        try:
+            while seq not in self._answers:
+                if not any(s == seq for s, _ in self.unacked):
+                    raise ResetError(f"controller was reset before it answered {line!r}")
+                self._pump(max(deadline - time.monotonic(), 0.0), collect)
+        except RigTimeout:
+            self._abandoned.add(seq)
+            raise RigTimeout(f"no reply to {line!r} from {self.url} within {timeout:g} s") from None
+        reply = self._answers.pop(seq)
+        if reply.kind == "error":
+            raise ControllerError(f"controller rejected {line!r}: {describe('error', reply.code)}", reply.code)
 
     def command(self, line: str, timeout: float | None = None) -> list[str]:
-        link = require_link(self)
-        link.write_line(line)
-        received = []
-        while True:
-            reply = classify(link.read_line(self.timeout if timeout is None else timeout))
-            if reply.kind == "ok":
-                return received
-            if reply.kind == "error":
-                raise ControllerError(f"controller rejected {line!r}: {describe('error', reply.code)}", reply.code)
-            self._handle(reply)
-            received.append(reply.text)
+        received: list[str] = []
+        self.wait_for(self.send(line), line, self.timeout if timeout is None else float(timeout), received)
+        return received
 
     def status(self) -> GrblStatus:
-        """Send ``?`` and return the parsed report (pushed alarms / resets raise)."""
+        """Send ``?`` and return the report that answers it. A corrupted or split report is
+        re-queried up to ``status_retries`` times, then :class:`ControllerError`."""
         link = require_link(self)
-        link.write(STATUS_QUERY)
-        while True:
-            reply = classify(link.read_line(self.timeout))
-            if reply.kind == "status":
-                self.last_status = parse_status(reply.text, self.status_axes)
+        for _ in range(self.status_retries + 1):
+            link.write(STATUS_QUERY)
+            self._queries += 1
+            deadline = time.monotonic() + self.timeout
+            try:
+                while self._queries:
+                    self._pump(max(deadline - time.monotonic(), 0.0))
+            except RigTimeout:
+                self._queries = 0  # GRBL is silent: no earlier query will be answered either
+                raise RigTimeout(f"no status report from {self.url} within {self.timeout:g} s"
+                                 + (" (GRBL waits for a reset)" if self.needs_reset else "")) from None
+            if self.last_status is not None:
                 return self.last_status
-            if reply.kind == "ok":
-                continue  # a late acknowledgement of an earlier line
-            if reply.kind == "error":
-                raise ControllerError(f"controller {describe('error', reply.code)}", reply.code)
-            self._handle(reply)
+        raise ControllerError(f"{self.status_retries + 1} corrupted status reports in a row from {self.url}")
 
-    def _wait_banner(self, timeout: float) -> None:
+    def _reset(self) -> None:
+        """Soft reset (0x18) and wait for the banner; an ``ALARM:3`` on the way is recorded
+        (:meth:`_pump` marks the position lost) and the wait continues."""
         link = require_link(self)
-        deadline = time.monotonic() + timeout
+        self._expect_banner = True
+        link.write(SOFT_RESET)
+        deadline = time.monotonic() + self.timeout
         while True:
-            reply = classify(link.read_line(max(deadline - time.monotonic(), 1e-3)))
-            if reply.kind == "banner":
-                self._handle(reply, expect_banner=True)
+            try:
+                self._pump(max(deadline - time.monotonic(), 0.0))
+            except ResetError:
                 return
-            if reply.kind in ("msg", "feedback", "other") and reply.text:
-                self.messages.append(reply.text)
+            except AlarmError:
+                continue
 
-    # ------------------------------------------------------------------ interface
+    # ------------------------------------------------------------------ connect
     def _handshake(self) -> None:
         link = require_link(self)
+        self._after_reset()
         if self.reset_on_connect:
             link.discard_input()
-            link.write(SOFT_RESET)
-            self._wait_banner(self.timeout)
-        if self.status().state != "Alarm":
-            self.command("G90")
-
-    def _recover(self) -> None:
-        for _ in range(3):  # a pending banner or alarm line may come first
-            try:
-                state = self.status().state
-                break
-            except (ResetError, AlarmError):
-                continue
-        else:
-            state = "Alarm"
+            self._reset()
+        state = self.status().state
         if state == "Alarm":
-            self.command("$X")
+            self.lose_position("the controller is in the alarm state (not homed since power-up, or after an "
+                               "alarm that lost the position)")
+        self.settings = read_settings(self.command("$$"))
+        self.build_info = self.command("$I")
+        if state != "Alarm":
             self.command("G90")
-        elif state.startswith("Hold") or state == "Door":
-            require_link(self).write(b"~")
 
+    def can_home(self) -> bool:
+        return bool(self.settings.get(22, 1))
+
+    def check_board(self, home: bool, targets: dict[str, tuple[float, float]]) -> list[str]:
+        return check_settings(self.settings, self.status_axes, self.axes, home, targets)
+
+    # ------------------------------------------------------------------ interface
     def home(self) -> None:
-        self.command("$H", timeout=self.home_timeout)
+        try:
+            self.command("$H", timeout=self.home_timeout)
+        except ControllerError as exc:
+            if exc.code == 5:
+                raise ControllerError("homing is disabled on the board ($22=0): enable it ($22=1, with limit "
+                                      "switches) or scan with home=false", 5) from None
+            raise
+        self.alarm, self.position_lost, self._target = None, None, {}
+        self.command("G90")
+        self.wait_idle()
 
     def unlock(self) -> None:
-        """``$X``: leave the alarm state without homing."""
+        """``$X``: leave the alarm state without homing (only when the position is trusted)."""
+        if self.position_lost is not None:
+            raise PositionUnknown(f"refusing to unlock ($X) without homing: {self.position_lost}")
         self.command("$X")
+        self.alarm = None
+        self.command("G90")
+
+    def _check_state(self, st: GrblStatus) -> None:
+        if st.state in ("Hold", "Door"):
+            raise MotionHeld(f"controller reports {st.state}:{st.substate} at {self._where(st)} "
+                             f"({'feed hold' if st.state == 'Hold' else 'safety door open'})")
+        if st.state == "Alarm":
+            raise AlarmError(f"controller is in the alarm state at {self._where(st)}", self.alarm)
+
+    def _where(self, st: GrblStatus) -> str:
+        if st.mpos is None:
+            return "an unreported position"
+        try:
+            p = self.axes.rig_position(st.mpos)
+        except ControllerError:
+            return f"MPos {st.fields.get('MPos')}"
+        return f"lower {p.lower_mm:.3f} mm, tilt {p.tilt_deg:.3f} deg, spin {p.spin_deg:.3f} deg"
 
     def wait_idle(self, timeout: float | None = None) -> None:
+        """Wait until the moves finished: ``G4 P0`` is acknowledged (dwell mode) and ``?`` says
+        ``Idle``. The state is polled meanwhile, so a feed hold or door raises
+        :class:`MotionHeld` at once instead of being waited out."""
         limit = self.move_timeout if timeout is None else float(timeout)
         deadline = time.monotonic() + limit
-        if self.wait == "dwell":
-            self.command("G4 P0", timeout=limit)
-        while True:
-            st = self.status()
-            if st.state == "Idle":
-                return
-            if st.state == "Alarm":
-                raise AlarmError("controller is in the alarm state")
-            if time.monotonic() > deadline:
-                raise RigTimeout(f"the move did not finish within {limit:g} s (state {st.state})")
-            time.sleep(self.poll_s)
+        seq = self.send("G4 P0") if self.wait == "dwell" else None
+        interval = max(self.poll_s, 0.05)
+        try:
+            while True:
+                if seq is not None:
+                    try:
+                        self.wait_for(seq, "G4 P0", min(interval, max(deadline - time.monotonic(), 0.0)))
+                        seq = None
+                    except RigTimeout:
+                        self._abandoned.discard(seq)  # still ours: keep waiting for it below
+                st = self.status()
+                if seq is None and st.state == "Idle":
+                    return
+                self._check_state(st)
+                if time.monotonic() > deadline:
+                    raise RigTimeout(f"the move did not finish within {limit:g} s (state {st.state})")
+                if seq is None:
+                    time.sleep(self.poll_s)
+        finally:
+            if seq is not None and self._answers.pop(seq, None) is None:
+                self._abandoned.add(seq)  # given up: its reply, when it comes, is accounted as late
 
     def position(self) -> Position:
         st = self.status()
@@ -270,11 +422,141 @@ class GrblController(Controller):
             raise ControllerError(f"status report has no MPos (or WPos + WCO): set $10=1 ({st.fields})")
         return self.axes.rig_position(st.mpos)
 
-    def stop(self) -> None:
-        link = require_link(self)
-        link.write(FEED_HOLD)
-        link.write(SOFT_RESET)
+    def settle(self) -> Position:
+        """See :meth:`Controller.settle`. GRBL specifics: a pending critical alarm gets the reset
+        GRBL asks for; a hold is let finish (``Hold:0``) and then cancelled by a reset, which keeps
+        the position; a running move is held first; an alarm is unlocked only when it did not
+        lose the position (``ALARM:2``)."""
+        self._absorb()
+        for _ in range(4):
+            try:
+                if self.needs_reset:
+                    self._reset()
+                st = self._status_or_reset()
+                if st.state in ("Run", "Jog", "Hold"):
+                    self._hold_and_cancel(st)
+                    continue
+                if st.state == "Door":
+                    raise MotionHeld(f"the safety door is open (Door:{st.substate}) at {self._where(st)}: close it")
+                if self.position_lost is not None:
+                    raise PositionUnknown(self.position_lost)
+                if st.state == "Alarm":
+                    self.unlock()
+                    continue
+                if st.mpos is None:
+                    raise ControllerError(f"status report has no MPos (or WPos + WCO): set $10=1 ({st.fields})")
+                if self.unacked and not self._resynchronise():
+                    continue
+                return self.axes.rig_position(st.mpos)
+            except (AlarmError, ResetError):
+                continue
+        raise PositionUnknown(self.position_lost or "the controller did not settle after 4 attempts")
+
+    def _absorb(self, quiet_s: float = 0.05, limit_s: float = 0.5) -> None:
+        """Account for what a fault left in transit (late replies, alarms, banners: each is
+        recorded by :meth:`_pump`) until the line is quiet for ``quiet_s``."""
+        deadline = time.monotonic() + limit_s
+        while time.monotonic() < deadline:
+            try:
+                self._pump(quiet_s)
+            except RigTimeout:
+                return
+            except (AlarmError, ResetError):
+                continue
+
+    def _resynchronise(self) -> bool:
+        """Idle with lines still unanswered: wait ``timeout`` for their late replies; if some
+        never come (a reply was lost), reset GRBL (it is idle, so the position is kept) so
+        that no later reply can be mistaken for theirs. Returns whether nothing was reset."""
+        deadline = time.monotonic() + self.timeout
         try:
-            self._wait_banner(self.timeout)
+            while self.unacked:
+                self._pump(max(deadline - time.monotonic(), 0.0))
+            return True
         except RigTimeout:
-            pass
+            log.warning("no reply to %s: resetting the idle controller to resynchronise",
+                        ", ".join(repr(line) for _, line in self.unacked))
+            self._reset()
+            return False
+
+    def _status_or_reset(self) -> GrblStatus:
+        """A status report; if GRBL is silent (it waits for a reset after a critical alarm) reset it."""
+        try:
+            return self.status()
+        except RigTimeout:
+            log.warning("GRBL does not answer '?': sending the soft reset it waits for")
+            self._reset()
+            return self.status()
+
+    def _hold_and_cancel(self, st: GrblStatus) -> None:
+        """Feed hold, wait until the hold is complete (``Hold:0``), then reset to drop the queued
+        moves: GRBL keeps the position when reset in a completed hold."""
+        link = require_link(self)
+        if st.state != "Hold":
+            link.write(FEED_HOLD)
+        deadline = time.monotonic() + self.move_timeout
+        while not (st.state == "Hold" and st.substate == 0) and st.state not in ("Idle", "Alarm"):
+            if time.monotonic() > deadline:
+                raise RigTimeout(f"the feed hold did not complete within {self.move_timeout:g} s ({st.state})")
+            time.sleep(self.poll_s)
+            st = self.status()
+        if st.state == "Hold":
+            self._reset()
+
+    def stop(self) -> None:
+        st = self.status()
+        if st.state in ("Run", "Jog", "Hold"):
+            self._hold_and_cancel(st)
+
+
+def read_settings(lines: list[str]) -> dict[int, float]:
+    """``{number: value}`` from the ``$$`` lines ``$10=1`` (pure)."""
+    out = {}
+    for text in lines:
+        m = re.match(r"^\$(\d+)=([-+]?[\d.]+)", text.strip())
+        if m:
+            out[int(m[1])] = float(m[2])
+    return out
+
+
+def check_settings(settings: dict[int, float], status_axes: str, axes, home: bool,
+                   targets: dict[str, tuple[float, float]]) -> list[str]:
+    """One message per mismatch between the driver's configuration and a GRBL board (pure).
+
+    Args:
+        settings: ``$$`` values.
+        status_axes: the configured letters of the reported coordinates.
+        axes: the :class:`~dipnet.rig.controller.AxisMap`.
+        home: whether the scan homes.
+        targets: rig ``(min, max)`` per axis name (``lower``, ``tilt``, ``spin``) the scan visits.
+
+    The number of reported axes is checked where every status report is parsed
+    (:class:`AxisCountError`).
+    """
+    problems = []
+    board = "XYZABC"
+    for name in ("lower", "tilt", "spin"):
+        letter = getattr(axes, name).letter.upper()
+        if letter not in status_axes:
+            problems.append(f"the {name} axis is on {letter}, which the board does not report "
+                            f"(status_axes {status_axes!r}): map it to one of {', '.join(status_axes)}")
+    if 10 in settings and not int(settings[10]) & 1:
+        problems.append(f"$10={int(settings[10])}: status reports give WPos, not MPos, so positions cannot be "
+                        f"read reliably: set $10=1 on the board")
+    homing = bool(settings.get(22, 0))
+    if home and 22 in settings and not homing:
+        problems.append("home=true but homing is disabled on the board ($22=0): enable it ($22=1, with limit "
+                        "switches) or scan with home=false")
+    if settings.get(20, 0) and homing:
+        for name, (low, high) in targets.items():
+            axis = getattr(axes, name)
+            index = board.find(axis.letter.upper())
+            travel = settings.get(130 + index)
+            if index < 0 or travel is None:
+                continue
+            ends = sorted((axis.to_machine(low), axis.to_machine(high)))
+            if ends[0] < -travel - 1e-9 or ends[1] > 1e-9:
+                problems.append(f"soft limits are on ($20=1): GRBL allows {axis.letter} only in [-{travel:g}, 0] "
+                                f"after homing, but the scan moves {name} to {axis.letter} {ends[0]:g}..{ends[1]:g}: "
+                                f"set rig.controller.axes.{name}.sign/offset so the targets fit")
+    return problems

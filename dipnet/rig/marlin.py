@@ -20,8 +20,8 @@ import re
 import time
 from dataclasses import dataclass
 
-from dipnet.rig.controller import (AlarmError, Controller, ControllerError, Position, ResetError, RigTimeout,
-                                   require_link)
+from dipnet.rig.controller import (AlarmError, Controller, ControllerError, Position, PositionUnknown, ResetError,
+                                   RigTimeout, require_link)
 
 _RESEND = re.compile(r"^(?:Resend:|rs)\s*N?(?P<n>\d+)", re.IGNORECASE)
 _AXIS = re.compile(r"(?P<axis>[A-Z]):\s*(?P<value>[-+]?\d+(?:\.\d*)?)")
@@ -139,8 +139,11 @@ class MarlinController(Controller):
             if reply.kind == "busy":
                 continue  # keep-alive: the read above restarts its time limit
             if reply.kind == "start":
+                self.lose_position("the controller was reset (Marlin forgets its position)")
+                self._next, self._sent = 1, {}
                 raise ResetError(f"controller was reset unexpectedly ('start' while waiting for {line!r})")
             if reply.kind == "fatal":
+                self.lose_position(f"the controller halted ({reply.payload})")
                 raise AlarmError(f"controller halted: {reply.payload}")
             if reply.kind == "error":
                 error = reply.payload
@@ -184,19 +187,31 @@ class MarlinController(Controller):
             self._next, self._sent = 0, {}
             self.command("M110 N0")  # this line itself is N0; the next expected is N1
 
-    def _recover(self) -> None:
+    def settle(self) -> Position:
+        """See :meth:`Controller.settle`. A halt (``kill()`` / "Printer stopped") or a reset
+        loses the position: :class:`PositionUnknown` unless :meth:`home` ran since. No ``M410``
+        here: a quick stop without deceleration loses steps."""
+        self.messages += require_link(self).drain(quiet_s=0.05, limit_s=0.5)
         for _ in range(3):
+            if self.position_lost is not None:
+                raise PositionUnknown(self.position_lost)
             try:
-                self.position()
-                break
-            except AlarmError:
-                self.command("M999")  # restart after "Printer stopped due to errors"
-            except (ResetError, ControllerError):
-                self._reset_numbers()  # after a reset the firmware expects line N1 again
-        self.command("G90")
+                self._reset_numbers()
+                self.command("M400", timeout=self.move_timeout)
+                position = self.position()
+                self.command("G90")
+                return position
+            except (AlarmError, ResetError):
+                continue
+        raise PositionUnknown(self.position_lost or "the controller did not settle after 3 attempts")
 
     def home(self) -> None:
+        if self.position_lost is not None:
+            self._reset_numbers()
+            self.command("M999")  # restart after "Printer stopped due to errors" (harmless otherwise)
         self.command(self.home_command, timeout=self.home_timeout)
+        self.position_lost, self._target = None, {}
+        self.command("G90")
 
     def wait_idle(self, timeout: float | None = None) -> None:
         self.command("M400", timeout=self.move_timeout if timeout is None else timeout)
@@ -209,4 +224,5 @@ class MarlinController(Controller):
         raise ControllerError("M114 gave no position line")
 
     def stop(self) -> None:
-        self.command("M410")
+        """Wait for the queue to empty (``M400``); ``M410`` would stop without deceleration and lose steps."""
+        self.command("M400", timeout=self.move_timeout)

@@ -6,16 +6,27 @@ settle, read the sensor (averaged, with a stability check) and append the readin
 scan file at once (:class:`~dipnet.rawscan.RawScanWriter`, flushed and fsynced). When the
 orientation is done it is marked complete and the object is lifted clear.
 
-Running the same scan again resumes after the last complete orientation. On any fault
-(timeout, ``error:N``, ``ALARM``, an unexpected reset banner, an unstable sensor, a disconnect,
-Ctrl-C) the runner lifts the object to the safe height, stops the controller, keeps every
-reading recorded so far and raises :class:`ScanAborted` with a one-line message.
+Running the same scan again resumes after the last complete orientation. On any exception
+inside a scan, of any type (a timeout, ``error:N``, ``ALARM``, an unexpected reset, a feed hold,
+an unstable sensor, a disconnect, a malformed reply, Ctrl-C, SIGTERM or SIGHUP), the runner
+takes the safe-stop path: motion stopped, the protocol resynchronised and the state read back
+(:meth:`Controller.settle`); the object is lifted to the safe height only when a status report
+confirms a trustworthy position (or after re-homing, if ``rehome_on_fault`` allows it);
+every reading recorded so far is kept and :class:`ScanAborted` says in one line what happened
+and what the operator must do. When the position was lost, a marker file next to the scan
+(``<scan>.position-lost.json``) makes a resumed run refuse to move until the machine is
+homed (``home=true``) or the operator confirms the position (``confirm_position=true``).
+
+The scan file and the controller and sensor ports are locked while a scan runs: a second scan
+on the same file or port fails at once.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import signal
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -28,7 +39,8 @@ from tqdm.auto import tqdm
 
 from dipnet.orientations import make_directions
 from dipnet.rawscan import RawScan, RawScanFileError, RawScanWriter, ScanHeader
-from dipnet.rig.controller import Controller, RigDisconnected, RigError, SensorUnstable
+from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
+                                   SensorUnstable)
 from dipnet.rig.sensors import AveragingSensor, Reading, SensorError
 
 log = logging.getLogger(__name__)
@@ -38,6 +50,45 @@ UNITS = {"level_mm": "mm", "mass_g": "g"}
 
 class ScanAborted(RuntimeError):
     """The scan stopped on a fault; the message is one line and says what was kept."""
+
+
+class ScanSignal(KeyboardInterrupt):
+    """SIGTERM / SIGHUP arrived during a scan (handled like Ctrl-C)."""
+
+
+SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class on_signals:
+    """Context manager: while active, ``signals`` (default SIGTERM and SIGHUP) call
+    ``handler(signum, frame)`` (Python handles signals in the main thread only; elsewhere
+    nothing changes)."""
+
+    def __init__(self, handler, signals: tuple = SIGNALS) -> None:
+        self.handler, self.signals = handler, signals
+
+    def __enter__(self) -> "on_signals":
+        self.saved = {}
+        try:
+            for sig in self.signals:
+                self.saved[sig] = signal.signal(sig, self.handler)
+        except ValueError:  # not the main thread
+            self.saved = {}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self.saved.items():
+            signal.signal(sig, handler)
+
+
+def raise_scan_signal(signum, frame) -> None:
+    """Signal handler of a running scan: end it like Ctrl-C."""
+    raise ScanSignal(f"{signal.Signals(signum).name} received")
+
+
+def defer_signal(signum, frame) -> None:
+    """Signal handler during the safe stop: the stop must finish first."""
+    log.warning("%s during the safe stop: finishing the stop first", signal.Signals(signum).name)
 
 
 def direction_to_rig(directions) -> tuple[np.ndarray, np.ndarray]:
@@ -132,16 +183,24 @@ class ScanRunner:
         path: the raw scan file (``.jsonl``); resumed if it exists.
         header: scan metadata; its ``config`` gains the plan and the controller's and sensor's
             identity (dialect, URL, axis mapping, sensor settings) unless already there.
-        home: home the controller before the first orientation.
+        home: home the controller before the first orientation; ``None``: home when the board has
+            homing enabled (:meth:`Controller.can_home`, e.g. GRBL ``$22=1``).
         progress: show a progress bar with ETA.
         fsync: fsync the file after every reading (survives power loss; a few ms per reading).
+        rehome_on_fault: after a fault that loses the position, home (which lifts the lowering
+            axis on a rig homing it upwards) before lifting; otherwise stop without moving.
+        confirm_position: the operator has checked the machine position by hand: accept it
+            (unlock an alarm with ``$X``, clear a position-lost marker) instead of homing.
     """
 
     def __init__(self, controller: Controller, sensor, plan: ScanPlan, path: str | Path, header: ScanHeader,
-                 home: bool = True, progress: bool = True, fsync: bool = True) -> None:
+                 home: bool | None = True, progress: bool = True, fsync: bool = True, rehome_on_fault: bool = False,
+                 confirm_position: bool = False) -> None:
         self.controller, self.sensor, self.plan = controller, sensor, plan
         self.path = Path(path)
         self.header, self.home, self.progress, self.fsync = header, home, progress, fsync
+        self.rehome_on_fault, self.confirm_position = rehome_on_fault, confirm_position
+        self.marker = self.path.with_name(self.path.name + ".position-lost.json")
         header.config = {"plan": asdict(plan), "controller": controller.identity(), "sensor": sensor.identity(),
                          **header.config}
         self.where = "connecting"
@@ -156,10 +215,13 @@ class ScanRunner:
             if first >= len(self.plan.orientations):
                 log.info("scan %s is already complete", self.path)
                 return writer.scan
-            try:
-                self._scan(writer, first)
-            except (RigError, serial.SerialException, OSError, KeyboardInterrupt) as exc:
-                self._abort(writer, exc)
+            with on_signals(raise_scan_signal):
+                try:
+                    self._scan(writer, first)
+                except (RigConfigError, PortBusy):
+                    raise  # before any motion: a user error (exit 2), nothing to stop
+                except BaseException as exc:  # noqa: BLE001 - every exception ends in the safe stop
+                    self._abort(writer, exc)
             return writer.scan
         finally:
             writer.close()
@@ -183,9 +245,8 @@ class ScanRunner:
         self.where = "connecting"
         ctl.connect()
         self.sensor_device().connect()
-        if self.home:
-            self.where = "homing"
-            ctl.home()
+        self._check_board(stages)
+        self._establish_position()
         total = len(plan.orientations) * len(stages)
         with tqdm(total=total, initial=first * len(stages), desc="scan", unit="reading",
                   disable=not self.progress, dynamic_ncols=True) as bar:
@@ -206,6 +267,39 @@ class ScanRunner:
                 writer.complete_orientation()
                 self.where = f"the lift after orientation {k}"
                 self._move(lower_mm=plan.safe_mm)
+
+    def _check_board(self, stages: np.ndarray) -> None:
+        tilts = [t for t, _ in self.plan.orientations]
+        spins = [s for _, s in self.plan.orientations]
+        lowers = [self.plan.safe_mm, float(stages[0]), float(stages[-1])]
+        if self.home is None:
+            self.home = self.controller.can_home()
+        problems = self.controller.check_board(self.home, {
+            "lower": (min(lowers), max(lowers)), "tilt": (min(tilts), max(tilts)), "spin": (min(spins), max(spins))})
+        for problem in problems:
+            log.error("rig config: %s", problem)
+        if problems:
+            raise RigConfigError(f"the rig config does not fit the controller {self.controller.url}: "
+                                 + "; ".join(f"({i}) {p}" for i, p in enumerate(problems, 1)))
+
+    def _establish_position(self) -> None:
+        """Home, or accept the position, before anything moves (see the module docstring)."""
+        ctl = self.controller
+        if self.marker.exists():
+            previous = json.loads(self.marker.read_text()).get("reason", "unknown")
+            ctl.position_lost = None  # the marker says more than the controller's own state
+            ctl.lose_position(f"the previous run lost the position ({previous})")
+        if self.home:
+            self.where = "homing"
+            ctl.home()
+        elif ctl.position_lost is not None and self.confirm_position:
+            log.warning("operator confirmed the position (confirm_position=true) after: %s", ctl.position_lost)
+            ctl.confirm_position()
+            ctl.settle()
+        if ctl.position_lost is not None:
+            raise PositionUnknown(f"{ctl.position_lost}; nothing moved: home the machine (run with home=true) or "
+                                  f"check the position by hand and run with confirm_position=true")
+        self.marker.unlink(missing_ok=True)
 
     def _move(self, **target) -> None:
         self.controller.move_to(**target)
@@ -230,31 +324,61 @@ class ScanRunner:
     def _abort(self, writer: RawScanWriter, exc: BaseException) -> None:
         kept = sum(o.n_readings for o in writer.scan.orientations)
         done = len(writer.scan.complete_orientations())
-        cause = "interrupted (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else \
-            f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-        lifted = self._safe_stop()
-        raise ScanAborted(f"scan stopped at {self.where}: {cause}; {lifted}; kept {kept} readings "
+        if isinstance(exc, ScanSignal):
+            cause = f"interrupted ({exc})"
+        elif isinstance(exc, KeyboardInterrupt):
+            cause = "interrupted (Ctrl-C)"
+        else:
+            cause = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+        with on_signals(defer_signal, SIGNALS + (signal.SIGINT,)):
+            outcome = self._safe_stop()
+        raise ScanAborted(f"scan stopped at {self.where}: {cause}; {outcome}; kept {kept} readings "
                           f"({done} complete orientations) in {self.path}; run the same command again "
                           f"to resume") from (exc if isinstance(exc, Exception) else None)
 
     def _safe_stop(self) -> str:
-        """Lift to the safe height and stop; returns what happened (for the message)."""
+        """Stop, read the state back, and lift only to a confirmed position; returns what
+        happened, as a status report confirmed it (for the message)."""
         ctl, safe = self.controller, self.plan.safe_mm
-        error: Exception | None = None
+        if not ctl.moved:
+            return "nothing had moved"
+        error: BaseException | None = None
         for attempt in range(3):
             try:
                 if attempt and (isinstance(error, RigDisconnected) or ctl.link is None):
                     ctl.reconnect()
-                ctl.safe_lift(safe)
                 try:
-                    ctl.stop()
-                except RigError:
-                    pass
-                return f"object lifted to the safe height {safe:g} mm and controller stopped"
-            except (RigError, serial.SerialException, OSError) as err:
+                    ctl.settle()
+                except PositionUnknown:
+                    if not self.rehome_on_fault:
+                        raise
+                    log.warning("position lost (%s): re-homing before the lift", ctl.position_lost)
+                    ctl.home()
+                ctl.move_to(lower_mm=safe)
+                ctl.wait_idle()
+                here = ctl.position()
+                ctl.stop()
+                self.marker.unlink(missing_ok=True)
+                return (f"object lifted: the controller reports lower {round(here.lower_mm, 3) + 0.0:.3f} mm "
+                        f"(safe height {safe:g} mm)")
+            except PositionUnknown as err:
+                self._mark_position_lost(str(err))
+                return (f"OBJECT NOT LIFTED: the position cannot be trusted ({err}); nothing was moved after the "
+                        f"fault: home the machine (or lift it by hand and check the position), then resume with "
+                        f"home=true (or confirm_position=true)")
+            except MotionHeld as err:
+                return f"OBJECT NOT LIFTED: {err}; then lift the object and run again"
+            except (RigError, serial.SerialException, OSError, ValueError) as err:
                 error = err
-                log.warning("safe lift attempt %d failed: %s", attempt + 1, err)
+                log.warning("safe stop attempt %d failed: %s", attempt + 1, err)
         return f"COULD NOT LIFT THE OBJECT ({type(error).__name__}: {error}) - check the rig"
+
+    def _mark_position_lost(self, reason: str) -> None:
+        self.marker.write_text(json.dumps({"reason": reason, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}) + "\n")
+
+
+class RigConfigError(RigError, ValueError):
+    """The rig config does not fit the controller's settings (one message per mismatch)."""
 
 
 # ---------------------------------------------------------------------------- from config
@@ -290,5 +414,8 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
                     **OmegaConf.to_container(cfg.protocol, resolve=True),
                     origin_height_mm=geometry.get("origin_height_mm"), pivot_mm=float(geometry.get("pivot_mm", 0.0)))
     header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
-    return ScanRunner(controller, sensor, plan, path, header, home=bool(cfg.home),
-                      progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync)).run()
+    home = cfg.get("home")
+    return ScanRunner(controller, sensor, plan, path, header, home=None if home is None else bool(home),
+                      progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
+                      rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
+                      confirm_position=bool(cfg.get("confirm_position", False))).run()

@@ -4,15 +4,16 @@
   group ``value`` and optionally ``unit``; a configurable terminator; streaming, or polled
   with a query string).
 * :class:`ModbusLevelSensor`: a level transducer read over Modbus RTU (function 0x03, read
-  holding registers), with register address, data type, word order, scale and offset. The RTU
-  frame is a dozen bytes plus a CRC16, written here over plain pyserial.
+  holding registers), with register address, data type, word order, scale and offset; the
+  frames, CRC and exception replies are ``minimalmodbus``'s, over the pyserial port opened here
+  (so ``socket://`` and ``fakerig://`` URLs work too).
 * :class:`BalanceSensor`: a laboratory balance under the tank, A&D style (``Q`` ->
   ``ST,+00123.45  g``) or Mettler-Toledo MT-SICS (``SI`` -> ``S S     100.00 g``); values in g.
 * :class:`AveragingSensor`: the mean of ``n`` readings, stable only if every reading is and
   their spread is within a tolerance.
 
-The parsers (:func:`parse_ad`, :func:`parse_sics`, :func:`parse_line`, the Modbus frame
-functions) are pure.
+The parsers (:func:`parse_ad`, :func:`parse_sics`, :func:`parse_line`, the register codecs
+:func:`decode_registers` / :func:`encode_registers`) are pure.
 """
 
 from __future__ import annotations
@@ -23,10 +24,12 @@ import time
 from abc import abstractmethod
 from typing import NamedTuple
 
+import minimalmodbus
 import numpy as np
 import serial
 
-from dipnet.rig.controller import LineChannel, RigDisconnected, RigError, RigTimeout, SerialDevice, open_port
+from dipnet.rig.controller import (LineChannel, PortLock, RigDisconnected, RigError, RigTimeout, SerialDevice,
+                                   open_channel, open_port)
 
 
 class SensorError(RigError):
@@ -93,48 +96,7 @@ def parse_sics(line: str) -> Reading:
     return Reading(_grams(m["value"], m["unit"], line), "g", status == "S")
 
 
-# ----------------------------------------------------------------------------- Modbus RTU
-def crc16(data: bytes) -> int:
-    """Modbus CRC-16 (polynomial 0xA001 reflected, initial 0xFFFF) of ``data`` (pure)."""
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
-
-
-def with_crc(body: bytes) -> bytes:
-    """``body`` followed by its CRC, low byte first."""
-    return body + struct.pack("<H", crc16(body))
-
-
-def read_holding_request(slave: int, address: int, count: int) -> bytes:
-    """RTU frame of function 0x03 (read ``count`` holding registers from ``address``), 8 bytes."""
-    if not (1 <= slave <= 247 and 0 <= address <= 0xFFFF and 1 <= count <= 125):
-        raise ValueError(f"invalid Modbus request: slave {slave}, address {address}, count {count}")
-    return with_crc(struct.pack(">BBHH", slave, 0x03, address, count))
-
-
-def response_length(count: int) -> int:
-    """Bytes in a normal reply to a read of ``count`` registers."""
-    return 5 + 2 * count
-
-
-def parse_read_response(frame: bytes, slave: int, count: int) -> list[int]:
-    """Registers of a function-0x03 reply; CRC, address, length and exceptions checked (pure)."""
-    if len(frame) >= 5 and frame[1] == 0x83:
-        if crc16(frame[:5]) == 0:
-            raise SensorError(f"Modbus exception {frame[2]} from slave {frame[0]}")
-    if len(frame) != response_length(count):
-        raise SensorError(f"Modbus reply has {len(frame)} bytes, expected {response_length(count)}: {frame.hex()}")
-    if crc16(frame) != 0:
-        raise SensorError(f"Modbus CRC mismatch in {frame.hex()}")
-    if frame[0] != slave or frame[1] != 0x03 or frame[2] != 2 * count:
-        raise SensorError(f"unexpected Modbus reply header {frame[:3].hex()} (slave {slave}, {count} registers)")
-    return list(struct.unpack(f">{count}H", frame[3:-2]))
-
-
+# ----------------------------------------------------------------------------- Modbus registers
 DATA_TYPES = {"uint16": (1, "H"), "int16": (1, "h"), "uint32": (2, "I"), "int32": (2, "i"), "float32": (2, "f")}
 
 
@@ -173,7 +135,7 @@ class Sensor(SerialDevice):
         self.link: LineChannel | None = None
 
     def connect(self) -> None:
-        self.link = LineChannel(open_port(self.url, baudrate=self.baudrate), self.terminator_bytes())
+        self.link = open_channel(self.url, self.terminator_bytes(), self.baudrate)
 
     def terminator_bytes(self) -> bytes:
         return b"\n"
@@ -298,25 +260,28 @@ class ModbusLevelSensor(Sensor):
         return {**super().identity(), "slave": self.slave, "address": self.address, "data_type": self.data_type,
                 "word_order": self.word_order, "scale": self.scale, "offset": self.offset}
 
+    def connect(self) -> None:
+        """Lock and open the port; ``minimalmodbus`` talks over it (``self.link.port``)."""
+        lock = PortLock(self.url)
+        try:
+            port = open_port(self.url, timeout=self.timeout, baudrate=self.baudrate)
+            self.instrument = minimalmodbus.Instrument(port, self.slave)
+        except BaseException:
+            lock.release()
+            raise
+        self.link = LineChannel(port, lock=lock)
+
     def read(self) -> Reading:
-        link = self._link()
-        link.discard_input()
-        link.write(read_holding_request(self.slave, self.address, self.count))
-        want = response_length(self.count)
-        frame = bytearray()
-        deadline = time.monotonic() + self.timeout
-        while len(frame) < want:
-            if time.monotonic() > deadline:
-                raise RigTimeout(f"Modbus slave {self.slave} on {self.url}: {len(frame)} of {want} bytes "
-                                 f"within {self.timeout:g} s")
-            try:
-                frame += link.port.read(want - len(frame))
-            except (serial.SerialException, OSError) as exc:
-                raise RigDisconnected(f"lost the link to {self.url}: {exc}") from exc
-            if len(frame) >= 5 and frame[1] == 0x83:
-                break
-        raw = decode_registers(parse_read_response(bytes(frame), self.slave, self.count), self.data_type,
-                               self.word_order)
+        self._link()
+        try:
+            registers = self.instrument.read_registers(self.address, self.count, functioncode=3)
+        except minimalmodbus.NoResponseError as exc:
+            raise RigTimeout(f"Modbus slave {self.slave} on {self.url}: {exc}") from exc
+        except minimalmodbus.ModbusException as exc:  # exception replies, bad CRC, malformed frames
+            raise SensorError(f"Modbus slave {self.slave} on {self.url}: {type(exc).__name__}: {exc}") from exc
+        except (serial.SerialException, OSError) as exc:
+            raise RigDisconnected(f"lost the link to {self.url}: {exc}") from exc
+        raw = decode_registers(registers, self.data_type, self.word_order)
         return Reading(raw * self.scale + self.offset, self.unit, True)
 
 

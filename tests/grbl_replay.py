@@ -1,0 +1,113 @@
+"""Replay of recorded GRBL wire logs (``tests/data/grbl-traces``) as a pyserial-like port.
+
+A log line is ``TIME DIR BYTES`` (``>>`` host to GRBL, ``<<`` GRBL to host, ``!!`` bytes the
+test bridge injected, ``##`` bridge events). :class:`ReplayPort` plays the firmware's side of
+one recorded session: every chunk the driver writes is compared with the next recorded host
+chunk; when it matches, the firmware's recorded output up to the following host chunk becomes
+readable. A chunk found in ``extras`` (recorded replies keyed by host chunk) is answered from
+there without advancing the script, so a driver may send extra queries (``$$``, ``$I``). The
+first other chunk that differs ends the script: from then on ``answers`` reply (recorded or
+documented replies keyed by host chunk, used in order, the last one repeating), everything
+else meets silence. :attr:`sent` keeps every chunk written and :attr:`diverged_at` the index in
+``sent`` where the driver left the recording.
+"""
+
+from __future__ import annotations
+
+import ast
+import time
+from collections import defaultdict
+from pathlib import Path
+
+TRACES = Path(__file__).parent / "data" / "grbl-traces"
+
+
+def read_trace(name: str) -> list[list[tuple[str, bytes]]]:
+    """The sessions of ``TRACES/name`` (split at ``client connected``), each a list of
+    ``(direction, bytes)``."""
+    sessions: list[list[tuple[str, bytes]]] = [[]]
+    for line in (TRACES / name).read_text().splitlines():
+        parts = line.split(None, 2)
+        if len(parts) < 3 or parts[1] not in (">>", "<<", "!!", "##"):
+            continue
+        direction, payload = parts[1], ast.literal_eval(parts[2])
+        if direction == "##":
+            if payload == "client connected":
+                sessions.append([])
+            continue
+        sessions[-1].append((direction, payload))
+    return [s for s in sessions if s]
+
+
+def recorded_replies(session: list[tuple[str, bytes]]) -> dict[bytes, list[bytes]]:
+    """For every host chunk of a session, the firmware output that followed each occurrence."""
+    out: dict[bytes, list[bytes]] = defaultdict(list)
+    current = None
+    for direction, data in session:
+        if direction == ">>":
+            current = data
+            out[current].append(b"")
+        elif direction == "<<" and current is not None:
+            out[current][-1] += data
+    return dict(out)
+
+
+class ReplayPort:
+    """A pyserial-like port replaying ``script`` (one session of :func:`read_trace`)."""
+
+    def __init__(self, script: list[tuple[str, bytes]], answers: dict[bytes, list[bytes]] | None = None,
+                 extras: dict[bytes, list[bytes]] | None = None, timeout: float = 0.01) -> None:
+        self.script = [(d, b) for d, b in script if d in (">>", "<<")]
+        self.answers = {k: list(v) for k, v in (answers or {}).items()}
+        self.extras = {k: list(v) for k, v in (extras or {}).items()}
+        self.port = "replay://"
+        self.timeout = timeout
+        self.sent: list[bytes] = []
+        self.diverged_at: int | None = None
+        self._out = bytearray()
+        self._cursor = 0
+        self._release()
+
+    def _release(self) -> None:
+        while self._cursor < len(self.script) and self.script[self._cursor][0] == "<<":
+            self._out += self.script[self._cursor][1]
+            self._cursor += 1
+
+    def write(self, data: bytes) -> int:
+        data = bytes(data)
+        self.sent.append(data)
+        if self.diverged_at is None and self._cursor < len(self.script) and self.script[self._cursor][1] == data:
+            self._cursor += 1
+            self._release()
+        elif data in self.extras:
+            self._out += self.extras[data][-1]
+        else:
+            if self.diverged_at is None:
+                self.diverged_at = len(self.sent) - 1
+            if data in self.answers:
+                queue = self.answers[data]
+                self._out += queue.pop(0) if len(queue) > 1 else queue[0]
+        return len(data)
+
+    def since_divergence(self) -> list[bytes]:
+        return [] if self.diverged_at is None else self.sent[self.diverged_at:]
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._out)
+
+    def read(self, size: int = 1) -> bytes:
+        if not self._out:
+            time.sleep(self.timeout)
+        data = bytes(self._out[:size])
+        del self._out[:size]
+        return data
+
+    def flush(self) -> None:
+        pass
+
+    def reset_input_buffer(self) -> None:
+        self._out.clear()
+
+    def close(self) -> None:
+        pass
