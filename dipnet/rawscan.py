@@ -29,8 +29,10 @@ orientation (its earlier readings are dropped). Any other malformed line raises
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +41,8 @@ import numpy as np
 import torch
 
 from dipnet.orientations import rig_to_direction
+
+log = logging.getLogger(__name__)
 
 FORMAT_NAME = "dipnet.rawscan"
 FORMAT_VERSION = 1
@@ -118,7 +122,22 @@ class ScanHeader:
         if obj.get("version") != FORMAT_VERSION:
             raise ValueError(f"unsupported raw scan format version {obj.get('version')!r}")
         known = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in obj.items() if k in known})
+        header = cls(**{k: v for k, v in obj.items() if k in known})
+        header.check_quantity(obj.get("units"))
+        return header
+
+    def check_quantity(self, units: dict | None = None) -> None:
+        """Raise ``ValueError`` when the stored ``units`` or the sensor in ``config`` contradict
+        :attr:`quantity` (e.g. ``mass_g`` over a level sensor's readings)."""
+        unit = QUANTITIES[self.quantity]
+        if isinstance(units, dict) and "value" in units and units["value"] != unit:
+            raise ValueError(f"quantity {self.quantity!r} is read in {unit} but the header's units say "
+                             f"readings are in {units['value']!r}")
+        sensor = self.config.get("sensor") if isinstance(self.config, dict) else None
+        measured = sensor.get("quantity") if isinstance(sensor, dict) else None
+        if measured is not None and measured != self.quantity:
+            raise ValueError(f"quantity {self.quantity!r} does not match the recording sensor's "
+                             f"quantity {measured!r} (config.sensor)")
 
     def compatible_with(self, other: "ScanHeader") -> bool:
         """Whether a scan with header ``other`` may be appended to one with this header."""
@@ -407,6 +426,9 @@ def read_rawscan(path: str | Path) -> RawScan:
                 values = [float(obj[key]) for key in ("stage_mm", "value", "time_s")]
                 if not all(np.isfinite(values)):
                     raise ValueError("reading holds a non-finite number")
+                if o.n_readings and values[0] < o.stage_mm[-1]:
+                    raise ValueError(f"orientation {o.k}: stage {values[0]:g} mm after {o.stage_mm[-1]:g} mm: "
+                                     "the stage moved backwards (readings out of order?)")
                 flags = obj.get("flags", [])
                 if not isinstance(flags, list):
                     raise ValueError("flags must be a list of strings")
@@ -426,6 +448,27 @@ def read_rawscan(path: str | Path) -> RawScan:
             raise RawScanFileError(f"{path}:{lineno}: {detail}") from exc
     assert scan is not None  # the first non-blank line either parses as a header or raised
     return scan
+
+
+def complete_dips(raw: RawScan) -> list[OrientationScan]:
+    """The complete orientations of ``raw``, warning about the ones left out.
+
+    An orientation without its ``complete`` record (an interrupted scan, or a truncated last
+    line cut off by a crash) is dropped with a warning naming it. Raises
+    :class:`RawScanFileError` when no orientation is complete.
+    """
+    where = "the raw scan" if raw.path is None else f"scan {raw.path}"
+    done = raw.completed()
+    dropped = [o.k for o in raw.orientations if not o.complete]
+    if dropped:
+        cause = " (its last line is truncated: a crash mid-write?)" if raw.truncated else ""
+        message = f"{where}{cause}: orientation(s) {dropped} are incomplete and left out"
+        log.warning("%s", message)
+        warnings.warn(message, stacklevel=2)
+    if not done:
+        raise RawScanFileError(f"{where} holds no complete dip ({len(raw.orientations)} orientation(s) "
+                               f"begun, {sum(o.n_readings for o in raw.orientations)} reading(s))")
+    return done
 
 
 def _open_orientation(by_k: dict[int, OrientationScan], obj: dict) -> OrientationScan:
