@@ -24,7 +24,9 @@ from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.orientations import make_directions
 from dipnet.reconstruction import Reconstruction
+from dipnet.resources import check_memory
 from dipnet.shapes import Shape
+from dipnet.validation import validate_measurement
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +89,9 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
     grid = build_grid(cfg)
+    check_memory(cfg)
     measurement, shape = acquire(cfg, grid, out)
+    validation = validate_measurement(measurement, grid)
     measurement.save(out / "measurement.npz")
 
     t0 = time.perf_counter()
@@ -101,7 +105,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                               "seconds": seconds, "n_dips": measurement.n_orientations,
                               "resolution": grid.n, "ndim": grid.ndim,
                               "measured_volume_mm3": measurement.volume_estimate(),
-                              "reconstructed_volume_mm3": float(recon.binary.sum() * grid.voxel_volume)}
+                              "reconstructed_volume_mm3": float(recon.binary.sum() * grid.voxel_volume),
+                              **validation.metrics()}
     truth = None
     if shape is not None:
         truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
