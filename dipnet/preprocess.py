@@ -41,7 +41,7 @@ from scipy.interpolate import PchipInterpolator
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
-from dipnet.rawscan import OrientationScan, RawScan, complete_dips, read_rawscan
+from dipnet.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
 from dipnet.readings import ReadingsReport, max_object_section, repair_readings
 
 T_START_METHODS = ("auto", "metadata", "centroid", "onset")
@@ -158,7 +158,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
 
 def preprocess_file(path: str | Path, **options) -> DipMeasurement:
     """:func:`preprocess` applied to the raw scan file at ``path`` (:func:`~dipnet.rawscan.read_rawscan`)."""
-    return preprocess(read_rawscan(path), **options)
+    with naming_file(path):
+        return preprocess(read_rawscan(path), **options)
 
 
 # --------------------------------------------------------------------------- helpers

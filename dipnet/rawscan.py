@@ -28,11 +28,13 @@ orientation (its earlier readings are dropped). Any other malformed line raises
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import time
 import warnings
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -448,6 +450,18 @@ def read_rawscan(path: str | Path) -> RawScan:
             raise RawScanFileError(f"{path}:{lineno}: {detail}") from exc
     assert scan is not None  # the first non-blank line either parses as a header or raised
     return scan
+
+
+@contextlib.contextmanager
+def naming_file(path: str | Path) -> Iterator[None]:
+    """Re-raise a ``ValueError`` whose message lacks ``path`` as :class:`RawScanFileError`
+    ``"<path>: <message>"``, so every error about a recording names its file."""
+    try:
+        yield
+    except ValueError as exc:
+        if str(path) in str(exc):
+            raise
+        raise RawScanFileError(f"{path}: {exc}") from exc
 
 
 def complete_dips(raw: RawScan) -> list[OrientationScan]:
