@@ -19,7 +19,8 @@ The rule (per orientation, readings ordered by stage ``s_i``, values ``v_i``):
 ``sqrt(noise_sigma^2 + q^2 / 12)`` (header or orientation ``meta``; ``q`` = the header's
 ``resolution``, the reading quantum) and the robust estimate ``1.4826 MAD(r)`` of the data.
 ``rho`` (the largest physical rise per mm of stage, reading units) is the steepest slope of
-the neighbour-median curve (robust to isolated spikes), capped by the physical bound when the
+the running median over ``2w + 3`` readings (a monotone curve is its own running median;
+bursts of up to ``w + 1`` bad readings do not move it), capped by the physical bound when the
 largest possible object cross-section ``a`` is known (the working ball's section): lowering
 by ``ds`` displaces at most ``a A / (A - a) ds`` of liquid in a tank of section ``A``.
 ``k = 6`` by default.
@@ -38,6 +39,7 @@ import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.ndimage
 
 from dipnet.rawscan import OrientationScan, RawScan
 
@@ -89,9 +91,10 @@ def outlier_mask(stage: np.ndarray, values: np.ndarray, sigma_model: float = 0.0
     residual = values - reference
     sigma = max(sigma_model, MAD_TO_SIGMA * float(np.median(np.abs(residual))),
                 1e-12 * max(1.0, float(np.median(np.abs(values)))))
+    smooth = scipy.ndimage.median_filter(values, size=2 * HALF_WINDOW + 3, mode="nearest")  # burst-proof
     steps = np.diff(stage)
     moved = steps > 0
-    slopes = np.diff(reference)[moved] / steps[moved]
+    slopes = np.diff(smooth)[moved] / steps[moved]
     rho = min(rho_max, float(slopes.max())) if slopes.size else 0.0
     rho = max(rho, 0.0)
     tolerance = k * sigma + rho * reach
