@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.ndimage
 
-from dipnet.rawscan import OrientationScan, RawScan
+from dipnet.rawscan import RawScan
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,6 @@ from dipnet.datasets import CATS_CSV
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.orientations import make_directions
-from dipnet.physics import LevelSensor
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import RawScanFileError, read_rawscan
 from dipnet.readings import outlier_mask, repair_readings
