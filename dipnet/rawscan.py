@@ -22,8 +22,12 @@ line being written. The reader tolerates a truncated last line, and an orientati
 ``complete`` line is missing is reported as incomplete: a scan resumes after its last complete
 orientation (:meth:`RawScan.complete_orientations`, :meth:`RawScan.next_orientation`). A new
 ``orientation`` line for an index that was started but not completed restarts that
-orientation (its earlier readings are dropped). Any other malformed line raises
-:class:`RawScanFileError` naming the file and the line number.
+orientation (its earlier readings are dropped); consumers leave incomplete orientations out
+with a warning naming them (:func:`complete_dips`). Within an orientation the stage never moves
+back (the rig only lowers; equal positions are repeats): a reading at a lower stage than the one
+before is an error, not sorted silently. The header's ``quantity`` must agree with its
+``units`` and with ``config.sensor.quantity`` when those are recorded. Any other malformed
+line raises :class:`RawScanFileError` naming the file and the line number.
 """
 
 from __future__ import annotations
