@@ -122,7 +122,7 @@ def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: Valid
     if sigma is not None:
         floor = np.maximum(floor, 4.0 * sigma)
     beyond = prof < -floor
-    negative = float(-prof[prof < 0].sum())
+    negative = float(np.abs(prof[prof < 0]).sum())
     positive = float(prof[prof > 0].sum())
     report.stats.update(negative_slabs=int((prof < 0).sum()), negative_beyond_noise=int(beyond.sum()),
                         negative_fraction=negative / positive)
