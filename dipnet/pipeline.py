@@ -105,14 +105,14 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                               "seconds": seconds, "n_dips": measurement.n_orientations,
                               "resolution": grid.n, "ndim": grid.ndim,
                               "measured_volume_mm3": measurement.volume_estimate(),
-                              "reconstructed_volume_mm3": float(recon.binary.sum() * grid.voxel_volume),
-                              **validation.metrics()}
+                              "reconstructed_volume_mm3": float(recon.binary.sum() * grid.voxel_volume)}
     truth = None
     if shape is not None:
         truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
         scores.update(shape=shape.name, snr_db=cfg.get("snr_db"))
         scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None)))
         scores.update(metrics.false_rates(recon.binary, truth > 0.5))
+    scores.update(validation.metrics())
     (out / "metrics.json").write_text(json.dumps(scores, indent=2))
     write_outputs(cfg, out, measurement, operator, recon, truth)
     if cfg.output.get("report"):

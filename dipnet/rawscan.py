@@ -32,13 +32,13 @@ line raises :class:`RawScanFileError` naming the file and the line number.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
 import time
 import warnings
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -456,7 +456,7 @@ def read_rawscan(path: str | Path) -> RawScan:
     return scan
 
 
-@contextlib.contextmanager
+@contextmanager
 def naming_file(path: str | Path) -> Iterator[None]:
     """Re-raise a ``ValueError`` whose message lacks ``path`` as :class:`RawScanFileError`
     ``"<path>: <message>"``, so every error about a recording names its file."""
