@@ -1,4 +1,14 @@
-"""Helpers for the command-line entry points."""
+"""Helpers for the command-line entry points: one error contract for every script.
+
+Every bad input (a malformed file, an out-of-range option, an unknown config choice such as
+``solver=foo``, an unparsable override, a required option left unset) ends in one line
+``error: ...`` naming the file (and line) or the option, and exit code 2:
+
+* :func:`run_hydra` runs a ``@hydra.main`` function so that Hydra's composition errors reach
+  :func:`user_errors` instead of Hydra's multi-line report with exit code 1;
+* :func:`require_options` names the options still ``???`` in a composed config;
+* :func:`user_errors` turns the user-error exceptions into the one line.
+"""
 
 from __future__ import annotations
 
@@ -6,9 +16,11 @@ import contextlib
 import logging
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
-from hydra.errors import HydraException
+from hydra.errors import HydraException, InstantiationException
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 log = logging.getLogger("dipnet")
@@ -19,6 +31,21 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, KeyError, H
                                                 OmegaConfBaseException)
 
 
+class MissingOptionError(ValueError):
+    """A required config option (``???``) was not given."""
+
+
+def error_message(exc: BaseException) -> str:
+    """The one-line message for ``exc``; a failed instantiation reports the user error behind it."""
+    cause = exc.__cause__
+    if isinstance(exc, InstantiationException) and isinstance(cause, USER_ERRORS):
+        return error_message(cause)
+    if isinstance(exc, KeyError) and exc.args:
+        return f"missing key {exc.args[0]!r}"
+    text = str(exc).split("Config search path:")[0]  # Hydra appends its search path to composition errors
+    return " ".join(text.split()) or type(exc).__name__
+
+
 @contextlib.contextmanager
 def user_errors(exit_code: int = 2) -> Iterator[None]:
     """Turn bad-input exceptions into a one-line ``error: ...`` message and exit ``exit_code``."""
@@ -27,7 +54,28 @@ def user_errors(exit_code: int = 2) -> Iterator[None]:
     except USER_ERRORS as exc:
         if os.environ.get("DIPNET_DEBUG"):
             raise
-        message = " ".join(str(exc).split()) or type(exc).__name__
-        log.error("error: %s", message)
+        message = error_message(exc)
+        if logging.getLogger().hasHandlers():  # before Hydra set up logging the line is printed once, below
+            log.error("error: %s", message)
         print(f"error: {message}", file=sys.stderr)
         raise SystemExit(exit_code) from None
+
+
+def run_hydra(main: Callable[[], Any]) -> Any:
+    """Call the ``@hydra.main``-decorated ``main`` under :func:`user_errors`.
+
+    Hydra reports its own errors (unknown config choice, bad override, missing config) in
+    several lines and exits 1 unless ``HYDRA_FULL_ERROR`` is set, in which case it re-raises
+    them: we set it, so they arrive here as exceptions and become the one-line error.
+    """
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    with user_errors():
+        return main()
+
+
+def require_options(cfg: DictConfig) -> None:
+    """Raise :class:`MissingOptionError` naming every option of ``cfg`` still ``???``."""
+    missing = sorted(OmegaConf.missing_keys(cfg))
+    if missing:
+        raise MissingOptionError(f"option {', '.join(missing)} is required: set it on the command line, "
+                                 f"e.g. {missing[0]}=...")

@@ -24,7 +24,9 @@ from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.orientations import make_directions
 from dipnet.reconstruction import Reconstruction
+from dipnet.resources import check_memory
 from dipnet.shapes import Shape
+from dipnet.validation import validate_measurement
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +89,9 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
     grid = build_grid(cfg)
+    check_memory(cfg)
     measurement, shape = acquire(cfg, grid, out)
+    validation = validate_measurement(measurement, grid)
     measurement.save(out / "measurement.npz")
 
     t0 = time.perf_counter()
@@ -109,6 +113,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         scores.update(shape=shape.name, snr_db=cfg.get("snr_db"))
         scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None)))
         scores.update(metrics.false_rates(recon.binary, truth > 0.5))
+    scores.update(validation.metrics())
     (out / "metrics.json").write_text(json.dumps(scores, indent=2))
     write_outputs(cfg, out, measurement, operator, recon, truth)
     if cfg.output.get("report"):

@@ -2,6 +2,8 @@
 
 Per orientation:
 
+0. outlier readings (level spikes and drops) are repaired or the dip rejected
+   (:func:`dipnet.readings.repair_readings`; the decisions go into ``metadata["readings"]``);
 1. drop flagged readings (default ``"unstable"``), average repeated stage positions;
 2. baseline: the mean of the readings before the level starts to rise (at least the first);
 3. reading -> submerged volume ``C_i``: level rise x tank cross-section ``A`` (or balance
@@ -30,7 +32,6 @@ correlations when slabs are thinner than a stage step).
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,8 @@ from scipy.interpolate import PchipInterpolator
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
-from dipnet.rawscan import OrientationScan, RawScan, read_rawscan
+from dipnet.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
+from dipnet.readings import ReadingsReport, max_object_section, repair_readings
 
 T_START_METHODS = ("auto", "metadata", "centroid", "onset")
 
@@ -74,7 +76,8 @@ def slab_edges(grid: Grid, n_slabs: int | None = None) -> np.ndarray:
 def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: int | None = None,
                cross_section_mm2: float | None = None, t_start: str | float = "auto",
                object_centre=None, smooth: bool = False, drop_flags=("unstable",),
-               onset_tol: float | None = None, include_incomplete: bool = False) -> DipMeasurement:
+               onset_tol: float | None = None, include_incomplete: bool = False,
+               repair: bool = True) -> DipMeasurement:
     """Turn a raw scan into uniform slab volumes.
 
     Args:
@@ -93,12 +96,18 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
             is known).
         include_incomplete: also use orientations whose scan did not finish (default: skip
             them with a warning).
+        repair: repair outlier readings or reject their dips first
+            (:func:`dipnet.readings.repair_readings`, bounded by the grid's working ball when
+            ``grid`` is given); ``False`` when the caller already did.
 
     Returns:
         ``DipMeasurement`` with profiles ``(K, M)`` (mm^3; mm^2 in 2D), ``offsets = edges[0]``,
         per-slab ``sigma`` when the reading noise is known, and provenance metadata
-        (``orientation_k``, ``t_start_mm`` per orientation, ...).
+        (``orientation_k``, ``t_start_mm`` per orientation, ``readings``: the outlier report, ...).
     """
+    report = ReadingsReport()
+    if repair:
+        raw, report = repair_readings(raw, max_cross_section=None if grid is None else max_object_section(grid))
     header = raw.header
     edges = _resolve_edges(edges, grid, n_slabs)
     area = cross_section_mm2 if cross_section_mm2 is not None else header.tank_cross_section_mm2
@@ -106,12 +115,9 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         raise ValueError("the tank cross-section is unknown: pass cross_section_mm2 (mm^2; mm in 2D)")
     if isinstance(t_start, str) and t_start not in T_START_METHODS:
         raise ValueError(f"t_start must be a number (mm) or one of {T_START_METHODS}, got {t_start!r}")
-    scans = raw.orientations if include_incomplete else raw.completed()
-    skipped = [o.k for o in raw.orientations if not o.complete and not include_incomplete]
-    if skipped:
-        warnings.warn(f"skipping incomplete orientation(s) {skipped}", stacklevel=2)
+    scans = raw.orientations if include_incomplete else complete_dips(raw)
     if not scans:
-        raise ValueError(f"the raw scan{'' if raw.path is None else ' ' + str(raw.path)} has no complete orientation")
+        raise ValueError(f"the raw scan{'' if raw.path is None else ' ' + str(raw.path)} has no orientation")
     # ``scale`` turns a reading difference into a volume: x A (level) or / density (balance)
     scale = float(area) if header.quantity == "level_mm" else 1.0 / header.density_g_per_mm3
     centre = np.zeros(header.ndim) if object_centre is None else np.asarray(object_centre, dtype=np.float64)
@@ -146,12 +152,14 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "rig": header.rig, "quantity": header.quantity, "tank_cross_section_mm2": float(area),
                   "t_start": t_start if isinstance(t_start, str) else "given",
                   "t_start_mm": [float(t) for t in starts], "smoothed": bool(smooth),
-                  "orientation_k": [o.k for o in scans], "scan_metadata": header.metadata})
+                  "orientation_k": [o.k for o in scans], "scan_metadata": header.metadata,
+                  "readings": report.to_json()})
 
 
 def preprocess_file(path: str | Path, **options) -> DipMeasurement:
     """:func:`preprocess` applied to the raw scan file at ``path`` (:func:`~dipnet.rawscan.read_rawscan`)."""
-    return preprocess(read_rawscan(path), **options)
+    with naming_file(path):
+        return preprocess(read_rawscan(path), **options)
 
 
 # --------------------------------------------------------------------------- helpers

@@ -22,16 +22,24 @@ line being written. The reader tolerates a truncated last line, and an orientati
 ``complete`` line is missing is reported as incomplete: a scan resumes after its last complete
 orientation (:meth:`RawScan.complete_orientations`, :meth:`RawScan.next_orientation`). A new
 ``orientation`` line for an index that was started but not completed restarts that
-orientation (its earlier readings are dropped). Any other malformed line raises
-:class:`RawScanFileError` naming the file and the line number.
+orientation (its earlier readings are dropped); consumers leave incomplete orientations out
+with a warning naming them (:func:`complete_dips`). Within an orientation the stage never moves
+back (the rig only lowers; equal positions are repeats): a reading at a lower stage than the one
+before is an error, not sorted silently. The header's ``quantity`` must agree with its
+``units`` and with ``config.sensor.quantity`` when those are recorded. Any other malformed
+line raises :class:`RawScanFileError` naming the file and the line number.
 """
 
 from __future__ import annotations
 
 import fcntl
 import json
+import logging
 import os
 import time
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +48,8 @@ import numpy as np
 import torch
 
 from dipnet.orientations import rig_to_direction
+
+log = logging.getLogger(__name__)
 
 FORMAT_NAME = "dipnet.rawscan"
 FORMAT_VERSION = 1
@@ -119,7 +129,22 @@ class ScanHeader:
         if obj.get("version") != FORMAT_VERSION:
             raise ValueError(f"unsupported raw scan format version {obj.get('version')!r}")
         known = set(cls.__dataclass_fields__)
-        return cls(**{k: v for k, v in obj.items() if k in known})
+        header = cls(**{k: v for k, v in obj.items() if k in known})
+        header.check_quantity(obj.get("units"))
+        return header
+
+    def check_quantity(self, units: dict | None = None) -> None:
+        """Raise ``ValueError`` when the stored ``units`` or the sensor in ``config`` contradict
+        :attr:`quantity` (e.g. ``mass_g`` over a level sensor's readings)."""
+        unit = QUANTITIES[self.quantity]
+        if isinstance(units, dict) and "value" in units and units["value"] != unit:
+            raise ValueError(f"quantity {self.quantity!r} is read in {unit} but the header's units say "
+                             f"readings are in {units['value']!r}")
+        sensor = self.config.get("sensor") if isinstance(self.config, dict) else None
+        measured = sensor.get("quantity") if isinstance(sensor, dict) else None
+        if measured is not None and measured != self.quantity:
+            raise ValueError(f"quantity {self.quantity!r} does not match the recording sensor's "
+                             f"quantity {measured!r} (config.sensor)")
 
     def compatible_with(self, other: "ScanHeader") -> bool:
         """Whether a scan with header ``other`` may be appended to one with this header."""
@@ -445,6 +470,9 @@ def read_rawscan(path: str | Path) -> RawScan:
                 values = [float(obj[key]) for key in ("stage_mm", "value", "time_s")]
                 if not all(np.isfinite(values)):
                     raise ValueError("reading holds a non-finite number")
+                if o.n_readings and values[0] < o.stage_mm[-1]:
+                    raise ValueError(f"orientation {o.k}: stage {values[0]:g} mm after {o.stage_mm[-1]:g} mm: "
+                                     "the stage moved backwards (readings out of order?)")
                 flags = obj.get("flags", [])
                 if not isinstance(flags, list):
                     raise ValueError("flags must be a list of strings")
@@ -464,6 +492,39 @@ def read_rawscan(path: str | Path) -> RawScan:
             raise RawScanFileError(f"{path}:{lineno}: {detail}") from exc
     assert scan is not None  # the first non-blank line either parses as a header or raised
     return scan
+
+
+@contextmanager
+def naming_file(path: str | Path) -> Iterator[None]:
+    """Re-raise a ``ValueError`` whose message lacks ``path`` as :class:`RawScanFileError`
+    ``"<path>: <message>"``, so every error about a recording names its file."""
+    try:
+        yield
+    except ValueError as exc:
+        if str(path) in str(exc):
+            raise
+        raise RawScanFileError(f"{path}: {exc}") from exc
+
+
+def complete_dips(raw: RawScan) -> list[OrientationScan]:
+    """The complete orientations of ``raw``, warning about the ones left out.
+
+    An orientation without its ``complete`` record (an interrupted scan, or a truncated last
+    line cut off by a crash) is dropped with a warning naming it. Raises
+    :class:`RawScanFileError` when no orientation is complete.
+    """
+    where = "the raw scan" if raw.path is None else f"scan {raw.path}"
+    done = raw.completed()
+    dropped = [o.k for o in raw.orientations if not o.complete]
+    if dropped:
+        cause = " (its last line is truncated: a crash mid-write?)" if raw.truncated else ""
+        message = f"{where}{cause}: orientation(s) {dropped} are incomplete and left out"
+        log.warning("%s", message)
+        warnings.warn(message, stacklevel=2)
+    if not done:
+        raise RawScanFileError(f"{where} holds no complete dip ({len(raw.orientations)} orientation(s) "
+                               f"begun, {sum(o.n_readings for o in raw.orientations)} reading(s))")
+    return done
 
 
 def _open_orientation(by_k: dict[int, OrientationScan], obj: dict) -> OrientationScan:

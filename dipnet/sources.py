@@ -12,6 +12,7 @@ from pathlib import Path
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement, MeasurementFileError
+from dipnet.rawscan import naming_file
 from dipnet.rig.recorded import read_recorded as read_raw_recording
 
 
@@ -28,7 +29,10 @@ def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) 
     if not p.is_file():
         raise MeasurementFileError(f"measurement file not found: {p}")
     if p.suffix == ".npz":
-        return DipMeasurement.load(p)
+        measurement = DipMeasurement.load(p)
+        measurement.metadata = {**measurement.metadata, "path": str(p)}  # validation messages name the file
+        return measurement
     if p.suffix in (".jsonl", ".csv"):
-        return read_raw_recording(p, grid, n_slabs, **options)
+        with naming_file(p):
+            return read_raw_recording(p, grid, n_slabs, **options)
     raise MeasurementFileError(f"{p}: unknown measurement file type {p.suffix!r} (expected .npz, .jsonl or .csv)")

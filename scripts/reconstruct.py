@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from dipnet.cli import user_errors
+from dipnet.cli import require_options, run_hydra, user_errors
 from dipnet.experiments import guarded_job
 from dipnet.pipeline import run
 
@@ -32,10 +32,11 @@ def main(cfg: DictConfig) -> float | None:
         # a failed job writes error.txt and returns None (Optuna: failed trial); the sweep goes on
         return guarded_job(lambda: run(cfg, out).metrics.get("chamfer"), out)
     with user_errors():
+        require_options(cfg)
         result = run(cfg, out)
     log.info("outputs written to %s", out)
     return result.metrics.get("chamfer")
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_hydra(main))

@@ -22,7 +22,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from dipnet.cli import user_errors
+from dipnet.cli import run_hydra, user_errors
 from dipnet.rig.runner import ScanAborted, scan_from_config
 
 log = logging.getLogger("dipnet")
@@ -43,4 +43,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_hydra(main))

@@ -138,7 +138,7 @@ def test_incomplete_orientations_and_errors():
         assert preprocess(raw, edges=EDGES).n_orientations == 1
     assert preprocess(raw, edges=EDGES, include_incomplete=True).n_orientations == 2
     raw.orientations[0].complete = False
-    with pytest.raises(ValueError, match="no complete orientation"), pytest.warns(UserWarning):
+    with pytest.raises(ValueError, match="holds no complete dip"), pytest.warns(UserWarning):
         preprocess(raw, edges=EDGES)
     with pytest.raises(ValueError, match="cross-section"):
         preprocess(_scan(tank_cross_section_mm2=None), edges=EDGES)

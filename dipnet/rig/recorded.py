@@ -42,7 +42,8 @@ from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.orientations import fibonacci_hemisphere
 from dipnet.preprocess import preprocess
-from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, read_rawscan
+from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, complete_dips, read_rawscan
+from dipnet.readings import max_object_section, repair_readings
 
 AUTHORS_COLUMNS = ("SN", "R1_deg", "R2_deg", "Height_mm", "WaterLevel_mm")
 AUTHORS_TANK_MM2 = 540.0 * 340.0  # the authors' value for the 3 mm cats recording
@@ -58,8 +59,8 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     Every orientation is complete; times are unknown (the row index is stored as time).
 
     Raises:
-        RawScanFileError: missing file, wrong columns, non-numeric values (message names the
-            file and line).
+        RawScanFileError: missing file, wrong columns, non-numeric or non-finite values, a
+            height that goes up within a dip (message names the file and line).
     """
     path = Path(path)
     if not path.is_file():
@@ -69,21 +70,33 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     if not rows or tuple(c.strip() for c in rows[0]) != AUTHORS_COLUMNS:
         raise RawScanFileError(f"{path}:1: expected the header {','.join(AUTHORS_COLUMNS)}, "
                                f"got {','.join(rows[0]) if rows else 'an empty file'}")
-    data = []
+    data, linenos = [], []
     for lineno, row in enumerate(rows[1:], start=2):
         if not row or not "".join(row).strip():
             continue
         if len(row) != 5:
             raise RawScanFileError(f"{path}:{lineno}: expected 5 fields, got {len(row)}")
         try:
-            data.append([float(x) for x in row])
+            values = [float(x) for x in row]
         except ValueError as exc:
             raise RawScanFileError(f"{path}:{lineno}: {exc}") from exc
+        bad = [i for i, x in enumerate(values) if not math.isfinite(x)]
+        if bad:
+            raise RawScanFileError(f"{path}:{lineno}: {AUTHORS_COLUMNS[bad[0]]} is not a finite number "
+                                   f"({row[bad[0]].strip()})")
+        data.append(values)
+        linenos.append(lineno)
     if not data:
         raise RawScanFileError(f"{path}: no data rows")
     a = np.asarray(data)
     change = np.flatnonzero(np.any(np.diff(a[:, 1:3], axis=0) != 0, axis=1)) + 1
     blocks = np.split(np.arange(len(a)), change)
+    for idx in blocks:  # the object only goes down within a dip: Height_mm never increases
+        up = np.flatnonzero(np.diff(a[idx, 3]) > 0)
+        if up.size:
+            i = idx[up[0] + 1]
+            raise RawScanFileError(f"{path}:{linenos[i]}: Height_mm {a[i, 3]:g} after {a[i - 1, 3]:g}: the stage "
+                                   "moved backwards within a dip (rows out of order?)")
     steps = np.diff(-a[:, 3])[np.diff(-a[:, 3]) > 0]
     header = ScanHeader(
         quantity="level_mm", ndim=3, tank_cross_section_mm2=float(tank_cross_section_mm2),
@@ -374,16 +387,21 @@ def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
         interpolate: ``{n, k, max_angle_deg}``: Fibonacci-hemisphere targets for
             :func:`interpolate_orientations`.
 
+    Incomplete dips are left out with a warning (:func:`dipnet.rawscan.complete_dips`); outlier
+    readings are repaired or their dips rejected first (:func:`dipnet.readings.repair_readings`,
+    reported in ``metadata["readings"]``), so no spike reaches the running maxima below.
+
     Returns:
         The measurement, ``metadata["recorded"]`` holding what was done (fit, dropped dips, counts).
     """
     raw = read_scan(path, cross_section_mm2)
+    raw.orientations = complete_dips(raw)
+    raw, readings = repair_readings(raw, max_cross_section=max_object_section(grid))
     area = float(raw.header.tank_cross_section_mm2 or 0.0)
     if not area > 0:
         raise ValueError(f"{path}: the tank cross-section is unknown: set cross_section_mm2")
     if fixture is not None:
         raw = subtract_fixture(raw, read_scan(fixture, cross_section_mm2), area)
-    raw.orientations = [o for o in raw.orientations if o.complete]
     cut = truncated_orientations(raw, tail_fraction, tail_tol)
     info: dict = {"truncated": cut, "truncated_policy": truncated}
     if truncated == "drop":
@@ -401,7 +419,8 @@ def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
         t_start = "metadata"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        m = preprocess(raw, grid=grid, n_slabs=n_slabs, cross_section_mm2=area, t_start=t_start, smooth=smooth)
+        m = preprocess(raw, grid=grid, n_slabs=n_slabs, cross_section_mm2=area, t_start=t_start, smooth=smooth,
+                       repair=False)
     info["measured_orientations"] = m.n_orientations
     if symmetry:
         sym = dict(symmetry)
@@ -410,6 +429,6 @@ def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
     if interpolate:
         opts = dict(interpolate)
         m = interpolate_orientations(m, fibonacci_hemisphere(int(opts.pop("n"))), **opts)
-    m.metadata = {**m.metadata, "recorded": info, "path": str(path)}
+    m.metadata = {**m.metadata, "recorded": info, "path": str(path), "readings": readings.to_json()}
     return m
 

@@ -92,9 +92,13 @@ def load_mesh(
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
     except Exception as err:  # trimesh raises many types for bad files
-        raise ShapeError(f"cannot read mesh file {path}: {err}") from err
+        # trimesh falls back to decoding unparsable binary as text, which needs an optional module
+        why = "corrupt, or not a mesh format trimesh reads" if isinstance(err, ImportError) else err
+        raise ShapeError(f"cannot read mesh file {path}: {why}") from err
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ShapeError(f"mesh file {path} contains no triangles")
+    if not np.isfinite(mesh.vertices).all() or mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices):
+        raise ShapeError(f"mesh file {path} holds non-finite vertices or face indices out of range")
     return from_trimesh(
         mesh, radius=radius, fill_sealed_voids=fill_sealed_voids, center=center,
         name=name or path.stem, source=str(path),
