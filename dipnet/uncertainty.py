@@ -34,8 +34,12 @@ well ``p_wrong`` ranks the voxels that are actually wrong.
 
 from __future__ import annotations
 
+import logging
 import math
+import warnings
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -50,6 +54,8 @@ from dipnet.operators import DipOperator, make_operator
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.base import measured_profiles
 from dipnet.solvers.minnorm import _dense_gram, operator_matrix
+
+log = logging.getLogger(__name__)
 
 PRIOR_STD = 0.5  # tau: a boundary voxel may flip between 0 and 1
 UNCERTAIN_P_WRONG = 0.2  # a voxel is "uncertain" when its binary call is wrong with at least this probability
@@ -108,6 +114,7 @@ def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, o
     prior_var = PRIOR_STD**2 * weights.reshape(-1)
     mat = operator_matrix(make_operator(coarse, measurement.directions, coarse.n, backend="splat"))
     gram = _dense_gram(mat @ scipy.sparse.diags(np.sqrt(prior_var)))
+    noise_var = max(noise_var, 1e-6 * float(np.diag(gram).mean()))
     gram[np.diag_indices_from(gram)] += noise_var
     factor = scipy.linalg.cho_factor(gram, lower=True, overwrite_a=True, check_finite=False)
     rng = np.random.default_rng(seed)
@@ -122,7 +129,7 @@ def misfit_variance(reconstruction: Reconstruction, measurement: DipMeasurement,
     """Slab noise variance (mm^6) on the operator's slabs: the mean squared misfit of the binary
     reconstruction, or the measurement's mean ``sigma^2`` if larger; never below a tiny floor."""
     with torch.no_grad():
-        predicted = operator(torch.as_tensor(reconstruction.binary, dtype=torch.float64))
+        predicted = operator(reconstruction.occupancy.detach().double().clamp(0.0, 1.0))
     misfit = float((predicted - measured_profiles(measurement, operator)).pow(2).mean())
     stated = float(measurement.sigma.pow(2).mean()) if measurement.sigma is not None else 0.0
     return max(misfit, stated, (1e-6 * operator.grid.voxel_volume) ** 2)
@@ -195,3 +202,46 @@ def _resample(volume: torch.Tensor, shape: tuple[int, ...], mode: str) -> np.nda
     out = F.interpolate(x, size=shape, mode=mode) if mode == "area" else \
         F.interpolate(x, size=shape, mode=mode, align_corners=False)
     return out[0, 0].numpy()
+
+
+def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator,
+                      truth: np.ndarray | None = None, figure: bool = True) -> dict[str, Any]:
+    """Add the maps ``uncertainty_std`` / ``uncertainty_p_wrong`` to ``out/reconstruction.npz``,
+    draw ``out/uncertainty.png`` and return the summary metrics (with the error rate per
+    uncertainty decile when the true occupancy ``truth`` is known)."""
+    maps, summary = uncertainty(reconstruction, measurement, operator)
+    reconstruction.save(out / "reconstruction.npz", uncertainty_std=maps["std"], uncertainty_p_wrong=maps["p_wrong"])
+    scores: dict[str, Any] = dict(summary)
+    if truth is not None:
+        deciles = calibration_by_decile(maps["p_wrong"], reconstruction.binary, np.asarray(truth) > 0.5)
+        scores["error_rate_by_uncertainty_decile"] = [round(float(v), 5) for v in deciles]
+        if not deciles[-1] > deciles[0]:
+            message = (f"uncertainty is not calibrated on this run: error rate {deciles[-1]:.3f} in the most "
+                       f"uncertain decile vs {deciles[0]:.3f} in the least")
+            log.warning(message)
+            warnings.warn(message, stacklevel=2)
+    if figure:
+        plot_uncertainty(reconstruction.binary, maps, out / "uncertainty.png")
+    return scores
+
+
+def plot_uncertainty(binary: np.ndarray, maps: dict[str, np.ndarray], path: Path) -> Path:
+    """Mid-slices of the binary reconstruction, the posterior std and ``p_wrong`` (one row per axis)."""
+    import matplotlib.pyplot as plt
+
+    from dipnet.plots import _mid_slices, save_figure
+
+    columns = [("reconstruction", np.asarray(binary, float), "gray", 1.0),
+               ("posterior std", maps["std"], "magma", float(maps["std"].max())),
+               ("P(binary call wrong)", maps["p_wrong"], "magma", 0.5)]
+    slices = [_mid_slices(volume) for _, volume, _, _ in columns]
+    fig, axes = plt.subplots(len(slices[0]), 3, figsize=(10, 3.3 * len(slices[0])), squeeze=False)
+    for r, row in enumerate(axes):
+        for c, (ax, (label, _, cmap, vmax)) in enumerate(zip(row, columns)):
+            name, img = slices[c][r]
+            im = ax.imshow(img, origin="lower", interpolation="nearest", cmap=cmap, vmin=0.0, vmax=max(vmax, 1e-9))
+            ax.set_title(f"{label}: {name}", fontsize=9)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            fig.colorbar(im, ax=ax, fraction=0.046)
+    return save_figure(fig, path)
