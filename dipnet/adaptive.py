@@ -122,17 +122,9 @@ def simulate_adaptive(cfg, grid: Grid, shape, out: Path) -> DipMeasurement:
     ``planning.json`` (history, stop reason) into ``out``; returns the final measurement."""
     from hydra.utils import instantiate
 
-    simulate = instantiate(cfg.source.simulator)
     n_slabs = cfg.n_slabs or grid.n
-    state: dict[str, Any] = {"raw": None, "measurement": None}
-
-    def acquire(directions: torch.Tensor) -> DipMeasurement:
-        done = 0 if state["measurement"] is None else state["measurement"].n_orientations
-        raw, new = simulate(shape, directions, grid=grid, n_slabs=n_slabs, seed=int(cfg.seed) + 7919 * done,
-                            progress=cfg.output.progress)  # a fresh noise stream per batch
-        state["raw"] = raw if state["raw"] is None else merge_raw(state["raw"], raw)
-        state["measurement"] = new if state["measurement"] is None else concatenate(state["measurement"], new)
-        return state["measurement"]
+    acquire = SimulatedDips(instantiate(cfg.source.simulator), shape, grid, n_slabs, int(cfg.seed),
+                            progress=bool(cfg.output.progress))
 
     def reconstruct(measurement: DipMeasurement) -> tuple[Reconstruction, DipOperator]:
         operator = instantiate(cfg.operator)(grid, measurement.directions, n_slabs)
@@ -141,10 +133,36 @@ def simulate_adaptive(cfg, grid: Grid, shape, out: Path) -> DipMeasurement:
     settings = AdaptiveSettings(budget=int(cfg.planner.budget), batch_size=int(cfg.planner.batch_size),
                                 initial_dips=int(cfg.planner.initial_dips), stop_uncertainty=cfg.planner.stop_uncertainty)
     result = adaptive_loop(acquire, reconstruct, instantiate(cfg.planner.planner), instantiate(cfg.reach), settings)
-    state["raw"].save(out / "rawscan.jsonl")
+    acquire.raw.save(out / "rawscan.jsonl")
     (out / "planning.json").write_text(json.dumps({"stop_reason": result.stop_reason, "history": result.history},
                                                   indent=2))
     return result.measurement
+
+
+class SimulatedDips:
+    """The loop's ``acquire`` for simulated dips: simulates the new directions and returns the
+    measurement of all dips so far (:attr:`measurement`; their raw scan in :attr:`raw`).
+
+    Args:
+        simulate: :func:`dipnet.simulate.simulate_measurement` or a partial of it.
+        shape, grid, n_slabs: what is dipped and the reconstruction slabs.
+        seed: noise seed; each batch gets its own stream (``seed + 7919 * dips so far``).
+    """
+
+    def __init__(self, simulate: Callable[..., tuple[RawScan, DipMeasurement]], shape, grid: Grid, n_slabs: int,
+                 seed: int, progress: bool = False) -> None:
+        self.simulate, self.shape, self.grid, self.n_slabs = simulate, shape, grid, n_slabs
+        self.seed, self.progress = seed, progress
+        self.raw: RawScan | None = None
+        self.measurement: DipMeasurement | None = None
+
+    def __call__(self, directions: torch.Tensor) -> DipMeasurement:
+        done = 0 if self.measurement is None else self.measurement.n_orientations
+        raw, new = self.simulate(self.shape, directions, grid=self.grid, n_slabs=self.n_slabs,
+                                 seed=self.seed + 7919 * done, progress=self.progress)
+        self.raw = raw if self.raw is None else merge_raw(self.raw, raw)
+        self.measurement = new if self.measurement is None else concatenate(self.measurement, new)
+        return self.measurement
 
 
 def merge_raw(first: RawScan, second: RawScan) -> RawScan:

@@ -54,6 +54,8 @@ from dipnet.uncertainty import fit_posterior
 
 log = logging.getLogger(__name__)
 
+CRITERIA = ("information", "variance")
+
 
 class Planner(ABC):
     """Chooses the next dips among candidate directions."""
@@ -75,7 +77,10 @@ class NextBestDipPlanner(Planner):
     """
 
     def __init__(self, resolution: int = 32, n_samples: int = 64, band_voxels: float = 1.5, floor: float = 0.05,
-                 seed: int = 0) -> None:
+                 seed: int = 0, criterion: str = "information") -> None:
+        if criterion not in CRITERIA:
+            raise ValueError(f"unknown planning criterion {criterion!r}; choose one of {CRITERIA}")
+        self.criterion = criterion
         self.options = {"resolution": int(resolution), "n_samples": int(n_samples),
                         "band_voxels": float(band_voxels), "floor": float(floor), "seed": int(seed)}
         self._cached: tuple[tuple, scipy.sparse.csr_matrix] | None = None
@@ -90,7 +95,8 @@ class NextBestDipPlanner(Planner):
         posterior = fit_posterior(reconstruction, measurement, operator, **self.options)
         projections = self._candidate_matrix(posterior.grid, posterior.n_slabs, candidates) @ posterior.samples.T
         chosen = greedy_batch(projections.T.reshape(len(posterior.samples), len(candidates), posterior.n_slabs),
-                              posterior.noise_var, k, np.random.default_rng(self.options["seed"] + 1))
+                              posterior.noise_var, k, np.random.default_rng(self.options["seed"] + 1),
+                              posterior.samples if self.criterion == "variance" else None)
         self.last_seconds = time.perf_counter() - start
         log.info("planned %d dips among %d candidates in %.2f s", k, len(candidates), self.last_seconds)
         return candidates[chosen]
@@ -102,25 +108,49 @@ class NextBestDipPlanner(Planner):
         return self._cached[1]
 
 
-def candidate_scores(projections: np.ndarray, noise_var: float) -> np.ndarray:
-    """``sum_m log(1 + Var_s / sigma^2)`` per candidate from sample projections ``(S, C, M)``; ``(C,)``."""
-    return np.log1p(projections.var(axis=0, ddof=1) / noise_var).sum(axis=1)
+def candidate_scores(projections: np.ndarray, noise_var: float, gram: np.ndarray | None = None) -> np.ndarray:
+    """Score per candidate ``(C,)`` from sample projections ``(S, C, M)`` (centred).
+
+    Without ``gram``: the information score ``sum_m log(1 + Var_s / sigma^2)``. With the samples'
+    Gram matrix ``gram = D D^T`` ``(S, S)``: the expected reduction of the total posterior
+    variance ``trace(C_dy (C_yy + sigma^2 I)^-1 C_dy^T)`` (A-optimal), with
+    ``C_dy^T C_dy = Y^T (D D^T) Y / (S - 1)^2``.
+    """
+    n_samples, n_cand, n_slabs = projections.shape
+    if gram is None:
+        return np.log1p(projections.var(axis=0, ddof=1) / noise_var).sum(axis=1)
+    y = projections.reshape(n_samples, -1)
+    cyy = np.einsum("scm,scn->cmn", projections, projections) / (n_samples - 1) + noise_var * np.eye(n_slabs)
+    cross = np.einsum("scm,scn->cmn", projections, (gram @ y).reshape(projections.shape)) / (n_samples - 1) ** 2
+    return np.trace(np.linalg.solve(cyy, cross), axis1=1, axis2=2)
 
 
-def greedy_batch(projections: np.ndarray, noise_var: float, k: int, rng: np.random.Generator) -> list[int]:
-    """Pick ``k`` candidates one by one by :func:`candidate_scores`, conditioning the sample
-    projections ``(S, C, M)`` on each pick (ensemble Kalman update with perturbed observations)."""
+def greedy_batch(projections: np.ndarray, noise_var: float, k: int, rng: np.random.Generator,
+                 samples: np.ndarray | None = None) -> list[int]:
+    """Pick ``k`` candidates one by one by :func:`candidate_scores`, conditioning on each pick.
+
+    The conditioning is an ensemble Kalman update with perturbed observations; it acts on the
+    samples from the left, ``D' = T D`` with ``T = I - E C_yy^-1 Y_c^T / (S - 1)`` ``(S, S)``, so
+    the projections ``(S, C, M)`` and the Gram matrix of the samples ``(S, N)`` (A-optimal
+    criterion, when ``samples`` is given) are updated without touching voxels.
+    """
     n_samples, n_cand, n_slabs = projections.shape
     y = projections - projections.mean(axis=0, keepdims=True)
+    gram = None
+    if samples is not None:
+        centred = samples - samples.mean(axis=0, keepdims=True)
+        gram = centred @ centred.T
     chosen: list[int] = []
     for _ in range(k):
-        scores = candidate_scores(y, noise_var)
+        scores = candidate_scores(y, noise_var, gram)
         scores[chosen] = -np.inf
         best = int(np.argmax(scores))
         chosen.append(best)
         picked = y[:, best, :]  # (S, M)
         cov = picked.T @ picked / (n_samples - 1) + noise_var * np.eye(n_slabs)
-        cross = y.reshape(n_samples, -1).T @ picked / (n_samples - 1)  # (C M, M)
         innovation = picked + rng.standard_normal(picked.shape) * np.sqrt(noise_var)
-        y = y - (np.linalg.solve(cov, innovation.T).T @ cross.T).reshape(y.shape)
+        transform = np.eye(n_samples) - innovation @ np.linalg.solve(cov, picked.T) / (n_samples - 1)
+        y = (transform @ y.reshape(n_samples, -1)).reshape(y.shape)
+        if gram is not None:
+            gram = transform @ gram @ transform.T
     return chosen
