@@ -137,7 +137,7 @@ def misfit_variance(reconstruction: Reconstruction, measurement: DipMeasurement,
 
 def boundary_weights(binary: np.ndarray, coarse: Grid, band_voxels: float, floor: float) -> np.ndarray:
     """Prior weight ``w`` on ``coarse``: ``floor`` away from the object's boundary, 1 on it; ``coarse.shape``."""
-    fraction = _resample(torch.as_tensor(binary, dtype=torch.float64), coarse.shape, mode="area")
+    fraction = resample(torch.as_tensor(binary, dtype=torch.float64), coarse.shape, mode="area")
     q = scipy.ndimage.gaussian_filter(fraction, sigma=band_voxels, mode="constant")
     w = floor + (1.0 - floor) * 4.0 * q * (1.0 - q)
     return np.where(coarse.working_mask().numpy(), w, floor)
@@ -146,7 +146,7 @@ def boundary_weights(binary: np.ndarray, coarse: Grid, band_voxels: float, floor
 def voxel_maps(reconstruction: Reconstruction, posterior: Posterior) -> dict[str, np.ndarray]:
     """``std`` and ``p_wrong`` on the reconstruction's grid (float32 volumes, ``grid.shape``)."""
     grid = reconstruction.grid
-    std = _resample(torch.from_numpy(posterior.std()), grid.shape, mode="trilinear" if grid.ndim == 3 else "bilinear")
+    std = resample(torch.from_numpy(posterior.std()), grid.shape, mode="trilinear" if grid.ndim == 3 else "bilinear")
     std = np.maximum(std, 1e-9)
     margin = np.abs(reconstruction.occupancy.detach().double().numpy() - reconstruction.threshold)
     p_wrong = scipy.special.ndtr(-margin / std)
@@ -194,7 +194,7 @@ def uncertainty(reconstruction: Reconstruction, measurement: DipMeasurement, ope
     return maps, summarise(maps, reconstruction.binary)
 
 
-def _resample(volume: torch.Tensor, shape: tuple[int, ...], mode: str) -> np.ndarray:
+def resample(volume: torch.Tensor, shape: tuple[int, ...], mode: str) -> np.ndarray:
     """``volume`` resampled to ``shape`` (``area``: block means; else linear interpolation), float64."""
     if tuple(volume.shape) == tuple(shape):
         return volume.double().numpy()
