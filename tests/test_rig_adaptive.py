@@ -71,3 +71,20 @@ def test_a_changed_plan_does_not_mix_with_the_recorded_one(world, tmp_path):
     scan(world, tmp_path / "scan.jsonl", budget=6)
     with pytest.raises(RawScanFileError, match="adaptive plan"):
         scan(world, tmp_path / "scan.jsonl", budget=8, reach=Reach(tilt_range_deg=(40, 80), step_deg=10))
+
+
+def test_scan_script_runs_an_adaptive_scan(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "scan.py"
+    overrides = ["+planner=adaptive", "+reach=authors_rig", "planner.budget=5", "planner.batch_size=2",
+                 "planner.initial_dips=3", "+planner.resolution=16", "planner.planner.resolution=16",
+                 "protocol.step_mm=10", "fsync=false", "progress=false", "rig.fake.shape.radius=30",
+                 f"hydra.run.dir={tmp_path}"]
+    done = subprocess.run([sys.executable, str(script), *overrides], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    raw = read_rawscan(tmp_path / "rawscan.jsonl")
+    tilt, _ = direction_to_rig(raw.directions())
+    assert len(raw.completed()) == 5 and tilt.max() <= 35 + 1e-6
