@@ -60,6 +60,13 @@ class AdaptiveSettings:
         if self.stop_uncertainty is not None and not self.stop_uncertainty > 0:
             raise ValueError(f"stop_uncertainty must be positive or null, got {self.stop_uncertainty}")
 
+    @classmethod
+    def from_config(cls, planner_cfg) -> "AdaptiveSettings":
+        """From a ``conf/planner/adaptive.yaml`` node."""
+        stop = planner_cfg.get("stop_uncertainty")
+        return cls(budget=int(planner_cfg.budget), batch_size=int(planner_cfg.batch_size),
+                   initial_dips=int(planner_cfg.initial_dips), stop_uncertainty=None if stop is None else float(stop))
+
 
 @dataclass
 class AdaptiveResult:
@@ -130,9 +137,8 @@ def simulate_adaptive(cfg, grid: Grid, shape, out: Path) -> DipMeasurement:
         operator = instantiate(cfg.operator)(grid, measurement.directions, n_slabs)
         return instantiate(cfg.solver).solve(measurement, operator), operator
 
-    settings = AdaptiveSettings(budget=int(cfg.planner.budget), batch_size=int(cfg.planner.batch_size),
-                                initial_dips=int(cfg.planner.initial_dips), stop_uncertainty=cfg.planner.stop_uncertainty)
-    result = adaptive_loop(acquire, reconstruct, instantiate(cfg.planner.planner), instantiate(cfg.reach), settings)
+    result = adaptive_loop(acquire, reconstruct, instantiate(cfg.planner.planner), instantiate(cfg.reach),
+                           AdaptiveSettings.from_config(cfg.planner))
     acquire.raw.save(out / "rawscan.jsonl")
     (out / "planning.json").write_text(json.dumps({"stop_reason": result.stop_reason, "history": result.history},
                                                   indent=2))

@@ -138,9 +138,7 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
                           progress=bool(cfg.progress), fsync=bool(cfg.fsync))
 
     grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
-    settings = AdaptiveSettings(budget=int(settings_cfg.budget), batch_size=int(settings_cfg.batch_size),
-                                initial_dips=int(settings_cfg.initial_dips),
-                                stop_uncertainty=settings_cfg.stop_uncertainty)
+    settings = AdaptiveSettings.from_config(settings_cfg)
     reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
     adaptive_scan(make_runner, protocol, path, grid, MinNormSolver(progress=False), instantiate(settings_cfg.planner),
                   reach, settings)
