@@ -21,8 +21,9 @@ two sparse products per batch of samples: no iterative solve per sample.
   dips do not pin down (e.g. the sides of an object seen only from near the spin axis).
 * ``sigma^2``: the mean squared misfit of the binary reconstruction to the measured slabs (noise
   and model error together) or the measurement's own ``sigma`` if larger, rescaled to the coarse slabs.
-* Grid: the posterior lives on a coarse grid (``resolution`` voxels per axis, default 32) so
-  that ``K M`` stays in the low thousands; maps are interpolated back onto the reconstruction grid.
+* Grid: the posterior lives on a coarse grid (``resolution`` voxels per axis, default 32) and
+  ``K M`` stays below ``max_rows`` (with many dips the slabs get thicker and the grid coarser, to
+  bound the Cholesky and Gram costs); maps are interpolated back onto the reconstruction grid.
 
 Outputs per voxel: the posterior standard deviation ``std`` (occupancy units) and
 ``p_wrong = Phi(-|f_hat - threshold| / std)``, the probability that the voxel's binary call is
@@ -89,7 +90,7 @@ class Posterior:
 
 def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator | None = None,
                   *, resolution: int = 32, n_samples: int = 64, band_voxels: float = 1.5, floor: float = 0.05,
-                  seed: int = 0) -> Posterior:
+                  seed: int = 0, max_rows: int = 4000, max_work: float = 6e7) -> Posterior:
     """Sample the linearised posterior around ``reconstruction`` given ``measurement`` (module docstring).
 
     Args:
@@ -101,6 +102,11 @@ def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, o
         band_voxels: blur (Gaussian sigma, coarse voxels) of the binary volume that sets ``w``.
         floor: prior weight ``w`` far from the boundary, in ``(0, 1]``.
         seed: random seed of the samples.
+        max_rows: bound on ``K M_c`` (the Cholesky costs ``(K M_c)^3 / 3``): with many dips the
+            posterior's slabs are made thicker than its voxels, ``M_c = max_rows // K`` (at least 4).
+        max_work: bound on ``K^2 N_c^d`` (the cost of the Gram matrix ``B P B^T``): with many dips
+            the posterior grid is made coarser than ``resolution`` (at least 8 voxels per axis);
+            the default keeps the 32^3 grid up to 43 dips.
     """
     grid = reconstruction.grid
     if n_samples < 2 or not 0 < floor <= 1 or resolution < 4:
@@ -108,11 +114,13 @@ def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, o
                          f"{resolution}")
     if operator is None:
         operator = make_operator(grid, measurement.directions, grid.n)
-    coarse = Grid(min(int(resolution), grid.n), grid.ndim, grid.extent)
-    noise_var = misfit_variance(reconstruction, measurement, operator) * operator.n_slabs / coarse.n
+    affordable = int((max_work / measurement.n_orientations**2) ** (1.0 / grid.ndim))
+    coarse = Grid(min(grid.n, max(8, min(int(resolution), affordable))), grid.ndim, grid.extent)
+    n_slabs = max(4, min(coarse.n, int(max_rows) // measurement.n_orientations))
+    noise_var = misfit_variance(reconstruction, measurement, operator) * operator.n_slabs / n_slabs
     weights = boundary_weights(reconstruction.binary, coarse, band_voxels, floor)
     prior_var = PRIOR_STD**2 * weights.reshape(-1)
-    mat = operator_matrix(make_operator(coarse, measurement.directions, coarse.n, backend="splat"))
+    mat = operator_matrix(make_operator(coarse, measurement.directions, n_slabs, backend="splat"))
     gram = _dense_gram(mat @ scipy.sparse.diags(np.sqrt(prior_var)))
     noise_var = max(noise_var, 1e-6 * float(np.diag(gram).mean()))
     gram[np.diag_indices_from(gram)] += noise_var
@@ -122,7 +130,7 @@ def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, o
     noise = rng.standard_normal((n_samples, mat.shape[0])) * math.sqrt(noise_var)
     rhs = (mat @ eta.T) + noise.T  # (R, S)
     correction = (mat.T @ scipy.linalg.cho_solve(factor, rhs, check_finite=False)).T * prior_var
-    return Posterior(coarse, eta - correction, noise_var, coarse.n)
+    return Posterior(coarse, eta - correction, noise_var, n_slabs)
 
 
 def misfit_variance(reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator) -> float:
