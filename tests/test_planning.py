@@ -161,3 +161,14 @@ def test_adaptive_loop_stops_when_certain_enough(tmp_path):
              "planner.stop_uncertainty=100", "output.figures=false", "output.uncertainty=false"), tmp_path)
     planning = json.loads((tmp_path / "planning.json").read_text())
     assert planning["stop_reason"] == "uncertainty" and [h["n_dips"] for h in planning["history"]] == [5]
+
+
+def test_bad_loop_settings_and_plans_are_user_errors():
+    from dipnet.adaptive import AdaptiveSettings, fixed_directions
+
+    with pytest.raises(ValueError, match="initial_dips <= budget"):
+        AdaptiveSettings(budget=4, initial_dips=8)
+    with pytest.raises(ValueError, match="leaves the reach"):
+        fixed_directions(_cfg("reach=authors_rig", "orientations=random", "n_dips=20"), 3)
+    tilt, _ = _tilt_spin(fixed_directions(_cfg("reach=authors_rig", "n_dips=20"), 3))
+    assert tilt.max() <= 35 + 1e-9
