@@ -134,7 +134,9 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
         sensor = AveragingSensor(instantiate(cfg.sensor.device, _convert_="all"),
                                  **OmegaConf.to_container(cfg.sensor.average, resolve=True))
         header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
-        return ScanRunner(controller, sensor, plan, path, header, home=bool(cfg.home) and home,
+        configured = cfg.get("home")  # null: the runner decides (newer runners home when the board can)
+        return ScanRunner(controller, sensor, plan, path, header,
+                          home=(None if configured is None else bool(configured)) if home else False,
                           progress=bool(cfg.progress), fsync=bool(cfg.fsync))
 
     grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
