@@ -129,6 +129,8 @@ def simulate_adaptive(cfg, grid: Grid, shape, out: Path) -> DipMeasurement:
     ``planning.json`` (history, stop reason) into ``out``; returns the final measurement."""
     from hydra.utils import instantiate
 
+    if grid.ndim != 3:
+        raise ValueError(f"planner=adaptive plans 3D dips; got ndim={grid.ndim} (use planner=fixed)")
     n_slabs = cfg.n_slabs or grid.n
     acquire = SimulatedDips(instantiate(cfg.source.simulator), shape, grid, n_slabs, int(cfg.seed),
                             progress=bool(cfg.output.progress))

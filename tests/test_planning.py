@@ -163,11 +163,13 @@ def test_adaptive_loop_stops_when_certain_enough(tmp_path):
     assert planning["stop_reason"] == "uncertainty" and [h["n_dips"] for h in planning["history"]] == [5]
 
 
-def test_bad_loop_settings_and_plans_are_user_errors():
+def test_bad_loop_settings_and_plans_are_user_errors(tmp_path):
     from dipnet.adaptive import AdaptiveSettings, fixed_directions
 
     with pytest.raises(ValueError, match="initial_dips <= budget"):
         AdaptiveSettings(budget=4, initial_dips=8)
+    with pytest.raises(ValueError, match="plans 3D dips"):
+        run(_cfg("ndim=2", "planner=adaptive"), tmp_path)
     with pytest.raises(ValueError, match="leaves the reach"):
         fixed_directions(_cfg("reach=authors_rig", "orientations=random", "n_dips=20"), 3)
     tilt, _ = _tilt_spin(fixed_directions(_cfg("reach=authors_rig", "n_dips=20"), 3))
