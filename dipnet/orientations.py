@@ -11,6 +11,7 @@ increasing ``t``. Since a profile along ``-theta`` is the same profile reversed,
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -94,3 +95,85 @@ def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor
 def _check_count(k: int) -> None:
     if int(k) != k or k < 1:
         raise ValueError(f"number of orientations must be a positive integer, got {k!r}")
+
+
+def reachable_candidates(tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0), step_deg: float = 10.0) -> torch.Tensor:
+    """The directions a rig can reach, on a grid of rig angles: the planners' candidate set, ``(C, 3)``.
+
+    Tilts run from ``tilt_range_deg[0]`` to ``tilt_range_deg[1]`` and spins over ``spin_range_deg``
+    (half-open when it spans a full turn) in steps of about ``step_deg`` degrees; at each tilt the
+    spin step widens as ``1 / sin(tilt)`` so the candidates cover the cap evenly (one candidate at
+    tilt 0). Directions come from :func:`rig_to_direction`; duplicates are removed.
+    """
+    t0, t1 = (float(v) for v in tilt_range_deg)
+    s0, s1 = (float(v) for v in spin_range_deg)
+    step = float(step_deg)
+    if not 0.0 <= t0 <= t1 <= 90.0:
+        raise ValueError(f"tilt range must satisfy 0 <= min <= max <= 90 degrees, got {tilt_range_deg!r}")
+    if not s0 <= s1 <= s0 + 360.0:
+        raise ValueError(f"spin range must satisfy min <= max <= min + 360 degrees, got {spin_range_deg!r}")
+    if not 0.0 < step <= 90.0:
+        raise ValueError(f"candidate step must be in (0, 90] degrees, got {step_deg!r}")
+    tilts = np.linspace(t0, t1, max(1, math.ceil((t1 - t0) / step - 1e-9)) + 1) if t1 > t0 else np.array([t0])
+    full_turn = s1 - s0 >= 360.0 - 1e-9
+    pairs = []
+    for tilt in tilts:
+        arc = (s1 - s0) * math.sin(math.radians(tilt))  # arc length of the spin range at this tilt, degrees
+        n = max(1, math.ceil(arc / step - 1e-9))
+        spins = np.linspace(s0, s1, n, endpoint=False) if full_turn else np.linspace(s0, s1, n + 1 if arc > 0 else 1)
+        pairs += [(tilt, spin) for spin in spins]
+    tilt, spin = np.array(pairs).T
+    directions = rig_to_direction(tilt, spin)
+    _, keep = np.unique(np.round(directions.numpy(), 9), axis=0, return_index=True)
+    return directions[np.sort(keep)]
+
+
+def within_reach(directions, tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0), tol_deg: float = 1e-6) -> torch.Tensor:
+    """Boolean mask ``(k,)``: which unit "up" vectors ``(k, 3)`` the rig limits allow (degrees)."""
+    d = torch.as_tensor(directions, dtype=torch.float64).reshape(-1, 3)
+    d = d / d.norm(dim=1, keepdim=True)
+    tilt = torch.rad2deg(torch.arccos(d[:, 2].clamp(-1.0, 1.0)))
+    spin = torch.rad2deg(torch.atan2(-d[:, 1], d[:, 0]))
+    s0, s1 = (float(v) for v in spin_range_deg)
+    rel = torch.remainder(spin - s0, 360.0)
+    spin_ok = (rel <= s1 - s0 + tol_deg) | (rel >= 360.0 - tol_deg) | (tilt < tol_deg)
+    return (tilt >= float(tilt_range_deg[0]) - tol_deg) & (tilt <= float(tilt_range_deg[1]) + tol_deg) & spin_ok
+
+
+
+@dataclass(frozen=True)
+class Reach:
+    """The orientations a rig can reach: tilt and spin ranges (degrees) and the candidate step.
+
+    ``tilt`` is the angle of the dip direction from the object's z axis, ``spin`` the rig's spin
+    (see :func:`rig_to_direction`). The full hemisphere is ``Reach()``; the authors' robot is
+    ``Reach(tilt_range_deg=(0, 35))``.
+    """
+
+    tilt_range_deg: tuple[float, float] = (0.0, 90.0)
+    spin_range_deg: tuple[float, float] = (0.0, 360.0)
+    step_deg: float = 10.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "tilt_range_deg", tuple(float(v) for v in self.tilt_range_deg))
+        object.__setattr__(self, "spin_range_deg", tuple(float(v) for v in self.spin_range_deg))
+        reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)  # validates
+
+    def candidates(self) -> torch.Tensor:
+        """The candidate directions ``(C, 3)`` (:func:`reachable_candidates`)."""
+        return reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)
+
+    def contains(self, directions) -> torch.Tensor:
+        """Boolean mask ``(k,)`` of the directions ``(k, 3)`` within reach (:func:`within_reach`)."""
+        return within_reach(directions, self.tilt_range_deg, self.spin_range_deg)
+
+    def uniform(self, k: int) -> torch.Tensor:
+        """``k`` nearly uniform reachable directions ``(k, 3)``: a Fibonacci lattice over equal-area
+        bands of the reachable tilts, its azimuths spread over the spin range (the baseline plan)."""
+        _check_count(k)
+        z_hi, z_lo = (math.cos(math.radians(t)) for t in self.tilt_range_deg)
+        i = torch.arange(k, dtype=torch.float64)
+        tilt = torch.rad2deg(torch.arccos(z_hi - (i + 0.5) / k * (z_hi - z_lo)))
+        s0, s1 = self.spin_range_deg
+        spin = s0 + (s1 - s0) * torch.remainder(i * (math.sqrt(5.0) - 1.0) / 2.0, 1.0)
+        return rig_to_direction(tilt, spin)

@@ -22,11 +22,12 @@ from omegaconf import DictConfig, OmegaConf
 from dipnet import consistency, export, metrics, plots, resolvability
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
-from dipnet.orientations import make_directions
+from dipnet.adaptive import fixed_directions, simulate_adaptive
 from dipnet.reconstruction import Reconstruction
 from dipnet.resources import check_memory
 from dipnet.shapes import Shape
 from dipnet.validation import validate_measurement
+from dipnet.uncertainty import write_uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +76,9 @@ def acquire(cfg: DictConfig, grid: Grid, out: Path) -> tuple[DipMeasurement, Sha
     if shape.radius() > grid.radius * (1 + 1e-6):
         raise ConfigError(f"shape {shape.name!r} (radius {shape.radius():.1f} mm) does not fit the working "
                           f"ball of radius {grid.radius:.1f} mm: increase extent_mm or lower fill")
-    directions = make_directions(cfg.orientations, cfg.n_dips, grid.ndim, cfg.seed)
+    if cfg.get("planner") is not None and cfg.planner.kind == "adaptive":
+        return simulate_adaptive(cfg, grid, shape, out), shape
+    directions = fixed_directions(cfg, grid.ndim)
     simulate = instantiate(cfg.source.simulator)
     raw, measurement = simulate(shape, directions, grid=grid, n_slabs=n_slabs, seed=cfg.seed,
                                 progress=cfg.output.progress)
@@ -114,6 +117,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None)))
         scores.update(metrics.false_rates(recon.binary, truth > 0.5))
     scores.update(validation.metrics())
+    if cfg.output.get("uncertainty"):
+        scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures)))
     (out / "metrics.json").write_text(json.dumps(scores, indent=2))
     write_outputs(cfg, out, measurement, operator, recon, truth)
     if cfg.output.get("report"):

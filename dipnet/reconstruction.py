@@ -37,9 +37,10 @@ class Reconstruction:
         """Boolean volume ``occupancy > threshold``, ``grid.shape``."""
         return (self.occupancy.detach().cpu().numpy() > self.threshold)
 
-    def save(self, path) -> None:
-        """Write occupancy, binary volume and grid metadata to an ``.npz`` file."""
-        np.savez_compressed(path, occupancy=self.occupancy.detach().cpu().numpy().astype(np.float32),
+    def save(self, path, **extra: np.ndarray) -> None:
+        """Write occupancy, binary volume, grid metadata and any ``extra`` named arrays (e.g. the
+        uncertainty maps of :func:`dipnet.uncertainty.write_uncertainty`) to an ``.npz`` file."""
+        np.savez_compressed(path, **extra, occupancy=self.occupancy.detach().cpu().numpy().astype(np.float32),
                             binary=self.binary, threshold=self.threshold,
                             grid_n=self.grid.n, grid_ndim=self.grid.ndim, grid_extent=self.grid.extent,
                             axis_order="zyx" if self.grid.ndim == 3 else "yx")

@@ -3,6 +3,7 @@
     python scripts/scan.py                                    # fake GRBL rig + level sensor
     python scripts/scan.py rig=grbl rig.controller.url=/dev/ttyUSB0 rig.sensor_url=/dev/ttyUSB1
     python scripts/scan.py rig=fake_marlin sensor=sics name=test
+    python scripts/scan.py +planner=adaptive +reach=authors_rig planner.budget=20   # plan dip by dip
 
 The raw scan goes to ``scans/<name>/rawscan.jsonl`` (appended and flushed reading by reading).
 Run the same command again to resume after the last complete orientation. On a fault, Ctrl-C,
@@ -23,6 +24,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from dipnet.cli import run_hydra, user_errors
+from dipnet.cli import user_errors
+from dipnet.rig.adaptive import adaptive_scan_from_config
 from dipnet.rig.runner import ScanAborted, scan_from_config
 
 log = logging.getLogger("dipnet")
@@ -33,7 +36,8 @@ def main(cfg: DictConfig) -> None:
     path = Path(HydraConfig.get().runtime.output_dir) / "rawscan.jsonl"
     with user_errors():
         try:
-            scan = scan_from_config(cfg, path)
+            adaptive = cfg.get("planner") is not None and cfg.planner.kind == "adaptive"
+            scan = adaptive_scan_from_config(cfg, path) if adaptive else scan_from_config(cfg, path)
         except ScanAborted as exc:
             log.error("%s", exc)
             print(f"error: {exc}", file=sys.stderr)

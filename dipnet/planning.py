@@ -1,0 +1,163 @@
+"""Next-best-dip planning: which reachable orientation to dip next, given the dips so far.
+
+Choice of criterion
+-------------------
+A dip along ``c`` measures the slab volumes ``A_c f``. Under the linearised Gaussian posterior
+of :mod:`dipnet.uncertainty` (prior variance on the reconstruction's boundary band, noise from
+the data misfit) the information the dip brings is the mutual information between ``A_c f`` and
+``f``, ``1/2 log det(I + A_c Sigma A_c^T / sigma^2)``. We score each candidate by its per-slab
+version
+
+    score(c) = sum_m log(1 + Var(a_{c,m}^T d) / sigma^2),
+
+with the predicted slab variances taken from the posterior samples ``d_s`` (one sparse product
+for all candidates). Why this and not the alternatives:
+
+* A per-voxel variance map weighted by each profile's sensitivity (``sum_m a^T diag(v) a``)
+  cannot tell directions apart: every plane family sums each voxel's variance once, so all
+  candidates score the same up to boundary effects. The correlations in ``Sigma`` - which
+  combinations of voxels the past dips left free - are what make one direction better, and
+  samples keep them.
+* The linear posterior alone (white prior) is the same for every object: it would only spread
+  the dips evenly, which a Fibonacci plan already does. The boundary-band prior makes the
+  score object-dependent: it favours planes tangent to the parts of the surface that are still
+  unresolved, which is what errors in the binary shape are made of.
+* The log keeps one very uncertain slab from outweighing a direction that informs many slabs
+  (the full log-det would need an ``M x M`` determinant per candidate for little change).
+
+Batches are chosen greedily: after each pick the samples' projections are conditioned on the
+picked dip (an ensemble Kalman update in projection space, exact for the Gaussian samples up to
+sampling error), so the next pick accounts for what the first will tell - this gives diversity
+without any ad hoc angular penalty. Candidates come from :class:`dipnet.orientations.Reach`, so
+a plan never leaves what the rig reaches.
+
+``criterion="variance"`` scores by the expected reduction of the total posterior variance
+instead (A-optimal, :func:`candidate_scores`); on the quick benchmark set (bunny and hammer, 32^3,
+30 dB, minnorm planning) it gave a mean Chamfer of 0.0065 vs 0.0064 for the information score on
+the hemisphere and 0.0451 vs 0.0388 under the 35 deg tilt limit, hence the default.
+
+Cost: the posterior on a 32^3 grid (one Cholesky of ``(K M_c)^2``), one sparse product of the
+samples with the candidates' matrix (built once per candidate set and cached) and ``k``
+rank-``M_c`` updates of ``S x S`` size. Measured for a 64^3 reconstruction with 40 dips, a batch
+of 8 among 229 hemisphere candidates, one torch thread on 2 cores shared with a load average of
+about 10: 10.5 s for the first step (building the candidates' matrix), 6.2 s for later ones.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from abc import ABC, abstractmethod
+
+import numpy as np
+import scipy.sparse
+import torch
+
+from dipnet.measurement import DipMeasurement
+from dipnet.operators import DipOperator, make_operator
+from dipnet.reconstruction import Reconstruction
+from dipnet.solvers.minnorm import operator_matrix
+from dipnet.uncertainty import fit_posterior
+
+log = logging.getLogger(__name__)
+
+CRITERIA = ("information", "variance")
+
+
+class Planner(ABC):
+    """Chooses the next dips among candidate directions."""
+
+    @abstractmethod
+    def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
+             k: int = 1, operator: DipOperator | None = None) -> torch.Tensor:
+        """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first."""
+
+
+class NextBestDipPlanner(Planner):
+    """Greedy information-based planner (see the module docstring).
+
+    Args:
+        resolution: voxels per axis of the posterior grid.
+        n_samples: posterior samples.
+        band_voxels, floor: the boundary-band prior of :func:`dipnet.uncertainty.fit_posterior`.
+        seed: seed of the samples (fixed: the same dips give the same plan).
+    """
+
+    def __init__(self, resolution: int = 32, n_samples: int = 64, band_voxels: float = 1.5, floor: float = 0.05,
+                 seed: int = 0, criterion: str = "information") -> None:
+        if criterion not in CRITERIA:
+            raise ValueError(f"unknown planning criterion {criterion!r}; choose one of {CRITERIA}")
+        self.criterion = criterion
+        self.options = {"resolution": int(resolution), "n_samples": int(n_samples),
+                        "band_voxels": float(band_voxels), "floor": float(floor), "seed": int(seed)}
+        self._cached: tuple[tuple, scipy.sparse.csr_matrix] | None = None
+        self.last_seconds = 0.0
+
+    def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
+             k: int = 1, operator: DipOperator | None = None) -> torch.Tensor:
+        start = time.perf_counter()
+        candidates = torch.as_tensor(candidates, dtype=torch.float64)
+        if candidates.ndim != 2 or candidates.shape[1] != 3 or len(candidates) < k or k < 1:
+            raise ValueError(f"need 1 <= k <= C candidates of shape (C, 3), got k={k}, {tuple(candidates.shape)}")
+        posterior = fit_posterior(reconstruction, measurement, operator, **self.options)
+        projections = self._candidate_matrix(posterior.grid, posterior.n_slabs, candidates) @ posterior.samples.T
+        chosen = greedy_batch(projections.T.reshape(len(posterior.samples), len(candidates), posterior.n_slabs),
+                              posterior.noise_var, k, np.random.default_rng(self.options["seed"] + 1),
+                              posterior.samples if self.criterion == "variance" else None)
+        self.last_seconds = time.perf_counter() - start
+        log.info("planned %d dips among %d candidates in %.2f s", k, len(candidates), self.last_seconds)
+        return candidates[chosen]
+
+    def _candidate_matrix(self, grid, n_slabs: int, candidates: torch.Tensor) -> scipy.sparse.csr_matrix:
+        key = (grid, n_slabs, candidates.numpy().tobytes())
+        if self._cached is None or self._cached[0] != key:
+            self._cached = (key, operator_matrix(make_operator(grid, candidates, n_slabs, backend="splat")))
+        return self._cached[1]
+
+
+def candidate_scores(projections: np.ndarray, noise_var: float, gram: np.ndarray | None = None) -> np.ndarray:
+    """Score per candidate ``(C,)`` from sample projections ``(S, C, M)`` (centred).
+
+    Without ``gram``: the information score ``sum_m log(1 + Var_s / sigma^2)``. With the samples'
+    Gram matrix ``gram = D D^T`` ``(S, S)``: the expected reduction of the total posterior
+    variance ``trace(C_dy (C_yy + sigma^2 I)^-1 C_dy^T)`` (A-optimal), with
+    ``C_dy^T C_dy = Y^T (D D^T) Y / (S - 1)^2``.
+    """
+    n_samples, n_cand, n_slabs = projections.shape
+    if gram is None:
+        return np.log1p(projections.var(axis=0, ddof=1) / noise_var).sum(axis=1)
+    y = projections.reshape(n_samples, -1)
+    cyy = np.einsum("scm,scn->cmn", projections, projections) / (n_samples - 1) + noise_var * np.eye(n_slabs)
+    cross = np.einsum("scm,scn->cmn", projections, (gram @ y).reshape(projections.shape)) / (n_samples - 1) ** 2
+    return np.trace(np.linalg.solve(cyy, cross), axis1=1, axis2=2)
+
+
+def greedy_batch(projections: np.ndarray, noise_var: float, k: int, rng: np.random.Generator,
+                 samples: np.ndarray | None = None) -> list[int]:
+    """Pick ``k`` candidates one by one by :func:`candidate_scores`, conditioning on each pick.
+
+    The conditioning is an ensemble Kalman update with perturbed observations; it acts on the
+    samples from the left, ``D' = T D`` with ``T = I - E C_yy^-1 Y_c^T / (S - 1)`` ``(S, S)``, so
+    the projections ``(S, C, M)`` and the Gram matrix of the samples ``(S, N)`` (A-optimal
+    criterion, when ``samples`` is given) are updated without touching voxels.
+    """
+    n_samples, n_cand, n_slabs = projections.shape
+    y = projections - projections.mean(axis=0, keepdims=True)
+    gram = None
+    if samples is not None:
+        centred = samples - samples.mean(axis=0, keepdims=True)
+        gram = centred @ centred.T
+    chosen: list[int] = []
+    for _ in range(k):
+        scores = candidate_scores(y, noise_var, gram)
+        scores[chosen] = -np.inf
+        best = int(np.argmax(scores))
+        chosen.append(best)
+        picked = y[:, best, :]  # (S, M)
+        cov = picked.T @ picked / (n_samples - 1) + noise_var * np.eye(n_slabs)
+        innovation = picked + rng.standard_normal(picked.shape) * np.sqrt(noise_var)
+        transform = np.eye(n_samples) - innovation @ np.linalg.solve(cov, picked.T) / (n_samples - 1)
+        y = (transform @ y.reshape(n_samples, -1)).reshape(y.shape)
+        if gram is not None:
+            gram = transform @ gram @ transform.T
+    return chosen

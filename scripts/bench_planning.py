@@ -1,0 +1,152 @@
+"""Adaptive (next-best-dip) plans against fixed plans, on the bundled meshes (not a timed test).
+
+For every mesh (scaled to ``--fill`` of the working ball) on an ``--n``^3 grid, dips simulated
+from the mesh geometry with level-sensor noise at ``--snr`` dB:
+
+* full hemisphere: Fibonacci ``--budget`` and Fibonacci ``--large`` dips, against the adaptive
+  loop (:func:`dipnet.adaptive.adaptive_loop`) from ``--initial`` Fibonacci-like dips to
+  ``--budget`` in batches of ``--batch``;
+* tilt limited to ``--cap-tilt`` degrees (the authors' rig): the uniform plan over the
+  reachable cap with ``--budget`` dips against the adaptive loop restricted to the cap.
+
+Every final reconstruction uses ``--solver`` (default voxel, the best measured); the loop's
+intermediate reconstructions use ``--plan-solver`` (default minnorm: 10-50x faster than voxel and,
+measured on the quick set, plans as well). Prints one row per mesh and plan (IoU,
+Chamfer / bbox diagonal, dips, seconds; for adaptive runs also the planning seconds per step),
+the means, the uncertainty calibration (error rate per uncertainty decile, pooled) and ends with
+
+    RESULT adaptive41_over_fib123=<ratio of mean Chamfer> adaptive41_over_fib41=<ratio> cap_adaptive_over_uniform=<ratio>
+
+    python scripts/bench_planning.py --quick          # 2 meshes, 32^3: a few minutes
+    python scripts/bench_planning.py --threads 1      # every bundled mesh at 64^3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dipnet.adaptive import AdaptiveSettings, SimulatedDips, adaptive_loop
+from dipnet.datasets import mesh_names, mesh_path
+from dipnet.grid import Grid
+from dipnet.metrics import evaluate
+from dipnet.operators import make_operator
+from dipnet.orientations import Reach, fibonacci_hemisphere
+from dipnet.physics import LevelSensor
+from dipnet.planning import NextBestDipPlanner
+from dipnet.shapes import load_mesh
+from dipnet.simulate import simulate_measurement
+from dipnet.solvers.minnorm import MinNormSolver
+from dipnet.solvers.voxel import VoxelSolver
+from dipnet.uncertainty import calibration_by_decile, uncertainty
+
+SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver}
+QUICK_MESHES = ["bunny", "part_B13"]  # light meshes: simulating dips costs about O(faces)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--meshes", nargs="*", help="bundled mesh names; default all (--quick: bunny, part_B13)")
+    p.add_argument("--n", type=int, default=None, help="grid resolution N (default 64; --quick 32)")
+    p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR in dB")
+    p.add_argument("--initial", type=int, default=8, help="dips before the first plan")
+    p.add_argument("--budget", type=int, default=41, help="dips of the adaptive and the small fixed plans")
+    p.add_argument("--large", type=int, default=123, help="dips of the large Fibonacci plan")
+    p.add_argument("--batch", type=int, default=8, help="dips planned per step")
+    p.add_argument("--cap-tilt", type=float, default=35.0, help="largest tilt of the limited rig (degrees)")
+    p.add_argument("--solver", choices=list(SOLVERS), default="voxel", help="solver of every final reconstruction")
+    p.add_argument("--plan-solver", choices=list(SOLVERS), default="minnorm",
+                   help="solver of the loop's intermediate reconstructions")
+    p.add_argument("--fill", type=float, default=0.9, help="mesh radius / working-ball radius")
+    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help="2 meshes at 32^3")
+    p.add_argument("--json", type=Path, help="also write every row to this JSON file")
+    args = p.parse_args(argv)
+    args.n = args.n or (32 if args.quick else 64)
+    args.meshes = args.meshes or (QUICK_MESHES if args.quick else mesh_names())
+    return args
+
+
+def main(argv=None) -> dict[str, float]:
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    grid = Grid(args.n, 3)
+    hemisphere, cap = Reach(), Reach(tilt_range_deg=(0.0, args.cap_tilt), step_deg=5.0)
+    sensor = LevelSensor(snr_db=args.snr, quantum_mm=0.0, seed=args.seed)
+
+    def simulate(shape, directions, **kw):
+        return simulate_measurement(shape, directions, sensor=sensor, **kw)
+
+    def solve(measurement, name):
+        operator = make_operator(grid, measurement.directions, grid.n)
+        return SOLVERS[name](progress=False).solve(measurement, operator), operator
+
+    rows, calibration = [], []
+    print(f"{'mesh':<12} {'plan':<16} {'dips':>5} {'IoU':>6} {'Chamfer':>8} {'time s':>7} {'plan s/step':>11}", flush=True)
+    for name in args.meshes:
+        shape = load_mesh(mesh_path(name), radius=args.fill * grid.radius)
+        truth = shape.occupancy(grid, supersample=3).numpy() >= 0.5
+        plans = {"fibonacci": fibonacci_hemisphere(args.budget), "fibonacci_large": fibonacci_hemisphere(args.large),
+                 "cap_uniform": cap.uniform(args.budget), "adaptive": hemisphere, "cap_adaptive": cap}
+        for plan, what in plans.items():
+            t0 = time.perf_counter()
+            plan_seconds: list[float] = []
+            acquire = SimulatedDips(simulate, shape, grid, grid.n, args.seed)
+            if isinstance(what, Reach):
+                settings = AdaptiveSettings(budget=args.budget, batch_size=args.batch, initial_dips=args.initial)
+                result = adaptive_loop(acquire, lambda m: solve(m, args.plan_solver),
+                                       NextBestDipPlanner(seed=args.seed), what, settings)
+                plan_seconds = [h["plan_seconds"] for h in result.history if "plan_seconds" in h]
+                measurement = result.measurement
+            else:
+                measurement = acquire(what)
+            recon, operator = solve(measurement, args.solver)
+            seconds = time.perf_counter() - t0
+            scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
+            row = {"mesh": name, "plan": plan, "dips": measurement.n_orientations, "iou": scores["iou"],
+                   "chamfer": scores["chamfer"], "seconds": seconds,
+                   "plan_seconds_per_step": statistics.fmean(plan_seconds) if plan_seconds else None}
+            if plan == "fibonacci":
+                maps, _ = uncertainty(recon, measurement, operator)
+                calibration.append(calibration_by_decile(maps["p_wrong"], recon.binary, truth))
+            rows.append(row)
+            step = f"{row['plan_seconds_per_step']:11.2f}" if plan_seconds else f"{'':>11}"
+            print(f"{name:<12} {plan:<16} {row['dips']:>5} {row['iou']:6.3f} {row['chamfer']:8.4f} {seconds:7.1f} {step}",
+                  flush=True)
+    result = summarise(rows, calibration, args)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return result
+
+
+def summarise(rows: list[dict], calibration: list[np.ndarray], args) -> dict[str, float]:
+    """Means per plan, the pooled calibration and the RESULT line."""
+    means = {}
+    print(f"\nmeans over {len(args.meshes)} meshes ({args.n}^3, {args.snr:g} dB, solver {args.solver}, "
+          f"plan solver {args.plan_solver})\n{'plan':<16} {'dips':>5} {'IoU':>6} {'Chamfer':>8} {'time s':>7}")
+    for plan in dict.fromkeys(r["plan"] for r in rows):
+        items = [r for r in rows if r["plan"] == plan]
+        means[plan] = {k: statistics.fmean(r[k] for r in items) for k in ("iou", "chamfer", "seconds", "dips")}
+        m = means[plan]
+        print(f"{plan:<16} {m['dips']:5.0f} {m['iou']:6.3f} {m['chamfer']:8.4f} {m['seconds']:7.1f}")
+    steps = [r["plan_seconds_per_step"] for r in rows if r["plan_seconds_per_step"] is not None]
+    print(f"\nplanning: {statistics.fmean(steps):.2f} s per step on average, at most {max(steps):.2f} s")
+    deciles = np.nanmean(np.stack(calibration), axis=0)
+    print("uncertainty calibration (Fibonacci plan, mean over meshes): error rate per p_wrong decile, lowest first:\n  "
+          + " ".join(f"{v:.3f}" for v in deciles))
+    ratios = {"adaptive41_over_fib123": means["adaptive"]["chamfer"] / means["fibonacci_large"]["chamfer"],
+              "adaptive41_over_fib41": means["adaptive"]["chamfer"] / means["fibonacci"]["chamfer"],
+              "cap_adaptive_over_uniform": means["cap_adaptive"]["chamfer"] / means["cap_uniform"]["chamfer"]}
+    print("RESULT " + " ".join(f"{k}={v:.3f}" for k, v in ratios.items()))
+    return ratios
+
+
+if __name__ == "__main__":
+    main()
