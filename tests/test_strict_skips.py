@@ -46,4 +46,4 @@ def test_unexpected_skips_fail_under_strict_mode(pytester, monkeypatch):
 
 def test_skips_are_plain_skips_without_strict_mode(pytester, monkeypatch):
     result = _run(pytester, monkeypatch, "0")
-    result.assert_outcomes(passed=1, skipped=5)
+    result.assert_outcomes(passed=1, skipped=4)
