@@ -22,9 +22,11 @@ from omegaconf import DictConfig, OmegaConf
 from dipnet import export, metrics, plots
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
+from dipnet.operators import backend_name
 from dipnet.orientations import make_directions
 from dipnet.reconstruction import Reconstruction
 from dipnet.shapes import Shape
+from dipnet.threads import configure_threads
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +88,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
+    configure_threads(cfg.get("threads"))
     grid = build_grid(cfg)
     measurement, shape = acquire(cfg, grid, out)
     measurement.save(out / "measurement.npz")
@@ -98,6 +101,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     recon.save(out / "reconstruction.npz")
 
     scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
+                              "operator": recon.info.get("operator", backend_name(operator)),
                               "seconds": seconds, "n_dips": measurement.n_orientations,
                               "resolution": grid.n, "ndim": grid.ndim,
                               "measured_volume_mm3": measurement.volume_estimate(),
