@@ -1,11 +1,13 @@
 """End-to-end: Hydra configs compose, the job runs, and bad input gets a one-line error."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
@@ -23,7 +25,7 @@ def _cfg(*overrides):
 
 @pytest.mark.parametrize("group,options", [
     ("solver", ["minnorm", "lsqr", "lsmr", "voxel", "implicit"]),
-    ("operator", ["auto", "splat", "rotate_sum"]),
+    ("operator", ["auto", "splat", "rotate_sum", "grid_sample"]),
 ])
 def test_config_groups_compose_and_instantiate(group, options):
     for option in options:
@@ -88,3 +90,26 @@ def test_prior_weights_and_warm_start_override_from_the_command_line():
     solver = instantiate(cfg.solver)
     assert cfg.solver.priors.tv.weight == 0.1
     assert type(solver).__name__ == "VoxelSolver"
+
+
+@pytest.mark.parametrize("progress", [True, False])
+def test_one_switch_sets_every_progress_bar(progress):
+    for solver in ("minnorm", "lsqr", "lsmr", "voxel", "implicit"):
+        assert instantiate(_cfg(f"solver={solver}", f"output.progress={progress}").solver).progress is progress
+
+
+def test_thread_count_defaults_never_oversubscribe(monkeypatch):
+    from dipnet import threads
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    before = torch.get_num_threads()
+    try:
+        assert threads.default_threads(multirun=True) == 1
+        assert threads.default_threads(multirun=False) == threads.available_cores() == len(os.sched_getaffinity(0))
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        assert threads.configure_threads(None, multirun=False) == 1 == torch.get_num_threads()
+        assert threads.configure_threads(2) == 2 == torch.get_num_threads()
+        with pytest.raises(ValueError, match="threads must be a positive integer"):
+            threads.configure_threads(0)
+    finally:
+        torch.set_num_threads(before)

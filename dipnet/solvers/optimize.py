@@ -287,7 +287,7 @@ class OptimisationSolver(Solver):
     name = "optimisation"
 
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
-                 tol: float = 1e-5, window: int = 25, priors: Mapping[str, Mapping] | None = None,
+                 tol: float = 1e-3, window: int = 25, priors: Mapping[str, Mapping] | None = None,
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
                  progress: bool = True) -> None:
         if optimizer not in OPTIMIZERS:
