@@ -1,7 +1,7 @@
 """Recorded measurement sources, chosen by file type.
 
-* ``.npz``: a :class:`~dipnet.measurement.DipMeasurement` file (solvers resample its slabs
-  onto the operator's);
+* ``.npz``: a :class:`~dipnet.measurement.DipMeasurement` file, re-binned onto the grid's
+  ``n_slabs`` slabs (any resolution; :meth:`~dipnet.measurement.DipMeasurement.rebinned`);
 * ``.jsonl`` (a dipnet raw scan from ``scripts/scan.py``) or ``.csv`` (the authors' robot):
   preprocessed onto the grid's slabs by :func:`dipnet.rig.recorded.read_recorded`.
 """
@@ -9,6 +9,8 @@
 from __future__ import annotations
 
 from pathlib import Path
+
+import torch
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement, MeasurementFileError
@@ -28,7 +30,8 @@ def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) 
     if not p.is_file():
         raise MeasurementFileError(f"measurement file not found: {p}")
     if p.suffix == ".npz":
-        return DipMeasurement.load(p)
+        edges = torch.linspace(-grid.extent / 2, grid.extent / 2, (n_slabs or grid.n) + 1, dtype=torch.float64)
+        return DipMeasurement.load(p).rebinned(edges)
     if p.suffix in (".jsonl", ".csv"):
         return read_raw_recording(p, grid, n_slabs, **options)
     raise MeasurementFileError(f"{p}: unknown measurement file type {p.suffix!r} (expected .npz, .jsonl or .csv)")
