@@ -26,6 +26,7 @@ from dipnet.operators import backend_name
 from dipnet.orientations import make_directions
 from dipnet.reconstruction import Reconstruction
 from dipnet.shapes import Shape
+from dipnet.symmetry import apply_symmetry
 from dipnet.threads import configure_threads
 
 log = logging.getLogger(__name__)
@@ -91,6 +92,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     configure_threads(cfg.get("threads"))
     grid = build_grid(cfg)
     measurement, shape = acquire(cfg, grid, out)
+    measurement = apply_symmetry(measurement, cfg.get("symmetry"))
     measurement.save(out / "measurement.npz")
 
     t0 = time.perf_counter()
