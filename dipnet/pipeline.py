@@ -28,6 +28,7 @@ from dipnet.reconstruction import Reconstruction
 from dipnet.shapes import Shape
 from dipnet.symmetry import apply_symmetry
 from dipnet.threads import configure_threads
+from dipnet.truth import shape_from_recording
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +72,7 @@ def acquire(cfg: DictConfig, grid: Grid, out: Path) -> tuple[DipMeasurement, Sha
     if cfg.source.kind == "recorded":
         read = instantiate(cfg.source.reader)
         measurement = read(grid=grid, n_slabs=n_slabs)
-        return measurement, None
+        return measurement, shape_from_recording(cfg.source.reader.path)
     shape: Shape = instantiate(cfg.shape, ndim=grid.ndim, radius=float(cfg.fill) * grid.radius)
     if shape.radius() > grid.radius * (1 + 1e-6):
         raise ConfigError(f"shape {shape.name!r} (radius {shape.radius():.1f} mm) does not fit the working "
