@@ -20,6 +20,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet import export, metrics, plots
+from dipnet.framing import extent_around, measurement_extent
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.operators import backend_name
@@ -47,42 +48,56 @@ class JobResult:
     output_dir: Path
 
 
-def build_grid(cfg: DictConfig) -> Grid:
-    """The grid from ``ndim``, ``resolution`` and ``extent_mm``; clear errors on bad values."""
+def build_grid(cfg: DictConfig, shape: Shape | None = None) -> Grid:
+    """The grid from ``ndim``, ``resolution`` and ``extent_mm`` (``null``: chosen around
+    ``shape``, see :mod:`dipnet.framing`, or the saved measurement's slabs); clear errors on bad values."""
     for key in ("resolution", "n_dips"):
         value = cfg.get(key)
         if not isinstance(value, int) or value < 1:
             raise ConfigError(f"{key} must be a positive integer, got {value!r}")
     if cfg.resolution < 4:
         raise ConfigError(f"resolution must be at least 4 voxels, got {cfg.resolution}")
-    if not float(cfg.extent_mm) > 0:
-        raise ConfigError(f"extent_mm must be positive, got {cfg.extent_mm!r}")
     if cfg.ndim not in (2, 3):
         raise ConfigError(f"ndim must be 2 or 3, got {cfg.ndim!r}")
     if cfg.get("n_slabs") is not None and (not isinstance(cfg.n_slabs, int) or cfg.n_slabs < 2):
         raise ConfigError(f"n_slabs must be an integer >= 2 or null, got {cfg.n_slabs!r}")
     if not 0 < float(cfg.fill) <= 1:
         raise ConfigError(f"fill must be in (0, 1], got {cfg.fill!r}")
-    return Grid(int(cfg.resolution), int(cfg.ndim), float(cfg.extent_mm))
+    extent = cfg.extent_mm
+    if extent is None and shape is not None:
+        extent = extent_around(shape.radius(), int(cfg.resolution), float(cfg.fill))
+    elif extent is None and cfg.source.kind == "recorded":
+        extent = measurement_extent(cfg.source.reader.path)
+    if extent is None:
+        raise ConfigError("extent_mm is needed: the recording names no shape to choose the grid around")
+    if not float(extent) > 0:
+        raise ConfigError(f"extent_mm must be positive, got {extent!r}")
+    return Grid(int(cfg.resolution), int(cfg.ndim), float(extent))
 
 
-def acquire(cfg: DictConfig, grid: Grid, out: Path) -> tuple[DipMeasurement, Shape | None]:
-    """The measurement and (for simulated sources) the true shape."""
+def true_shape(cfg: DictConfig) -> Shape | None:
+    """The object: the configured shape (simulated sources, at its own size in mm), the shape a
+    recording names (fake-rig scans, :mod:`dipnet.truth`), or ``None``."""
+    if cfg.source.kind == "recorded":
+        return shape_from_recording(cfg.source.reader.path)
+    return instantiate(cfg.shape, ndim=int(cfg.ndim))
+
+
+def acquire(cfg: DictConfig, grid: Grid, shape: Shape | None, out: Path) -> DipMeasurement:
+    """The measurement: read (recorded sources) or simulated from ``shape``'s exact geometry."""
     n_slabs = cfg.n_slabs or grid.n
     if cfg.source.kind == "recorded":
         read = instantiate(cfg.source.reader)
-        measurement = read(grid=grid, n_slabs=n_slabs)
-        return measurement, shape_from_recording(cfg.source.reader.path)
-    shape: Shape = instantiate(cfg.shape, ndim=grid.ndim, radius=float(cfg.fill) * grid.radius)
+        return read(grid=grid, n_slabs=n_slabs)
     if shape.radius() > grid.radius * (1 + 1e-6):
         raise ConfigError(f"shape {shape.name!r} (radius {shape.radius():.1f} mm) does not fit the working "
-                          f"ball of radius {grid.radius:.1f} mm: increase extent_mm or lower fill")
+                          f"ball of radius {grid.radius:.1f} mm: increase extent_mm (or leave it null)")
     directions = make_directions(cfg.orientations, cfg.n_dips, grid.ndim, cfg.seed)
     simulate = instantiate(cfg.source.simulator)
     raw, measurement = simulate(shape, directions, grid=grid, n_slabs=n_slabs, seed=cfg.seed,
                                 progress=cfg.output.progress)
     raw.save(out / "rawscan.jsonl")
-    return measurement, shape
+    return measurement
 
 
 def run(cfg: DictConfig, out: Path) -> JobResult:
@@ -91,8 +106,9 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
     configure_threads(cfg.get("threads"))
-    grid = build_grid(cfg)
-    measurement, shape = acquire(cfg, grid, out)
+    shape = true_shape(cfg)
+    grid = build_grid(cfg, shape)
+    measurement = acquire(cfg, grid, shape, out)
     measurement = apply_symmetry(measurement, cfg.get("symmetry"))
     measurement.save(out / "measurement.npz")
 
@@ -113,8 +129,11 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     if shape is not None:
         truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
         scores.update(shape=shape.name, snr_db=cfg.get("snr_db"))
-        scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None)))
-        scores.update(metrics.false_rates(recon.binary, truth > 0.5))
+        level = metrics.reference_level(truth, grid, shape.volume)
+        scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None),
+                                       truth_volume=shape.volume, truth_level=level))
+        scores.update(metrics.reference_check(truth, grid, shape.volume, level))
+        scores.update(metrics.false_rates(recon.binary, truth > level))
     (out / "metrics.json").write_text(json.dumps(scores, indent=2))
     write_outputs(cfg, out, measurement, operator, recon, truth)
     if cfg.output.get("report"):
