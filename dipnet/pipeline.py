@@ -27,6 +27,7 @@ from dipnet.operators import backend_name
 from dipnet.orientations import make_directions
 from dipnet.reconstruction import Reconstruction
 from dipnet.shapes import Shape
+from dipnet.solvers.base import measured_profiles
 from dipnet.symmetry import apply_symmetry
 from dipnet.threads import configure_threads
 from dipnet.truth import shape_from_recording
@@ -161,8 +162,10 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
         return
     with torch.no_grad():
         predicted = operator(torch.as_tensor(recon.binary, dtype=torch.float64))
-    plots.plot_sinogram(measurement.profiles.numpy(), out / "sinogram.png")
-    plots.plot_profiles(measurement.profiles.numpy(), predicted.numpy(), out / "profiles.png")
+    plots.plot_sinogram(measured_profiles(measurement, operator).numpy(), out / "sinogram.png",
+                        slab_edges=operator.slab_edges().numpy(), volume_unit_2d=grid.ndim == 2)
+    plots.plot_profiles(measured_profiles(measurement, operator).numpy(), predicted.numpy(), out / "profiles.png",
+                        slab_edges=operator.slab_edges().numpy(), volume_unit_2d=grid.ndim == 2)
     if truth is not None:
         plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png")
     if recon.history:
