@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import math
+
+import pytest
 
 from hydra import compose, initialize_config_module
 
@@ -28,7 +31,9 @@ def test_fake_rig_scan_is_scored_against_its_shape(tmp_path):
                                      "output.progress=false", "output.figures=false"]), tmp_path / "job")
     saved = json.loads((tmp_path / "job" / "metrics.json").read_text())
     assert saved["shape"] == "ball" and saved["iou"] == result.metrics["iou"] >= 0.75
-    assert abs(saved["volume_error"]) < 0.1  # scored in the shape's own frame and size
+    exact = 4 / 3 * math.pi * 30.0**3  # the scan measured this ball in mm, and is scored against it
+    assert saved["measured_volume_mm3"] == pytest.approx(exact, rel=0.02)
+    assert saved["volume_error"] == pytest.approx(saved["reconstructed_volume_mm3"] / exact - 1, rel=1e-6)
 
 
 def test_files_without_a_named_shape_give_none(tmp_path):
