@@ -384,13 +384,17 @@ def _errorbar_panels(groups: Sequence[dict], x: str, panels: Sequence[str], path
                      line: str, xlabel: str, title: str, logx: bool) -> Path:
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
     for ax, metric in zip(axes[0], panels):
+        ticks: set[float] = set()
         for key, (xs, mean, std) in mean_series(groups, line, x, metric).items():
             ax.errorbar(xs, mean, yerr=std, marker="o", capsize=3, label=format_cell(key))
+            ticks.update(float(v) for v in xs)
         ax.set(xlabel=xlabel, ylabel=LABELS.get(metric, metric), title=LABELS.get(metric, metric))
         if logx:
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
             ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        if ticks:  # a tick labelled at every measured x (a log axis within one decade has none)
+            ax.set_xticks(sorted(ticks), [format_cell(v) for v in sorted(ticks)])
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, title=LABELS.get(line, line), title_fontsize=8)
     fig.suptitle(title)

@@ -20,14 +20,20 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet import consistency, export, metrics, plots, resolvability
+from dipnet.adaptive import fixed_directions, simulate_adaptive
+from dipnet.framing import extent_around, measurement_extent
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
-from dipnet.adaptive import fixed_directions, simulate_adaptive
+from dipnet.operators import backend_name
 from dipnet.reconstruction import Reconstruction
 from dipnet.resources import check_memory
 from dipnet.shapes import Shape
-from dipnet.validation import validate_measurement
+from dipnet.solvers.base import measured_profiles
+from dipnet.symmetry import apply_symmetry
+from dipnet.threads import configure_threads
+from dipnet.truth import shape_from_recording
 from dipnet.uncertainty import write_uncertainty
+from dipnet.validation import validate_measurement
 
 log = logging.getLogger(__name__)
 
@@ -46,44 +52,58 @@ class JobResult:
     output_dir: Path
 
 
-def build_grid(cfg: DictConfig) -> Grid:
-    """The grid from ``ndim``, ``resolution`` and ``extent_mm``; clear errors on bad values."""
+def build_grid(cfg: DictConfig, shape: Shape | None = None) -> Grid:
+    """The grid from ``ndim``, ``resolution`` and ``extent_mm`` (``null``: chosen around
+    ``shape``, see :mod:`dipnet.framing`, or the saved measurement's slabs); clear errors on bad values."""
     for key in ("resolution", "n_dips"):
         value = cfg.get(key)
         if not isinstance(value, int) or value < 1:
             raise ConfigError(f"{key} must be a positive integer, got {value!r}")
     if cfg.resolution < 4:
         raise ConfigError(f"resolution must be at least 4 voxels, got {cfg.resolution}")
-    if not float(cfg.extent_mm) > 0:
-        raise ConfigError(f"extent_mm must be positive, got {cfg.extent_mm!r}")
     if cfg.ndim not in (2, 3):
         raise ConfigError(f"ndim must be 2 or 3, got {cfg.ndim!r}")
     if cfg.get("n_slabs") is not None and (not isinstance(cfg.n_slabs, int) or cfg.n_slabs < 2):
         raise ConfigError(f"n_slabs must be an integer >= 2 or null, got {cfg.n_slabs!r}")
     if not 0 < float(cfg.fill) <= 1:
         raise ConfigError(f"fill must be in (0, 1], got {cfg.fill!r}")
-    return Grid(int(cfg.resolution), int(cfg.ndim), float(cfg.extent_mm))
+    extent = cfg.extent_mm
+    if extent is None and shape is not None:
+        extent = extent_around(shape.radius(), int(cfg.resolution), float(cfg.fill))
+    elif extent is None and cfg.source.kind == "recorded":
+        extent = measurement_extent(cfg.source.reader.path)
+    if extent is None:
+        raise ConfigError("extent_mm is needed: the recording names no shape to choose the grid around")
+    if not float(extent) > 0:
+        raise ConfigError(f"extent_mm must be positive, got {extent!r}")
+    return Grid(int(cfg.resolution), int(cfg.ndim), float(extent))
 
 
-def acquire(cfg: DictConfig, grid: Grid, out: Path) -> tuple[DipMeasurement, Shape | None]:
-    """The measurement and (for simulated sources) the true shape."""
+def true_shape(cfg: DictConfig) -> Shape | None:
+    """The object: the configured shape (simulated sources, at its own size in mm), the shape a
+    recording names (fake-rig scans, :mod:`dipnet.truth`), or ``None``."""
+    if cfg.source.kind == "recorded":
+        return shape_from_recording(cfg.source.reader.path)
+    return instantiate(cfg.shape, ndim=int(cfg.ndim))
+
+
+def acquire(cfg: DictConfig, grid: Grid, shape: Shape | None, out: Path) -> DipMeasurement:
+    """The measurement: read (recorded sources) or simulated from ``shape``'s exact geometry."""
     n_slabs = cfg.n_slabs or grid.n
     if cfg.source.kind == "recorded":
         read = instantiate(cfg.source.reader)
-        measurement = read(grid=grid, n_slabs=n_slabs)
-        return measurement, None
-    shape: Shape = instantiate(cfg.shape, ndim=grid.ndim, radius=float(cfg.fill) * grid.radius)
+        return read(grid=grid, n_slabs=n_slabs)
     if shape.radius() > grid.radius * (1 + 1e-6):
         raise ConfigError(f"shape {shape.name!r} (radius {shape.radius():.1f} mm) does not fit the working "
-                          f"ball of radius {grid.radius:.1f} mm: increase extent_mm or lower fill")
+                          f"ball of radius {grid.radius:.1f} mm: increase extent_mm (or leave it null)")
     if cfg.get("planner") is not None and cfg.planner.kind == "adaptive":
-        return simulate_adaptive(cfg, grid, shape, out), shape
+        return simulate_adaptive(cfg, grid, shape, out)
     directions = fixed_directions(cfg, grid.ndim)
     simulate = instantiate(cfg.source.simulator)
     raw, measurement = simulate(shape, directions, grid=grid, n_slabs=n_slabs, seed=cfg.seed,
                                 progress=cfg.output.progress)
     raw.save(out / "rawscan.jsonl")
-    return measurement, shape
+    return measurement
 
 
 def run(cfg: DictConfig, out: Path) -> JobResult:
@@ -91,10 +111,13 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
-    grid = build_grid(cfg)
+    configure_threads(cfg.get("threads"))
     check_memory(cfg)
-    measurement, shape = acquire(cfg, grid, out)
+    shape = true_shape(cfg)
+    grid = build_grid(cfg, shape)
+    measurement = acquire(cfg, grid, shape, out)
     validation = validate_measurement(measurement, grid)
+    measurement = apply_symmetry(measurement, cfg.get("symmetry"))
     measurement.save(out / "measurement.npz")
 
     t0 = time.perf_counter()
@@ -105,6 +128,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     recon.save(out / "reconstruction.npz")
 
     scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
+                              "operator": recon.info.get("operator", backend_name(operator)),
                               "seconds": seconds, "n_dips": measurement.n_orientations,
                               "resolution": grid.n, "ndim": grid.ndim}
     scores.update(consistency.check_consistency(measurement, operator, recon).metrics())
@@ -114,8 +138,11 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     if shape is not None:
         truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
         scores.update(shape=shape.name, snr_db=cfg.get("snr_db"))
-        scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None)))
-        scores.update(metrics.false_rates(recon.binary, truth > 0.5))
+        level = metrics.reference_level(truth, grid, shape.volume)
+        scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None),
+                                       truth_volume=shape.volume, truth_level=level))
+        scores.update(metrics.reference_check(truth, grid, shape.volume, level))
+        scores.update(metrics.false_rates(recon.binary, truth > level))
     scores.update(validation.metrics())
     if cfg.output.get("uncertainty"):
         scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures)))
@@ -146,8 +173,10 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
         return
     with torch.no_grad():
         predicted = operator(torch.as_tensor(recon.binary, dtype=torch.float64))
-    plots.plot_sinogram(measurement.profiles.numpy(), out / "sinogram.png")
-    plots.plot_profiles(measurement.profiles.numpy(), predicted.numpy(), out / "profiles.png")
+    plots.plot_sinogram(measured_profiles(measurement, operator).numpy(), out / "sinogram.png",
+                        slab_edges=operator.slab_edges().numpy(), volume_unit_2d=grid.ndim == 2)
+    plots.plot_profiles(measured_profiles(measurement, operator).numpy(), predicted.numpy(), out / "profiles.png",
+                        slab_edges=operator.slab_edges().numpy(), volume_unit_2d=grid.ndim == 2)
     if truth is not None:
         plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png")
     if recon.history:

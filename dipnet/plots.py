@@ -35,9 +35,15 @@ def save_figure(fig: plt.Figure, path: str | Path) -> Path:
     return path
 
 
+def _volume_label(two_d: bool) -> str:
+    """Axis label of slab volumes: mm^3, or mm^2 for 2D areas."""
+    return "slab area (mm$^2$)" if two_d else "slab volume (mm$^3$)"
+
+
 def plot_sinogram(profiles: np.ndarray | torch.Tensor, path: str | Path, *,
                   angles_deg: Sequence[float] | None = None,
-                  slab_edges: np.ndarray | torch.Tensor | None = None, title: str = "dip profiles") -> Path:
+                  slab_edges: np.ndarray | torch.Tensor | None = None, title: str = "dip profiles",
+                  volume_unit_2d: bool = False) -> Path:
     """Slab volumes vs orientation as an image: ``profiles`` ``(K, M)`` (mm^3, mm^2 in 2D).
 
     ``angles_deg`` (2D, ``(K,)``) labels the orientation axis with angles; otherwise rows are
@@ -62,7 +68,7 @@ def plot_sinogram(profiles: np.ndarray | torch.Tensor, path: str | Path, *,
     im = ax.imshow(p, aspect="auto", origin="lower", cmap="viridis", interpolation="nearest",
                    extent=(height[0], height[1], rows[0], rows[1]))
     ax.set(xlabel=height[2], ylabel=rows[2], title=title)
-    fig.colorbar(im, ax=ax, label="slab volume")
+    fig.colorbar(im, ax=ax, label=_volume_label(volume_unit_2d))
     return save_figure(fig, path)
 
 
@@ -114,10 +120,12 @@ def _decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
 
 def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | Path, *,
               titles: Sequence[str] | None = None, max_faces: int = MAX_RENDER_FACES,
-              elev: float = 25.0, azim: float = -60.0) -> Path:
+              elev: float = 25.0, azim: float = -60.0, cutaway: bool = True) -> Path:
     """Shaded renderings of one or several meshes side by side (Lambert shading, one light),
-    all in the same box.
+    all in the same box (mm).
 
+    ``cutaway``: a second row shows each mesh cut open by the plane ``y = 0`` (the half at
+    ``y >= 0``, seen from ``-y``), so interior cavities (the chamber box's hidden chamber) show.
     Meshes with more than ``max_faces`` faces are decimated for drawing; empty meshes are
     drawn as an empty panel saying so.
     """
@@ -126,30 +134,50 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
     if len(titles) != len(meshes):
         raise ValueError(f"got {len(titles)} titles for {len(meshes)} meshes")
     drawn = [m for m in meshes if len(m.faces)]
+    box = None
     if drawn:  # one box for every panel, so sizes compare
         lo = np.min([m.bounds[0] for m in drawn], axis=0)
         hi = np.max([m.bounds[1] for m in drawn], axis=0)
-        centre, half = (lo + hi) / 2, (hi - lo).max() / 2
-    fig = plt.figure(figsize=(4.5 * len(meshes), 4.5))
-    for i, (mesh, title) in enumerate(zip(meshes, titles)):
-        ax = fig.add_subplot(1, len(meshes), i + 1, projection="3d")
-        ax.set_title(title)
-        if len(mesh.faces) == 0:
-            ax.text2D(0.5, 0.5, "empty mesh", ha="center", transform=ax.transAxes)
-            ax.set_axis_off()
-            continue
-        m = _decimated(mesh, max_faces)
-        tris = np.asarray(m.vertices)[np.asarray(m.faces)]
-        normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        shade = 0.25 + 0.75 * np.clip(normals @ _LIGHT, 0.0, 1.0)
-        colors = np.column_stack([0.35 * shade, 0.55 * shade, 0.85 * shade, np.ones_like(shade)])
-        ax.add_collection3d(Poly3DCollection(tris, facecolors=colors, edgecolors="none"))
-        ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
-               zlim=(centre[2] - half, centre[2] + half), xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)")
-        ax.set_box_aspect((1, 1, 1))
-        ax.view_init(elev=elev, azim=azim)
+        box = ((lo + hi) / 2, (hi - lo).max() / 2)
+    rows = [(m, t, elev, azim) for m, t in zip(meshes, titles)]
+    if cutaway:
+        rows += [(_cut(m), f"{t} (cut at y = 0)".strip(), 10.0, -90.0) for m, t in zip(meshes, titles)]
+    n_rows = 2 if cutaway else 1
+    fig = plt.figure(figsize=(4.5 * len(meshes), 4.5 * n_rows))
+    for i, (mesh, title, el, az) in enumerate(rows):
+        ax = fig.add_subplot(n_rows, len(meshes), i + 1, projection="3d")
+        _draw_mesh(ax, mesh, title, box, max_faces, el, az)
     return save_figure(fig, path)
+
+
+def _cut(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The faces of ``mesh`` with every vertex at ``y >= 0`` (an open cut, to the nearest
+    face: the inside walls show through)."""
+    if len(mesh.faces) == 0:
+        return mesh
+    faces = np.asarray(mesh.faces)
+    keep = (np.asarray(mesh.vertices)[faces][:, :, 1] >= 0).all(axis=1)
+    return trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=faces[keep], process=False)
+
+
+def _draw_mesh(ax, mesh: trimesh.Trimesh, title: str, box, max_faces: int, elev: float, azim: float) -> None:
+    ax.set_title(title)
+    if len(mesh.faces) == 0 or box is None:
+        ax.text2D(0.5, 0.5, "empty mesh", ha="center", transform=ax.transAxes)
+        ax.set_axis_off()
+        return
+    m = _decimated(mesh, max_faces)
+    tris = np.asarray(m.vertices)[np.asarray(m.faces)]
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    shade = 0.25 + 0.75 * np.abs(normals @ _LIGHT)  # both sides lit: a cut shows inner walls
+    colors = np.column_stack([0.35 * shade, 0.55 * shade, 0.85 * shade, np.ones_like(shade)])
+    ax.add_collection3d(Poly3DCollection(tris, facecolors=colors, edgecolors="none"))
+    centre, half = box
+    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
+           zlim=(centre[2] - half, centre[2] + half), xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)")
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=elev, azim=azim)
 
 
 def plot_history(history: dict[str, Sequence[float]], path: str | Path, *, title: str = "loss") -> Path:
@@ -175,8 +203,9 @@ def plot_history(history: dict[str, Sequence[float]], path: str | Path, *, title
 def plot_profiles(measured: np.ndarray | torch.Tensor, predicted: np.ndarray | torch.Tensor | None,
                   path: str | Path, *, k: int | Sequence[int] = 4,
                   slab_edges: np.ndarray | torch.Tensor | None = None,
-                  labels: tuple[str, str] = ("measured", "predicted")) -> Path:
-    """A few profiles overlaid: measured (markers) and predicted (lines), ``(K, M)`` each.
+                  labels: tuple[str, str] = ("measured", "predicted"), volume_unit_2d: bool = False) -> Path:
+    """A few profiles overlaid: measured (markers) and predicted (lines), ``(K, M)`` each, in
+    mm^3 (``volume_unit_2d``: mm^2).
 
     ``k``: how many orientations (spread evenly over ``K``), or their indices; ``slab_edges``
     ``(M + 1,)`` (mm) puts the height ``t`` on the horizontal axis.
@@ -198,6 +227,7 @@ def plot_profiles(measured: np.ndarray | torch.Tensor, predicted: np.ndarray | t
         ax.plot(x, meas[i], ".", color=colour, label=f"{labels[0]} #{i}")
         if pred is not None:
             ax.plot(x, pred[i], "-", color=colour, label=f"{labels[1]} #{i}")
-    ax.set(xlabel="height t (mm)" if slab_edges is not None else "slab", ylabel="slab volume", title="dip profiles")
+    ax.set(xlabel="height t (mm)" if slab_edges is not None else "slab index", ylabel=_volume_label(volume_unit_2d),
+           title="dip profiles")
     ax.legend(fontsize=7, ncol=2)
     return save_figure(fig, path)

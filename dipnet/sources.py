@@ -1,7 +1,7 @@
 """Recorded measurement sources, chosen by file type.
 
-* ``.npz``: a :class:`~dipnet.measurement.DipMeasurement` file (solvers resample its slabs
-  onto the operator's);
+* ``.npz``: a :class:`~dipnet.measurement.DipMeasurement` file, re-binned onto the grid's
+  ``n_slabs`` slabs (any resolution; :meth:`~dipnet.measurement.DipMeasurement.rebinned`);
 * ``.jsonl`` (a dipnet raw scan from ``scripts/scan.py``) or ``.csv`` (the authors' robot):
   preprocessed onto the grid's slabs by :func:`dipnet.rig.recorded.read_recorded`.
 """
@@ -9,6 +9,8 @@
 from __future__ import annotations
 
 from pathlib import Path
+
+import torch
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement, MeasurementFileError
@@ -29,7 +31,8 @@ def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) 
     if not p.is_file():
         raise MeasurementFileError(f"measurement file not found: {p}")
     if p.suffix == ".npz":
-        measurement = DipMeasurement.load(p)
+        edges = torch.linspace(-grid.extent / 2, grid.extent / 2, (n_slabs or grid.n) + 1, dtype=torch.float64)
+        measurement = DipMeasurement.load(p).rebinned(edges)
         measurement.metadata = {**measurement.metadata, "path": str(p)}  # validation messages name the file
         return measurement
     if p.suffix in (".jsonl", ".csv"):

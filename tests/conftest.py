@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -21,6 +22,39 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "hardware" in item.keywords:
             item.add_marker(skip)
+
+
+#: Markers of the only tests that may skip under ``DIPNET_STRICT_SKIPS=1`` (set by ``.ci/run``):
+#: they need a real rig or a browser, which CI may not have. Any other skip fails there.
+ALLOWED_SKIP_MARKERS = ("hardware", "browser")
+
+
+def _strict_skips() -> bool:
+    return os.environ.get("DIPNET_STRICT_SKIPS", "") not in ("", "0")
+
+
+def _fail_unexpected_skip(report: pytest.TestReport | pytest.CollectReport, what: str) -> None:
+    reason = report.longrepr[-1] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+    report.outcome = "failed"
+    report.longrepr = (f"{what} skipped ({reason}); under DIPNET_STRICT_SKIPS=1 only tests marked "
+                       f"{' or '.join(ALLOWED_SKIP_MARKERS)} may skip")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
+    outcome = yield
+    report = outcome.get_result()
+    if (report.skipped and _strict_skips() and not hasattr(report, "wasxfail")
+            and not any(item.get_closest_marker(m) for m in ALLOWED_SKIP_MARKERS)):
+        _fail_unexpected_skip(report, item.nodeid)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector: pytest.Collector):
+    outcome = yield
+    report = outcome.get_result()
+    if report.skipped and _strict_skips():  # a module-level skip (e.g. importorskip)
+        _fail_unexpected_skip(report, collector.nodeid)
 
 
 @pytest.fixture(scope="session")

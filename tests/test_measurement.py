@@ -68,3 +68,32 @@ def test_measured_profiles_aligns_to_the_operator():
     assert torch.equal(measured_profiles(m, op), m.profiles)
     with pytest.raises(ValueError, match="orientations"):
         measured_profiles(m, make_operator(grid, fibonacci_hemisphere(5), 10))
+
+
+def test_rebinning_round_trip_preserves_profile_totals(tmp_path):
+    """A saved measurement re-bins onto any slab count: totals kept exactly, cumulative volumes
+    kept at the common edges, and 10 -> 5 -> 10 slabs is exact where the coarse edges fall."""
+    m = _measurement(m=10)  # slabs of 2.5 mm over [-12.5, 12.5]
+    for n in (3, 5, 7, 24):
+        edges = torch.linspace(-15.0, 15.0, n + 1, dtype=torch.float64)  # a wider grid, any count
+        r = DipMeasurement.load(m.save(tmp_path / "m.npz")).rebinned(edges)
+        assert r.profiles.shape == (4, n) and r.slab_thickness == pytest.approx(30.0 / n)
+        torch.testing.assert_close(r.profiles.sum(1), m.profiles.sum(1))
+        assert r.sigma.shape == (4, n) and r.metadata["rebinned_from"]["n_slabs"] == 10
+    coarse = m.rebinned(torch.linspace(-12.5, 12.5, 6, dtype=torch.float64))
+    torch.testing.assert_close(coarse.profiles, m.profiles.reshape(4, 5, 2).sum(2))
+    torch.testing.assert_close(coarse.sigma, (0.1**2 * 2) ** 0.5 * torch.ones(4, 5, dtype=torch.float64))  # independent slabs
+    with pytest.warns(UserWarning, match="does not fit the grid"):
+        m.rebinned(torch.linspace(-5.0, 5.0, 5, dtype=torch.float64))
+    with pytest.raises(MeasurementFileError, match="uniform"):
+        m.rebinned(torch.tensor([0.0, 1.0, 3.0], dtype=torch.float64))
+
+
+def test_recorded_source_reconstructs_a_saved_measurement_at_another_resolution(tmp_path):
+    from dipnet.sources import read_recorded
+
+    m = _measurement(m=10)
+    path = m.save(tmp_path / "m.npz")
+    r = read_recorded(str(path), Grid(16, 3, extent=30.0))
+    assert r.profiles.shape == (4, 16)
+    torch.testing.assert_close(r.profiles.sum(1), m.profiles.sum(1))

@@ -12,7 +12,7 @@ from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.metrics import iou
 from dipnet.operators import make_operator
-from dipnet.orientations import angles_2d, directions_2d
+from dipnet.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 from dipnet.solvers.minnorm import LSMRSolver, LSQRSolver, MinNormSolver, operator_matrix, otsu_threshold
 
 
@@ -142,3 +142,39 @@ def test_fixed_threshold_and_bad_options():
         MinNormSolver(tikhonov=-1.0)
     with pytest.raises(ValueError, match="threshold"):
         MinNormSolver(threshold="mean")
+
+
+def test_operator_choice_is_honoured_and_reported():
+    """splat / rotate_sum / grid_sample are one matrix (Cholesky on it); an explicitly chosen
+    fourier operator runs matrix-free (LSMR on it) and gives a different result; an
+    auto-chosen fourier says it factorised the splat matrix; Cholesky on an explicit fourier is
+    refused with a message naming the option."""
+    grid = Grid(24, ndim=2)
+    dirs = directions_2d(angles_2d(8))
+    centre, radius = np.array([3.0, -2.0]), 30.0
+    results = {}
+    for backend in ("splat", "rotate_sum", "grid_sample", "fourier"):
+        op = make_operator(grid, dirs, backend=backend)
+        results[backend] = MinNormSolver(progress=False).solve(analytic_disk(op, centre, radius), op)
+    assert [results[b].info["operator"] for b in results] == ["splat", "rotate_sum", "rotate_sum", "fourier"]
+    assert [results[b].info["method"] for b in results] == ["cholesky", "cholesky", "cholesky", "lsmr"]
+    np.testing.assert_allclose(results["rotate_sum"].occupancy, results["splat"].occupancy, atol=1e-5)
+    assert float((results["fourier"].occupancy - results["splat"].occupancy).abs().max()) > 1e-3
+    assert "no explicit matrix" in results["fourier"].info["operator_reason"]
+
+    fourier = make_operator(grid, dirs, backend="fourier")
+    fourier.auto_selected = True  # as operator=auto would leave it
+    auto = MinNormSolver(progress=False).solve(analytic_disk(fourier, centre, radius), fourier)
+    assert auto.info["method"] == "cholesky" and auto.info["operator"] == "splat"
+    assert "chosen by operator=auto" in auto.info["operator_reason"]
+    with pytest.raises(ValueError, match="operator=fourier does not have"):
+        MinNormSolver(method="cholesky", progress=False).solve(analytic_disk(fourier, centre, radius),
+                                                             make_operator(grid, dirs, backend="fourier"))
+
+
+def test_grid_sample_is_the_reference_operator():
+    grid = Grid(16, ndim=3)
+    op = make_operator(grid, fibonacci_hemisphere(5), backend="grid_sample")
+    assert type(op).__name__ == "RotateSumOperator" and not op.auto_selected
+    with pytest.raises(ValueError, match="alias"):
+        make_operator(grid, fibonacci_hemisphere(5), backend="nope")

@@ -1,11 +1,13 @@
 """End-to-end: Hydra configs compose, the job runs, and bad input gets a one-line error."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
@@ -23,7 +25,7 @@ def _cfg(*overrides):
 
 @pytest.mark.parametrize("group,options", [
     ("solver", ["minnorm", "lsqr", "lsmr", "voxel", "implicit"]),
-    ("operator", ["auto", "splat", "rotate_sum"]),
+    ("operator", ["auto", "splat", "rotate_sum", "grid_sample"]),
 ])
 def test_config_groups_compose_and_instantiate(group, options):
     for option in options:
@@ -88,3 +90,41 @@ def test_prior_weights_and_warm_start_override_from_the_command_line():
     solver = instantiate(cfg.solver)
     assert cfg.solver.priors.tv.weight == 0.1
     assert type(solver).__name__ == "VoxelSolver"
+
+
+@pytest.mark.parametrize("progress", [True, False])
+def test_one_switch_sets_every_progress_bar(progress):
+    for solver in ("minnorm", "lsqr", "lsmr", "voxel", "implicit"):
+        assert instantiate(_cfg(f"solver={solver}", f"output.progress={progress}").solver).progress is progress
+
+
+def test_thread_count_defaults_never_oversubscribe(monkeypatch):
+    from dipnet import threads
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    before = torch.get_num_threads()
+    try:
+        assert threads.default_threads(multirun=True) == 1
+        assert threads.default_threads(multirun=False) == threads.available_cores() == len(os.sched_getaffinity(0))
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        assert threads.configure_threads(None, multirun=False) == 1 == torch.get_num_threads()
+        assert threads.configure_threads(2) == 2 == torch.get_num_threads()
+        with pytest.raises(ValueError, match="threads must be a positive integer"):
+            threads.configure_threads(0)
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_an_object_keeps_its_size_in_mm_at_any_resolution(tmp_path):
+    """The grid is chosen around the object: at 16 and 24 voxels the chamber box is the same
+    52 mm cube (same measured volume to 0.1%), and volume_error is against the exact volume."""
+    runs = {n: run(_cfg(f"resolution={n}", "n_dips=30", "output.figures=false"), tmp_path / str(n)) for n in (16, 24)}
+    exact = 121969.935  # (2a)^3 - a^3 - 0.045 a^3 for the built-in radius 45 mm, a = 45 / sqrt(3)
+    for n, result in runs.items():
+        assert result.measurement.volume_estimate() == pytest.approx(exact, rel=1e-3)
+        grid_radius = result.reconstruction.grid.radius
+        assert grid_radius == pytest.approx(45.0 / 0.9)  # object radius = fill x working ball
+        recon_volume = result.metrics["reconstructed_volume_mm3"]
+        assert result.metrics["volume_error"] == pytest.approx(recon_volume / exact - 1, rel=1e-3)
+        assert abs(result.metrics["truth_voxel_volume_error"]) < 1e-6  # exact box occupancy
+    assert runs[16].reconstruction.grid.extent != runs[24].reconstruction.grid.extent

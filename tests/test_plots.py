@@ -10,7 +10,8 @@ import trimesh
 
 from dipnet.export import volume_to_mesh
 from dipnet.grid import Grid
-from dipnet.plots import plot_history, plot_mesh, plot_profiles, plot_sinogram, plot_slices
+from dipnet.plots import _cut, plot_history, plot_mesh, plot_profiles, plot_sinogram, plot_slices
+from dipnet.shapes import builtin_shape
 
 
 def check_png(path) -> None:
@@ -65,3 +66,19 @@ def test_profiles(tmp_path):
     meas = np.stack([np.clip(1 - (x - 0.1 * k) ** 2, 0, None) for k in range(8)])
     check_png(plot_profiles(meas, meas * 1.05, tmp_path / "p.png", k=3, slab_edges=torch.linspace(-50, 50, 41)))
     check_png(plot_profiles(torch.from_numpy(meas), None, tmp_path / "p2.png", k=[0, 7]))
+
+
+def test_mesh_figure_has_a_cutaway_row_that_shows_an_inner_chamber(tmp_path):
+    grid = Grid(24, 3, 110.0)
+    shape = builtin_shape("chamber_box", 3, 45.0)
+    mesh = volume_to_mesh(shape.occupancy(grid).numpy(), grid, 0.5)
+    cut = _cut(mesh)
+    used = cut.vertices[np.unique(cut.faces)]
+    assert 0 < len(cut.faces) < len(mesh.faces) and used[:, 1].min() >= 0
+    chamber = shape.chamber[1][0]  # chamber half size (mm): its walls lie well inside the box
+    inner = np.abs(used[:, [0, 2]]).max(axis=1) < 0.5 * (chamber + shape.hi[0])
+    assert inner.sum() > 10  # the cut exposes the chamber walls
+    for name, cutaway in (("cut.png", True), ("flat.png", False)):
+        check_png(plot_mesh([mesh, mesh], tmp_path / name, titles=["truth", "recon"], cutaway=cutaway))
+    rows = mpimg.imread(tmp_path / "cut.png").shape[0] / mpimg.imread(tmp_path / "flat.png").shape[0]
+    assert rows > 1.8  # a second row of panels

@@ -8,7 +8,7 @@ import torch
 from solver_helpers import noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from dipnet.metrics import iou
 from dipnet.solvers.minnorm import MinNormSolver
-from dipnet.solvers.optimize import DataTerm, optimise, support_hull
+from dipnet.solvers.optimize import DataTerm, optimise, plateaued, support_hull
 from dipnet.solvers.voxel import VoxelSolver
 
 
@@ -118,6 +118,24 @@ def test_optimise_validates_and_records_history():
         VoxelSolver(schedule="linear")
     with pytest.raises(ValueError, match="unknown prior"):
         VoxelSolver(priors={"tvv": {"weight": 1.0}})
+
+
+def test_plateau_test_stops_on_a_flat_loss_and_not_on_a_falling_one():
+    flat_after_10 = [1.0 / (i + 1) for i in range(10)] + [0.1] * 40
+    assert plateaued(flat_after_10, tol=1e-3, window=10)
+    falling = [1.0 - 0.01 * i for i in range(50)]  # 1% better every step: never a plateau
+    assert not any(plateaued(falling[:n], tol=1e-3, window=10) for n in range(1, 51))
+    jitter = [0.5 + 0.01 * (i % 2) for i in range(40)]  # Adam-like jitter around a flat level
+    assert plateaued(jitter, tol=1e-3, window=10) and not plateaued(jitter, tol=0.0, window=10)
+
+    # in the loop: a loss that cannot move (the occupancy ignores the parameter) stops after
+    # two windows, long before the iteration limit
+    _, op, meas = problem(2)
+    z = torch.zeros(1, requires_grad=True)
+    fixed = torch.full(op.grid.shape, 0.5)
+    hist = optimise([z], lambda: fixed + 0 * z, DataTerm(op, meas.profiles), [], iterations=500, lr=0.1,
+                    tol=1e-3, window=20, progress=False)
+    assert len(hist["loss"]) == 40
 
 
 @pytest.mark.parametrize("ndim", [2, 3])

@@ -18,6 +18,14 @@ BACKENDS: dict[str, type[DipOperator]] = {
     "fourier": FourierOperator,
 }
 
+#: Other names of backends: ``grid_sample`` is the design's name of the reference operator.
+ALIASES: dict[str, str] = {"grid_sample": "rotate_sum"}
+
+#: Backends whose linear map is exactly an explicit sparse matrix (``splat.to_sparse()``):
+#: rotate_sum pushes each voxel to its trilinear neighbours and sums planes, which gives the
+#: splat numbers to rounding (tests/test_operators_contract.py).
+SPLAT_MATRIX_BACKENDS = ("splat", "rotate_sum")
+
 DEFAULT_BACKEND = "auto"
 
 # Measured crossover (scripts/bench_operator.py, forward + adjoint on 2 cores): the cached
@@ -32,14 +40,30 @@ def select_backend(grid: Grid, n_orientations: int) -> str:
 
 def make_operator(grid: Grid, directions: torch.Tensor, n_slabs: int | None = None,
                   backend: str = DEFAULT_BACKEND, **options) -> DipOperator:
-    """Build the dip operator ``backend`` (a name in :data:`BACKENDS`, or ``"auto"``:
-    :func:`select_backend`) for ``grid`` and ``directions`` ``(K, d)``."""
-    if backend == "auto":
+    """Build the dip operator ``backend`` (a name in :data:`BACKENDS` or :data:`ALIASES`, or
+    ``"auto"``: :func:`select_backend`) for ``grid`` and ``directions`` ``(K, d)``.
+
+    The operator's ``auto_selected`` attribute says whether ``"auto"`` chose it (a solver may
+    then use another backend of the same contract, and says so in its ``info``)."""
+    auto = backend == "auto"
+    backend = ALIASES.get(backend, backend)
+    if auto:
         backend = select_backend(grid, len(directions))
     if backend not in BACKENDS:
-        raise ValueError(f"unknown operator backend {backend!r}; choose auto or one of {sorted(BACKENDS)}")
-    return BACKENDS[backend](grid, directions, n_slabs, **options)
+        raise ValueError(f"unknown operator backend {backend!r}; choose auto, one of {sorted(BACKENDS)} "
+                         f"or an alias {sorted(ALIASES)}")
+    operator = BACKENDS[backend](grid, directions, n_slabs, **options)
+    operator.auto_selected = auto
+    return operator
 
 
-__all__ = ["AUTO_SPLAT_LIMIT", "BACKENDS", "DEFAULT_BACKEND", "DipOperator", "FourierOperator", "RotateSumOperator",
+def backend_name(operator: DipOperator) -> str:
+    """The :data:`BACKENDS` name of ``operator``'s class."""
+    for name, cls in BACKENDS.items():
+        if type(operator) is cls:
+            return name
+    raise ValueError(f"operator type {type(operator).__name__} is not a registered backend")
+
+
+__all__ = ["ALIASES", "AUTO_SPLAT_LIMIT", "BACKENDS", "SPLAT_MATRIX_BACKENDS", "backend_name", "DEFAULT_BACKEND", "DipOperator", "FourierOperator", "RotateSumOperator",
            "SplatOperator", "make_operator", "select_backend"]

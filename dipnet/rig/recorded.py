@@ -19,7 +19,7 @@ Real-data steps (used by :func:`read_recorded`, the ``source=recorded`` reader)
    ``c . theta``, and ``c`` lies on the symmetry axis), or ``p`` is given (the authors used 180);
 4. rise -> volume with the tank cross-section, non-uniform -> uniform slabs and the 5-tap
    Gaussian smoothing (:func:`dipnet.preprocess.preprocess`);
-5. symmetry exploitation (:func:`expand_symmetry`): every profile is copied to the
+5. symmetry exploitation (:func:`dipnet.symmetry.expand_symmetry`, for any source): every profile is copied to the
    directions a declared symmetry group (n-fold rotation about z, optionally with mirror
    planes: D3 for the three cats) maps it to; coinciding directions are merged (averaged);
 6. interpolation of missing orientations (:func:`interpolate_orientations`);
@@ -44,6 +44,7 @@ from dipnet.orientations import fibonacci_hemisphere
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, complete_dips, read_rawscan
 from dipnet.readings import max_object_section, repair_readings
+from dipnet.symmetry import apply_symmetry, expand_symmetry, symmetry_group  # noqa: F401 (re-exported)
 
 AUTHORS_COLUMNS = ("SN", "R1_deg", "R2_deg", "Height_mm", "WaterLevel_mm")
 AUTHORS_TANK_MM2 = 540.0 * 340.0  # the authors' value for the 3 mm cats recording
@@ -270,67 +271,6 @@ def pivot_start_heights(raw: RawScan, area: float, pivot_mm: float | str = "fit"
 
 
 # ============================================================================ orientations
-def symmetry_group(n_fold: int = 1, mirror: bool = False, mirror_azimuth_deg: float = 0.0) -> np.ndarray:
-    """The rotation matrices ``(G, 3, 3)`` of the cyclic group ``C_n`` about z, or with
-    ``mirror`` the dihedral group ``D_n`` (mirror planes through z, one at ``mirror_azimuth_deg``
-    measured from +x towards +y; for n = 3, D3 has order 6)."""
-    if int(n_fold) < 1:
-        raise ValueError(f"n_fold must be >= 1, got {n_fold}")
-    mats = []
-    for i in range(int(n_fold)):
-        a = 2 * math.pi * i / n_fold
-        mats.append(np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1.0]]))
-    if mirror:
-        p = 2 * math.radians(mirror_azimuth_deg)
-        m = np.array([[math.cos(p), math.sin(p), 0], [math.sin(p), -math.cos(p), 0], [0, 0, 1.0]])
-        mats += [r @ m for r in mats]
-    return np.stack(mats)
-
-
-def _merge(directions: np.ndarray, profiles: np.ndarray, groups_of: np.ndarray, tol_deg: float):
-    """Merge directions closer than ``tol_deg`` (averaging their profiles); returns arrays and counts."""
-    keep_dirs, keep_prof, counts = [], [], []
-    cos_tol = math.cos(math.radians(tol_deg))
-    for d, p in zip(directions, profiles):
-        for j, e in enumerate(keep_dirs):
-            if float(d @ e) >= cos_tol:
-                keep_prof[j] = keep_prof[j] + p
-                counts[j] += 1
-                break
-        else:
-            keep_dirs.append(d)
-            keep_prof.append(p.copy())
-            counts.append(1)
-    prof = np.stack(keep_prof) / np.asarray(counts, dtype=np.float64)[:, None]
-    return np.stack(keep_dirs), prof, np.asarray(counts)
-
-
-def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: float = 0.5) -> DipMeasurement:
-    """Copy every profile to the directions ``g theta`` for ``g`` in ``group`` ``(G, 3, 3)``.
-
-    Valid when the object is invariant under the group about the frame's origin, which must lie
-    on the symmetry axis (heights ``t`` along ``g theta`` of the image equal those along
-    ``theta``, so profiles and offsets are unchanged). Directions within ``tol_deg`` of each
-    other (including measured repeats) are merged and their profiles averaged.
-    """
-    m = measurement
-    if m.ndim != 3:
-        raise ValueError("symmetry expansion is for 3D measurements")
-    if not np.allclose(m.offsets.numpy(), m.offsets[0].item()):
-        raise ValueError("symmetry expansion needs profiles on common slabs (equal offsets)")
-    d = m.directions.numpy() / np.linalg.norm(m.directions.numpy(), axis=1, keepdims=True)
-    images = np.einsum("gij,kj->gki", np.asarray(group, dtype=np.float64), d).reshape(-1, 3)
-    profiles = np.tile(m.profiles.numpy(), (len(group), 1))
-    dirs, prof, counts = _merge(images, profiles, None, tol_deg)
-    sigma = None
-    if m.sigma is not None:
-        _, sig, _ = _merge(images, np.tile(m.sigma.numpy(), (len(group), 1)), None, tol_deg)
-        sigma = sig / np.sqrt(counts)[:, None]
-    return DipMeasurement(dirs, prof, m.slab_thickness, np.full(len(dirs), m.offsets[0].item()), sigma,
-                          {**m.metadata, "symmetry_group_order": int(len(group)),
-                           "measured_orientations": m.n_orientations, "symmetry_orientations": int(len(dirs))})
-
-
 def interpolate_orientations(measurement: DipMeasurement, targets, k: int = 3, max_angle_deg: float = 10.0,
                              tol_deg: float = 0.5) -> DipMeasurement:
     """Add profiles for ``targets`` ``(T, 3)`` interpolated from the ``k`` nearest measured
@@ -383,7 +323,9 @@ def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
             (:func:`truncated_orientations` with ``tail_fraction``, ``tail_tol``); kept ones
             are continued flat, which puts no volume beyond the scanned range.
         smooth: the paper's 5-tap Gaussian.
-        symmetry: ``{n_fold, mirror, mirror_azimuth_deg, tol_deg}`` for :func:`expand_symmetry`.
+        symmetry: ``{n_fold, mirror, mirror_azimuth_deg, tol_deg}`` for
+            :func:`dipnet.symmetry.apply_symmetry` (the same step is available for any source
+            as the pipeline's top-level ``symmetry`` option).
         interpolate: ``{n, k, max_angle_deg}``: Fibonacci-hemisphere targets for
             :func:`interpolate_orientations`.
 
@@ -422,10 +364,7 @@ def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
         m = preprocess(raw, grid=grid, n_slabs=n_slabs, cross_section_mm2=area, t_start=t_start, smooth=smooth,
                        repair=False)
     info["measured_orientations"] = m.n_orientations
-    if symmetry:
-        sym = dict(symmetry)
-        tol = float(sym.pop("tol_deg", 0.5))
-        m = expand_symmetry(m, symmetry_group(**sym), tol)
+    m = apply_symmetry(m, symmetry)
     if interpolate:
         opts = dict(interpolate)
         m = interpolate_orientations(m, fibonacci_hemisphere(int(opts.pop("n"))), **opts)

@@ -69,17 +69,21 @@ def builtin_shape(name: str, ndim: int, radius: float) -> Shape:
 
 
 def shape_from_file(path: str, ndim: int, radius: float | None = None, fill_sealed_voids: bool = True,
-                    axis: str = "z") -> Shape:
+                    axis: str = "z", scale: float = 1.0) -> Shape:
     """A mesh file as a 3D shape, or (``ndim=2``) its silhouette projected along ``axis``.
 
     Args:
         path: any mesh file trimesh reads (PLY, STL, OBJ, OFF, GLB).
         ndim: 3 for the solid, 2 for its projection.
-        radius: scale so the farthest point is ``radius`` mm from the centroid (None: keep mm).
+        radius: scale so the farthest point is ``radius`` mm from the centroid (None: keep the
+            file's units times ``scale``).
+        scale: mm per file unit when ``radius`` is None (e.g. 1000 for a mesh in metres).
         fill_sealed_voids: treat sealed inner voids as solid (water cannot reach them).
         axis: projection axis for 2D.
     """
-    shape = load_mesh(path, radius=radius, fill_sealed_voids=fill_sealed_voids)
+    if radius is None and not scale > 0:
+        raise ShapeError(f"shape scale must be positive (mm per file unit), got {scale!r}")
+    shape = load_mesh(path, radius=radius, fill_sealed_voids=fill_sealed_voids, scale=None if radius else scale)
     if ndim == 3:
         return shape
     if ndim != 2:

@@ -69,18 +69,19 @@ class MeshShape(Shape):
 
 def load_mesh(
     path: str | Path, radius: float | None = None, fill_sealed_voids: bool = True,
-    center: bool = True, name: str | None = None,
+    center: bool = True, name: str | None = None, scale: float | None = None,
 ) -> MeshShape:
     """Read a mesh file (anything trimesh reads: PLY, STL, OBJ, OFF, GLB, ...) as a shape.
 
     Args:
         path: the file. A scene (e.g. GLB) is flattened into one mesh.
         radius: scale so the farthest vertex is ``radius`` mm from the centre; ``None`` keeps
-            the file's units (taken as mm).
+            the file's units (taken as mm, times ``scale``).
         fill_sealed_voids: fill cavities bounded by closed inner shells (water cannot reach them).
         center: move the volume centroid (bounding-box centre if the volume is not meaningful)
             to the origin.
         name: label (default: the file stem).
+        scale: mm per file unit (``None``: 1), applied when ``radius`` is ``None``.
 
     Raises:
         ShapeError: the file is missing, unreadable, empty, or encloses no volume (the message
@@ -101,13 +102,13 @@ def load_mesh(
         raise ShapeError(f"mesh file {path} holds non-finite vertices or face indices out of range")
     return from_trimesh(
         mesh, radius=radius, fill_sealed_voids=fill_sealed_voids, center=center,
-        name=name or path.stem, source=str(path),
+        name=name or path.stem, source=str(path), scale=scale,
     )
 
 
 def from_trimesh(
     mesh: trimesh.Trimesh, radius: float | None = None, fill_sealed_voids: bool = True,
-    center: bool = True, name: str = "mesh", source: str | None = None,
+    center: bool = True, name: str = "mesh", source: str | None = None, scale: float | None = None,
 ) -> MeshShape:
     """Repair, fill sealed voids, centre and scale an in-memory mesh (a copy) into a shape.
 
@@ -129,13 +130,15 @@ def from_trimesh(
     with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by zero volumes
         mesh, notes = _orient_shells(mesh, fill_sealed_voids, problems)
         volume = abs(mesh.volume)
-    scale = float(np.ptp(mesh.vertices, axis=0).max())
-    if not volume > 1e-9 * scale**3:
+    size = float(np.ptp(mesh.vertices, axis=0).max())
+    if not volume > 1e-9 * size**3:
         raise ShapeError(f"mesh {where} encloses no volume (flat, open or empty surface)")
     if center:
         mesh.apply_translation(-_centre(mesh))
     if radius is not None:
         mesh.apply_scale(radius / float(np.linalg.norm(mesh.vertices, axis=1).max()))
+    elif scale is not None and scale != 1:
+        mesh.apply_scale(float(scale))
     shape = MeshShape(mesh, name=name, exact=mesh.is_watertight)
     if problems:
         tail = "" if mesh.is_watertight else "; volumes and dips are approximate"

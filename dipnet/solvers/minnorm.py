@@ -29,8 +29,8 @@ chamber box 128^2, 20      0.992   0.992   0.993   0.995
 
 Methods
 -------
-* ``cholesky``: the explicit sparse ``B`` (the splat backend's matrix, i.e. exactly the
-  operator's discretisation), dense ``B B^T + s I`` and a Cholesky factorisation. ``B B^T``
+* ``cholesky``: the explicit sparse ``B`` (the splat backend's matrix, exactly the splat and
+  rotate_sum operators; see :func:`matrix_backend` for fourier), dense ``B B^T + s I`` and a Cholesky factorisation. ``B B^T``
   is singular in practice - every profile sums to the object volume, so the rows of
   different orientations are linearly dependent, and slabs outside the working ball are
   empty rows - so the shift also makes the factorisation possible. With ``tikhonov=0``, or
@@ -41,7 +41,11 @@ Methods
   started at zero, so they converge to the minimum-norm (damped) solution; the damping is
   ``sqrt(s)`` with ``mean(diag(B B^T))`` estimated by seeded Hutchinson probes (within
   about 10%: the damping is a regularisation weight, not a precise constant).
-* ``auto``: ``cholesky`` when ``K*M <= max_cholesky_rows``, else ``lsmr``.
+* ``auto``: ``cholesky`` when ``K*M <= max_cholesky_rows`` and the operator has an explicit
+  matrix (:func:`matrix_backend`), else ``lsmr`` on the operator itself.
+
+Which operator and method a run used, and why, is in ``info["operator"]``, ``info["method"]``
+and ``info["operator_reason"]`` (logged, and written to ``metrics.json`` by the pipeline).
 
 The result keeps the raw least-squares values (they leave ``[0, 1]``); the threshold is
 Otsu's over the working-region voxels (or a given number).
@@ -49,6 +53,7 @@ Otsu's over the working-region voxels (or a given number).
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -60,20 +65,42 @@ from skimage.filters import threshold_otsu
 from tqdm.auto import tqdm
 
 from dipnet.measurement import DipMeasurement
-from dipnet.operators import DipOperator, make_operator
+from dipnet.operators import SPLAT_MATRIX_BACKENDS, DipOperator, backend_name, make_operator
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
+
+log = logging.getLogger(__name__)
 
 METHODS = ("auto", "cholesky", "lsqr", "lsmr")
 _HUTCHINSON_PROBES = 16
 
 
-def operator_matrix(operator: DipOperator) -> scipy.sparse.csr_matrix:
-    """The explicit ``(K*M, N^d)`` CSR matrix of ``operator``'s discretisation (float64).
+class OperatorChoiceError(ValueError):
+    """The chosen operator cannot serve the chosen method."""
 
-    Uses the backend's own ``to_sparse`` when it has one, else the splat backend built for
-    the same grid, directions and slabs (the backends share one discretisation).
+
+def matrix_backend(operator: DipOperator) -> str:
+    """The backend whose explicit matrix the Cholesky method factorises for ``operator``.
+
+    ``splat`` and ``rotate_sum`` (alias ``grid_sample``) are the same linear map, so their
+    matrix is the operator itself. A ``fourier`` operator has no explicit matrix; when
+    ``operator=auto`` chose it, the splat matrix stands in (the two discretisations differ by
+    0.2-0.6%, see README "Operators") and the solver's ``info`` says so; when the user chose
+    it, :class:`OperatorChoiceError` (building its ``B B^T`` would take one forward and adjoint
+    per row: about 800 s for 120 dips at 40^3).
     """
+    name = backend_name(operator)
+    if name in SPLAT_MATRIX_BACKENDS:
+        return name
+    if getattr(operator, "auto_selected", False):
+        return "splat"
+    raise OperatorChoiceError(f"minnorm method=cholesky needs an explicit matrix, which operator={name} does not "
+                              f"have: use solver.method=lsmr (matrix-free on {name}) or operator=splat")
+
+
+def operator_matrix(operator: DipOperator) -> scipy.sparse.csr_matrix:
+    """The explicit ``(K*M, N^d)`` CSR matrix (float64) for ``operator`` (see :func:`matrix_backend`)."""
+    matrix_backend(operator)
     if hasattr(operator, "to_sparse"):
         return operator.to_sparse()
     return make_operator(operator.grid, operator.directions, operator.n_slabs, backend="splat").to_sparse()
@@ -123,13 +150,17 @@ class MinNormSolver(Solver):
         """Reconstruct on ``operator.grid``; ``info`` holds method, seconds, iterations, residual."""
         g = measured_profiles(measurement, operator).reshape(-1).numpy()
         start = time.perf_counter()
-        method = self.method
-        if method == "auto":
-            method = "cholesky" if g.size <= self.max_cholesky_rows else "lsmr"
+        method, why = self._method_for(operator, g.size)
         if method == "cholesky":
+            used = matrix_backend(operator)
             f, info = self._solve_cholesky(operator, g)
         else:
+            used = backend_name(operator)
             f, info = self._solve_iterative(operator, g, method)
+        chosen = backend_name(operator)
+        if used != chosen:
+            why += f"; the {chosen} operator (chosen by operator=auto) has no explicit matrix, so its {used} equivalent"
+        log.info("minnorm: method %s on the %s operator (%s)", method, used, why)
         seconds = time.perf_counter() - start
         vol = torch.from_numpy(f.reshape(operator.grid.shape))
         with torch.no_grad():
@@ -138,9 +169,21 @@ class MinNormSolver(Solver):
         mask = operator.mask.cpu().numpy()
         level = otsu_threshold(f.reshape(operator.grid.shape)[mask]) if self.threshold == "otsu" \
             else float(self.threshold)
-        info = {"solver": self.name, "method": method, "tikhonov": self.tikhonov, "seconds": seconds,
-                "relative_residual": residual, **info}
+        info = {"solver": self.name, "method": method, "operator": used, "operator_reason": why,
+                "tikhonov": self.tikhonov, "seconds": seconds, "relative_residual": residual, **info}
         return Reconstruction(occupancy=vol.to(torch.float32), grid=operator.grid, threshold=level, info=info)
+
+    def _method_for(self, operator: DipOperator, rows: int) -> tuple[str, str]:
+        """The method for ``rows = K*M`` equations on ``operator`` and why it was taken."""
+        if self.method != "auto":
+            return self.method, f"method={self.method}"
+        if rows > self.max_cholesky_rows:
+            return "lsmr", f"method=auto: K*M = {rows} > max_cholesky_rows = {self.max_cholesky_rows}"
+        try:
+            matrix_backend(operator)
+        except OperatorChoiceError:
+            return "lsmr", f"method=auto: operator={backend_name(operator)} has no explicit matrix for Cholesky"
+        return "cholesky", f"method=auto: K*M = {rows} <= max_cholesky_rows = {self.max_cholesky_rows}"
 
     # ------------------------------------------------------------------ methods
     def _solve_cholesky(self, operator: DipOperator, g: np.ndarray) -> tuple[np.ndarray, dict]:

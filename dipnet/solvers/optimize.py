@@ -12,11 +12,12 @@ The data term is the (weighted) squared relative residual: 1 for an empty volume
 
 :class:`OptimisationSolver` holds the options shared by both solvers; :func:`optimise` runs
 Adam (with a cosine, step or constant learning-rate schedule) or L-BFGS, stops early when
-the loss stops changing, shows the terms in a progress bar and returns their history.
+the loss plateaus (:func:`plateaued`), shows the terms in a progress bar and returns their history.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -29,10 +30,12 @@ from tqdm.auto import tqdm
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
-from dipnet.operators import BACKENDS, DipOperator
+from dipnet.operators import DipOperator
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
 from dipnet.solvers.priors import build_priors
+
+log = logging.getLogger(__name__)
 
 OPTIMIZERS = ("adam", "lbfgs")
 SCHEDULES = ("cosine", "step", "constant")
@@ -158,8 +161,8 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         optimizer: ``"adam"`` or ``"lbfgs"``.
         schedule: Adam's learning-rate schedule: ``"cosine"`` (to 1% of ``lr``), ``"step"``
             (x0.3 at 50% and 75% of ``iterations``) or ``"constant"``.
-        tol: stop when the mean loss of the last ``window`` steps differs from that of the
-            ``window`` before by less than ``tol`` relative (``tol=0``: never stop early).
+        tol: stop when the best loss of the last ``window`` steps is less than ``tol`` relative
+            below the best before them (:func:`plateaued`; ``tol=0``: never stop early).
         progress: show a progress bar with the current terms.
         desc: progress-bar label.
         before_step: called with the progress fraction ``i / iterations`` before each step
@@ -212,7 +215,9 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
             bar.update()
             if not math.isfinite(history["loss"][-1]):
                 raise FloatingPointError(f"{desc}: the loss became {history['loss'][-1]} at step {i}")
-            if _converged(history["loss"], tol, window):
+            if plateaued(history["loss"], tol, window):
+                log.info("%s: loss plateaued at step %d of %d (best of the last %d steps < %.2g below "
+                         "the best before)", desc, i + 1, iterations, window, tol)
                 break
     return history
 
@@ -226,12 +231,18 @@ def _scheduler(opt: torch.optim.Optimizer, schedule: str, iterations: int):
     return None
 
 
-def _converged(loss: list[float], tol: float, window: int) -> bool:
+def plateaued(loss: Sequence[float], tol: float, window: int) -> bool:
+    """True when the best loss of the last ``window`` steps is less than ``tol`` (relative)
+    below the best loss before them: the run has stopped improving.
+
+    Uses minima, not means, so the step-to-step jitter of Adam neither hides a plateau nor
+    fakes progress; ``tol <= 0`` never stops.
+    """
     if tol <= 0 or len(loss) < 2 * window:
         return False
-    prev = sum(loss[-2 * window:-window]) / window
-    cur = sum(loss[-window:]) / window
-    return abs(prev - cur) <= tol * max(abs(prev), 1e-30)
+    best_before = min(loss[:-window])
+    best_recent = min(loss[-window:])
+    return best_before - best_recent <= tol * max(abs(best_before), 1e-30)
 
 
 def merge_histories(*histories: Mapping[str, list[float]]) -> dict[str, list[float]]:
@@ -241,14 +252,6 @@ def merge_histories(*histories: Mapping[str, list[float]]) -> dict[str, list[flo
         for key, values in hist.items():
             out.setdefault(key, []).extend(values)
     return out
-
-
-def backend_name(operator: DipOperator) -> str:
-    """The :data:`~dipnet.operators.BACKENDS` name of ``operator``'s class."""
-    for name, cls in BACKENDS.items():
-        if type(operator) is cls:
-            return name
-    raise ValueError(f"operator type {type(operator).__name__} is not a registered backend")
 
 
 @contextmanager
@@ -267,7 +270,8 @@ class OptimisationSolver(Solver):
         lr: learning rate (Adam) / initial step (L-BFGS).
         optimizer: ``"adam"`` or ``"lbfgs"``.
         schedule: ``"cosine"``, ``"step"`` or ``"constant"`` (Adam).
-        tol, window: early stopping on the relative loss change (see :func:`optimise`).
+        tol, window: stop when the loss improved by less than ``tol`` (relative) over the last
+            ``window`` steps (see :func:`plateaued`).
         priors: ``{name: {"weight": w, **options}}`` (see :func:`~dipnet.solvers.priors.build_priors`).
         warm_start: initial occupancy: ``None`` (uniform, at the measured volume), a tensor
             ``grid.shape``, a solver (its ``solve(measurement, operator)`` result, e.g. a
@@ -285,7 +289,7 @@ class OptimisationSolver(Solver):
     name = "optimisation"
 
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
-                 tol: float = 1e-5, window: int = 25, priors: Mapping[str, Mapping] | None = None,
+                 tol: float = 1e-3, window: int = 25, priors: Mapping[str, Mapping] | None = None,
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
                  progress: bool = True, hull_margin: float = 1.5) -> None:
         if optimizer not in OPTIMIZERS:

@@ -26,9 +26,9 @@ from torch import nn
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
-from dipnet.operators import DipOperator, make_operator
+from dipnet.operators import DipOperator, backend_name, make_operator
 from dipnet.reconstruction import Reconstruction
-from dipnet.solvers.optimize import OptimisationSolver, backend_name, merge_histories, seeded
+from dipnet.solvers.optimize import OptimisationSolver, merge_histories, seeded
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP] before taking logits
 MIN_COARSE_N = 8
@@ -120,4 +120,4 @@ class VoxelSolver(OptimisationSolver):
                 stage_info.append({"n": op.grid.n, "steps": len(histories[-1]["loss"])})
         occ = torch.sigmoid(logits) * mask
         return self._result(occ, operator, merge_histories(*histories), started, stages=stage_info,
-                            final_temperature=self.temperature(1.0), support_voxels=int(mask.sum()))
+                            final_temperature=temp["T"], support_voxels=int(mask.sum()))
