@@ -25,7 +25,7 @@ from dipnet.measurement import DipMeasurement
 from dipnet.physics import DipProtocol, Sensor, Tank, simulate_scan
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import RawScan
-from dipnet.rig.geometry import RigGeometry, invert_scan
+from dipnet.rig.geometry import RigGeometry, as_geometry, invert_scan
 
 
 def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs: int | None = None,
@@ -45,7 +45,8 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
             ``n_slabs`` (default 64) slabs over the shape's bounding sphere.
         tank, sensor, protocol: physics settings (defaults in the module docstring).
         step_mm: stage step (mm), overriding ``protocol.step_mm``.
-        geometry: the rig's true geometry, applied by the simulator (default: the ideal rig).
+        geometry: the rig's true geometry (or a mapping of its fields), applied by the simulator
+            (default: the ideal rig).
         reader_geometry: the geometry preprocessing assumes (:func:`~dipnet.rig.geometry.invert_scan`);
             default the ideal (nominal) rig. Equal to ``geometry``, the profiles are the ideal ones.
         smooth: apply the paper's 5-tap Gaussian to the profiles.
@@ -64,8 +65,8 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
     if edges is None and grid is None:
         r = float(shape.radius())
         edges = np.linspace(-r, r, (64 if n_slabs is None else int(n_slabs)) + 1)
-    raw = simulate_scan(shape, directions, tank=tank, sensor=sensor, protocol=protocol, geometry=geometry,
-                        seed=seed, progress=progress)
-    read = raw if reader_geometry is None else invert_scan(raw, reader_geometry)
+    raw = simulate_scan(shape, directions, tank=tank, sensor=sensor, protocol=protocol,
+                        geometry=as_geometry(geometry), seed=seed, progress=progress)
+    read = raw if reader_geometry is None else invert_scan(raw, as_geometry(reader_geometry))
     measurement = preprocess(read, edges=edges, grid=grid, n_slabs=n_slabs, smooth=smooth, t_start=t_start)
     return raw, measurement

@@ -5,7 +5,7 @@ Format (YAML or JSON by suffix, version 1)::
     format: dipnet.rig_calibration
     version: 1
     rig: fake-grbl            # the rig's identity, as scans record it (ScanHeader.rig)
-    tank: lab-tank-1          # the tank's identity (scans record it as header.config["tank"])
+    tank: lab-tank-1          # the tank's identity (scans record it as header.config["tank_id"])
     method: reference         # reference | self | manual
     created: 2026-11-23T11:00:00+0000
     geometry:                 # RigGeometry fields; omitted ones are ideal
@@ -39,7 +39,7 @@ FORMAT_NAME = "dipnet.rig_calibration"
 FORMAT_VERSION = 1
 METHODS = ("reference", "self", "manual")
 _KEYS = {"format", "version", "rig", "tank", "method", "created", "geometry", "uncertainty", "notes"}
-TANK_CONFIG_KEY = "tank"  # ScanHeader.config key holding the tank's identity
+TANK_CONFIG_KEY = "tank_id"  # ScanHeader.config key holding the tank's identity
 
 
 class CalibrationFileError(ValueError):
@@ -53,7 +53,7 @@ class Calibration:
     Attributes:
         geometry: the calibrated geometry.
         rig: the rig's identity (matches :attr:`ScanHeader.rig`).
-        tank: the tank's identity (matches ``ScanHeader.config["tank"]`` when a scan records it).
+        tank: the tank's identity (matches ``ScanHeader.config["tank_id"]`` when a scan records it).
         method: how it was obtained: ``reference`` | ``self`` | ``manual``.
         uncertainty: standard errors per geometry field (same units), if known.
         notes: free text.
@@ -133,5 +133,5 @@ def check_identity(calibration: Calibration, rig: str | None, tank: str | None, 
 
 def scan_calibration(path: str | Path, header: ScanHeader) -> Calibration:
     """Load the calibration at ``path`` for a scan: its rig must be the scan's, and its tank the
-    scan's when the scan records one (``header.config["tank"]``)."""
+    scan's when the scan records one (``header.config["tank_id"]``)."""
     return load_calibration(path, rig=header.rig, tank=header.config.get(TANK_CONFIG_KEY))

@@ -48,7 +48,7 @@ import torch
 from dipnet.physics import Tank
 from dipnet.rig import grbl, marlin, sensors
 from dipnet.rig.controller import AxisMap, Position
-from dipnet.rig.geometry import RigGeometry
+from dipnet.rig.geometry import RigGeometry, as_geometry
 
 DEVICES = ("grbl", "marlin", "level", "modbus", "ad", "sics")
 FAULTS = ("drop", "error", "alarm", "reset", "disconnect", "resend", "unstable")
@@ -147,7 +147,7 @@ class FakeRig:
         self.tank = tank or Tank.default(3)
         r = float(shape.radius())
         self.origin_height_mm = r + 10.0 if origin_height_mm is None else float(origin_height_mm)
-        geometry = geometry if isinstance(geometry, RigGeometry) else RigGeometry.from_dict(geometry)
+        geometry = as_geometry(geometry)
         self.geometry = geometry.with_values(pivot_mm=float(pivot_mm)) if pivot_mm else geometry
         self.created = time.monotonic()
         self.axes = axes if isinstance(axes, AxisMap) else AxisMap.from_config(axes)

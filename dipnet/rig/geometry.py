@@ -181,7 +181,11 @@ class RigGeometry:
         return level - self.level_drift_mm_per_s * time_s
 
 
-IDEAL = RigGeometry()
+def as_geometry(value) -> RigGeometry:
+    """A :class:`RigGeometry` from itself, a mapping of its fields (e.g. a Hydra config) or ``None`` (ideal)."""
+    if isinstance(value, RigGeometry):
+        return value
+    return RigGeometry.from_dict(None if value is None else {str(k): v for k, v in dict(value).items()})
 
 
 def scan_geometry(header: ScanHeader) -> RigGeometry:

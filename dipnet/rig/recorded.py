@@ -44,7 +44,7 @@ from dipnet.orientations import fibonacci_hemisphere
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, read_rawscan
 from dipnet.rig.calibration_file import scan_calibration
-from dipnet.rig.geometry import RigGeometry, invert_scan
+from dipnet.rig.geometry import RigGeometry, as_geometry, invert_scan
 
 AUTHORS_COLUMNS = ("SN", "R1_deg", "R2_deg", "Height_mm", "WaterLevel_mm")
 AUTHORS_TANK_MM2 = 540.0 * 340.0  # the authors' value for the 3 mm cats recording
@@ -346,40 +346,20 @@ def interpolate_orientations(measurement: DipMeasurement, targets, k: int = 3, m
 
 
 # ============================================================================ the reader
-def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
-                  cross_section_mm2: float | None = None, fixture: str | Path | None = None,
-                  t_start: str | float = "geometry", geometry: RigGeometry | dict | None = None,
-                  calibration: str | Path | None = None, centre: str = "extent",
-                  truncated: str = "drop", tail_fraction: float = 0.1, tail_tol: float = 0.04,
-                  smooth: bool = True, symmetry: dict | None = None, interpolate: dict | None = None
-                  ) -> DipMeasurement:
-    """A recorded scan (dipnet ``.jsonl`` or the authors' ``.csv``) as a measurement on ``grid``.
+def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = None, fixture: str | Path | None = None,
+                      geometry: RigGeometry | dict | None = None, calibration: str | Path | None = None,
+                      centre: str = "extent", truncated: str = "drop", tail_fraction: float = 0.1,
+                      tail_tol: float = 0.04) -> tuple[RawScan, RigGeometry, dict]:
+    """A recording made ready for :func:`~dipnet.rig.geometry.invert_scan` and preprocessing.
 
-    Args:
-        path: the recording.
-        grid, n_slabs: the reconstruction grid and slab count (default ``grid.n``).
-        cross_section_mm2: tank free cross-section (default: the file's; the authors' CSV: 183,600).
-        fixture: a fixture-only recording to subtract (:func:`subtract_fixture`).
-        t_start: ``"geometry"``: the recording's start heights moved by the geometry
-            (:func:`~dipnet.rig.geometry.invert_scan`), placed by :func:`geometry_start_heights`
-            with ``centre`` when the recording has none; or any ``t_start`` of
-            :func:`dipnet.preprocess.preprocess`.
-        geometry: the rig geometry (:class:`~dipnet.rig.geometry.RigGeometry` or its fields),
-            e.g. ``{pivot_mm: 188, tilt_axis_offset_mm: 18}``; default the ideal rig.
-        calibration: a rig calibration file instead of ``geometry``
-            (:func:`~dipnet.rig.calibration_file.scan_calibration`: it must be the recording's
-            rig and tank). Its cross-section wins over the file's unless ``cross_section_mm2`` is given.
-        centre: see :func:`geometry_start_heights`.
-        truncated: ``"drop"`` or ``"keep"`` dips that were still rising when the scan stopped
-            (:func:`truncated_orientations` with ``tail_fraction``, ``tail_tol``); kept ones
-            are continued flat, which puts no volume beyond the scanned range.
-        smooth: the paper's 5-tap Gaussian.
-        symmetry: ``{n_fold, mirror, mirror_azimuth_deg, tol_deg}`` for :func:`expand_symmetry`.
-        interpolate: ``{n, k, max_angle_deg}``: Fibonacci-hemisphere targets for
-            :func:`interpolate_orientations`.
+    Reads the file, resolves the geometry (``geometry`` values or a ``calibration`` file),
+    subtracts a fixture recording (in the rig's commanded coordinates with the geometry's
+    cross-section), keeps complete dips, drops or keeps truncated ones and, when the recording
+    does not know its start height (the authors' CSV), gives every dip ``t_start_mm = t0``
+    placed by :func:`geometry_start_heights` (the geometry's height shift is *not* in it:
+    ``invert_scan`` adds it). Arguments as for :func:`read_recorded`.
 
-    Returns:
-        The measurement, ``metadata["recorded"]`` holding what was done (fit, dropped dips, counts).
+    Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``.
     """
     raw = read_scan(path, cross_section_mm2)
     if calibration is not None and geometry is not None:
@@ -388,36 +368,36 @@ def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
         geometry = scan_calibration(calibration, raw.header).geometry
         if cross_section_mm2 is not None:
             geometry = geometry.with_values(cross_section_mm2=float(cross_section_mm2))
-    geometry = geometry if isinstance(geometry, RigGeometry) else RigGeometry.from_dict(geometry)
-    raw = invert_scan(raw, geometry)
-    area = float(raw.header.tank_cross_section_mm2 or 0.0)
+    geometry = as_geometry(geometry)
+    area = geometry.area(raw.header.tank_cross_section_mm2 or 0.0)
     if not area > 0:
         raise ValueError(f"{path}: the tank cross-section is unknown: set cross_section_mm2")
     if fixture is not None:
-        raw = subtract_fixture(raw, invert_scan(read_scan(fixture, cross_section_mm2), geometry), area)
+        raw = subtract_fixture(raw, read_scan(fixture, cross_section_mm2), area)
     raw.orientations = [o for o in raw.orientations if o.complete]
     cut = truncated_orientations(raw, tail_fraction, tail_tol)
-    info: dict = {"truncated": cut, "truncated_policy": truncated}
+    info: dict = {"truncated": cut, "truncated_policy": truncated, "geometry": geometry.to_dict()}
     if truncated == "drop":
         if len(cut) == len(raw.orientations):
             raise ValueError(f"{path}: every dip is truncated; use truncated='keep'")
         raw.orientations = [o for o in raw.orientations if o.k not in cut]
     elif truncated != "keep":
         raise ValueError(f"truncated must be 'drop' or 'keep', got {truncated!r}")
-    info["geometry"] = geometry.to_dict()
-    if t_start == "geometry":
-        known = all(o.meta.get("t_start_mm", raw.header.t_start_mm) is not None for o in raw.orientations)
-        if not known:
-            complete = [i for i, o in enumerate(raw.orientations) if o.k not in cut]
-            starts, placed = geometry_start_heights(raw, area, geometry, complete, centre)
-            for o, t0 in zip(raw.orientations, starts):
-                o.meta = {**o.meta, "t_start_mm": float(t0)}
-            info["start_heights"] = placed
-        t_start = "metadata"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        m = preprocess(raw, grid=grid, n_slabs=n_slabs, cross_section_mm2=area, t_start=t_start, smooth=smooth)
-    info["measured_orientations"] = m.n_orientations
+    if any(o.meta.get("t_start_mm", raw.header.t_start_mm) is None for o in raw.orientations):
+        complete = [i for i, o in enumerate(raw.orientations) if o.k not in cut]
+        _, placed = geometry_start_heights(invert_scan(raw, geometry), area, geometry, complete, centre)
+        for o in raw.orientations:
+            o.meta = {**o.meta, "t_start_mm": placed["t0_mm"]}
+        info["start_heights"] = placed
+    return raw, geometry, info
+
+
+def finish_measurement(measurement: DipMeasurement, symmetry: dict | None = None,
+                       interpolate: dict | None = None) -> DipMeasurement:
+    """The readers' last steps: symmetry expansion (``{n_fold, mirror, mirror_azimuth_deg, tol_deg}``,
+    :func:`expand_symmetry`) and interpolation (``{n, k, max_angle_deg}``: Fibonacci-hemisphere
+    targets for :func:`interpolate_orientations`)."""
+    m = measurement
     if symmetry:
         sym = dict(symmetry)
         tol = float(sym.pop("tol_deg", 0.5))
@@ -425,6 +405,48 @@ def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
     if interpolate:
         opts = dict(interpolate)
         m = interpolate_orientations(m, fibonacci_hemisphere(int(opts.pop("n"))), **opts)
-    m.metadata = {**m.metadata, "recorded": info, "path": str(path)}
     return m
 
+
+def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *, t_start: str | float = "geometry",
+                  smooth: bool = True, symmetry: dict | None = None, interpolate: dict | None = None,
+                  **options) -> DipMeasurement:
+    """A recorded scan (dipnet ``.jsonl`` or the authors' ``.csv``) as a measurement on ``grid``.
+
+    Args:
+        path: the recording.
+        grid, n_slabs: the reconstruction grid and slab count (default ``grid.n``).
+        t_start: ``"geometry"``: the recording's start heights moved by the geometry
+            (:func:`~dipnet.rig.geometry.invert_scan`), placed by :func:`geometry_start_heights`
+            with ``centre`` when the recording has none; or any ``t_start`` of
+            :func:`dipnet.preprocess.preprocess`.
+        smooth: the paper's 5-tap Gaussian.
+        symmetry, interpolate: see :func:`finish_measurement`.
+        options: for :func:`prepare_recording`:
+
+            * ``cross_section_mm2``: tank free cross-section (default: the file's; the authors'
+              CSV: 183,600);
+            * ``fixture``: a fixture-only recording to subtract (:func:`subtract_fixture`);
+            * ``geometry``: the rig geometry (:class:`~dipnet.rig.geometry.RigGeometry` or its
+              fields, e.g. ``{pivot_mm: 188, tilt_axis_offset_mm: -18}``); default the ideal rig;
+            * ``calibration``: a rig calibration file instead of ``geometry``
+              (:func:`~dipnet.rig.calibration_file.scan_calibration`: it must be the
+              recording's rig and tank); its cross-section wins unless ``cross_section_mm2`` is given;
+            * ``centre``: see :func:`geometry_start_heights`;
+            * ``truncated``: ``"drop"`` or ``"keep"`` dips that were still rising when the scan
+              stopped (:func:`truncated_orientations` with ``tail_fraction``, ``tail_tol``);
+              kept ones are continued flat, which puts no volume beyond the scanned range.
+
+    Returns:
+        The measurement, ``metadata["recorded"]`` holding what was done (geometry, start heights,
+        dropped dips, counts).
+    """
+    raw, geometry, info = prepare_recording(path, **options)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        m = preprocess(invert_scan(raw, geometry), grid=grid, n_slabs=n_slabs,
+                       t_start="metadata" if t_start == "geometry" else t_start, smooth=smooth)
+    info["measured_orientations"] = m.n_orientations
+    m = finish_measurement(m, symmetry, interpolate)
+    m.metadata = {**m.metadata, "recorded": info, "path": str(path)}
+    return m
