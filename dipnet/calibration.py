@@ -147,8 +147,9 @@ class ProfileModel:
         self.nominal_area = float(raw.header.tank_cross_section_mm2 or 0.0)
         self._operators: dict[bytes, Any] = {}
 
-    def measurement(self, state: State, gauge: dict[str, float] | None = None) -> DipMeasurement:
-        """The measurement the readers would make with ``state``; ``gauge`` moves / turns the object."""
+    def measurement(self, state: State, gauge: dict[str, float] | None = None, finish: bool = True) -> DipMeasurement:
+        """The measurement the readers would make with ``state``; ``gauge`` moves / turns the object;
+        ``finish=False`` skips :attr:`finish` (the measured dips only)."""
         inverted = invert_scan(self.raw, state.geometry)
         gauge = gauge or {}
         shift = np.array([gauge.get(k, 0.0) for k in ("shift_x_mm", "shift_y_mm", "shift_z_mm")])
@@ -160,7 +161,7 @@ class ProfileModel:
             o.meta["t_start_mm"] = float(o.meta.get("t_start_mm", inverted.header.t_start_mm)) + extra \
                 + float(shift @ direction)
         m = preprocess(inverted, grid=self.grid, n_slabs=self.n_slabs, t_start="metadata", smooth=self.smooth)
-        return m if self.finish is None else self.finish(m)
+        return m if self.finish is None or not finish else self.finish(m)
 
     def moment_residual(self, state: State, gauge: dict[str, float] | None = None) -> np.ndarray:
         """Whitened residual of the Radon range conditions of the first two moments, ``(2 K,)``.
@@ -170,8 +171,9 @@ class ProfileModel:
         second-moment matrix over its volume), whatever the shape. ``c`` and ``S`` are fitted
         linearly; what is left measures how far the geometry is from making the dips one
         rigid object. Units: the first moments in 0.1 slab, the second in 0.1 slab x the grid radius.
+        Only the measured dips count (no symmetry images or interpolated ones).
         """
-        m = self.measurement(state, gauge)
+        m = self.measurement(state, gauge, finish=False)
         edges = m.offsets[0].item() + m.slab_thickness * np.arange(m.n_slabs + 1)
         t = 0.5 * (edges[1:] + edges[:-1])
         p = m.profiles.numpy()
@@ -318,7 +320,7 @@ def identifiability(model: ProfileModel, occupancy: torch.Tensor | None, state: 
             return model.residual(trial, occupancy, sigma, gauge)
     names = list(params) + (list(GAUGES) if gauges else [])
     base = residual(state)
-    columns = []
+    columns, kept = [], []
     for name in names:
         if name in GAUGES:
             h = 0.5 if name.startswith("shift") else 0.2
@@ -328,7 +330,15 @@ def identifiability(model: ProfileModel, occupancy: torch.Tensor | None, state: 
             value = _get(state, name, area)
             plus = residual(_with(state, {name: value + h}))
             minus = residual(_with(state, {name: value - h}))
+        if plus.shape != base.shape or minus.shape != base.shape:  # symmetry images merged differently
+            if name in GAUGES:
+                log.info("identifiability: gauge %s changes the symmetry-expanded directions; left out", name)
+                continue
+            raise CalibrationError(f"{name} changes which symmetry images coincide: calibrate it without "
+                                   "the symmetry expansion")
         columns.append((plus - minus) / (2 * h))
+        kept.append(name)
+    names = kept
     jac = np.stack(columns, axis=1)
     dof = max(1, base.size - len(names))
     s2 = float(base @ base) / dof
@@ -467,6 +477,8 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     if rigid:  # fit, judge at the estimate, refit without what the data do not determine
         fitted, _ = fit_geometry(model, None, state, rigid, max_nfev=max_nfev)
         moments = identifiability(model, None, fitted, rigid)
+        history.append({"stage": "moments, all parameters", **{p: _get(fitted, p, model.nominal_area) for p in params},
+                        **{f"se_{p}": moments.standard_errors[p] for p in rigid}})
         active = tuple(p for p in rigid if p not in moments.undetermined)
         if active != rigid and active:
             fitted, _ = fit_geometry(model, None, state, active, max_nfev=max_nfev)
