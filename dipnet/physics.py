@@ -5,8 +5,10 @@ Model, per orientation ``theta`` (unit "up" vector in the object frame)
 Heights ``t`` are measured along ``theta`` in the object frame (mm); ``V(t)`` is the volume
 of the object below the plane ``x . theta = t`` (:meth:`Shape.volume_below`). At the first
 reading (stage position ``s_0 = 0``) the water line sits at ``t_start = -(R + clearance)``,
-below the object's bounding sphere of radius ``R`` (the rig's rotation centre is the
-object's origin, so ``t_start`` is the same for every orientation). At reading ``i`` the stage
+below the object's bounding sphere of radius ``R``; on the ideal rig (rotation centre at the
+object's origin) that holds for every orientation, a real rig's geometry
+(:class:`~dipnet.rig.geometry.RigGeometry`: pivot, tilt-axis offset, zero offsets, step scale,
+cross-section, drift, lag) moves it per dip and :func:`simulate_scan` applies it. At reading ``i`` the stage
 has lowered the object by ``s_i = i d`` and the water has risen by ``delta_i``, so the water
 line is at ``t_i = t_start + s_i + delta_i`` and Archimedes gives the fixed point
 
