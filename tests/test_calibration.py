@@ -13,7 +13,7 @@ from dipnet.grid import Grid
 from dipnet.orientations import fibonacci_hemisphere, rig_to_direction
 from dipnet.physics import DipProtocol, LevelSensor, Tank, simulate_scan
 from dipnet.rawscan import ScanHeader
-from dipnet.rig.calibration_file import load_calibration
+from dipnet.rig.calibration_file import Calibration, load_calibration, save_calibration
 from dipnet.rig.fake import FakeRig
 from dipnet.rig.geometry import RigGeometry
 from dipnet.rig.grbl import GrblController
@@ -30,20 +30,24 @@ FAKE_TRUTH = RigGeometry(pivot_mm=20.0, tilt_axis_offset_mm=10.0, tilt_zero_deg=
 MISMATCH = RigGeometry(pivot_mm=20.0, tilt_axis_offset_mm=15.0, tilt_zero_deg=1.0, cross_section_mm2=0.92 * 60000.0)
 
 
-@pytest.fixture(scope="module")
-def ball_scan(tmp_path_factory):
-    """A reference ball dipped on a fake GRBL rig whose true geometry is FAKE_TRUTH (the rig is told: ideal)."""
+def scan_ball(path, plan_geometry: RigGeometry | None = None):
+    """A reference ball dipped on a fake GRBL rig whose true geometry is FAKE_TRUTH; the runner is told
+    ``plan_geometry`` (default: the ideal rig)."""
     world = FakeRig(Ball(RADIUS), tank=Tank(cross_section_mm2=AREA), origin_height_mm=40.0, geometry=FAKE_TRUTH,
                     level_quantum_mm=0.001, name="calibration-rig").register()
     plan = ScanPlan(plan_orientations("grid", tilts=[0.0, 25.0, 50.0, 70.0], spins=[0.0, 180.0]), start_mm=0.0,
-                    stop_mm=95.0, step_mm=1.5, origin_height_mm=40.0)
-    path = tmp_path_factory.mktemp("ball") / "ball.jsonl"
+                    stop_mm=95.0, step_mm=1.5, origin_height_mm=40.0, geometry=plan_geometry or RigGeometry())
     header = ScanHeader(quantity="level_mm", tank_cross_section_mm2=AREA, step_mm=plan.step_mm, resolution=0.001,
                         rig="fake-grbl", config={"tank_id": "tank-1"})
     ScanRunner(GrblController(world.url("grbl"), timeout=0.3, move_timeout=2.0),
                LineSensor(world.url("level"), pattern=r"L=(?P<value>[-+\d.]+)\s*(?P<unit>mm)"), plan, path, header,
                progress=False, fsync=False).run()
     return path
+
+
+@pytest.fixture(scope="module")
+def ball_scan(tmp_path_factory):
+    return scan_ball(tmp_path_factory.mktemp("ball") / "ball.jsonl")
 
 
 def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
@@ -110,3 +114,16 @@ def test_small_tilts_warn_naming_the_parameters():
     with pytest.warns(UserWarning, match="pivot_mm is not identifiable"):
         result = self_calibrate(raw, Grid(24, extent=100.0), MinNormSolver(progress=False), params)
     assert result.geometry.pivot_mm == 0.0 and result.geometry.spin_zero_deg == 0.0
+
+
+def test_a_scan_with_the_calibration_reads_right(tmp_path):
+    """A scan run with the calibrated geometry records its start heights with it (and the geometry in its
+    header); the reader given the same file adds only what the runner did not: no height is shifted twice."""
+    cal = Calibration(FAKE_TRUTH, rig="fake-grbl", tank="tank-1")
+    file = save_calibration(cal, tmp_path / "cal.yaml")
+    path = scan_ball(tmp_path / "calibrated.jsonl", FAKE_TRUTH)
+    grid = Grid(32, extent=80.0)
+    m = read_recorded(path, grid, smooth=False, calibration=file)
+    centroids = (m.profiles.numpy() @ (np.arange(32) + 0.5 - 16) * grid.voxel_size) / m.profiles.sum(1).numpy()
+    assert np.abs(centroids).max() < 0.3
+    assert m.volume_estimate() == pytest.approx(Ball(RADIUS).volume, rel=0.01)
