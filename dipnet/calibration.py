@@ -21,9 +21,9 @@ Gaussian prior of ``dip_offset_sigma_mm``).
 What the data determine (:func:`identifiability`): from the Gauss-Newton Hessian ``J^T J`` of
 the data term at the estimate, standard errors ``sqrt(diag(s^2 (J^T J)^-1))`` (``s^2`` the
 residual variance) and correlations. For self-calibration ``J`` also holds the *gauge*
-directions of the unknown shape: moving it (``shift_*_mm``: ``t_k += v . theta_k``) or
-turning it (``rot_*_deg``: the directions turn instead), which the shape step can always
-absorb. A parameter whose standard error exceeds its tolerance (:data:`TOLERANCE`) is not
+directions of the unknown shape: moving it (``shift_*_mm``: ``t_k += v . theta_k``),
+turning it (``rot_*_deg``: the directions turn instead) or growing it (``dilate_mm``: the
+surface moves outward, ``f += d |grad f|``), which the shape step can always absorb. A parameter whose standard error exceeds its tolerance (:data:`TOLERANCE`) is not
 identifiable from the plan; the partner it is most correlated with is named (e.g. the spin
 zero offset is the object's own rotation about the spin axis; the pivot with a free ``t0_mm``
 is the object's position along the spin axis). Self-calibration warns and keeps such
@@ -70,6 +70,7 @@ GAUGES: dict[str, str] = {
     "shift_x_mm": "the object's position along x", "shift_y_mm": "the object's position along y",
     "shift_z_mm": "the object's position along the spin axis", "rot_x_deg": "the object's rotation about x",
     "rot_y_deg": "the object's rotation about y", "rot_z_deg": "the object's rotation about the spin axis",
+    "dilate_mm": "the object's surface moving outward: a fatter or thinner object",
 }
 DEFAULT_SELF = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "cross_section_mm2")
 
@@ -316,14 +317,17 @@ def identifiability(model: ProfileModel, occupancy: torch.Tensor | None, state: 
         def residual(trial: State, gauge=None) -> np.ndarray:
             return model.moment_residual(trial, gauge)
     else:
+        surface = _surface_density(occupancy, model.grid)
+
         def residual(trial: State, gauge=None) -> np.ndarray:
-            return model.residual(trial, occupancy, sigma, gauge)
+            gauge = dict(gauge or {})
+            return model.residual(trial, occupancy + gauge.pop("dilate_mm", 0.0) * surface, sigma, gauge)
     names = list(params) + (list(GAUGES) if gauges else [])
     base = residual(state)
     columns, kept = [], []
     for name in names:
         if name in GAUGES:
-            h = 0.5 if name.startswith("shift") else 0.2
+            h = 0.2 if name.startswith("rot") else 0.5 if name.startswith("shift") else 0.1 * model.grid.voxel_size
             plus, minus = residual(state, {name: h}), residual(state, {name: -h})
         else:
             h = float(_scales([name], area)[0])
@@ -366,6 +370,14 @@ def identifiability(model: ProfileModel, occupancy: torch.Tensor | None, state: 
                 f"; degenerate with {names[j]} ({GAUGES.get(names[j], 'a rig parameter')}, correlation {corr[i, j]:+.3f})"
             report.undetermined[name] = f"standard error {se[i]:.3g} > {tol:.3g}{partner}"
     return report
+
+
+def _surface_density(occupancy: torch.Tensor, grid: Grid) -> torch.Tensor:
+    """``|grad f|`` (1/mm, central differences): moving the surface of ``f`` outward by ``d`` mm adds
+    about ``d |grad f|`` to the occupancy (the dilation gauge)."""
+    f = occupancy.detach().numpy()
+    gradient = np.gradient(f, grid.voxel_size)
+    return torch.from_numpy(np.sqrt(sum(g**2 for g in gradient)))
 
 
 def _warn_undetermined(report: CalibrationReport, what: str) -> None:
@@ -498,14 +510,21 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     for row in history:
         log.info("self-calibration %s", ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items()))
+    if volume_params:  # judged with the last shape (and its dilation gauge); undetermined -> kept at the start
+        report = _merge_reports(model, state, moments, volume_params, occupancy, sigma)
+        report.caveats["cross_section_mm2"] = (
+            "estimated only through the solver's nearly binary shape, which can also grow or shrink "
+            "(the dilate_mm gauge); prefer a reference object of known volume")
+        if "cross_section_mm2" in report.undetermined:
+            start = (initial or RigGeometry()).cross_section_mm2
+            state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=start))
+            kept = _get(state, "cross_section_mm2", model.nominal_area)
+            report.estimates["cross_section_mm2"] = kept
+            report.caveats["cross_section_mm2"] += f"; not determined, kept at {kept:.6g} mm^2"
     measurement = model.measurement(state)
     recon = solver.solve(measurement, model.operator(measurement.directions))
-    report = _merge_reports(model, state, moments, volume_params, _shape_volume(recon, shape), sigma)
-    if volume_params:
-        report.caveats["cross_section_mm2"] = (
-            "estimated only through the solver's nearly binary shape; its standard error is conditional on "
-            "that shape and does not hold the solver's bias (measured: +0.6 % on the bunny at 32^3, +11 % on "
-            "the hollow chamber_box at 24^3): prefer a reference object of known volume")
+    if not volume_params:
+        report = _merge_reports(model, state, moments, volume_params, _shape_volume(recon, shape), sigma)
     _warn_undetermined(report, "self-calibration")
     measurement.metadata = {**measurement.metadata, "self_calibration": report.to_dict(),
                             "geometry": state.geometry.to_dict(), "t0_mm": state.t0_mm}

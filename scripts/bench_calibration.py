@@ -97,16 +97,17 @@ def main(argv=None) -> list[dict]:
             rows.append({"mesh": name, "case": case, "chamfer": scores["chamfer"], "iou": scores["iou"],
                          "seconds": seconds})
             print(f"{name:<10} {case:<11} {scores['chamfer']:8.4f} {scores['iou']:6.3f} {seconds:7.1f}", flush=True)
-        g = calibrated.geometry
+        g, report = calibrated.geometry, calibrated.report
+        section = g.area(tank.cross_section_mm2)
         err = {"pivot": abs(g.pivot_mm - true.pivot_mm), "offset": abs(g.tilt_axis_offset_mm - true.tilt_axis_offset_mm),
-               "section": abs(g.cross_section_mm2 / true.cross_section_mm2 - 1.0)}
+               "section": abs(section / true.cross_section_mm2 - 1.0)}
         errors.append(err)
-        se = calibrated.report.standard_errors
+        se = report.standard_errors
         print(f"{name:<10} fitted pivot {g.pivot_mm:.2f} +- {se['pivot_mm']:.2f} mm (true 20), offset "
               f"{g.tilt_axis_offset_mm:.2f} +- {se['tilt_axis_offset_mm']:.2f} mm (15), R1 zero {g.tilt_zero_deg:.2f} "
-              f"+- {se['tilt_zero_deg']:.2f} deg (1), section {g.cross_section_mm2:.0f} +- "
+              f"+- {se['tilt_zero_deg']:.2f} deg (1), section {section:.0f} +- "
               f"{se['cross_section_mm2']:.0f} mm^2 (true {true.cross_section_mm2:.0f}, nominal "
-              f"{tank.cross_section_mm2:.0f})", flush=True)
+              f"{tank.cross_section_mm2:.0f}); undetermined: {sorted(report.undetermined) or 'none'}", flush=True)
     mean = {c: statistics.fmean(r["chamfer"] for r in rows if r["case"] == c) for c in ("nominal", "calibrated", "true")}
     print(f"\nmean Chamfer over {len(args.meshes)} mesh(es) at {args.n}^3, {args.dips} dips, {args.snr:g} dB: "
           + ", ".join(f"{c} {v:.4f}" for c, v in mean.items()))

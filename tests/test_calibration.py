@@ -85,7 +85,7 @@ def test_reference_calibration_refuses_the_wrong_object(ball_scan):
 
 def test_self_calibration_recovers_pivot_offset_and_tilt_zero():
     """The bench's mismatch on a small noisy problem: heights and directions come back; the
-    cross-section is estimated too but flagged (its error is the solver's, see the caveat)."""
+    cross-section is found degenerate with the shape's own dilation, named, and kept."""
     shape = Box((20.0, 12.0, 16.0), (4.0, -3.0, 2.0))
     raw = simulate_scan(shape, fibonacci_hemisphere(40), tank=Tank(60000.0), sensor=LevelSensor(snr_db=30.0),
                         geometry=MISMATCH, protocol=DipProtocol(step_mm=1.0), progress=False)
@@ -96,9 +96,10 @@ def test_self_calibration_recovers_pivot_offset_and_tilt_zero():
     g, report = result.geometry, result.report
     assert g.pivot_mm == pytest.approx(20.0, abs=1.0) and g.tilt_axis_offset_mm == pytest.approx(15.0, abs=1.0)
     assert g.tilt_zero_deg == pytest.approx(1.0, abs=0.3)
-    assert report.standard_errors["pivot_mm"] < 1.0 and not report.undetermined
+    assert report.standard_errors["pivot_mm"] < 1.0
     assert abs(g.pivot_mm - 20.0) < 4 * report.standard_errors["pivot_mm"] + 0.3  # the error bars mean something
-    assert "cross_section_mm2" in report.caveats and "cross_section_mm2" in report.estimates
+    assert set(report.undetermined) == {"cross_section_mm2"} and "dilate_mm" in report.undetermined["cross_section_mm2"]
+    assert g.cross_section_mm2 is None and report.estimates["cross_section_mm2"] == 60000.0  # kept, not guessed
 
 
 def test_small_tilts_warn_naming_the_parameters():
