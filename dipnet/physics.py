@@ -5,8 +5,10 @@ Model, per orientation ``theta`` (unit "up" vector in the object frame)
 Heights ``t`` are measured along ``theta`` in the object frame (mm); ``V(t)`` is the volume
 of the object below the plane ``x . theta = t`` (:meth:`Shape.volume_below`). At the first
 reading (stage position ``s_0 = 0``) the water line sits at ``t_start = -(R + clearance)``,
-below the object's bounding sphere of radius ``R`` (the rig's rotation centre is the
-object's origin, so ``t_start`` is the same for every orientation). At reading ``i`` the stage
+below the object's bounding sphere of radius ``R``; on the ideal rig (rotation centre at the
+object's origin) that holds for every orientation, a real rig's geometry
+(:class:`~dipnet.rig.geometry.RigGeometry`: pivot, tilt-axis offset, zero offsets, step scale,
+cross-section, drift, lag) moves it per dip and :func:`simulate_scan` applies it. At reading ``i`` the stage
 has lowered the object by ``s_i = i d`` and the water has risen by ``delta_i``, so the water
 line is at ``t_i = t_start + s_i + delta_i`` and Archimedes gives the fixed point
 
@@ -32,7 +34,7 @@ and quantisation, in that order.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -40,6 +42,7 @@ import torch
 from tqdm.auto import tqdm
 
 from dipnet.rawscan import WATER_DENSITY_G_PER_MM3, OrientationScan, RawScan, ScanHeader
+from dipnet.rig.geometry import RigGeometry
 
 _TABLE_POINTS = 4097  # heights in the V(t) table per orientation
 _NEWTON_STEPS = 4
@@ -272,22 +275,29 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
 
 
 def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor | None = None,
-                  protocol: DipProtocol | None = None, seed: int | None = None,
-                  progress: bool = True) -> RawScan:
+                  protocol: DipProtocol | None = None, geometry: RigGeometry | None = None,
+                  seed: int | None = None, progress: bool = True) -> RawScan:
     """Dip ``shape`` along every direction and record what the rig would: a :class:`RawScan`.
 
     Args:
         shape: a :class:`~dipnet.shapes.Shape` (its exact ``volume_below`` is the physics).
-        directions: unit "up" vectors ``(K, ndim)`` (torch or numpy).
-        tank: default :meth:`Tank.default` for the shape's ``ndim``.
+        directions: commanded unit "up" vectors ``(K, ndim)`` (torch or numpy).
+        tank: default :meth:`Tank.default` for the shape's ``ndim``; the *nominal* tank.
         sensor: default ``LevelSensor()`` (ideal: no noise, no quantisation).
         protocol: default ``DipProtocol()`` (1 mm steps).
+        geometry: the rig's true geometry (:class:`~dipnet.rig.geometry.RigGeometry`), applied
+            to make mismatched data: true directions from the commanded rig angles, start
+            heights ``t0 + p (cos r - 1) + e sin r``, true stage travel, the true cross-section,
+            level drift and sensor lag. Default: the ideal rig. The scan records what the rig
+            is told (commanded angles and stage, the nominal tank, ``t_start_mm = t0``), and
+            the true geometry in ``header.config["simulated_geometry"]``.
         seed: noise seed (default the sensor's); orientation ``k`` uses the stream ``(seed, k)``.
         progress: show a progress bar over orientations.
 
     Returns:
         The raw scan in memory; every orientation is complete and its ``meta`` holds the
-        ``noise_sigma`` (reading units) and the solver ``residual_mm3``.
+        ``noise_sigma`` (reading units) and the solver ``residual_mm3``. ``t0`` lies
+        ``clearance_mm`` below the bounding sphere for the highest start of any dip.
     """
     dirs = np.asarray(torch.as_tensor(directions, dtype=torch.float64).detach().cpu().numpy())
     if dirs.ndim != 2 or dirs.shape[1] != shape.ndim or len(dirs) < 1:
@@ -296,26 +306,50 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
     tank = tank or Tank.default(shape.ndim)
     sensor = sensor or LevelSensor()
     protocol = protocol or DipProtocol()
+    geometry = geometry or RigGeometry()
     seed = getattr(sensor, "seed", 0) if seed is None else seed
     radius = float(shape.radius())
-    t_start = -(radius + protocol.clearance_mm)
-    n = protocol.n_readings(radius)
+    tilt, spin, true_dirs, shift = _commanded_angles(dirs, geometry)
+    t0 = -(radius + protocol.clearance_mm + max(0.0, float(shift.max())))
+    t_start = t0 + shift
+    true_tank = replace(tank, cross_section_mm2=geometry.area(tank.cross_section_mm2))
+    n = int(np.ceil((radius - t_start.min()) / (protocol.step_mm * geometry.step_scale) - 1e-9)) + 1 \
+        + protocol.extra_steps
     stage = np.arange(n) * protocol.step_mm
     per_dip_s = n * protocol.settle_s + protocol.reorient_s
     header = ScanHeader(
         quantity=sensor.quantity, ndim=shape.ndim, tank_cross_section_mm2=float(tank.cross_section_mm2),
-        step_mm=float(protocol.step_mm), t_start_mm=t_start, resolution=sensor.quantum or None,
+        step_mm=float(protocol.step_mm), t_start_mm=t0, resolution=sensor.quantum or None,
         density_g_per_mm3=getattr(sensor, "density_g_per_mm3", WATER_DENSITY_G_PER_MM3),
         rig="dipnet.simulator",
-        config={"tank": asdict(tank), "sensor": sensor.to_dict(), "protocol": asdict(protocol), "seed": seed},
+        config={"tank": asdict(tank), "sensor": sensor.to_dict(), "protocol": asdict(protocol), "seed": seed,
+                "simulated_geometry": geometry.to_dict()},
         metadata={"shape": getattr(shape, "name", type(shape).__name__), "volume": float(shape.volume)})
     scan = RawScan(header=header)
     for k in tqdm(range(len(dirs)), desc="dipping", unit="dip", disable=not progress):
-        state = solve_dip(shape, dirs[k], tank, stage, t_start)
+        state = solve_dip(shape, true_dirs[k], true_tank, geometry.true_stage(stage), float(t_start[k]))
         time_s = k * per_dip_s + (np.arange(n) + 1) * protocol.settle_s
         rng = np.random.default_rng([int(seed), k])
-        values, sigma = sensor.read(sensor.ideal(tank, state.submerged), time_s, rng)
+        ideal = sensor.ideal(true_tank, state.submerged)
+        if sensor.quantity == "level_mm":
+            ideal = geometry.apply_levels(ideal, time_s)
+        values, sigma = sensor.read(ideal, time_s, rng)
         scan.orientations.append(OrientationScan(
-            k=k, direction=dirs[k], meta={"noise_sigma": sigma, "residual_mm3": state.residual},
+            k=k, direction=dirs[k], tilt_deg=None if tilt is None else float(tilt[k]),
+            spin_deg=None if spin is None else float(spin[k]),
+            meta={"noise_sigma": sigma, "residual_mm3": state.residual},
             stage_mm=stage, values=values, time_s=time_s, complete=True))
     return scan
+
+
+def _commanded_angles(dirs: np.ndarray, geometry: RigGeometry):
+    """``(tilt (K,) | None, spin (K,) | None, true directions (K, d), height shift (K,))`` for
+    commanded directions ``(K, d)``; in 2D there are no rig angles (only the ideal rotary axes)."""
+    if dirs.shape[1] == 3:
+        from dipnet.rig.runner import direction_to_rig
+
+        tilt, spin = direction_to_rig(dirs)
+        return tilt, spin, geometry.directions(tilt, spin).numpy(), geometry.height_shift(tilt)
+    if geometry.tilt_zero_deg or geometry.spin_zero_deg or geometry.pivot_mm or geometry.tilt_axis_offset_mm:
+        raise ValueError("rotary-axis geometry (pivot, tilt-axis offset, zero offsets) needs 3D directions")
+    return None, None, dirs, np.zeros(len(dirs))

@@ -121,9 +121,14 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     measurement.save(out / "measurement.npz")
 
     t0 = time.perf_counter()
-    operator = instantiate(cfg.operator)(grid, measurement.directions, cfg.n_slabs or grid.n)
     solver = instantiate(cfg.solver)
-    recon = solver.solve(measurement, operator)
+    if cfg.get("calibration"):  # the rig geometry estimated jointly with the shape
+        from dipnet.calibration_job import self_calibration_job
+
+        measurement, operator, recon = self_calibration_job(cfg, grid, solver, out)
+    else:
+        operator = instantiate(cfg.operator)(grid, measurement.directions, cfg.n_slabs or grid.n)
+        recon = solver.solve(measurement, operator)
     seconds = time.perf_counter() - t0
     recon.save(out / "reconstruction.npz")
 

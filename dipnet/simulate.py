@@ -25,11 +25,13 @@ from dipnet.measurement import DipMeasurement
 from dipnet.physics import DipProtocol, Sensor, Tank, simulate_scan
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import RawScan
+from dipnet.rig.geometry import RigGeometry, as_geometry, invert_scan
 
 
 def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs: int | None = None,
                          edges=None, tank: Tank | None = None, sensor: Sensor | None = None,
                          step_mm: float | None = None, protocol: DipProtocol | None = None,
+                         geometry: RigGeometry | None = None, reader_geometry: RigGeometry | None = None,
                          smooth: bool = False, t_start: str | float = "metadata", seed: int | None = None,
                          progress: bool = True) -> tuple[RawScan, DipMeasurement]:
     """Simulate dipping ``shape`` along ``directions`` and preprocess the raw scan.
@@ -43,6 +45,10 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
             ``n_slabs`` (default 64) slabs over the shape's bounding sphere.
         tank, sensor, protocol: physics settings (defaults in the module docstring).
         step_mm: stage step (mm), overriding ``protocol.step_mm``.
+        geometry: the rig's true geometry (or a mapping of its fields), applied by the simulator
+            (default: the ideal rig).
+        reader_geometry: the geometry preprocessing assumes (:func:`~dipnet.rig.geometry.invert_scan`);
+            default the ideal (nominal) rig. Equal to ``geometry``, the profiles are the ideal ones.
         smooth: apply the paper's 5-tap Gaussian to the profiles.
         t_start: how preprocessing places the profiles (default: the simulator's known start).
         seed: noise seed (default the sensor's).
@@ -59,7 +65,8 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
     if edges is None and grid is None:
         r = float(shape.radius())
         edges = np.linspace(-r, r, (64 if n_slabs is None else int(n_slabs)) + 1)
-    raw = simulate_scan(shape, directions, tank=tank, sensor=sensor, protocol=protocol, seed=seed,
-                        progress=progress)
-    measurement = preprocess(raw, edges=edges, grid=grid, n_slabs=n_slabs, smooth=smooth, t_start=t_start)
+    raw = simulate_scan(shape, directions, tank=tank, sensor=sensor, protocol=protocol,
+                        geometry=as_geometry(geometry), seed=seed, progress=progress)
+    read = raw if reader_geometry is None else invert_scan(raw, as_geometry(reader_geometry))
+    measurement = preprocess(read, edges=edges, grid=grid, n_slabs=n_slabs, smooth=smooth, t_start=t_start)
     return raw, measurement

@@ -31,7 +31,8 @@ from dipnet.validation import MeasurementValidationError, validate_measurement
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "reconstruct.py"
 GRID = Grid(16, 3, 100.0)
 CATS_GRID = Grid(16, 3, 360.0)
-CATS_OPTIONS = dict(cross_section_mm2=183600.0, t_start="pivot", truncated="keep", smooth=True)
+CATS_OPTIONS = dict(cross_section_mm2=183600.0, geometry={"pivot_mm": 188.0, "tilt_axis_offset_mm": -18.0},
+                    truncated="keep", smooth=True)
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -1,4 +1,4 @@
-"""Recordings to measurements: the authors' CSV, fixture, pivot, symmetry, interpolation, calibration."""
+"""Recordings to measurements: the authors' CSV, fixture, rig geometry, symmetry, interpolation, calibration."""
 
 from __future__ import annotations
 
@@ -14,8 +14,9 @@ from dipnet.orientations import fibonacci_hemisphere, rig_to_direction
 from dipnet.physics import DipProtocol, LevelSensor, Tank, simulate_scan
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import RawScanFileError
+from dipnet.rig.geometry import RigGeometry
 from dipnet.rig.recorded import (calibrate_cross_section, expand_symmetry, interpolate_orientations,
-                                 pivot_start_heights, read_authors_csv, read_recorded, read_scan, subtract_fixture,
+                                 geometry_start_heights, read_authors_csv, read_recorded, read_scan, subtract_fixture,
                                  symmetry_group, truncated_orientations)
 from dipnet.shapes import Ball, Box
 from dipnet.simulate import simulate_measurement
@@ -93,8 +94,8 @@ def test_cats_preprocessing(cats_csv):
     complete = [k for k in range(32) if k not in info["truncated"]]
     totals = m.profiles.sum(1)[complete]  # mm^3: level rise ~10.2 mm x 183,600 mm^2
     assert torch.all((totals > 1.8e6) & (totals < 1.95e6))
-    fit = info["pivot_fit"]  # tilting raises the object: a pivot far above it, centroids fit within 2 mm
-    assert 200.0 < fit["pivot_mm"] < 450.0 and fit["fit_rms_mm"] < 2.0
+    placed = info["start_heights"]  # the default (ideal) rig: one rigid centroid explains the dips within 2 mm
+    assert placed["centroid_rms_mm"] < 2.0 and info["geometry"]["pivot_mm"] == 0.0
     # first contact lies inside the grid: before smoothing the lowest slab holds at most
     # baseline noise (a quantum of 0.04 mm x 183,600 mm^2 = 7,344 mm^3), the next ones the object
     raw_profiles = read_recorded(cats_csv, grid, truncated="keep", smooth=False).profiles
@@ -196,19 +197,20 @@ def test_fixture_subtraction_recovers_object():
     assert a.sum().item() == pytest.approx(obj.volume, rel=0.01)
 
 
-def test_pivot_start_heights_recover_rig_geometry(tmp_path):
-    """A fake-rig-like scan with a tilt pivot: the fitted start heights match the geometry."""
+def test_geometry_start_heights_recover_rig_geometry(tmp_path):
+    """A scan from a rig with a pivot and a tilt-axis offset, its start height unknown: the geometry
+    places every dip where the simulator had it, and the ideal rig cannot explain the centroids."""
     shape = three_balls(z=0.0)
-    tilts = [0.0, 10.0, 20.0, 30.0]
-    dirs = rig_to_direction(tilts, [0.0] * 4)
+    tilts = [0.0, 10.0, 20.0, 30.0, 30.0]
+    truth_geometry = RigGeometry(pivot_mm=120.0, tilt_axis_offset_mm=10.0)
+    dirs = rig_to_direction(tilts, [0.0, 0.0, 0.0, 0.0, 90.0])
     raw = simulate_scan(shape, dirs, tank=Tank(cross_section_mm2=10000.0), sensor=LevelSensor(quantum_mm=0.0),
-                        protocol=DipProtocol(step_mm=1.0, clearance_mm=60.0, extra_steps=70), progress=False)
-    pivot = 120.0
-    for o, t in zip(raw.orientations, tilts):  # a pivot raises tilted dips: the stage runs later
-        o.tilt_deg, o.spin_deg = t, 0.0
-        o.stage_mm = o.stage_mm + pivot * (1 - math.cos(math.radians(t)))
-    starts, info = pivot_start_heights(raw, 10000.0, "fit", centre="centroid")
-    truth = raw.header.t_start_mm - pivot * (1 - np.cos(np.radians(tilts)))
-    assert np.allclose(starts, truth, atol=0.05) and info["pivot_mm"] == pytest.approx(pivot, abs=1.0)
+                        protocol=DipProtocol(step_mm=1.0, clearance_mm=5.0, extra_steps=5),
+                        geometry=truth_geometry, progress=False)
+    truth = raw.header.t_start_mm + truth_geometry.height_shift(tilts)
+    starts, info = geometry_start_heights(raw, 10000.0, truth_geometry, centre="centroid")
+    assert np.allclose(starts, truth, atol=0.05) and info["centroid_rms_mm"] < 0.05
+    _, ideal = geometry_start_heights(raw, 10000.0, RigGeometry(), centre="centroid")
+    assert ideal["centroid_rms_mm"] > 1.0
     path = raw.save(tmp_path / "scan.jsonl")
-    assert len(read_scan(path).orientations) == 4
+    assert len(read_scan(path).orientations) == 5

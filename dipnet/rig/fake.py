@@ -17,9 +17,12 @@ Reach them with pyserial URLs, so the real drivers run unchanged:
   servers on 127.0.0.1 and prints ``socket://127.0.0.1:<port>`` URLs.
 
 Geometry: the object's origin sits ``origin_height_mm`` above the resting water when the
-stage is at ``lower_mm = 0`` and untilted; the tilt pivot lies ``pivot_mm`` above the origin on
-the object's axis, so the water line in the object frame is
-``t = -origin_height - pivot (1 - cos tilt) + lower + delta``.
+stage is at ``lower_mm = 0`` and untilted; the rest is one :class:`~dipnet.rig.geometry.RigGeometry`
+(ideal by default; give a mismatched one to make a rig that needs calibration), so the water
+line in the object frame is ``t = -origin_height + p (cos r - 1) + e sin r + step_scale lower + delta``
+(``r`` the true tilt), the directions follow the true rig angles, the rise uses the true
+cross-section and level readings drift by ``level_drift_mm_per_s`` from the world's creation
+(the sensor lag is not modelled here).
 
 Faults (:class:`Fault`) fire once, on the n-th motion command the controller receives:
 ``drop`` (the reply is lost), ``error`` (GRBL ``error:N`` / Marlin ``Error:``), ``alarm``
@@ -46,7 +49,6 @@ uninterrupted one.
 from __future__ import annotations
 
 import argparse
-import math
 import re
 import socket
 import struct
@@ -58,10 +60,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dipnet.orientations import rig_to_direction
 from dipnet.physics import Tank
 from dipnet.rig import marlin, sensors
 from dipnet.rig.controller import AxisMap, Position
+from dipnet.rig.geometry import RigGeometry, as_geometry
 
 DEVICES = ("grbl", "marlin", "level", "modbus", "ad", "sics")
 FAULTS = ("drop", "error", "alarm", "reset", "disconnect", "resend", "unstable", "hold", "door", "late_ok",
@@ -135,7 +137,9 @@ class FakeRig:
         tank: the tank (default :meth:`Tank.default`).
         origin_height_mm: height of the object's origin over the resting water at
             ``lower_mm = 0``, untilted (default: the shape's radius + 10 mm).
-        pivot_mm: distance of the tilt pivot above the object's origin, along its axis.
+        pivot_mm: distance of the tilt pivot above the object's origin, along its axis (a
+            shorthand for ``geometry.pivot_mm``; non-zero overrides it).
+        geometry: the rig's true geometry (:class:`~dipnet.rig.geometry.RigGeometry` or a mapping).
         axes, status_axes: the machine axis mapping and GRBL status order (as the driver's).
         level_sigma_mm, level_quantum_mm: level noise and resolution (mm).
         balance_sigma_g, balance_quantum_g: balance noise and resolution (g).
@@ -151,7 +155,8 @@ class FakeRig:
     """
 
     def __init__(self, shape, *, radius: float | None = None, tank: Tank | None = None,
-                 origin_height_mm: float | None = None, pivot_mm: float = 0.0, axes: AxisMap | dict | None = None,
+                 origin_height_mm: float | None = None, pivot_mm: float = 0.0,
+                 geometry: RigGeometry | dict | None = None, axes: AxisMap | dict | None = None,
                  status_axes: str = "XYZAB", level_sigma_mm: float = 0.0, level_quantum_mm: float = 0.001,
                  balance_sigma_g: float = 0.0, balance_quantum_g: float = 0.001, density_g_per_mm3: float = 1e-3,
                  unstable_sigma: float = 0.5, latency_s: float = 0.0, move_s: float = 0.0, keepalive_s: float = 2.0,
@@ -166,7 +171,9 @@ class FakeRig:
         self.tank = tank or Tank.default(3)
         r = float(shape.radius())
         self.origin_height_mm = r + 10.0 if origin_height_mm is None else float(origin_height_mm)
-        self.pivot_mm = float(pivot_mm)
+        geometry = as_geometry(geometry)
+        self.geometry = geometry.with_values(pivot_mm=float(pivot_mm)) if pivot_mm else geometry
+        self.created = time.monotonic()
         self.axes = axes if isinstance(axes, AxisMap) else AxisMap.from_config(axes)
         self.status_axes = status_axes.upper()
         self.level_sigma_mm, self.level_quantum_mm = float(level_sigma_mm), float(level_quantum_mm)
@@ -281,7 +288,7 @@ class FakeRig:
     # ------------------------------------------------------------------ physics
     def waterline_start(self, tilt_deg: float) -> float:
         """Water line height (object frame) at ``lower_mm = 0`` for a tilt, before any rise (mm)."""
-        return -self.origin_height_mm - self.pivot_mm * (1.0 - math.cos(math.radians(tilt_deg)))
+        return float(self.geometry.start_heights(tilt_deg, -self.origin_height_mm))
 
     def _table(self, tilt: float, spin: float) -> tuple[np.ndarray, np.ndarray, float]:
         """``(stage (n,), rise (n,), full rise)`` for one orientation, cached.
@@ -293,14 +300,14 @@ class FakeRig:
         """
         key = (round(tilt, 6), round(spin, 6))
         if key not in self._tables:
-            direction = rig_to_direction(tilt, spin)
+            direction = self.geometry.directions(tilt, spin)
             r = float(self.shape.radius())
             heights = np.arange(-r - 1.0, r + 1.0 + _TABLE_STEP_MM, _TABLE_STEP_MM)
             volume = self.shape.volume_below(direction, torch.from_numpy(heights))[0].numpy()
             volume = np.maximum.accumulate(np.maximum(volume, 0.0))
-            area = float(self.tank.cross_section_mm2)
-            # water line t = t0 + s + V(t) / A  <=>  s = t - t0 - V(t) / A, increasing in t (a(t) < A)
-            stage = heights - self.waterline_start(tilt) - volume / area
+            area = self.geometry.area(self.tank.cross_section_mm2)
+            # water line t = t0 + c s + V(t) / A  <=>  s = (t - t0 - V(t) / A) / c, increasing in t (a(t) < A)
+            stage = (heights - self.waterline_start(tilt) - volume / area) / self.geometry.step_scale
             if np.any(np.diff(stage) <= 0):
                 raise ValueError(f"the object's cross-section is not smaller than the tank's ({area:g} mm^2)")
             self._tables[key] = (stage, volume / area, float(volume[-1]) / area)
@@ -329,9 +336,11 @@ class FakeRig:
             unstable = self.unstable_left > 0
             self.unstable_left = max(0, self.unstable_left - 1)
             if quantity == "level_mm":
-                value, sigma, q = self.tank.rest_level_mm + rise, self.level_sigma_mm, self.level_quantum_mm
+                drift = self.geometry.level_drift_mm_per_s * (time.monotonic() - self.created)
+                value, sigma, q = self.tank.rest_level_mm + rise + drift, self.level_sigma_mm, self.level_quantum_mm
             else:
-                value, sigma, q = self.density * self.tank.cross_section_mm2 * rise, self.balance_sigma_g, \
+                value, sigma, q = self.density * self.geometry.area(self.tank.cross_section_mm2) * rise, \
+                    self.balance_sigma_g, \
                     self.balance_quantum_g
             if unstable:
                 sigma = max(sigma, self.unstable_sigma)

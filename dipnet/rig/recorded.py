@@ -12,11 +12,11 @@ Real-data steps (used by :func:`read_recorded`, the ``source=recorded`` reader)
 1. fixture subtraction (:func:`subtract_fixture`) when a fixture-only recording is given;
 2. truncated dips (the object still going under when the scan stopped) are detected
    (:func:`truncated_orientations`) and kept or dropped;
-3. tilt / start-offset correction (:func:`pivot_start_heights`): the tilt pivot sits ``p`` mm
-   above the object's origin on its axis, so tilting raises the object and the water line at
-   stage 0 is ``t_start(tilt) = T + p cos(tilt)`` in the object frame. ``T`` and ``p`` are
-   fitted to the profile centroids of the complete dips (the centroid of a dip profile is
-   ``c . theta``, and ``c`` lies on the symmetry axis), or ``p`` is given (the authors used 180);
+3. the rig geometry (:mod:`dipnet.rig.geometry`): a calibration file or explicit values
+   (pivot, tilt-axis offset, zero offsets, cross-section, ...) map the readings to true
+   directions, stage travel and levels (:func:`~dipnet.rig.geometry.invert_scan`); the start
+   height of each dip is ``t0 + p (cos r - 1) + e sin r``, with ``t0`` from the recording or,
+   when it does not know it (the authors' CSV), placed by :func:`geometry_start_heights`;
 4. rise -> volume with the tank cross-section, non-uniform -> uniform slabs and the 5-tap
    Gaussian smoothing (:func:`dipnet.preprocess.preprocess`);
 5. symmetry exploitation (:func:`dipnet.symmetry.expand_symmetry`, for any source): every profile is copied to the
@@ -44,6 +44,8 @@ from dipnet.orientations import fibonacci_hemisphere
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, complete_dips, read_rawscan
 from dipnet.readings import max_object_section, repair_readings
+from dipnet.rig.calibration_file import scan_calibration
+from dipnet.rig.geometry import RigGeometry, as_geometry, invert_scan
 from dipnet.symmetry import apply_symmetry, expand_symmetry, symmetry_group  # noqa: F401 (re-exported)
 
 AUTHORS_COLUMNS = ("SN", "R1_deg", "R2_deg", "Height_mm", "WaterLevel_mm")
@@ -218,55 +220,49 @@ def profile_centroids(raw: RawScan, area: float) -> np.ndarray:
     return np.asarray(out)
 
 
-def pivot_start_heights(raw: RawScan, area: float, pivot_mm: float | str = "fit", fit: list[int] | None = None,
-                        centre: str = "extent") -> tuple[np.ndarray, dict]:
-    """Per-orientation water line at stage 0, ``t_start_k = T + p cos(tilt_k)`` (mm, object frame).
+def geometry_start_heights(raw: RawScan, area: float, geometry: RigGeometry, use: list[int] | None = None,
+                           centre: str = "extent") -> tuple[np.ndarray, dict]:
+    """Per-orientation water line at stage 0 from the rig geometry, for recordings that do not
+    know the start height ``t0`` (the authors' CSV): ``t_start_k = t0 + geometry.height_shift(tilt_k)``.
 
-    Args:
-        raw: the scan (orientations with ``tilt_deg``).
-        area: tank cross-section (mm^2).
-        pivot_mm: ``"fit"``, or the pivot's distance above the profiles' centroid along the axis.
-        fit: orientations used for the fit (default: all); use complete dips only.
-        centre: where the object frame's origin goes on the axis: ``"centroid"`` (the mean
-            profile centroid) or ``"extent"`` (midway between first contact and full submersion
-            of the least tilted dips, which centres the object in the grid).
+    ``t0`` places the object frame's origin on the spin axis: ``centre="extent"`` midway between
+    first contact and full submersion of the least tilted dips in ``use`` (which centres the
+    object in the grid), ``"centroid"`` at their mean profile centroid.
 
     Returns:
-        ``(t_start (K,), info)`` with ``info`` = ``T``, ``pivot_mm`` (above the chosen origin),
-        the fit residual (mm) and the centroids.
+        ``(t_start (K,), info)``; ``info`` holds ``t0_mm``, the geometry, the dip centroids'
+        heights ``h_k`` in the object frame (mm) and ``centroid_rms_mm``: the RMS of ``h_k -
+        c . theta_k`` after fitting one centroid ``c`` to the dips in ``use``: a rigid object has
+        one centroid, so this is how far the geometry is from explaining the dips' positions.
     """
-    tilt = np.radians([o.tilt_deg or 0.0 for o in raw.orientations])
+    tilt = np.array([o.tilt_deg or 0.0 for o in raw.orientations])
+    spin = np.array([o.spin_deg or 0.0 for o in raw.orientations])
     cent = profile_centroids(raw, area)
-    idx = np.arange(len(cent)) if fit is None else np.asarray(sorted(fit), dtype=int)
+    idx = np.arange(len(cent)) if use is None else np.asarray(sorted(use), dtype=int)
     if idx.size < 1:
-        raise ValueError("no orientation to fit the start heights to")
-    if pivot_mm == "fit":
-        if np.ptp(np.cos(tilt[idx])) < 1e-3:
-            raise ValueError("fitting the pivot needs complete dips at several tilts; give pivot_mm")
-        design = np.stack([np.ones(idx.size), np.cos(tilt[idx])], axis=1)
-        (a, b), *_ = np.linalg.lstsq(design, cent[idx], rcond=None)
-    else:
-        b = -float(pivot_mm)
-        a = float(np.mean(cent[idx] - b * np.cos(tilt[idx])))
-    residual = cent[idx] - (a + b * np.cos(tilt[idx]))
-    z0 = 0.0
+        raise ValueError("no orientation to place the start heights with")
+    shift = geometry.height_shift(tilt)
+    low = idx[np.isclose(tilt[idx], tilt[idx].min())]
     if centre == "extent":
-        low = idx[np.isclose(tilt[idx], tilt[idx].min())]
+        scale, _ = _level_scale(raw.header, area)
         mids = []
         for k in low:
-            o = raw.orientations[k]
-            scale, _ = _level_scale(raw.header, area)
-            s, v = submerged_volume(o, scale)
+            s, v = submerged_volume(raw.orientations[k], scale)
             u = s + v / area
             mids.append(0.5 * (np.interp(0.01 * v[-1], v, u) + np.interp(0.99 * v[-1], v, u)))
-        z0 = (float(np.mean(mids)) - float(np.mean(cent[low]))) / math.cos(tilt[low[0]])
-    elif centre != "centroid":
+        t0 = -float(np.mean(np.asarray(mids) + shift[low]))
+    elif centre == "centroid":
+        t0 = -float(np.mean(cent[low] + shift[low]))
+    else:
         raise ValueError(f"centre must be 'centroid' or 'extent', got {centre!r}")
-    # origin at centroid + z0 along the axis: t = u - (a + (b + z0) cos tilt)
-    t_start = -(a + (b + z0) * np.cos(tilt))
-    info = {"T_mm": float(-a), "pivot_mm": float(-(b + z0)), "centre": centre, "origin_above_centroid_mm": z0,
-            "fit_rms_mm": float(np.sqrt(np.mean(residual**2))), "fit_orientations": [int(i) for i in idx],
-            "centroids_mm": [float(c) for c in cent]}
+    t_start = t0 + shift
+    heights = t_start + cent
+    dirs = geometry.directions(tilt, spin).numpy()
+    c, *_ = np.linalg.lstsq(dirs[idx], heights[idx], rcond=None)
+    residual = heights[idx] - dirs[idx] @ c
+    info = {"t0_mm": t0, "geometry": geometry.to_dict(), "centre": centre, "centroid_mm": [float(x) for x in c],
+            "centroid_rms_mm": float(np.sqrt(np.mean(residual**2))), "used_orientations": [int(i) for i in idx],
+            "centroid_heights_mm": [float(h) for h in heights]}
     return t_start, info
 
 
@@ -303,71 +299,110 @@ def interpolate_orientations(measurement: DipMeasurement, targets, k: int = 3, m
 
 
 # ============================================================================ the reader
-def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
-                  cross_section_mm2: float | None = None, fixture: str | Path | None = None,
-                  t_start: str | float = "pivot", pivot_mm: float | str = "fit", centre: str = "extent",
-                  truncated: str = "drop", tail_fraction: float = 0.1, tail_tol: float = 0.04,
-                  smooth: bool = True, symmetry: dict | None = None, interpolate: dict | None = None
-                  ) -> DipMeasurement:
-    """A recorded scan (dipnet ``.jsonl`` or the authors' ``.csv``) as a measurement on ``grid``.
+def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = None, fixture: str | Path | None = None,
+                      geometry: RigGeometry | dict | None = None, calibration: str | Path | None = None,
+                      centre: str = "extent", truncated: str = "drop", tail_fraction: float = 0.1,
+                      tail_tol: float = 0.04, max_cross_section: float | None = None
+                      ) -> tuple[RawScan, RigGeometry, dict]:
+    """A recording made ready for :func:`~dipnet.rig.geometry.invert_scan` and preprocessing.
 
-    Args:
-        path: the recording.
-        grid, n_slabs: the reconstruction grid and slab count (default ``grid.n``).
-        cross_section_mm2: tank free cross-section (default: the file's; the authors' CSV: 183,600).
-        fixture: a fixture-only recording to subtract (:func:`subtract_fixture`).
-        t_start: ``"pivot"`` (:func:`pivot_start_heights`), or any ``t_start`` of
-            :func:`dipnet.preprocess.preprocess` (``"metadata"`` for calibrated dipnet rigs).
-        pivot_mm, centre: see :func:`pivot_start_heights`.
-        truncated: ``"drop"`` or ``"keep"`` dips that were still rising when the scan stopped
-            (:func:`truncated_orientations` with ``tail_fraction``, ``tail_tol``); kept ones
-            are continued flat, which puts no volume beyond the scanned range.
-        smooth: the paper's 5-tap Gaussian.
-        symmetry: ``{n_fold, mirror, mirror_azimuth_deg, tol_deg}`` for
-            :func:`dipnet.symmetry.apply_symmetry` (the same step is available for any source
-            as the pipeline's top-level ``symmetry`` option).
-        interpolate: ``{n, k, max_angle_deg}``: Fibonacci-hemisphere targets for
-            :func:`interpolate_orientations`.
+    Reads the file, keeps complete dips (:func:`dipnet.rawscan.complete_dips`, with a warning
+    for the others), repairs outlier readings or rejects their dips
+    (:func:`dipnet.readings.repair_readings`, with ``max_cross_section`` mm^2 capping the physical
+    rise per step; reported in ``info["readings"]``), resolves the geometry (``geometry`` values or a ``calibration`` file),
+    subtracts a fixture recording (in the rig's commanded coordinates with the geometry's
+    cross-section), keeps complete dips, drops or keeps truncated ones and, when the recording
+    does not know its start height (the authors' CSV), gives every dip ``t_start_mm = t0``
+    placed by :func:`geometry_start_heights` (the geometry's height shift is *not* in it:
+    ``invert_scan`` adds it). Arguments as for :func:`read_recorded`.
 
-    Incomplete dips are left out with a warning (:func:`dipnet.rawscan.complete_dips`); outlier
-    readings are repaired or their dips rejected first (:func:`dipnet.readings.repair_readings`,
-    reported in ``metadata["readings"]``), so no spike reaches the running maxima below.
-
-    Returns:
-        The measurement, ``metadata["recorded"]`` holding what was done (fit, dropped dips, counts).
+    Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``.
     """
     raw = read_scan(path, cross_section_mm2)
     raw.orientations = complete_dips(raw)
-    raw, readings = repair_readings(raw, max_cross_section=max_object_section(grid))
-    area = float(raw.header.tank_cross_section_mm2 or 0.0)
+    raw, readings = repair_readings(raw, max_cross_section=max_cross_section)
+    if calibration is not None and geometry is not None:
+        raise ValueError("give the rig geometry either as a calibration file or as values, not both")
+    if calibration is not None:
+        geometry = scan_calibration(calibration, raw.header).geometry
+        if cross_section_mm2 is not None:
+            geometry = geometry.with_values(cross_section_mm2=float(cross_section_mm2))
+    geometry = as_geometry(geometry)
+    area = geometry.area(raw.header.tank_cross_section_mm2 or 0.0)
     if not area > 0:
         raise ValueError(f"{path}: the tank cross-section is unknown: set cross_section_mm2")
     if fixture is not None:
         raw = subtract_fixture(raw, read_scan(fixture, cross_section_mm2), area)
     cut = truncated_orientations(raw, tail_fraction, tail_tol)
-    info: dict = {"truncated": cut, "truncated_policy": truncated}
+    info: dict = {"truncated": cut, "truncated_policy": truncated, "geometry": geometry.to_dict(),
+                  "readings": readings.to_json()}
     if truncated == "drop":
         if len(cut) == len(raw.orientations):
             raise ValueError(f"{path}: every dip is truncated; use truncated='keep'")
         raw.orientations = [o for o in raw.orientations if o.k not in cut]
     elif truncated != "keep":
         raise ValueError(f"truncated must be 'drop' or 'keep', got {truncated!r}")
-    if t_start == "pivot":
+    if any(o.meta.get("t_start_mm", raw.header.t_start_mm) is None for o in raw.orientations):
         complete = [i for i, o in enumerate(raw.orientations) if o.k not in cut]
-        starts, fit = pivot_start_heights(raw, area, pivot_mm, complete, centre)
-        for o, t0 in zip(raw.orientations, starts):
-            o.meta = {**o.meta, "t_start_mm": float(t0)}
-        info["pivot_fit"] = fit
-        t_start = "metadata"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        m = preprocess(raw, grid=grid, n_slabs=n_slabs, cross_section_mm2=area, t_start=t_start, smooth=smooth,
-                       repair=False)
-    info["measured_orientations"] = m.n_orientations
+        _, placed = geometry_start_heights(invert_scan(raw, geometry), area, geometry, complete, centre)
+        for o in raw.orientations:
+            o.meta = {**o.meta, "t_start_mm": placed["t0_mm"]}
+        info["start_heights"] = placed
+    return raw, geometry, info
+
+
+def finish_measurement(measurement: DipMeasurement, symmetry: dict | None = None,
+                       interpolate: dict | None = None) -> DipMeasurement:
+    """The readers' last steps: symmetry expansion (``{n_fold, mirror, mirror_azimuth_deg, tol_deg}``,
+    :func:`dipnet.symmetry.apply_symmetry`) and interpolation (``{n, k, max_angle_deg}``: Fibonacci-hemisphere
+    targets for :func:`interpolate_orientations`)."""
+    m = measurement
     m = apply_symmetry(m, symmetry)
     if interpolate:
         opts = dict(interpolate)
         m = interpolate_orientations(m, fibonacci_hemisphere(int(opts.pop("n"))), **opts)
-    m.metadata = {**m.metadata, "recorded": info, "path": str(path), "readings": readings.to_json()}
     return m
 
+
+def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *, t_start: str | float = "geometry",
+                  smooth: bool = True, symmetry: dict | None = None, interpolate: dict | None = None,
+                  **options) -> DipMeasurement:
+    """A recorded scan (dipnet ``.jsonl`` or the authors' ``.csv``) as a measurement on ``grid``.
+
+    Args:
+        path: the recording.
+        grid, n_slabs: the reconstruction grid and slab count (default ``grid.n``).
+        t_start: ``"geometry"``: the recording's start heights moved by the geometry
+            (:func:`~dipnet.rig.geometry.invert_scan`), placed by :func:`geometry_start_heights`
+            with ``centre`` when the recording has none; or any ``t_start`` of
+            :func:`dipnet.preprocess.preprocess`.
+        smooth: the paper's 5-tap Gaussian.
+        symmetry, interpolate: see :func:`finish_measurement`.
+        options: for :func:`prepare_recording`:
+
+            * ``cross_section_mm2``: tank free cross-section (default: the file's; the authors'
+              CSV: 183,600);
+            * ``fixture``: a fixture-only recording to subtract (:func:`subtract_fixture`);
+            * ``geometry``: the rig geometry (:class:`~dipnet.rig.geometry.RigGeometry` or its
+              fields, e.g. ``{pivot_mm: 188, tilt_axis_offset_mm: -18}``); default the ideal rig;
+            * ``calibration``: a rig calibration file instead of ``geometry``
+              (:func:`~dipnet.rig.calibration_file.scan_calibration`: it must be the
+              recording's rig and tank); its cross-section wins unless ``cross_section_mm2`` is given;
+            * ``centre``: see :func:`geometry_start_heights`;
+            * ``truncated``: ``"drop"`` or ``"keep"`` dips that were still rising when the scan
+              stopped (:func:`truncated_orientations` with ``tail_fraction``, ``tail_tol``);
+              kept ones are continued flat, which puts no volume beyond the scanned range.
+
+    Returns:
+        The measurement, ``metadata["recorded"]`` holding what was done (geometry, start heights,
+        dropped dips, counts).
+    """
+    raw, geometry, info = prepare_recording(path, max_cross_section=max_object_section(grid), **options)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        m = preprocess(invert_scan(raw, geometry), grid=grid, n_slabs=n_slabs,
+                       t_start="metadata" if t_start == "geometry" else t_start, smooth=smooth, repair=False)
+    info["measured_orientations"] = m.n_orientations
+    m = finish_measurement(m, symmetry, interpolate)
+    m.metadata = {**m.metadata, "recorded": info, "path": str(path), "readings": info["readings"]}
+    return m

@@ -28,7 +28,7 @@ import logging
 import math
 import signal
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +39,10 @@ from tqdm.auto import tqdm
 
 from dipnet.orientations import make_directions
 from dipnet.rawscan import RawScan, RawScanFileError, RawScanWriter, ScanHeader
+from dipnet.rig.calibration_file import TANK_CONFIG_KEY, Calibration, load_calibration
 from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
                                    SensorUnstable)
+from dipnet.rig.geometry import GEOMETRY_CONFIG_KEY, RigGeometry
 from dipnet.rig.sensors import AveragingSensor, Reading, SensorError
 
 log = logging.getLogger(__name__)
@@ -140,7 +142,10 @@ class ScanPlan:
         origin_height_mm: if the rig geometry is calibrated, the height of the object's origin
             over the resting water at ``lower_mm = 0``, untilted; recorded per orientation as
             ``t_start_mm`` (the water line in the object frame at stage 0).
-        pivot_mm: distance of the tilt pivot above the object's origin along its axis (mm).
+        pivot_mm: distance of the tilt pivot above the object's origin along its axis (mm); a
+            shorthand for ``geometry.pivot_mm`` (non-zero overrides it).
+        geometry: the rig's calibrated geometry (:class:`~dipnet.rig.geometry.RigGeometry`), used
+            for ``t_start_mm`` and recorded in the header (``config["rig_geometry"]``).
     """
 
     orientations: list[tuple[float, float]]
@@ -152,8 +157,11 @@ class ScanPlan:
     retries: int = 2
     origin_height_mm: float | None = None
     pivot_mm: float = 0.0
+    geometry: RigGeometry = field(default_factory=RigGeometry)
 
     def __post_init__(self) -> None:
+        if self.pivot_mm:
+            self.geometry = self.geometry.with_values(pivot_mm=float(self.pivot_mm))
         self.orientations = [(float(t), float(s)) for t, s in self.orientations]
         if not self.step_mm > 0 or not self.stop_mm > self.start_mm:
             raise ValueError(f"need step_mm > 0 and stop_mm > start_mm, got step {self.step_mm}, "
@@ -170,7 +178,7 @@ class ScanPlan:
         """Water line (object frame) at stage 0 for this tilt, if the geometry is known."""
         if self.origin_height_mm is None:
             return None
-        return -self.origin_height_mm - self.pivot_mm * (1.0 - math.cos(math.radians(tilt_deg)))
+        return float(self.geometry.start_heights(tilt_deg, -self.origin_height_mm))
 
 
 class ScanRunner:
@@ -202,7 +210,7 @@ class ScanRunner:
         self.rehome_on_fault, self.confirm_position = rehome_on_fault, confirm_position
         self.marker = self.path.with_name(self.path.name + ".position-lost.json")
         header.config = {"plan": asdict(plan), "controller": controller.identity(), "sensor": sensor.identity(),
-                         **header.config}
+                         GEOMETRY_CONFIG_KEY: plan.geometry.to_dict(), **header.config}
         self.where = "connecting"
 
     # ------------------------------------------------------------------ public
@@ -410,12 +418,25 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
     device = instantiate(cfg.sensor.device, _convert_="all")
     sensor = AveragingSensor(device, **OmegaConf.to_container(cfg.sensor.average, resolve=True))
     geometry = cfg.rig.get("geometry") or {}
+    calibration = rig_calibration(cfg.rig)
     plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)),
                     **OmegaConf.to_container(cfg.protocol, resolve=True),
-                    origin_height_mm=geometry.get("origin_height_mm"), pivot_mm=float(geometry.get("pivot_mm", 0.0)))
+                    origin_height_mm=geometry.get("origin_height_mm"), pivot_mm=float(geometry.get("pivot_mm", 0.0)),
+                    geometry=calibration.geometry if calibration else RigGeometry())
     header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
+    if calibration is not None:
+        header.config.update({TANK_CONFIG_KEY: calibration.tank, "calibration": calibration.to_dict()})
+        header.tank_cross_section_mm2 = calibration.geometry.area(header.tank_cross_section_mm2)
     home = cfg.get("home")
     return ScanRunner(controller, sensor, plan, path, header, home=None if home is None else bool(home),
                       progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
                       rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
                       confirm_position=bool(cfg.get("confirm_position", False))).run()
+
+
+def rig_calibration(rig_cfg) -> Calibration | None:
+    """The calibration file named by ``rig.calibration`` (checked against ``rig.name`` and ``rig.tank``)."""
+    path = rig_cfg.get("calibration")
+    if not path:
+        return None
+    return load_calibration(path, rig=str(rig_cfg.get("name")), tank=rig_cfg.get("tank"))

@@ -1,0 +1,137 @@
+"""Rig calibration files: one :class:`~dipnet.rig.geometry.RigGeometry` with the rig and tank it belongs to.
+
+Format (YAML or JSON by suffix, version 1)::
+
+    format: dipnet.rig_calibration
+    version: 1
+    rig: fake-grbl            # the rig's identity, as scans record it (ScanHeader.rig)
+    tank: lab-tank-1          # the tank's identity (scans record it as header.config["tank_id"])
+    method: reference         # reference | self | manual
+    created: 2026-11-23T11:00:00+0000
+    geometry:                 # RigGeometry fields; omitted ones are ideal
+      pivot_mm: 20.1
+      tilt_axis_offset_mm: 14.8
+      tilt_zero_deg: 1.02
+      cross_section_mm2: 55210.0
+    uncertainty: {pivot_mm: 0.3}   # optional: standard errors, same units
+    notes: ball d=60 mm at 7 orientations
+
+:func:`load_calibration` validates everything and raises :class:`CalibrationFileError` (a
+``ValueError``) naming the file and the cause: unknown keys, wrong format or version,
+unphysical values, or a rig / tank other than the one it is used for. It is never used
+silently: :func:`check_identity` compares it with the scan it is applied to.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from dipnet.rawscan import ScanHeader
+from dipnet.rig.geometry import GeometryError, RigGeometry
+
+FORMAT_NAME = "dipnet.rig_calibration"
+FORMAT_VERSION = 1
+METHODS = ("reference", "self", "manual")
+_KEYS = {"format", "version", "rig", "tank", "method", "created", "geometry", "uncertainty", "notes"}
+TANK_CONFIG_KEY = "tank_id"  # ScanHeader.config key holding the tank's identity
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file is missing, malformed, unphysical or belongs to another rig or tank."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A rig geometry with the identity of the rig and tank it was measured on.
+
+    Attributes:
+        geometry: the calibrated geometry.
+        rig: the rig's identity (matches :attr:`ScanHeader.rig`).
+        tank: the tank's identity (matches ``ScanHeader.config["tank_id"]`` when a scan records it).
+        method: how it was obtained: ``reference`` | ``self`` | ``manual``.
+        uncertainty: standard errors per geometry field (same units), if known.
+        notes: free text.
+        created: ISO 8601 time.
+    """
+
+    geometry: RigGeometry
+    rig: str
+    tank: str
+    method: str = "manual"
+    uncertainty: dict[str, float] = field(default_factory=dict)
+    notes: str = ""
+    created: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT_NAME, "version": FORMAT_VERSION, "rig": self.rig, "tank": self.tank,
+                "method": self.method, "created": self.created,
+                "geometry": {k: v for k, v in self.geometry.to_dict().items() if v is not None},
+                "uncertainty": {k: float(v) for k, v in self.uncertainty.items()}, "notes": self.notes}
+
+
+def save_calibration(calibration: Calibration, path: str | Path) -> Path:
+    """Write ``calibration`` to ``path`` (``.json``, else YAML); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = calibration.to_dict()
+    text = json.dumps(data, indent=2) if path.suffix.lower() == ".json" else yaml.safe_dump(data, sort_keys=False)
+    path.write_text(text)
+    return path
+
+
+def load_calibration(path: str | Path, rig: str | None = None, tank: str | None = None) -> Calibration:
+    """Read and validate a calibration file; ``rig`` / ``tank``, when given, must match its identity."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationFileError(f"calibration file not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as exc:
+        raise CalibrationFileError(f"{path}: not a readable calibration file ({' '.join(str(exc).split())})") from exc
+    if not isinstance(data, dict):
+        raise CalibrationFileError(f"{path}: expected a mapping with format {FORMAT_NAME!r}")
+    unknown = sorted(set(data) - _KEYS)
+    if unknown:
+        raise CalibrationFileError(f"{path}: unknown key(s) {unknown}; known: {sorted(_KEYS)}")
+    if data.get("format") != FORMAT_NAME:
+        raise CalibrationFileError(f"{path}: not a rig calibration (format={data.get('format')!r})")
+    if data.get("version") != FORMAT_VERSION:
+        raise CalibrationFileError(f"{path}: unsupported calibration version {data.get('version')!r}")
+    for key in ("rig", "tank"):
+        if not isinstance(data.get(key), str) or not data[key].strip():
+            raise CalibrationFileError(f"{path}: '{key}' must name the {key} the calibration belongs to")
+    if data.get("method", "manual") not in METHODS:
+        raise CalibrationFileError(f"{path}: method must be one of {METHODS}, got {data.get('method')!r}")
+    if not isinstance(data.get("geometry"), dict):
+        raise CalibrationFileError(f"{path}: 'geometry' must be a mapping of rig geometry values")
+    try:
+        geometry = RigGeometry.from_dict(data["geometry"])
+        uncertainty = {str(k): float(v) for k, v in (data.get("uncertainty") or {}).items()}
+    except (GeometryError, TypeError, ValueError) as exc:
+        raise CalibrationFileError(f"{path}: {exc}") from exc
+    calibration = Calibration(geometry=geometry, rig=data["rig"], tank=data["tank"],
+                              method=data.get("method", "manual"), uncertainty=uncertainty,
+                              notes=str(data.get("notes") or ""), created=str(data.get("created") or ""))
+    check_identity(calibration, rig, tank, source=str(path))
+    return calibration
+
+
+def check_identity(calibration: Calibration, rig: str | None, tank: str | None, source: str = "calibration") -> None:
+    """Raise :class:`CalibrationFileError` when ``rig`` / ``tank`` (if given) differ from the calibration's."""
+    if rig is not None and rig != calibration.rig:
+        raise CalibrationFileError(f"{source}: calibrated on rig {calibration.rig!r}, not on {rig!r}")
+    if tank is not None and tank != calibration.tank:
+        raise CalibrationFileError(f"{source}: calibrated on tank {calibration.tank!r}, not on {tank!r}")
+
+
+def scan_calibration(path: str | Path, header: ScanHeader) -> Calibration:
+    """Load the calibration at ``path`` for a scan: its rig must be the scan's, and its tank the
+    scan's when the scan records one (``header.config["tank_id"]``)."""
+    return load_calibration(path, rig=header.rig, tank=header.config.get(TANK_CONFIG_KEY))
