@@ -238,8 +238,7 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
     s = np.asarray(stage_mm, dtype=np.float64)
     base = t_start_mm + s
     below, section = curve.volume_and_area(base)
-    lo = below / area  # g(lo) <= 0 <= g(hi) for a monotone V
-    hi = np.full_like(s, max(curve.total, float(below.max(initial=0.0))) / area)
+    lo, hi = _bracket(curve, base, area, below)
     delta = np.clip(below / (area - np.minimum(section, 0.5 * area)), lo, hi)  # one Newton step from 0
     tol = _RELATIVE_TOL * max(curve.total, 1e-300)
     for _ in range(_NEWTON_STEPS):  # safeguarded Newton on the exact V
@@ -261,6 +260,27 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
     residual = float(np.abs(area * delta - submerged).max(initial=0.0))
     return DipState(stage_mm=s, rise_mm=delta, waterline_mm=base + delta, submerged=area * delta,
                     residual=residual)
+
+
+def _bracket(curve, base: np.ndarray, area: float, below: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` rises (n,) mm with ``g(lo) <= 0 <= g(hi)``, ``g(delta) = A delta - V(base + delta)``.
+
+    For a monotone ``V`` (a closed surface) ``[V(base) / A, V_total / A]`` holds. An open
+    surface's flux ``V`` may fall or overshoot its final value, so the interval is widened by
+    doubling steps until the signs hold (``g`` still rises with slope ``A - a > 0``).
+    """
+    lo = below / area
+    hi = np.full_like(lo, max(curve.total, float(below.max(initial=0.0))) / area)
+    if curve.monotone:
+        return lo, hi
+    for doubling in range(_NEWTON_STEPS):
+        g_lo, g_hi = area * lo - curve.volume(base + lo), area * hi - curve.volume(base + hi)
+        if not ((g_lo > 0).any() or (g_hi < 0).any()):
+            break
+        # g has slope of about A: move each bad end past the root by twice (then 4x, ...) its excess
+        lo = np.where(g_lo > 0, lo - 2**doubling * 2 * g_lo / area, lo)
+        hi = np.where(g_hi < 0, hi - 2**doubling * 2 * g_hi / area, hi)
+    return lo, hi
 
 
 def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor | None = None,

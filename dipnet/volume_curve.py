@@ -29,6 +29,7 @@ class ExactCurve:
 
     Attributes:
         total: the volume below the top of the bounding sphere, mm^3.
+        monotone: whether ``V`` rises monotonically (a closed surface); an open one's flux need not.
         max_area: ``None``: the cross-section is exact wherever it is evaluated, so the dip
             solver checks it there instead of on a table.
     """
@@ -38,6 +39,7 @@ class ExactCurve:
     def __init__(self, shape, direction: np.ndarray) -> None:
         self._sweep = shape.plane_sweep(np.asarray(direction, dtype=np.float64).reshape(1, -1))
         self.total = float(self.volume(np.array([float(shape.radius())]))[0])
+        self.monotone = self._sweep.closed()[0]
 
     def volume(self, t: np.ndarray) -> np.ndarray:
         """``V(t)`` for heights ``t`` (n,) mm -> (n,) mm^3."""
@@ -52,6 +54,8 @@ class ExactCurve:
 class TabulatedCurve:
     """Exact ``V`` from ``shape.volume_below``; the slope from a table of ``_TABLE_POINTS`` heights.
 
+    Every such shape is a solid, so ``V`` is taken as monotone.
+
     Args:
         shape: any :class:`~dipnet.shapes.Shape`.
         direction: unit "up" vector ``(d,)``.
@@ -59,6 +63,7 @@ class TabulatedCurve:
 
     def __init__(self, shape, direction: np.ndarray) -> None:
         self._shape = shape
+        self.monotone = True
         self._theta = torch.as_tensor(np.asarray(direction, dtype=np.float64)).reshape(1, -1)
         r = float(shape.radius())
         self._t = np.linspace(-r, r, _TABLE_POINTS)

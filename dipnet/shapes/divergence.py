@@ -82,6 +82,11 @@ class PlaneSweep:
         self.c1 = np.concatenate([zero, np.cumsum(np.take_along_axis(self.w * self.mean, by_hi, axis=1), axis=1)],
                                  axis=1)
 
+    def closed(self, rel_tol: float = 1e-9) -> np.ndarray:
+        """(K,) bool: the simplices' area vectors sum to zero along each direction (a closed
+        boundary, up to ``rel_tol`` of their total size), so ``V`` is a true, monotone volume."""
+        return np.abs(self.c0[:, -1]) <= rel_tol * np.abs(self.w).sum(axis=1)
+
     def volume(self, heights: np.ndarray) -> np.ndarray:
         """``V`` at ``heights`` (K, H) mm (any order) -> (K, H) float64 mm^3 (mm^2 in 2D)."""
         return self.volume_and_area(heights)[0]

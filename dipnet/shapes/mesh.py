@@ -19,6 +19,7 @@ import trimesh
 
 from dipnet.shapes.base import Shape, ShapeError, check_dips
 from dipnet.shapes.divergence import PlaneSweep, boundary_volume_below
+from dipnet.shapes.holes import boundary_caps
 
 
 class MeshShape(Shape):
@@ -48,8 +49,15 @@ class MeshShape(Shape):
         self.exact = exact
         self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-        self._triangles = self._vertices[self._faces]  # (F, 3, 3) mm
+        self._triangles = self._vertices[self._faces]  # (F, 3, 3) mm, closed by caps below
         self.volume = float(mesh.volume)
+        if not exact:  # dips through an open surface: cap its holes so they are a true volume
+            caps, loops = boundary_caps(self._vertices, self._faces)
+            if loops:
+                self._triangles = np.concatenate([self._triangles, caps])
+                self.volume = float(boundary_volume_below(self._triangles, np.eye(3)[2:], [self.radius()])[0, 0])
+                self.notes.append(f"dips and volume through {loops} boundary loops capped by {len(caps)} "
+                                  "fan triangles")
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Generalized winding number >= 0.5: ``points`` (P, 3) mm -> (P,) bool."""
