@@ -112,5 +112,6 @@ def test_broken_mesh_loads_and_dips_in_seconds(tmp_path):
     for o in scan.orientations:
         assert o.meta["residual_mm3"] < 1e-9 * shape.volume  # Archimedes holds even for the open flux
         final = (o.values[-1] - scan.header.config["tank"]["rest_level_mm"]) * scan.header.tank_cross_section_mm2
-        assert final == pytest.approx(shape.volume, rel=1e-9)  # the capped surface is closed
+        # the capped surface is closed (1e-6: the file's units make rises of ~5e-7 mm on 150 mm levels)
+        assert final == pytest.approx(shape.volume, rel=1e-6)
         assert np.all(np.diff(o.values) >= 0)
