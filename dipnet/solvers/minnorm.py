@@ -41,7 +41,9 @@ Methods
   started at zero, so they converge to the minimum-norm (damped) solution; the damping is
   ``sqrt(s)`` with ``mean(diag(B B^T))`` estimated by seeded Hutchinson probes (within
   about 10%: the damping is a regularisation weight, not a precise constant).
-* ``auto``: ``cholesky`` when ``K*M <= max_cholesky_rows``, else ``lsmr``.
+* ``auto``: ``cholesky`` when ``K*M <= max_cholesky_rows`` and its memory
+  (:func:`cholesky_bytes`: the dense Gram matrix plus the sparse ``B``) is at most
+  ``max_cholesky_bytes``, else ``lsmr`` (matrix-free: memory ``O(N^d + K M)`` besides the operator).
 
 The result keeps the raw least-squares values (they leave ``[0, 1]``); the threshold is
 Otsu's over the working-region voxels (or a given number).
@@ -49,6 +51,7 @@ Otsu's over the working-region voxels (or a given number).
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -79,6 +82,13 @@ def operator_matrix(operator: DipOperator) -> scipy.sparse.csr_matrix:
     return make_operator(operator.grid, operator.directions, operator.n_slabs, backend="splat").to_sparse()
 
 
+def cholesky_bytes(operator: DipOperator) -> int:
+    """Memory (bytes) of the ``cholesky`` method: the dense ``(K M)^2`` Gram matrix (float64) and
+    the explicit sparse ``B`` (about two slabs per voxel and orientation, 12 bytes per entry)."""
+    rows = operator.n_orientations * operator.n_slabs
+    return 8 * rows**2 + 12 * 2 * operator.n_orientations * math.prod(operator.grid.shape)
+
+
 def otsu_threshold(values: np.ndarray) -> float:
     """Otsu's threshold of ``values`` (any shape); a constant array gives its value."""
     values = np.asarray(values, dtype=np.float64).ravel()
@@ -96,6 +106,7 @@ class MinNormSolver(Solver):
         iter_lim: iteration limit of ``lsqr`` / ``lsmr``.
         atol, btol: stopping tolerances of ``lsqr`` / ``lsmr`` (scipy's meaning).
         max_cholesky_rows: largest ``K*M`` for which ``auto`` picks ``cholesky``.
+        max_cholesky_bytes: largest :func:`cholesky_bytes` for which ``auto`` picks ``cholesky``.
         rcond: relative eigenvalue cut-off of the pseudo-inverse fallback.
         threshold: ``"otsu"`` or a fixed occupancy level.
         progress: show a progress bar.
@@ -105,7 +116,7 @@ class MinNormSolver(Solver):
 
     def __init__(self, method: str = "auto", tikhonov: float = 0.1, iter_lim: int = 300,
                  atol: float = 1e-6, btol: float = 1e-6, max_cholesky_rows: int = 6000,
-                 rcond: float = 1e-10, threshold: str | float = "otsu", progress: bool = True) -> None:
+                 max_cholesky_bytes: float = 2e9, rcond: float = 1e-10, threshold: str | float = "otsu", progress: bool = True) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown minnorm method {method!r}; choose one of {METHODS}")
         if not tikhonov >= 0:
@@ -117,6 +128,7 @@ class MinNormSolver(Solver):
         self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), int(iter_lim)
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
         self.max_cholesky_rows, self.threshold, self.progress = int(max_cholesky_rows), threshold, progress
+        self.max_cholesky_bytes = float(max_cholesky_bytes)
 
     # ------------------------------------------------------------------ public
     def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
@@ -125,7 +137,8 @@ class MinNormSolver(Solver):
         start = time.perf_counter()
         method = self.method
         if method == "auto":
-            method = "cholesky" if g.size <= self.max_cholesky_rows else "lsmr"
+            small = g.size <= self.max_cholesky_rows and cholesky_bytes(operator) <= self.max_cholesky_bytes
+            method = "cholesky" if small else "lsmr"
         if method == "cholesky":
             f, info = self._solve_cholesky(operator, g)
         else:

@@ -146,7 +146,7 @@ def plain(value):
 def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: DataTerm, priors: Priors, *,
              iterations: int, lr: float, optimizer: str = "adam", schedule: str = "cosine",
              tol: float = 1e-5, window: int = 25, progress: bool = True, desc: str = "optimise",
-             before_step: Callable[[float], None] | None = None) -> dict[str, list[float]]:
+             before_step: Callable[[float], None] | None = None, checkpoint=None) -> dict[str, list[float]]:
     """Minimise ``data(o) + sum weight * prior(o)`` over ``parameters``, with ``o = occupancy()``.
 
     Args:
@@ -164,6 +164,8 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         desc: progress-bar label.
         before_step: called with the progress fraction ``i / iterations`` before each step
             (annealing hooks).
+        checkpoint: a :class:`~dipnet.checkpoint.Checkpoint`: resume this stage (``desc``) from
+            it and save to it as the steps go.
 
     Returns:
         History ``{"loss": total, "data": ..., <prior name>: unweighted value, ...}`` per step.
@@ -190,12 +192,20 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=lr)
         sched = _scheduler(opt, schedule, iterations)
     else:
-        flat = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
-        opt = torch.optim.LBFGS(flat, lr=lr, max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
+        opt = torch.optim.LBFGS([p for g in params for p in (g["params"] if isinstance(g, dict) else [g])], lr=lr, max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
                                 tolerance_grad=0.0, tolerance_change=0.0)
         sched = None
-    with tqdm(total=iterations, desc=desc, disable=not progress, leave=False) as bar:
-        for i in range(iterations):
+    flat_params = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
+    fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [tuple(p.shape) for p in flat_params],
+                   "target": float(data.target.double().sum())}
+    first, ended = 0, False
+    if checkpoint is not None:
+        first, saved, ended = checkpoint.restore(desc, fingerprint, flat_params, opt, sched)
+        history = saved or history
+        if first and before_step is not None:
+            before_step((first - 1) / max(iterations, 1))  # the hooks' state after the last saved step
+    with tqdm(total=iterations, initial=first, desc=desc, disable=not progress, leave=False) as bar:
+        for i in range(iterations if ended else first, iterations):
             if before_step is not None:
                 before_step(i / max(iterations, 1))
             if optimizer == "adam":
@@ -212,7 +222,10 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
             bar.update()
             if not math.isfinite(history["loss"][-1]):
                 raise FloatingPointError(f"{desc}: the loss became {history['loss'][-1]} at step {i}")
-            if _converged(history["loss"], tol, window):
+            done = _converged(history["loss"], tol, window) or i == iterations - 1
+            if checkpoint is not None:
+                checkpoint.save(desc, fingerprint, i + 1, flat_params, opt, sched, history, done)
+            if done:
                 break
     return history
 
@@ -278,6 +291,7 @@ class OptimisationSolver(Solver):
         seed: seed of every random choice (initial weights, features).
         threshold: occupancy level of the final binary shape.
         progress: show progress bars.
+        checkpoint: a :class:`~dipnet.checkpoint.Checkpoint` to save every stage to and resume from.
     """
 
     name = "optimisation"
@@ -285,7 +299,7 @@ class OptimisationSolver(Solver):
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
                  tol: float = 1e-5, window: int = 25, priors: Mapping[str, Mapping] | None = None,
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
-                 progress: bool = True) -> None:
+                 progress: bool = True, checkpoint=None) -> None:
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
         if schedule not in SCHEDULES:
@@ -301,12 +315,13 @@ class OptimisationSolver(Solver):
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
         self.warm_start, self.seed, self.threshold, self.progress = warm_start, int(seed), float(threshold), progress
         self.hull_tol = None if hull_tol is None else float(hull_tol)
+        self.checkpoint = checkpoint
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
               before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:
         return optimise(parameters, occupancy, data, priors, iterations=iterations, lr=self.lr * lr_scale,
                         optimizer=self.optimizer, schedule=self.schedule, tol=self.tol, window=self.window,
-                        progress=self.progress, desc=desc, before_step=before_step)
+                        progress=self.progress, desc=desc, before_step=before_step, checkpoint=self.checkpoint)
 
     def _problem(self, measurement: DipMeasurement, operator: DipOperator) -> Problem:
         """Data term, priors, measured volume fraction and support mask for ``operator``."""
