@@ -8,7 +8,8 @@ scan. Each solver (``minnorm``: matrix-free LSMR when ``B B^T`` would be large; 
 reconstructs on the ``auto`` operator (the NUFFT ``fourier`` backend at scale, with
 ``--eps`` / ``--upsampfac``). Prints one row per run: seconds, the process's peak resident
 memory so far (``resource.getrusage``; runs are sequential in one process, so the column
-only grows), IoU and Chamfer (truth bounding-box diagonals). Ends with
+only grows), the CPU seconds of this process (on a shared machine the wall time can be several
+times longer), IoU and Chamfer (truth bounding-box diagonals). Ends with
 
     RESULT sim240_s=<s> minnorm240_s=<s> voxel240_s=<s> voxel128_s=<s> peak_gb=<GB>
 
@@ -33,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dipnet.checkpoint import Checkpoint
 from dipnet.datasets import mesh_path
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
@@ -64,6 +66,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--upsampfac", type=float, default=1.25, help="NUFFT oversampling of the fourier operator")
     p.add_argument("--cache", type=Path, default=Path("outputs/bench_scale_cache"), help="simulated scans")
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
+    p.add_argument("--checkpoint-dir", type=Path, help="checkpoint the voxel solves here (and resume from it)")
     args = p.parse_args(argv)
     if args.quick:
         args.n, args.meshes, args.fractions, args.noise, args.voxel_iters = [128], ["bunny"], [0.03], ["clean"], 150
@@ -110,10 +113,11 @@ def operator_for(args, grid: Grid, directions: torch.Tensor):
     return make_operator(grid, directions, grid.n, backend=backend, **options)
 
 
-def make_solver(args, name: str):
+def make_solver(args, name: str, tag: str):
     if name == "minnorm":
         return MinNormSolver(iter_lim=args.minnorm_iters, progress=False)
-    return VoxelSolver(iterations=args.voxel_iters, progress=True)
+    checkpoint = Checkpoint(args.checkpoint_dir / tag, every=10) if args.checkpoint_dir else None
+    return VoxelSolver(iterations=args.voxel_iters, progress=True, checkpoint=checkpoint)
 
 
 def main(argv=None) -> dict[str, float]:
@@ -121,8 +125,8 @@ def main(argv=None) -> dict[str, float]:
     torch.set_num_threads(1)
     result: dict[str, float] = {}
     rows = []
-    print(f"{'mesh':<7} {'N':>4} {'dips':>5} {'noise':>6} {'step':<8} {'seconds':>8} {'peak GB':>7} {'IoU':>6} "
-          f"{'Chamfer':>8} {'method':<8}", flush=True)
+    print(f"{'mesh':<7} {'N':>4} {'dips':>5} {'noise':>6} {'step':<8} {'seconds':>8} {'cpu s':>7} {'peak GB':>7} "
+          f"{'IoU':>6} {'Chamfer':>8} {'method':<8}", flush=True)
     for n in args.n:
         grid = Grid(n, 3)
         for m_index, name in enumerate(args.meshes):
@@ -131,27 +135,29 @@ def main(argv=None) -> dict[str, float]:
             for f_index, fraction in enumerate(args.fractions):
                 k = math.ceil(fraction * n * n)
                 headline = m_index == 0 and f_index == len(args.fractions) - 1
+                cpu = time.process_time()
                 measurements, sim_s = simulate(args, shape, grid, k)
                 row = {"mesh": name, "n": n, "dips": k, "noise": "-", "step": "simulate", "seconds": sim_s,
-                       "peak_gb": peak_gb()}
+                       "cpu_s": time.process_time() - cpu, "peak_gb": peak_gb()}
                 rows.append(row)
-                print(f"{name:<7} {n:>4} {k:>5} {'-':>6} {'simulate':<8} {sim_s:8.1f} {row['peak_gb']:7.2f}"
-                      f"{'(cached)' if sim_s == 0 else ''}", flush=True)
+                print(f"{name:<7} {n:>4} {k:>5} {'-':>6} {'simulate':<8} {sim_s:8.1f} {row['cpu_s']:7.1f} "
+                      f"{row['peak_gb']:7.2f}{' (cached)' if sim_s == 0 else ''}", flush=True)
                 if headline and sim_s > 0:
                     result[f"sim{n}_s"] = sim_s
                 operator = operator_for(args, grid, measurements["clean" if "clean" in measurements else "snr"]
                                         .directions)
                 for noise, measurement in measurements.items():
                     for solver_name in args.solvers:
-                        started = time.perf_counter()
-                        recon = make_solver(args, solver_name).solve(measurement, operator)
-                        seconds = time.perf_counter() - started
+                        started, cpu = time.perf_counter(), time.process_time()
+                        tag = f"{name}_n{n}_k{k}_{noise}"
+                        recon = make_solver(args, solver_name, tag).solve(measurement, operator)
+                        seconds, cpu = time.perf_counter() - started, time.process_time() - cpu
                         scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
                         row = {"mesh": name, "n": n, "dips": k, "noise": noise, "step": solver_name,
-                               "seconds": seconds, "peak_gb": peak_gb(), "iou": scores["iou"],
+                               "seconds": seconds, "cpu_s": cpu, "peak_gb": peak_gb(), "iou": scores["iou"],
                                "chamfer": scores["chamfer"], "method": recon.info.get("method", "adam")}
                         rows.append(row)
-                        print(f"{name:<7} {n:>4} {k:>5} {noise:>6} {solver_name:<8} {seconds:8.1f} "
+                        print(f"{name:<7} {n:>4} {k:>5} {noise:>6} {solver_name:<8} {seconds:8.1f} {cpu:7.1f} "
                               f"{row['peak_gb']:7.2f} {row['iou']:6.3f} {row['chamfer']:8.4f} {row['method']:<8}",
                               flush=True)
                         if headline and noise == "clean":
