@@ -188,19 +188,19 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         last.update(terms, loss=total)
         return total
 
+    flat = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
     if optimizer == "adam":
         opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=lr)
         sched = _scheduler(opt, schedule, iterations)
     else:
-        opt = torch.optim.LBFGS([p for g in params for p in (g["params"] if isinstance(g, dict) else [g])], lr=lr, max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
+        opt = torch.optim.LBFGS(flat, lr=lr, max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
                                 tolerance_grad=0.0, tolerance_change=0.0)
         sched = None
-    flat_params = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
-    fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [tuple(p.shape) for p in flat_params],
+    fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [tuple(p.shape) for p in flat],
                    "target": float(data.target.double().sum())}
     first, ended = 0, False
     if checkpoint is not None:
-        first, saved, ended = checkpoint.restore(desc, fingerprint, flat_params, opt, sched)
+        first, saved, ended = checkpoint.restore(desc, fingerprint, flat, opt, sched)
         history = saved or history
         if first and before_step is not None:
             before_step((first - 1) / max(iterations, 1))  # the hooks' state after the last saved step
@@ -224,7 +224,7 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
                 raise FloatingPointError(f"{desc}: the loss became {history['loss'][-1]} at step {i}")
             done = _converged(history["loss"], tol, window) or i == iterations - 1
             if checkpoint is not None:
-                checkpoint.save(desc, fingerprint, i + 1, flat_params, opt, sched, history, done)
+                checkpoint.save(desc, fingerprint, i + 1, flat, opt, sched, history, done)
             if done:
                 break
     return history
