@@ -36,6 +36,7 @@ from dipnet.solvers.priors import build_priors
 
 OPTIMIZERS = ("adam", "lbfgs")
 SCHEDULES = ("cosine", "step", "constant")
+_HULL_ENTRIES = 1 << 25  # voxel x orientation heights held at once by support_hull
 _SIGMA_FLOOR = 1e-3  # sigma below this fraction of its median is clamped (no infinite weights)
 
 Priors = list[tuple[str, float, nn.Module]]
@@ -80,7 +81,7 @@ class DataTerm(nn.Module):
 
 
 def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edges: torch.Tensor,
-                 rel_tol: float = 0.005, margin: float = 1.5, chunk: int = 32) -> torch.Tensor:
+                 rel_tol: float = 0.005, margin: float = 1.5, chunk: int | None = None) -> torch.Tensor:
     """Voxels that can hold material: the working ball cut by every orientation's slab support.
 
     For orientation ``k`` the object lies between the lower edge of its first and the upper
@@ -98,7 +99,8 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
         edges: slab edges ``(M + 1,)`` in mm.
         rel_tol: emptiness threshold relative to each profile's maximum.
         margin: slack in voxels.
-        chunk: orientations tested at once (memory).
+        chunk: orientations tested at once (default: as many as keep the heights array near
+            ``2^25`` entries, 256 MB in float64: 32 at 64^3, 2 at 240^3, where 32 took 3.5 GB).
 
     Returns:
         Boolean mask ``grid.shape`` (a subset of the working ball).
@@ -114,6 +116,7 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
     points = grid.centers(target.dtype).reshape(-1, grid.ndim)
     inside = grid.working_mask().reshape(-1)
     dirs = directions.to(target.dtype)
+    chunk = chunk or max(1, min(32, _HULL_ENTRIES // points.shape[0]))
     for k0 in range(0, dirs.shape[0], chunk):
         t = points @ dirs[k0:k0 + chunk].T
         inside &= ((t >= lo[k0:k0 + chunk]) & (t <= hi[k0:k0 + chunk])).all(dim=1)
