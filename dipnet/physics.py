@@ -43,9 +43,10 @@ from tqdm.auto import tqdm
 
 from dipnet.rawscan import WATER_DENSITY_G_PER_MM3, OrientationScan, RawScan, ScanHeader
 from dipnet.rig.geometry import RigGeometry
+from dipnet.volume_curve import dip_volume_curve
 
-_TABLE_POINTS = 4097  # heights in the V(t) table per orientation
-_NEWTON_STEPS = 4
+_NEWTON_STEPS = 60  # most dips converge in 3-5 steps; the rest bisect inside the bracket
+_RELATIVE_TOL = 1e-12  # stop when max |A delta - V| <= this x the object's volume
 
 
 @dataclass
@@ -234,44 +235,55 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
         stage_mm: stage positions ``(n,)`` mm (increasing = lowered).
         t_start_mm: water line height (object frame) at stage 0 before any rise, mm.
     """
-    theta = torch.as_tensor(np.asarray(direction, dtype=np.float64)).reshape(1, -1)
     area = float(tank.cross_section_mm2)
-
-    def volume(t: np.ndarray) -> np.ndarray:
-        v = shape.volume_below(theta, torch.from_numpy(np.ascontiguousarray(t, dtype=np.float64)))
-        return v[0].detach().cpu().numpy().astype(np.float64)
-
-    r = float(shape.radius())
-    table_t = np.linspace(-r, r, _TABLE_POINTS)
-    table_v = np.maximum.accumulate(np.maximum(volume(table_t), 0.0))
-    slope = np.diff(table_v) / np.diff(table_t)  # the object's cross-section a(t), mm^2
-    if slope.max() >= area:
-        raise ValueError(f"the object's cross-section ({slope.max():.0f}) is not smaller than the tank's "
-                         f"free cross-section ({area:.0f}): it cannot be dipped in this tank")
-    total = table_v[-1]
+    curve = dip_volume_curve(shape, np.asarray(direction, dtype=np.float64))
+    largest = curve.max_area or 0.0  # largest cross-section seen, mm^2
     s = np.asarray(stage_mm, dtype=np.float64)
     base = t_start_mm + s
-    lo = np.interp(base, table_t, table_v) / area
-    hi = np.full_like(s, total / area)
-    for _ in range(64):  # bisection on the tabulated (piecewise-linear) V
-        mid = 0.5 * (lo + hi)
-        above = area * mid - np.interp(base + mid, table_t, table_v) > 0
-        hi = np.where(above, mid, hi)
-        lo = np.where(above, lo, mid)
-    delta = 0.5 * (lo + hi)
-    lo, hi = volume(base) / area, np.full_like(s, total / area)  # exact bracket
-    mid_t = 0.5 * (table_t[1:] + table_t[:-1])
+    below, section = curve.volume_and_area(base)
+    lo, hi = _bracket(curve, base, area, below)
+    delta = np.clip(below / (area - np.minimum(section, 0.5 * area)), lo, hi)  # one Newton step from 0
+    tol = _RELATIVE_TOL * max(curve.total, 1e-300)
     for _ in range(_NEWTON_STEPS):  # safeguarded Newton on the exact V
-        g = area * delta - volume(base + delta)
+        submerged, section = curve.volume_and_area(base + delta)
+        largest = max(largest, float(section.max(initial=0.0)))
+        if largest >= area:
+            raise ValueError(f"the object's cross-section ({largest:.0f}) is not smaller than the tank's "
+                             f"free cross-section ({area:.0f}): it cannot be dipped in this tank")
+        g = area * delta - submerged
+        if np.abs(g).max(initial=0.0) <= tol:
+            break
         lo = np.where(g < 0, np.maximum(lo, delta), lo)
         hi = np.where(g > 0, np.minimum(hi, delta), hi)
-        step = delta - g / (area - np.interp(base + delta, mid_t, slope, left=0.0, right=0.0))
+        step = delta - g / (area - section)
         inside = (step >= lo) & (step <= hi)
         delta = np.where(inside, step, 0.5 * (lo + hi))
-    submerged = volume(base + delta)
+    else:
+        submerged = curve.volume(base + delta)
     residual = float(np.abs(area * delta - submerged).max(initial=0.0))
     return DipState(stage_mm=s, rise_mm=delta, waterline_mm=base + delta, submerged=area * delta,
                     residual=residual)
+
+
+def _bracket(curve, base: np.ndarray, area: float, below: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)`` rises (n,) mm with ``g(lo) <= 0 <= g(hi)``, ``g(delta) = A delta - V(base + delta)``.
+
+    For a monotone ``V`` (a closed surface) ``[V(base) / A, V_total / A]`` holds. An open
+    surface's flux ``V`` may fall or overshoot its final value, so the interval is widened by
+    doubling steps until the signs hold (``g`` still rises with slope ``A - a > 0``).
+    """
+    lo = below / area
+    hi = np.full_like(lo, max(curve.total, float(below.max(initial=0.0))) / area)
+    if curve.monotone:
+        return lo, hi
+    for doubling in range(_NEWTON_STEPS):
+        g_lo, g_hi = area * lo - curve.volume(base + lo), area * hi - curve.volume(base + hi)
+        if not ((g_lo > 0).any() or (g_hi < 0).any()):
+            break
+        # g has slope of about A: move each bad end past the root by twice (then 4x, ...) its excess
+        lo = np.where(g_lo > 0, lo - 2**doubling * 2 * g_lo / area, lo)
+        hi = np.where(g_hi < 0, hi - 2**doubling * 2 * g_hi / area, hi)
+    return lo, hi
 
 
 def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor | None = None,

@@ -81,16 +81,22 @@ class FourierOperator(DipOperator):
             adjoint is exact to rounding whatever ``eps``.
         nthreads: NUFFT threads (default: ``torch.get_num_threads()``, or 1 for tiny problems,
             where thread start-up costs more than it saves).
+        upsampfac: the NUFFT's oversampling factor (``None``: finufft's choice, 2 for these
+            tolerances). 1.25 with ``eps=1e-3`` makes a 240^3 transform with 5,760 orientations
+            about 4x faster (3.8 s instead of 17 s on one busy core), at 1e-3 relative error.
     """
 
     def __init__(self, grid: Grid, directions: torch.Tensor, n_slabs: int | None = None,
                  bandwidth: float = 4.0, axis_boost: float = 32.0, eps: float = 1e-6,
-                 nthreads: int | None = None) -> None:
+                 nthreads: int | None = None, upsampfac: float | None = None) -> None:
         super().__init__(grid, directions, n_slabs)
         if not bandwidth >= 1.0 or not axis_boost >= 1.0:
             raise ValueError(f"bandwidth and axis_boost must be >= 1, got {bandwidth!r}, {axis_boost!r}")
         self.bandwidth, self.axis_boost = float(bandwidth), float(axis_boost)
         self.eps = float(eps)
+        self.upsampfac = None if upsampfac is None else float(upsampfac)
+        self.options = {"bandwidth": self.bandwidth, "axis_boost": self.axis_boost, "eps": self.eps,
+                        "upsampfac": self.upsampfac}  # to build the same operator on another grid
         h, delta, d = grid.voxel_size, self.slab_thickness, grid.ndim
         support = grid.radius + (h * math.sqrt(d) + delta) / 2  # g_k vanishes beyond, mm
         self.period_slabs = math.ceil((support + grid.extent / 2) / delta) + 2  # M_T
@@ -127,8 +133,9 @@ class FourierOperator(DipOperator):
     # ------------------------------------------------------------------ linear steps
     def _nufft(self) -> finufft.Plan:
         if self._plan is None:
+            extra = {} if self.upsampfac is None else {"upsampfac": self.upsampfac}
             plan = finufft.Plan(2, self.grid.shape, n_trans=1, eps=self.eps, isign=-1,
-                                dtype="complex128", nthreads=self.nthreads)
+                                dtype="complex128", nthreads=self.nthreads, **extra)
             plan.setpts(*self._points)
             self._plan = plan
         return self._plan

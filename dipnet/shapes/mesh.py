@@ -18,7 +18,8 @@ import torch
 import trimesh
 
 from dipnet.shapes.base import Shape, ShapeError, check_dips
-from dipnet.shapes.divergence import boundary_volume_below
+from dipnet.shapes.divergence import PlaneSweep, boundary_volume_below
+from dipnet.shapes.holes import boundary_caps
 
 
 class MeshShape(Shape):
@@ -48,7 +49,15 @@ class MeshShape(Shape):
         self.exact = exact
         self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+        self._triangles = self._vertices[self._faces]  # (F, 3, 3) mm, closed by caps below
         self.volume = float(mesh.volume)
+        if not exact:  # dips through an open surface: cap its holes so they are a true volume
+            caps, loops = boundary_caps(self._vertices, self._faces)
+            if loops:
+                self._triangles = np.concatenate([self._triangles, caps])
+                self.volume = float(boundary_volume_below(self._triangles, np.eye(3)[2:], [self.radius()])[0, 0])
+                self.notes.append(f"dips and volume through {loops} boundary loops capped by {len(caps)} "
+                                  "fan triangles")
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Generalized winding number >= 0.5: ``points`` (P, 3) mm -> (P,) bool."""
@@ -58,7 +67,11 @@ class MeshShape(Shape):
     def volume_below(self, directions: torch.Tensor, heights: torch.Tensor) -> torch.Tensor:
         """Volume of ``{x . theta < h}`` by the divergence theorem; (K, 3), (H,) -> (K, H) mm^3."""
         d, t = check_dips(directions, heights, 3)
-        return torch.from_numpy(boundary_volume_below(self._vertices[self._faces], d, t))
+        return torch.from_numpy(boundary_volume_below(self._triangles, d, t))
+
+    def plane_sweep(self, directions: np.ndarray) -> PlaneSweep:
+        """Exact ``V(h)`` and cross-sections along ``directions`` (K, 3) (the dip solver's fast path)."""
+        return PlaneSweep(self._triangles, directions)
 
     def radius(self) -> float:
         return float(np.linalg.norm(self._vertices, axis=1).max())

@@ -41,8 +41,10 @@ Methods
   started at zero, so they converge to the minimum-norm (damped) solution; the damping is
   ``sqrt(s)`` with ``mean(diag(B B^T))`` estimated by seeded Hutchinson probes (within
   about 10%: the damping is a regularisation weight, not a precise constant).
-* ``auto``: ``cholesky`` when ``K*M <= max_cholesky_rows`` and the operator has an explicit
-  matrix (:func:`matrix_backend`), else ``lsmr`` on the operator itself.
+* ``auto``: ``cholesky`` when ``K*M <= max_cholesky_rows``, its memory (:func:`cholesky_bytes`:
+  the dense Gram matrix plus the sparse ``B``) is at most ``max_cholesky_bytes`` and the
+  operator has an explicit matrix (:func:`matrix_backend`), else ``lsmr`` on the operator itself
+  (matrix-free: memory ``O(N^d + K M)`` besides the operator).
 
 Which operator and method a run used, and why, is in ``info["operator"]``, ``info["method"]``
 and ``info["operator_reason"]`` (logged, and written to ``metrics.json`` by the pipeline).
@@ -54,6 +56,7 @@ Otsu's over the working-region voxels (or a given number).
 from __future__ import annotations
 
 import logging
+import math
 import time
 
 import numpy as np
@@ -106,6 +109,13 @@ def operator_matrix(operator: DipOperator) -> scipy.sparse.csr_matrix:
     return make_operator(operator.grid, operator.directions, operator.n_slabs, backend="splat").to_sparse()
 
 
+def cholesky_bytes(operator: DipOperator) -> int:
+    """Memory (bytes) of the ``cholesky`` method: the dense ``(K M)^2`` Gram matrix (float64) and
+    the explicit sparse ``B`` (about two slabs per voxel and orientation, 12 bytes per entry)."""
+    rows = operator.n_orientations * operator.n_slabs
+    return 8 * rows**2 + 12 * 2 * operator.n_orientations * math.prod(operator.grid.shape)
+
+
 def otsu_threshold(values: np.ndarray) -> float:
     """Otsu's threshold of ``values`` (any shape); a constant array gives its value."""
     values = np.asarray(values, dtype=np.float64).ravel()
@@ -123,6 +133,7 @@ class MinNormSolver(Solver):
         iter_lim: iteration limit of ``lsqr`` / ``lsmr``.
         atol, btol: stopping tolerances of ``lsqr`` / ``lsmr`` (scipy's meaning).
         max_cholesky_rows: largest ``K*M`` for which ``auto`` picks ``cholesky``.
+        max_cholesky_bytes: largest :func:`cholesky_bytes` for which ``auto`` picks ``cholesky``.
         rcond: relative eigenvalue cut-off of the pseudo-inverse fallback.
         threshold: ``"otsu"`` or a fixed occupancy level.
         progress: show a progress bar.
@@ -132,7 +143,7 @@ class MinNormSolver(Solver):
 
     def __init__(self, method: str = "auto", tikhonov: float = 0.1, iter_lim: int = 300,
                  atol: float = 1e-6, btol: float = 1e-6, max_cholesky_rows: int = 6000,
-                 rcond: float = 1e-10, threshold: str | float = "otsu", progress: bool = True) -> None:
+                 max_cholesky_bytes: float = 2e9, rcond: float = 1e-10, threshold: str | float = "otsu", progress: bool = True) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown minnorm method {method!r}; choose one of {METHODS}")
         if not tikhonov >= 0:
@@ -144,6 +155,7 @@ class MinNormSolver(Solver):
         self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), int(iter_lim)
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
         self.max_cholesky_rows, self.threshold, self.progress = int(max_cholesky_rows), threshold, progress
+        self.max_cholesky_bytes = float(max_cholesky_bytes)
 
     # ------------------------------------------------------------------ public
     def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
@@ -183,6 +195,9 @@ class MinNormSolver(Solver):
             matrix_backend(operator)
         except OperatorChoiceError:
             return "lsmr", f"method=auto: operator={backend_name(operator)} has no explicit matrix for Cholesky"
+        need = cholesky_bytes(operator)
+        if need > self.max_cholesky_bytes:
+            return "lsmr", f"method=auto: Cholesky would need {need / 1e9:.1f} GB > max_cholesky_bytes"
         return "cholesky", f"method=auto: K*M = {rows} <= max_cholesky_rows = {self.max_cholesky_rows}"
 
     # ------------------------------------------------------------------ methods

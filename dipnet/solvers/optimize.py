@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 
 OPTIMIZERS = ("adam", "lbfgs")
 SCHEDULES = ("cosine", "step", "constant")
+_HULL_ENTRIES = 1 << 25  # voxel x orientation heights held at once by support_hull
 _SIGMA_FLOOR = 1e-3  # sigma below this fraction of its median is clamped (no infinite weights)
 
 Priors = list[tuple[str, float, nn.Module]]
@@ -83,7 +84,7 @@ class DataTerm(nn.Module):
 
 
 def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edges: torch.Tensor,
-                 rel_tol: float = 0.005, margin: float = 1.5, chunk: int = 32) -> torch.Tensor:
+                 rel_tol: float = 0.005, margin: float = 1.5, chunk: int | None = None) -> torch.Tensor:
     """Voxels that can hold material: the working ball cut by every orientation's slab support.
 
     For orientation ``k`` the object lies between the lower edge of its first and the upper
@@ -101,7 +102,8 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
         edges: slab edges ``(M + 1,)`` in mm.
         rel_tol: emptiness threshold relative to each profile's maximum.
         margin: slack in voxels.
-        chunk: orientations tested at once (memory).
+        chunk: orientations tested at once (default: as many as keep the heights array near
+            ``2^25`` entries, 256 MB in float64: 32 at 64^3, 2 at 240^3, where 32 took 3.5 GB).
 
     Returns:
         Boolean mask ``grid.shape`` (a subset of the working ball).
@@ -117,6 +119,7 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
     points = grid.centers(target.dtype).reshape(-1, grid.ndim)
     inside = grid.working_mask().reshape(-1)
     dirs = directions.to(target.dtype)
+    chunk = chunk or max(1, min(32, _HULL_ENTRIES // points.shape[0]))
     for k0 in range(0, dirs.shape[0], chunk):
         t = points @ dirs[k0:k0 + chunk].T
         inside &= ((t >= lo[k0:k0 + chunk]) & (t <= hi[k0:k0 + chunk])).all(dim=1)
@@ -149,7 +152,7 @@ def plain(value):
 def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: DataTerm, priors: Priors, *,
              iterations: int, lr: float, optimizer: str = "adam", schedule: str = "cosine",
              tol: float = 1e-5, window: int = 25, progress: bool = True, desc: str = "optimise",
-             before_step: Callable[[float], None] | None = None) -> dict[str, list[float]]:
+             before_step: Callable[[float], None] | None = None, checkpoint=None) -> dict[str, list[float]]:
     """Minimise ``data(o) + sum weight * prior(o)`` over ``parameters``, with ``o = occupancy()``.
 
     Args:
@@ -167,6 +170,8 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         desc: progress-bar label.
         before_step: called with the progress fraction ``i / iterations`` before each step
             (annealing hooks).
+        checkpoint: a :class:`~dipnet.checkpoint.Checkpoint`: resume this stage (``desc``) from
+            it and save to it as the steps go.
 
     Returns:
         History ``{"loss": total, "data": ..., <prior name>: unweighted value, ...}`` per step.
@@ -189,16 +194,24 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         last.update(terms, loss=total)
         return total
 
+    flat = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
     if optimizer == "adam":
         opt: torch.optim.Optimizer = torch.optim.Adam(params, lr=lr)
         sched = _scheduler(opt, schedule, iterations)
     else:
-        flat = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
         opt = torch.optim.LBFGS(flat, lr=lr, max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
                                 tolerance_grad=0.0, tolerance_change=0.0)
         sched = None
-    with tqdm(total=iterations, desc=desc, disable=not progress, leave=False) as bar:
-        for i in range(iterations):
+    fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [tuple(p.shape) for p in flat],
+                   "target": float(data.target.double().sum())}
+    first, ended = 0, False
+    if checkpoint is not None:
+        first, saved, ended = checkpoint.restore(desc, fingerprint, flat, opt, sched)
+        history = saved or history
+        if first and before_step is not None:
+            before_step((first - 1) / max(iterations, 1))  # the hooks' state after the last saved step
+    with tqdm(total=iterations, initial=first, desc=desc, disable=not progress, leave=False) as bar:
+        for i in range(iterations if ended else first, iterations):
             if before_step is not None:
                 before_step(i / max(iterations, 1))
             if optimizer == "adam":
@@ -215,9 +228,13 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
             bar.update()
             if not math.isfinite(history["loss"][-1]):
                 raise FloatingPointError(f"{desc}: the loss became {history['loss'][-1]} at step {i}")
-            if plateaued(history["loss"], tol, window):
-                log.info("%s: loss plateaued at step %d of %d (best of the last %d steps < %.2g below "
-                         "the best before)", desc, i + 1, iterations, window, tol)
+            done = plateaued(history["loss"], tol, window) or i == iterations - 1
+            if checkpoint is not None:
+                checkpoint.save(desc, fingerprint, i + 1, flat, opt, sched, history, done)
+            if done:
+                if i < iterations - 1:
+                    log.info("%s: loss plateaued at step %d of %d (best of the last %d steps < %.2g below "
+                             "the best before)", desc, i + 1, iterations, window, tol)
                 break
     return history
 
@@ -284,6 +301,7 @@ class OptimisationSolver(Solver):
         seed: seed of every random choice (initial weights, features).
         threshold: occupancy level of the final binary shape.
         progress: show progress bars.
+        checkpoint: a :class:`~dipnet.checkpoint.Checkpoint` to save every stage to and resume from.
     """
 
     name = "optimisation"
@@ -291,7 +309,7 @@ class OptimisationSolver(Solver):
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
                  tol: float = 1e-3, window: int = 25, priors: Mapping[str, Mapping] | None = None,
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
-                 progress: bool = True, hull_margin: float = 1.5) -> None:
+                 progress: bool = True, hull_margin: float = 1.5, checkpoint=None) -> None:
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
         if schedule not in SCHEDULES:
@@ -310,12 +328,13 @@ class OptimisationSolver(Solver):
         if not hull_margin >= 0:
             raise ValueError(f"hull_margin must be >= 0 voxels, got {hull_margin}")
         self.hull_margin = float(hull_margin)
+        self.checkpoint = checkpoint
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
               before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:
         return optimise(parameters, occupancy, data, priors, iterations=iterations, lr=self.lr * lr_scale,
                         optimizer=self.optimizer, schedule=self.schedule, tol=self.tol, window=self.window,
-                        progress=self.progress, desc=desc, before_step=before_step)
+                        progress=self.progress, desc=desc, before_step=before_step, checkpoint=self.checkpoint)
 
     def _problem(self, measurement: DipMeasurement, operator: DipOperator) -> Problem:
         """Data term, priors, measured volume fraction and support mask for ``operator``."""

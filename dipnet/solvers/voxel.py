@@ -82,7 +82,7 @@ class VoxelSolver(OptimisationSolver):
         if not self.coarse_to_fine or grid.n // 2 < MIN_COARSE_N or self.coarse_fraction == 0:
             return [(operator, self.iterations, 0.0, 1.0)]
         coarse = make_operator(Grid(grid.n // 2, grid.ndim, grid.extent), operator.directions, operator.n_slabs,
-                               backend=backend_name(operator))
+                               backend=backend_name(operator), **getattr(operator, "options", {}))
         n_coarse = max(1, round(self.coarse_fraction * self.iterations))
         c = n_coarse / self.iterations
         return [(coarse, n_coarse, 0.0, c), (operator, max(1, self.iterations - n_coarse), c, 1.0)]
