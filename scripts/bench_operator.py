@@ -248,6 +248,21 @@ def main() -> None:
                   f"{r['radon_s'] / r['fourier_s']:.1f}x | {r['rel_diff']:.2e} | {r['fourier_err']:.2e} | "
                   f"{r['radon_err']:.2e} |", flush=True)
     print(f"# load average at the end {os.getloadavg()}")
+    print(result_line(rows))
+
+
+def result_line(rows: list[dict]) -> str:
+    """``RESULT`` of the largest measured fourier case: its seconds, peak memory and speed-up over the
+    reference (measured, or extrapolated linearly in K when the reference was skipped)."""
+    timed = [r for r in rows if r["backend"] == "fourier" and "seconds" in r]
+    if not timed:
+        return "RESULT fourier_cases=0"
+    top = max(timed, key=lambda r: (r["n"], r["k"]))
+    ref = next((r for r in rows if r["backend"] == "rotate_sum" and (r["n"], r["k"]) == (top["n"], top["k"])), {})
+    reference_s = ref.get("seconds", ref.get("estimate_s"))
+    speed = f"{reference_s / top['seconds']:.0f}" if reference_s else "nan"
+    return (f"RESULT n={top['n']} k={top['k']} fourier_s={top['seconds']:.3f} peak_gb={top['peak_gb']:.2f} "
+            f"speedup_vs_rotate_sum={speed}")
 
 
 if __name__ == "__main__":

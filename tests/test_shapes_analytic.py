@@ -92,7 +92,6 @@ def _box_mesh(lo, hi):
 def test_chamber_box_equals_boolean_mesh_and_is_not_a_sealed_void():
     """The box algebra matches a boolean mesh (manifold3d); the loader sees the chamber as open,
     and fills it once the channel is removed (then it is a sealed void)."""
-    pytest.importorskip("manifold3d")
     a, c, w = 30.0, 12.0, 4.0
     shape = ChamberBox([a] * 3, chamber_half_sizes=c, channel_half_width=w)
     outer = _box_mesh([-a] * 3, [a] * 3)

@@ -76,7 +76,6 @@ def test_nested_shells_outer_void_island():
 
 
 def test_overlapping_shells_are_merged():
-    pytest.importorskip("manifold3d")
     a = trimesh.creation.box(extents=[2.0, 2.0, 2.0])
     b = trimesh.creation.box(extents=[2.0, 2.0, 2.0])
     b.apply_translation([1.0, 0.5, 0.0])  # overlap volume 1 * 1.5 * 2 = 3
