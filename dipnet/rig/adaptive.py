@@ -116,30 +116,16 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
     ``minnorm`` on a ``cfg.planner.resolution`` grid (default 32) of side ``cfg.planner.extent_mm``
     (default 100 mm). Returns the raw scan."""
     from hydra.utils import instantiate
-    from omegaconf import OmegaConf
 
-    from dipnet.rig.runner import build_header
-    from dipnet.rig.sensors import AveragingSensor
+    from dipnet.rig.runner import plan_settings, register_fake_rig, runner_from_config
     from dipnet.solvers.minnorm import MinNormSolver
 
-    if cfg.rig.get("fake") is not None:
-        instantiate(cfg.rig.fake, _convert_="all").register()
-    geometry = cfg.rig.get("geometry") or {}
-    protocol = {**OmegaConf.to_container(cfg.protocol, resolve=True),
-                "origin_height_mm": geometry.get("origin_height_mm"), "pivot_mm": float(geometry.get("pivot_mm", 0.0))}
+    register_fake_rig(cfg)
+    protocol = plan_settings(cfg)
     settings_cfg = cfg.planner
 
     def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:
-        controller = instantiate(cfg.rig.controller, _convert_="all")
-        sensor = AveragingSensor(instantiate(cfg.sensor.device, _convert_="all"),
-                                 **OmegaConf.to_container(cfg.sensor.average, resolve=True))
-        header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
-        configured = cfg.get("home")  # null: the runner decides (newer runners home when the board can)
-        return ScanRunner(controller, sensor, plan, path, header,
-                          home=(None if configured is None else bool(configured)) if home else False,
-                          progress=bool(cfg.progress), fsync=bool(cfg.fsync),
-                          rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
-                          confirm_position=bool(cfg.get("confirm_position", False)))
+        return runner_from_config(cfg, plan, path, home=home)
 
     grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
     settings = AdaptiveSettings.from_config(settings_cfg)

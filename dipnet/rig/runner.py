@@ -409,29 +409,56 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
     name so the ``fakerig://`` URLs reach it); ``cfg.sensor`` holds ``device`` (``_target_``) and
     ``average``; ``cfg.orientations`` and ``cfg.protocol`` the plan.
     """
-    from hydra.utils import instantiate
     from omegaconf import OmegaConf
+
+    register_fake_rig(cfg)
+    plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)), **plan_settings(cfg))
+    return runner_from_config(cfg, plan, path, progress=progress).run()
+
+
+def register_fake_rig(cfg) -> None:
+    """Register ``cfg.rig.fake`` (a :class:`~dipnet.rig.fake.FakeRig`) so its ``fakerig://`` URLs resolve."""
+    from hydra.utils import instantiate
 
     if cfg.rig.get("fake") is not None:
         instantiate(cfg.rig.fake, _convert_="all").register()
+
+
+def plan_settings(cfg) -> dict[str, Any]:
+    """The :class:`ScanPlan` keyword arguments of a scan config besides the orientations:
+    ``cfg.protocol``, the origin / pivot of ``cfg.rig.geometry`` and the rig geometry of the
+    calibration file ``cfg.rig.calibration`` (the ideal rig without one)."""
+    from omegaconf import OmegaConf
+
+    geometry = cfg.rig.get("geometry") or {}
+    calibration = rig_calibration(cfg.rig)
+    return {**OmegaConf.to_container(cfg.protocol, resolve=True),
+            "origin_height_mm": geometry.get("origin_height_mm"), "pivot_mm": float(geometry.get("pivot_mm", 0.0)),
+            "geometry": calibration.geometry if calibration else RigGeometry()}
+
+
+def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = True,
+                       progress: bool | None = None) -> "ScanRunner":
+    """A :class:`ScanRunner` for ``plan`` on the controller and sensor of a scan config, its header
+    recording the config and the rig calibration. ``home=False`` never homes (a later batch of an
+    adaptive scan); otherwise ``cfg.home`` decides (null: home when the board can)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
     controller = instantiate(cfg.rig.controller, _convert_="all")
     device = instantiate(cfg.sensor.device, _convert_="all")
     sensor = AveragingSensor(device, **OmegaConf.to_container(cfg.sensor.average, resolve=True))
-    geometry = cfg.rig.get("geometry") or {}
-    calibration = rig_calibration(cfg.rig)
-    plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)),
-                    **OmegaConf.to_container(cfg.protocol, resolve=True),
-                    origin_height_mm=geometry.get("origin_height_mm"), pivot_mm=float(geometry.get("pivot_mm", 0.0)),
-                    geometry=calibration.geometry if calibration else RigGeometry())
     header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
+    calibration = rig_calibration(cfg.rig)
     if calibration is not None:
         header.config.update({TANK_CONFIG_KEY: calibration.tank, "calibration": calibration.to_dict()})
         header.tank_cross_section_mm2 = calibration.geometry.area(header.tank_cross_section_mm2)
-    home = cfg.get("home")
-    return ScanRunner(controller, sensor, plan, path, header, home=None if home is None else bool(home),
+    configured = cfg.get("home")
+    return ScanRunner(controller, sensor, plan, path, header,
+                      home=(None if configured is None else bool(configured)) if home else False,
                       progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
                       rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
-                      confirm_position=bool(cfg.get("confirm_position", False))).run()
+                      confirm_position=bool(cfg.get("confirm_position", False)))
 
 
 def rig_calibration(rig_cfg) -> Calibration | None:
