@@ -30,11 +30,13 @@ is the object's position along the spin axis). Self-calibration warns and keeps 
 parameters at their initial values; reference calibration refuses (``CalibrationError``).
 
 The cross-section is identifiable only because the solver's shape is (nearly) binary: the
-data alone cannot tell a larger tank from a denser object.
+data alone cannot tell a larger tank from a denser object. It is fitted as one volume gain
+jointly with the shape (:func:`self_calibrate`).
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import warnings
@@ -72,6 +74,7 @@ GAUGES: dict[str, str] = {
     "rot_y_deg": "the object's rotation about y", "rot_z_deg": "the object's rotation about the spin axis",
     "dilate_mm": "the object's surface moving outward: a fatter or thinner object",
 }
+SECTION_BIAS_NOTE = "-2.4 % to +0.2 % on 4 meshes"  # measured (README, bench_calibration)
 DEFAULT_SELF = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "cross_section_mm2")
 
 
@@ -443,36 +446,40 @@ class SelfCalibration:
 
 def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_slabs: int | None = None,
                    operator_factory: Callable | None = None, smooth: bool = False, finish=None, initial: RigGeometry | None = None,
-                   iterations: int = 2, dip_offset_sigma_mm: float | None = None, shape: str = "binary",
-                   relax: float = 2.0, max_nfev: int = 20) -> SelfCalibration:
+                   iterations: int = 1, dip_offset_sigma_mm: float | None = None, shape: str = "binary",
+                   max_nfev: int = 20) -> SelfCalibration:
     """Estimate the rig geometry jointly with the shape.
 
     1. Heights and directions (every parameter but the cross-section) from the shape-free
        moment residual (:meth:`ProfileModel.moment_residual`): the dips must be profiles of one
        rigid object. Parameters this cannot determine are reported and kept at ``initial``.
-    2. The cross-section (and per-dip offsets with ``dip_offset_sigma_mm``) alternating a
-       shape step (``solver``) and a geometry step on the profile residual, ``iterations`` times.
-    3. A final shape step with the calibrated geometry.
+    2. The cross-section jointly with the shape: the shape step (``solver`` with ``fit_gain``)
+       fits one gain ``a`` on every predicted volume together with the shape. A wrong
+       cross-section multiplies every measured volume by ``a = assumed / true``, so the
+       calibrated cross-section is ``assumed / a``. With ``dip_offset_sigma_mm`` a geometry step
+       then fits the per-dip height offsets to that shape. ``iterations`` such rounds.
+    3. A final shape step (no gain) with the calibrated geometry.
+
+    Why a joint gain and not alternation: in alternation the shape step, at a fixed wrong
+    cross-section, dilates or erodes the shape to absorb most of the error, so the next
+    geometry step sees only a fraction of it (bunny, 64^3, -8 % section: 3.5-5.6 % left after
+    two over-relaxed alternations). Fitted jointly, the gain and the shape's size compete
+    through the profiles' *shapes*: a dilated object widens every profile, a gain only scales
+    it, and the interior of a nearly binary shape cannot exceed 1. What remains is the bias
+    of the shape prior (measured with ``scripts/bench_calibration.py``, see README).
 
     Args:
         raw: the object's raw scan (complete dips that start before contact and end under water).
         grid, n_slabs, operator_factory, smooth: reconstruction grid, slabs, operators, smoothing.
         finish: applied to every preprocessed measurement (:class:`ProfileModel`).
         solver: any :class:`~dipnet.solvers.Solver` (the shape step); the cross-section needs
-            one whose shapes are nearly binary (voxel, implicit).
+            an optimisation solver (``fit_gain``: voxel, implicit).
         params: geometry parameters to estimate (:data:`PARAMETERS`).
         initial: starting geometry (default: the ideal rig).
-        iterations: shape / geometry alternations for the cross-section.
+        iterations: rounds of step 2.
         dip_offset_sigma_mm: also estimate one height offset per dip with this prior (mm).
-        shape: what the geometry step fits: ``"binary"`` (the thresholded shape) or ``"occupancy"``.
-        relax: over-relaxation of the cross-section updates. The shape step absorbs part of a
-            wrong cross-section (it dilates or erodes the shape), so each alternation only moves
-            it part of the way (measured on the bunny at 32^3: about 25 % of the remaining error
-            per alternation); 2 roughly doubles that. The alternation has no sharp fixed point:
-            the thresholded shape is a little smaller than the object, so more alternations keep
-            shrinking the cross-section (bunny, 32^3, -8 % mismatch: 2 alternations -> +0.6 %,
-            3 -> -2.7 %). The reported standard error is conditional on the shape and does not
-            hold this bias.
+        shape: what the geometry step and the report fit: ``"binary"`` (the thresholded shape)
+            or ``"occupancy"``.
 
     Returns:
         :class:`SelfCalibration`; its report merges the moment stage's standard errors (heights,
@@ -498,24 +505,28 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
         moments = identifiability(model, None, state, rigid)
         history.append({"stage": "moments", **{p: _get(state, p, model.nominal_area) for p in params}})
     volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params else ()
+    shape_solver = _with_gain(solver) if volume_params else solver
     sigma = None
     for it in range(iterations if volume_params or dip_offset_sigma_mm is not None else 0):
         measurement = model.measurement(state)
-        recon = solver.solve(measurement, model.operator(measurement.directions))
+        recon = shape_solver.solve(measurement, model.operator(measurement.directions))
         occupancy = _shape_volume(recon, shape)
-        fitted, sigma = fit_geometry(model, occupancy, state, volume_params or ("t0_mm",),
-                                     dip_offset_sigma_mm=dip_offset_sigma_mm, sigma=sigma, max_nfev=max_nfev)
-        state = _relaxed(state, fitted, volume_params, relax, model.nominal_area)
-        history.append({"stage": f"shape {it}", **{p: _get(state, p, model.nominal_area) for p in params}})
+        gain = float(recon.info.get("gain", 1.0))
+        if volume_params:
+            state = _with(state, {"cross_section_mm2": _get(state, "cross_section_mm2", model.nominal_area) / gain})
+        if dip_offset_sigma_mm is not None:
+            state, sigma = fit_geometry(model, occupancy, state, ("t0_mm",), dip_offset_sigma_mm=dip_offset_sigma_mm,
+                                        sigma=sigma, max_nfev=max_nfev)
+        history.append({"stage": f"shape {it}", "gain": gain, **{p: _get(state, p, model.nominal_area) for p in params}})
     for row in history:
         log.info("self-calibration %s", ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items()))
     if volume_params:  # judged with the last shape (and its dilation gauge); undetermined -> kept at the start
         report = _merge_reports(model, state, moments, volume_params, occupancy, sigma)
         report.caveats["cross_section_mm2"] = (
-            "estimated only through the solver's nearly binary shape, which grows or shrinks to absorb part "
-            "of a wrong section; the standard error is conditional on that shape and can understate the error "
-            "many times (bunny, 32^3: 0.2 % reported, 5.6 % real): prefer a reference object of known volume")
+            "estimated through the shape prior (a nearly binary shape cannot be denser than 1); the standard error "
+            "is conditional on the fitted shape and does not hold the prior's bias (bench_calibration, 64^3, "
+            f"123 dips: {SECTION_BIAS_NOTE}): for a section better than that, calibrate with a reference object")
         if "cross_section_mm2" in report.undetermined:
             start = (initial or RigGeometry()).cross_section_mm2
             state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=start))
@@ -533,11 +544,15 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     return SelfCalibration(state.geometry, state.t0_mm, measurement, recon, report, history)
 
 
-def _relaxed(state: State, fitted: State, names, relax: float, area: float) -> State:
-    """``state + relax (fitted - state)`` for ``names``; ``fitted`` otherwise (its dip offsets)."""
-    values = {n: _get(state, n, area) + relax * (_get(fitted, n, area) - _get(state, n, area)) for n in names}
-    return _with(replace(fitted, geometry=state.geometry.with_values(
-        **{k: v for k, v in vars(fitted.geometry).items() if k not in names})), values)
+def _with_gain(solver):
+    """A copy of ``solver`` that fits a volume gain with the shape (:class:`~dipnet.solvers.optimize.DataTerm`)."""
+    if not hasattr(solver, "fit_gain"):
+        raise CalibrationError(f"the cross-section is estimated with the shape, which needs an optimisation solver "
+                               f"(voxel, implicit); {type(solver).__name__} cannot fit it: drop cross_section_mm2 "
+                               "from the parameters or calibrate it with a reference object (scripts/calibrate.py)")
+    gained = copy.copy(solver)
+    gained.fit_gain = True
+    return gained
 
 
 def _merge_reports(model: ProfileModel, state: State, moments: CalibrationReport | None, volume_params,

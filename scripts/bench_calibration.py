@@ -50,13 +50,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR (dB)")
     p.add_argument("--fill", type=float, default=0.8, help="mesh radius / working-ball radius")
     p.add_argument("--iterations", type=int, default=400, help="voxel solver iterations per shape step")
-    p.add_argument("--alternations", type=int, default=2, help="shape / cross-section alternations")
-    p.add_argument("--quick", action="store_true", help="1 mesh at 32^3, 100 solver iterations, 1 alternation")
+    p.add_argument("--rounds", type=int, default=1, help="rounds of the joint shape + cross-section step")
+    p.add_argument("--quick", action="store_true", help="1 mesh at 32^3, 100 solver iterations")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     if args.quick:
-        args.meshes, args.n, args.iterations, args.alternations = args.meshes[:1], 32, 100, 1
+        args.meshes, args.n, args.iterations = args.meshes[:1], 32, 100
     return args
 
 
@@ -89,7 +89,7 @@ def main(argv=None) -> list[dict]:
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            calibrated = self_calibrate(raw, grid, solver, iterations=args.alternations)
+            calibrated = self_calibrate(raw, grid, solver, iterations=args.rounds)
         cases["calibrated"] = (calibrated.reconstruction, time.perf_counter() - t0)
         for case in ("nominal", "calibrated", "true"):
             recon, seconds = cases[case]

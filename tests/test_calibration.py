@@ -128,3 +128,25 @@ def test_a_scan_with_the_calibration_reads_right(tmp_path):
     centroids = (m.profiles.numpy() @ (np.arange(32) + 0.5 - 16) * grid.voxel_size) / m.profiles.sum(1).numpy()
     assert np.abs(centroids).max() < 0.3
     assert m.volume_estimate() == pytest.approx(Ball(RADIUS).volume, rel=0.01)
+
+
+def test_self_calibration_finds_the_cross_section_with_the_shape():
+    """Only the tank is wrong (8 % smaller than assumed): the joint shape + gain step recovers its
+    cross-section within 3 % from a ball, and reports it determined."""
+    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
+                        geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
+                        progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        result = self_calibrate(raw, Grid(32, extent=80.0), VoxelSolver(iterations=150, progress=False),
+                                ("cross_section_mm2",))
+    assert result.geometry.cross_section_mm2 == pytest.approx(0.92 * 60000.0, rel=0.03)
+    assert "cross_section_mm2" not in result.report.undetermined
+    assert result.history[-1]["gain"] == pytest.approx(1 / 0.92, rel=0.03)
+    assert "reference object" in result.report.caveats["cross_section_mm2"]
+
+
+def test_the_cross_section_needs_a_solver_that_fits_a_gain():
+    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(6), tank=Tank(60000.0), progress=False)
+    with pytest.raises(CalibrationError, match="MinNormSolver cannot fit it"):
+        self_calibrate(raw, Grid(16, extent=80.0), MinNormSolver(progress=False), ("cross_section_mm2",))

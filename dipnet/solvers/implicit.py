@@ -110,7 +110,7 @@ class ImplicitSolver(OptimisationSolver):
                 occ = occupancy()
         self.field_ = field
         n_params = sum(p.numel() for p in field.parameters())
-        recon = self._result(occ, operator, history, started, parameters=n_params,
+        recon = self._result(occ, operator, history, started, data=data, parameters=n_params,
                              output_upsample=self.output_upsample, support_voxels=int(index.numel()))
         recon.fine = None
         if self.output_upsample > 1:

@@ -41,6 +41,7 @@ OPTIMIZERS = ("adam", "lbfgs")
 SCHEDULES = ("cosine", "step", "constant")
 _HULL_ENTRIES = 1 << 25  # voxel x orientation heights held at once by support_hull
 _SIGMA_FLOOR = 1e-3  # sigma below this fraction of its median is clamped (no infinite weights)
+GAIN_LR = 0.01  # Adam step of the log-gain (fit_gain): a few steps per percent, no overshoot
 
 Priors = list[tuple[str, float, nn.Module]]
 
@@ -55,19 +56,27 @@ class Problem(NamedTuple):
 
 
 class DataTerm(nn.Module):
-    """Weighted squared relative residual ``sum w (A o - g)^2 / sum w g^2`` (see module docstring).
+    """Weighted squared relative residual ``sum w (a A o - g)^2 / sum w g^2`` (see module docstring).
+
+    ``a`` is 1, or with ``fit_gain`` a free gain ``a = exp(log_gain)`` optimised with the shape:
+    one unknown factor on every measured volume, which is what a wrong tank cross-section does
+    (the readers multiply each level rise by the cross-section they assume, so
+    ``a = assumed / true cross-section``).
 
     Args:
         operator: the dip operator ``A``.
         target: measured slab volumes ``(K, M)`` on the operator's slabs, mm^3.
         sigma: optional noise standard deviation ``(K, M)``, mm^3.
         dtype: arithmetic dtype of the residual.
+        fit_gain: make ``log_gain`` a parameter (:attr:`log_gain`).
+        log_gain: its starting value.
     """
 
     def __init__(self, operator: DipOperator, target: torch.Tensor, sigma: torch.Tensor | None = None,
-                 dtype: torch.dtype = torch.float32) -> None:
+                 dtype: torch.dtype = torch.float32, fit_gain: bool = False, log_gain: float = 0.0) -> None:
         super().__init__()
         self.operator = operator
+        self.log_gain = nn.Parameter(torch.tensor(float(log_gain), dtype=dtype)) if fit_gain else None
         if sigma is None:
             weight = torch.ones_like(target)
         else:
@@ -78,8 +87,16 @@ class DataTerm(nn.Module):
         self.register_buffer("target", target.to(dtype))
         self.register_buffer("weight", weight.to(dtype))
 
+    @property
+    def gain(self) -> float:
+        """The fitted gain ``a`` (1 without ``fit_gain``)."""
+        return 1.0 if self.log_gain is None else math.exp(float(self.log_gain.detach()))
+
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
-        residual = self.operator(occupancy) - self.target
+        predicted = self.operator(occupancy)
+        if self.log_gain is not None:
+            predicted = predicted * torch.exp(self.log_gain)
+        residual = predicted - self.target
         return (self.weight * residual.pow(2)).sum()
 
 
@@ -302,6 +319,9 @@ class OptimisationSolver(Solver):
         threshold: occupancy level of the final binary shape.
         progress: show progress bars.
         checkpoint: a :class:`~dipnet.checkpoint.Checkpoint` to save every stage to and resume from.
+        fit_gain: also fit one gain on every predicted volume (:class:`DataTerm`); the result's
+            ``info["gain"]`` holds it. Self-calibration uses it to estimate the tank's
+            cross-section jointly with the shape (:func:`dipnet.calibration.self_calibrate`).
     """
 
     name = "optimisation"
@@ -309,7 +329,7 @@ class OptimisationSolver(Solver):
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
                  tol: float = 1e-3, window: int = 25, priors: Mapping[str, Mapping] | None = None,
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
-                 progress: bool = True, hull_margin: float = 1.5, checkpoint=None) -> None:
+                 progress: bool = True, hull_margin: float = 1.5, checkpoint=None, fit_gain: bool = False) -> None:
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
         if schedule not in SCHEDULES:
@@ -329,19 +349,24 @@ class OptimisationSolver(Solver):
             raise ValueError(f"hull_margin must be >= 0 voxels, got {hull_margin}")
         self.hull_margin = float(hull_margin)
         self.checkpoint = checkpoint
+        self.fit_gain = bool(fit_gain)
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
               before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:
+        if data.log_gain is not None:
+            parameters = [{"params": list(parameters)}, {"params": [data.log_gain], "lr": GAIN_LR}]
         return optimise(parameters, occupancy, data, priors, iterations=iterations, lr=self.lr * lr_scale,
                         optimizer=self.optimizer, schedule=self.schedule, tol=self.tol, window=self.window,
                         progress=self.progress, desc=desc, before_step=before_step, checkpoint=self.checkpoint)
 
-    def _problem(self, measurement: DipMeasurement, operator: DipOperator) -> Problem:
-        """Data term, priors, measured volume fraction and support mask for ``operator``."""
+    def _problem(self, measurement: DipMeasurement, operator: DipOperator, fit_gain: bool | None = None) -> Problem:
+        """Data term (fitting a gain with ``fit_gain``, default :attr:`fit_gain`), priors, measured
+        volume fraction and support mask for ``operator``."""
         target, sigma = target_and_sigma(measurement, operator)
         fraction = volume_fraction(measurement, operator)
         support = self.support(target, operator, operator.grid)
-        return Problem(DataTerm(operator, target, sigma), build_priors(self.priors, fraction), fraction, support)
+        data = DataTerm(operator, target, sigma, fit_gain=self.fit_gain if fit_gain is None else fit_gain)
+        return Problem(data, build_priors(self.priors, fraction), fraction, support)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),
@@ -369,8 +394,11 @@ class OptimisationSolver(Solver):
         return start.clamp(0, 1)
 
     def _result(self, occupancy: torch.Tensor, operator: DipOperator, history: dict, started: float,
-                **info) -> Reconstruction:
+                data: DataTerm | None = None, **info) -> Reconstruction:
+        """The reconstruction with ``info`` (and ``info["gain"]`` when ``data`` fitted one)."""
         steps = len(history.get("loss", []))
+        if data is not None and data.log_gain is not None:
+            info["gain"] = data.gain
         info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,
                 "final": {k: v[-1] for k, v in history.items() if v}, "optimizer": self.optimizer,
                 "seed": self.seed, **info}

@@ -95,8 +95,8 @@ class VoxelSolver(OptimisationSolver):
         logits: torch.Tensor | None = None  # u = z / T, carried between stages
         histories, stage_info = [], []
         with seeded(self.seed):
-            for op, steps, f0, f1 in self._stages(operator):
-                data, priors, fraction, support = self._problem(measurement, op)
+            for op, steps, f0, f1 in self._stages(operator):  # a gain is fitted on the full grid only (see fit_gain)
+                data, priors, fraction, support = self._problem(measurement, op, self.fit_gain and op is operator)
                 mask = support.to(torch.float32)
                 if logits is None:
                     room = float(mask.mean())  # share of the cube that may be filled
@@ -119,5 +119,5 @@ class VoxelSolver(OptimisationSolver):
                 logits = (z.detach() / temp["T"])
                 stage_info.append({"n": op.grid.n, "steps": len(histories[-1]["loss"])})
         occ = torch.sigmoid(logits) * mask
-        return self._result(occ, operator, merge_histories(*histories), started, stages=stage_info,
+        return self._result(occ, operator, merge_histories(*histories), started, data=data, stages=stage_info,
                             final_temperature=temp["T"], support_voxels=int(mask.sum()))
