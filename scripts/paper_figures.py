@@ -3,7 +3,9 @@
 Runs the reconstruction pipeline (:func:`dipnet.pipeline.run`, the Hydra config of
 ``scripts/reconstruct.py``) for every bundled mesh x resolution ``N`` x dip budget (``--percent``
 of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job directory each under
-``--out`` (a finished job is reused, so an interrupted run continues), then writes there
+``--out`` (a finished job is reused, so an interrupted run continues; every job uses the fast
+``fourier`` operator, ``eps=1e-3, upsampfac=1.25``, single precision, and by default ``minnorm``
+with at most 60 LSMR iterations), then writes there
 
 * ``fig11_n<N>.png``: per resolution, one row per mesh, one column per budget (depth-shaded
   renders of the binary reconstructions, as the paper's Fig. 11 rows);
@@ -14,7 +16,7 @@ of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job direct
 
 Ends with ``RESULT chamfer_<p>=<mean> hausdorff_<p>=<mean> ...`` per budget ``p``.
 
-    python scripts/paper_figures.py                              # 64 and 128^3, 3 meshes, 1/3/10 %
+    python scripts/paper_figures.py                              # 64 and 128^3, 3 meshes, 1/3/10 %, minnorm
     python scripts/paper_figures.py solver=voxel --n 64          # any Hydra override of reconstruct.py
     python scripts/paper_figures.py --n 240 --percent 1 3 5 10 --meshes bunny hand   # the paper's size
 """
@@ -37,12 +39,15 @@ from dipnet.pipeline import run  # noqa: E402
 PAPER_METRO_10 = (0.0125, 0.0433)  # paper Table 1: METRO error / bbox diagonal at 10 % of N^2 (240^3)
 JOB_DEFAULTS = ["output.figures=false", "output.uncertainty=false", "output.resolvability=false",
                 "output.progress=false", "output.mesh_formats=[]", "output.truth_supersample=2", "shape=mesh",
-                "shape.radius=45"]  # mm: the bundled meshes come in mixed units; the grid follows them
+                "shape.radius=45",  # mm: the bundled meshes come in mixed units; the grid follows them
+                "operator=fourier", "operator.eps=1e-3", "operator.upsampfac=1.25", "operator.single=true"]
+SOLVER_DEFAULTS = ["solver=minnorm", "solver.iter_lim=60"]  # LSMR at these sizes, as in bench_scale
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("overrides", nargs="*", help="Hydra overrides for every job (e.g. solver=voxel)")
+    p.add_argument("overrides", nargs="*", default=SOLVER_DEFAULTS,
+                   help=f"Hydra overrides for every job (default: {' '.join(SOLVER_DEFAULTS)}; e.g. solver=voxel)")
     p.add_argument("--meshes", nargs="+", default=["bunny", "hand", "spot"], help="bundled mesh names")
     p.add_argument("--n", type=int, nargs="+", default=[64, 128], help="grid resolutions N")
     p.add_argument("--percent", type=float, nargs="+", default=[1.0, 3.0, 10.0], help="dips in %% of N^2")
