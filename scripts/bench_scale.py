@@ -65,7 +65,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--eps", type=float, default=1e-3, help="NUFFT tolerance of the fourier operator")
     p.add_argument("--upsampfac", type=float, default=1.25, help="NUFFT oversampling of the fourier operator")
     p.add_argument("--precision", choices=["single", "double"], default="single",
-                   help="NUFFT arithmetic of the fourier operator (single: 1.8x faster at eps 1e-3)")
+                   help="NUFFT arithmetic of the fourier operator (single: 1.65x faster at eps 1e-3)")
     p.add_argument("--threads", type=int, default=1, help="torch and NUFFT threads (2 on a quiet 2-core machine)")
     p.add_argument("--cache", type=Path, default=Path("outputs/bench_scale_cache"), help="simulated scans")
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
