@@ -121,7 +121,8 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
     lo, hi = slab_support(target, edges, rel_tol, margin * grid.voxel_size)
     dirs = directions.to(target.dtype)
     axis = grid.axis(target.dtype)  # centre coordinates along a column, mm
-    columns = grid.centers(target.dtype)[0, ..., :-1].reshape(-1, grid.ndim - 1)  # (N^(d-1), d-1), mm
+    across_axes = torch.meshgrid(*([axis] * (grid.ndim - 1)), indexing="ij")  # array order ([y,] x)
+    columns = torch.stack(across_axes[::-1], dim=-1).reshape(-1, grid.ndim - 1)  # (N^(d-1), d-1): (x[, y]), mm
     along = dirs[:, -1]
     flat = along.abs() <= _FLAT
     chunk = chunk or max(1, _HULL_ENTRIES // columns.shape[0])
