@@ -3,7 +3,8 @@
 Runs the reconstruction pipeline (:func:`dipnet.pipeline.run`, the Hydra config of
 ``scripts/reconstruct.py``) for every bundled mesh x resolution ``N`` x dip budget (``--percent``
 of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job directory each under
-``--out`` (a finished job is reused, so an interrupted run continues; every job uses the fast
+``--out`` (a finished job is reused, so an interrupted run continues, whatever the overrides:
+use one ``--out`` per solver or setting; every job uses the fast
 ``fourier`` operator, ``eps=1e-3, upsampfac=1.25``, single precision, and by default ``minnorm``
 with at most 60 LSMR iterations), then writes there
 
