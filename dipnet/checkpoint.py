@@ -79,3 +79,37 @@ class Checkpoint:
                     "scheduler": None if scheduler is None else scheduler.state_dict(), "history": history}, tmp)
         tmp.replace(file)
         return True
+
+
+def attach_checkpoint(solver, setting, run_dir: str | Path, every: int = 25) -> Checkpoint | None:
+    """Give ``solver`` the checkpoint the pipeline's ``output.checkpoint`` asks for.
+
+    Args:
+        solver: the instantiated solver; only solvers with a ``checkpoint`` attribute (the
+            optimisation solvers, ``voxel`` and ``implicit``) can resume.
+        setting: ``None`` / ``False``: none; ``True``: ``<run_dir>/checkpoints``; a path: that
+            directory (so a rerun with the same path, or with the same ``hydra.run.dir`` and
+            ``True``, continues the interrupted solve).
+        run_dir: the job's output directory.
+        every: steps between saves.
+
+    Returns:
+        The checkpoint given to the solver, or ``None``.
+    """
+    if setting is None or setting is False:
+        return None
+    if setting is True:
+        directory = Path(run_dir) / "checkpoints"
+    elif isinstance(setting, (str, Path)) and str(setting).strip():
+        directory = Path(setting)
+    else:
+        raise ValueError(f"output.checkpoint must be null, true or a directory, got {setting!r}")
+    if not hasattr(solver, "checkpoint"):
+        message = (f"output.checkpoint: solver {type(solver).__name__} does not checkpoint (the optimisation "
+                   "solvers voxel and implicit do); ignored")
+        log.warning(message)
+        warnings.warn(message, stacklevel=2)
+        return None
+    solver.checkpoint = Checkpoint(directory, every)
+    log.info("checkpointing the solve to %s every %d steps (a rerun with it resumes)", directory, every)
+    return solver.checkpoint

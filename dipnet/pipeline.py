@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from dipnet import consistency, export, metrics, plots, resolvability
 from dipnet.adaptive import fixed_directions, simulate_adaptive
+from dipnet.checkpoint import attach_checkpoint
 from dipnet.framing import extent_around, measurement_extent
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
@@ -122,6 +123,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
 
     t0 = time.perf_counter()
     solver = instantiate(cfg.solver)
+    attach_checkpoint(solver, cfg.output.get("checkpoint"), out, int(cfg.output.get("checkpoint_every", 25)))
     if cfg.get("calibration"):  # the rig geometry estimated jointly with the shape
         from dipnet.calibration_job import self_calibration_job
 

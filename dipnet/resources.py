@@ -13,8 +13,9 @@ config alone (``V = N^d`` voxels, ``K`` dips, ``M`` slabs; bytes):
   ``nnz = 2 K V_ball`` (built as COO with int64 indices, concatenated, then CSR and its
   transpose: ``~72`` bytes per non-zero) and the dense ``B B^T`` (``8 (K M)^2``); the
   iterative solvers (``lsmr``, ``lsqr``, minnorm's fallback) ``~6`` vectors of ``V`` and of
-  ``K M``; ``voxel`` ``~800 V`` (parameters, gradient, Adam moments, coarse-to-fine copies and
-  the autograd graph through the operator); ``implicit`` the MLP activations forward and
+  ``K M``; ``voxel`` ``~200 V + 250 MB`` (parameters, gradient, Adam moments, coarse-to-fine
+  copies and the autograd graph through the operator; the constant covers the NUFFT plans and
+  work arrays that do not grow with ``V``); ``implicit`` the MLP activations forward and
   backward (``12 V w (L + 1)``, width ``w``, ``L`` hidden layers) and its grid encoding
   (``~4 f V`` per level);
 * the measurement ``~32 K M``.
@@ -22,7 +23,8 @@ config alone (``V = N^d`` voxels, ``K`` dips, ``M`` slabs; bytes):
 These are the dominant terms, enough to refuse a run that needs 24 PB before anything is
 allocated. Measured (peak RSS minus the RSS after imports, one run each, 1 thread) against
 the estimate: default config (40^3, K = 120, minnorm Cholesky) 746 MB vs ~800 MB; voxel 64^3
-(fourier) 286 MB vs ~280 MB; lsmr 96^3, K = 60 208 MB vs ~290 MB; implicit 48^3 157 MB vs
+(fourier) 286 MB vs ~300 MB, voxel 240^3 with K = 5,760 (fourier, single precision) peak RSS
+2.03 GB with imports and the operator vs 3.0 GB (solver part, ``800 V`` before: 11 GB); lsmr 96^3, K = 60 208 MB vs ~290 MB; implicit 48^3 157 MB vs
 ~280 MB. :func:`check_memory` raises :class:`ResourceError` when the estimate exceeds the available
 memory (``psutil`` if installed, else ``MemAvailable`` of ``/proc/meminfo``, else
 ``os.sysconf``).
@@ -101,7 +103,7 @@ def estimate_memory(cfg: DictConfig) -> MemoryEstimate:
             get("solver.method", "auto") == "auto" and rows <= int(get("solver.max_cholesky_rows", 6000)))):
         parts["solver"] = 72 * 2 * pairs + 8.0 * rows**2
     elif "voxel" in solver:
-        parts["solver"] = 800 * voxels
+        parts["solver"] = 200 * voxels + 250e6
     elif "implicit" in solver:
         width, layers = int(get("solver.hidden_width", 64)), int(get("solver.hidden_layers", 2))
         levels, features = int(get("solver.encoding.levels", 6)), int(get("solver.encoding.features", 2))

@@ -192,3 +192,15 @@ def test_auto_backend_follows_problem_size():
     assert isinstance(make_operator(small, fibonacci_hemisphere(10), backend="auto"), SplatOperator)
     with pytest.raises(ValueError, match="unknown operator backend"):
         make_operator(small, fibonacci_hemisphere(3), backend="nope")
+
+
+def test_fourier_single_precision_keeps_accuracy_and_adjoint():
+    grid, dirs, x, _ = _random_problem(3, seed=6)
+    double = FourierOperator(grid, dirs, 20, eps=1e-4)
+    single = FourierOperator(grid, dirs, 20, eps=1e-4, single=True)
+    assert _rel(single(x), double(x)) < 1e-3
+    y = torch.rand(single.profile_shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    lhs, rhs = float((single(x) * y).sum()), float((x * single.adjoint(y)).sum())
+    assert abs(lhs - rhs) <= 1e-5 * abs(lhs)  # the exact transpose, to single-precision rounding
+    with pytest.raises(ValueError, match="single-precision NUFFT needs eps"):
+        FourierOperator(grid, dirs, 20, eps=1e-7, single=True)

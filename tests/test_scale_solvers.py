@@ -6,10 +6,12 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from hydra import compose, initialize_config_module
 
 from dipnet.checkpoint import Checkpoint
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
+from dipnet.resources import estimate_memory
 from dipnet.solvers.minnorm import MinNormSolver, cholesky_bytes
 from dipnet.solvers.voxel import VoxelSolver
 
@@ -63,3 +65,10 @@ def test_interrupted_voxel_solve_resumes_to_the_uninterrupted_result(tmp_path):
     other = DipMeasurement(op.directions, 2 * meas.profiles, op.slab_thickness, op.slab_edges()[:1].expand(k))
     with pytest.warns(UserWarning, match="another problem"):
         VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), **options).solve(other, op)
+
+
+def test_memory_estimate_of_the_paper_size_voxel_run_is_above_the_measured_peak_and_below_the_target():
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["resolution=240", "n_dips=5760", "solver=voxel"])
+    total = estimate_memory(cfg).total
+    assert 2.03e9 < total < 8e9  # measured peak RSS of the 240^3 / 5,760-dip voxel solve: 2.03 GB; target 8 GB

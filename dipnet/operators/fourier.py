@@ -77,26 +77,34 @@ class FourierOperator(DipOperator):
         bandwidth: highest frequency used, as a multiple of the slab Nyquist frequency
             ``1 / (2 delta)``; the kernel-tail truncation error falls with it.
         axis_boost: bandwidth factor for orientations within ``2 / N`` rad of a grid axis.
-        eps: NUFFT tolerance (relative; float64 arithmetic throughout, any input dtype). The
+        eps: NUFFT tolerance (relative; float64 arithmetic unless ``single``, any input dtype). The
             adjoint is exact to rounding whatever ``eps``.
         nthreads: NUFFT threads (default: ``torch.get_num_threads()``, or 1 for tiny problems,
             where thread start-up costs more than it saves).
         upsampfac: the NUFFT's oversampling factor (``None``: finufft's choice, 2 for these
             tolerances). 1.25 with ``eps=1e-3`` makes a 240^3 transform with 5,760 orientations
             about 4x faster (3.8 s instead of 17 s on one busy core), at 1e-3 relative error.
+        single: run the NUFFT (FFT and spreading) in single precision (complex64; the kernel
+            weights, folding and slab FFTs stay float64). For ``eps >= 1e-5`` only; at 240^3
+            with 5,760 orientations, ``eps=1e-3, upsampfac=1.25`` it makes a forward + adjoint
+            1.65x faster (3.2 s instead of 5.2 s of one core; the NUFFTs alone 2.7 s instead of 4.7 s).
     """
 
     def __init__(self, grid: Grid, directions: torch.Tensor, n_slabs: int | None = None,
                  bandwidth: float = 4.0, axis_boost: float = 32.0, eps: float = 1e-6,
-                 nthreads: int | None = None, upsampfac: float | None = None) -> None:
+                 nthreads: int | None = None, upsampfac: float | None = None, single: bool = False) -> None:
         super().__init__(grid, directions, n_slabs)
         if not bandwidth >= 1.0 or not axis_boost >= 1.0:
             raise ValueError(f"bandwidth and axis_boost must be >= 1, got {bandwidth!r}, {axis_boost!r}")
         self.bandwidth, self.axis_boost = float(bandwidth), float(axis_boost)
         self.eps = float(eps)
+        if single and self.eps < 1e-5:
+            raise ValueError(f"single-precision NUFFT needs eps >= 1e-5, got eps={eps!r}")
+        self.single = bool(single)
+        self._complex = np.complex64 if self.single else np.complex128
         self.upsampfac = None if upsampfac is None else float(upsampfac)
         self.options = {"bandwidth": self.bandwidth, "axis_boost": self.axis_boost, "eps": self.eps,
-                        "upsampfac": self.upsampfac}  # to build the same operator on another grid
+                        "upsampfac": self.upsampfac, "single": self.single}  # to build the same operator on another grid
         h, delta, d = grid.voxel_size, self.slab_thickness, grid.ndim
         support = grid.radius + (h * math.sqrt(d) + delta) / 2  # g_k vanishes beyond, mm
         self.period_slabs = math.ceil((support + grid.extent / 2) / delta) + 2  # M_T
@@ -135,14 +143,14 @@ class FourierOperator(DipOperator):
         if self._plan is None:
             extra = {} if self.upsampfac is None else {"upsampfac": self.upsampfac}
             plan = finufft.Plan(2, self.grid.shape, n_trans=1, eps=self.eps, isign=-1,
-                                dtype="complex128", nthreads=self.nthreads, **extra)
-            plan.setpts(*self._points)
+                                dtype=np.dtype(self._complex).name, nthreads=self.nthreads, **extra)
+            plan.setpts(*(p.astype(self._complex(0).real.dtype) for p in self._points))
             self._plan = plan
         return self._plan
 
     def _forward_np(self, vol: np.ndarray) -> np.ndarray:
         """One volume ``(*shape)`` float64 -> profiles ``(K, M)`` float64."""
-        spectrum = self._nufft().execute(vol.astype(np.complex128)) * self._weights
+        spectrum = self._nufft().execute(vol.astype(self._complex)) * self._weights
         size = self.n_orientations * self.period_slabs
         folded = (np.bincount(self._fold, spectrum.real, size) + 1j * np.bincount(self._fold, spectrum.imag, size))
         series = np.fft.ifft(folded.reshape(self.n_orientations, self.period_slabs), axis=1) * self.period_slabs
@@ -153,7 +161,8 @@ class FourierOperator(DipOperator):
         padded = np.zeros((self.n_orientations, self.period_slabs), dtype=np.complex128)
         padded[:, :self.n_slabs] = prof
         folded = np.fft.fft(padded, axis=1).reshape(-1)
-        return self._nufft().execute_adjoint(folded[self._fold] * np.conj(self._weights)).real
+        spectrum = (folded[self._fold] * np.conj(self._weights)).astype(self._complex)
+        return self._nufft().execute_adjoint(spectrum).real.astype(np.float64)
 
     def _apply(self, x: torch.Tensor, transpose: bool) -> torch.Tensor:
         step = self._adjoint_np if transpose else self._forward_np

@@ -39,7 +39,8 @@ log = logging.getLogger(__name__)
 
 OPTIMIZERS = ("adam", "lbfgs")
 SCHEDULES = ("cosine", "step", "constant")
-_HULL_ENTRIES = 1 << 25  # voxel x orientation heights held at once by support_hull
+_HULL_ENTRIES = 1 << 25  # column x orientation bounds held at once by support_hull
+_FLAT = 1e-12  # |theta_z| below this: a slab parallel to the hull's columns
 _SIGMA_FLOOR = 1e-3  # sigma below this fraction of its median is clamped (no infinite weights)
 GAIN_LR = 0.01  # Adam step of the log-gain (fit_gain): a few steps per percent, no overshoot
 
@@ -112,6 +113,15 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
     full, which widens the hull (safe); a threshold from the noise sigma would instead cut
     the object's thin tips, whose slabs hold less than a few sigma, so none is used.
 
+    The polytope is convex, so each column of voxels along the last coordinate (z in 3D, y
+    in 2D) meets it in one interval: every slab ``lo_k <= x . theta_k <= hi_k`` bounds that
+    coordinate from below and above (or keeps all / none of the column when ``theta_k`` has
+    no component along it), and the column keeps the voxels between the largest lower and
+    the smallest upper bound. Cost ``N^(d-1) K`` instead of ``N^d K`` (240^3 with 5,760
+    directions: 3.3e8 bound evaluations instead of 8e10, 5 s of one core instead of more than
+    7 min); the mask is the same as testing every voxel centre against every slab, up to
+    rounding at exact ties. Slabs with ``|theta_z| <= 1e-12`` count as parallel to the columns.
+
     Args:
         target: measured slab volumes ``(K, M)``, mm^3.
         grid: the grid of the mask (any resolution).
@@ -119,28 +129,62 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
         edges: slab edges ``(M + 1,)`` in mm.
         rel_tol: emptiness threshold relative to each profile's maximum.
         margin: slack in voxels.
-        chunk: orientations tested at once (default: as many as keep the heights array near
-            ``2^25`` entries, 256 MB in float64: 32 at 64^3, 2 at 240^3, where 32 took 3.5 GB).
+        chunk: orientations bounded at once (default: as many as keep the ``(columns,
+            chunk)`` bounds near ``2^25`` entries, 256 MB in float64: 582 at 240^3).
 
     Returns:
         Boolean mask ``grid.shape`` (a subset of the working ball).
     """
+    lo, hi = slab_support(target, edges, rel_tol, margin * grid.voxel_size)
+    dirs = directions.to(target.dtype)
+    axis = grid.axis(target.dtype)  # centre coordinates along a column, mm
+    across_axes = torch.meshgrid(*([axis] * (grid.ndim - 1)), indexing="ij")  # array order ([y,] x)
+    columns = torch.stack(across_axes[::-1], dim=-1).reshape(-1, grid.ndim - 1)  # (N^(d-1), d-1): (x[, y]), mm
+    along = dirs[:, -1]
+    flat = along.abs() <= _FLAT
+    chunk = chunk or max(1, _HULL_ENTRIES // columns.shape[0])
+    # tilted slabs: lo <= x.theta_xy + z theta_z <= hi  <=>  z between two planes over the columns
+    tilted, t_along = dirs[~flat], along[~flat]
+    start = torch.where(t_along > 0, lo[~flat], hi[~flat]) / t_along  # z bound at the column x = 0
+    stop = torch.where(t_along > 0, hi[~flat], lo[~flat]) / t_along
+    slope = -tilted[:, :-1] / t_along[:, None]  # dz / dx of both bounds, (K', d-1)
+    floor = _envelope(columns, slope, start, chunk, upper=True)
+    ceiling = _envelope(columns, slope, stop, chunk, upper=False)
+    keep = torch.ones(columns.shape[0], dtype=torch.bool)  # flat slabs keep a column whole or not at all
+    for k0 in range(0, int(flat.sum()), chunk):
+        across = columns @ dirs[flat][k0:k0 + chunk, :-1].T
+        keep &= ((across >= lo[flat][k0:k0 + chunk]) & (across <= hi[flat][k0:k0 + chunk])).all(dim=1)
+    first = torch.searchsorted(axis, floor.contiguous(), right=False)  # first centre >= floor
+    last = torch.where(keep, torch.searchsorted(axis, ceiling.contiguous(), right=True) - 1, -1)
+    index = torch.arange(grid.n).reshape(-1, *([1] * (grid.ndim - 1)))
+    shape = (1, *grid.shape[1:])
+    return (index >= first.reshape(shape)) & (index <= last.reshape(shape)) & grid.working_mask()
+
+
+def _envelope(columns: torch.Tensor, slope: torch.Tensor, offset: torch.Tensor, chunk: int, upper: bool
+              ) -> torch.Tensor:
+    """Upper (``max_k``) or lower (``min_k``) envelope of the planes ``offset_k + columns . slope_k``
+    at each column, ``(P,)``; ``-inf`` / ``+inf`` when there is no plane. ``chunk`` planes at once."""
+    out = torch.full((columns.shape[0],), -math.inf if upper else math.inf, dtype=columns.dtype)
+    for k0 in range(0, offset.shape[0], chunk):
+        planes = torch.addmm(offset[k0:k0 + chunk], columns, slope[k0:k0 + chunk].T)  # (P, chunk)
+        out = torch.maximum(out, planes.amax(dim=1)) if upper else torch.minimum(out, planes.amin(dim=1))
+    return out
+
+
+def slab_support(target: torch.Tensor, edges: torch.Tensor, rel_tol: float, slack: float
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per orientation, the heights ``(lo, hi)`` (each ``(K,)``, mm) between which the object
+    lies: the lower edge of the first and the upper edge of the last slab holding more than
+    ``rel_tol`` of the profile's largest volume, widened by ``slack`` mm (all slabs when none does)."""
     full = target > rel_tol * target.abs().amax(dim=1, keepdim=True)  # (K, M) non-empty slabs
     edges = edges.to(target.dtype)
     m = full.shape[1]
     first = torch.argmax(full.to(torch.int8), dim=1)
     last = m - 1 - torch.argmax(full.flip(1).to(torch.int8), dim=1)
-    slack = margin * grid.voxel_size
     lo = torch.where(full.any(1), edges[first] - slack, edges[0] - slack)
     hi = torch.where(full.any(1), edges[last + 1] + slack, edges[-1] + slack)
-    points = grid.centers(target.dtype).reshape(-1, grid.ndim)
-    inside = grid.working_mask().reshape(-1)
-    dirs = directions.to(target.dtype)
-    chunk = chunk or max(1, min(32, _HULL_ENTRIES // points.shape[0]))
-    for k0 in range(0, dirs.shape[0], chunk):
-        t = points @ dirs[k0:k0 + chunk].T
-        inside &= ((t >= lo[k0:k0 + chunk]) & (t <= hi[k0:k0 + chunk])).all(dim=1)
-    return inside.reshape(grid.shape)
+    return lo, hi
 
 
 def target_and_sigma(measurement: DipMeasurement, operator: DipOperator) -> tuple[torch.Tensor, torch.Tensor | None]:

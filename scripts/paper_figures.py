@@ -1,0 +1,159 @@
+"""The paper's Fig. 11 (reconstructions vs number of dips) and Fig. 13a (error vs % of N^2 dips).
+
+Runs the reconstruction pipeline (:func:`dipnet.pipeline.run`, the Hydra config of
+``scripts/reconstruct.py``) for every bundled mesh x resolution ``N`` x dip budget (``--percent``
+of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job directory each under
+``--out`` (a finished job is reused, so an interrupted run continues, whatever the overrides:
+use one ``--out`` per solver or setting; every job uses the fast
+``fourier`` operator, ``eps=1e-3, upsampfac=1.25``, single precision, and by default ``minnorm``
+with at most 60 LSMR iterations), then writes there
+
+* ``fig11_n<N>.png``: per resolution, one row per mesh, one column per budget (depth-shaded
+  renders of the binary reconstructions, as the paper's Fig. 11 rows);
+* ``fig13a.png``: Chamfer (mean) and Hausdorff (max) surface distance in bounding-box
+  diagonals vs % of ``N^2``, averaged over meshes and resolutions (mean +- std), the paper's
+  METRO errors at 10 % (0.0125-0.043) drawn as a band;
+* ``summary.md`` / ``runs.csv``: the table printed at the end.
+
+Ends with ``RESULT chamfer_<p>=<mean> hausdorff_<p>=<mean> ...`` per budget ``p``.
+
+    python scripts/paper_figures.py                              # 64 and 128^3, 3 meshes, 1/3/10 %, minnorm
+    python scripts/paper_figures.py solver=voxel --n 64          # any Hydra override of reconstruct.py
+    python scripts/paper_figures.py --n 240 --percent 1 3 5 10 --meshes bunny hand   # the paper's size
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from hydra import compose, initialize_config_module  # noqa: E402
+
+from dipnet import experiments  # noqa: E402
+from dipnet.pipeline import run  # noqa: E402
+
+PAPER_METRO_10 = (0.0125, 0.0433)  # paper Table 1: METRO error / bbox diagonal at 10 % of N^2 (240^3)
+JOB_DEFAULTS = ["output.figures=false", "output.uncertainty=false", "output.resolvability=false",
+                "output.progress=false", "output.mesh_formats=[]", "output.truth_supersample=2", "shape=mesh",
+                "shape.radius=45",  # mm: the bundled meshes come in mixed units; the grid follows them
+                "operator=fourier", "operator.eps=1e-3", "operator.upsampfac=1.25", "operator.single=true"]
+SOLVER_DEFAULTS = ["solver=minnorm", "solver.iter_lim=60"]  # LSMR at these sizes, as in bench_scale
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("overrides", nargs="*", default=SOLVER_DEFAULTS,
+                   help=f"Hydra overrides for every job (default: {' '.join(SOLVER_DEFAULTS)}; e.g. solver=voxel)")
+    p.add_argument("--meshes", nargs="+", default=["bunny", "hand", "spot"], help="bundled mesh names")
+    p.add_argument("--n", type=int, nargs="+", default=[64, 128], help="grid resolutions N")
+    p.add_argument("--percent", type=float, nargs="+", default=[1.0, 3.0, 10.0], help="dips in %% of N^2")
+    p.add_argument("--out", type=Path, default=Path("sweeps/paper_figures"), help="job directories and figures")
+    args = p.parse_args(argv)
+    if any(x <= 0 for x in args.percent) or any(n < 8 for n in args.n):
+        p.error("--percent must be positive and --n at least 8")
+    return args
+
+
+def job_overrides(mesh: str, n: int, percent: float, extra: list[str]) -> list[str]:
+    """The pipeline overrides of one job: ``ceil(percent/100 N^2)`` dips of ``mesh`` at ``N^3``."""
+    n_dips = math.ceil(percent / 100 * n * n)
+    return [*JOB_DEFAULTS, f"shape.path=${{dipnet_data:meshes/{mesh}.ply}}", f"resolution={n}",
+            f"n_dips={n_dips}", "ndim=3", *extra]
+
+
+def run_jobs(args) -> None:
+    """Run every missing job (a failed one writes ``error.txt`` and the others go on)."""
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        for n in args.n:
+            for mesh in args.meshes:
+                for percent in args.percent:
+                    job = args.out / job_name(mesh, n, percent)
+                    if (job / experiments.METRICS_FILE).is_file():
+                        continue
+                    cfg = compose(config_name="config", overrides=job_overrides(mesh, n, percent, args.overrides))
+                    print(f"{mesh} {n}^3 {percent:g}% ({cfg.n_dips} dips) -> {job}", flush=True)
+                    experiments.guarded_job(lambda cfg=cfg, job=job: run(cfg, job), job)
+
+
+def job_name(mesh: str, n: int, percent: float) -> str:
+    """The job directory's name; :func:`nominal_rows` reads the budget back from it."""
+    return f"{mesh}_n{n}_p{percent:g}"
+
+
+def nominal_rows(args) -> tuple[list[dict], list]:
+    """The runs under ``--out`` and their rows (:func:`~dipnet.experiments.run_row`) with
+    ``percent``: the requested budget (41 dips at 64^3 and 164 at 128^3 are both 1 %)."""
+    runs = experiments.collect_runs(args.out)
+    rows = experiments.run_rows(runs, args.out)
+    for row in rows:
+        row["percent"] = float(Path(row["job"]).name.rsplit("_p", 1)[1])
+    return rows, runs
+
+
+def plot_fig13a(groups: list[dict], path: Path) -> Path:
+    """Chamfer and Hausdorff (mean +- std over meshes and resolutions) vs % of N^2, with the paper's band."""
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    x = [g["percent"] for g in groups]
+    for metric, marker in (("chamfer", "o"), ("hausdorff", "s")):
+        ax.errorbar(x, [g[f"{metric}_mean"] for g in groups], yerr=[g[f"{metric}_std"] for g in groups],
+                    marker=marker, capsize=3, label=f"dipnet {experiments.LABELS[metric]} (mean over objects, N)")
+    ax.fill_between([9.0, 11.0], *PAPER_METRO_10, color="tab:red", alpha=0.25, label="paper METRO at 10% (Table 1)")
+    ax.set(xscale="log", yscale="log", xlabel="% of the N^2 dips a square system needs",
+           ylabel="surface distance / bbox diagonal", title="error vs number of dips (paper Fig. 13a)")
+    ax.set_xticks(x, [f"{v:g}" for v in x])
+    ax.minorticks_off()
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def summary(rows: list[dict], groups: list[dict]) -> str:
+    """Markdown: per mesh x N rows, then the mean over them per budget, next to the paper's numbers."""
+    ok = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: (r["shape"], r["resolution"], r["percent"]))
+    lines = ["| mesh | N | dips | % of N^2 | IoU | Chamfer | Hausdorff | solve s |", "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['shape']} | {r['resolution']} | {r['n_dips']} | {r['percent']:g} | {r['iou']:.3f} | "
+              f"{r['chamfer']:.4f} | {r['hausdorff']:.4f} | {r['seconds']:.1f} |" for r in ok]
+    lines += ["", "| % of N^2 | jobs | Chamfer (mean +- std) | Hausdorff (mean +- std) | paper METRO |",
+              "|---|---|---|---|---|"]
+    for g in groups:
+        paper = f"{PAPER_METRO_10[0]}-{PAPER_METRO_10[1]}" if g["percent"] == 10 else ""
+        lines.append(f"| {g['percent']:g} | {g['runs']} | {g['chamfer_mean']:.4f} +- {g['chamfer_std']:.4f} | "
+                     f"{g['hausdorff_mean']:.4f} +- {g['hausdorff_std']:.4f} | {paper} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    run_jobs(args)
+    rows, runs = nominal_rows(args)
+    failed = experiments.markdown_problems(runs, args.out)
+    groups = experiments.aggregate(rows, ("percent",), metrics=("iou", "chamfer", "hausdorff"))
+    if not groups:
+        print(f"error: no job under {args.out} finished\n{failed}")
+        return 1
+    experiments.write_csv(rows, args.out / "runs.csv")
+    table = summary(rows, groups) + ("\n" + failed if failed else "")
+    (args.out / "summary.md").write_text(table)
+    print(table, end="")
+    plot_fig13a(groups, args.out / "fig13a.png")
+    figures = [args.out / "fig13a.png"]
+    for n in sorted({r["resolution"] for r in rows if r["status"] == "ok"}):  # Fig. 11: one resolution each
+        same_n = [run for run, row in zip(runs, rows) if row["resolution"] == n]
+        figures.append(experiments.plot_montage(same_n, args.out / f"fig11_n{n}.png", row_key="shape",
+                                                col_key="n_dips"))
+    print("figures: " + ", ".join(map(str, figures)))
+    print("RESULT " + " ".join(f"chamfer_{g['percent']:g}={g['chamfer_mean']:.4f} "
+                               f"hausdorff_{g['percent']:g}={g['hausdorff_mean']:.4f}" for g in groups))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
