@@ -57,7 +57,7 @@ from dipnet.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.minnorm import operator_matrix
-from dipnet.uncertainty import fit_posterior
+from dipnet.uncertainty import Posterior, fit_posterior
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +69,15 @@ class Planner(ABC):
 
     @abstractmethod
     def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
-             k: int = 1, operator: DipOperator | None = None) -> torch.Tensor:
-        """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first."""
+             k: int = 1, operator: DipOperator | None = None, posterior: Posterior | None = None) -> torch.Tensor:
+        """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first;
+        ``posterior``: :meth:`posterior` of the same reconstruction, if the caller has it already."""
+
+    def posterior(self, reconstruction: Reconstruction, measurement: DipMeasurement,
+                  operator: DipOperator | None = None) -> Posterior:
+        """The linearised posterior around ``reconstruction`` (:func:`dipnet.uncertainty.fit_posterior`)
+        that the loop reports and this planner plans with, so that it is fitted once per step."""
+        return fit_posterior(reconstruction, measurement, operator)
 
 
 class NextBestDipPlanner(Planner):
@@ -93,13 +100,18 @@ class NextBestDipPlanner(Planner):
         self._cached: tuple[tuple, scipy.sparse.csr_matrix] | None = None
         self.last_seconds = 0.0
 
+    def posterior(self, reconstruction: Reconstruction, measurement: DipMeasurement,
+                  operator: DipOperator | None = None) -> Posterior:
+        return fit_posterior(reconstruction, measurement, operator, **self.options)
+
     def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
-             k: int = 1, operator: DipOperator | None = None) -> torch.Tensor:
+             k: int = 1, operator: DipOperator | None = None, posterior: Posterior | None = None) -> torch.Tensor:
         start = time.perf_counter()
         candidates = torch.as_tensor(candidates, dtype=torch.float64)
         if candidates.ndim != 2 or candidates.shape[1] != 3 or len(candidates) < k or k < 1:
             raise ValueError(f"need 1 <= k <= C candidates of shape (C, 3), got k={k}, {tuple(candidates.shape)}")
-        posterior = fit_posterior(reconstruction, measurement, operator, **self.options)
+        if posterior is None:
+            posterior = self.posterior(reconstruction, measurement, operator)
         projections = self._candidate_matrix(posterior.grid, posterior.n_slabs, candidates) @ posterior.samples.T
         chosen = greedy_batch(projections.T.reshape(len(posterior.samples), len(candidates), posterior.n_slabs),
                               posterior.noise_var, k, np.random.default_rng(self.options["seed"] + 1),
