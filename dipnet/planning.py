@@ -36,11 +36,40 @@ instead (A-optimal, :func:`candidate_scores`); on the quick benchmark set (bunny
 30 dB, minnorm planning) it gave a mean Chamfer of 0.0065 vs 0.0064 for the information score on
 the hemisphere and 0.0451 vs 0.0388 under the 35 deg tilt limit, hence the default.
 
-Cost: the posterior on a 32^3 grid (one Cholesky of ``(K M_c)^2``), one sparse product of the
+What a plan can gain, measured (32^3, 30 dB, voxel solver for every final reconstruction, six
+meshes: bunny, part_B13, bracket_B66, fish, spot, hand)
+--------------------------------------------------------------------------------------------
+* On the full hemisphere any well-spread plan of 41 dips is about as good as any other: the
+  Fibonacci 41 plan rotated at random moves one mesh's Chamfer by about +-5% (bunny 0.0057 to
+  0.0061), an object-blind farthest-point completion of the 8 initial dips is within 2% of Fibonacci,
+  and even a cheating planner that dips where the current estimate's profiles differ most from
+  the *true* ones does not beat it on the bunny (0.0060 vs 0.0057). Fibonacci 123 is 13% better
+  than 41 in the mean: three times the data, which no choice of 41 directions replaces. What a
+  choice of directions can win is alignment with large flat faces (bracket_B66: the one random
+  rotation that put a dip along a face normal was 13% better than Fibonacci).
+* Why the information score used to be flat: the noise variance is the misfit of the current
+  estimate. With ``minnorm`` estimates in the loop that misfit is model error, 120x the sensor
+  noise (bunny, 16 dips), so every candidate's predicted slab variance was far below it and the
+  scores hardly differed (best 4.0, median 2.6 nats over 229 candidates). With the voxel solver
+  in the loop - the best solver, also used for the final reconstruction - the misfit is the
+  sensor noise and the scores spread (best 69, median 54, worst 21): the loop must reconstruct
+  with the best solver. A posterior grid of half the reconstruction's resolution (blocks of
+  2^3 voxels share one prior deviation, a crude model of a boundary that moves coherently)
+  planned as well as the full one (mean Chamfer 0.00534 vs 0.00533) with 8x fewer unknowns.
+* Tried and not kept (mean Chamfer over the six meshes, Fibonacci 41: 0.00539): profile
+  sharpness of the estimate with an angular diversity kernel (0.0072 vs 0.0054 on the first
+  four meshes: it clusters dips around the sharpest face); the same with a hard minimum separation (0.00539: faceted objects gain,
+  smooth ones lose); 256 instead of 64 posterior samples (no gain, 4x the cost); the A-optimal
+  score weighted by the flip density of each voxel (worse on the bunny, 0.0064 vs 0.0057).
+  The information score with voxel-solver estimates and the half-resolution posterior gave
+  0.00534 (bracket_B66 0.0043 vs 0.0050; fish 0.0068 vs 0.0064).
+
+Cost: the posterior (one Cholesky of ``(K M_c)^2``), one sparse product of the
 samples with the candidates' matrix (built once per candidate set and cached) and ``k``
-rank-``M_c`` updates of ``S x S`` size. Measured for a 64^3 reconstruction with 40 dips, a batch
-of 8 among 229 hemisphere candidates, one torch thread on 2 cores shared with a load average of
-about 10: 10.5 s for the first step (building the candidates' matrix), 6.2 s for later ones.
+rank-``M_c`` updates of ``S x S`` size. Measured for a 64^3 reconstruction with 40 dips and a
+32^3 posterior, a batch of 8 among 229 hemisphere candidates, one torch thread on 2 cores shared
+with a load average of about 10: 10.5 s for the first step (building the candidates' matrix),
+6.2 s for later ones.
 """
 
 from __future__ import annotations
