@@ -111,7 +111,7 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
             return AdaptiveResult(measurement, recon, operator, maps, history, "uncertainty")
         start = time.perf_counter()
         planned = planner.next(measurement, recon, candidates, min(settings.batch_size, settings.budget - n), operator,
-                               posterior)
+                               posterior=posterior)
         history[-1]["plan_seconds"] = time.perf_counter() - start
 
 

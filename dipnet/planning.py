@@ -37,7 +37,8 @@ instead (A-optimal, :func:`candidate_scores`); on the quick benchmark set (bunny
 the hemisphere and 0.0451 vs 0.0388 under the 35 deg tilt limit, hence the default.
 
 What a plan can gain, measured (32^3, 30 dB, voxel solver for every final reconstruction, six
-meshes: bunny, part_B13, bracket_B66, fish, spot, hand)
+meshes: bunny, part_B13, bracket_B66, fish, spot, hand; the settings of ``scripts/bench_planning.py
+--n 32``, the alternative planners in a scratch copy of it that was not kept)
 --------------------------------------------------------------------------------------------
 * On the full hemisphere any well-spread plan of 41 dips is about as good as any other: the
   Fibonacci 41 plan rotated at random moves one mesh's Chamfer by about +-5% (bunny 0.0057 to
@@ -58,11 +59,14 @@ meshes: bunny, part_B13, bracket_B66, fish, spot, hand)
   planned as well as the full one (mean Chamfer 0.00534 vs 0.00533) with 8x fewer unknowns.
 * Tried and not kept (mean Chamfer over the six meshes, Fibonacci 41: 0.00539): profile
   sharpness of the estimate with an angular diversity kernel (0.0072 vs 0.0054 on the first
-  four meshes: it clusters dips around the sharpest face); the same with a hard minimum separation (0.00539: faceted objects gain,
-  smooth ones lose); 256 instead of 64 posterior samples (no gain, 4x the cost); the A-optimal
-  score weighted by the flip density of each voxel (worse on the bunny, 0.0064 vs 0.0057).
-  The information score with voxel-solver estimates and the half-resolution posterior gave
-  0.00534 (bracket_B66 0.0043 vs 0.0050; fish 0.0068 vs 0.0064).
+  four meshes: it clusters dips around the sharpest face); the same with a hard minimum
+  separation (0.00539: faceted objects gain, smooth ones lose); 256 instead of 64 posterior
+  samples (0.0055 vs 0.0053 on four meshes); the A-optimal score weighted by the flip density
+  of each voxel (worse on the bunny, 0.0064 vs 0.0057).
+* Kept: the information score with voxel-solver estimates and the half-resolution posterior,
+  0.00534 (bracket_B66 0.0043 vs 0.0050, fish 0.0068 vs 0.0064): 1% better than Fibonacci 41
+  in the mean, 14% worse than Fibonacci 123 (0.00470). No 41-dip plan we found reaches
+  Fibonacci 123 on the hemisphere.
 
 Cost: the posterior (one Cholesky of ``(K M_c)^2``), one sparse product of the
 samples with the candidates' matrix (built once per candidate set and cached) and ``k``
