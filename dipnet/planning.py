@@ -73,7 +73,8 @@ samples with the candidates' matrix (built once per candidate set and cached) an
 rank-``M_c`` updates of ``S x S`` size. Measured for a 64^3 reconstruction with 40 dips and a
 32^3 posterior, a batch of 8 among 229 hemisphere candidates, one torch thread on 2 cores shared
 with a load average of about 10: 10.5 s for the first step (building the candidates' matrix),
-6.2 s for later ones.
+6.2 s for later ones; inside ``scripts/bench_planning.py --meshes fish part_B13`` (64^3,
+voxel loop, load average 3-8) 2.0 s per step on average and at most 2.7 s.
 """
 
 from __future__ import annotations
