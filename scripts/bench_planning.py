@@ -85,18 +85,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> dict[str, float]:
     args = parse_args(argv)
     print(f"{'mesh':<12} {'plan':<16} {'dips':>5} {'IoU':>6} {'Chamfer':>8} {'time s':>7} {'plan s/step':>11}", flush=True)
-    rows, calibration = [], []
     if args.jobs > 1:  # one process per mesh, each with its own torch threads
         with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("fork")) as pool:
-            done = pool.map(bench_mesh, args.meshes, [args] * len(args.meshes))
-            for mesh_rows, mesh_calibration in done:
-                rows += mesh_rows
-                calibration.append(mesh_calibration)
+            per_mesh = list(pool.map(bench_mesh, args.meshes, [args] * len(args.meshes)))
     else:
-        for name in args.meshes:
-            mesh_rows, mesh_calibration = bench_mesh(name, args)
-            rows += mesh_rows
-            calibration.append(mesh_calibration)
+        per_mesh = [bench_mesh(name, args) for name in args.meshes]
+    rows = [row for mesh_rows, _ in per_mesh for row in mesh_rows]
+    calibration = [mesh_calibration for _, mesh_calibration in per_mesh]
     result = summarise(rows, calibration, args)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
