@@ -29,7 +29,7 @@ from dipnet.orientations import Reach, make_directions
 from dipnet.planning import Planner
 from dipnet.rawscan import RawScan
 from dipnet.reconstruction import Reconstruction
-from dipnet.uncertainty import uncertainty
+from dipnet.uncertainty import summarise, voxel_maps
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,9 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
     while True:
         measurement = acquire(planned)
         recon, operator = reconstruct(measurement)
-        maps, summary = uncertainty(recon, measurement, operator)
+        posterior = planner.posterior(recon, measurement, operator)  # fitted once: reported and planned with
+        maps = voxel_maps(recon, posterior)
+        summary = summarise(maps, recon.binary)
         n = measurement.n_orientations
         history.append({"n_dips": n, **summary})
         log.info("adaptive step: %d dips, expected error fraction %.4f", n, summary["expected_error_fraction"])
@@ -108,7 +110,8 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
         if settings.stop_uncertainty is not None and summary["expected_error_fraction"] < settings.stop_uncertainty:
             return AdaptiveResult(measurement, recon, operator, maps, history, "uncertainty")
         start = time.perf_counter()
-        planned = planner.next(measurement, recon, candidates, min(settings.batch_size, settings.budget - n), operator)
+        planned = planner.next(measurement, recon, candidates, min(settings.batch_size, settings.budget - n), operator,
+                               posterior=posterior)
         history[-1]["plan_seconds"] = time.perf_counter() - start
 
 

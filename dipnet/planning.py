@@ -36,11 +36,45 @@ instead (A-optimal, :func:`candidate_scores`); on the quick benchmark set (bunny
 30 dB, minnorm planning) it gave a mean Chamfer of 0.0065 vs 0.0064 for the information score on
 the hemisphere and 0.0451 vs 0.0388 under the 35 deg tilt limit, hence the default.
 
-Cost: the posterior on a 32^3 grid (one Cholesky of ``(K M_c)^2``), one sparse product of the
+What a plan can gain, measured (32^3, 30 dB, voxel solver for every final reconstruction, six
+meshes: bunny, part_B13, bracket_B66, fish, spot, hand; the settings of ``scripts/bench_planning.py
+--n 32``, the alternative planners in a scratch copy of it that was not kept)
+--------------------------------------------------------------------------------------------
+* On the full hemisphere any well-spread plan of 41 dips is about as good as any other: the
+  Fibonacci 41 plan rotated at random moves one mesh's Chamfer by about +-5% (bunny 0.0057 to
+  0.0061), an object-blind farthest-point completion of the 8 initial dips is within 2% of Fibonacci,
+  and even a cheating planner that dips where the current estimate's profiles differ most from
+  the *true* ones does not beat it on the bunny (0.0060 vs 0.0057). Fibonacci 123 is 13% better
+  than 41 in the mean: three times the data, which no choice of 41 directions replaces. What a
+  choice of directions can win is alignment with large flat faces (bracket_B66: the one random
+  rotation that put a dip along a face normal was 13% better than Fibonacci).
+* Why the information score used to be flat: the noise variance is the misfit of the current
+  estimate. With ``minnorm`` estimates in the loop that misfit is model error, 120x the sensor
+  noise (bunny, 16 dips), so every candidate's predicted slab variance was far below it and the
+  scores hardly differed (best 4.0, median 2.6 nats over 229 candidates). With the voxel solver
+  in the loop - the best solver, also used for the final reconstruction - the misfit is the
+  sensor noise and the scores spread (best 69, median 54, worst 21): the loop must reconstruct
+  with the best solver. A posterior grid of half the reconstruction's resolution (blocks of
+  2^3 voxels share one prior deviation, a crude model of a boundary that moves coherently)
+  planned as well as the full one (mean Chamfer 0.00534 vs 0.00533) with 8x fewer unknowns.
+* Tried and not kept (mean Chamfer over the six meshes, Fibonacci 41: 0.00539): profile
+  sharpness of the estimate with an angular diversity kernel (0.0072 vs 0.0054 on the first
+  four meshes: it clusters dips around the sharpest face); the same with a hard minimum
+  separation (0.00539: faceted objects gain, smooth ones lose); 256 instead of 64 posterior
+  samples (0.0055 vs 0.0053 on four meshes); the A-optimal score weighted by the flip density
+  of each voxel (worse on the bunny, 0.0064 vs 0.0057).
+* Kept: the information score with voxel-solver estimates and the half-resolution posterior,
+  0.00534 (bracket_B66 0.0043 vs 0.0050, fish 0.0068 vs 0.0064): 1% better than Fibonacci 41
+  in the mean, 14% worse than Fibonacci 123 (0.00470). No 41-dip plan we found reaches
+  Fibonacci 123 on the hemisphere.
+
+Cost: the posterior (one Cholesky of ``(K M_c)^2``), one sparse product of the
 samples with the candidates' matrix (built once per candidate set and cached) and ``k``
-rank-``M_c`` updates of ``S x S`` size. Measured for a 64^3 reconstruction with 40 dips, a batch
-of 8 among 229 hemisphere candidates, one torch thread on 2 cores shared with a load average of
-about 10: 10.5 s for the first step (building the candidates' matrix), 6.2 s for later ones.
+rank-``M_c`` updates of ``S x S`` size. Measured for a 64^3 reconstruction with 40 dips and a
+32^3 posterior, a batch of 8 among 229 hemisphere candidates, one torch thread on 2 cores shared
+with a load average of about 10: 10.5 s for the first step (building the candidates' matrix),
+6.2 s for later ones; inside ``scripts/bench_planning.py --meshes fish part_B13`` (64^3,
+voxel loop, load average 3-8) 2.0 s per step on average and at most 2.7 s.
 """
 
 from __future__ import annotations
@@ -57,7 +91,7 @@ from dipnet.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.minnorm import operator_matrix
-from dipnet.uncertainty import fit_posterior
+from dipnet.uncertainty import Posterior, fit_posterior
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +103,15 @@ class Planner(ABC):
 
     @abstractmethod
     def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
-             k: int = 1, operator: DipOperator | None = None) -> torch.Tensor:
-        """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first."""
+             k: int = 1, operator: DipOperator | None = None, posterior: Posterior | None = None) -> torch.Tensor:
+        """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first;
+        ``posterior``: :meth:`posterior` of the same reconstruction, if the caller has it already."""
+
+    def posterior(self, reconstruction: Reconstruction, measurement: DipMeasurement,
+                  operator: DipOperator | None = None) -> Posterior:
+        """The linearised posterior around ``reconstruction`` (:func:`dipnet.uncertainty.fit_posterior`)
+        that the loop reports and this planner plans with, so that it is fitted once per step."""
+        return fit_posterior(reconstruction, measurement, operator)
 
 
 class NextBestDipPlanner(Planner):
@@ -93,13 +134,18 @@ class NextBestDipPlanner(Planner):
         self._cached: tuple[tuple, scipy.sparse.csr_matrix] | None = None
         self.last_seconds = 0.0
 
+    def posterior(self, reconstruction: Reconstruction, measurement: DipMeasurement,
+                  operator: DipOperator | None = None) -> Posterior:
+        return fit_posterior(reconstruction, measurement, operator, **self.options)
+
     def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
-             k: int = 1, operator: DipOperator | None = None) -> torch.Tensor:
+             k: int = 1, operator: DipOperator | None = None, posterior: Posterior | None = None) -> torch.Tensor:
         start = time.perf_counter()
         candidates = torch.as_tensor(candidates, dtype=torch.float64)
         if candidates.ndim != 2 or candidates.shape[1] != 3 or len(candidates) < k or k < 1:
             raise ValueError(f"need 1 <= k <= C candidates of shape (C, 3), got k={k}, {tuple(candidates.shape)}")
-        posterior = fit_posterior(reconstruction, measurement, operator, **self.options)
+        if posterior is None:
+            posterior = self.posterior(reconstruction, measurement, operator)
         projections = self._candidate_matrix(posterior.grid, posterior.n_slabs, candidates) @ posterior.samples.T
         chosen = greedy_batch(projections.T.reshape(len(posterior.samples), len(candidates), posterior.n_slabs),
                               posterior.noise_var, k, np.random.default_rng(self.options["seed"] + 1),

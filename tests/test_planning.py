@@ -163,6 +163,45 @@ def test_adaptive_loop_stops_when_certain_enough(tmp_path):
     assert planning["stop_reason"] == "uncertainty" and [h["n_dips"] for h in planning["history"]] == [5]
 
 
+def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
+    from dipnet.adaptive import AdaptiveSettings, adaptive_loop
+
+    grid, _, dips = box_problem
+    dipped = []
+
+    def acquire(directions):
+        dipped.append(torch.as_tensor(directions))
+        return dips(torch.cat(dipped))
+
+    def reconstruct(measurement):
+        operator = make_operator(grid, measurement.directions, grid.n)
+        return MinNormSolver(progress=False).solve(measurement, operator), operator
+
+    class Counting(NextBestDipPlanner):
+        def __init__(self):
+            super().__init__(resolution=10)
+            self.fitted, self.given = 0, []
+
+        def posterior(self, *args, **kwargs):
+            self.fitted += 1
+            return super().posterior(*args, **kwargs)
+
+        def next(self, *args, posterior=None, **kwargs):
+            self.given.append(posterior)
+            return super().next(*args, posterior=posterior, **kwargs)
+
+    planner = Counting()
+    result = adaptive_loop(acquire, reconstruct, planner, Reach(), AdaptiveSettings(budget=8, batch_size=2, initial_dips=4))
+    assert [h["n_dips"] for h in result.history] == [4, 6, 8]
+    assert planner.fitted == 3 and len(planner.given) == 2 and all(p is not None for p in planner.given)
+    # planning with the loop's posterior is planning with the planner's own fit (seeded: the same)
+    recon, operator = reconstruct(result.measurement)
+    candidates = Reach().candidates()
+    shared = planner.next(result.measurement, recon, candidates, 2, operator,
+                          posterior=planner.posterior(recon, result.measurement, operator))
+    assert torch.equal(shared, NextBestDipPlanner(resolution=10).next(result.measurement, recon, candidates, 2, operator))
+
+
 def test_bad_loop_settings_and_plans_are_user_errors(tmp_path):
     from dipnet.adaptive import AdaptiveSettings, fixed_directions
 

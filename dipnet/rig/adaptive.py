@@ -113,12 +113,14 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
     """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and protocol of the
     scan config (as :func:`~dipnet.rig.runner.scan_from_config`), the loop settings of
     ``cfg.planner`` and the reach of ``cfg.reach`` (default the hemisphere); reconstructions with
-    ``minnorm`` on a ``cfg.planner.resolution`` grid (default 32) of side ``cfg.planner.extent_mm``
-    (default 100 mm). Returns the raw scan."""
+    the ``voxel`` solver on a ``cfg.planner.resolution`` grid (default 32) of side ``cfg.planner.extent_mm``
+    (default 100 mm): with ``minnorm`` estimates the planner's noise level (their misfit) is model
+    error far above the sensor noise and its scores hardly tell candidates apart (see
+    :mod:`dipnet.planning`). Returns the raw scan."""
     from hydra.utils import instantiate
 
     from dipnet.rig.runner import plan_settings, register_fake_rig, runner_from_config
-    from dipnet.solvers.minnorm import MinNormSolver
+    from dipnet.solvers.voxel import VoxelSolver
 
     register_fake_rig(cfg)
     protocol = plan_settings(cfg)
@@ -130,6 +132,6 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
     grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
     settings = AdaptiveSettings.from_config(settings_cfg)
     reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
-    adaptive_scan(make_runner, protocol, path, grid, MinNormSolver(progress=False), instantiate(settings_cfg.planner),
+    adaptive_scan(make_runner, protocol, path, grid, VoxelSolver(progress=False), instantiate(settings_cfg.planner),
                   reach, settings)
     return read_rawscan(path)
