@@ -183,14 +183,34 @@ def test_sigterm_and_sighup_stop_safely(world, tmp_path, signum):
     sensor = SignalAfter(make_sensor(world, "level"), 30, signum)
     runner = make_runner(world, "grbl", sensor, plan_for(2, step=5.0), tmp_path / "scan.jsonl")
     runner.sensor_device = lambda: sensor.sensor.sensor
-    before = signal.getsignal(signum)  # SIG_DFL, or SIG_IGN for SIGHUP under nohup
-    with pytest.raises(ScanAborted) as info:
-        runner.run()
+    before = signal.signal(signum, signal.SIG_DFL)  # SIGHUP is ignored when pytest runs under nohup
+    try:
+        with pytest.raises(ScanAborted) as info:
+            runner.run()
+        restored = signal.getsignal(signum)
+    finally:
+        signal.signal(signum, before)
     message = str(info.value)
     assert f"interrupted ({signal.Signals(signum).name} received)" in message
     assert "object lifted: the controller reports lower" in message and world.position().lower_mm == 0.0
-    assert signal.getsignal(signum) is before  # handlers restored
+    assert restored is signal.SIG_DFL  # handlers restored
     assert read_rawscan(tmp_path / "scan.jsonl").orientations[-1].n_readings >= 1
+
+
+def test_an_ignored_hangup_stays_ignored(world, tmp_path):
+    """Under ``nohup`` (SIGHUP ignored) a hangup must not end the scan: it runs to the end."""
+    world.reset()
+    sensor = SignalAfter(make_sensor(world, "level"), 30, signal.SIGHUP)
+    runner = make_runner(world, "grbl", sensor, plan_for(2, step=5.0), tmp_path / "scan.jsonl")
+    runner.sensor_device = lambda: sensor.sensor.sensor
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        runner.run()
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, before)
+    scan = read_rawscan(tmp_path / "scan.jsonl")
+    assert len(scan.orientations) == 2 and all(o.n_readings > 1 for o in scan.orientations)
 
 
 class FailingSensor(SignalAfter):

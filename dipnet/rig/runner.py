@@ -64,7 +64,8 @@ SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasat
 class on_signals:
     """Context manager: while active, ``signals`` (default SIGTERM and SIGHUP) call
     ``handler(signum, frame)`` (Python handles signals in the main thread only; elsewhere
-    nothing changes)."""
+    nothing changes). A signal the process ignores stays ignored: under ``nohup`` a hangup
+    must not end the scan."""
 
     def __init__(self, handler, signals: tuple = SIGNALS) -> None:
         self.handler, self.signals = handler, signals
@@ -73,7 +74,8 @@ class on_signals:
         self.saved = {}
         try:
             for sig in self.signals:
-                self.saved[sig] = signal.signal(sig, self.handler)
+                if signal.getsignal(sig) is not signal.SIG_IGN:
+                    self.saved[sig] = signal.signal(sig, self.handler)
         except ValueError:  # not the main thread
             self.saved = {}
         return self
