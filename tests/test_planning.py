@@ -146,8 +146,9 @@ def test_planner_fills_the_missing_cone(box_problem):
 
 # ---------------------------------------------------------------------------- closed loop
 def test_adaptive_loop_stops_at_the_budget(tmp_path):
-    result = run(_cfg("resolution=16", "planner=adaptive", "planner.budget=11", "planner.batch_size=3",
-                      "planner.initial_dips=4", "planner.planner.resolution=16", "output.figures=false"), tmp_path)
+    with pytest.warns(UserWarning, match="solver=minnorm: the planner's noise level"):  # the config's default solver
+        result = run(_cfg("resolution=16", "planner=adaptive", "planner.budget=11", "planner.batch_size=3",
+                          "planner.initial_dips=4", "planner.planner.resolution=16", "output.figures=false"), tmp_path)
     planning = json.loads((tmp_path / "planning.json").read_text())
     assert result.measurement.n_orientations == 11 and planning["stop_reason"] == "budget"
     assert [h["n_dips"] for h in planning["history"]] == [4, 7, 10, 11]
