@@ -15,8 +15,9 @@ Gaussian prior of ``dip_offset_sigma_mm``).
 
 * :func:`calibrate_reference`: a reference object of known shape and pose (a ball or a
   cylinder of known size) -> one geometry step with ``f`` = its occupancy;
-* :func:`self_calibrate`: shape unknown -> alternate a solver's shape step and the geometry
-  step (``iterations`` rounds), then a final shape step.
+* :func:`self_calibrate`: shape unknown -> heights and directions from the shape-free moment
+  residual, the cross-section as a volume gain fitted with the shape (the solver's
+  ``fit_gain``), per-dip offsets by a geometry step on that shape, then a final shape step.
 
 What the data determine (:func:`identifiability`): from the Gauss-Newton Hessian ``J^T J`` of
 the data term at the estimate, standard errors ``sqrt(diag(s^2 (J^T J)^-1))`` (``s^2`` the
