@@ -448,7 +448,7 @@ class SelfCalibration:
 def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_slabs: int | None = None,
                    operator_factory: Callable | None = None, smooth: bool = False, finish=None, initial: RigGeometry | None = None,
                    iterations: int = 1, dip_offset_sigma_mm: float | None = None, shape: str = "binary",
-                   max_nfev: int = 20) -> SelfCalibration:
+                   max_nfev: int = 20, gain_solver=None) -> SelfCalibration:
     """Estimate the rig geometry jointly with the shape.
 
     1. Heights and directions (every parameter but the cross-section) from the shape-free
@@ -481,6 +481,9 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
         dip_offset_sigma_mm: also estimate one height offset per dip with this prior (mm).
         shape: what the geometry step and the report fit: ``"binary"`` (the thresholded shape)
             or ``"occupancy"``.
+        gain_solver: the solver of step 2 (default ``solver``); the final shape is ``solver``'s.
+            The implicit field's smooth shapes bias the cross-section less than voxels do
+            (README, "Rig geometry and calibration").
 
     Returns:
         :class:`SelfCalibration`; its report merges the moment stage's standard errors (heights,
@@ -506,7 +509,8 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
         moments = identifiability(model, None, state, rigid)
         history.append({"stage": "moments", **{p: _get(state, p, model.nominal_area) for p in params}})
     volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params else ()
-    shape_solver = _with_gain(solver) if volume_params else solver
+    step_solver = gain_solver or solver
+    shape_solver = _with_gain(step_solver) if volume_params else step_solver
     sigma = None
     for it in range(iterations if volume_params or dip_offset_sigma_mm is not None else 0):
         measurement = model.measurement(state)

@@ -15,6 +15,7 @@ geometry, and last ``RESULT calibrated_over_true=<mean Chamfer (ii) / (iii)>
 nominal_over_true=<(i) / (iii)> pivot_err_mm=<max> offset_err_mm=<max> section_err=<max relative>``.
 
     python scripts/bench_calibration.py            # 4 meshes at 64^3, 123 dips, 30 dB
+    python scripts/bench_calibration.py --gain-solver implicit   # the cross-section fitted by the implicit field
     python scripts/bench_calibration.py --quick    # 1 mesh at 32^3 (about 2 minutes on 2 cores)
 """
 
@@ -37,6 +38,7 @@ from dipnet.physics import DipProtocol, LevelSensor, Tank, simulate_scan
 from dipnet.preprocess import preprocess
 from dipnet.rig.geometry import RigGeometry, invert_scan
 from dipnet.shapes import load_mesh
+from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
 
 MESHES = ("bunny", "spot", "fish", "hand")
@@ -51,6 +53,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--fill", type=float, default=0.8, help="mesh radius / working-ball radius")
     p.add_argument("--iterations", type=int, default=400, help="voxel solver iterations per shape step")
     p.add_argument("--rounds", type=int, default=1, help="rounds of the joint shape + cross-section step")
+    p.add_argument("--gain-solver", choices=["voxel", "implicit"], default="voxel",
+                   help="solver of the joint shape + cross-section step (the shapes are always voxel's)")
     p.add_argument("--quick", action="store_true", help="1 mesh at 32^3, 100 solver iterations")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--seed", type=int, default=0)
@@ -81,6 +85,7 @@ def main(argv=None) -> list[dict]:
         raw = simulate_scan(shape, fibonacci_hemisphere(args.dips), tank=tank, protocol=protocol, geometry=true,
                             sensor=LevelSensor(snr_db=args.snr, seed=args.seed), progress=False)
         solver = VoxelSolver(iterations=args.iterations, seed=args.seed, progress=False)
+        gain_solver = ImplicitSolver(seed=args.seed, progress=False) if args.gain_solver == "implicit" else None
         cases = {}
         for case, geometry in (("nominal", None), ("true", true)):
             t0 = time.perf_counter()
@@ -89,7 +94,7 @@ def main(argv=None) -> list[dict]:
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            calibrated = self_calibrate(raw, grid, solver, iterations=args.rounds)
+            calibrated = self_calibrate(raw, grid, solver, iterations=args.rounds, gain_solver=gain_solver)
         cases["calibrated"] = (calibrated.reconstruction, time.perf_counter() - t0)
         for case in ("nominal", "calibrated", "true"):
             recon, seconds = cases[case]

@@ -21,6 +21,7 @@ from dipnet.rig.recorded import read_recorded
 from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
 from dipnet.rig.sensors import LineSensor
 from dipnet.shapes import Ball, Box
+from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
 
@@ -150,3 +151,16 @@ def test_the_cross_section_needs_a_solver_that_fits_a_gain():
     raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(6), tank=Tank(60000.0), progress=False)
     with pytest.raises(CalibrationError, match="MinNormSolver cannot fit it"):
         self_calibrate(raw, Grid(16, extent=80.0), MinNormSolver(progress=False), ("cross_section_mm2",))
+
+
+def test_the_gain_step_can_use_another_solver():
+    """``gain_solver`` fits the cross-section (here the implicit field); the final shape is ``solver``'s."""
+    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
+                        geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
+                        progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        result = self_calibrate(raw, Grid(24, extent=80.0), VoxelSolver(iterations=60, progress=False),
+                                ("cross_section_mm2",), gain_solver=ImplicitSolver(iterations=150, progress=False))
+    assert result.geometry.cross_section_mm2 == pytest.approx(0.92 * 60000.0, rel=0.03)
+    assert result.reconstruction.info["solver"] == "voxel"
