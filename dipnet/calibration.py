@@ -75,7 +75,7 @@ GAUGES: dict[str, str] = {
     "rot_y_deg": "the object's rotation about y", "rot_z_deg": "the object's rotation about the spin axis",
     "dilate_mm": "the object's surface moving outward: a fatter or thinner object",
 }
-SECTION_BIAS_NOTE = "-2.4 % to +0.2 % on 4 meshes"  # measured (README, bench_calibration)
+SECTION_BIAS_NOTE = "-1.3 % to +0.8 % with the implicit field, -2.4 % to +0.2 % with voxels, on 4 meshes"  # README
 DEFAULT_SELF = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "cross_section_mm2")
 
 

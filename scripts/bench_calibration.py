@@ -7,7 +7,8 @@ the nominal one (:class:`dipnet.rig.geometry.RigGeometry`): pivot +20 mm, tilt-a
 level sensor has ``--snr`` dB of white noise. The voxel solver then reconstructs
 
 (i) with the nominal geometry (what a user without calibration gets),
-(ii) with self-calibration (:func:`dipnet.calibration.self_calibrate`, the same solver),
+(ii) with self-calibration (:func:`dipnet.calibration.self_calibrate`: the cross-section fitted
+with the shape by ``--gain-solver``, the final shape by the voxel solver),
 (iii) with the true geometry (the best a calibration could do).
 
 Prints one row per mesh and case (Chamfer / bbox diagonal, IoU, time), the recovered
@@ -15,7 +16,7 @@ geometry, and last ``RESULT calibrated_over_true=<mean Chamfer (ii) / (iii)>
 nominal_over_true=<(i) / (iii)> pivot_err_mm=<max> offset_err_mm=<max> section_err=<max relative>``.
 
     python scripts/bench_calibration.py            # 4 meshes at 64^3, 123 dips, 30 dB
-    python scripts/bench_calibration.py --gain-solver implicit   # the cross-section fitted by the implicit field
+    python scripts/bench_calibration.py --gain-solver voxel   # the cross-section fitted by the voxel solver
     python scripts/bench_calibration.py --quick    # 1 mesh at 32^3 (about 2 minutes on 2 cores)
 """
 
@@ -53,7 +54,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--fill", type=float, default=0.8, help="mesh radius / working-ball radius")
     p.add_argument("--iterations", type=int, default=400, help="voxel solver iterations per shape step")
     p.add_argument("--rounds", type=int, default=1, help="rounds of the joint shape + cross-section step")
-    p.add_argument("--gain-solver", choices=["voxel", "implicit"], default="voxel",
+    p.add_argument("--gain-solver", choices=["voxel", "implicit"], default="implicit",
                    help="solver of the joint shape + cross-section step (the shapes are always voxel's)")
     p.add_argument("--quick", action="store_true", help="1 mesh at 32^3, 100 solver iterations")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
