@@ -59,7 +59,8 @@ def self_calibration_job(cfg: DictConfig, grid: Grid, solver, out: Path):
     result = self_calibrate(raw, grid, solver, tuple(opts.params), n_slabs=n_slabs, operator_factory=factory,
                             smooth=smooth, finish=finish, initial=initial, iterations=int(opts.iterations),
                             dip_offset_sigma_mm=opts.get("dip_offset_sigma_mm"), shape=str(opts.shape),
-                            gain_solver=instantiate(opts.gain_solver) if opts.get("gain_solver") else None)
+                            gain_solver=instantiate(opts.gain_solver) if opts.get("gain_solver") else None,
+                            max_section_change=float(opts.get("max_section_change", 0.2)))
     report = result.report
     tank = opts.get("tank") or raw.header.config.get(TANK_CONFIG_KEY) or "unknown"
     determined = {k: v for k, v in report.standard_errors.items()

@@ -164,3 +164,18 @@ def test_the_gain_step_can_use_another_solver():
                                 ("cross_section_mm2",), gain_solver=ImplicitSolver(iterations=150, progress=False))
     assert result.geometry.cross_section_mm2 == pytest.approx(0.92 * 60000.0, rel=0.03)
     assert result.reconstruction.info["solver"] == "voxel"
+
+
+def test_an_implausible_cross_section_is_named_and_kept():
+    """A section further from the assumed one than ``max_section_change`` is not trusted: named
+    undetermined (with the cause) and kept at the start."""
+    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
+                        geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
+                        progress=False)
+    with pytest.warns(UserWarning, match="cross_section_mm2 is not identifiable.*more than max_section_change 2%"):
+        result = self_calibrate(raw, Grid(24, extent=80.0), VoxelSolver(iterations=60, progress=False),
+                                ("cross_section_mm2",), max_section_change=0.02)
+    assert result.geometry.cross_section_mm2 is None and result.report.estimates["cross_section_mm2"] == 60000.0
+    with pytest.raises(CalibrationError, match="max_section_change must be positive"):
+        self_calibrate(raw, Grid(16, extent=80.0), VoxelSolver(progress=False), ("cross_section_mm2",),
+                       max_section_change=0.0)
