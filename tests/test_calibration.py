@@ -131,12 +131,17 @@ def test_a_scan_with_the_calibration_reads_right(tmp_path):
     assert m.volume_estimate() == pytest.approx(Ball(RADIUS).volume, rel=0.01)
 
 
+def ball_in_smaller_tank():
+    """24 dips of a ball (r 25 mm) in a tank 8 % smaller than the 60,000 mm^2 the scan assumes; 40 dB."""
+    return simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
+                         geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
+                         progress=False)
+
+
 def test_self_calibration_finds_the_cross_section_with_the_shape():
     """Only the tank is wrong (8 % smaller than assumed): the joint shape + gain step recovers its
     cross-section within 3 % from a ball, and reports it determined."""
-    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
-                        geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
-                        progress=False)
+    raw = ball_in_smaller_tank()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         result = self_calibrate(raw, Grid(32, extent=80.0), VoxelSolver(iterations=150, progress=False),
@@ -155,9 +160,7 @@ def test_the_cross_section_needs_a_solver_that_fits_a_gain():
 
 def test_the_gain_step_can_use_another_solver():
     """``gain_solver`` fits the cross-section (here the implicit field); the final shape is ``solver``'s."""
-    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
-                        geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
-                        progress=False)
+    raw = ball_in_smaller_tank()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         result = self_calibrate(raw, Grid(24, extent=80.0), VoxelSolver(iterations=60, progress=False),
@@ -169,9 +172,7 @@ def test_the_gain_step_can_use_another_solver():
 def test_an_implausible_cross_section_is_named_and_kept():
     """A section further from the assumed one than ``max_section_change`` is not trusted: named
     undetermined (with the cause) and kept at the start."""
-    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
-                        geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
-                        progress=False)
+    raw = ball_in_smaller_tank()
     with pytest.warns(UserWarning, match="cross_section_mm2 is not identifiable.*more than max_section_change 2%"):
         result = self_calibrate(raw, Grid(24, extent=80.0), VoxelSolver(iterations=60, progress=False),
                                 ("cross_section_mm2",), max_section_change=0.02)
