@@ -67,6 +67,13 @@ meshes: bunny, part_B13, bracket_B66, fish, spot, hand; the settings of ``script
   0.00534 (bracket_B66 0.0043 vs 0.0050, fish 0.0068 vs 0.0064): 1% better than Fibonacci 41
   in the mean, 14% worse than Fibonacci 123 (0.00470). No 41-dip plan we found reaches
   Fibonacci 123 on the hemisphere.
+* Planners that know the answer (``scripts/bench_planning.py --oracle R --oracle-pool P``), a
+  bound on what any planner can gain: the best of 12 random rotations of Fibonacci 41, picked
+  by Chamfer against the true shape, has mean Chamfer 0.0052 on the six meshes, 10% worse than
+  Fibonacci 123 (worst over best rotation: 1.08 to 1.25 per mesh); a greedy planner that
+  reconstructs each of 8 random candidates per dip and keeps the one with the lowest true
+  Chamfer reaches 0.0049 on bunny and bracket_B66 against 0.0045 for Fibonacci 123 (9.5% worse)
+  and 0.0050 for this planner. Even with the true shape, 41 dips stay about 10% short of 123.
 
 Cost: the posterior (one Cholesky of ``(K M_c)^2``), one sparse product of the
 samples with the candidates' matrix (built once per candidate set and cached) and ``k``

@@ -7,7 +7,13 @@ from the mesh geometry with level-sensor noise at ``--snr`` dB:
   loop (:func:`dipnet.adaptive.adaptive_loop`) from ``--initial`` Fibonacci-like dips to
   ``--budget`` in batches of ``--batch``;
 * tilt limited to ``--cap-tilt`` degrees (the authors' rig): the uniform plan over the
-  reachable cap with ``--budget`` dips against the adaptive loop restricted to the cap.
+  reachable cap with ``--budget`` dips against the adaptive loop restricted to the cap;
+* with ``--oracle R``, a bound on what any choice of ``--budget`` directions gains: the Fibonacci
+  plan and ``R`` random rotations of it, each reconstructed, and the one with the lowest Chamfer
+  against the *true* shape kept (a planner that knows the answer; its row also gives the spread);
+* with ``--oracle-pool P``, the adaptive loop with a planner that knows the answer: each next dip
+  is the one, among ``P`` random reachable candidates, whose addition gives the reconstruction
+  with the lowest Chamfer against the true shape (greedy; any plan, not only well-spread ones).
 
 Every final reconstruction uses ``--solver`` (default voxel: at 41 dips and 30 dB it ties with
 implicit, 4x faster, and beats minnorm 4x in Chamfer, README "Reconstruction as optimisation");
@@ -19,6 +25,9 @@ Chamfer / bbox diagonal, dips, seconds; for adaptive runs also the planning seco
 the means, the uncertainty calibration (error rate per uncertainty decile, pooled) and ends with
 
     RESULT adaptive41_over_fib123=<ratio of mean Chamfer> adaptive41_over_fib41=<ratio> cap_adaptive_over_uniform=<ratio>
+
+(with ``--oracle`` / ``--oracle-pool``, also ``oracle_rotations41_over_fib123=<ratio>`` /
+``oracle_greedy41_over_fib123=<ratio>``).
 
     python scripts/bench_planning.py --quick          # 2 meshes, 32^3, one process per mesh: a few minutes
     python scripts/bench_planning.py --jobs 2         # every bundled mesh at 64^3, two meshes at a time
@@ -36,15 +45,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
-from dipnet.adaptive import AdaptiveSettings, SimulatedDips, adaptive_loop
+from dipnet.adaptive import AdaptiveSettings, SimulatedDips, adaptive_loop, concatenate
 from dipnet.datasets import mesh_names, mesh_path
 from dipnet.grid import Grid
 from dipnet.metrics import evaluate
 from dipnet.operators import make_operator
 from dipnet.orientations import Reach, fibonacci_hemisphere
 from dipnet.physics import LevelSensor
-from dipnet.planning import NextBestDipPlanner
+from dipnet.planning import NextBestDipPlanner, Planner
 from dipnet.shapes import load_mesh
 from dipnet.simulate import simulate_measurement
 from dipnet.solvers.minnorm import MinNormSolver
@@ -72,6 +82,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=1, help="torch threads per process")
     p.add_argument("--jobs", type=int, default=None, help="meshes benchmarked in parallel processes (default 1; "
                    "--quick: 2, one per core)")
+    p.add_argument("--oracle", type=int, default=0, metavar="R",
+                   help="also the best of the Fibonacci plan and R random rotations of it, chosen with the true shape")
+    p.add_argument("--oracle-pool", type=int, default=0, metavar="P",
+                   help="also the adaptive loop with a greedy planner that knows the true shape, trying P candidates "
+                        "per dip")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="2 meshes at 32^3")
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
@@ -118,35 +133,96 @@ def bench_mesh(name: str, args: argparse.Namespace) -> tuple[list[dict], np.ndar
     truth = shape.occupancy(grid, supersample=3).numpy() >= 0.5
     plans = {"fibonacci": fibonacci_hemisphere(args.budget), "fibonacci_large": fibonacci_hemisphere(args.large),
              "cap_uniform": cap.uniform(args.budget), "adaptive": hemisphere, "cap_adaptive": cap}
+    if args.oracle:
+        plans["oracle_rotations"] = rotated_plans(fibonacci_hemisphere(args.budget), args.oracle, args.seed)
+    if args.oracle_pool:
+        plans["oracle_greedy"] = hemisphere
     for plan, what in plans.items():
         t0 = time.perf_counter()
         plan_seconds: list[float] = []
+        spread = None
         acquire = SimulatedDips(simulate, shape, grid, grid.n, args.seed)
         if isinstance(what, Reach):
             settings = AdaptiveSettings(budget=args.budget, batch_size=args.batch, initial_dips=args.initial)
-            result = adaptive_loop(acquire, lambda m: solve(m, args.plan_solver),
-                                   NextBestDipPlanner(resolution=args.n // 2, seed=args.seed), what, settings)
+            planner = NextBestDipPlanner(resolution=args.n // 2, seed=args.seed) if plan != "oracle_greedy" else \
+                OraclePlanner(lambda m: solve(m, args.solver)[0],
+                              lambda r: evaluate(r, truth, grid, truth_mesh=shape.mesh)["chamfer"],
+                              SimulatedDips(simulate, shape, grid, grid.n, args.seed + 1), args.oracle_pool, args.seed)
+            result = adaptive_loop(acquire, lambda m: solve(m, args.plan_solver), planner, what, settings)
             plan_seconds = [h["plan_seconds"] for h in result.history if "plan_seconds" in h]
             measurement = result.measurement
             # the loop's last reconstruction is the final one when it used the final solver
             recon, operator = (result.reconstruction, result.operator) if args.plan_solver == args.solver else \
                 solve(measurement, args.solver)
+        elif isinstance(what, list):  # the oracle: every plan reconstructed, the best against the truth kept
+            tried = []
+            for directions in what:
+                measurement = SimulatedDips(simulate, shape, grid, grid.n, args.seed)(directions)
+                recon, operator = solve(measurement, args.solver)
+                tried.append((evaluate(recon, truth, grid, truth_mesh=shape.mesh), measurement, recon, operator))
+            chamfers = sorted(t[0]["chamfer"] for t in tried)
+            spread = [chamfers[0], statistics.median(chamfers), chamfers[-1]]
+            scores, measurement, recon, operator = min(tried, key=lambda t: t[0]["chamfer"])
         else:
             measurement = acquire(what)
             recon, operator = solve(measurement, args.solver)
         seconds = time.perf_counter() - t0
-        scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
+        if spread is None:
+            scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
         row = {"mesh": name, "plan": plan, "dips": measurement.n_orientations, "iou": scores["iou"],
                "chamfer": scores["chamfer"], "seconds": seconds,
-               "plan_seconds_per_step": statistics.fmean(plan_seconds) if plan_seconds else None}
+               "plan_seconds_per_step": statistics.fmean(plan_seconds) if plan_seconds else None,
+               "chamfer_min_median_max": spread}
         if plan == "fibonacci":
             maps, _ = uncertainty(recon, measurement, operator)
             calibration = calibration_by_decile(maps["p_wrong"], recon.binary, truth)
         rows.append(row)
         step = f"{row['plan_seconds_per_step']:11.2f}" if plan_seconds else f"{'':>11}"
-        print(f"{name:<12} {plan:<16} {row['dips']:>5} {row['iou']:6.3f} {row['chamfer']:8.4f} {seconds:7.1f} {step}",
-              flush=True)
+        tail = f"  Chamfer of the {len(what)} plans: min / median / max " + " / ".join(f"{c:.4f}" for c in spread) \
+            if spread else ""
+        print(f"{name:<12} {plan:<16} {row['dips']:>5} {row['iou']:6.3f} {row['chamfer']:8.4f} {seconds:7.1f} {step}"
+              + tail, flush=True)
     return rows, calibration
+
+
+class OraclePlanner(Planner):
+    """Greedy planner that knows the answer (a bound, not a method): each next dip is the one among
+    ``pool`` random candidates whose addition gives the lowest ``error`` of ``reconstruct``.
+
+    Args:
+        reconstruct: measurement -> reconstruction (the final solver).
+        error: reconstruction -> its error against the true shape (Chamfer).
+        dip: simulates one dip ``(1, 3)`` (its own noise) and returns its measurement.
+        pool, seed: candidates tried per dip, and the seed that draws them.
+    """
+
+    def __init__(self, reconstruct, error, dip: SimulatedDips, pool: int, seed: int) -> None:
+        self.reconstruct, self.error, self.pool = reconstruct, error, pool
+        self.rng = np.random.default_rng(seed)
+        self.dip = dip
+
+    def next(self, measurement, reconstruction, candidates, k=1, operator=None, posterior=None) -> torch.Tensor:
+        picked, current = [], measurement
+        for _ in range(k):
+            trials = []
+            for i in self.rng.choice(len(candidates), size=min(self.pool, len(candidates)), replace=False):
+                self.dip.measurement = None  # one fresh dip, not appended to earlier trials
+                trial = concatenate(current, self.dip(candidates[i:i + 1]))
+                trials.append((self.error(self.reconstruct(trial)), int(i), trial))
+            _, best, current = min(trials, key=lambda t: t[0])
+            picked.append(candidates[best])
+        return torch.stack(picked)
+
+
+def rotated_plans(plan: torch.Tensor, count: int, seed: int) -> list[torch.Tensor]:
+    """``plan`` ``(k, 3)`` and ``count`` copies of it under random rotations (seeded), folded onto the
+    upper hemisphere (a dip along ``-d`` measures the slabs along ``d``): as well spread, placed anew."""
+    turns = Rotation.random(count, random_state=seed).as_matrix()
+    plans = [plan]
+    for turn in torch.as_tensor(turns, dtype=torch.float64):
+        d = plan @ turn.T
+        plans.append(d * torch.where(d[:, 2:] < 0, -1.0, 1.0))
+    return plans
 
 
 def summarise(rows: list[dict], calibration: list[np.ndarray], args) -> dict[str, float]:
@@ -159,7 +235,7 @@ def summarise(rows: list[dict], calibration: list[np.ndarray], args) -> dict[str
         means[plan] = {k: statistics.fmean(r[k] for r in items) for k in ("iou", "chamfer", "seconds", "dips")}
         m = means[plan]
         print(f"{plan:<16} {m['dips']:5.0f} {m['iou']:6.3f} {m['chamfer']:8.4f} {m['seconds']:7.1f}")
-    steps = [r["plan_seconds_per_step"] for r in rows if r["plan_seconds_per_step"] is not None]
+    steps = [r["plan_seconds_per_step"] for r in rows if r["plan"] in ("adaptive", "cap_adaptive")]
     print(f"\nplanning: {statistics.fmean(steps):.2f} s per step on average, at most {max(steps):.2f} s")
     deciles = np.nanmean(np.stack(calibration), axis=0)
     print("uncertainty calibration (Fibonacci plan, mean over meshes): error rate per p_wrong decile, lowest first:\n  "
@@ -167,6 +243,9 @@ def summarise(rows: list[dict], calibration: list[np.ndarray], args) -> dict[str
     ratios = {"adaptive41_over_fib123": means["adaptive"]["chamfer"] / means["fibonacci_large"]["chamfer"],
               "adaptive41_over_fib41": means["adaptive"]["chamfer"] / means["fibonacci"]["chamfer"],
               "cap_adaptive_over_uniform": means["cap_adaptive"]["chamfer"] / means["cap_uniform"]["chamfer"]}
+    for oracle in ("oracle_rotations", "oracle_greedy"):
+        if oracle in means:
+            ratios[f"{oracle}41_over_fib123"] = means[oracle]["chamfer"] / means["fibonacci_large"]["chamfer"]
     print("RESULT " + " ".join(f"{k}={v:.3f}" for k, v in ratios.items()))
     return ratios
 
