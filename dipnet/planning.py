@@ -68,7 +68,7 @@ meshes: bunny, part_B13, bracket_B66, fish, spot, hand; the settings of ``script
   in the mean, 14% worse than Fibonacci 123 (0.00470). No 41-dip plan we found reaches
   Fibonacci 123 on the hemisphere.
 * Planners that know the answer (``scripts/bench_planning.py --oracle R --oracle-pool P``), a
-  bound on what any planner can gain: the best of 12 random rotations of Fibonacci 41, picked
+  bound on what any planner can gain: the best of Fibonacci 41 and 12 random rotations of it, picked
   by Chamfer against the true shape, has mean Chamfer 0.0052 on the six meshes, 10% worse than
   Fibonacci 123 (worst over best rotation: 1.08 to 1.25 per mesh); a greedy planner that
   reconstructs each of 8 random candidates per dip and keeps the one with the lowest true

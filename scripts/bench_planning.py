@@ -11,9 +11,10 @@ from the mesh geometry with level-sensor noise at ``--snr`` dB:
 * with ``--oracle R``, a bound on what any choice of ``--budget`` directions gains: the Fibonacci
   plan and ``R`` random rotations of it, each reconstructed, and the one with the lowest Chamfer
   against the *true* shape kept (a planner that knows the answer; its row also gives the spread);
-* with ``--oracle-pool P``, the adaptive loop with a planner that knows the answer: each next dip
-  is the one, among ``P`` random reachable candidates, whose addition gives the reconstruction
-  with the lowest Chamfer against the true shape (greedy; any plan, not only well-spread ones).
+* with ``--oracle-pool P``, the adaptive loop with a planner that knows the answer, on the
+  hemisphere and on the cap: each next dip is the one, among ``P`` random reachable candidates,
+  whose addition gives the reconstruction with the lowest Chamfer against the true shape (greedy;
+  any plan, not only well-spread ones).
 
 Every final reconstruction uses ``--solver`` (default voxel: at 41 dips and 30 dB it ties with
 implicit, 4x faster, and beats minnorm 4x in Chamfer, README "Reconstruction as optimisation");
@@ -26,8 +27,8 @@ the means, the uncertainty calibration (error rate per uncertainty decile, poole
 
     RESULT adaptive41_over_fib123=<ratio of mean Chamfer> adaptive41_over_fib41=<ratio> cap_adaptive_over_uniform=<ratio>
 
-(with ``--oracle`` / ``--oracle-pool``, also ``oracle_rotations41_over_fib123=<ratio>`` /
-``oracle_greedy41_over_fib123=<ratio>``).
+(with ``--oracle``, also ``oracle_rotations41_over_fib123=<ratio>``; with ``--oracle-pool``,
+``oracle_greedy41_over_fib123=<ratio> cap_oracle_greedy_over_uniform=<ratio>``).
 
     python scripts/bench_planning.py --quick          # 2 meshes, 32^3, one process per mesh: a few minutes
     python scripts/bench_planning.py --jobs 2         # every bundled mesh at 64^3, two meshes at a time
@@ -136,7 +137,7 @@ def bench_mesh(name: str, args: argparse.Namespace) -> tuple[list[dict], np.ndar
     if args.oracle:
         plans["oracle_rotations"] = rotated_plans(fibonacci_hemisphere(args.budget), args.oracle, args.seed)
     if args.oracle_pool:
-        plans["oracle_greedy"] = hemisphere
+        plans["oracle_greedy"], plans["cap_oracle_greedy"] = hemisphere, cap
     for plan, what in plans.items():
         t0 = time.perf_counter()
         plan_seconds: list[float] = []
@@ -144,7 +145,7 @@ def bench_mesh(name: str, args: argparse.Namespace) -> tuple[list[dict], np.ndar
         acquire = SimulatedDips(simulate, shape, grid, grid.n, args.seed)
         if isinstance(what, Reach):
             settings = AdaptiveSettings(budget=args.budget, batch_size=args.batch, initial_dips=args.initial)
-            planner = NextBestDipPlanner(resolution=args.n // 2, seed=args.seed) if plan != "oracle_greedy" else \
+            planner = NextBestDipPlanner(resolution=args.n // 2, seed=args.seed) if "oracle" not in plan else \
                 OraclePlanner(lambda m: solve(m, args.solver)[0],
                               lambda r: evaluate(r, truth, grid, truth_mesh=shape.mesh)["chamfer"],
                               SimulatedDips(simulate, shape, grid, grid.n, args.seed + 1), args.oracle_pool, args.seed)
@@ -246,6 +247,8 @@ def summarise(rows: list[dict], calibration: list[np.ndarray], args) -> dict[str
     for oracle in ("oracle_rotations", "oracle_greedy"):
         if oracle in means:
             ratios[f"{oracle}41_over_fib123"] = means[oracle]["chamfer"] / means["fibonacci_large"]["chamfer"]
+    if "cap_oracle_greedy" in means:
+        ratios["cap_oracle_greedy_over_uniform"] = means["cap_oracle_greedy"]["chamfer"] / means["cap_uniform"]["chamfer"]
     print("RESULT " + " ".join(f"{k}={v:.3f}" for k, v in ratios.items()))
     return ratios
 
