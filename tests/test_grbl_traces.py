@@ -92,6 +92,17 @@ def test_t3d_alarm3_no_unlock_no_motion():
         ctl.move_to(lower_mm=0.0)
 
 
+def test_t3e_resume_after_alarm3_is_refused_although_grbl_reports_idle():
+    # after t3d's ALARM:3 and a reset, GRBL ($22=0) answers Idle at the old coordinates: only the
+    # runner's position-lost marker (ScanRunner._establish_position -> lose_position) knows better
+    ctl, port = replay(read_trace("t3e.log")[0])
+    assert ctl.last_status.state == "Idle" and ctl.position_lost is None
+    ctl.lose_position("the previous run lost the position (ALARM:3)")
+    with pytest.raises(PositionUnknown, match="refusing to move: the previous run lost the position"):
+        ctl.move_to(lower_mm=0.0)  # the recorded client sent G0 Z0.0000 here and went on scanning
+    assert port.diverged_at is None and not any(c.startswith(b"G0") for c in port.sent)
+
+
 def test_t3h_hold_reported_at_once_and_late_ok_attributed():
     script = read_trace("t3h.log")[0]
     ctl, port = replay(script)
