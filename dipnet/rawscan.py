@@ -17,6 +17,13 @@ File format (version 1, JSON Lines, UTF-8, one JSON object per line)
     {"type": "complete", "k": 0, "n_readings": 87}
     {"type": "orientation", "k": 1, ...}
 
+A rig run also writes, once per connection and before its first orientation, what it found
+after connecting (a resumed scan has one per run)::
+
+    {"type": "session", "first_k": 1, "time": "2026-11-23T16:10:00+0000",
+     "controller": {"dialect": "grbl", "firmware": "1.1h", "build": ["[VER:1.1h.20190830:]", ...], ...},
+     "sensor": {"kind": "LineSensor", ...}}
+
 The writer flushes (and by default fsyncs) after every line, so a crash loses at most the
 line being written. The reader tolerates a truncated last line, and an orientation whose
 ``complete`` line is missing is reported as incomplete: a scan resumes after its last complete
@@ -227,12 +234,16 @@ class RawScan:
         orientations: per-orientation readings, in acquisition order.
         truncated: the file it was read from ended with a truncated line (a crash mid-write).
         path: the file it was read from, if any.
+        sessions: one dict per rig run that wrote to the file (``session`` records: the first
+            orientation it scanned, the time, the controller's and the sensor's identity read after
+            connecting, e.g. the firmware version), in file order.
     """
 
     header: ScanHeader
     orientations: list[OrientationScan] = field(default_factory=list)
     truncated: bool = False
     path: Path | None = None
+    sessions: list[dict[str, Any]] = field(default_factory=list)
 
     def complete_orientations(self) -> list[int]:
         """Indices ``k`` of the orientations whose scan finished, in file order."""
@@ -257,6 +268,8 @@ class RawScan:
     def save(self, path: str | Path, fsync: bool = False) -> Path:
         """Write the whole scan to ``path`` (overwriting it) in the JSON Lines format."""
         with RawScanWriter(path, self.header, resume=False, overwrite=True, fsync=fsync) as writer:
+            for session in self.sessions:
+                writer.record_session(session)
             for o in self.orientations:
                 writer.begin_orientation(o.k, direction=o.direction, tilt_deg=o.tilt_deg,
                                          spin_deg=o.spin_deg, meta=o.meta)
@@ -341,6 +354,12 @@ class RawScanWriter:
                   "time_s": float(time_s), "flags": [str(f) for f in flags]}
         self._write(record)
         o._append(stage_mm, value, time_s, record["flags"])
+
+    def record_session(self, info: dict[str, Any]) -> None:
+        """Record what a rig run found after connecting (JSON-serialisable ``info``; see the module
+        docstring), e.g. ``{"first_k": 3, "controller": {"firmware": "1.1h", ...}}``."""
+        self._write({"type": "session", **info})
+        self.scan.sessions.append(dict(info))
 
     def complete_orientation(self) -> None:
         """Mark the current orientation as complete."""
@@ -483,6 +502,8 @@ def read_rawscan(path: str | Path) -> RawScan:
                     raise ValueError(f"orientation {o.k} is marked complete with {obj['n_readings']} "
                                      f"readings but {o.n_readings} were recorded")
                 o.complete = True
+            elif kind == "session":
+                scan.sessions.append({key: value for key, value in obj.items() if key != "type"})
             elif kind == "header":
                 raise ValueError("a second header line")
             else:

@@ -43,9 +43,10 @@ def _write_partial(path) -> None:
 
 def test_file_round_trip(tmp_path):
     scan = _scan()
+    scan.sessions = [{"first_k": 0, "controller": {"dialect": "grbl", "firmware": "1.1h"}}]
     path = scan.save(tmp_path / "scan.jsonl")
     back = read_rawscan(path)
-    assert back.header == scan.header
+    assert back.header == scan.header and back.sessions == scan.sessions
     assert back.header.units == {"stage": "mm", "value": "mm", "time": "s", "angles": "deg",
                                  "tank_cross_section": "mm^2"}
     assert len(back.orientations) == 2 and not back.truncated
@@ -57,7 +58,7 @@ def test_file_round_trip(tmp_path):
     assert back.complete_orientations() == [0]
     # every line is one JSON object with a type
     kinds = [json.loads(line)["type"] for line in path.read_text().splitlines()]
-    assert kinds == ["header", "orientation", "reading", "reading", "reading", "complete",
+    assert kinds == ["header", "session", "orientation", "reading", "reading", "reading", "complete",
                      "orientation", "reading", "reading"]
 
 

@@ -125,6 +125,11 @@ def test_kill_and_resume_equals_uninterrupted(world, tmp_path):
     assert 0 < len(first.completed()) < 4
     resumed = scan(world, "grbl", "modbus", plan, tmp_path / "resumed.jsonl")  # the same command again
     assert [o.k for o in resumed.orientations] == [0, 1, 2, 3] and all(o.complete for o in resumed.orientations)
+    # each run recorded what it connected to, and where it started
+    sessions = read_rawscan(tmp_path / "resumed.jsonl").sessions
+    assert [s["first_k"] for s in sessions] == [0, len(first.completed())]
+    assert all(s["controller"]["firmware"] == "1.1h" and any("VER:1.1h" in line for line in s["controller"]["build"])
+               and s["sensor"]["kind"] == "ModbusLevelSensor" for s in sessions)
     grid = Grid(24, extent=100.0)
     a = preprocess(read_rawscan(tmp_path / "clean.jsonl"), grid=grid, t_start="metadata")
     b = preprocess(read_rawscan(tmp_path / "resumed.jsonl"), grid=grid, t_start="metadata")

@@ -201,7 +201,8 @@ class GrblController(Controller):
         self._reports = 0  # status reports received (valid or not)
 
     def identity(self) -> dict:
-        return {**super().identity(), "firmware": self.version, "status_axes": self.status_axes}
+        return {**super().identity(), "firmware": self.version, "build": self.build_info,
+                "status_axes": self.status_axes}
 
     # ------------------------------------------------------------------ reading
     def _pump(self, timeout: float, collect: list[str] | None = None) -> GrblLine:

@@ -255,6 +255,8 @@ class ScanRunner:
         self.where = "connecting"
         ctl.connect()
         self.sensor_device().connect()
+        writer.record_session({"first_k": first, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                               "controller": ctl.identity(), "sensor": self.sensor.identity()})
         self._check_board(stages)
         self._establish_position()
         total = len(plan.orientations) * len(stages)
