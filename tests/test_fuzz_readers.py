@@ -11,8 +11,9 @@ binary garbage). Every case must either
 
 Any other exception (``TypeError``, ``IndexError``, ``ImportError``...) fails the test.
 
-Extension point: a new reader (e.g. the calibration files) adds one :class:`Reader` to
-:data:`READERS`: a builder writing a valid sample file and a function reading a file into a
+Rig calibration files are fuzzed as applied to a valid raw scan: the error must name the
+calibration file. Extension point: a new reader adds one :class:`Reader` to :data:`READERS`: a
+builder writing a valid sample file and a function reading a file into a
 :class:`~dipnet.measurement.DipMeasurement` on :data:`GRID` (or raising the user error).
 """
 
@@ -36,6 +37,8 @@ from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.orientations import make_directions
 from dipnet.physics import LevelSensor
+from dipnet.rig.calibration_file import Calibration, save_calibration
+from dipnet.rig.geometry import RigGeometry
 from dipnet.sources import read_recorded
 from dipnet.shapes import Ball, load_mesh
 from dipnet.simulate import simulate_measurement
@@ -105,13 +108,28 @@ def _read_csv(path: Path) -> DipMeasurement:
     return read_recorded(str(path), CSV_GRID, t_start="centroid", truncated="keep")
 
 
+_CALIBRATED_SCAN: dict[str, Path] = {}  # the raw scan the calibration files are applied to
+
+
+def _build_calibration(tmp: Path) -> Path:
+    raw = _simulated(tmp)[0]
+    _CALIBRATED_SCAN["path"] = raw.save(tmp / "calibrated.jsonl")
+    geometry = RigGeometry(pivot_mm=5.0, tilt_axis_offset_mm=1.0, cross_section_mm2=raw.header.tank_cross_section_mm2)
+    return save_calibration(Calibration(geometry, rig=raw.header.rig, tank="tank-1", method="reference",
+                                        uncertainty={"pivot_mm": 0.3}), tmp / "sample.yaml")
+
+
+def _read_calibrated(path: Path) -> DipMeasurement:
+    return read_recorded(str(_CALIBRATED_SCAN["path"]), GRID, t_start="metadata", calibration=path)
+
+
 READERS = [
     Reader("mesh_stl", ".stl", _build_stl, _read_mesh, BYTE_MUTATIONS),
     Reader("mesh_ply", ".ply", _build_ply, _read_mesh),
     Reader("npz", ".npz", _build_npz, lambda p: read_recorded(str(p), GRID), BYTE_MUTATIONS),  # arrays: below
     Reader("jsonl", ".jsonl", _build_jsonl, lambda p: read_recorded(str(p), GRID, t_start="metadata")),
     Reader("csv", ".csv", _build_csv, _read_csv),
-    # calibration files (issue 11): Reader("calibration", ".json", build_calibration, read_calibration)
+    Reader("calibration", ".yaml", _build_calibration, _read_calibrated),  # applied to a valid raw scan
 ]
 
 
@@ -233,6 +251,23 @@ def test_byte_and_text_mutations(reader, mutation, samples, tmp_path):
         outcomes.append(_check(reader, path))
     if mutation in ("empty", "garbage"):
         assert outcomes == ["error"] * len(SEEDS)
+
+
+@pytest.mark.parametrize("key", ["pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg", "step_scale",
+                                 "cross_section_mm2", "level_drift_mm_per_s", "sensor_lag_s"])
+@pytest.mark.parametrize("value", [1e300, -1e300, 1e-300])
+def test_calibration_extreme_values_are_named_errors(key, value, samples, tmp_path):
+    """Every geometry value far out of range is refused by the calibration reader itself (an
+    extreme value that slipped through once gave a volume of 1.9e-300 mm^3 with exit code 0)."""
+    path = tmp_path / "extreme.yaml"
+    text = samples["calibration"].read_text()
+    path.write_text(re.sub(rf"(?m)^(  {key}: ).*$", rf"\g<1>{value!r}", text))
+    assert path.read_text() != text
+    if value == 1e-300 and key not in ("step_scale", "cross_section_mm2"):
+        assert _check(READERS[-1], path) == "valid"  # a negligible offset, drift or lag is a valid geometry
+        return
+    with pytest.raises(ValueError, match=rf"{path.name}: rig geometry {key}"):
+        READERS[-1].read(path)
 
 
 @pytest.mark.parametrize("mutation", sorted(NPZ_MUTATIONS))

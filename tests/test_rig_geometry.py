@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from dipnet.datasets import CATS_CSV
 from dipnet.grid import Grid
@@ -72,13 +73,25 @@ def test_invert_refuses_what_it_cannot_apply():
         invert_scan(raw, RigGeometry(level_drift_mm_per_s=1e-3))
 
 
+def test_numbers_written_as_yaml_strings_are_read():
+    # YAML 1.1 (PyYAML) reads 1e-4 and 2e1 (no dot) as strings
+    geometry = RigGeometry.from_dict(yaml.safe_load("level_drift_mm_per_s: 1e-4\npivot_mm: 2e1\n"))
+    assert geometry.level_drift_mm_per_s == 1e-4 and geometry.pivot_mm == 20.0
+    with pytest.raises(GeometryError, match="pivot_mm must be a finite number, got 'abc'"):
+        RigGeometry.from_dict({"pivot_mm": "abc"})
+
+
 @pytest.mark.parametrize("values, cause", [
     ({"pivot": 3.0}, "unknown rig geometry key"),
     ({"cross_section_mm2": -5.0}, "cross_section_mm2 must be positive"),
     ({"cross_section_mm2": 0.0}, "cross_section_mm2 must be positive"),
     ({"step_scale": 1.6}, "step_scale=1.6 is unphysical"),
     ({"tilt_zero_deg": 60.0}, "tilt_zero_deg=60.0 exceeds"),
-    ({"sensor_lag_s": -1.0}, "sensor_lag_s must be >= 0"),
+    ({"sensor_lag_s": -1.0}, r"sensor_lag_s must be in \[0, 600\] s"),
+    ({"sensor_lag_s": 1e300}, r"sensor_lag_s must be in \[0, 600\] s"),
+    ({"cross_section_mm2": 1e-300}, r"cross_section_mm2=1e-300 is outside \[1, 1e\+08\] mm\^2"),
+    ({"cross_section_mm2": 1e300}, "cross_section_mm2=1e.300 is outside"),
+    ({"level_drift_mm_per_s": -1e300}, "level_drift_mm_per_s=-1e.300 exceeds 1.0 mm/s"),
     ({"pivot_mm": float("nan")}, "pivot_mm must be a finite number"),
 ])
 def test_unphysical_geometry_is_refused(values, cause):

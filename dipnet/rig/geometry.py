@@ -52,6 +52,9 @@ from dipnet.rawscan import OrientationScan, RawScan, ScanHeader
 MAX_STEP_SCALE_ERROR = 0.5  # |step_scale - 1| above this is not a rig, it is a typo
 MAX_ZERO_OFFSET_DEG = 45.0
 MAX_LENGTH_MM = 5000.0
+CROSS_SECTION_RANGE_MM2 = (1.0, 1e8)  # 1 mm^2 (or 1 mm in 2D) to a 10 m x 10 m tank
+MAX_LEVEL_DRIFT_MM_PER_S = 1.0  # 3.6 m per hour: no tank drifts like that
+MAX_SENSOR_LAG_S = 600.0  # longer than any dip step
 GEOMETRY_CONFIG_KEY = "rig_geometry"  # ScanHeader.config key: the geometry the rig assumed while scanning
 
 
@@ -93,6 +96,13 @@ class RigGeometry:
             object.__setattr__(self, f.name, float(value))
         if self.cross_section_mm2 is not None and not self.cross_section_mm2 > 0:
             raise GeometryError(f"rig geometry cross_section_mm2 must be positive, got {self.cross_section_mm2!r}")
+        low, high = CROSS_SECTION_RANGE_MM2
+        if self.cross_section_mm2 is not None and not low <= self.cross_section_mm2 <= high:
+            raise GeometryError(f"rig geometry cross_section_mm2={self.cross_section_mm2!r} is outside "
+                                f"[{low:g}, {high:g}] mm^2: wrong units?")
+        if abs(self.level_drift_mm_per_s) > MAX_LEVEL_DRIFT_MM_PER_S:
+            raise GeometryError(f"rig geometry level_drift_mm_per_s={self.level_drift_mm_per_s!r} exceeds "
+                                f"{MAX_LEVEL_DRIFT_MM_PER_S} mm/s")
         if abs(self.step_scale - 1.0) > MAX_STEP_SCALE_ERROR:
             raise GeometryError(f"rig geometry step_scale={self.step_scale!r} is unphysical "
                                 f"(|step_scale - 1| > {MAX_STEP_SCALE_ERROR})")
@@ -102,18 +112,20 @@ class RigGeometry:
         for name in ("pivot_mm", "tilt_axis_offset_mm"):
             if abs(getattr(self, name)) > MAX_LENGTH_MM:
                 raise GeometryError(f"rig geometry {name}={getattr(self, name)!r} exceeds {MAX_LENGTH_MM} mm")
-        if self.sensor_lag_s < 0:
-            raise GeometryError(f"rig geometry sensor_lag_s must be >= 0, got {self.sensor_lag_s!r}")
+        if not 0 <= self.sensor_lag_s <= MAX_SENSOR_LAG_S:
+            raise GeometryError(f"rig geometry sensor_lag_s must be in [0, {MAX_SENSOR_LAG_S:g}] s, "
+                                f"got {self.sensor_lag_s!r}")
 
     # ------------------------------------------------------------------ conversions
     @classmethod
     def from_dict(cls, values: dict[str, Any] | None) -> "RigGeometry":
-        """From a plain mapping; unknown keys raise :class:`GeometryError` naming them."""
+        """From a plain mapping; unknown keys raise :class:`GeometryError` naming them. Numbers
+        given as strings (YAML 1.1 reads ``1e-4``, without a dot, as one) are converted."""
         values = dict(values or {})
         unknown = sorted(set(values) - {f.name for f in fields(cls)})
         if unknown:
             raise GeometryError(f"unknown rig geometry key(s) {unknown}; known: {[f.name for f in fields(cls)]}")
-        return cls(**values)
+        return cls(**{name: _as_number(value) for name, value in values.items()})
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -239,3 +251,14 @@ def invert_scan(raw: RawScan, geometry: RigGeometry) -> RawScan:
             stage_mm=geometry.true_stage(o.stage_mm), values=values, time_s=o.time_s.copy(),
             flags=[list(f) for f in o.flags], complete=o.complete))
     return out
+
+
+def _as_number(value: Any) -> Any:
+    """``value`` as a float when it is a string holding a number, else unchanged (the dataclass
+    check then names what is wrong with it)."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
