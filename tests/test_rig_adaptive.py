@@ -31,7 +31,7 @@ def world():
                    origin_height_mm=ORIGIN).register("adaptiverig")
 
 
-def scan(world, path, budget=8, reach=REACH):
+def scan(world, path, budget=8, reach=REACH, planner=None):
     def make_runner(plan, home):
         ctl = GrblController(world.url("grbl"), timeout=0.3, move_timeout=2.0)
         sensor = AveragingSensor(LineSensor(world.url("level"), pattern=r"L=(?P<value>[-+\d.]+)\s*(?P<unit>mm)"),
@@ -41,7 +41,7 @@ def scan(world, path, budget=8, reach=REACH):
         return ScanRunner(ctl, sensor, plan, path, header, home=home, progress=False, fsync=False)
 
     return adaptive_scan(make_runner, PROTOCOL, path, Grid(16, 3), MinNormSolver(progress=False),
-                         NextBestDipPlanner(resolution=16, n_samples=32), reach,
+                         planner or NextBestDipPlanner(resolution=16, n_samples=32), reach,
                          AdaptiveSettings(budget=budget, batch_size=2, initial_dips=4))
 
 
@@ -66,11 +66,25 @@ def test_adaptive_rig_scan_respects_the_reach_and_resumes_with_the_same_plan(wor
     assert np.allclose(resumed.measurement.profiles.numpy(), clean.measurement.profiles.numpy(), atol=1e-6)
 
 
-def test_a_changed_plan_does_not_mix_with_the_recorded_one(world, tmp_path):
+def test_a_changed_reach_does_not_mix_with_the_recorded_plan(world, tmp_path):
     world.reset()
     scan(world, tmp_path / "scan.jsonl", budget=6)
-    with pytest.raises(RawScanFileError, match="adaptive plan"):
+    with pytest.raises(RawScanFileError, match=r"dip 0 was recorded .* outside the rig's reach now"):
         scan(world, tmp_path / "scan.jsonl", budget=8, reach=Reach(tilt_range_deg=(40, 80), step_deg=10))
+
+
+def test_a_replay_that_plans_otherwise_keeps_the_recorded_dips(world, tmp_path):
+    # another criterion stands for what another thread count does to a greedy pick
+    world.reset()
+    scan(world, tmp_path / "scan.jsonl", budget=6)
+    first = read_rawscan(tmp_path / "scan.jsonl")
+    with pytest.warns(UserWarning, match="the replayed plan differs from the recorded dips .* are kept"):
+        resumed = scan(world, tmp_path / "scan.jsonl", budget=8,
+                       planner=NextBestDipPlanner(resolution=16, n_samples=32, criterion="variance"))
+    again = read_rawscan(tmp_path / "scan.jsonl")
+    assert [o.k for o in again.orientations] == list(range(8)) and all(o.complete for o in again.orientations)
+    assert np.allclose(again.directions().numpy()[:6], first.directions().numpy())  # nothing re-dipped
+    assert resumed.measurement.n_orientations == 8
 
 
 def test_scan_script_runs_an_adaptive_scan(tmp_path):
