@@ -72,8 +72,14 @@ meshes: bunny, part_B13, bracket_B66, fish, spot, hand; the settings of ``script
   by Chamfer against the true shape, has mean Chamfer 0.0052 on the six meshes, 10% worse than
   Fibonacci 123 (worst over best rotation: 1.08 to 1.25 per mesh); a greedy planner that
   reconstructs each of 8 random candidates per dip and keeps the one with the lowest true
-  Chamfer reaches 0.0049 on bunny and bracket_B66 against 0.0045 for Fibonacci 123 (9.5% worse)
-  and 0.0050 for this planner. Even with the true shape, 41 dips stay about 10% short of 123.
+  Chamfer reaches 0.0050 on bunny, bracket_B66, part_B13 and hand against 0.0046 for Fibonacci
+  123 (10% worse) and 0.0053 for this planner. Even with the true shape, 41 dips stay about 10%
+  short of 123. Under the 35 deg tilt limit the same oracle gains 15% over the uniform cap plan on
+  part_B13 (this planner 10%).
+* All 16 bundled meshes at 64^3 (``scripts/bench_planning.py --jobs 2``): this planner against
+  Fibonacci 41 0.958 (better on 10 meshes, worse by 2-6% on the smooth organic ones), against
+  Fibonacci 123 1.274 (reached on the hollow cube only), under the tilt limit against the uniform
+  cap plan 0.925 (better on 13 meshes).
 
 Cost: the posterior (one Cholesky of ``(K M_c)^2``), one sparse product of the
 samples with the candidates' matrix (built once per candidate set and cached) and ``k``
