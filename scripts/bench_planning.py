@@ -148,7 +148,8 @@ def bench_mesh(name: str, args: argparse.Namespace) -> tuple[list[dict], np.ndar
             planner = NextBestDipPlanner(resolution=args.n // 2, seed=args.seed) if "oracle" not in plan else \
                 OraclePlanner(lambda m: solve(m, args.solver)[0],
                               lambda r: evaluate(r, truth, grid, truth_mesh=shape.mesh)["chamfer"],
-                              SimulatedDips(simulate, shape, grid, grid.n, args.seed + 1), args.oracle_pool, args.seed)
+                              lambda d: simulate(shape, d, grid=grid, n_slabs=grid.n, seed=args.seed + 1)[1],
+                              args.oracle_pool, args.seed)
             result = adaptive_loop(acquire, lambda m: solve(m, args.plan_solver), planner, what, settings)
             plan_seconds = [h["plan_seconds"] for h in result.history if "plan_seconds" in h]
             measurement = result.measurement
@@ -193,21 +194,19 @@ class OraclePlanner(Planner):
     Args:
         reconstruct: measurement -> reconstruction (the final solver).
         error: reconstruction -> its error against the true shape (Chamfer).
-        dip: simulates one dip ``(1, 3)`` (its own noise) and returns its measurement.
+        dip: direction ``(1, 3)`` -> the measurement of that one dip (its own noise).
         pool, seed: candidates tried per dip, and the seed that draws them.
     """
 
-    def __init__(self, reconstruct, error, dip: SimulatedDips, pool: int, seed: int) -> None:
-        self.reconstruct, self.error, self.pool = reconstruct, error, pool
+    def __init__(self, reconstruct, error, dip, pool: int, seed: int) -> None:
+        self.reconstruct, self.error, self.dip, self.pool = reconstruct, error, dip, pool
         self.rng = np.random.default_rng(seed)
-        self.dip = dip
 
     def next(self, measurement, reconstruction, candidates, k=1, operator=None, posterior=None) -> torch.Tensor:
         picked, current = [], measurement
         for _ in range(k):
             trials = []
             for i in self.rng.choice(len(candidates), size=min(self.pool, len(candidates)), replace=False):
-                self.dip.measurement = None  # one fresh dip, not appended to earlier trials
                 trial = concatenate(current, self.dip(candidates[i:i + 1]))
                 trials.append((self.error(self.reconstruct(trial)), int(i), trial))
             _, best, current = min(trials, key=lambda t: t[0])
