@@ -1,38 +1,29 @@
 """Rig calibration: estimate a :class:`~dipnet.rig.geometry.RigGeometry` from dips.
 
-Calibration is an estimation problem like reconstruction, and reuses its parts:
+Calibration is an estimation problem like reconstruction, and reuses its parts (the readers'
+readings -> slabs map, the dip operator, any solver). It runs in two stages, the first of
+which needs no grid and no shape, so nothing that depends on the geometry (the grid's
+working ball, validation, a solver's support hull) sees the data before the geometry is
+estimated:
 
-* the readings -> slabs map is the readers' (:func:`~dipnet.rig.geometry.invert_scan` then
-  :func:`~dipnet.preprocess.preprocess`), re-run for every trial geometry;
-* the shape's profiles come from the dip operator (:func:`~dipnet.operators.make_operator`);
-* the shape step of self-calibration is any :class:`~dipnet.solvers.Solver`.
+1. **Moments** (:mod:`dipnet.calibration_moments`): the level drift from the rest level of
+   every dip, then the pivot, tilt-axis offset, tilt zero (and for a reference object the
+   step scale and spin zero) from the first two moments of every dip, which a rigid object
+   fixes whatever its shape. A grid search over the angles and the step scale comes first,
+   the heights are solved in closed form, so start heights 50+ mm off are no trap. 90%
+   intervals from a bootstrap over dips (model error included), widened by a floor
+   (:data:`MODEL_FLOOR`) measured over the random rigs of ``scripts/bench_calibration.py``.
+2. **Volume**: a reference object's known volume gives the cross-section directly; without
+   one (:func:`self_calibrate`) it is fitted as one volume gain jointly with the shape (the
+   solver's ``fit_gain``), its interval widened by the shape prior's bias.
 
-The geometry step is nonlinear least squares (``scipy.optimize.least_squares``, finite
-differences) on the profile residual ``r = (A(theta(g)) f - m(g)) / sigma`` with the shape
-``f`` fixed, over the chosen :data:`PARAMETERS` (RigGeometry fields plus ``t0_mm``, a common
-offset of every dip's start height) and optionally one height offset per dip (with a
-Gaussian prior of ``dip_offset_sigma_mm``).
-
-* :func:`calibrate_reference`: a reference object of known shape and pose (a ball or a
-  cylinder of known size) -> one geometry step with ``f`` = its occupancy;
-* :func:`self_calibrate`: shape unknown -> heights and directions from the shape-free moment
-  residual, the cross-section as a volume gain fitted with the shape (the solver's
-  ``fit_gain``), per-dip offsets by a geometry step on that shape, then a final shape step.
-
-What the data determine (:func:`identifiability`): from the Gauss-Newton Hessian ``J^T J`` of
-the data term at the estimate, standard errors ``sqrt(diag(s^2 (J^T J)^-1))`` (``s^2`` the
-residual variance) and correlations. For self-calibration ``J`` also holds the *gauge*
-directions of the unknown shape: moving it (``shift_*_mm``: ``t_k += v . theta_k``),
-turning it (``rot_*_deg``: the directions turn instead) or growing it (``dilate_mm``: the
-surface moves outward, ``f += d |grad f|``), which the shape step can always absorb. A parameter whose standard error exceeds its tolerance (:data:`TOLERANCE`) is not
-identifiable from the plan; the partner it is most correlated with is named (e.g. the spin
-zero offset is the object's own rotation about the spin axis; the pivot with a free ``t0_mm``
-is the object's position along the spin axis). Self-calibration warns and keeps such
-parameters at their initial values; reference calibration refuses (``CalibrationError``).
-
-The cross-section is identifiable only because the solver's shape is (nearly) binary: the
-data alone cannot tell a larger tank from a denser object. It is fitted as one volume gain
-jointly with the shape (:func:`self_calibrate`).
+What cannot be estimated is named with the reason and how far the shape could move
+(:attr:`CalibrationReport.undetermined`, :attr:`CalibrationReport.shape_motion`) and kept at
+its configured value: for an unknown object the spin zero (the object's own rotation) and the
+step scale (the scale of the whole scene; only section / step_scale^3 is fixed); for a
+centred ball the spin zero (its symmetry) and, with pivot and offset near 0, the tilt zero.
+The sensor lag is never estimated: at the simulator's 2 s settle time a lag shifts every
+profile alike, which the pivot absorbs.
 """
 
 from __future__ import annotations
@@ -49,12 +40,14 @@ import scipy.optimize
 import scipy.sparse
 import torch
 
+from dipnet.calibration_moments import GAUGE_REASONS, TOLERANCE, KnownObject, fit_drift, fit_moments, dip_moments
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.operators import make_operator
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import RawScan
 from dipnet.reconstruction import Reconstruction
+from dipnet.rig.calibration_file import Calibration
 from dipnet.rig.geometry import RigGeometry, invert_scan
 
 log = logging.getLogger(__name__)
@@ -64,19 +57,24 @@ PARAMETERS: dict[str, float] = {
     "pivot_mm": 1.0, "tilt_axis_offset_mm": 1.0, "tilt_zero_deg": 0.1, "spin_zero_deg": 0.1,
     "step_scale": 1e-3, "cross_section_mm2": 1e-3, "level_drift_mm_per_s": 1e-5, "t0_mm": 0.5,
 }
-# a parameter is "determined" when its standard error is below this (cross-section: relative)
-TOLERANCE: dict[str, float] = {
-    "pivot_mm": 2.5, "tilt_axis_offset_mm": 1.5, "tilt_zero_deg": 0.5, "spin_zero_deg": 0.5,
-    "step_scale": 0.005, "cross_section_mm2": 0.005, "level_drift_mm_per_s": 5e-5, "t0_mm": 1.0,
+#: Half-widths added (in quadrature) to every 90% interval: model error the bootstrap over dips does
+#: not see (moment discretisation, lag, the shape prior's bias on the section; relative for the section).
+MODEL_FLOOR: dict[str, float] = {
+    "pivot_mm": 0.3, "tilt_axis_offset_mm": 0.3, "tilt_zero_deg": 0.3, "spin_zero_deg": 0.3,
+    "step_scale": 0.0015, "t0_mm": 0.3, "level_drift_mm_per_s": 2e-6, "cross_section_mm2": 0.004,
 }
+SELF_SECTION_FLOOR = 0.025  # the shape prior's bias on a self-calibrated section (relative), bench_calibration
+DEFAULT_SELF = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg", "step_scale",
+                "cross_section_mm2", "level_drift_mm_per_s")
+DEFAULT_REFERENCE = DEFAULT_SELF
+NOT_ESTIMATED = {"sensor_lag_s": "not estimated: at these settle times a lag shifts every profile alike, which "
+                                 "the pivot absorbs; the configured value is used"}
 GAUGES: dict[str, str] = {
     "shift_x_mm": "the object's position along x", "shift_y_mm": "the object's position along y",
     "shift_z_mm": "the object's position along the spin axis", "rot_x_deg": "the object's rotation about x",
     "rot_y_deg": "the object's rotation about y", "rot_z_deg": "the object's rotation about the spin axis",
     "dilate_mm": "the object's surface moving outward: a fatter or thinner object",
 }
-SECTION_BIAS_NOTE = "-1.3 % to +0.8 % with the implicit field, -2.4 % to +0.2 % with voxels, on 4 meshes"  # README
-DEFAULT_SELF = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "cross_section_mm2")
 
 
 class CalibrationError(ValueError):
@@ -88,15 +86,23 @@ class CalibrationReport:
     """What the data determine.
 
     Attributes:
-        estimates: parameter -> value (cross-section in mm^2).
-        standard_errors: parameter -> standard error (same units), gauges included for self-calibration.
+        estimates: parameter -> value (cross-section in mm^2); an undetermined one holds the
+            configured value it was kept at.
+        standard_errors: parameter -> standard error (same units): the bootstrap's for the moment
+            stage, the Gauss-Newton one for the section of self-calibration (gauges included).
+        intervals: parameter -> 90% interval ``(low, high)``, model-error floor included
+            (module docstring); only for estimated parameters.
         correlations: parameter -> {other: correlation}.
-        undetermined: parameter -> reason (named partner), for those above :data:`TOLERANCE`.
-        residual_rms: RMS of the whitened profile residual (about 1 when the model explains the data
-            to the noise level; the noise scale is ``sigma_mm3``).
+        undetermined: parameter -> reason, for those the data do not pin to their tolerance.
+        shape_motion: undetermined parameter -> how far the shape could move because of it.
+        not_estimated: geometry field -> why it is not estimated (configured value used).
+        residual_rms: RMS of the whitened profile residual of the volume stage (about 1 when the
+            model explains the data to the noise level ``sigma_mm3``); NaN without one.
         sigma_mm3: the noise scale used to whiten the residual (mm^3 per slab).
+        moment_rms: RMS misfit of the first (mm) and second (mm^2) moments at the estimate.
         dip_offsets_mm: the per-dip height offsets (mm), if estimated.
-        caveats: parameter -> what its standard error does not cover.
+        caveats: parameter -> what its interval does not cover.
+        method: ``"reference"`` or ``"self"``.
     """
 
     estimates: dict[str, float]
@@ -107,19 +113,34 @@ class CalibrationReport:
     sigma_mm3: float = float("nan")
     dip_offsets_mm: list[float] | None = None
     caveats: dict[str, str] = field(default_factory=dict)
+    intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    shape_motion: dict[str, str] = field(default_factory=dict)
+    not_estimated: dict[str, str] = field(default_factory=lambda: dict(NOT_ESTIMATED))
+    moment_rms: tuple[float, float] = (float("nan"), float("nan"))
+    method: str = "self"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"estimates": self.estimates, "standard_errors": self.standard_errors,
-                "correlations": self.correlations, "undetermined": self.undetermined, "caveats": self.caveats,
-                "residual_rms": self.residual_rms, "sigma_mm3": self.sigma_mm3, "dip_offsets_mm": self.dip_offsets_mm}
+        return {"method": self.method, "estimates": self.estimates, "standard_errors": self.standard_errors,
+                "intervals_90": {k: list(v) for k, v in self.intervals.items()},
+                "correlations": self.correlations, "undetermined": self.undetermined,
+                "shape_motion": self.shape_motion, "not_estimated": self.not_estimated, "caveats": self.caveats,
+                "residual_rms": self.residual_rms, "sigma_mm3": self.sigma_mm3, "moment_rms": list(self.moment_rms),
+                "dip_offsets_mm": self.dip_offsets_mm}
+
+    @property
+    def determined(self) -> list[str]:
+        """The estimated parameters the data determine (with an interval)."""
+        return [n for n in self.estimates if n not in self.undetermined and n in self.intervals]
 
     def table(self) -> str:
-        """A plain-text table: parameter, estimate, standard error, determined?"""
-        lines = [f"{'parameter':<22} {'estimate':>12} {'std err':>10}  determined"]
+        """A plain-text table: parameter, estimate, 90% interval, determined?"""
+        lines = [f"{'parameter':<22} {'estimate':>12} {'90% interval':>25}  determined"]
         for name, value in self.estimates.items():
-            se = self.standard_errors.get(name, float("nan"))
+            low, high = self.intervals.get(name, (float("nan"), float("nan")))
             why = self.undetermined.get(name)
-            lines.append(f"{name:<22} {value:12.5g} {se:10.3g}  {'no: ' + why if why else 'yes'}")
+            status = f"no, kept at the configured value: {why}" if why else "yes"
+            lines.append(f"{name:<22} {value:12.6g} {f'[{low:.6g}, {high:.6g}]':>25}  {status}")
+        lines += [f"{name:<22} {'':>12} {'':>25}  {why}" for name, why in self.not_estimated.items()]
         return "\n".join(lines)
 
 
@@ -167,32 +188,6 @@ class ProfileModel:
                 + float(shift @ direction)
         m = preprocess(inverted, grid=self.grid, n_slabs=self.n_slabs, t_start="metadata", smooth=self.smooth)
         return m if self.finish is None or not finish else self.finish(m)
-
-    def moment_residual(self, state: State, gauge: dict[str, float] | None = None) -> np.ndarray:
-        """Whitened residual of the Radon range conditions of the first two moments, ``(2 K,)``.
-
-        The profile of a rigid object along ``theta`` has its centroid at ``c . theta`` and its
-        mean squared height at ``theta^T S theta`` (``c``, ``S`` = the object's centroid and
-        second-moment matrix over its volume), whatever the shape. ``c`` and ``S`` are fitted
-        linearly; what is left measures how far the geometry is from making the dips one
-        rigid object. Units: the first moments in 0.1 slab, the second in 0.1 slab x the grid radius.
-        Only the measured dips count (no symmetry images or interpolated ones).
-        """
-        m = self.measurement(state, gauge, finish=False)
-        edges = m.offsets[0].item() + m.slab_thickness * np.arange(m.n_slabs + 1)
-        t = 0.5 * (edges[1:] + edges[:-1])
-        p = m.profiles.numpy()
-        volume = p.sum(1)
-        if np.any(volume <= 0):
-            raise ValueError("a dip holds no volume inside the grid")
-        first, second = p @ t / volume, p @ t**2 / volume
-        d = m.directions.numpy()
-        quad = np.stack([d[:, 0]**2, d[:, 1]**2, d[:, 2]**2, 2 * d[:, 0] * d[:, 1], 2 * d[:, 0] * d[:, 2],
-                         2 * d[:, 1] * d[:, 2]], axis=1)
-        r1 = first - d @ np.linalg.lstsq(d, first, rcond=None)[0]
-        r2 = second - quad @ np.linalg.lstsq(quad, second, rcond=None)[0]
-        unit = 0.1 * m.slab_thickness
-        return np.concatenate([r1 / unit, r2 / (unit * self.grid.radius)])
 
     def operator(self, directions: torch.Tensor):
         key = np.round(directions.numpy(), 12).tobytes()
@@ -248,29 +243,24 @@ def _check_params(params) -> tuple[str, ...]:
 
 
 # ---------------------------------------------------------------------------- geometry step
-def fit_geometry(model: ProfileModel, occupancy: torch.Tensor | None, state: State, params, *,
+def fit_geometry(model: ProfileModel, occupancy: torch.Tensor, state: State, params, *,
                  dip_offset_sigma_mm: float | None = None, sigma: float | None = None,
                  max_nfev: int = 30) -> tuple[State, float]:
     """Least-squares geometry step; returns ``(state, noise scale sigma)``.
 
-    With a shape ``occupancy`` the residual is the profile residual (``sigma`` in mm^3 per slab
-    whitens it; default the RMS residual at ``state``); with ``occupancy=None`` it is the
-    shape-free moment residual (:meth:`ProfileModel.moment_residual`). With
-    ``dip_offset_sigma_mm`` every dip also gets a height offset with that Gaussian prior.
+    The residual is the profile residual of the shape ``occupancy`` (``sigma`` in mm^3 per slab
+    whitens it; default the RMS residual at ``state``). With ``dip_offset_sigma_mm`` every dip
+    also gets a height offset with that Gaussian prior.
     """
     params = _check_params(params)
     area = model.nominal_area
     k = len(model.raw.orientations)
-    if occupancy is None:
-        residual = model.moment_residual
-        sigma = 1.0
-    else:
-        if sigma is None:
-            sigma = float(np.sqrt(np.mean(model.residual(state, occupancy, 1.0) ** 2))) or 1.0
-        noise = sigma
+    if sigma is None:
+        sigma = float(np.sqrt(np.mean(model.residual(state, occupancy, 1.0) ** 2))) or 1.0
+    noise = sigma
 
-        def residual(trial: State, gauge=None) -> np.ndarray:
-            return model.residual(trial, occupancy, noise, gauge)
+    def residual(trial: State, gauge=None) -> np.ndarray:
+        return model.residual(trial, occupancy, noise, gauge)
     scales = _scales(params, area)
     per_dip = dip_offset_sigma_mm is not None
     x0 = np.array([_get(state, p, area) for p in params]) / scales
@@ -292,8 +282,6 @@ def fit_geometry(model: ProfileModel, occupancy: torch.Tensor | None, state: Sta
     rows = residual(state).size
     sparsity = None
     if per_dip:
-        if occupancy is None:
-            raise CalibrationError("per-dip height offsets need a shape (they are free in the moment fit)")
         m = model.n_slabs
         sparsity = scipy.sparse.lil_matrix((k * m + k, len(params) + k), dtype=int)
         sparsity[: k * m, : len(params)] = 1
@@ -307,25 +295,19 @@ def fit_geometry(model: ProfileModel, occupancy: torch.Tensor | None, state: Sta
     return unpack(result.x), sigma
 
 
-def identifiability(model: ProfileModel, occupancy: torch.Tensor | None, state: State, params, sigma: float = 1.0,
+def identifiability(model: ProfileModel, occupancy: torch.Tensor, state: State, params, sigma: float = 1.0,
                     gauges: bool = True) -> CalibrationReport:
-    """Standard errors and correlations of ``params`` at ``state`` from the Gauss-Newton Hessian
-    (module docstring); with ``gauges`` the shape's own translations and rotations are nuisance
-    parameters (the moment residual, ``occupancy=None``, has them built in: its centroid and
-    second moments are fitted). Names the undetermined parameters and their most correlated partner."""
+    """Standard errors and correlations of ``params`` at ``state`` from the Gauss-Newton Hessian of
+    the profile residual of the shape ``occupancy``; with ``gauges`` the shape's own translations,
+    rotations and dilation are nuisance parameters (:data:`GAUGES`). Names the parameters whose
+    standard error exceeds their tolerance and their most correlated partner."""
     params = _check_params(params)
     area = model.nominal_area
-    if occupancy is None:
-        gauges = False
+    surface = _surface_density(occupancy, model.grid)
 
-        def residual(trial: State, gauge=None) -> np.ndarray:
-            return model.moment_residual(trial, gauge)
-    else:
-        surface = _surface_density(occupancy, model.grid)
-
-        def residual(trial: State, gauge=None) -> np.ndarray:
-            gauge = dict(gauge or {})
-            return model.residual(trial, occupancy + gauge.pop("dilate_mm", 0.0) * surface, sigma, gauge)
+    def residual(trial: State, gauge=None) -> np.ndarray:
+        gauge = dict(gauge or {})
+        return model.residual(trial, occupancy + gauge.pop("dilate_mm", 0.0) * surface, sigma, gauge)
     names = list(params) + (list(GAUGES) if gauges else [])
     base = residual(state)
     columns, kept = [], []
@@ -364,7 +346,7 @@ def identifiability(model: ProfileModel, occupancy: torch.Tensor | None, state: 
         residual_rms=float(np.sqrt(s2)), sigma_mm3=sigma,
         dip_offsets_mm=None if state.dip_offsets_mm is None else [float(x) for x in state.dip_offsets_mm])
     for i, name in enumerate(params):
-        tol = TOLERANCE[name] * (report.estimates[name] if name == "cross_section_mm2" else 1.0)
+        tol = TOLERANCE[name] * (report.estimates[name] if name == "cross_section_mm2" else 1.0)  # relative
         if flat[i]:
             report.undetermined[name] = ("the data do not depend on it: the object's own rotation or position "
                                          "absorbs it completely")
@@ -385,7 +367,8 @@ def _surface_density(occupancy: torch.Tensor, grid: Grid) -> torch.Tensor:
 
 
 def _warn_undetermined(report: CalibrationReport, what: str) -> None:
-    messages = [f"{what}: {name} is not identifiable from this plan and shape ({why})"
+    messages = [f"{what}: {name} is not determined by these dips, kept at {report.estimates[name]:.6g} ({why}); "
+                f"if it is wrong: {report.shape_motion.get(name, 'see the report')}"
                 for name, why in report.undetermined.items()]
     messages += [f"{what}: {name} {why}" for name, why in report.caveats.items()]
     for message in messages:
@@ -393,42 +376,170 @@ def _warn_undetermined(report: CalibrationReport, what: str) -> None:
         warnings.warn(message, stacklevel=3)
 
 
+def to_calibration(geometry: RigGeometry, report: CalibrationReport, rig: str, tank: str, notes: str = "") -> Calibration:
+    """The calibration file's record of a result: estimates with their intervals; every other field
+    listed under ``not_estimated`` with the reason (never a configured value labelled an estimate)."""
+    fields = [f for f in geometry.to_dict() if f != "cross_section_mm2" or geometry.cross_section_mm2 is not None]
+    not_estimated = {f: "not determined by the dips, configured value kept: " + report.undetermined[f]
+                     for f in fields if f in report.undetermined}
+    not_estimated.update({f: why for f, why in report.not_estimated.items() if f in fields})
+    not_estimated.update({f: "not estimated: not among the calibrated parameters, configured value kept"
+                          for f in fields if f not in report.estimates and f not in not_estimated})
+    determined = [f for f in report.determined if f in fields]
+    return Calibration(geometry, rig=rig, tank=tank, method=report.method,
+                       uncertainty={f: report.standard_errors[f] for f in determined},
+                       intervals={f: report.intervals[f] for f in determined}, not_estimated=not_estimated,
+                       notes=notes)
+
+
+# ---------------------------------------------------------------------------- moment stage
+SHAPE_MOTION = {
+    "pivot_mm": "each mm moves a dip tilted by r by (1 - cos r) mm along it",
+    "tilt_axis_offset_mm": "each mm moves a dip tilted by r by sin r mm along it",
+    "tilt_zero_deg": "each degree tilts every dip direction by 1 deg: {arc:.2g} mm at the object's radius",
+    "spin_zero_deg": "the shape turns about the spin axis by the spin zero's error: {arc:.2g} mm at the object's "
+                     "radius per degree",
+    "step_scale": "every length scales with it: 1 % moves the surface {pct:.2g} mm at the object's radius, "
+                  "and the cross-section follows by 3 %",
+    "cross_section_mm2": "every volume scales with it: 1 % changes the shape's size by about 0.33 %",
+    "level_drift_mm_per_s": "an unremoved drift adds a rise that grows over the session",
+}
+
+
+def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: KnownObject | None,
+                  seed: int = 0) -> tuple[State, CalibrationReport]:
+    """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
+
+    ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
+    ``"ball"`` (``known`` moments). Undetermined parameters are refitted at their configured value.
+    """
+    geometry = initial
+    report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
+                               method="reference" if kind == "ball" else "self")
+    if "level_drift_mm_per_s" in params and raw.header.quantity == "level_mm":
+        drift, (low, high) = fit_drift(raw)
+        geometry = geometry.with_values(level_drift_mm_per_s=drift)
+        _record(report, "level_drift_mm_per_s", drift, (low, high), (high - low) / 3.29)
+    moments = dip_moments(raw, geometry)
+    if kind == "self":
+        gauges = {p: GAUGE_REASONS[(kind, p)] for p in ("spin_zero_deg", "step_scale") if p in params}
+    else:  # a reference object centred on the spin axis looks alike at every spin
+        on_axis = float(np.hypot(*known.centroid[:2])) < 1e-6 and np.allclose(known.covariance[0, 0],
+                                                                             known.covariance[1, 1])
+        gauges = {"spin_zero_deg": GAUGE_REASONS[(kind, "spin_zero_deg")]} if on_axis and "spin_zero_deg" in params \
+            else {}
+    free = tuple(p for p in params if p in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg",
+                                            "step_scale") and p not in gauges)
+    fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
+                                                     "spin_zero_deg", "step_scale")}
+    fit = fit_moments(moments, free, known=known, fixed=fixed, seed=seed) if free else None
+    undetermined = dict(gauges)
+    if fit is not None:
+        undetermined.update(fit.undetermined(kind))
+        kept = tuple(p for p in free if p not in undetermined)
+        if kept != free:
+            fit = fit_moments(moments, kept, known=known, fixed=fixed, seed=seed) if kept else None
+        if fit is not None:
+            geometry = geometry.with_values(**{p: fit.values[p] for p in fit.free})
+            report.moment_rms = fit.residual_rms
+            for p in fit.free:
+                _record(report, p, fit.values[p], fit.intervals[p], fit.bootstrap_sd[p])
+            report.correlations.update(fit.correlations)
+    radius = _object_radius(fit, known)
+    for p, why in undetermined.items():
+        report.estimates[p] = float(getattr(initial, p))
+        report.undetermined[p] = why
+        report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
+    return State(geometry), report
+
+
+def _record(report: CalibrationReport, name: str, value: float, interval: tuple[float, float], sd: float,
+            floor: float | None = None) -> None:
+    """An estimate with its 90% interval widened by the model-error floor (in quadrature)."""
+    floor = MODEL_FLOOR[name] if floor is None else floor
+    low, high = interval
+    centre, half = 0.5 * (low + high), 0.5 * (high - low)
+    widened = math.hypot(half, floor)
+    shift = value - centre  # keep the estimate inside, the percentile interval may be skewed
+    report.estimates[name] = float(value)
+    report.intervals[name] = (float(min(value, centre - widened + min(shift, 0.0))),
+                              float(max(value, centre + widened + max(shift, 0.0))))
+    report.standard_errors[name] = float(math.hypot(sd, floor / 1.645))
+
+
+def _object_radius(fit, known: KnownObject | None) -> float:
+    """The radius (mm) of a ball with the object's largest moment of volume: ``sqrt(5 lambda_max)``."""
+    cov = known.covariance if known is not None else (None if fit is None else fit.covariance)
+    if cov is None:
+        return float("nan")
+    return float(np.sqrt(5.0 * max(np.linalg.eigvalsh(cov).max(), 0.0)))
+
+
+def known_object(shape, supersample: int = 2) -> KnownObject:
+    """The centroid, covariance and volume of a reference :class:`~dipnet.shapes.Shape` (a
+    ball's in closed form, any other's from its occupancy on a 64^3 grid around it)."""
+    from dipnet.shapes import Ball
+
+    if isinstance(shape, Ball):
+        return KnownObject.ball(shape.r, shape.center)
+    grid = Grid(64, 3, extent=2.05 * float(shape.radius()))
+    occ = shape.occupancy(grid, supersample=supersample).numpy().astype(np.float64)
+    z, y, x = np.meshgrid(*(grid.centers().numpy(),) * 3, indexing="ij")
+    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    weights = occ.ravel() / occ.sum()
+    centroid = weights @ points
+    centred = points - centroid
+    return KnownObject(centroid, (centred * weights[:, None]).T @ centred, float(shape.volume))
+
+
 # ---------------------------------------------------------------------------- reference object
-def calibrate_reference(raw: RawScan, shape, grid: Grid, params=("pivot_mm", "tilt_axis_offset_mm",
-                        "tilt_zero_deg", "cross_section_mm2"), *, initial: RigGeometry | None = None,
+def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
                         n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
-                        max_relative_residual: float = 0.05) -> tuple[RigGeometry, CalibrationReport]:
+                        max_relative_residual: float = 0.05, seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
     """The rig geometry from dips of a reference object of known geometry and pose.
 
+    The moment stage (module docstring) estimates the drift, pivot, offset, tilt zero, spin zero
+    and step scale; the object's known volume gives the cross-section. What the dips cannot
+    determine (a centred ball's spin zero, its tilt zero on a rig with pivot and offset near 0)
+    is named, warned about and kept at ``initial``. Finally the object's profiles on ``grid``
+    must match the calibrated dips.
+
     Args:
-        raw: the reference object's raw scan (a few orientations; tilted ones for the pivot and
-            offset, several spins for the zero offsets).
+        raw: the reference object's raw scan (tilted dips for the pivot, offset and tilt zero).
         shape: the reference object (:class:`~dipnet.shapes.Shape`: e.g. ``Ball(30)``) in the
             object frame the rig holds it in.
-        grid: the grid its occupancy is sampled on (fine enough that a voxel is << its size).
-        n_slabs, operator_factory: slabs and operators (:class:`ProfileModel`).
+        grid: the grid of the final check (a voxel << the object's size).
         params: parameters to estimate (:data:`PARAMETERS`).
-        initial: starting geometry (default the ideal rig).
+        initial: the configured geometry (default the ideal rig).
         max_relative_residual: refuse when ``|A f - m| / |m|`` stays above this at the estimate (the
             object does not fit: wrong size, wrong pose, or the data are not of this object).
 
-    Returns ``(geometry, report)``. Raises :class:`CalibrationError` naming undetermined
-    parameters, or when the reference object does not fit the data.
+    Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
     """
+    params = _check_params(params)
+    initial = initial or RigGeometry()
+    known = known_object(shape)
+    state, report = _moment_stage(raw, params, initial, "ball", known, seed)
+    if "cross_section_mm2" in params:
+        moments = dip_moments(raw, state.geometry)
+        rng = np.random.default_rng(seed)
+        rises = np.asarray(moments.rise)  # mm of level per dip, drift removed
+        section = known.volume / rises.mean() if raw.header.quantity == "level_mm" else None
+        if section is not None:
+            draws = [known.volume / rises[rng.integers(0, len(rises), len(rises))].mean() for _ in range(200)]
+            state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=float(section)))
+            _record(report, "cross_section_mm2", float(section), tuple(np.percentile(draws, [5, 95])),
+                    float(np.std(draws)), MODEL_FLOOR["cross_section_mm2"] * section)
     model = ProfileModel(raw, grid, n_slabs, operator_factory)
     occupancy = shape.occupancy(grid, supersample=supersample).to(torch.float64)
-    volume = float(shape.volume)
-    sigma = max(volume / model.n_slabs * 1e-3, 1e-9)  # 0.1 % of a mean slab: residual_rms in those units
-    state, _ = fit_geometry(model, occupancy, State(initial or RigGeometry()), params, sigma=sigma, max_nfev=50)
     measured = model.measurement(state).profiles.numpy().reshape(-1)
     fit = float(np.linalg.norm(model.residual(state, occupancy, 1.0)) / max(np.linalg.norm(measured), 1e-300))
     if fit > max_relative_residual:
         raise CalibrationError(f"the reference object does not fit the dips: relative profile residual {fit:.3f} "
-                               f"> {max_relative_residual}; check its size, pose and the recording")
-    report = identifiability(model, occupancy, state, params, sigma, gauges=False)
-    if report.undetermined:
-        raise CalibrationError("reference calibration cannot determine " + "; ".join(
-            f"{n} ({why})" for n, why in report.undetermined.items()) + ": add tilted / spun dips or drop it")
+                               f"> {max_relative_residual} at the calibrated geometry; check its size, pose and "
+                               "the recording")
+    report.residual_rms = fit
+    _warn_undetermined(report, "reference calibration")
     return state.geometry, report
 
 
@@ -446,77 +557,54 @@ class SelfCalibration:
 
 
 def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_slabs: int | None = None,
-                   operator_factory: Callable | None = None, smooth: bool = False, finish=None, initial: RigGeometry | None = None,
-                   iterations: int = 1, dip_offset_sigma_mm: float | None = None, shape: str = "binary",
-                   max_nfev: int = 20, gain_solver=None, max_section_change: float = 0.2) -> SelfCalibration:
+                   operator_factory: Callable | None = None, smooth: bool = False, finish=None,
+                   initial: RigGeometry | None = None, iterations: int = 1, dip_offset_sigma_mm: float | None = None,
+                   shape: str = "binary", max_nfev: int = 20, gain_solver=None, max_section_change: float = 0.2,
+                   seed: int = 0) -> SelfCalibration:
     """Estimate the rig geometry jointly with the shape.
 
-    1. Heights and directions (every parameter but the cross-section) from the shape-free
-       moment residual (:meth:`ProfileModel.moment_residual`): the dips must be profiles of one
-       rigid object. Parameters this cannot determine are reported and kept at ``initial``.
-    2. The cross-section jointly with the shape: the shape step (``solver`` with ``fit_gain``)
-       fits one gain ``a`` on every predicted volume together with the shape. A wrong
-       cross-section multiplies every measured volume by ``a = assumed / true``, so the
-       calibrated cross-section is ``assumed / a``. With ``dip_offset_sigma_mm`` a geometry step
-       then fits the per-dip height offsets to that shape. ``iterations`` such rounds.
+    1. The moment stage (module docstring): drift, pivot, offset and tilt zero from the dips'
+       first two moments, with no grid and no shape. The spin zero and the step scale are
+       gauges of an unknown object: named, with how far the shape could move, and kept.
+    2. The cross-section jointly with the shape: the shape step (``gain_solver`` or ``solver``
+       with ``fit_gain``) fits one gain ``a`` on every predicted volume together with the shape;
+       the calibrated cross-section is ``assumed / a``. Fitted jointly, the gain and the shape's
+       size compete through the profiles' *shapes* (a dilated object widens every profile, a gain
+       only scales it; a nearly binary interior cannot exceed 1). Its interval is widened by the
+       shape prior's bias (:data:`SELF_SECTION_FLOOR`). With ``dip_offset_sigma_mm`` a geometry
+       step then fits per-dip height offsets to that shape. ``iterations`` such rounds.
     3. A final shape step (no gain) with the calibrated geometry.
-
-    Why a joint gain and not alternation: in alternation the shape step, at a fixed wrong
-    cross-section, dilates or erodes the shape to absorb most of the error, so the next
-    geometry step sees only a fraction of it (bunny, 64^3, -8 % section: 3.5-5.6 % left after
-    two over-relaxed alternations). Fitted jointly, the gain and the shape's size compete
-    through the profiles' *shapes*: a dilated object widens every profile, a gain only scales
-    it, and the interior of a nearly binary shape cannot exceed 1. What remains is the bias
-    of the shape prior (measured with ``scripts/bench_calibration.py``, see README).
 
     Args:
         raw: the object's raw scan (complete dips that start before contact and end under water).
         grid, n_slabs, operator_factory, smooth: reconstruction grid, slabs, operators, smoothing.
-        finish: applied to every preprocessed measurement (:class:`ProfileModel`).
         solver: any :class:`~dipnet.solvers.Solver` (the shape step); the cross-section needs
             an optimisation solver (``fit_gain``: voxel, implicit).
-        params: geometry parameters to estimate (:data:`PARAMETERS`).
-        initial: starting geometry (default: the ideal rig).
-        iterations: rounds of step 2.
-        dip_offset_sigma_mm: also estimate one height offset per dip with this prior (mm).
-        shape: what the geometry step and the report fit: ``"binary"`` (the thresholded shape)
-            or ``"occupancy"``.
+        params: parameters to estimate (:data:`PARAMETERS`; default all but the lag).
+        finish: applied to every preprocessed measurement (:class:`ProfileModel`).
+        initial: the configured geometry (default: the ideal rig); undetermined parameters keep it.
+        shape: what the report's profile stage fits: ``"binary"`` or ``"occupancy"``.
         max_section_change: a cross-section further than this (relative) from the assumed one is
-            not trusted: it is named undetermined and kept (the three cats, with a 56 deg missing
-            cone: the gain came out 1.46, a section 31 % below the tank's).
+            not trusted: named undetermined and kept (the three cats, with a 56 deg missing cone:
+            the gain came out 1.46, a section 31 % below the tank's).
         gain_solver: the solver of step 2 (default ``solver``); the final shape is ``solver``'s.
-            The implicit field's smooth shapes bias the cross-section less than voxels do
-            (README, "Rig geometry and calibration").
+        seed: the bootstrap's.
 
     Returns:
-        :class:`SelfCalibration`; its report merges the moment stage's standard errors (heights,
-        directions) and the profile stage's (cross-section, with the shape's gauges).
+        :class:`SelfCalibration` with the report of both stages.
     """
     if shape not in ("occupancy", "binary"):
         raise CalibrationError(f"shape must be 'occupancy' or 'binary', got {shape!r}")
     if not max_section_change > 0:
         raise CalibrationError(f"max_section_change must be positive (relative), got {max_section_change!r}")
     params = _check_params(params)
-    model = ProfileModel(raw, grid, n_slabs, operator_factory, smooth, finish)
-    state = State(initial or RigGeometry())
-    history: list[dict] = []
-    rigid = tuple(p for p in params if p != "cross_section_mm2")
-    moments = None
-    if rigid:  # fit, judge at the estimate, refit without what the data do not determine
-        fitted, _ = fit_geometry(model, None, state, rigid, max_nfev=max_nfev)
-        moments = identifiability(model, None, fitted, rigid)
-        history.append({"stage": "moments, all parameters", **{p: _get(fitted, p, model.nominal_area) for p in params},
-                        **{f"se_{p}": moments.standard_errors[p] for p in rigid}})
-        active = tuple(p for p in rigid if p not in moments.undetermined)
-        if active != rigid and active:
-            fitted, _ = fit_geometry(model, None, state, active, max_nfev=max_nfev)
-        state = fitted if active else state
-        moments = identifiability(model, None, state, rigid)
-        history.append({"stage": "moments", **{p: _get(state, p, model.nominal_area) for p in params}})
+    initial = initial or RigGeometry()
     volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params else ()
-    step_solver = gain_solver or solver
-    shape_solver = _with_gain(step_solver) if volume_params else step_solver
-    sigma, implausible = None, None
+    shape_solver = _with_gain(gain_solver or solver) if volume_params else (gain_solver or solver)
+    state, report = _moment_stage(raw, params, initial, "self", None, seed)
+    model = ProfileModel(raw, grid, n_slabs, operator_factory, smooth, finish)
+    history: list[dict] = [{"stage": "moments", **{p: _get(state, p, model.nominal_area) for p in params}}]
+    sigma, implausible, occupancy = None, None, None
     for it in range(iterations if volume_params or dip_offset_sigma_mm is not None else 0):
         measurement = model.measurement(state)
         recon = shape_solver.solve(measurement, model.operator(measurement.directions))
@@ -535,29 +623,44 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     for row in history:
         log.info("self-calibration %s", ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items()))
-    if volume_params:  # judged with the last shape (and its dilation gauge); undetermined -> kept at the start
-        report = _merge_reports(model, state, moments, volume_params, occupancy, sigma)
-        report.caveats["cross_section_mm2"] = (
-            "estimated through the shape prior (a nearly binary shape cannot be denser than 1); the standard error "
-            "is conditional on the fitted shape and does not hold the prior's bias (bench_calibration, 64^3, "
-            f"123 dips: {SECTION_BIAS_NOTE}): for a section better than that, calibrate with a reference object")
-        if implausible:
-            report.undetermined["cross_section_mm2"] = implausible
-        if "cross_section_mm2" in report.undetermined:
-            start = (initial or RigGeometry()).cross_section_mm2
-            state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=start))
-            kept = _get(state, "cross_section_mm2", model.nominal_area)
-            report.estimates["cross_section_mm2"] = kept
-            report.caveats["cross_section_mm2"] += f"; not determined, kept at {kept:.6g} mm^2"
+    if volume_params:
+        state = _section_report(report, model, state, occupancy, sigma, initial, implausible)
     measurement = model.measurement(state)
     recon = solver.solve(measurement, model.operator(measurement.directions))
-    if not volume_params:
-        report = _merge_reports(model, state, moments, volume_params, _shape_volume(recon, shape), sigma)
     _warn_undetermined(report, "self-calibration")
     measurement.metadata = {**measurement.metadata, "self_calibration": report.to_dict(),
                             "geometry": state.geometry.to_dict(), "t0_mm": state.t0_mm}
     recon.info = {**recon.info, "self_calibration": report.to_dict()}
     return SelfCalibration(state.geometry, state.t0_mm, measurement, recon, report, history)
+
+
+def _section_report(report: CalibrationReport, model: ProfileModel, state: State, occupancy: torch.Tensor,
+                    sigma: float | None, initial: RigGeometry, implausible: str | None) -> State:
+    """Enter the self-calibrated cross-section into ``report``: the Gauss-Newton standard error with
+    the shape's gauges, widened by the shape prior's bias; an undetermined one is kept at ``initial``."""
+    if sigma is None:
+        sigma = float(np.sqrt(np.mean(model.residual(state, occupancy, 1.0) ** 2))) or 1.0
+    profile = identifiability(model, occupancy, state, ("cross_section_mm2",), sigma)
+    section = profile.estimates["cross_section_mm2"]
+    se = profile.standard_errors["cross_section_mm2"]
+    _record(report, "cross_section_mm2", section, (section - 1.645 * se, section + 1.645 * se), se,
+            SELF_SECTION_FLOOR * section)
+    report.correlations["cross_section_mm2"] = profile.correlations["cross_section_mm2"]
+    report.residual_rms, report.sigma_mm3, report.dip_offsets_mm = \
+        profile.residual_rms, profile.sigma_mm3, profile.dip_offsets_mm
+    report.caveats["cross_section_mm2"] = (
+        f"estimated through the shape prior (a nearly binary shape cannot be denser than 1), its interval widened by "
+        f"{SELF_SECTION_FLOOR:.1%} for the prior's bias; at the configured step scale "
+        f"({initial.step_scale:g}): a step-scale error moves it too; for a better section, "
+        "calibrate with a reference object")
+    why = implausible or profile.undetermined.get("cross_section_mm2")
+    if why:
+        state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=initial.cross_section_mm2))
+        report.undetermined["cross_section_mm2"] = why
+        report.estimates["cross_section_mm2"] = _get(state, "cross_section_mm2", model.nominal_area)
+        report.intervals.pop("cross_section_mm2")
+        report.shape_motion["cross_section_mm2"] = SHAPE_MOTION["cross_section_mm2"]
+    return state
 
 
 def _with_gain(solver):
@@ -569,27 +672,6 @@ def _with_gain(solver):
     gained = copy.copy(solver)
     gained.fit_gain = True
     return gained
-
-
-def _merge_reports(model: ProfileModel, state: State, moments: CalibrationReport | None, volume_params,
-                   occupancy: torch.Tensor, sigma: float | None) -> CalibrationReport:
-    """The moment stage's report with the profile stage's entries for ``volume_params``."""
-    if sigma is None:
-        sigma = float(np.sqrt(np.mean(model.residual(state, occupancy, 1.0) ** 2))) or 1.0
-    profile = identifiability(model, occupancy, state, volume_params or ("t0_mm",), sigma)
-    if moments is None:
-        return profile
-    if not volume_params:
-        return moments
-    for name in volume_params:
-        moments.estimates[name] = profile.estimates[name]
-        moments.standard_errors[name] = profile.standard_errors[name]
-        moments.correlations[name] = profile.correlations[name]
-        if name in profile.undetermined:
-            moments.undetermined[name] = profile.undetermined[name]
-    moments.residual_rms, moments.sigma_mm3 = profile.residual_rms, profile.sigma_mm3
-    moments.dip_offsets_mm = profile.dip_offsets_mm
-    return moments
 
 
 def _shape_volume(recon: Reconstruction, shape: str) -> torch.Tensor:

@@ -11,17 +11,16 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from functools import partial
 from pathlib import Path
 
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from dipnet.calibration import self_calibrate
+from dipnet.calibration import self_calibrate, to_calibration
 from dipnet.grid import Grid
 from dipnet.rawscan import read_rawscan
-from dipnet.rig.calibration_file import TANK_CONFIG_KEY, Calibration, save_calibration
+from dipnet.rig.calibration_file import TANK_CONFIG_KEY, save_calibration
 from dipnet.rig.recorded import finish_measurement, prepare_recording
 
 log = logging.getLogger(__name__)
@@ -63,12 +62,9 @@ def self_calibration_job(cfg: DictConfig, grid: Grid, solver, out: Path):
                             max_section_change=float(opts.get("max_section_change", 0.2)))
     report = result.report
     tank = opts.get("tank") or raw.header.config.get(TANK_CONFIG_KEY) or "unknown"
-    determined = {k: v for k, v in report.standard_errors.items()
-                  if k in report.estimates and k not in report.undetermined and k != "t0_mm" and math.isfinite(v)}
-    save_calibration(Calibration(result.geometry, rig=raw.header.rig, tank=str(tank), method="self",
-                                 uncertainty=determined,
-                                 notes=f"self-calibration of {raw.path or 'a simulated scan'}; undetermined: "
-                                       f"{sorted(report.undetermined) or 'none'}"), out / "rig_calibration.yaml")
+    save_calibration(to_calibration(result.geometry, report, raw.header.rig, str(tank),
+                                    notes=f"self-calibration of {raw.path or 'a simulated scan'}"),
+                     out / "rig_calibration.yaml")
     (out / "self_calibration.json").write_text(json.dumps({**report.to_dict(), "history": result.history,
                                                             "t0_mm": result.t0_mm}, indent=2))
     result.measurement.save(out / "measurement.npz")

@@ -116,18 +116,23 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     check_memory(cfg)
     shape = true_shape(cfg)
     grid = build_grid(cfg, shape)
-    measurement = acquire(cfg, grid, shape, out)
-    validation = validate_measurement(measurement, grid)
-    measurement = apply_symmetry(measurement, cfg.get("symmetry"))
-    measurement.save(out / "measurement.npz")
+    calibrating = bool(cfg.get("calibration"))
+    if not calibrating:
+        measurement = acquire(cfg, grid, shape, out)
+        validation = validate_measurement(measurement, grid)
+        measurement = apply_symmetry(measurement, cfg.get("symmetry"))
+        measurement.save(out / "measurement.npz")
+    elif cfg.source.kind != "recorded":  # the raw scan only: nothing is read with the uncalibrated geometry
+        acquire(cfg, grid, shape, out)
 
     t0 = time.perf_counter()
     solver = instantiate(cfg.solver)
     attach_checkpoint(solver, cfg.output.get("checkpoint"), out, int(cfg.output.get("checkpoint_every", 25)))
-    if cfg.get("calibration"):  # the rig geometry estimated jointly with the shape
+    if calibrating:  # the rig geometry estimated jointly with the shape, before any check that depends on it
         from dipnet.calibration_job import self_calibration_job
 
         measurement, operator, recon = self_calibration_job(cfg, grid, solver, out)
+        validation = validate_measurement(measurement, grid)
     else:
         operator = instantiate(cfg.operator)(grid, measurement.directions, cfg.n_slabs or grid.n)
         recon = solver.solve(measurement, operator)

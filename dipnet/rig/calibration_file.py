@@ -1,9 +1,10 @@
 """Rig calibration files: one :class:`~dipnet.rig.geometry.RigGeometry` with the rig and tank it belongs to.
 
-Format (YAML or JSON by suffix, version 1)::
+Format (YAML or JSON by suffix, version 2; version 1 files, without ``intervals_90`` and
+``not_estimated``, are read too)::
 
     format: dipnet.rig_calibration
-    version: 1
+    version: 2
     rig: fake-grbl            # the rig's identity, as scans record it (ScanHeader.rig)
     tank: lab-tank-1          # the tank's identity (scans record it as header.config["tank_id"])
     method: reference         # reference | self | manual
@@ -13,8 +14,14 @@ Format (YAML or JSON by suffix, version 1)::
       tilt_axis_offset_mm: 14.8
       tilt_zero_deg: 1.02
       cross_section_mm2: 55210.0
-    uncertainty: {pivot_mm: 0.3}   # optional: standard errors, same units
+    uncertainty: {pivot_mm: 0.3}   # optional: standard errors of the estimated fields, same units
+    intervals_90: {pivot_mm: [19.6, 20.6]}   # optional: 90% intervals of the estimated fields
+    not_estimated:                 # optional: fields holding configured values, with the reason
+      spin_zero_deg: "a ball centred on the spin axis looks the same at every spin"
     notes: ball d=60 mm at 7 orientations
+
+A field of ``geometry`` that is listed under ``not_estimated`` is the configured value, not an
+estimate; with ``method: reference`` or ``self`` every other field given was estimated.
 
 :func:`load_calibration` validates everything and raises :class:`CalibrationFileError` (a
 ``ValueError``) naming the file and the cause: unknown keys, wrong format or version,
@@ -36,9 +43,11 @@ from dipnet.rawscan import ScanHeader
 from dipnet.rig.geometry import GeometryError, RigGeometry
 
 FORMAT_NAME = "dipnet.rig_calibration"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
 METHODS = ("reference", "self", "manual")
-_KEYS = {"format", "version", "rig", "tank", "method", "created", "geometry", "uncertainty", "notes"}
+_KEYS = {"format", "version", "rig", "tank", "method", "created", "geometry", "uncertainty", "intervals_90",
+         "not_estimated", "notes"}
 TANK_CONFIG_KEY = "tank_id"  # ScanHeader.config key holding the tank's identity
 
 
@@ -55,7 +64,9 @@ class Calibration:
         rig: the rig's identity (matches :attr:`ScanHeader.rig`).
         tank: the tank's identity (matches ``ScanHeader.config["tank_id"]`` when a scan records it).
         method: how it was obtained: ``reference`` | ``self`` | ``manual``.
-        uncertainty: standard errors per geometry field (same units), if known.
+        uncertainty: standard errors per estimated geometry field (same units), if known.
+        intervals: 90% intervals ``(low, high)`` per estimated geometry field.
+        not_estimated: geometry field -> why it holds the configured value, not an estimate.
         notes: free text.
         created: ISO 8601 time.
     """
@@ -65,6 +76,8 @@ class Calibration:
     tank: str
     method: str = "manual"
     uncertainty: dict[str, float] = field(default_factory=dict)
+    intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    not_estimated: dict[str, str] = field(default_factory=dict)
     notes: str = ""
     created: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%S%z"))
 
@@ -72,7 +85,9 @@ class Calibration:
         return {"format": FORMAT_NAME, "version": FORMAT_VERSION, "rig": self.rig, "tank": self.tank,
                 "method": self.method, "created": self.created,
                 "geometry": {k: v for k, v in self.geometry.to_dict().items() if v is not None},
-                "uncertainty": {k: float(v) for k, v in self.uncertainty.items()}, "notes": self.notes}
+                "uncertainty": {k: float(v) for k, v in self.uncertainty.items()},
+                "intervals_90": {k: [float(v[0]), float(v[1])] for k, v in self.intervals.items()},
+                "not_estimated": {k: str(v) for k, v in self.not_estimated.items()}, "notes": self.notes}
 
 
 def save_calibration(calibration: Calibration, path: str | Path) -> Path:
@@ -102,7 +117,7 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         raise CalibrationFileError(f"{path}: unknown key(s) {unknown}; known: {sorted(_KEYS)}")
     if data.get("format") != FORMAT_NAME:
         raise CalibrationFileError(f"{path}: not a rig calibration (format={data.get('format')!r})")
-    if data.get("version") != FORMAT_VERSION:
+    if data.get("version") not in READ_VERSIONS:
         raise CalibrationFileError(f"{path}: unsupported calibration version {data.get('version')!r}")
     for key in ("rig", "tank"):
         if not isinstance(data.get(key), str) or not data[key].strip():
@@ -114,10 +129,13 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
     try:
         geometry = RigGeometry.from_dict(data["geometry"])
         uncertainty = {str(k): float(v) for k, v in (data.get("uncertainty") or {}).items()}
-    except (GeometryError, TypeError, ValueError) as exc:
+        intervals = {str(k): (float(v[0]), float(v[1])) for k, v in (data.get("intervals_90") or {}).items()}
+        not_estimated = {str(k): str(v) for k, v in (data.get("not_estimated") or {}).items()}
+    except (GeometryError, TypeError, ValueError, IndexError, KeyError, AttributeError) as exc:
         raise CalibrationFileError(f"{path}: {exc}") from exc
     calibration = Calibration(geometry=geometry, rig=data["rig"], tank=data["tank"],
                               method=data.get("method", "manual"), uncertainty=uncertainty,
+                              intervals=intervals, not_estimated=not_estimated,
                               notes=str(data.get("notes") or ""), created=str(data.get("created") or ""))
     check_identity(calibration, rig, tank, source=str(path))
     return calibration

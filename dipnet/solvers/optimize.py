@@ -134,6 +134,9 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
 
     Returns:
         Boolean mask ``grid.shape`` (a subset of the working ball).
+
+    Raises:
+        EmptySupportError: no voxel is left (the profiles of different dips do not overlap).
     """
     lo, hi = slab_support(target, edges, rel_tol, margin * grid.voxel_size)
     dirs = directions.to(target.dtype)
@@ -158,7 +161,17 @@ def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edg
     last = torch.where(keep, torch.searchsorted(axis, ceiling.contiguous(), right=True) - 1, -1)
     index = torch.arange(grid.n).reshape(-1, *([1] * (grid.ndim - 1)))
     shape = (1, *grid.shape[1:])
-    return (index >= first.reshape(shape)) & (index <= last.reshape(shape)) & grid.working_mask()
+    hull = (index >= first.reshape(shape)) & (index <= last.reshape(shape)) & grid.working_mask()
+    if not hull.any():
+        raise EmptySupportError(
+            f"the dips leave no voxel of the {grid.n}^{grid.ndim} grid that can hold the object: their profiles "
+            "do not overlap inside the working ball (start heights or directions are wrong: calibrate the rig "
+            "geometry, e.g. calibration=self, or check extent_mm)")
+    return hull
+
+
+class EmptySupportError(ValueError):
+    """The data's support hull holds no voxel: the profiles are inconsistent with one object on the grid."""
 
 
 def _envelope(columns: torch.Tensor, slope: torch.Tensor, offset: torch.Tensor, chunk: int, upper: bool
