@@ -11,7 +11,7 @@ import pytest
 
 from dipnet.rig.controller import AlarmError, ControllerError, LineChannel, MotionHeld, PositionUnknown
 from dipnet.rig.grbl import GrblController, parse_status
-from grbl_replay import ReplayPort, read_trace, recorded_replies
+from grbl_replay import ReplayPort, asked_first, read_trace, recorded_replies
 
 AXES_3 = {"tilt": {"letter": "X"}, "spin": {"letter": "Y"}}  # how the traces were recorded
 SETTINGS = recorded_replies(read_trace("t1.log")[3])  # the board's replies to $$ and $I
@@ -19,6 +19,9 @@ AFTER_RESET = read_trace("t3b2.log")[0]  # what GRBL answered after the reset th
 
 
 def replay(script, answers=None, **options) -> tuple[GrblController, ReplayPort]:
+    """The driver connected to a replay of ``script``; a recorded session that opens with the old
+    driver's soft reset gets the ``?`` the driver now asks first (:func:`asked_first`)."""
+    script = asked_first(script) if script[:1] == [(">>", b"\x18")] else script
     port = ReplayPort(script, answers, extras={b"$$\n": SETTINGS[b"$$\n"], b"$I\n": SETTINGS[b"$I\n"]})
     ctl = GrblController("replay://", AXES_3, status_axes="XYZ", timeout=0.2, move_timeout=0.5, **options)
     ctl.attach(LineChannel(port))
@@ -44,7 +47,7 @@ def test_t1_settings_are_read_and_checked():
     assert ctl.check_board(False, {"lower": (0.0, 40.0)}) == []
     with pytest.raises(ControllerError, match="status_axes='XYZAB'.*grbl_3axis"):
         GrblController("replay://", status_axes="XYZAB", timeout=0.2).attach(
-            LineChannel(ReplayPort(read_trace("t1.log")[3])))
+            LineChannel(ReplayPort(asked_first(read_trace("t1.log")[3]))))
 
 
 def test_t2b_normal_path_sends_what_the_firmware_expects():

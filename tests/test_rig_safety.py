@@ -30,7 +30,7 @@ def grbl(world, **options) -> GrblController:
 
 
 @pytest.mark.parametrize("dialect,kind", [("grbl", "reset"), ("grbl", "alarm"), ("marlin", "alarm"),
-                                          ("marlin", "reset")])
+                                          ("marlin", "reset"), ("grbl", "disconnect"), ("marlin", "disconnect")])
 def test_position_loss_stops_without_moving_and_blocks_resume(world, tmp_path, dialect, kind):
     plan, path = plan_for(2, step=5.0), tmp_path / "scan.jsonl"
     world.reset(faults=[{"kind": kind, "at_move": 40, "code": 1}])  # GRBL ALARM:1: hard limit
