@@ -409,8 +409,8 @@ class Controller(SerialDevice):
         still be moving, or the board restarted (a power cycle, or the reset an Arduino does when
         its port is opened, sets its position to 0 while the object stays where it was)."""
         if self.moved:
-            self.lose_position(f"{reason}, after a move was commanded: the machine may have moved on or restarted "
-                               f"(a restart sets its position to 0 wherever the object is)")
+            self.lose_position(f"{reason}, after a move was commanded: the machine may have moved on, or restarted "
+                               f"and counts from 0 wherever the object is")
 
     def identity(self) -> dict:
         """What the rig header records about this controller."""

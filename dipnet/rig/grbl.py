@@ -587,7 +587,7 @@ def check_settings(settings: dict[int, float], status_axes: str, axes, home: boo
     The number of reported axes is checked where every status report is parsed
     (:class:`AxisCountError`). With soft limits on, each message says only what makes the moves
     fit: turning directly (``wrap=null``) when that fits, a longer travel ``$13N`` when the moves
-    only go too far negative, another sign/offset when the moves span no more than the travel.
+    only go too far negative, else another sign/offset (which moves the rig's zero).
     """
     problems = []
     board = "XYZABC"
@@ -620,7 +620,7 @@ def check_settings(settings: dict[int, float], status_axes: str, axes, home: boo
                              f"({axis.letter} {straight[0]:g}..{straight[1]:g} fits)")
             if hi <= 1e-9:
                 fixes.append(f"raise ${130 + index} to {-lo:g} if the axis can travel that far")
-            if hi - lo <= travel + 1e-9:
+            if not fixes and hi - lo <= travel + 1e-9:
                 fixes.append(f"set rig.controller.axes.{name}.sign/offset so the targets fit in [-{travel:g}, 0]")
             if not fixes:
                 fixes.append(f"raise ${130 + index} to {hi - lo:g} if the axis can travel that far and set "
