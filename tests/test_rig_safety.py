@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dipnet.rawscan import RawScanLocked, RawScanWriter, ScanHeader, read_rawscan
-from dipnet.rig.controller import Axis, AxisMap, ControllerError, PortBusy, PortLock, PositionUnknown
+from dipnet.rig.controller import Axis, AxisMap, ControllerError, PortBusy, PortLock, PositionUnknown, RigTimeout
 from dipnet.rig.fake import serve
 from dipnet.rig.grbl import GrblController
-from dipnet.rig.runner import RigConfigError, ScanAborted
+from dipnet.rig.runner import RigConfigError, ScanAborted, ScanPlan, plan_orientations
 from dipnet.rig.sensors import Reading
 from rig_helpers import make_runner, make_sensor, make_world, plan_for, scan
 
@@ -30,7 +33,7 @@ def grbl(world, **options) -> GrblController:
 
 
 @pytest.mark.parametrize("dialect,kind", [("grbl", "reset"), ("grbl", "alarm"), ("marlin", "alarm"),
-                                          ("marlin", "reset")])
+                                          ("marlin", "reset"), ("grbl", "disconnect"), ("marlin", "disconnect")])
 def test_position_loss_stops_without_moving_and_blocks_resume(world, tmp_path, dialect, kind):
     plan, path = plan_for(2, step=5.0), tmp_path / "scan.jsonl"
     world.reset(faults=[{"kind": kind, "at_move": 40, "code": 1}])  # GRBL ALARM:1: hard limit
@@ -326,3 +329,68 @@ def test_config_mismatch_fails_before_anything_moves(world, tmp_path):
     finally:
         world.grbl_settings.update({22: 1})
     assert world.motion_count == 0
+
+
+SCAN_SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "scan.py"
+
+
+def test_link_lost_while_lowering_needs_confirmation_to_resume(tmp_path):
+    """t4e3 from the command line: the controller's link dies with a lowering under way (the board
+    may restart and count from 0); a board without homing can only resume on the operator's word."""
+    base = [sys.executable, str(SCAN_SCRIPT), f"hydra.run.dir={tmp_path}", "orientations.n=2", "protocol.step_mm=20",
+            "fsync=false", "progress=false", "rig.fake.shape.radius=30", "+rig.fake.grbl_settings.22=0"]
+
+    def run(*overrides: str) -> tuple[int, str]:
+        done = subprocess.run([*base, *overrides], capture_output=True, text=True, timeout=300)
+        return done.returncode, done.stderr.strip().splitlines()[-1] if done.stderr.strip() else ""
+
+    fault = "rig.fake.faults=[{kind: disconnect, at_move: 5}]"
+    code, line = run(fault)
+    assert code == 3 and line.startswith("error: scan stopped at orientation 0") and "OBJECT NOT LIFTED" in line
+    assert "lost the link" in line and line.endswith("(after a restart: at its zero)")
+    assert "resume with confirm_position=true" in line and "home=true" not in line  # $22=0: homing would fail
+    marker = tmp_path / "rawscan.jsonl.position-lost.json"
+    assert "lost the link" in marker.read_text()
+    code, line = run(fault)  # the same command: refuses before anything moves
+    assert code == 3 and "previous run lost the position" in line and "nothing had moved" in line
+    assert "confirm_position=true" in line and "run the same command" not in line
+    code, line = run("confirm_position=true")
+    assert code == 0 and not marker.exists() and len(read_rawscan(tmp_path / "rawscan.jsonl").completed()) == 2
+
+
+def test_connect_lets_a_move_in_progress_finish(world):
+    """t4e2 on the fake: connecting while the machine moves waits for it, then resets it at rest
+    (a reset in motion would raise ALARM:3 and lose the position)."""
+    world.reset()
+    world.alarm, world.move_s = False, 0.6
+    try:
+        world.start_move({"lower_mm": 30.0})
+        ctl = grbl(world, move_timeout=3.0)
+        assert not world.alarm and ctl.position_lost is None and ctl.position().lower_mm == pytest.approx(30.0)
+        ctl.close()
+        world.start_move({"lower_mm": 0.0})
+        with pytest.raises(RigTimeout, match="still moving"):
+            grbl(world, move_timeout=0.1)  # bounded: gives up without resetting the moving machine
+        assert not world.alarm
+    finally:
+        world.move_s = 0.0
+
+
+def test_soft_limit_check_sees_the_short_way_round(meshes_dir, tmp_path):
+    """t4d on the fake: spin 10 -> 195 deg the short way round crosses the travel limit; the check
+    refuses before anything moves, and turning directly scans."""
+    axes = {"tilt": {"letter": "A", "sign": -1}, "spin": {"letter": "B", "sign": -1, "wrap": 360.0}}
+    limited = make_world(meshes_dir, "softwrap", axes=axes, grbl_settings={20: 1})
+    plan = ScanPlan(plan_orientations("grid", tilts=[30.0], spins=[10.0, 195.0]), start_mm=0.0, stop_mm=30.0,
+                    step_mm=15.0, origin_height_mm=50.0)
+    for wrap in (360.0, None):
+        runner = make_runner(limited, "grbl", "level", plan, tmp_path / f"scan-{wrap}.jsonl")
+        runner.controller = GrblController(limited.url("grbl"), {**axes, "spin": {**axes["spin"], "wrap": wrap}},
+                                           timeout=0.3, move_timeout=2.0)
+        if wrap:
+            with pytest.raises(RigConfigError, match=r"B -10\.\.165 \(the short way round, wrap=360\): set "
+                                                     r"rig.controller.axes.spin.wrap=null"):
+                runner.run()
+            assert limited.motion_count == 0
+        else:
+            assert len(runner.run().completed()) == 2

@@ -21,6 +21,7 @@ import re
 import tempfile
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -144,6 +145,23 @@ class AxisMap:
         return cls(**{name: Axis(**{**default.__dict__[name].__dict__, **dict(cfg.get(name) or {})})
                       for name in ("lower", "tilt", "spin")})
 
+    def short_way(self, target: dict[str, float | None], current: dict[str, float]) -> dict[str, float | None]:
+        """The rig values a move to ``target`` (``{"lower": mm, "tilt": deg, "spin": deg}``, ``None``
+        = axis not moved) commands from ``current`` (the last commanded values): a wrapping axis
+        (:attr:`Axis.wrap`) goes to the equivalent value nearest its current one (pure)."""
+        return {name: None if value is None else getattr(self, name).nearest(value, current.get(name))
+                for name, value in target.items()}
+
+    def route(self, moves: list[dict[str, float | None]], start: dict[str, float]) -> list[dict[str, float | None]]:
+        """The rig values each of ``moves`` commands, in order, starting from ``start``: what
+        :meth:`Controller.move_to` sends for them, the short way round included (pure)."""
+        current, out = dict(start), []
+        for target in moves:
+            commanded = self.short_way(target, current)
+            current.update({k: v for k, v in commanded.items() if v is not None})
+            out.append(commanded)
+        return out
+
     def words(self, lower_mm: float | None, tilt_deg: float | None, spin_deg: float | None) -> str:
         """G-code words for the given rig values (``None`` = axis not moved), e.g. ``"Z-10 A5 B0"``."""
         parts = []
@@ -176,20 +194,33 @@ class LineChannel:
     Args:
         port: an open pyserial port (``serial.serial_for_url(url, timeout=...)``).
         terminator: line terminator of incoming lines (``\\r`` before it is stripped too).
+        lock: the port's :class:`PortLock`, released on :meth:`close`.
+
+    Attributes:
+        on_lost: called with the message of the :class:`RigDisconnected` about to be raised when
+            the port fails (a controller records there that its position is unknown).
     """
 
     def __init__(self, port, terminator: bytes = b"\n", lock: "PortLock | None" = None) -> None:
         self.port = port
         self.terminator = terminator
         self.lock = lock
+        self.on_lost: Callable[[str], None] | None = None
         self._buffer = bytearray()
+
+    def _lost(self, exc: BaseException) -> RigDisconnected:
+        """The error to raise for a failed port, after telling :attr:`on_lost`."""
+        error = RigDisconnected(f"lost the link to {self.port.port}: {exc}")
+        if self.on_lost is not None:
+            self.on_lost(str(error))
+        return error
 
     def write(self, data: bytes) -> None:
         try:
             self.port.write(data)
             self.port.flush()
         except (serial.SerialException, OSError) as exc:
-            raise RigDisconnected(f"lost the link to {self.port.port}: {exc}") from exc
+            raise self._lost(exc) from exc
 
     def write_line(self, text: str) -> None:
         log.debug("> %s", text)
@@ -212,7 +243,7 @@ class LineChannel:
                 waiting = self.port.in_waiting
                 chunk = self.port.read(max(1, waiting))
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
-                raise RigDisconnected(f"lost the link to {self.port.port}: {exc}") from exc
+                raise self._lost(exc) from exc
             self._buffer += chunk
 
     def drain(self, quiet_s: float = 0.1, limit_s: float = 2.0) -> list[str]:
@@ -232,7 +263,7 @@ class LineChannel:
         try:
             self.port.reset_input_buffer()
         except (serial.SerialException, OSError) as exc:
-            raise RigDisconnected(f"lost the link to {self.port.port}: {exc}") from exc
+            raise self._lost(exc) from exc
 
     def close(self) -> None:
         try:
@@ -337,9 +368,10 @@ class Controller(SerialDevice):
         feed: feed rate of ``G1`` moves (machine units per minute); ``None`` uses ``G0``.
 
     Safety state: :attr:`position_lost` holds why the position cannot be trusted (an alarm or
-    reset that can lose steps), or ``None``; while it is set, :meth:`move_to` refuses to move
-    (:class:`PositionUnknown`) until :meth:`home` succeeds or the operator calls
-    :meth:`confirm_position`. :attr:`moved` says whether any motion was commanded.
+    reset that can lose steps, or a link lost after a move was commanded), or ``None``; while it
+    is set, :meth:`move_to` refuses to move (:class:`PositionUnknown`) until :meth:`home`
+    succeeds or the operator calls :meth:`confirm_position`. :attr:`moved` says whether any
+    motion was commanded.
     """
 
     dialect = "base"
@@ -368,18 +400,30 @@ class Controller(SerialDevice):
         """Talk over an open channel (e.g. a recorded-trace replay) and bring the controller to a
         known state."""
         self.link = link
+        link.on_lost = self._link_lost
         self._target = {}
         self._handshake()
+
+    def _link_lost(self, reason: str) -> None:
+        """The link failed. Once a move was commanded the position is unknown: the machine may
+        still be moving, or the board restarted (a power cycle, or the reset an Arduino does when
+        its port is opened, sets its position to 0 while the object stays where it was)."""
+        if self.moved:
+            self.lose_position(f"{reason}, after a move was commanded: the machine may have moved on, or restarted "
+                               f"and counts from 0 wherever the object is")
 
     def identity(self) -> dict:
         """What the rig header records about this controller."""
         return {"dialect": self.dialect, "url": self.url, "axes": {
             name: vars(getattr(self.axes, name)) for name in ("lower", "tilt", "spin")}}
 
-    def check_board(self, home: bool, targets: dict[str, tuple[float, float]]) -> list[str]:
+    def check_board(self, home: bool, targets: dict[str, tuple[float, float]],
+                    direct: dict[str, tuple[float, float]] | None = None) -> list[str]:
         """Mismatches between this configuration and the board's settings (read at connect), one
-        message each; ``targets`` gives the rig range ``(min, max)`` per axis name that the scan
-        will visit. Dialects that cannot read settings return ``[]``."""
+        message each; ``targets`` gives the rig range ``(min, max)`` per axis name that the scan's
+        moves command (the short way round included, :meth:`AxisMap.route`), ``direct`` the same
+        without the short way (``None``: as ``targets``). Dialects that cannot read settings
+        return ``[]``."""
         return []
 
     def can_home(self) -> bool:
@@ -408,13 +452,11 @@ class Controller(SerialDevice):
         if self.position_lost is not None:
             raise PositionUnknown(f"refusing to move: {self.position_lost}")
         target = {"lower": lower_mm, "tilt": tilt_deg, "spin": spin_deg}
-        for name, value in target.items():
-            axis = getattr(self.axes, name)
-            if value is not None and axis.wrap is not None:
-                if name not in self._target:
-                    here = self.position()
-                    self._target.update(lower=here.lower_mm, tilt=here.tilt_deg, spin=here.spin_deg)
-                target[name] = axis.nearest(value, self._target.get(name))
+        if any(value is not None and getattr(self.axes, name).wrap is not None and name not in self._target
+               for name, value in target.items()):
+            here = self.position()
+            self._target.update(lower=here.lower_mm, tilt=here.tilt_deg, spin=here.spin_deg)
+        target = self.axes.short_way(target, self._target)
         words = self.axes.words(target["lower"], target["tilt"], target["spin"])
         if not words:
             return

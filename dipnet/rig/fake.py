@@ -27,11 +27,12 @@ cross-section and level readings drift by ``level_drift_mm_per_s`` from the worl
 Faults (:class:`Fault`) fire once, on the n-th motion command the controller receives:
 ``drop`` (the reply is lost), ``error`` (GRBL ``error:N`` / Marlin ``Error:``), ``alarm``
 (GRBL ``ALARM:N`` / Marlin stopped), ``reset`` (banner mid-scan), ``disconnect`` (the link
-dies), ``resend`` (Marlin: a corrupted line, answered by ``Resend:``), ``unstable`` (the
-sensor is noisy and reports "unstable" for the next ``count`` readings), and for GRBL:
-``hold`` (a feed hold lands half-way through the move), ``door`` (the safety door opens),
-``late_ok`` (the next ``G4 P0`` is acknowledged ``delay_s`` late), ``corrupt_status`` /
-``split_status`` (the next status report has one byte corrupted / turned into a newline).
+dies; GRBL: with the move under way, as recorded in ``t4e2`` and ``t4e3``), ``resend``
+(Marlin: a corrupted line, answered by ``Resend:``), ``unstable`` (the sensor is noisy and
+reports "unstable" for the next ``count`` readings), and for GRBL: ``hold`` (a feed hold
+lands half-way through the move), ``door`` (the safety door opens), ``late_ok`` (the next
+``G4 P0`` is acknowledged ``delay_s`` late), ``corrupt_status`` / ``split_status`` (the next
+status report has one byte corrupted / turned into a newline).
 
 The fake GRBL follows the real firmware's recorded behaviour (``tests/data/grbl-traces``): it
 has ``$$`` settings (:data:`GRBL_SETTINGS`, ``grbl_settings`` overrides them), answers ``$I``,
@@ -618,9 +619,6 @@ class GrblDevice(Device):
         if kind == "error":
             self.emit(f"error:{fault.code}")
             return
-        if kind == "disconnect":
-            self.dead = True
-            return
         if kind == "reset":  # a power glitch: the board restarts
             w.halt()
             w.alarm = bool(w.grbl_settings.get(22))
@@ -631,6 +629,10 @@ class GrblDevice(Device):
             self.alarm(2)
             return
         target = w.target_from_words(words)
+        if kind == "disconnect":  # the link dies with the move under way (t4e2, t4e3)
+            w.start_move(target)
+            self.dead = True
+            return
         if kind == "alarm":
             w.start_move(target)
             self.alarm(fault.code)

@@ -150,6 +150,12 @@ def parse_status(line: str, axes: str = "XYZAB") -> GrblStatus:
     return GrblStatus(state=state, substate=int(sub) if sub else None, fields=fields, mpos=mpos)
 
 
+def in_motion(st: GrblStatus) -> bool:
+    """Whether a soft reset now would abort a motion and lose the position (``ALARM:3``): running,
+    jogging, homing, or a hold still decelerating (``Hold:1``) (pure)."""
+    return st.state in ("Run", "Jog", "Home") or (st.state == "Hold" and st.substate == 1)
+
+
 def describe(kind: str, code: int) -> str:
     """Readable text for an ``error:N`` / ``ALARM:N``."""
     table = ERRORS if kind == "error" else ALARMS
@@ -332,12 +338,19 @@ class GrblController(Controller):
 
     # ------------------------------------------------------------------ connect
     def _handshake(self) -> None:
+        """Ask ``?`` first: a machine still moving (a move sent before the link was lost, or by a
+        previous run) is let finish, since a reset in motion loses the position (``ALARM:3``);
+        then reset (``reset_on_connect``, or when GRBL is silent waiting for one)."""
         link = require_link(self)
         self._after_reset()
-        if self.reset_on_connect:
-            link.discard_input()
+        link.discard_input()
+        current = self._connect_status()
+        if current is not None and in_motion(current):
+            current = self._wait_stopped(current)
+        if current is None or self.reset_on_connect:
             self._reset()
-        state = self.status().state
+            current = self.status()
+        state = current.state
         if state == "Alarm":
             self.lose_position("the controller is in the alarm state (not homed since power-up, or after an "
                                "alarm that lost the position)")
@@ -346,11 +359,42 @@ class GrblController(Controller):
         if state != "Alarm":
             self.command("G90")
 
+    def _connect_status(self) -> GrblStatus | None:
+        """The first status report after the port opened, or ``None`` if GRBL is silent (after
+        ``ALARM:1``/``ALARM:2`` it waits for a reset). A banner on the way (the board started as
+        the port opened) is expected here."""
+        for _ in range(2):
+            self._expect_banner = True
+            try:
+                return self.status()
+            except ResetError:
+                continue  # the start-up banner: ask again
+            except RigTimeout:
+                return None
+            finally:
+                self._expect_banner = False
+        return None
+
+    def _wait_stopped(self, st: GrblStatus) -> GrblStatus:
+        """Poll until the machine no longer moves (at most ``move_timeout``, ``home_timeout``
+        while homing); raises :class:`RigTimeout` instead of resetting a moving machine."""
+        limit = self.home_timeout if st.state == "Home" else self.move_timeout
+        deadline = time.monotonic() + limit
+        log.warning("GRBL reports %s at connect: waiting up to %g s for the motion to end", st.state, limit)
+        while in_motion(st):
+            if time.monotonic() > deadline:
+                raise RigTimeout(f"the machine is still moving ({st.state} at {self._where(st)}) {limit:g} s after "
+                                 f"connecting: not resetting it (a reset in motion loses the position)")
+            time.sleep(self.poll_s)
+            st = self.status()
+        return st
+
     def can_home(self) -> bool:
         return bool(self.settings.get(22, 1))
 
-    def check_board(self, home: bool, targets: dict[str, tuple[float, float]]) -> list[str]:
-        return check_settings(self.settings, self.status_axes, self.axes, home, targets)
+    def check_board(self, home: bool, targets: dict[str, tuple[float, float]],
+                    direct: dict[str, tuple[float, float]] | None = None) -> list[str]:
+        return check_settings(self.settings, self.status_axes, self.axes, home, targets, direct)
 
     # ------------------------------------------------------------------ interface
     def home(self) -> None:
@@ -520,8 +564,15 @@ def read_settings(lines: list[str]) -> dict[int, float]:
     return out
 
 
+def machine_range(axis, rig: tuple[float, float]) -> tuple[float, float]:
+    """Machine ``(min, max)`` of a rig range ``(min, max)`` on ``axis`` (pure)."""
+    low, high = sorted((axis.to_machine(rig[0]), axis.to_machine(rig[1])))
+    return low, high
+
+
 def check_settings(settings: dict[int, float], status_axes: str, axes, home: bool,
-                   targets: dict[str, tuple[float, float]]) -> list[str]:
+                   targets: dict[str, tuple[float, float]],
+                   direct: dict[str, tuple[float, float]] | None = None) -> list[str]:
     """One message per mismatch between the driver's configuration and a GRBL board (pure).
 
     Args:
@@ -529,10 +580,14 @@ def check_settings(settings: dict[int, float], status_axes: str, axes, home: boo
         status_axes: the configured letters of the reported coordinates.
         axes: the :class:`~dipnet.rig.controller.AxisMap`.
         home: whether the scan homes.
-        targets: rig ``(min, max)`` per axis name (``lower``, ``tilt``, ``spin``) the scan visits.
+        targets: rig ``(min, max)`` per axis name (``lower``, ``tilt``, ``spin``) that the scan's
+            moves command, the short way round of a wrapping axis included.
+        direct: the same ranges if every axis turned directly (no wrap); ``None``: as ``targets``.
 
     The number of reported axes is checked where every status report is parsed
-    (:class:`AxisCountError`).
+    (:class:`AxisCountError`). With soft limits on, each message says only what makes the moves
+    fit: turning directly (``wrap=null``) when that fits, a longer travel ``$13N`` when the moves
+    only go too far negative, else another sign/offset (which moves the rig's zero).
     """
     problems = []
     board = "XYZABC"
@@ -555,9 +610,23 @@ def check_settings(settings: dict[int, float], status_axes: str, axes, home: boo
             travel = settings.get(130 + index)
             if index < 0 or travel is None:
                 continue
-            ends = sorted((axis.to_machine(low), axis.to_machine(high)))
-            if ends[0] < -travel - 1e-9 or ends[1] > 1e-9:
-                problems.append(f"soft limits are on ($20=1): GRBL allows {axis.letter} only in [-{travel:g}, 0] "
-                                f"after homing, but the scan moves {name} to {axis.letter} {ends[0]:g}..{ends[1]:g}: "
-                                f"set rig.controller.axes.{name}.sign/offset so the targets fit")
+            lo, hi = machine_range(axis, (low, high))
+            if lo >= -travel - 1e-9 and hi <= 1e-9:
+                continue
+            fixes = []
+            straight = machine_range(axis, (direct or targets).get(name, (low, high)))
+            if axis.wrap is not None and straight != (lo, hi) and straight[0] >= -travel - 1e-9 and straight[1] <= 1e-9:
+                fixes.append(f"set rig.controller.axes.{name}.wrap=null so that {name} turns directly "
+                             f"({axis.letter} {straight[0]:g}..{straight[1]:g} fits)")
+            if hi <= 1e-9:
+                fixes.append(f"raise ${130 + index} to {-lo:g} if the axis can travel that far")
+            if not fixes and hi - lo <= travel + 1e-9:
+                fixes.append(f"set rig.controller.axes.{name}.sign/offset so the targets fit in [-{travel:g}, 0]")
+            if not fixes:
+                fixes.append(f"raise ${130 + index} to {hi - lo:g} if the axis can travel that far and set "
+                             f"rig.controller.axes.{name}.sign/offset so the targets fit")
+            wrapped = f" (the short way round, wrap={axis.wrap:g})" if axis.wrap is not None else ""
+            problems.append(f"soft limits are on ($20=1): GRBL allows {axis.letter} only in [-{travel:g}, 0] "
+                            f"after homing, but the scan moves {name} to {axis.letter} {lo:g}..{hi:g}{wrapped}: "
+                            + " or ".join(fixes))
     return problems

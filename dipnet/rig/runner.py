@@ -13,9 +13,11 @@ takes the safe-stop path: motion stopped, the protocol resynchronised and the st
 (:meth:`Controller.settle`); the object is lifted to the safe height only when a status report
 confirms a trustworthy position (or after re-homing, if ``rehome_on_fault`` allows it);
 every reading recorded so far is kept and :class:`ScanAborted` says in one line what happened
-and what the operator must do. When the position was lost, a marker file next to the scan
-(``<scan>.position-lost.json``) makes a resumed run refuse to move until the machine is
-homed (``home=true``) or the operator confirms the position (``confirm_position=true``).
+and what the operator must do. When the position was lost (an alarm or reset that loses it, or
+the controller's link lost after a move was commanded: the board may have restarted at 0), a
+marker file next to the scan (``<scan>.position-lost.json``) makes a resumed run refuse to move
+until the machine is homed (``home=true``) or the operator confirms the position
+(``confirm_position=true``).
 
 The scan file and the controller and sensor ports are locked while a scan runs: a second scan
 on the same file or port fails at once.
@@ -257,7 +259,7 @@ class ScanRunner:
         self.sensor_device().connect()
         writer.record_session({"first_k": first, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                                "controller": ctl.identity(), "sensor": self.sensor.identity()})
-        self._check_board(stages)
+        self._check_board(stages, first)
         self._establish_position()
         total = len(plan.orientations) * len(stages)
         with tqdm(total=total, initial=first * len(stages), desc="scan", unit="reading",
@@ -280,19 +282,35 @@ class ScanRunner:
                 self.where = f"the lift after orientation {k}"
                 self._move(lower_mm=plan.safe_mm)
 
-    def _check_board(self, stages: np.ndarray) -> None:
-        tilts = [t for t, _ in self.plan.orientations]
-        spins = [s for _, s in self.plan.orientations]
-        lowers = [self.plan.safe_mm, float(stages[0]), float(stages[-1])]
+    def _check_board(self, stages: np.ndarray, first: int) -> None:
+        """Check the moves of orientations ``first``.. as they will be sent (the short way round
+        of a wrapping axis included, :meth:`AxisMap.route`) against the board's settings."""
+        ctl, plan = self.controller, self.plan
         if self.home is None:
-            self.home = self.controller.can_home()
-        problems = self.controller.check_board(self.home, {
-            "lower": (min(lowers), max(lowers)), "tilt": (min(tilts), max(tilts)), "spin": (min(spins), max(spins))})
+            self.home = ctl.can_home()
+        moves = []
+        for tilt, spin in plan.orientations[first:]:
+            moves += [{"lower": plan.safe_mm}, {"tilt": tilt, "spin": spin}, {"lower": float(stages[0])},
+                      {"lower": float(stages[-1])}]
+        problems = ctl.check_board(self.home, value_ranges(ctl.axes.route(moves, self._start())),
+                                   value_ranges(moves))
         for problem in problems:
             log.error("rig config: %s", problem)
         if problems:
-            raise RigConfigError(f"the rig config does not fit the controller {self.controller.url}: "
+            raise RigConfigError(f"the rig config does not fit the controller {ctl.url}: "
                                  + "; ".join(f"({i}) {p}" for i, p in enumerate(problems, 1)))
+
+    def _start(self) -> dict[str, float]:
+        """The rig values the scan's first move starts from: the machine zero after homing, else
+        the reported position (read only when an axis wraps, the only case it matters)."""
+        axes = self.controller.axes
+        named = {"lower": axes.lower, "tilt": axes.tilt, "spin": axes.spin}
+        if self.home:
+            return {name: axis.from_machine(0.0) for name, axis in named.items()}
+        if all(axis.wrap is None for axis in named.values()):
+            return {}
+        here = self.controller.position()
+        return {"lower": here.lower_mm, "tilt": here.tilt_deg, "spin": here.spin_deg}
 
     def _establish_position(self) -> None:
         """Home, or accept the position, before anything moves (see the module docstring)."""
@@ -309,8 +327,7 @@ class ScanRunner:
             ctl.confirm_position()
             ctl.settle()
         if ctl.position_lost is not None:
-            raise PositionUnknown(f"{ctl.position_lost}; nothing moved: home the machine (run with home=true) or "
-                                  f"check the position by hand and run with confirm_position=true")
+            raise PositionUnknown(ctl.position_lost)
         self.marker.unlink(missing_ok=True)
 
     def _move(self, **target) -> None:
@@ -345,8 +362,18 @@ class ScanRunner:
         with on_signals(defer_signal, SIGNALS + (signal.SIGINT,)):
             outcome = self._safe_stop()
         raise ScanAborted(f"scan stopped at {self.where}: {cause}; {outcome}; kept {kept} readings "
-                          f"({done} complete orientations) in {self.path}; run the same command again "
-                          f"to resume") from (exc if isinstance(exc, Exception) else None)
+                          f"({done} complete orientations) in {self.path}; {self._resume_advice()}") \
+            from (exc if isinstance(exc, Exception) else None)
+
+    def _resume_advice(self) -> str:
+        """What makes the next run work: with the position lost, homing (if the board can) or the
+        operator's confirmation; else the same command."""
+        ctl = self.controller
+        if ctl.position_lost is None:
+            return "run the same command again to resume"
+        home = "home=true (homing re-establishes the position) or " if ctl.can_home() else ""
+        return (f"resume with {home}confirm_position=true once you have checked by hand that the machine stands "
+                f"where the controller reports (after a restart: at its zero)")
 
     def _safe_stop(self) -> str:
         """Stop, read the state back, and lift only to a confirmed position; returns what
@@ -375,18 +402,28 @@ class ScanRunner:
                         f"(safe height {safe:g} mm)")
             except PositionUnknown as err:
                 self._mark_position_lost(str(err))
-                return (f"OBJECT NOT LIFTED: the position cannot be trusted ({err}); nothing was moved after the "
-                        f"fault: home the machine (or lift it by hand and check the position), then resume with "
-                        f"home=true (or confirm_position=true)")
+                return f"OBJECT NOT LIFTED: the position cannot be trusted ({err}); nothing was moved after the fault"
             except MotionHeld as err:
                 return f"OBJECT NOT LIFTED: {err}; then lift the object and run again"
             except (RigError, serial.SerialException, OSError, ValueError) as err:
                 error = err
                 log.warning("safe stop attempt %d failed: %s", attempt + 1, err)
+        if ctl.position_lost is not None:
+            self._mark_position_lost(ctl.position_lost)
         return f"COULD NOT LIFT THE OBJECT ({type(error).__name__}: {error}) - check the rig"
 
     def _mark_position_lost(self, reason: str) -> None:
         self.marker.write_text(json.dumps({"reason": reason, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}) + "\n")
+
+
+def value_ranges(moves: list[dict[str, float | None]]) -> dict[str, tuple[float, float]]:
+    """``(min, max)`` per axis name of the values that ``moves`` set (``None``: not moved) (pure)."""
+    values: dict[str, list[float]] = {}
+    for move in moves:
+        for name, value in move.items():
+            if value is not None:
+                values.setdefault(name, []).append(value)
+    return {name: (min(v), max(v)) for name, v in values.items()}
 
 
 class RigConfigError(RigError, ValueError):
