@@ -8,11 +8,16 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import trimesh
+
+from dipnet.resources import ResourceError, check_simulation
+from dipnet.shapes import builtin_shape
 
 ROOT = Path(__file__).resolve().parents[1]
 RECONSTRUCT = ROOT / "scripts" / "reconstruct.py"
@@ -48,3 +53,25 @@ def test_ball_scan_reads_the_same_from_its_npz_and_its_jsonl(tmp_path):
     assert simulated["consistency"] == npz["consistency"] == jsonl["consistency"] == "consistent"
     assert npz["volume_ratio"] == pytest.approx(simulated["volume_ratio"], abs=1e-6)
     assert jsonl["volume_ratio"] == pytest.approx(npz["volume_ratio"], abs=1e-3)
+
+
+# ----------------------------------------------------------------------------- case 3: a mesh in the wrong units
+def test_mesh_in_wrong_units_is_refused_before_simulating(tmp_path):
+    """Before: a sphere of radius 3e7 file units planned 60 million readings per dip and was OOM-killed."""
+    path = tmp_path / "sphere_in_nm.stl"
+    trimesh.creation.icosphere(subdivisions=1, radius=3e7).export(path)
+    line = _one_line_error(_script(RECONSTRUCT, tmp_path / "run", "shape=mesh", f"shape.path={path}",
+                                   "resolution=16", "n_dips=4", *QUICK))
+    assert re.match(r"error: the simulator would take 60,000,008 readings per dip \(4 dips: 240,000,032 readings, "
+                    r"needing ~\d+ GB .*at most 100,000 per dip\) for an object of radius 3e\+07 mm at 1 mm steps: "
+                    r"is the object in mm\? Give its size with shape.radius= \(mm\) or its units with shape.scale= ",
+                    line), line
+    assert not (tmp_path / "run" / "rawscan.jsonl").exists()
+
+
+def test_simulation_beyond_the_available_memory_is_refused():
+    ball = builtin_shape("ball", 3, 45.0)
+    assert check_simulation(ball, 120, 100, 1.0, available=10**9).total < 10**6
+    with pytest.raises(ResourceError, match=r"95,000 readings per dip \(120 dips: 11,400,000 readings, needing "
+                                            r"~\d+ MB .*this machine has 100 MB available\) for an object of radius 45 mm"):
+        check_simulation(ball, 120, 95_000, 1.0, available=10**8)

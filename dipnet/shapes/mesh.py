@@ -76,6 +76,12 @@ class MeshShape(Shape):
     def radius(self) -> float:
         return float(np.linalg.norm(self._vertices, axis=1).max())
 
+    def dip_bytes_per_reading(self) -> float:
+        """The plane sweep also holds every (triangle, reading) pair a water line cuts: about
+        ``sqrt(F)`` triangles per plane for ``F`` evenly sized ones. Measured on icospheres
+        (200,000-reading dips): 4.0 KB per reading with 320 triangles, 15 KB with 5,120."""
+        return super().dip_bytes_per_reading() + 200.0 * np.sqrt(len(self._triangles))
+
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return self._vertices.min(axis=0), self._vertices.max(axis=0)
 
