@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import trimesh
 
+from dipnet.rawscan import read_rawscan
 from dipnet.resources import ResourceError, check_simulation
 from dipnet.shapes import builtin_shape
 
@@ -75,3 +76,25 @@ def test_simulation_beyond_the_available_memory_is_refused():
     with pytest.raises(ResourceError, match=r"95,000 readings per dip \(120 dips: 11,400,000 readings, needing "
                                             r"~\d+ MB .*this machine has 100 MB available\) for an object of radius 45 mm"):
         check_simulation(ball, 120, 95_000, 1.0, available=10**8)
+
+
+# ----------------------------------------------------------------------------- case 4: a scan plan beyond the rig
+@pytest.mark.parametrize("overrides,message", [
+    # before: the fake rig lowered forever (128 m after 90 s)
+    (["protocol.stop_mm=1e9"], r"error: protocol.stop_mm=1e\+09 lowers the object onto the tank bottom: at most "
+                               r"160 mm \(the fake rig's tank holds 150 mm of water, the object's radius is 40 mm\); "
+                               r"nothing moved$"),
+    (["rig=fake_marlin", "+rig.fake.tank.rest_level_mm=1e12", "protocol.stop_mm=1e9"],
+     r"error: protocol.stop_mm=1e\+09 \(start_mm 0, step_mm 2\) plans 500,000,001 readings per orientation: "
+     r"at most 100,000; nothing moved$"),
+    (["rig.max_lower_mm=100"], r"error: protocol.stop_mm=110 lowers the object onto the tank bottom: at most 100 mm "
+                               r"\(rig.max_lower_mm\); nothing moved$"),
+    (["+rig.fake.grbl_settings.132=100"], r"error: the rig config does not fit the controller fakerig://fake/grbl: "
+                                          r"\(1\) the scan lowers from 0 to 110 mm \(Z span 110\), more than the "
+                                          r"board's Z travel \$132=100: lower protocol.stop_mm"),
+])
+def test_scan_plan_beyond_the_rig_stops_before_moving(tmp_path, overrides, message):
+    line = _one_line_error(_script(SCAN, tmp_path, "progress=false", "fsync=false", *overrides))
+    assert re.match(message, line), line
+    path = tmp_path / "rawscan.jsonl"
+    assert not path.exists() or not read_rawscan(path).orientations  # nothing dipped
