@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import trimesh
 
@@ -98,3 +99,43 @@ def test_scan_plan_beyond_the_rig_stops_before_moving(tmp_path, overrides, messa
     assert re.match(message, line), line
     path = tmp_path / "rawscan.jsonl"
     assert not path.exists() or not read_rawscan(path).orientations  # nothing dipped
+
+
+# ----------------------------------------------------------------------------- case 1: a repair that cancels itself
+def _cracked_ball(pieces: int, flip: bool) -> trimesh.Trimesh:
+    """A 20 mm ball cut into ``pieces`` patches that share no vertex (cracks: every patch is an
+    open shell), every other one inside out if ``flip``, 200 mm off the file's origin."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    centres = ball.triangles_center
+    seeds = centres[np.random.default_rng(0).choice(len(centres), pieces, replace=False)]
+    patch = np.argmin(np.linalg.norm(centres[:, None] - seeds[None], axis=2), axis=1)
+    parts = []
+    for k in range(pieces):
+        tri = ball.triangles[patch == k] * (1 + 0.002 * k)  # the cracks
+        parts.append(tri[:, ::-1] if flip and k % 2 else tri)
+    tri = np.concatenate(parts) + [200.0, 0.0, 0.0]
+    return trimesh.Trimesh(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3), process=False)
+
+
+def test_mesh_whose_repair_disagrees_with_its_inside_test_is_refused(tmp_path):
+    """Before: agave.stl's caps cancelled its surface (-0.0004 mm^3 vs ~71,900 inside) and every dip
+    was rejected as an outlier; here 30 cracked patches, half inside out, capped one by one."""
+    path = tmp_path / "cracked.stl"
+    _cracked_ball(30, flip=True).export(path)
+    line = _one_line_error(_script(RECONSTRUCT, tmp_path / "run", "shape=mesh", f"shape.path={path}",
+                                   "resolution=16", "n_dips=8", *QUICK))
+    assert re.match(rf"error: mesh {re.escape(str(path))}: after repair its surface encloses [\d.e+]+ mm\^3 but its "
+                    r"inside test \(winding numbers\) holds [\d.e+]+ mm\^3: the repair could not close or orient the "
+                    r"surface consistently, .* make the mesh watertight in a mesh editor", line), line
+    encloses, inside = (float(x) for x in re.findall(r"(?:encloses|holds) ([\d.e+]+) mm", line))
+    assert inside == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.15) and encloses < 0.5 * inside
+
+
+def test_open_pieces_off_the_origin_are_oriented_by_their_capped_volume(tmp_path):
+    """Before: a ball in two open pieces 200 mm off the origin came out with one piece inverted
+    (trimesh's open-surface volume depends on the origin): -18,867 mm^3 against 33,510."""
+    path = tmp_path / "two_pieces.stl"
+    _cracked_ball(2, flip=True).export(path)
+    metrics = _metrics(tmp_path / "run", "shape=mesh", f"shape.path={path}", "n_dips=40")
+    assert metrics["measured_volume_mm3"] == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.03)
+    assert metrics["consistency"] == "consistent" and metrics["dips_rejected"] == 0
