@@ -42,6 +42,7 @@ import torch
 from tqdm.auto import tqdm
 
 from dipnet.rawscan import WATER_DENSITY_G_PER_MM3, OrientationScan, RawScan, ScanHeader
+from dipnet.resources import check_simulation
 from dipnet.rig.geometry import RigGeometry
 from dipnet.volume_curve import dip_volume_curve
 
@@ -327,6 +328,7 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
     true_tank = replace(tank, cross_section_mm2=geometry.area(tank.cross_section_mm2))
     n = int(np.ceil((radius - t_start.min()) / (protocol.step_mm * geometry.step_scale) - 1e-9)) + 1 \
         + protocol.extra_steps
+    check_simulation(shape, len(dirs), n, protocol.step_mm)
     stage = np.arange(n) * protocol.step_mm
     per_dip_s = n * protocol.settle_s + protocol.reorient_s
     header = ScanHeader(

@@ -146,8 +146,7 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
     from dipnet.rig.runner import plan_settings, register_fake_rig, runner_from_config
     from dipnet.solvers.voxel import VoxelSolver
 
-    register_fake_rig(cfg)
-    protocol = plan_settings(cfg)
+    protocol = plan_settings(cfg, register_fake_rig(cfg))
     settings_cfg = cfg.planner
 
     def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:

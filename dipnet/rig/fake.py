@@ -291,6 +291,14 @@ class FakeRig:
         """Water line height (object frame) at ``lower_mm = 0`` for a tilt, before any rise (mm)."""
         return float(self.geometry.start_heights(tilt_deg, -self.origin_height_mm))
 
+    def deepest_lower_mm(self, max_tilt_deg: float = 90.0) -> float:
+        """The deepest lowering (mm) that keeps the object's bounding sphere off the tank bottom
+        at every tilt up to ``max_tilt_deg``: the resting water is ``tank.rest_level_mm`` deep and
+        at lowering ``s`` the object's origin is ``t_start(tilt) + step_scale s`` below it."""
+        tilts = np.linspace(0.0, max(float(max_tilt_deg), 0.0), 91)
+        start = max(self.waterline_start(float(t)) for t in tilts)
+        return (self.tank.rest_level_mm - float(self.shape.radius()) - start) / self.geometry.step_scale
+
     def _table(self, tilt: float, spin: float) -> tuple[np.ndarray, np.ndarray, float]:
         """``(stage (n,), rise (n,), full rise)`` for one orientation, cached.
 

@@ -629,4 +629,13 @@ def check_settings(settings: dict[int, float], status_axes: str, axes, home: boo
             problems.append(f"soft limits are on ($20=1): GRBL allows {axis.letter} only in [-{travel:g}, 0] "
                             f"after homing, but the scan moves {name} to {axis.letter} {lo:g}..{hi:g}{wrapped}: "
                             + " or ".join(fixes))
+    else:  # the machine's size still bounds the lowering
+        lower, (low, high) = axes.lower, targets.get("lower", (0.0, 0.0))
+        index = board.find(lower.letter.upper())
+        travel = settings.get(130 + index) if index >= 0 else None
+        span = abs(lower.to_machine(high) - lower.to_machine(low))
+        if travel is not None and span > travel + 1e-9:
+            problems.append(f"the scan lowers from {low:g} to {high:g} mm ({lower.letter} span {span:g}), more than "
+                            f"the board's {lower.letter} travel ${130 + index}={travel:g}: lower protocol.stop_mm, or "
+                            f"set ${130 + index} to the machine's travel")
     return problems

@@ -41,6 +41,7 @@ from tqdm.auto import tqdm
 
 from dipnet.orientations import make_directions
 from dipnet.rawscan import RawScan, RawScanFileError, RawScanWriter, ScanHeader
+from dipnet.resources import MAX_READINGS_PER_DIP
 from dipnet.rig.calibration_file import TANK_CONFIG_KEY, Calibration, load_calibration
 from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
                                    SensorUnstable)
@@ -150,6 +151,14 @@ class ScanPlan:
             shorthand for ``geometry.pivot_mm`` (non-zero overrides it).
         geometry: the rig's calibrated geometry (:class:`~dipnet.rig.geometry.RigGeometry`), used
             for ``t_start_mm`` and recorded in the header (``config["rig_geometry"]``).
+        max_lower_mm: the deepest lowering (mm) before the object reaches the tank bottom, if
+            known (``rig.max_lower_mm``, or the fake rig's tank: :meth:`~dipnet.rig.fake.FakeRig.deepest_lower_mm`).
+        max_lower_source: where ``max_lower_mm`` comes from (for the message).
+
+    Raises:
+        ValueError: a plan that cannot be run: steps, a stop below the tank bottom, or more than
+            :data:`~dipnet.resources.MAX_READINGS_PER_DIP` readings per orientation (the message names
+            the ``protocol`` option and the limit; nothing has moved).
     """
 
     orientations: list[tuple[float, float]]
@@ -162,16 +171,27 @@ class ScanPlan:
     origin_height_mm: float | None = None
     pivot_mm: float = 0.0
     geometry: RigGeometry = field(default_factory=RigGeometry)
+    max_lower_mm: float | None = None
+    max_lower_source: str = "rig.max_lower_mm"
 
     def __post_init__(self) -> None:
         if self.pivot_mm:
             self.geometry = self.geometry.with_values(pivot_mm=float(self.pivot_mm))
         self.orientations = [(float(t), float(s)) for t, s in self.orientations]
-        if not self.step_mm > 0 or not self.stop_mm > self.start_mm:
+        if not (math.isfinite(self.start_mm) and math.isfinite(self.stop_mm) and self.step_mm > 0
+                and self.stop_mm > self.start_mm):
             raise ValueError(f"need step_mm > 0 and stop_mm > start_mm, got step {self.step_mm}, "
                              f"start {self.start_mm}, stop {self.stop_mm}")
         if self.safe_mm > self.start_mm:
             raise ValueError(f"safe_mm ({self.safe_mm}) must not be lower than start_mm ({self.start_mm})")
+        if self.max_lower_mm is not None and self.stop_mm > self.max_lower_mm:
+            raise ValueError(f"protocol.stop_mm={self.stop_mm:g} lowers the object onto the tank bottom: at most "
+                             f"{self.max_lower_mm:.4g} mm ({self.max_lower_source}); nothing moved")
+        n = (self.stop_mm - self.start_mm) / self.step_mm + 1
+        if n > MAX_READINGS_PER_DIP:
+            raise ValueError(f"protocol.stop_mm={self.stop_mm:g} (start_mm {self.start_mm:g}, step_mm "
+                             f"{self.step_mm:g}) plans {n:,.0f} readings per orientation: at most "
+                             f"{MAX_READINGS_PER_DIP:,}; nothing moved")
 
     def stages(self) -> np.ndarray:
         """Lowering positions of the readings, ``(n,)`` mm."""
@@ -452,30 +472,41 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
     """
     from omegaconf import OmegaConf
 
-    register_fake_rig(cfg)
-    plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)), **plan_settings(cfg))
+    world = register_fake_rig(cfg)
+    plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)),
+                    **plan_settings(cfg, world))
     return runner_from_config(cfg, plan, path, progress=progress).run()
 
 
-def register_fake_rig(cfg) -> None:
-    """Register ``cfg.rig.fake`` (a :class:`~dipnet.rig.fake.FakeRig`) so its ``fakerig://`` URLs resolve."""
+def register_fake_rig(cfg):
+    """Register ``cfg.rig.fake`` (a :class:`~dipnet.rig.fake.FakeRig`) so its ``fakerig://`` URLs
+    resolve; returns it (``None`` for a real rig)."""
     from hydra.utils import instantiate
 
-    if cfg.rig.get("fake") is not None:
-        instantiate(cfg.rig.fake, _convert_="all").register()
+    if cfg.rig.get("fake") is None:
+        return None
+    return instantiate(cfg.rig.fake, _convert_="all").register()
 
 
-def plan_settings(cfg) -> dict[str, Any]:
+def plan_settings(cfg, world=None) -> dict[str, Any]:
     """The :class:`ScanPlan` keyword arguments of a scan config besides the orientations:
-    ``cfg.protocol``, the origin / pivot of ``cfg.rig.geometry`` and the rig geometry of the
-    calibration file ``cfg.rig.calibration`` (the ideal rig without one)."""
+    ``cfg.protocol``, the origin / pivot of ``cfg.rig.geometry``, the rig geometry of the
+    calibration file ``cfg.rig.calibration`` (the ideal rig without one) and the deepest lowering:
+    ``cfg.rig.max_lower_mm`` or, shallower, the tank bottom of the fake rig ``world``."""
     from omegaconf import OmegaConf
 
     geometry = cfg.rig.get("geometry") or {}
     calibration = rig_calibration(cfg.rig)
+    limits = [] if cfg.rig.get("max_lower_mm") is None else [(float(cfg.rig.max_lower_mm), "rig.max_lower_mm")]
+    if world is not None:
+        limits.append((world.deepest_lower_mm(float(cfg.orientations.get("max_tilt_deg", 90.0))),
+                       f"the fake rig's tank holds {world.tank.rest_level_mm:g} mm of water, the object's radius is "
+                       f"{world.shape.radius():.4g} mm"))
+    deepest = min(limits, default=(None, "rig.max_lower_mm"))
     return {**OmegaConf.to_container(cfg.protocol, resolve=True),
             "origin_height_mm": geometry.get("origin_height_mm"), "pivot_mm": float(geometry.get("pivot_mm", 0.0)),
-            "geometry": calibration.geometry if calibration else RigGeometry()}
+            "geometry": calibration.geometry if calibration else RigGeometry(),
+            "max_lower_mm": deepest[0], "max_lower_source": deepest[1]}
 
 
 def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = True,
