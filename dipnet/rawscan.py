@@ -293,7 +293,7 @@ class RawScanWriter:
             ``FileExistsError``).
         fsync: call ``os.fsync`` after every line (survives power loss, slower).
 
-    The file is locked (:class:`dipnet.locks.HeldLock` on ``<path>.lock``, exclusive, non-blocking,
+    The file is locked (:class:`dipnet.locks.HeldLock` on ``.<name>.lock``, exclusive, non-blocking,
     on every OS) from opening to :meth:`close`: a second writer on the same file fails at once with
     :class:`RawScanLocked` naming the holder. Every record is
     one ``os.write`` on a file opened with ``O_APPEND``, so even a writer that ignores the lock
@@ -403,9 +403,9 @@ class RawScanLocked(RawScanFileError):
 
 
 def _lock_scan(path: Path) -> HeldLock:
-    """Lock ``path`` exclusively (lock file ``<path>.lock``), or raise :class:`RawScanLocked` at once."""
+    """Lock ``path`` exclusively (lock file ``.<name>.lock`` beside it), or raise :class:`RawScanLocked` at once."""
     try:
-        return HeldLock(path.with_name(path.name + ".lock"))
+        return HeldLock(path.with_name(f".{path.name}.lock"))
     except LockHeld as exc:
         raise RawScanLocked(f"{path} is being written by another scan ({exc}): wait for that scan to "
                             f"finish or stop it, or choose another name") from None

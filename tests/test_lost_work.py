@@ -4,14 +4,22 @@ user would (a subprocess of the script)."""
 
 from __future__ import annotations
 
+import importlib.util
+import json
+import pickle
 import re
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
+
+from dipnet.cli import run_hydra
 
 ROOT = Path(__file__).resolve().parents[1]
 RECONSTRUCT = ROOT / "scripts" / "reconstruct.py"
@@ -58,3 +66,109 @@ def test_second_job_into_a_busy_run_directory_is_refused(tmp_path, script, overr
     done = _script(script, f"hydra.run.dir={tmp_path}", *overrides)  # the lock went with its holder
     assert done.returncode == 0, done.stderr[-2000:]
     assert not (tmp_path / ".dipnet-run.lock.holder").exists()
+
+
+# ----------------------------------------------------------------------------- damaged checkpoints
+CHECKPOINTED = [*QUICK, "solver=voxel", "solver.iterations=20", "solver.tol=0", "output.checkpoint=true",
+                "output.checkpoint_every=5", "threads=1"]
+FINE = "voxel_16_3.pt"  # the fine stage's file (the coarse stage is voxel_8_3.pt)
+
+
+def _reconstruct_in_process(monkeypatch, run_dir: Path, *overrides: str) -> dict:
+    """``python scripts/reconstruct.py hydra.run.dir=<run_dir> ...`` in this process; its metrics."""
+    spec = importlib.util.spec_from_file_location("reconstruct", RECONSTRUCT)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    monkeypatch.setattr(sys, "argv", [str(RECONSTRUCT), f"hydra.run.dir={run_dir}", *CHECKPOINTED, *overrides])
+    run_hydra(script.main)
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    """A checkpointed job run to its end: its directory (checkpoints/ and metrics.json)."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        run_dir = tmp_path_factory.mktemp("finished")
+        _reconstruct_in_process(monkeypatch, run_dir)
+    return run_dir
+
+
+def _checkpoint_warnings(record) -> list[str]:
+    return [str(w.message) for w in record if str(w.message).startswith("checkpoint ")]
+
+
+class _RunsCode:
+    """A pickle that would create a file when unpickled: a checkpoint must never be unpickled so."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return Path.touch, (self.marker,)
+
+
+DAMAGE = {
+    "truncated": lambda file: file.write_bytes(file.read_bytes()[: file.stat().st_size // 2]),
+    "empty": lambda file: file.write_bytes(b""),
+    "random bytes": lambda file: file.write_bytes(np.random.default_rng(0).bytes(5000)),
+    "code in a pickle": lambda file: file.write_bytes(pickle.dumps(_RunsCode(file.with_name("pwned")))),
+    "another job's file": lambda file: torch.save({"weights": torch.zeros(3)}, file),
+}
+
+
+@pytest.mark.parametrize("damage", DAMAGE)
+def test_damaged_checkpoint_warns_once_and_its_stage_starts_afresh(finished, tmp_path, monkeypatch, damage):
+    """Before: EOFError, UnpicklingError or RuntimeError tracebacks on every rerun (and a pickle ran its code)."""
+    shutil.copytree(finished / "checkpoints", tmp_path / "checkpoints")
+    file = tmp_path / "checkpoints" / FINE
+    DAMAGE[damage](file)
+    with pytest.warns(UserWarning) as record:
+        metrics = _reconstruct_in_process(monkeypatch, tmp_path)
+    [message] = _checkpoint_warnings(record)
+    assert message.startswith(f"checkpoint {file} is not used: ") and message.endswith(
+        "starting 'voxel 16^3' afresh"), message
+    assert not (tmp_path / "checkpoints" / "pwned").exists()
+    reference = json.loads((finished / "metrics.json").read_text())
+    assert metrics["chamfer"] == pytest.approx(reference["chamfer"], rel=1e-4)
+    assert torch.load(file, weights_only=True)["done"] is True  # rewritten whole
+
+
+def test_checkpoint_of_another_operator_is_not_resumed(finished, tmp_path, monkeypatch):
+    """Same parameter shapes and data, another forward model: the saved state does not belong here."""
+    shutil.copytree(finished / "checkpoints", tmp_path / "checkpoints")
+    with pytest.warns(UserWarning) as record:
+        _reconstruct_in_process(monkeypatch, tmp_path, "operator=grid_sample")
+    assert [m.split(" is not used: ")[1] for m in _checkpoint_warnings(record)] == [
+        f"it was made for another problem (grid, operator, measured data or solver settings differ); "
+        f"starting {stage!r} afresh" for stage in ("voxel 8^3", "voxel 16^3")]
+
+
+def test_stale_tmp_beside_a_checkpoint_is_harmless(finished, tmp_path, monkeypatch):
+    shutil.copytree(finished / "checkpoints", tmp_path / "checkpoints")
+    (tmp_path / "checkpoints" / f"{FINE}.tmp").write_bytes(b"half a checkpoint")  # a kill mid-write
+    with pytest.warns(UserWarning) as record:
+        _reconstruct_in_process(monkeypatch, tmp_path)
+    assert _checkpoint_warnings(record) == []  # resumed from the finished stages
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["voxel_16_3.pt", "voxel_8_3.pt"]
+
+
+def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(finished, tmp_path, monkeypatch):
+    """Before: the RuntimeError of torch.save ended the job; its partial .tmp stayed."""
+    real_save = torch.save
+
+    def full_disk(obj, stream, *args, **kwargs):
+        if stream.name.endswith(f"{FINE}.tmp"):
+            stream.write(b"PK\x03\x04 the first bytes")
+            raise RuntimeError("[enforce fail at inline_container.cc:783] . PytorchStreamWriter failed writing "
+                               "file data/3: file write failed")
+        return real_save(obj, stream, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.warns(UserWarning) as record:
+        metrics = _reconstruct_in_process(monkeypatch, tmp_path)
+    [message] = _checkpoint_warnings(record)
+    assert message.startswith(f"checkpoint {tmp_path / 'checkpoints' / FINE} could not be written (RuntimeError: ")
+    assert message.endswith("the solve goes on, a rerun resumes from the previous checkpoint (if any)")
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["voxel_8_3.pt"]  # no partial file
+    reference = json.loads((finished / "metrics.json").read_text())
+    assert metrics["chamfer"] == pytest.approx(reference["chamfer"], rel=1e-4)
