@@ -281,3 +281,16 @@ def test_nan_sigma_in_a_measurement_names_the_file_and_the_array(tmp_path, scan_
     line = _one_line_error(_cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
     assert line == (f"error: {path}: measurement array 'sigma' holds 1 NaN or infinite value(s) of "
                     f"{m.profiles.numel()}"), line
+
+
+@pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16"])
+def test_csv_saved_by_a_spreadsheet_is_read_as_the_original(tmp_path, encoding):
+    """Before: the byte-order mark spreadsheet programs write first was refused as a header "���SN,..."."""
+    path = tmp_path / "cats.csv"
+    path.write_bytes(CATS_CSV.read_text().replace("\n", "\r\n").encode(encoding))
+    proc = _cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=360", "resolution=16",
+                "+source.reader.t_start=centroid", "+source.reader.truncated=keep", "output.figures=false",
+                "output.uncertainty=false", "output.resolvability=false")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    original = read_recorded(str(CATS_CSV), CATS_GRID, t_start="centroid", truncated="keep")
+    torch.testing.assert_close(DipMeasurement.load(tmp_path / "run" / "measurement.npz").profiles, original.profiles)

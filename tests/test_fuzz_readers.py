@@ -309,3 +309,12 @@ def test_duplicated_directions_are_reported(samples, tmp_path):
         report = validate_measurement(scaled, GRID)
     assert report.stats["duplicate_direction_pairs"] == k * (k - 1) // 2
     assert report.stats["duplicate_max_discrepancy"] == pytest.approx(0.4 / 1.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16-le", "utf-16-be"])
+def test_csv_with_a_byte_order_mark_reads_as_the_sample(encoding, samples, tmp_path):
+    """Spreadsheet programs write a byte-order mark (and CRLF line ends): the same data, not mojibake."""
+    path = tmp_path / "spreadsheet.csv"
+    bom = {"utf-8-sig": b"", "utf-16-le": b"\xff\xfe", "utf-16-be": b"\xfe\xff"}[encoding]
+    path.write_bytes(bom + samples["csv"].read_text().replace("\n", "\r\n").encode(encoding))
+    torch.testing.assert_close(_read_csv(path).profiles, _read_csv(samples["csv"]).profiles)
