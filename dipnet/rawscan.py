@@ -153,10 +153,12 @@ class ScanHeader:
             raise ValueError(f"quantity {self.quantity!r} does not match the recording sensor's "
                              f"quantity {measured!r} (config.sensor)")
 
-    def compatible_with(self, other: "ScanHeader") -> bool:
-        """Whether a scan with header ``other`` may be appended to one with this header."""
+    def differences(self, other: "ScanHeader") -> list[str]:
+        """The fields that forbid appending a scan with header ``other`` to one with this header,
+        as ``"field <this value> -> <other value>"`` (empty: compatible)."""
         keys = ("quantity", "ndim", "tank_cross_section_mm2", "step_mm", "density_g_per_mm3", "t_start_mm")
-        return all(getattr(self, k) == getattr(other, k) for k in keys)
+        return [f"{k} {getattr(self, k)!r} -> {getattr(other, k)!r}" for k in keys
+                if getattr(self, k) != getattr(other, k)]
 
 
 @dataclass
@@ -322,9 +324,11 @@ class RawScanWriter:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | getattr(os, "O_BINARY", 0), 0o644)
             if existed and resume and os.fstat(self._fd).st_size > 0:
                 self.scan = read_rawscan(self.path)
-                if not self.scan.header.compatible_with(header):
-                    raise RawScanFileError(f"{self.path}: cannot resume, the stored header "
-                                           f"{self.scan.header.to_json()} differs from {header.to_json()}")
+                differences = self.scan.header.differences(header)
+                if differences:
+                    raise RawScanFileError(f"{self.path}: cannot resume, the new scan differs from the recorded "
+                                           f"one in {'; '.join(differences)} (recorded -> new): scan with the "
+                                           "recorded settings, or into another file")
                 position, prefix = _append_position(self.path)
                 os.ftruncate(self._fd, position)
                 if prefix:

@@ -172,3 +172,44 @@ def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(fi
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["voxel_8_3.pt"]  # no partial file
     reference = json.loads((finished / "metrics.json").read_text())
     assert metrics["chamfer"] == pytest.approx(reference["chamfer"], rel=1e-4)
+
+
+# ----------------------------------------------------------------------------- scans: messages
+def test_refused_scan_resume_names_the_differing_fields_in_one_line(tmp_path):
+    """Before: both full headers (~2,500 characters) and no word on what differs."""
+    first = _script(SCAN, f"hydra.run.dir={tmp_path}", *QUICK_SCAN)
+    assert first.returncode == 0, first.stderr[-2000:]
+    line = _one_line_error(_script(SCAN, f"hydra.run.dir={tmp_path}", *QUICK_SCAN, "protocol.step_mm=10",
+                                   "rig.tank_cross_section_mm2=50000"))
+    assert re.fullmatch(rf"error: {re.escape(str(tmp_path / 'rawscan.jsonl'))}: cannot resume, the new scan differs "
+                        r"from the recorded one in tank_cross_section_mm2 20000\.0 -> 50000; step_mm 20\.0 -> "
+                        r"10\.0 \(recorded -> new\): scan with the recorded settings, or into another file", line), line
+
+
+FULL_DISK = """
+import errno, runpy, sys
+import dipnet.rawscan
+
+write, records = dipnet.rawscan._write_all, []
+
+def full_disk(fd, data):  # the disk fills after 8 records: every later write fails
+    records.append(data)
+    if len(records) > 8:
+        raise OSError(errno.ENOSPC, "No space left on device")
+    write(fd, data)
+
+dipnet.rawscan._write_all = full_disk
+sys.argv = sys.argv[1:]
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def test_full_disk_during_a_scan_ends_in_the_safe_stop_message_alone(tmp_path):
+    """Before: every log record the full disk refused printed a "--- Logging error ---" traceback."""
+    proc = subprocess.run([sys.executable, "-c", FULL_DISK, str(SCAN), f"hydra.run.dir={tmp_path}", *QUICK_SCAN,
+                           "hydra.job_logging.handlers.file.filename=/dev/full"],  # the log's disk is full too
+                          capture_output=True, text=True, timeout=300)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 3 and len(lines) == 1, proc.stderr[-3000:]
+    assert re.fullmatch(r"error: scan stopped at .+: OSError: \[Errno 28\] No space left on device; object lifted: "
+                        r"the controller reports lower 0\.000 mm \(safe height 0 mm\); kept \d+ readings .+", lines[0])
