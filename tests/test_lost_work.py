@@ -53,6 +53,16 @@ def _job_in(directory: Path) -> Iterator[int]:
         holder.communicate("", timeout=60)
 
 
+# ----------------------------------------------------------------------------- portability
+def test_dipnet_imports_without_fcntl():
+    """Before: ``import dipnet`` failed on Windows (``fcntl`` imported by the scan-file lock)."""
+    code = ("import sys, serial\n"  # pyserial brings its own backend per platform (serialwin32 on Windows)
+            "sys.modules['fcntl'] = None\n"  # then, as on Windows, import fcntl fails
+            "import dipnet, dipnet.locks, dipnet.rig.runner, dipnet.pipeline; print('imported')")
+    proc = subprocess.run([sys.executable, "-W", "ignore", "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "imported", proc.stderr[-2000:]
+
+
 # ----------------------------------------------------------------------------- run directory lock
 @pytest.mark.parametrize("script,overrides", [(RECONSTRUCT, QUICK), (SCAN, QUICK_SCAN)])
 def test_second_job_into_a_busy_run_directory_is_refused(tmp_path, script, overrides):
