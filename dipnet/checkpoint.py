@@ -4,25 +4,40 @@
 optimisation loop (:func:`dipnet.solvers.optimize.optimise`) calls :meth:`Checkpoint.restore`
 before its first step and :meth:`Checkpoint.save` after every step. Every ``every`` steps, and
 when a stage ends, it writes the parameters, the optimiser's and scheduler's state and the loss
-history to ``<directory>/<stage>.pt`` (written to a temporary file, then renamed, so a kill
-mid-write leaves the previous checkpoint intact). A finished stage is marked done, so a resumed
+history to ``<directory>/<stage>.pt``. A finished stage is marked done, so a resumed
 multi-stage solve (coarse then fine) skips it.
 
+Writing is atomic: a temporary file, flushed to disk (``fsync``), then renamed over the old
+one, so a kill mid-write leaves the previous checkpoint intact. A write that fails (a full
+disk) removes its temporary file and warns; the solve goes on without that checkpoint.
+
+Reading never runs code from the file (``torch.load(..., weights_only=True)``: tensors, numbers,
+strings, lists and dicts only) and checks what it read: the record's keys, the parameters'
+shapes and dtypes, the step count, and the problem it was made for (the fingerprint: step count,
+optimiser, parameter shapes, measured data, grid and operator). A checkpoint that cannot be
+read (truncated, empty, foreign bytes) or does not fit is ignored with one warning naming the
+file, and that stage starts afresh: a damaged checkpoint never blocks a rerun.
+
 Adam and the schedules are deterministic, so a resumed solve gives the same result as an
-uninterrupted one (to rounding). A checkpoint made for another problem (other parameter
-shapes, step count or measured data) is ignored with a warning.
+uninterrupted one (to rounding).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import pickle
 import re
 import warnings
+from contextlib import suppress
 from pathlib import Path
 
 import torch
 
 log = logging.getLogger(__name__)
+
+#: The fields of a checkpoint record.
+FIELDS = frozenset({"fingerprint", "step", "done", "params", "optimizer", "scheduler", "history"})
 
 
 class Checkpoint:
@@ -37,6 +52,7 @@ class Checkpoint:
         if int(every) < 1:
             raise ValueError(f"checkpoint every must be a positive number of steps, got {every!r}")
         self.directory, self.every = Path(directory), int(every)
+        self._failed: set[Path] = set()
 
     def path(self, stage: str) -> Path:
         """The file of ``stage`` (a progress label such as ``"voxel 240^3"``)."""
@@ -45,40 +61,126 @@ class Checkpoint:
     def restore(self, stage: str, fingerprint: dict, params: list[torch.Tensor], optimizer, scheduler
                 ) -> tuple[int, dict[str, list[float]] | None, bool]:
         """Load ``stage``'s state into ``params`` / ``optimizer`` / ``scheduler`` when its file
-        matches ``fingerprint``; returns ``(steps done, history, whether the stage had ended)``
-        (``(0, None, False)``: start afresh)."""
+        holds a valid state of the problem ``fingerprint`` describes; returns ``(steps done,
+        history, whether the stage had ended)`` (``(0, None, False)``: start afresh, with a warning
+        naming the file when one was there but unusable)."""
         file = self.path(stage)
+        with suppress(OSError):  # what a kill mid-write left (the checkpoint itself is whole)
+            _tmp(file).unlink(missing_ok=True)
         if not file.is_file():
             return 0, None, False
-        state = torch.load(file, weights_only=False)
-        if state.get("fingerprint") != fingerprint:
-            message = f"checkpoint {file} was made for another problem; starting {stage!r} afresh"
-            log.warning(message)
-            warnings.warn(message, stacklevel=3)
+        try:
+            with warnings.catch_warnings():  # torch's own notes on odd files: the one warning below says it all
+                warnings.simplefilter("ignore")
+                state = torch.load(file, map_location="cpu", weights_only=True)
+            problem = _check_state(state, fingerprint, params)
+        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, the stage starts afresh
+            problem = _unreadable(file, exc)
+        if problem is None:
+            problem = _load_state(state, params, optimizer, scheduler)
+        if problem is not None:
+            _warn(f"checkpoint {file} is not used: {problem}; starting {stage!r} afresh")
             return 0, None, False
-        with torch.no_grad():
-            for p, saved in zip(params, state["params"]):
-                p.copy_(saved)
-        optimizer.load_state_dict(state["optimizer"])
-        if scheduler is not None:
-            scheduler.load_state_dict(state["scheduler"])
         log.info("resumed %r from %s at step %d", stage, file, state["step"])
         return int(state["step"]), state["history"], bool(state["done"])
 
     def save(self, stage: str, fingerprint: dict, step: int, params: list[torch.Tensor], optimizer, scheduler,
              history: dict[str, list[float]], done: bool) -> bool:
         """Write the state after ``step`` steps when ``step`` is a multiple of ``every`` or ``done``;
-        returns whether it wrote."""
+        returns whether it wrote (``False`` also when the write failed, with a warning)."""
         if not done and step % self.every:
             return False
         file = self.path(stage)
-        self.directory.mkdir(parents=True, exist_ok=True)
-        tmp = file.with_suffix(".tmp")
-        torch.save({"fingerprint": fingerprint, "step": step, "done": done,
-                    "params": [p.detach().clone() for p in params], "optimizer": optimizer.state_dict(),
-                    "scheduler": None if scheduler is None else scheduler.state_dict(), "history": history}, tmp)
-        tmp.replace(file)
+        tmp = _tmp(file)
+        state = {"fingerprint": fingerprint, "step": step, "done": done,
+                 "params": [p.detach().clone() for p in params], "optimizer": optimizer.state_dict(),
+                 "scheduler": None if scheduler is None else scheduler.state_dict(), "history": history}
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            with open(tmp, "wb") as stream:
+                torch.save(state, stream)
+                stream.flush()
+                os.fsync(stream.fileno())
+            os.replace(tmp, file)
+        except (OSError, RuntimeError) as exc:  # torch.save reports a full disk as a RuntimeError
+            with suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            if file not in self._failed:  # once per file: a full disk stays full
+                self._failed.add(file)
+                _warn(f"checkpoint {file} could not be written ({type(exc).__name__}: "
+                      f"{' '.join(str(exc).split())[:200]}); the solve goes on, a rerun resumes from the "
+                      "previous checkpoint (if any)")
+            return False
         return True
+
+
+def _tmp(file: Path) -> Path:
+    """Where ``file`` is written before it is renamed into place."""
+    return file.with_name(file.name + ".tmp")
+
+
+def _check_state(state, fingerprint: dict, params: list[torch.Tensor]) -> str | None:
+    """What makes ``state`` (a loaded checkpoint) unusable for ``params`` of the problem
+    ``fingerprint`` (which holds ``iterations`` and the loss ``terms``), or ``None`` when it fits."""
+    if not isinstance(state, dict) or set(state) != FIELDS:
+        keys = sorted(map(str, state)) if isinstance(state, dict) else type(state).__name__
+        return f"it is not a dipnet checkpoint (fields {keys})"
+    if state["fingerprint"] != fingerprint:
+        return "it was made for another problem (grid, operator, measured data or solver settings differ)"
+    saved, step, history = state["params"], state["step"], state["history"]
+    if not (isinstance(saved, list) and len(saved) == len(params) and all(
+            isinstance(s, torch.Tensor) and s.shape == p.shape and s.dtype == p.dtype
+            for s, p in zip(saved, params))):
+        return "its parameters do not match the solver's (number, shapes or dtypes)"
+    if type(step) is not int or not 0 < step <= fingerprint["iterations"] or type(state["done"]) is not bool:
+        return f"its step count {step!r} is out of range"
+    if not (isinstance(history, dict) and list(history) == list(fingerprint["terms"])
+            and all(isinstance(v, list) and len(v) == step for v in history.values())):
+        return "its loss history does not match its step count and terms"
+    if not isinstance(state["optimizer"], dict):
+        return "it holds no optimiser state"
+    return None
+
+
+def _unreadable(file: Path, exc: Exception) -> str:
+    """Why checkpoint ``file`` could not be loaded (``exc``), in a few words."""
+    if file.stat().st_size == 0:
+        return "it is empty"
+    if isinstance(exc, pickle.UnpicklingError) and "weights_only" in str(exc):
+        return ("it is damaged or holds more than tensors, numbers, strings, lists and dicts (left unread: "
+                "unpickling it could run code)")
+    first = " ".join(next((line for line in str(exc).splitlines() if line.strip()), "").split())[:200]
+    return f"it is damaged or truncated ({type(exc).__name__}{': ' + first if first else ''})"
+
+
+def _load_state(state: dict, params: list[torch.Tensor], optimizer, scheduler) -> str | None:
+    """Put a checked ``state`` into ``params``, ``optimizer`` and ``scheduler``; on failure put
+    back what was there and say why."""
+    before = ([p.detach().clone() for p in params], optimizer.state_dict(),
+              None if scheduler is None else scheduler.state_dict())
+    try:
+        _put(state["params"], state["optimizer"], state["scheduler"], params, optimizer, scheduler)
+    except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as exc:
+        _put(*before, params, optimizer, scheduler)
+        return f"its optimiser state does not fit ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})"
+    return None
+
+
+def _put(values: list[torch.Tensor], optimizer_state: dict, scheduler_state: dict | None,
+         params: list[torch.Tensor], optimizer, scheduler) -> None:
+    with torch.no_grad():
+        for p, value in zip(params, values):
+            p.copy_(value)
+    optimizer.load_state_dict(optimizer_state)
+    if scheduler is not None:
+        if not isinstance(scheduler_state, dict):
+            raise TypeError("no scheduler state")
+        scheduler.load_state_dict(scheduler_state)
+
+
+def _warn(message: str) -> None:
+    log.warning("%s", message)
+    warnings.warn(message, stacklevel=4)
 
 
 def attach_checkpoint(solver, setting, run_dir: str | Path, every: int = 25) -> Checkpoint | None:

@@ -67,10 +67,18 @@ def run_hydra(main: Callable[[], Any]) -> Any:
     Hydra reports its own errors (unknown config choice, bad override, missing config) in
     several lines and exits 1 unless ``HYDRA_FULL_ERROR`` is set, in which case it re-raises
     them: we set it, so they arrive here as exceptions and become the one-line error.
+
+    A log handler that cannot write (the log file's disk is full) stays quiet instead of printing
+    a traceback per record (``logging.raiseExceptions``), so the one line that says what happened
+    (e.g. a scan's safe stop) is not buried.
     """
     os.environ.setdefault("HYDRA_FULL_ERROR", "1")
-    with user_errors():
-        return main()
+    raise_exceptions, logging.raiseExceptions = logging.raiseExceptions, False
+    try:
+        with user_errors():
+            return main()
+    finally:
+        logging.raiseExceptions = raise_exceptions
 
 
 def require_options(cfg: DictConfig) -> None:

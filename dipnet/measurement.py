@@ -85,12 +85,19 @@ class DipMeasurement:
             raise MeasurementFileError(f"offsets must have shape ({d.shape[0]},), got {tuple(o.shape)}")
         if not np.isfinite(self.slab_thickness) or self.slab_thickness <= 0:
             raise MeasurementFileError(f"slab_thickness must be a positive number of mm, got {self.slab_thickness}")
-        if not torch.isfinite(p).all() or not torch.isfinite(d).all() or not torch.isfinite(o).all():
-            raise MeasurementFileError("measurement holds NaN or infinite values")
-        if (d.norm(dim=1) < 1e-9).any():
-            raise MeasurementFileError("directions contain a zero vector")
         if self.sigma is not None and self.sigma.shape != p.shape:
             raise MeasurementFileError(f"sigma must have the profiles' shape {tuple(p.shape)}")
+        arrays = {"profiles": p, "directions": d, "offsets": o, "sigma": self.sigma}
+        for name, values in arrays.items():
+            bad = 0 if values is None else int((~torch.isfinite(values)).sum())
+            if bad:
+                raise MeasurementFileError(f"measurement array {name!r} holds {bad} NaN or infinite value(s) "
+                                           f"of {values.numel()}")
+        if (d.norm(dim=1) < 1e-9).any():
+            raise MeasurementFileError("directions contain a zero vector")
+        if self.sigma is not None and (self.sigma < 0).any():
+            raise MeasurementFileError(f"measurement array 'sigma' holds {int((self.sigma < 0).sum())} negative "
+                                       "value(s): noise standard deviations are >= 0")
 
     def volume_estimate(self) -> float:
         """Object volume (mm^3): the median over orientations of each profile's sum."""

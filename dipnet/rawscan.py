@@ -39,7 +39,6 @@ line raises :class:`RawScanFileError` naming the file and the line number.
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import os
@@ -54,6 +53,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from dipnet.locks import HeldLock, LockHeld
 from dipnet.orientations import rig_to_direction
 
 log = logging.getLogger(__name__)
@@ -153,10 +153,12 @@ class ScanHeader:
             raise ValueError(f"quantity {self.quantity!r} does not match the recording sensor's "
                              f"quantity {measured!r} (config.sensor)")
 
-    def compatible_with(self, other: "ScanHeader") -> bool:
-        """Whether a scan with header ``other`` may be appended to one with this header."""
+    def differences(self, other: "ScanHeader") -> list[str]:
+        """The fields that forbid appending a scan with header ``other`` to one with this header,
+        as ``"field <this value> -> <other value>"`` (empty: compatible)."""
         keys = ("quantity", "ndim", "tank_cross_section_mm2", "step_mm", "density_g_per_mm3", "t_start_mm")
-        return all(getattr(self, k) == getattr(other, k) for k in keys)
+        return [f"{k} {getattr(self, k)!r} -> {getattr(other, k)!r}" for k in keys
+                if getattr(self, k) != getattr(other, k)]
 
 
 @dataclass
@@ -293,8 +295,9 @@ class RawScanWriter:
             ``FileExistsError``).
         fsync: call ``os.fsync`` after every line (survives power loss, slower).
 
-    The file is locked (``fcntl.flock``, exclusive, non-blocking) from opening to :meth:`close`:
-    a second writer on the same file fails at once with :class:`RawScanLocked`. Every record is
+    The file is locked (:class:`dipnet.locks.HeldLock` on ``.<name>.lock``, exclusive, non-blocking,
+    on every OS) from opening to :meth:`close`: a second writer on the same file fails at once with
+    :class:`RawScanLocked` naming the holder. Every record is
     one ``os.write`` on a file opened with ``O_APPEND``, so even a writer that ignores the lock
     cannot interleave fragments of records.
 
@@ -315,13 +318,17 @@ class RawScanWriter:
         existed = self.path.exists()
         if existed and not resume and not overwrite:
             raise FileExistsError(f"{self.path} exists: pass resume=True to continue it or overwrite=True")
-        self._fd: int | None = _open_locked(self.path)
+        self._fd: int | None = None
+        self._lock = _lock_scan(self.path)
         try:
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | getattr(os, "O_BINARY", 0), 0o644)
             if existed and resume and os.fstat(self._fd).st_size > 0:
                 self.scan = read_rawscan(self.path)
-                if not self.scan.header.compatible_with(header):
-                    raise RawScanFileError(f"{self.path}: cannot resume, the stored header "
-                                           f"{self.scan.header.to_json()} differs from {header.to_json()}")
+                differences = self.scan.header.differences(header)
+                if differences:
+                    raise RawScanFileError(f"{self.path}: cannot resume, the new scan differs from the recorded "
+                                           f"one in {'; '.join(differences)} (recorded -> new): scan with the "
+                                           "recorded settings, or into another file")
                 position, prefix = _append_position(self.path)
                 os.ftruncate(self._fd, position)
                 if prefix:
@@ -370,10 +377,11 @@ class RawScanWriter:
 
     # ---------------------------------------------------------------- plumbing
     def close(self) -> None:
-        """Release the lock and close the file (idempotent)."""
+        """Close the file and release the lock (idempotent)."""
         if self._fd is not None:
-            os.close(self._fd)  # closing the descriptor releases the flock
+            os.close(self._fd)
             self._fd = None
+        self._lock.release()
 
     def __enter__(self) -> "RawScanWriter":
         return self
@@ -398,17 +406,13 @@ class RawScanLocked(RawScanFileError):
     """Another writer (a second scan) holds the raw scan file."""
 
 
-def _open_locked(path: Path) -> int:
-    """Open ``path`` for appending (created if missing) and lock it exclusively, or raise
-    :class:`RawScanLocked` at once."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+def _lock_scan(path: Path) -> HeldLock:
+    """Lock ``path`` exclusively (lock file ``.<name>.lock`` beside it), or raise :class:`RawScanLocked` at once."""
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(fd)
-        raise RawScanLocked(f"{path} is being written by another scan (it is locked): wait for that scan to "
+        return HeldLock(path.with_name(f".{path.name}.lock"))
+    except LockHeld as exc:
+        raise RawScanLocked(f"{path} is being written by another scan ({exc}): wait for that scan to "
                             f"finish or stop it, or choose another name") from None
-    return fd
 
 
 def _write_all(fd: int, data: bytes) -> None:

@@ -4,7 +4,8 @@
     python scripts/reconstruct.py solver=implicit n_dips=41
     python scripts/reconstruct.py -m solver=minnorm,voxel n_dips=41,123
 
-Outputs (mesh, volume, measurement, metrics.json, figures) go to the Hydra run directory.
+Outputs (mesh, volume, measurement, metrics.json, figures) go to the Hydra run directory. A second
+job into a directory in use (same ``hydra.run.dir``) is refused with exit code 2 before it writes.
 """
 
 from __future__ import annotations
@@ -20,9 +21,16 @@ from omegaconf import DictConfig
 
 from dipnet.cli import require_options, run_hydra, user_errors
 from dipnet.experiments import guarded_job
-from dipnet.pipeline import run
+from dipnet.locks import run_directory_lock
+from dipnet.pipeline import JobResult, run
 
 log = logging.getLogger("dipnet")
+
+
+def locked_run(cfg: DictConfig, out: Path) -> JobResult:
+    """:func:`dipnet.pipeline.run` holding ``out``, so a second job into the same directory is refused."""
+    with run_directory_lock(out):
+        return run(cfg, out)
 
 
 @hydra.main(version_base="1.3", config_path="pkg://dipnet.conf", config_name="config")
@@ -30,10 +38,10 @@ def main(cfg: DictConfig) -> float | None:
     out = Path(HydraConfig.get().runtime.output_dir)
     if HydraConfig.get().mode == RunMode.MULTIRUN:
         # a failed job writes error.txt and returns None (Optuna: failed trial); the sweep goes on
-        return guarded_job(lambda: run(cfg, out).metrics.get("chamfer"), out)
+        return guarded_job(lambda: locked_run(cfg, out).metrics.get("chamfer"), out)
     with user_errors():
         require_options(cfg)
-        result = run(cfg, out)
+        result = locked_run(cfg, out)
     log.info("outputs written to %s", out)
     return result.metrics.get("chamfer")
 

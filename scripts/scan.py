@@ -9,8 +9,9 @@ The raw scan goes to ``scans/<name>/rawscan.jsonl`` (appended and flushed readin
 Run the same command again to resume after the last complete orientation. On a fault, Ctrl-C,
 SIGTERM or SIGHUP the runner stops the motion and lifts the object only to a position the
 controller confirms (see :mod:`dipnet.rig.runner`); the script exits with code 3 and a one-line
-message saying what happened and what to do. A scan file or port in use by another scan, or a
-rig config that does not fit the board, exits with code 2 (``error: ...``) before anything moves.
+message saying what happened and what to do. A scan directory, scan file or port in use by another
+scan, or a rig config that does not fit the board, exits with code 2 (``error: ...``) before
+anything moves.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from dipnet.cli import run_hydra, user_errors
-from dipnet.cli import user_errors
+from dipnet.locks import run_directory_lock
 from dipnet.rig.adaptive import adaptive_scan_from_config
 from dipnet.rig.runner import ScanAborted, scan_from_config
 
@@ -34,7 +35,7 @@ log = logging.getLogger("dipnet")
 @hydra.main(version_base="1.3", config_path="pkg://dipnet.conf", config_name="scan")
 def main(cfg: DictConfig) -> None:
     path = Path(HydraConfig.get().runtime.output_dir) / "rawscan.jsonl"
-    with user_errors():
+    with user_errors(), run_directory_lock(path.parent):
         try:
             adaptive = cfg.get("planner") is not None and cfg.planner.kind == "adaptive"
             scan = adaptive_scan_from_config(cfg, path) if adaptive else scan_from_config(cfg, path)

@@ -266,3 +266,31 @@ def test_garbage_stl_names_the_file(tmp_path):
 def test_cli_errors_are_one_line_with_exit_2(tmp_path, overrides, message):
     line = _one_line_error(_cli(tmp_path, *overrides))
     assert re.match(message, line), line
+
+
+# ----------------------------------------------------------------------------- issue 22: messages
+def test_nan_sigma_in_a_measurement_names_the_file_and_the_array(tmp_path, scan_file):
+    """Before: NaN noise reached the solver; the message named neither the file nor the array."""
+    m = preprocess(read_rawscan(scan_file), grid=GRID)
+    valid = DipMeasurement(m.directions, m.profiles, m.slab_thickness, m.offsets, torch.full_like(m.profiles, 50.0))
+    with np.load(valid.save(tmp_path / "valid.npz")) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["sigma"][2, 5] = np.nan
+    path = tmp_path / "nan.npz"
+    np.savez(path, **arrays)
+    line = _one_line_error(_cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
+    assert line == (f"error: {path}: measurement array 'sigma' holds 1 NaN or infinite value(s) of "
+                    f"{m.profiles.numel()}"), line
+
+
+@pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16"])
+def test_csv_saved_by_a_spreadsheet_is_read_as_the_original(tmp_path, encoding):
+    """Before: the byte-order mark spreadsheet programs write first was refused as a header "���SN,..."."""
+    path = tmp_path / "cats.csv"
+    path.write_bytes(CATS_CSV.read_text().replace("\n", "\r\n").encode(encoding))
+    proc = _cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=360", "resolution=16",
+                "+source.reader.t_start=centroid", "+source.reader.truncated=keep", "output.figures=false",
+                "output.uncertainty=false", "output.resolvability=false")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    original = read_recorded(str(CATS_CSV), CATS_GRID, t_start="centroid", truncated="keep")
+    torch.testing.assert_close(DipMeasurement.load(tmp_path / "run" / "measurement.npz").profiles, original.profiles)

@@ -209,7 +209,14 @@ NPZ_MUTATIONS: dict[str, Callable[[dict, np.random.Generator], dict]] = {
     "missing_key": lambda a, r: {k: v for k, v in a.items() if k != sorted(a)[int(r.integers(len(a)))]},
     "bad_metadata": lambda a, r: {**a, "metadata": np.array("{not json")},
     "duplicated_rows": lambda a, r: {**a, "directions": np.repeat(a["directions"][:1], len(a["directions"]), 0)},
+    "nan_sigma": lambda a, r: {**a, "sigma": np.where(r.random(a["sigma"].shape) < 0.1, np.nan, a["sigma"])},
+    "inf_sigma": lambda a, r: {**a, "sigma": np.full_like(a["sigma"], np.inf)},
+    "negative_sigma": lambda a, r: {**a, "sigma": -a["sigma"]},
 }
+#: Mutations that must be refused, and the array the message must name (``None``: any message).
+NPZ_REFUSED = {"nan": "profiles", "inf": "offsets", "huge": None, "negative": None, "wrong_type": None,
+               "wrong_shape": None, "bad_metadata": None, "nan_sigma": "sigma", "inf_sigma": "sigma",
+               "negative_sigma": "sigma"}
 
 
 def _check(reader: Reader, path: Path) -> str:
@@ -277,9 +284,13 @@ def test_npz_array_mutations(mutation, samples, tmp_path):
     rng = np.random.default_rng(sorted(NPZ_MUTATIONS).index(mutation))
     path = tmp_path / "case.npz"
     np.savez(path, **NPZ_MUTATIONS[mutation](arrays, rng))
+    assert "sigma" in arrays  # the sample carries its noise
     outcome = _check(READERS[2], path)
-    if mutation in ("nan", "inf", "huge", "negative", "wrong_type", "wrong_shape", "bad_metadata"):
+    if mutation in NPZ_REFUSED:
         assert outcome == "error"
+    if NPZ_REFUSED.get(mutation):
+        with pytest.raises(ValueError, match=rf"case\.npz: measurement array '{NPZ_REFUSED[mutation]}' holds"):
+            DipMeasurement.load(path)
 
 
 def test_missing_file_names_it(tmp_path):
@@ -298,3 +309,12 @@ def test_duplicated_directions_are_reported(samples, tmp_path):
         report = validate_measurement(scaled, GRID)
     assert report.stats["duplicate_direction_pairs"] == k * (k - 1) // 2
     assert report.stats["duplicate_max_discrepancy"] == pytest.approx(0.4 / 1.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16-le", "utf-16-be"])
+def test_csv_with_a_byte_order_mark_reads_as_the_sample(encoding, samples, tmp_path):
+    """Spreadsheet programs write a byte-order mark (and CRLF line ends): the same data, not mojibake."""
+    path = tmp_path / "spreadsheet.csv"
+    bom = {"utf-8-sig": b"", "utf-16-le": b"\xff\xfe", "utf-16-be": b"\xfe\xff"}[encoding]
+    path.write_bytes(bom + samples["csv"].read_text().replace("\n", "\r\n").encode(encoding))
+    torch.testing.assert_close(_read_csv(path).profiles, _read_csv(samples["csv"]).profiles)

@@ -13,10 +13,8 @@ into machine coordinates: ``machine = sign * scale * value + offset`` per axis.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import logging
-import os
 import re
 import tempfile
 import time
@@ -26,6 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import serial
+
+from dipnet.locks import HeldLock, LockHeld
 
 log = logging.getLogger(__name__)
 
@@ -276,8 +276,9 @@ class LineChannel:
 
 class PortLock:
     """An exclusive, non-blocking lock on one port URL, held by this process until
-    :meth:`release` (``fcntl.flock`` on a lock file in ``<tmp>/dipnet-port-locks``; the kernel
-    drops it when the process dies). ``fakerig://`` URLs live inside one process and are not locked.
+    :meth:`release` (a :class:`dipnet.locks.HeldLock` in ``<tmp>/dipnet-port-locks``; the
+    operating system drops it when the process dies). ``fakerig://`` URLs live inside one process
+    and are not locked.
 
     Raises:
         PortBusy: another process holds the port.
@@ -287,29 +288,21 @@ class PortLock:
 
     def __init__(self, url: str) -> None:
         self.url = url
-        self.fd: int | None = None
+        self.lock: HeldLock | None = None
         if url.startswith("fakerig://"):
             return
-        self.directory.mkdir(parents=True, exist_ok=True)
         name = re.sub(r"[^A-Za-z0-9._-]+", "_", url).strip("_")[:80]
         self.path = self.directory / f"{name}-{hashlib.sha1(url.encode()).hexdigest()[:8]}.lock"
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 200, 0).decode("ascii", "replace").strip() or "another process"
-            os.close(fd)
-            raise PortBusy(f"port {url} is in use by {holder} (lock {self.path}): "
+            self.lock = HeldLock(self.path)
+        except LockHeld as exc:
+            raise PortBusy(f"port {url} is in use by {exc} (lock {self.path}): "
                            f"another scan is running on this rig; wait for it or stop it") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()}\n".encode("ascii"), 0)
-        self.fd = fd
 
     def release(self) -> None:
-        if self.fd is not None:
-            fcntl.flock(self.fd, fcntl.LOCK_UN)
-            os.close(self.fd)
-            self.fd = None
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
 
 
 def open_channel(url: str, terminator: bytes = b"\n", baudrate: int = 115200) -> LineChannel:

@@ -29,7 +29,9 @@ of known volume).
 
 from __future__ import annotations
 
+import codecs
 import csv
+import io
 import math
 import warnings
 from dataclasses import replace
@@ -54,10 +56,21 @@ AUTHORS_QUANTUM_MM = 0.04
 
 
 # ============================================================================ readers
+def _csv_text(path: Path) -> str:
+    """The text of a CSV file: ASCII / UTF-8, with or without the byte-order mark spreadsheet
+    programs write first (UTF-8 ``EF BB BF``, or UTF-16 as Excel's "Unicode text"); a byte that
+    does not decode shows as U+FFFD in the error messages."""
+    data = path.read_bytes()
+    if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        return data.decode("utf-16", errors="replace")
+    return data.decode("utf-8-sig", errors="replace")
+
+
 def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_TANK_MM2) -> RawScan:
     """The authors' robot CSV as a raw scan.
 
-    Rows are grouped into orientations by consecutive equal ``(R1, R2)``; ``stage_mm =
+    The file may start with a byte-order mark (spreadsheet programs write one). Rows are grouped
+    into orientations by consecutive equal ``(R1, R2)``; ``stage_mm =
     -Height_mm`` (increasing = lowered), ``values`` = water level (mm), tilt = R1, spin = R2.
     Every orientation is complete; times are unknown (the row index is stored as time).
 
@@ -68,8 +81,7 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     path = Path(path)
     if not path.is_file():
         raise RawScanFileError(f"CSV file not found: {path}")
-    with open(path, newline="", encoding="ascii", errors="replace") as fh:
-        rows = list(csv.reader(fh))
+    rows = list(csv.reader(io.StringIO(_csv_text(path), newline="")))
     if not rows or tuple(c.strip() for c in rows[0]) != AUTHORS_COLUMNS:
         raise RawScanFileError(f"{path}:1: expected the header {','.join(AUTHORS_COLUMNS)}, "
                                f"got {','.join(rows[0]) if rows else 'an empty file'}")

@@ -276,8 +276,11 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         opt = torch.optim.LBFGS(flat, lr=lr, max_iter=1, max_eval=25, history_size=20, line_search_fn="strong_wolfe",
                                 tolerance_grad=0.0, tolerance_change=0.0)
         sched = None
-    fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [tuple(p.shape) for p in flat],
-                   "target": float(data.target.double().sum())}
+    op = data.operator
+    fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [list(p.shape) for p in flat],
+                   "target": float(data.target.double().sum()), "terms": list(history),
+                   "operator": [type(op).__name__, *op.grid.shape, float(op.grid.extent), int(op.n_slabs),
+                                float(op.directions.double().sum())]}
     first, ended = 0, False
     if checkpoint is not None:
         first, saved, ended = checkpoint.restore(desc, fingerprint, flat, opt, sched)
