@@ -40,6 +40,7 @@ import torch
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
+from dipnet.options import forwards_to
 from dipnet.orientations import fibonacci_hemisphere
 from dipnet.preprocess import preprocess
 from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, complete_dips, read_rawscan
@@ -364,6 +365,7 @@ def finish_measurement(measurement: DipMeasurement, symmetry: dict | None = None
     return m
 
 
+@forwards_to(prepare_recording)
 def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *, t_start: str | float = "geometry",
                   smooth: bool = True, symmetry: dict | None = None, interpolate: dict | None = None,
                   **options) -> DipMeasurement:
