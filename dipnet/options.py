@@ -31,7 +31,7 @@ HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_conv
 MESH_FORMATS = ("ply", "stl", "obj")
 #: Options (or config groups) a source or planner does not read: ``(key, value, ignored options, why)``.
 IGNORED: tuple[tuple[str, str, tuple[str, ...], str], ...] = (
-    ("source.kind", "recorded", ("n_dips", "orientations", "snr_db", "shape"),
+    ("source.kind", "recorded", ("n_dips", "orientations", "snr_db", "shape", "reach"),
      "the recording fixes the dips, their directions, their noise and the object"),
     ("planner.kind", "adaptive", ("n_dips", "orientations"), "the planner chooses the dips: set planner.budget"),
 )

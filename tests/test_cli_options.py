@@ -47,6 +47,7 @@ def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: st
     ([*RECORDED, "planner=adaptive"], "error: planner=adaptive is ignored with source=recorded"),
     ([*RECORDED, "n_dips=40"], "error: option n_dips is ignored with source=recorded"),
     ([*RECORDED, "snr_db=20"], "error: option snr_db is ignored with source=recorded"),
+    ([*RECORDED, "reach=authors_rig"], "error: option reach is ignored with source=recorded"),
     (["planner=adaptive", "orientations=random"], "error: option orientations is ignored with planner=adaptive"),
     (["output.mesh_formats=[xyz]"], "error: output.mesh_formats must be a list of ply, stl, obj, got ['xyz']"),
     (["output.checkpoint_every=0"], "error: output.checkpoint_every must be a positive integer, got 0"),
