@@ -7,7 +7,8 @@ Every bad input (a malformed file, an out-of-range option, an unknown config cho
 * :func:`run_hydra` runs a ``@hydra.main`` function so that Hydra's composition errors reach
   :func:`user_errors` instead of Hydra's multi-line report with exit code 1;
 * :func:`require_options` names the options still ``???`` in a composed config;
-* :func:`user_errors` turns the user-error exceptions into the one line.
+* :func:`user_errors` turns the user-error exceptions into the one line;
+* :func:`interrupted` turns Ctrl-C into one line saying how to resume, and exit code 130.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 from hydra.errors import HydraException, InstantiationException
@@ -42,6 +44,12 @@ def error_message(exc: BaseException) -> str:
         return error_message(cause)
     if isinstance(exc, KeyError) and exc.args:
         return f"missing key {exc.args[0]!r}"
+    if isinstance(cause, OSError) and cause.filename and str(exc).startswith("Unable to configure handler"):
+        return (f"the run directory {Path(cause.filename).parent} is not writable (its log file "
+                f"{cause.filename}: {cause.strerror or cause}): make it writable or choose another with "
+                f"hydra.run.dir=...")
+    if isinstance(exc, OSError) and exc.filename and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
     text = str(exc).split("Config search path:")[0]  # Hydra appends its search path to composition errors
     return " ".join(text.split()) or type(exc).__name__
 
@@ -58,6 +66,20 @@ def user_errors(exit_code: int = 2) -> Iterator[None]:
         if logging.getLogger().hasHandlers():  # before Hydra set up logging the line is printed once, below
             log.error("error: %s", message)
         print(f"error: {message}", file=sys.stderr)
+        raise SystemExit(exit_code) from None
+
+
+@contextlib.contextmanager
+def interrupted(hint: Callable[[], str], exit_code: int = 130) -> Iterator[None]:
+    """Turn Ctrl-C (``KeyboardInterrupt``) into one line ``interrupted: <hint()>`` and exit
+    ``exit_code`` (130, the shell's code for SIGINT); ``hint`` says how to resume."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        message = f"interrupted: {hint()}"
+        if logging.getLogger().hasHandlers():
+            log.error("%s", message)
+        print(message, file=sys.stderr)
         raise SystemExit(exit_code) from None
 
 

@@ -26,6 +26,7 @@ from dipnet.framing import extent_around, measurement_extent
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.operators import backend_name
+from dipnet.options import ConfigError, check_config, check_grid_options, hydra_overrides
 from dipnet.reconstruction import Reconstruction
 from dipnet.resources import check_memory
 from dipnet.shapes import Shape
@@ -37,10 +38,6 @@ from dipnet.uncertainty import write_uncertainty
 from dipnet.validation import validate_measurement
 
 log = logging.getLogger(__name__)
-
-
-class ConfigError(ValueError):
-    """A configuration value is out of range or inconsistent."""
 
 
 @dataclass
@@ -56,18 +53,7 @@ class JobResult:
 def build_grid(cfg: DictConfig, shape: Shape | None = None) -> Grid:
     """The grid from ``ndim``, ``resolution`` and ``extent_mm`` (``null``: chosen around
     ``shape``, see :mod:`dipnet.framing`, or the saved measurement's slabs); clear errors on bad values."""
-    for key in ("resolution", "n_dips"):
-        value = cfg.get(key)
-        if not isinstance(value, int) or value < 1:
-            raise ConfigError(f"{key} must be a positive integer, got {value!r}")
-    if cfg.resolution < 4:
-        raise ConfigError(f"resolution must be at least 4 voxels, got {cfg.resolution}")
-    if cfg.ndim not in (2, 3):
-        raise ConfigError(f"ndim must be 2 or 3, got {cfg.ndim!r}")
-    if cfg.get("n_slabs") is not None and (not isinstance(cfg.n_slabs, int) or cfg.n_slabs < 2):
-        raise ConfigError(f"n_slabs must be an integer >= 2 or null, got {cfg.n_slabs!r}")
-    if not 0 < float(cfg.fill) <= 1:
-        raise ConfigError(f"fill must be in (0, 1], got {cfg.fill!r}")
+    check_grid_options(cfg)
     extent = cfg.extent_mm
     if extent is None and shape is not None:
         extent = extent_around(shape.radius(), int(cfg.resolution), float(cfg.fill))
@@ -75,8 +61,6 @@ def build_grid(cfg: DictConfig, shape: Shape | None = None) -> Grid:
         extent = measurement_extent(cfg.source.reader.path)
     if extent is None:
         raise ConfigError("extent_mm is needed: the recording names no shape to choose the grid around")
-    if not float(extent) > 0:
-        raise ConfigError(f"extent_mm must be positive, got {extent!r}")
     return Grid(int(cfg.resolution), int(cfg.ndim), float(extent))
 
 
@@ -108,7 +92,9 @@ def acquire(cfg: DictConfig, grid: Grid, shape: Shape | None, out: Path) -> DipM
 
 
 def run(cfg: DictConfig, out: Path) -> JobResult:
-    """Run one reconstruction job and write its outputs into ``out``."""
+    """Run one reconstruction job and write its outputs into ``out`` (every option checked first:
+    :func:`dipnet.options.check_config`)."""
+    check_config(cfg, *hydra_overrides())
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))

@@ -33,7 +33,11 @@ orientation (its earlier readings are dropped); consumers leave incomplete orien
 with a warning naming them (:func:`complete_dips`). Within an orientation the stage never moves
 back (the rig only lowers; equal positions are repeats): a reading at a lower stage than the one
 before is an error, not sorted silently. The header's ``quantity`` must agree with its
-``units`` and with ``config.sensor.quantity`` when those are recorded. Any other malformed
+``units`` and with ``config.sensor.quantity`` when those are recorded. The header's ``units``
+(dipnet writes mm, mm^2, g, s, deg) may declare other units for a field (:data:`UNITS`, e.g.
+``"units": {"stage": "in"}``): the reader converts the readings, the step, the noise and resolution
+and the cross-section to dipnet's units, and refuses a unit it does not know, naming the field
+(``t_start_mm`` and the orientations' ``meta`` stay in mm). Any other malformed
 line raises :class:`RawScanFileError` naming the file and the line number.
 """
 
@@ -46,7 +50,7 @@ import time
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +65,15 @@ log = logging.getLogger(__name__)
 FORMAT_NAME = "dipnet.rawscan"
 FORMAT_VERSION = 1
 QUANTITIES = {"level_mm": "mm", "mass_g": "g"}
+#: Units a header's ``units`` may declare, per kind, as factors to dipnet's unit (first of each).
+LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+UNITS: dict[str, dict[str, float]] = {
+    "length": LENGTH_UNITS,
+    "mass": {"g": 1.0, "kg": 1000.0},
+    "time": {"s": 1.0, "ms": 1e-3, "min": 60.0},
+    "angle": {"deg": 1.0, "rad": 180.0 / np.pi},
+    "area": {f"{unit}^2": factor ** 2 for unit, factor in LENGTH_UNITS.items()},
+}
 WATER_DENSITY_G_PER_MM3 = 1e-3
 
 
@@ -138,13 +151,47 @@ class ScanHeader:
         known = set(cls.__dataclass_fields__)
         header = cls(**{k: v for k, v in obj.items() if k in known})
         header.check_quantity(obj.get("units"))
-        return header
+        factors = header.unit_factors(obj.get("units"))
+        scaled = {name: getattr(header, name) * factors[field] for name, field in
+                  (("tank_cross_section_mm2", "tank_cross_section"), ("step_mm", "stage"),
+                   ("noise_sigma", "value"), ("resolution", "value")) if getattr(header, name) is not None}
+        return replace(header, **scaled)
+
+    def unit_kinds(self) -> dict[str, str]:
+        """The kind of unit (a key of :data:`UNITS`) of every field of :attr:`units`."""
+        return {"stage": "length", "value": "length" if self.quantity == "level_mm" else "mass", "time": "time",
+                "angles": "angle", "tank_cross_section": "area" if self.ndim == 3 else "length"}
+
+    def unit_factors(self, units: Any) -> dict[str, float]:
+        """Factors turning each field of a file's declared ``units`` into dipnet's (:attr:`units`):
+        e.g. ``{"stage": "in"}`` gives ``stage: 25.4``; an undeclared field is in dipnet's unit.
+
+        Raises:
+            ValueError: ``units`` is not an object, or declares a unit this field cannot be read in.
+        """
+        if units is None:
+            units = {}
+        if not isinstance(units, dict):
+            raise ValueError(f"units must be an object of field: unit, got {units!r}")
+        kinds = self.unit_kinds()
+        unknown = sorted(set(units) - set(kinds))
+        if unknown:
+            raise ValueError(f"units.{unknown[0]}: no such field; units are given for {', '.join(kinds)}")
+        factors = {}
+        for name, kind in kinds.items():
+            unit = units.get(name, self.units[name])
+            if unit not in UNITS[kind]:
+                raise ValueError(f"units.{name}: unknown unit {unit!r}; {name} is read in one of "
+                                 f"{', '.join(UNITS[kind])}")
+            factors[name] = UNITS[kind][unit]
+        return factors
 
     def check_quantity(self, units: dict | None = None) -> None:
         """Raise ``ValueError`` when the stored ``units`` or the sensor in ``config`` contradict
         :attr:`quantity` (e.g. ``mass_g`` over a level sensor's readings)."""
         unit = QUANTITIES[self.quantity]
-        if isinstance(units, dict) and "value" in units and units["value"] != unit:
+        kind = self.unit_kinds()["value"]
+        if isinstance(units, dict) and "value" in units and units["value"] not in UNITS[kind]:
             raise ValueError(f"quantity {self.quantity!r} is read in {unit} but the header's units say "
                              f"readings are in {units['value']!r}")
         sensor = self.config.get("sensor") if isinstance(self.config, dict) else None
@@ -239,6 +286,8 @@ class RawScan:
         sessions: one dict per rig run that wrote to the file (``session`` records: the first
             orientation it scanned, the time, the controller's and the sensor's identity read after
             connecting, e.g. the firmware version), in file order.
+        units: the units the file declared (its header's ``units``); the values in memory are
+            converted to dipnet's units (:attr:`ScanHeader.units`).
     """
 
     header: ScanHeader
@@ -246,6 +295,7 @@ class RawScan:
     truncated: bool = False
     path: Path | None = None
     sessions: list[dict[str, Any]] = field(default_factory=list)
+    units: dict[str, str] = field(default_factory=dict)
 
     def complete_orientations(self) -> list[int]:
         """Indices ``k`` of the orientations whose scan finished, in file order."""
@@ -324,6 +374,10 @@ class RawScanWriter:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | getattr(os, "O_BINARY", 0), 0o644)
             if existed and resume and os.fstat(self._fd).st_size > 0:
                 self.scan = read_rawscan(self.path)
+                declared = {**header.units, **self.scan.units}
+                if declared != header.units:
+                    raise RawScanFileError(f"{self.path}: cannot resume, the file records in the units "
+                                           f"{declared}, this scan writes {header.units}")
                 differences = self.scan.header.differences(header)
                 if differences:
                     raise RawScanFileError(f"{self.path}: cannot resume, the new scan differs from the recorded "
@@ -477,20 +531,24 @@ def read_rawscan(path: str | Path) -> RawScan:
             if scan is None:
                 if kind != "header":
                     raise ValueError(f"the first line must be the header, got type {kind!r}")
-                scan = RawScan(header=ScanHeader.from_json(obj), path=path)
+                scan = RawScan(header=ScanHeader.from_json(obj), path=path, units=dict(obj.get("units") or {}))
+                factors = scan.header.unit_factors(obj.get("units"))
             elif kind == "orientation":
                 k = int(obj["k"])
                 if k in by_k and by_k[k].complete:
                     raise ValueError(f"orientation {k} is begun again after it was completed")
-                o = OrientationScan(k=k, direction=obj.get("direction"), tilt_deg=obj.get("tilt_deg"),
-                                    spin_deg=obj.get("spin_deg"), meta=dict(obj.get("meta") or {}))
+                tilt, spin = (None if obj.get(key) is None else float(obj[key]) * factors["angles"]
+                              for key in ("tilt_deg", "spin_deg"))
+                o = OrientationScan(k=k, direction=obj.get("direction"), tilt_deg=tilt, spin_deg=spin,
+                                    meta=dict(obj.get("meta") or {}))
                 if o.direction is not None and o.direction.shape != (scan.header.ndim,):
                     raise ValueError(f"direction must have {scan.header.ndim} components")
                 scan.orientations = [x for x in scan.orientations if x.k != k] + [o]
                 by_k[k] = o
             elif kind == "reading":
                 o = _open_orientation(by_k, obj)
-                values = [float(obj[key]) for key in ("stage_mm", "value", "time_s")]
+                values = [float(obj[key]) * factors[field] for key, field in
+                          (("stage_mm", "stage"), ("value", "value"), ("time_s", "time"))]
                 if not all(np.isfinite(values)):
                     raise ValueError("reading holds a non-finite number")
                 if o.n_readings and values[0] < o.stage_mm[-1]:
@@ -529,6 +587,28 @@ def naming_file(path: str | Path) -> Iterator[None]:
         if str(path) in str(exc):
             raise
         raise RawScanFileError(f"{path}: {exc}") from exc
+
+
+#: The lowest plausible water level in mm: a tank's water stands tens to hundreds of mm high.
+MIN_LEVEL_MM = 1.0
+
+
+def check_level_unit(raw: RawScan, column: str) -> None:
+    """Raise :class:`RawScanFileError` when the water levels of ``raw`` (quantity ``level_mm``)
+    cannot be millimetres: every level below :data:`MIN_LEVEL_MM` (a level in metres, 0.19 for
+    190 mm, rising by hundredths). The message names the file, the ``column`` and the likely unit."""
+    levels = [o.values for o in raw.orientations if o.n_readings]
+    if raw.header.quantity != "level_mm" or not levels:
+        return
+    peak = float(max(np.abs(v).max() for v in levels))
+    if peak >= MIN_LEVEL_MM:
+        return
+    rise = float(max(v.max() - v.min() for v in levels))
+    quantum = raw.header.resolution
+    below = f", below the sensor resolution {quantum:g} mm" if quantum and rise < quantum else ""
+    raise RawScanFileError(f"{raw.path}: column {column}: the water levels are at most {peak:.3g} mm and rise by "
+                           f"at most {rise:.3g} mm{below}: not millimetres; they look like metres "
+                           f"({peak * 1000:.4g} mm): convert them to mm (or declare the unit)")
 
 
 def complete_dips(raw: RawScan) -> list[OrientationScan]:

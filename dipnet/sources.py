@@ -14,10 +14,12 @@ import torch
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement, MeasurementFileError
+from dipnet.options import forwards_to
 from dipnet.rawscan import naming_file
 from dipnet.rig.recorded import read_recorded as read_raw_recording
 
 
+@forwards_to(read_raw_recording)
 def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) -> DipMeasurement:
     """Read a recorded measurement for reconstruction on ``grid``.
 

@@ -19,7 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from dipnet.cli import require_options, run_hydra, user_errors
+from dipnet.cli import interrupted, require_options, run_hydra, user_errors
 from dipnet.experiments import guarded_job
 from dipnet.locks import run_directory_lock
 from dipnet.pipeline import JobResult, run
@@ -33,15 +33,25 @@ def locked_run(cfg: DictConfig, out: Path) -> JobResult:
         return run(cfg, out)
 
 
+def resume_hint(cfg: DictConfig, out: Path) -> str:
+    """How to go on after Ctrl-C: rerun into the same run directory (with a checkpoint the solve resumes)."""
+    if cfg.output.get("checkpoint"):
+        return (f"rerun the same command with hydra.run.dir={out} to resume the solve from its checkpoint "
+                f"(output.checkpoint)")
+    return (f"nothing of the solve was kept; to make a long solve resumable, run it with output.checkpoint=true "
+            f"(voxel and implicit solvers) and rerun with hydra.run.dir={out} after an interruption")
+
+
 @hydra.main(version_base="1.3", config_path="pkg://dipnet.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
     out = Path(HydraConfig.get().runtime.output_dir)
-    if HydraConfig.get().mode == RunMode.MULTIRUN:
-        # a failed job writes error.txt and returns None (Optuna: failed trial); the sweep goes on
-        return guarded_job(lambda: locked_run(cfg, out).metrics.get("chamfer"), out)
-    with user_errors():
-        require_options(cfg)
-        result = locked_run(cfg, out)
+    with interrupted(lambda: resume_hint(cfg, out)):
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            # a failed job writes error.txt and returns None (Optuna: failed trial); the sweep goes on
+            return guarded_job(lambda: locked_run(cfg, out).metrics.get("chamfer"), out)
+        with user_errors():
+            require_options(cfg)
+            result = locked_run(cfg, out)
     log.info("outputs written to %s", out)
     return result.metrics.get("chamfer")
 

@@ -294,3 +294,51 @@ def test_csv_saved_by_a_spreadsheet_is_read_as_the_original(tmp_path, encoding):
     assert proc.returncode == 0, proc.stderr[-2000:]
     original = read_recorded(str(CATS_CSV), CATS_GRID, t_start="centroid", truncated="keep")
     torch.testing.assert_close(DipMeasurement.load(tmp_path / "run" / "measurement.npz").profiles, original.profiles)
+
+
+# ----------------------------------------------------------------------------- issue 22: units
+def _in_units(rows: list[dict], stage: str, value: str, factor_stage: float, factor_value: float) -> list[dict]:
+    """The scan with its stage and level columns re-expressed (divided by the factors) and declared."""
+    rows[0]["units"].update(stage=stage, value=value)
+    rows[0]["step_mm"] /= factor_stage
+    for r in rows[1:]:
+        if r["type"] == "reading":
+            r["stage_mm"] /= factor_stage
+            r["value"] /= factor_value
+    return rows
+
+
+def _measured_volume(proc: subprocess.CompletedProcess, run_dir: Path) -> float:
+    assert proc.returncode == 0, proc.stderr
+    return json.loads((run_dir / "metrics.json").read_text())["measured_volume_mm3"]
+
+
+def test_declared_units_are_honoured(tmp_path, scan_file):
+    inches = _edit_jsonl(scan_file, tmp_path / "inches.jsonl", lambda rows: _in_units(rows, "in", "cm", 25.4, 10.0))
+    quiet = ("source=recorded", "resolution=16", "extent_mm=100", "output.figures=false", "output.uncertainty=false",
+             "output.resolvability=false", "+source.reader.t_start=metadata")
+    reference = _measured_volume(_cli(tmp_path / "mm", *quiet, f"source.reader.path={scan_file}"), tmp_path / "mm")
+    converted = _measured_volume(_cli(tmp_path / "in", *quiet, f"source.reader.path={inches}"), tmp_path / "in")
+    assert converted == pytest.approx(reference, rel=1e-9)
+    assert read_rawscan(inches).orientations[0].stage_mm == pytest.approx(read_rawscan(scan_file).orientations[0].stage_mm)
+
+
+@pytest.mark.parametrize("units,message", [
+    ({"stage": "furlong"}, r"units.stage: unknown unit 'furlong'; stage is read in one of mm, cm, m, in"),
+    ({"value": "psi"}, r"quantity 'level_mm' is read in mm but the header's units say readings are in 'psi'"),
+    ({"pressure": "Pa"}, r"units.pressure: no such field"),
+])
+def test_unknown_units_are_refused_naming_the_field(tmp_path, scan_file, units, message):
+    path = _edit_jsonl(scan_file, tmp_path / "odd.jsonl", lambda rows: [{**rows[0], "units": units}, *rows[1:]])
+    line = _one_line_error(_cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
+    assert re.search(rf"error: {re.escape(str(path))}:1: {message}", line), line
+
+
+def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path):
+    lines = CATS_CSV.read_text().splitlines()
+    metres = [lines[0]] + [",".join([*row.split(",")[:4], f"{float(row.split(',')[4]) / 1000:.5f}"]) for row in lines[1:]]
+    path = tmp_path / "cats_metres.csv"
+    path.write_text("\n".join(metres) + "\n")
+    line = _one_line_error(_cli(tmp_path / "run", "experiment=cats_real", f"source.reader.path={path}"))
+    assert line.startswith(f"error: {path}: column WaterLevel_mm: the water levels are at most 0.199 mm"), line
+    assert "below the sensor resolution 0.04 mm" in line and "look like metres (199 mm)" in line, line

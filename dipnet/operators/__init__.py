@@ -11,6 +11,7 @@ from dipnet.operators.base import DipOperator
 from dipnet.operators.fourier import FourierOperator
 from dipnet.operators.rotate_sum import RotateSumOperator
 from dipnet.operators.splat import SplatOperator
+from dipnet.options import forwards_to
 
 BACKENDS: dict[str, type[DipOperator]] = {
     "rotate_sum": RotateSumOperator,
@@ -38,6 +39,7 @@ def select_backend(grid: Grid, n_orientations: int) -> str:
     return "splat" if n_orientations * math.prod(grid.shape) <= AUTO_SPLAT_LIMIT else "fourier"
 
 
+@forwards_to(*BACKENDS.values())
 def make_operator(grid: Grid, directions: torch.Tensor, n_slabs: int | None = None,
                   backend: str = DEFAULT_BACKEND, **options) -> DipOperator:
     """Build the dip operator ``backend`` (a name in :data:`BACKENDS` or :data:`ALIASES`, or

@@ -42,9 +42,11 @@ import torch
 
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
+from dipnet.options import forwards_to
 from dipnet.orientations import fibonacci_hemisphere
 from dipnet.preprocess import preprocess
-from dipnet.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, complete_dips, read_rawscan
+from dipnet.rawscan import (OrientationScan, RawScan, RawScanFileError, ScanHeader, check_level_unit, complete_dips,
+                            read_rawscan)
 from dipnet.readings import max_object_section, repair_readings
 from dipnet.rig.calibration_file import scan_calibration
 from dipnet.rig.geometry import RigGeometry, as_geometry, invert_scan
@@ -128,11 +130,15 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
 
 
 def read_scan(path: str | Path, tank_cross_section_mm2: float | None = None) -> RawScan:
-    """A dipnet raw scan (``.jsonl``) or an authors' CSV (``.csv``) as a :class:`RawScan`."""
+    """A dipnet raw scan (``.jsonl``) or an authors' CSV (``.csv``) as a :class:`RawScan`; water levels
+    that cannot be mm are refused (:func:`dipnet.rawscan.check_level_unit`)."""
     path = Path(path)
     if path.suffix.lower() == ".csv":
-        return read_authors_csv(path, tank_cross_section_mm2 or AUTHORS_TANK_MM2)
+        raw = read_authors_csv(path, tank_cross_section_mm2 or AUTHORS_TANK_MM2)
+        check_level_unit(raw, AUTHORS_COLUMNS[4])
+        return raw
     raw = read_rawscan(path)
+    check_level_unit(raw, "value (of the reading lines)")
     if tank_cross_section_mm2 is not None:
         raw.header = replace(raw.header, tank_cross_section_mm2=float(tank_cross_section_mm2))
     return raw
@@ -376,6 +382,7 @@ def finish_measurement(measurement: DipMeasurement, symmetry: dict | None = None
     return m
 
 
+@forwards_to(prepare_recording)
 def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *, t_start: str | float = "geometry",
                   smooth: bool = False, symmetry: dict | None = None, interpolate: dict | None = None,
                   **options) -> DipMeasurement:

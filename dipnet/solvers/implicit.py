@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.operators import DipOperator
+from dipnet.options import forwards_to
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.fields import OccupancyField
 from dipnet.solvers.optimize import OptimisationSolver, plain, seeded
@@ -62,6 +63,7 @@ class ImplicitSolver(OptimisationSolver):
 
     name = "implicit"
 
+    @forwards_to(OptimisationSolver)
     def __init__(self, encoding: Mapping | None = None, hidden_width: int = 64, hidden_layers: int = 2,
                  symmetry: Mapping | None = None, output_upsample: int = 1, warm_iterations: int = 100,
                  **options) -> None:

@@ -68,6 +68,7 @@ from skimage.filters import threshold_otsu
 from tqdm.auto import tqdm
 
 from dipnet.measurement import DipMeasurement
+from dipnet.options import forwards_to
 from dipnet.operators import SPLAT_MATRIX_BACKENDS, DipOperator, backend_name, make_operator
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
@@ -268,6 +269,7 @@ class LSQRSolver(MinNormSolver):
 
     name = "lsqr"
 
+    @forwards_to(MinNormSolver)
     def __init__(self, **options) -> None:
         super().__init__(method="lsqr", **options)
 
@@ -277,5 +279,6 @@ class LSMRSolver(MinNormSolver):
 
     name = "lsmr"
 
+    @forwards_to(MinNormSolver)
     def __init__(self, **options) -> None:
         super().__init__(method="lsmr", **options)

@@ -27,6 +27,7 @@ from torch import nn
 from dipnet.grid import Grid
 from dipnet.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
+from dipnet.options import forwards_to
 from dipnet.reconstruction import Reconstruction
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, seeded
 
@@ -58,6 +59,7 @@ class VoxelSolver(OptimisationSolver):
 
     name = "voxel"
 
+    @forwards_to(OptimisationSolver)
     def __init__(self, temperature_start: float = 1.0, temperature_end: float = 0.25, coarse_to_fine: bool = True,
                  coarse_fraction: float = 0.3, **options) -> None:
         options.setdefault("iterations", 400)
