@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+from dipnet.shapes.base import Shape
 
 SPLAT_CACHE_BYTES = 1 << 29
 CHUNK_PAIRS = 1 << 22
@@ -161,7 +162,9 @@ def check_simulation(shape, n_dips: int, readings_per_dip: int, step_mm: float,
     :func:`available_memory`); returns the estimate. The message gives the object's size, the
     readings and the fix (the object's units, or a coarser step)."""
     k, n = int(n_dips), int(readings_per_dip)
-    estimate = MemoryEstimate({"dip solver": n * float(shape.dip_bytes_per_reading()), "raw scan": 24.0 * k * n})
+    per_reading = getattr(shape, "dip_bytes_per_reading", None)  # duck-typed shapes: the Shape default
+    per_reading = float(per_reading()) if per_reading is not None else Shape.dip_bytes_per_reading(shape)
+    estimate = MemoryEstimate({"dip solver": n * per_reading, "raw scan": 24.0 * k * n})
     available = available_memory() if available is None else available
     too_long = n > MAX_READINGS_PER_DIP
     if too_long or (available is not None and estimate.total > available):

@@ -138,7 +138,7 @@ def load_mesh(
         why = "corrupt, or not a mesh format trimesh reads" if isinstance(err, ImportError) else err
         raise ShapeError(f"cannot read mesh file {path}: {why}") from err
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ShapeError(f"mesh file {path} contains no triangles")
+        raise ShapeError(f"mesh file {path}: corrupt, or not a mesh format trimesh reads (no triangles in it)")
     if not np.isfinite(mesh.vertices).all() or mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices):
         raise ShapeError(f"mesh file {path} holds non-finite vertices or face indices out of range")
     return from_trimesh(
