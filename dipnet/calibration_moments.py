@@ -59,7 +59,7 @@ MOMENT_PARAMETERS = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_z
 SEARCH = {"tilt_zero_deg": (6.0, 0.5), "spin_zero_deg": (6.0, 1.0), "step_scale": (0.05, 0.005)}
 #: A parameter is determined when the half-width of its 90% interval is below this.
 TOLERANCE = {"pivot_mm": 2.5, "tilt_axis_offset_mm": 1.5, "tilt_zero_deg": 0.5, "spin_zero_deg": 0.5,
-             "step_scale": 0.005, "t0_mm": 1.0, "cross_section_mm2": 0.03, "level_drift_mm_per_s": 2e-5}
+             "step_scale": 0.005, "t0_mm": 1.0, "cross_section_mm2": 0.05, "level_drift_mm_per_s": 2e-5}
 GAUGE_REASONS = {
     ("self", "spin_zero_deg"): "the object's own rotation about the spin axis absorbs it: no dip of an unknown "
                                "object can show it (calibrate it with a reference object off the spin axis)",
@@ -234,6 +234,7 @@ class MomentFit:
         free: the parameters that were fitted.
         residual_rms: ``(first, second)`` RMS of the moment residuals (mm, mm^2).
         centroid, covariance: the object's fitted (or known) moments.
+        start: the configured values the search is centred on.
         intervals: parameter -> (5th, 95th) bootstrap percentile.
         bootstrap_sd: parameter -> bootstrap standard deviation.
         profile_rise: nonlinear parameter -> the least rise of the whitened misfit (chi^2 units)
@@ -250,12 +251,18 @@ class MomentFit:
     bootstrap_sd: dict[str, float] = field(default_factory=dict)
     profile_rise: dict[str, float] = field(default_factory=dict)
     correlations: dict[str, dict[str, float]] = field(default_factory=dict)
+    start: dict[str, float] = field(default_factory=dict)
 
     def undetermined(self, kind: str) -> dict[str, str]:
         """Free parameter -> why the dips do not determine it to its :data:`TOLERANCE` (``kind``:
         ``"self"`` or ``"ball"``, for the named degeneracies of :data:`GAUGE_REASONS`)."""
         out = {}
         for name in self.free:
+            if name in SEARCH and abs(self.values[name] - self.start[name]) >= 2 * SEARCH[name][0] - 1e-6:
+                out[name] = (f"the estimate reached the edge of the search range ({self.start[name]:g} "
+                             f"+- {2 * SEARCH[name][0]:g}): the rig is outside the calibrated range, or the dips are "
+                             "not of one rigid object")
+                continue
             rise = self.profile_rise.get(name)
             low, high = self.intervals.get(name, (self.values[name], self.values[name]))
             half = 0.5 * (high - low)
@@ -347,7 +354,7 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
     model.weights = _group_scales(model, start)  # each condition in units of its own misfit
     best = _refine(model, nonlinear, start, fixed)
     r1, r2, lin, centroid, cov = model.solve(best)
-    fit = MomentFit(values={**fixed, **best, **lin}, free=tuple(free),
+    fit = MomentFit(values={**fixed, **best, **lin}, free=tuple(free), start=dict(fixed),
                     residual_rms=(float(np.sqrt(np.mean(r1**2))), float(np.sqrt(np.mean(r2**2)))),
                     centroid=centroid, covariance=cov)
     cost = float(np.sum(model.residual(best) ** 2))
@@ -376,7 +383,8 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
             fit.bootstrap_sd[p] = float(xs.std(ddof=1))
             fit.intervals[p] = (float(np.percentile(xs, 5)), float(np.percentile(xs, 95)))
         if len(free) > 1:
-            corr = np.corrcoef(np.asarray([draws[p] for p in free]))
+            with np.errstate(invalid="ignore", divide="ignore"):  # a parameter at its bound does not vary
+                corr = np.nan_to_num(np.corrcoef(np.asarray([draws[p] for p in free])))
             fit.correlations = {p: {q: float(corr[i, j]) for j, q in enumerate(free) if j != i}
                                 for i, p in enumerate(free)}
     return fit

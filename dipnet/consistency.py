@@ -12,9 +12,16 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   being a robust mean (:func:`robust_volume`) of every profile's total, with
   ``volume_ratio_noise`` the relative spread of that mean.
 
+* ``height_trend_pivot_mm``, ``height_trend_offset_mm``: what a wrong rig geometry leaves in
+  the data whatever the reconstruction (:func:`height_trend`): every dip's centroid must be
+  ``c . theta`` for one object centroid ``c``; a trend of the centroids with the tilt ``r`` as
+  ``a (cos r - 1) + b sin r`` is the signature of a pivot missing from the rig's geometry by
+  ``-a`` and a tilt-axis offset missing by ``-b`` (mm), which the two fields hold.
+
 The verdict is ``"consistent"`` unless the residual exceeds ``residual_factor`` times what
-the noise explains (and the discretisation floor ``residual_floor``), or the volume ratio
-is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger). Each
+the noise explains (and the discretisation floor ``residual_floor``), the volume ratio
+is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger), or the
+height trend exceeds half a slab and 3 of its standard errors. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
 """
@@ -67,6 +74,9 @@ class Consistency:
     volume_ratio_noise: float
     volume_limit: float
     grid_volume_fraction: float
+    height_trend_pivot_mm: float = float("nan")
+    height_trend_offset_mm: float = float("nan")
+    height_trend_limit_mm: float = float("nan")
     verdict: str = "consistent"
     warnings: list[str] = field(default_factory=list)
 
@@ -103,6 +113,38 @@ def estimate_slab_sigma(profiles: torch.Tensor) -> float:
     p = profiles.double().numpy()
     high = p[:, 1:-1] - 0.25 * (p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:])
     return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
+
+
+def height_trend(measurement: DipMeasurement) -> tuple[float, float, float]:
+    """``(-a, -b, limit)`` mm: the dips' centroids fitted as ``c . theta + a (cos r - 1) + b sin r``
+    (``r`` the tilt from the z axis): the pivot and tilt-axis offset the rig geometry misses
+    (:meth:`~dipnet.rig.geometry.RigGeometry.height_shift`), and the size a trend must exceed to
+    be reported: half a slab or 3 standard errors, whichever is larger. NaNs in 2D, with fewer
+    than 8 dips, when the directions cannot separate the trend from the centroid (one tilt, one
+    spin), or when some profiles are not measured whole dips (truncated dips kept, symmetry
+    images, interpolated directions: their centroids are not the object's).
+    """
+    meta = measurement.metadata or {}
+    if (meta.get("recorded") or {}).get("truncated") or "symmetry_group_order" in meta \
+            or meta.get("interpolated_orientations"):
+        return float("nan"), float("nan"), float("nan")
+    d = measurement.directions.double().numpy()
+    p = measurement.profiles.double().numpy()
+    totals = p.sum(1)
+    if d.shape[1] != 3 or len(d) < 8 or not (totals > 0).all():
+        return float("nan"), float("nan"), float("nan")
+    h = measurement.slab_thickness
+    centres = measurement.offsets.double().numpy()[:, None] + h * (np.arange(p.shape[1]) + 0.5)[None, :]
+    centroid = (p * centres).sum(1) / totals
+    r = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
+    design = np.column_stack([d, np.cos(r) - 1.0, np.sin(r)])
+    if np.linalg.matrix_rank(design, tol=1e-6) < design.shape[1]:
+        return float("nan"), float("nan"), float("nan")
+    coef, *_ = np.linalg.lstsq(design, centroid, rcond=None)
+    residual = centroid - design @ coef
+    s2 = float(residual @ residual) / max(1, len(d) - design.shape[1])
+    se = np.sqrt(s2 * np.diag(np.linalg.inv(design.T @ design)))
+    return float(-coef[3]), float(-coef[4]), float(max(0.5 * h, 3 * se[3], 3 * se[4]))
 
 
 def _relative_residual(operator: DipOperator, volume: torch.Tensor, target: torch.Tensor) -> float:
@@ -151,6 +193,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         continuous_volume_mm3=float((occupancy.double() * mask).sum()) * voxel,
         volume_ratio=recon_volume / measured, volume_ratio_noise=spread / measured,
         volume_limit=max(volume_tol, 3 * spread / measured), grid_volume_fraction=on_grid / measured)
+    result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
     result.warnings = _findings(result)
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
@@ -174,6 +217,12 @@ def _findings(c: Consistency) -> list[str]:
         out.append(f"the binary shape misses its data: relative profile residual {c.profile_residual:.3f} "
                    f"(occupancy: {c.profile_residual_continuous:.3f}), noise explains "
                    f"{c.profile_residual_expected:.3f} ({c.noise_source})")
+    trend = max(abs(c.height_trend_pivot_mm), abs(c.height_trend_offset_mm))
+    if trend > c.height_trend_limit_mm:  # NaN compares False
+        out.append(f"the dips' heights trend with their tilt as a wrong rig geometry leaves them: the pivot looks "
+                   f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by {c.height_trend_offset_mm:+.2f}"
+                   f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
+                   "scripts/calibrate.py)")
     if abs(c.volume_ratio - 1) > c.volume_limit:
         out.append(f"the reconstruction holds {c.reconstructed_volume_mm3:.4g} mm^3, the dips measure "
                    f"{c.measured_volume_mm3:.4g} mm^3 (ratio {c.volume_ratio:.3f}, noise explains "

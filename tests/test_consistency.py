@@ -141,3 +141,30 @@ def test_an_object_beyond_the_grid_and_an_empty_measurement_are_named(problem):
                            measurement.slab_thickness, measurement.offsets)
     with pytest.raises(ValueError, match="no volume"):
         check_consistency(empty, operator, Reconstruction(occupancy=ball.float(), grid=GRID))
+
+
+def test_a_wrong_rig_geometry_is_seen_in_the_dips_heights():
+    """Pivot 8 mm and tilt-axis offset -5 mm that the reader does not know: the dips' centroids trend with
+    the tilt as (1 - cos r) and sin r; the check names both errors, and is silent once the geometry is right."""
+    from dipnet.consistency import height_trend
+    from dipnet.orientations import fibonacci_hemisphere
+    from dipnet.physics import LevelSensor, Tank, simulate_scan
+    from dipnet.preprocess import preprocess
+    from dipnet.rig.geometry import RigGeometry, invert_scan
+    from dipnet.shapes import Box
+
+    true = RigGeometry(pivot_mm=8.0, tilt_axis_offset_mm=-5.0)
+    raw = simulate_scan(Box((20.0, 12.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(60), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=30.0), progress=False)
+    grid = Grid(32, extent=100.0)
+    nominal = preprocess(raw, grid=grid, t_start="metadata")
+    pivot, offset, limit = height_trend(nominal)
+    assert pivot == pytest.approx(8.0, abs=0.3) and offset == pytest.approx(-5.0, abs=0.3) and limit < 2.0
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    operator = make_operator(grid, nominal.directions, grid.n)
+    with pytest.warns(DataConsistencyWarning, match="the pivot looks off by .* and the tilt-axis offset by"):
+        result = check_consistency(nominal, operator, MinNormSolver(progress=False).solve(nominal, operator))
+    assert result.verdict == "inconsistent"
+    pivot, offset, limit = height_trend(preprocess(invert_scan(raw, true), grid=grid, t_start="metadata"))
+    assert max(abs(pivot), abs(offset)) < limit
