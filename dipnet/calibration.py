@@ -416,11 +416,11 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
-    ``"ball"`` (``known`` moments). Undetermined parameters are refitted at their configured value.
+    ``"reference"`` (``known`` moments). Undetermined parameters are refitted at their configured value.
     """
     geometry = initial
     report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
-                               method="reference" if kind == "ball" else "self")
+                               method=kind)
     if "level_drift_mm_per_s" in params and raw.header.quantity == "level_mm":
         drift, (low, high) = fit_drift(raw)
         geometry = geometry.with_values(level_drift_mm_per_s=drift)
@@ -524,7 +524,7 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
     params = _check_params(params)
     initial = initial or RigGeometry()
     known = known_object(shape)
-    state, report = _moment_stage(raw, params, initial, "ball", known, seed)
+    state, report = _moment_stage(raw, params, initial, "reference", known, seed)
     if "cross_section_mm2" in params:
         moments = dip_moments(raw, state.geometry)
         rng = np.random.default_rng(seed)

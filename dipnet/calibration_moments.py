@@ -28,8 +28,8 @@ What the data cannot tell, the fit finds flat or degenerate (:data:`GAUGE_REASON
 * self-calibration: the spin zero is the object's own rotation about the spin axis, and the
   step scale is the scale of the whole scene (object, pivot, offset: the first moments are
   exactly invariant; the rises break it only at second order);
-* a centred ball: its symmetry hides the spin zero, and with pivot and offset near 0 also
-  the tilt zero.
+* a reference object symmetric about the spin axis (a centred ball): its symmetry hides the
+  spin zero, and with pivot and offset near 0 also the tilt zero.
 
 Uncertainty: the 90% intervals are percentiles of a bootstrap over dips (each refit from the
 estimate with dips drawn with replacement), which carries the model error of the moments
@@ -66,9 +66,10 @@ GAUGE_REASONS = {
     ("self", "step_scale"): "the scale of the whole scene: a larger object on a rig with a larger pivot and a longer "
                             "step gives the same dips; only the section / step_scale^3 ratio is fixed by the shape "
                             "(calibrate it with a reference object of known size, or measure the stage travel)",
-    ("ball", "spin_zero_deg"): "a ball centred on the spin axis looks the same at every spin (its symmetry)",
-    ("ball", "tilt_zero_deg"): "a centred ball's dips depend on the tilt only through the start heights, which "
-                               "the pivot and offset move too little here to show the tilt zero",
+    ("reference", "spin_zero_deg"): "a reference object symmetric about the spin axis (a centred ball) looks the "
+                                    "same at every spin (its symmetry)",
+    ("reference", "tilt_zero_deg"): "a centred ball's dips depend on the tilt only through the start heights, which "
+                                    "the pivot and offset move too little here to show the tilt zero",
 }
 BOOTSTRAP = 200
 
@@ -255,7 +256,7 @@ class MomentFit:
 
     def undetermined(self, kind: str) -> dict[str, str]:
         """Free parameter -> why the dips do not determine it to its :data:`TOLERANCE` (``kind``:
-        ``"self"`` or ``"ball"``, for the named degeneracies of :data:`GAUGE_REASONS`)."""
+        ``"self"`` or ``"reference"``, for the named degeneracies of :data:`GAUGE_REASONS`)."""
         out = {}
         for name in self.free:
             if name in SEARCH and abs(self.values[name] - self.start[name]) >= 2 * SEARCH[name][0] - 1e-6:
