@@ -11,18 +11,19 @@ A small scripting API (see README, "Python API")::
     recon = dipnet.make_solver("minnorm").solve(meas, op)
 """
 
-from dipnet import datasets  # registers the ${dipnet_data:...} config resolver
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement, MeasurementFileError
+from dipnet.preprocessing import datasets  # noqa: F401 (registers the ${dipnet_data:...} config resolver)
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement, MeasurementFileError
 from dipnet.operators import BACKENDS, DipOperator, make_operator
-from dipnet.orientations import (angles_2d, directions_2d, fibonacci_hemisphere, make_directions, paper_grid,
+from dipnet.core.orientations import (angles_2d, directions_2d, fibonacci_hemisphere, make_directions, paper_grid,
                                  random_hemisphere, rig_to_direction)
-from dipnet.physics import Balance, DipProtocol, LevelSensor, Tank
-from dipnet.preprocess import preprocess, preprocess_file
-from dipnet.rawscan import RawScan, RawScanWriter, read_rawscan
-from dipnet.reconstruction import Reconstruction
+from dipnet.simulator.physics import Balance, DipProtocol, LevelSensor, Tank
+from dipnet.preprocessing.preprocess import preprocess, preprocess_file
+from dipnet.core.rawscan import RawScan, read_rawscan
+from dipnet.core.rawscan_writer import RawScanWriter
+from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes import Shape, ShapeError, builtin_shape, load_mesh, shape_from_file
-from dipnet.simulate import simulate_measurement
+from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers import SOLVERS, Solver, make_solver
 
 __version__ = "0.1.0"

@@ -6,10 +6,10 @@ step scale +-3 %, a level drift of up to +-0.5 mm over the session and a sensor 
 0-0.5 s. Rig ``i`` dips bundled mesh ``MESHES[i % 4]`` (scaled to ``--fill`` of the working ball
 on an ``--n``^3 grid) along ``--dips`` Fibonacci directions with ``--snr`` dB of level noise,
 and a 30 mm reference ball along the same directions. The voxel solver then reconstructs the
-mesh (i) with the nominal geometry, (ii) self-calibrated (:func:`dipnet.calibration.self_calibrate`, the cross-section fitted with the
+mesh (i) with the nominal geometry, (ii) self-calibrated (:func:`dipnet.calibration.self_calibration.self_calibrate`, the cross-section fitted with the
 implicit field's shape, the final shape by the voxel solver),
 (iii) with the true geometry; the ball gives a reference calibration
-(:func:`dipnet.calibration.calibrate_reference`).
+(:func:`dipnet.calibration.reference.calibrate_reference`).
 
 Self-calibration cannot see two gauges of an unknown object, the spin zero (its own rotation)
 and the step scale (the scale of the whole scene); they stay at the configured 0 and 1 and the
@@ -39,15 +39,16 @@ import warnings
 import numpy as np
 import torch
 
-from dipnet.calibration import calibrate_reference, self_calibrate
-from dipnet.datasets import mesh_path
-from dipnet.grid import Grid
-from dipnet.metrics import evaluate
+from dipnet.calibration.reference import calibrate_reference
+from dipnet.calibration.self_calibration import self_calibrate
+from dipnet.preprocessing.datasets import mesh_path
+from dipnet.core.grid import Grid
+from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator
-from dipnet.orientations import fibonacci_hemisphere
-from dipnet.physics import DipProtocol, LevelSensor, Tank, simulate_scan
-from dipnet.preprocess import preprocess
-from dipnet.rig.geometry import RigGeometry, invert_scan
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank, simulate_scan
+from dipnet.preprocessing.preprocess import preprocess
+from dipnet.core.geometry import RigGeometry, invert_scan
 from dipnet.shapes import Ball, load_mesh
 from dipnet.shapes.mesh import MeshShape
 from dipnet.solvers.implicit import ImplicitSolver

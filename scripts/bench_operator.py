@@ -28,10 +28,10 @@ import time
 import numpy as np
 import torch
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 from dipnet.operators import BACKENDS, make_operator
 from dipnet.operators.analytic import ball_occupancy, ball_profiles
-from dipnet.orientations import make_directions
+from dipnet.core.orientations import make_directions
 
 CALIBRATION_K = 20
 REPEATS = 3

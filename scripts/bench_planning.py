@@ -4,7 +4,7 @@ For every mesh (scaled to ``--fill`` of the working ball) on an ``--n``^3 grid, 
 from the mesh geometry with level-sensor noise at ``--snr`` dB:
 
 * full hemisphere: Fibonacci ``--budget`` and Fibonacci ``--large`` dips, against the adaptive
-  loop (:func:`dipnet.adaptive.adaptive_loop`) from ``--initial`` Fibonacci-like dips to
+  loop (:func:`dipnet.planning.adaptive.adaptive_loop`) from ``--initial`` Fibonacci-like dips to
   ``--budget`` in batches of ``--batch``;
 * tilt limited to ``--cap-tilt`` degrees (the authors' rig): the uniform plan over the
   reachable cap with ``--budget`` dips against the adaptive loop restricted to the cap;
@@ -20,7 +20,7 @@ Every final reconstruction uses ``--solver`` (default voxel: at 41 dips and 30 d
 implicit, 4x faster, and beats minnorm 4x in Chamfer, README "Reconstruction as optimisation");
 the loop's intermediate reconstructions use ``--plan-solver``, by default the same: with minnorm
 estimates the planner's noise level is their model error and it plans no better than a uniform
-plan (:mod:`dipnet.planning`). With the same solver the loop's last reconstruction is the final
+plan (:mod:`dipnet.planning.planner`). With the same solver the loop's last reconstruction is the final
 one. The planner's posterior grid is half the reconstruction's. Prints one row per mesh and plan (IoU,
 Chamfer / bbox diagonal, dips, seconds; for adaptive runs also the planning seconds per step),
 the means, the uncertainty calibration (error rate per uncertainty decile, pooled) and ends with
@@ -48,19 +48,19 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from dipnet.adaptive import AdaptiveSettings, SimulatedDips, adaptive_loop, concatenate
-from dipnet.datasets import mesh_names, mesh_path
-from dipnet.grid import Grid
-from dipnet.metrics import evaluate
+from dipnet.planning.adaptive import AdaptiveSettings, SimulatedDips, adaptive_loop, concatenate
+from dipnet.preprocessing.datasets import mesh_names, mesh_path
+from dipnet.core.grid import Grid
+from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator
-from dipnet.orientations import Reach, fibonacci_hemisphere
-from dipnet.physics import LevelSensor
-from dipnet.planning import NextBestDipPlanner, Planner
+from dipnet.core.orientations import Reach, fibonacci_hemisphere
+from dipnet.simulator.physics import LevelSensor
+from dipnet.planning.planner import NextBestDipPlanner, Planner
 from dipnet.shapes import load_mesh
-from dipnet.simulate import simulate_measurement
+from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
-from dipnet.uncertainty import calibration_by_decile, uncertainty
+from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
 
 SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver}
 QUICK_MESHES = ["bunny", "part_B13"]  # light meshes: simulating dips costs about O(faces)

@@ -2,7 +2,7 @@
 
 For every mesh in ``--meshes-dir`` (scaled to ``--fill`` of the working ball) on an
 ``--n``^3 grid, every orientation budget (Fibonacci hemisphere) and every noise level, the
-dips are simulated from the mesh geometry itself (:func:`dipnet.simulate.simulate_measurement`,
+dips are simulated from the mesh geometry itself (:func:`dipnet.simulator.simulate.simulate_measurement`,
 a level sensor with exact readings (``--quantum-mm 0``), noise-free or with white noise at
 ``--snr`` dB) and each solver reconstructs on the ``auto``
 operator. Prints one table (IoU, Chamfer / bbox diagonal, Hausdorff / bbox diagonal, wall
@@ -29,15 +29,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dipnet.datasets import MESHES_DIR
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement
-from dipnet.metrics import evaluate
+from dipnet.preprocessing.datasets import MESHES_DIR
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator
-from dipnet.orientations import fibonacci_hemisphere
-from dipnet.physics import LevelSensor
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
-from dipnet.simulate import simulate_measurement
+from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver

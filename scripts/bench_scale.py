@@ -2,7 +2,7 @@
 
 For every mesh (scaled to ``--fill`` of the working ball), resolution ``N`` and dip budget
 (``--fractions`` of ``N^2``, Fibonacci hemisphere), the dips are simulated from the exact mesh
-(:func:`~dipnet.simulate.simulate_measurement`, stage step = one voxel, exact level readings),
+(:func:`~dipnet.simulator.simulate.simulate_measurement`, stage step = one voxel, exact level readings),
 timed, and the noisy variant (``--snr`` dB white noise on the same readings) made from the same
 scan. Each solver (``minnorm``: matrix-free LSMR when ``B B^T`` would be large; ``voxel``)
 reconstructs on the ``auto`` operator (the NUFFT ``fourier`` backend at scale, with
@@ -34,18 +34,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dipnet.checkpoint import Checkpoint
-from dipnet.datasets import mesh_path
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement
-from dipnet.metrics import evaluate
+from dipnet.solvers.checkpoint import Checkpoint
+from dipnet.preprocessing.datasets import mesh_path
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator, select_backend
-from dipnet.orientations import fibonacci_hemisphere
-from dipnet.physics import LevelSensor
-from dipnet.preprocess import preprocess
-from dipnet.rawscan import RawScan
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.simulator.physics import LevelSensor
+from dipnet.preprocessing.preprocess import preprocess
+from dipnet.core.rawscan import RawScan
 from dipnet.shapes import load_mesh
-from dipnet.simulate import simulate_measurement
+from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
 

@@ -7,7 +7,7 @@ Dip a ball of known radius (held with its centre at the object origin the rig as
     python scripts/calibrate.py scans/ball/rawscan.jsonl --ball-radius 30 --tank lab-tank-1 \\
         --output rig_calibration.yaml
 
-The file (:mod:`dipnet.rig.calibration_file`) names the scan's rig and the given tank; scans
+The file (:mod:`dipnet.core.calibration_file`) names the scan's rig and the given tank; scans
 use it with ``rig.calibration=rig_calibration.yaml`` (and ``+rig.tank=lab-tank-1``), readers with
 ``source.reader.calibration=rig_calibration.yaml``. Every parameter is estimated by default;
 those the dips cannot determine (a centred ball's spin zero, by its symmetry) are named with
@@ -20,11 +20,12 @@ import argparse
 import sys
 from pathlib import Path
 
-from dipnet.calibration import DEFAULT_REFERENCE, PARAMETERS, calibrate_reference, to_calibration
-from dipnet.cli import user_errors
-from dipnet.grid import Grid
-from dipnet.rawscan import read_rawscan
-from dipnet.rig.calibration_file import TANK_CONFIG_KEY, save_calibration
+from dipnet.calibration.model import DEFAULT_REFERENCE, PARAMETERS, to_calibration
+from dipnet.calibration.reference import calibrate_reference
+from dipnet.jobs.cli import user_errors
+from dipnet.core.grid import Grid
+from dipnet.core.rawscan import read_rawscan
+from dipnet.core.calibration_file import TANK_CONFIG_KEY, save_calibration
 from dipnet.shapes import Ball
 
 

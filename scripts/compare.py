@@ -19,14 +19,14 @@ import argparse
 import sys
 from pathlib import Path
 
-from dipnet import experiments
+from dipnet.experiments import collect, figures, tables
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("dirs", nargs="+", type=Path, help="multirun (sweep) directories or job directories")
     parser.add_argument("-o", "--out", type=Path, help="output directory (default: <first dir>/compare)")
-    parser.add_argument("--by", nargs="+", default=list(experiments.GROUP_BY),
+    parser.add_argument("--by", nargs="+", default=list(collect.GROUP_BY),
                         help="columns to group by (default: solver n_dips snr_db)")
     parser.add_argument("--x", choices=("n_dips", "dips_percent"), default="n_dips",
                         help="horizontal axis of the error-vs-dips plot")
@@ -39,18 +39,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        runs = experiments.collect_runs(args.dirs)
-    except experiments.NoRunsError as exc:
+        runs = collect.collect_runs(args.dirs)
+    except collect.NoRunsError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     root = args.dirs[0] if len(args.dirs) == 1 else None
     out = args.out or args.dirs[0] / "compare"
     out.mkdir(parents=True, exist_ok=True)
-    rows = experiments.run_rows(runs, root)
-    groups = experiments.aggregate(rows, args.by)
-    experiments.write_csv(rows, out / "runs.csv")
-    problems = experiments.markdown_problems(runs, root)
-    n_ok = len(runs) - len(experiments.problems(runs))
+    rows = collect.run_rows(runs, root)
+    groups = collect.aggregate(rows, args.by)
+    tables.write_csv(rows, out / "runs.csv")
+    problems = tables.markdown_problems(runs, root)
+    n_ok = len(runs) - len(collect.problems(runs))
     print(f"{n_ok} of {len(runs)} jobs finished")
     if problems:
         print(problems, end="")
@@ -58,26 +58,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: no job in {', '.join(map(str, args.dirs))} finished (no metrics.json); "
               f"see {out / 'runs.csv'}", file=sys.stderr)
         return 1
-    experiments.write_csv(groups, out / "summary.csv")
-    table = experiments.markdown_table(groups, args.by)
+    tables.write_csv(groups, out / "summary.csv")
+    table = tables.markdown_table(groups, args.by)
     (out / "summary.md").write_text(table + ("\n" + problems if problems else ""))
     print(table, end="")
     written = [out / "runs.csv", out / "summary.csv", out / "summary.md"]
 
-    labelled = experiments.label_series(rows)
-    written.append(experiments.plot_vs_dips(experiments.aggregate(labelled, ("series", args.x)),
+    labelled = collect.label_series(rows)
+    written.append(figures.plot_vs_dips(collect.aggregate(labelled, ("series", args.x)),
                                             out / "vs_dips.png", line="series", x=args.x))
     if any(isinstance(r.get("snr_db"), float) for r in rows if r["status"] == "ok"):
-        written.append(experiments.plot_vs_snr(experiments.aggregate(rows, ("solver", "snr_db")),
+        written.append(figures.plot_vs_snr(collect.aggregate(rows, ("solver", "snr_db")),
                                                out / "vs_snr.png"))
     else:
         print("no noise levels in these runs: skipping vs_snr.png (see experiment=snr_sweep)")
     try:
-        written.append(experiments.plot_montage(runs, out / "montage.png", row_key=args.rows or experiments.varying(rows)))
+        written.append(figures.plot_montage(runs, out / "montage.png", row_key=args.rows or figures.varying(rows)))
     except ValueError as exc:
         print(f"skipping montage.png: {exc}")
     if args.html:
-        from dipnet import report
+        from dipnet.outputs import report
 
         try:
             report.require_plotly()

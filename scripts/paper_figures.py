@@ -1,6 +1,6 @@
 """The paper's Fig. 11 (reconstructions vs number of dips) and Fig. 13a (error vs % of N^2 dips).
 
-Runs the reconstruction pipeline (:func:`dipnet.pipeline.run`, the Hydra config of
+Runs the reconstruction pipeline (:func:`dipnet.jobs.pipeline.run`, the Hydra config of
 ``scripts/reconstruct.py``) for every bundled mesh x resolution ``N`` x dip budget (``--percent``
 of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job directory each under
 ``--out`` (a finished job is reused, so an interrupted run continues, whatever the overrides:
@@ -34,8 +34,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from hydra import compose, initialize_config_module  # noqa: E402
 
-from dipnet import experiments  # noqa: E402
-from dipnet.pipeline import run  # noqa: E402
+from dipnet.experiments import collect, figures, tables  # noqa: E402
+from dipnet.jobs import sweep_jobs  # noqa: E402
+from dipnet.jobs.pipeline import run  # noqa: E402
 
 PAPER_METRO_10 = (0.0125, 0.0433)  # paper Table 1: METRO error / bbox diagonal at 10 % of N^2 (240^3)
 JOB_DEFAULTS = ["output.figures=false", "output.uncertainty=false", "output.resolvability=false",
@@ -73,11 +74,11 @@ def run_jobs(args) -> None:
             for mesh in args.meshes:
                 for percent in args.percent:
                     job = args.out / job_name(mesh, n, percent)
-                    if (job / experiments.METRICS_FILE).is_file():
+                    if (job / collect.METRICS_FILE).is_file():
                         continue
                     cfg = compose(config_name="config", overrides=job_overrides(mesh, n, percent, args.overrides))
                     print(f"{mesh} {n}^3 {percent:g}% ({cfg.n_dips} dips) -> {job}", flush=True)
-                    experiments.guarded_job(lambda cfg=cfg, job=job: run(cfg, job), job)
+                    sweep_jobs.guarded_job(lambda cfg=cfg, job=job: run(cfg, job), job)
 
 
 def job_name(mesh: str, n: int, percent: float) -> str:
@@ -86,10 +87,10 @@ def job_name(mesh: str, n: int, percent: float) -> str:
 
 
 def nominal_rows(args) -> tuple[list[dict], list]:
-    """The runs under ``--out`` and their rows (:func:`~dipnet.experiments.run_row`) with
+    """The runs under ``--out`` and their rows (:func:`~dipnet.experiments.collect.run_row`) with
     ``percent``: the requested budget (41 dips at 64^3 and 164 at 128^3 are both 1 %)."""
-    runs = experiments.collect_runs(args.out)
-    rows = experiments.run_rows(runs, args.out)
+    runs = collect.collect_runs(args.out)
+    rows = collect.run_rows(runs, args.out)
     for row in rows:
         row["percent"] = float(Path(row["job"]).name.rsplit("_p", 1)[1])
     return rows, runs
@@ -101,7 +102,7 @@ def plot_fig13a(groups: list[dict], path: Path) -> Path:
     x = [g["percent"] for g in groups]
     for metric, marker in (("chamfer", "o"), ("hausdorff", "s")):
         ax.errorbar(x, [g[f"{metric}_mean"] for g in groups], yerr=[g[f"{metric}_std"] for g in groups],
-                    marker=marker, capsize=3, label=f"dipnet {experiments.LABELS[metric]} (mean over objects, N)")
+                    marker=marker, capsize=3, label=f"dipnet {collect.LABELS[metric]} (mean over objects, N)")
     ax.fill_between([9.0, 11.0], *PAPER_METRO_10, color="tab:red", alpha=0.25, label="paper METRO at 10% (Table 1)")
     ax.set(xscale="log", yscale="log", xlabel="% of the N^2 dips a square system needs",
            ylabel="surface distance / bbox diagonal", title="error vs number of dips (paper Fig. 13a)")
@@ -134,22 +135,22 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     run_jobs(args)
     rows, runs = nominal_rows(args)
-    failed = experiments.markdown_problems(runs, args.out)
-    groups = experiments.aggregate(rows, ("percent",), metrics=("iou", "chamfer", "hausdorff"))
+    failed = tables.markdown_problems(runs, args.out)
+    groups = collect.aggregate(rows, ("percent",), metrics=("iou", "chamfer", "hausdorff"))
     if not groups:
         print(f"error: no job under {args.out} finished\n{failed}")
         return 1
-    experiments.write_csv(rows, args.out / "runs.csv")
+    tables.write_csv(rows, args.out / "runs.csv")
     table = summary(rows, groups) + ("\n" + failed if failed else "")
     (args.out / "summary.md").write_text(table)
     print(table, end="")
     plot_fig13a(groups, args.out / "fig13a.png")
-    figures = [args.out / "fig13a.png"]
+    written = [args.out / "fig13a.png"]
     for n in sorted({r["resolution"] for r in rows if r["status"] == "ok"}):  # Fig. 11: one resolution each
         same_n = [run for run, row in zip(runs, rows) if row["resolution"] == n]
-        figures.append(experiments.plot_montage(same_n, args.out / f"fig11_n{n}.png", row_key="shape",
-                                                col_key="n_dips"))
-    print("figures: " + ", ".join(map(str, figures)))
+        written.append(figures.plot_montage(same_n, args.out / f"fig11_n{n}.png", row_key="shape",
+                                            col_key="n_dips"))
+    print("figures: " + ", ".join(map(str, written)))
     print("RESULT " + " ".join(f"chamfer_{g['percent']:g}={g['chamfer_mean']:.4f} "
                                f"hausdorff_{g['percent']:g}={g['hausdorff_mean']:.4f}" for g in groups))
     return 0

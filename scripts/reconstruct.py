@@ -19,16 +19,16 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from dipnet.cli import interrupted, require_options, run_hydra, user_errors
-from dipnet.experiments import guarded_job
-from dipnet.locks import run_directory_lock
-from dipnet.pipeline import JobResult, run
+from dipnet.jobs.cli import interrupted, require_options, run_hydra, user_errors
+from dipnet.jobs.sweep_jobs import guarded_job
+from dipnet.core.locks import run_directory_lock
+from dipnet.jobs.pipeline import JobResult, run
 
 log = logging.getLogger("dipnet")
 
 
 def locked_run(cfg: DictConfig, out: Path) -> JobResult:
-    """:func:`dipnet.pipeline.run` holding ``out``, so a second job into the same directory is refused."""
+    """:func:`dipnet.jobs.pipeline.run` holding ``out``, so a second job into the same directory is refused."""
     with run_directory_lock(out):
         return run(cfg, out)
 

@@ -24,10 +24,10 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from dipnet.cli import run_hydra, user_errors
-from dipnet.locks import run_directory_lock
-from dipnet.rig.adaptive import adaptive_scan_from_config
-from dipnet.rig.runner import ScanAborted, scan_from_config
+from dipnet.jobs.cli import run_hydra, user_errors
+from dipnet.core.locks import run_directory_lock
+from dipnet.jobs.scan import adaptive_scan_from_config, scan_from_config
+from dipnet.rig.runner import ScanAborted
 
 log = logging.getLogger("dipnet")
 

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
 
-from dipnet.datasets import MESHES_DIR
+from dipnet.preprocessing.datasets import MESHES_DIR
+
+# helper modules shared by several test folders (sweep_fixtures) live here, beside this file
+sys.path.insert(0, str(Path(__file__).parent))
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

@@ -1,4 +1,4 @@
-"""Fake reconstruction jobs with the files of dipnet.pipeline's contract, for the sweep tests."""
+"""Fake reconstruction jobs with the files of dipnet.jobs.pipeline's contract, for the sweep tests."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from dipnet import export
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement
-from dipnet.orientations import make_directions
-from dipnet.reconstruction import Reconstruction
+from dipnet.outputs import export
+from dipnet.shapes.isosurface import volume_to_mesh
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.orientations import make_directions
+from dipnet.core.reconstruction import Reconstruction
 
 
 def ball(grid: Grid, radius_mm: float) -> np.ndarray:
@@ -47,8 +48,8 @@ def write_job(job: Path, *, solver: str, n_dips: int, snr_db: float | None, seed
         profiles = torch.rand(n_dips, resolution, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
         DipMeasurement(directions, profiles, 100.0 / resolution, torch.full((n_dips,), -50.0)).save(job / "measurement.npz")
         if ndim == 3:
-            export.save_mesh(export.volume_to_mesh(truth.astype(np.float32), grid, 0.5), job / "truth.ply")
-            export.save_mesh(export.volume_to_mesh(recon.astype(np.float32), grid, 0.5), job / "reconstruction.ply")
+            export.save_mesh(volume_to_mesh(truth.astype(np.float32), grid, 0.5), job / "truth.ply")
+            export.save_mesh(volume_to_mesh(recon.astype(np.float32), grid, 0.5), job / "reconstruction.ply")
         full = {"solver": solver, "seconds": 0.1, "n_dips": n_dips, "resolution": resolution, "ndim": ndim,
                 "measured_volume_mm3": 1.0, "reconstructed_volume_mm3": 1.0, "shape": shape, "snr_db": snr_db,
                 **metrics}

@@ -6,12 +6,12 @@ import math
 
 import torch
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 from dipnet.operators.base import DipOperator
 from dipnet.operators.fourier import FourierOperator
 from dipnet.operators.rotate_sum import RotateSumOperator
 from dipnet.operators.splat import SplatOperator
-from dipnet.options import forwards_to
+from dipnet.core.keywords import forwards_to
 
 BACKENDS: dict[str, type[DipOperator]] = {
     "rotate_sum": RotateSumOperator,
@@ -24,7 +24,7 @@ ALIASES: dict[str, str] = {"grid_sample": "rotate_sum"}
 
 #: Backends whose linear map is exactly an explicit sparse matrix (``splat.to_sparse()``):
 #: rotate_sum pushes each voxel to its trilinear neighbours and sums planes, which gives the
-#: splat numbers to rounding (tests/test_operators_contract.py).
+#: splat numbers to rounding (tests/contracts/test_operators_contract.py).
 SPLAT_MATRIX_BACKENDS = ("splat", "rotate_sum")
 
 DEFAULT_BACKEND = "auto"

@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 
 
 def ball_occupancy(grid: Grid, centre: torch.Tensor, radius: float, sub: int = 5) -> torch.Tensor:

@@ -3,7 +3,7 @@
 Discretisation contract
 -----------------------
 For orientation ``k`` (unit "up" vector ``theta_k`` in the object frame, see
-:mod:`dipnet.orientations`) the profile has ``M`` slabs of equal thickness
+:mod:`dipnet.core.orientations`) the profile has ``M`` slabs of equal thickness
 ``delta = extent / M`` covering heights ``t`` in ``[-extent/2, extent/2]`` (slab ``j`` spans
 ``[-extent/2 + j delta, -extent/2 + (j+1) delta)``, ordered by increasing ``t``, i.e. in the
 order in which they go under water). Voxel ``v`` with occupancy ``f_v`` in ``[0, 1]`` and
@@ -27,7 +27,7 @@ import scipy.sparse.linalg
 import torch
 from torch import nn
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 
 
 class DipOperator(nn.Module, ABC):

@@ -19,7 +19,7 @@ import math
 
 import torch
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 
 _CHUNK = 1 << 22  # voxel x edge pairs per step
 

@@ -49,7 +49,7 @@ import finufft
 import numpy as np
 import torch
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 from dipnet.operators.base import DipOperator
 
 _SERIAL_LIMIT = 1 << 15  # voxels + frequency samples below which one thread is faster

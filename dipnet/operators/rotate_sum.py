@@ -22,7 +22,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 from dipnet.operators.base import DipOperator
 from dipnet.operators.splat import planes_per_slab
 

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 from dipnet.operators.base import DipOperator
 
 _CHUNK_ELEMENTS = 1 << 22  # voxel x orientation pairs handled at once

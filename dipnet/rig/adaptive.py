@@ -1,4 +1,4 @@
-"""Adaptive scanning on a rig: the planning loop of :mod:`dipnet.adaptive` driving a :class:`ScanRunner`.
+"""Adaptive scanning on a rig: the planning loop of :mod:`dipnet.planning.adaptive` driving a :class:`ScanRunner`.
 
 Each step extends the scan plan by the planner's batch and runs the runner on it, which dips
 only the new orientations (it resumes after the last complete one); the raw scan file then
@@ -16,13 +16,12 @@ library version changes the order of sums, and a greedy plan can then pick anoth
 (measured on the planning benchmark: 2% in Chamfer). The file wins: a recorded dip that the
 replayed plan would place elsewhere is kept as recorded, with a warning, and planning goes on
 from the recorded data. A recorded dip outside the current reach means the config changed; it
-stops with :class:`~dipnet.rawscan.RawScanFileError` rather than mixing two rigs' plans in one file.
+stops with :class:`~dipnet.core.rawscan.RawScanFileError` rather than mixing two rigs' plans in one file.
 """
 
 from __future__ import annotations
 
 import logging
-import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable
@@ -30,16 +29,17 @@ from typing import Callable
 import numpy as np
 import torch
 
-from dipnet.adaptive import AdaptiveResult, AdaptiveSettings, adaptive_loop
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement
+from dipnet.planning.adaptive import AdaptiveResult, AdaptiveSettings, adaptive_loop, keep_recorded
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
-from dipnet.orientations import Reach
-from dipnet.planning import Planner
-from dipnet.preprocess import preprocess
-from dipnet.rawscan import RawScan, RawScanFileError, read_rawscan
-from dipnet.reconstruction import Reconstruction
-from dipnet.rig.runner import ScanPlan, ScanRunner, direction_to_rig
+from dipnet.core.orientations import Reach
+from dipnet.planning.planner import Planner
+from dipnet.preprocessing.preprocess import preprocess
+from dipnet.core.rawscan import RawScan, read_rawscan
+from dipnet.core.reconstruction import Reconstruction
+from dipnet.rig.runner import ScanPlan, ScanRunner
+from dipnet.core.orientations import direction_to_rig
 
 log = logging.getLogger(__name__)
 
@@ -85,32 +85,6 @@ class RigDips:
         return self.to_measurement(replace(recorded, orientations=first))
 
 
-def keep_recorded(recorded: RawScan, planned: list[tuple[float, float]], first: int, reach: Reach | None,
-                  path: Path) -> list[tuple[float, float]]:
-    """``planned`` ``(tilt_deg, spin_deg)`` angles of dips ``first, first + 1, ...`` with every dip
-    that ``recorded`` started put back at its recorded angles (module docstring): a warning per
-    step that differs; :class:`RawScanFileError` for a recorded dip outside ``reach``."""
-    out, moved = list(planned), []
-    for o in recorded.orientations:
-        i = o.k - first
-        if 0 <= i < len(out) and not np.allclose((o.tilt_deg, o.spin_deg), out[i], atol=1e-6):
-            direction = torch.as_tensor(o.unit_direction, dtype=torch.float64)[None]
-            if reach is not None and not bool(reach.contains(direction)[0]):
-                raise RawScanFileError(f"{path}: dip {o.k} was recorded at (tilt, spin) = ({o.tilt_deg}, {o.spin_deg}), "
-                                       f"outside the rig's reach now ({reach}): the config changed; use another "
-                                       f"scan name")
-            moved.append(f"dip {o.k}: recorded ({o.tilt_deg:g}, {o.spin_deg:g}), replayed plan ({out[i][0]:g}, "
-                         f"{out[i][1]:g})")
-            out[i] = (float(o.tilt_deg), float(o.spin_deg))
-    if moved:
-        message = (f"{path}: the replayed plan differs from the recorded dips ({'; '.join(moved)}); the recorded "
-                   f"dips are kept and planning goes on from them (a different thread count or library version "
-                   f"changes floating-point sums, or the planner's config changed)")
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
-    return out
-
-
 def adaptive_scan(make_runner: MakeRunner, protocol: dict, path: str | Path, grid: Grid, solver, planner: Planner,
                   reach: Reach, settings: AdaptiveSettings) -> AdaptiveResult:
     """Scan adaptively (or resume such a scan) on a rig; reconstructions with ``solver`` on ``grid``.
@@ -119,7 +93,7 @@ def adaptive_scan(make_runner: MakeRunner, protocol: dict, path: str | Path, gri
         make_runner, protocol, path: see :class:`RigDips`.
         grid: reconstruction grid of the loop (a coarse one keeps each step quick).
         solver: a :class:`~dipnet.solvers.base.Solver`.
-        planner, reach, settings: see :func:`dipnet.adaptive.adaptive_loop` (every planned
+        planner, reach, settings: see :func:`dipnet.planning.adaptive.adaptive_loop` (every planned
             direction is a candidate of ``reach``).
     """
     def to_measurement(raw: RawScan) -> DipMeasurement:
@@ -131,30 +105,3 @@ def adaptive_scan(make_runner: MakeRunner, protocol: dict, path: str | Path, gri
 
     return adaptive_loop(RigDips(make_runner, protocol, path, to_measurement, reach), reconstruct, planner, reach,
                          settings)
-
-
-def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
-    """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and protocol of the
-    scan config (as :func:`~dipnet.rig.runner.scan_from_config`), the loop settings of
-    ``cfg.planner`` and the reach of ``cfg.reach`` (default the hemisphere); reconstructions with
-    the ``voxel`` solver on a ``cfg.planner.resolution`` grid (default 32) of side ``cfg.planner.extent_mm``
-    (default 100 mm): with ``minnorm`` estimates the planner's noise level (their misfit) is model
-    error far above the sensor noise and its scores hardly tell candidates apart (see
-    :mod:`dipnet.planning`). Returns the raw scan."""
-    from hydra.utils import instantiate
-
-    from dipnet.rig.runner import plan_settings, register_fake_rig, runner_from_config
-    from dipnet.solvers.voxel import VoxelSolver
-
-    protocol = plan_settings(cfg, register_fake_rig(cfg))
-    settings_cfg = cfg.planner
-
-    def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:
-        return runner_from_config(cfg, plan, path, home=home)
-
-    grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
-    settings = AdaptiveSettings.from_config(settings_cfg)
-    reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
-    adaptive_scan(make_runner, protocol, path, grid, VoxelSolver(progress=False), instantiate(settings_cfg.planner),
-                  reach, settings)
-    return read_rawscan(path)

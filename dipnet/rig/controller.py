@@ -2,7 +2,7 @@
 
 A dipping rig has one linear axis that lowers the object into the tank and two rotary axes:
 ``tilt`` tips the object's own z axis away from the vertical and ``spin`` turns the object
-about that axis (see :func:`dipnet.orientations.rig_to_direction`). Drivers speak one
+about that axis (see :func:`dipnet.core.orientations.rig_to_direction`). Drivers speak one
 firmware dialect (:mod:`dipnet.rig.grbl`, :mod:`dipnet.rig.marlin`) over a pyserial port
 opened with ``serial.serial_for_url`` (so ``fakerig://`` and ``socket://`` URLs work too).
 
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import serial
 
-from dipnet.locks import HeldLock, LockHeld
+from dipnet.core.locks import HeldLock, LockHeld
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +276,7 @@ class LineChannel:
 
 class PortLock:
     """An exclusive, non-blocking lock on one port URL, held by this process until
-    :meth:`release` (a :class:`dipnet.locks.HeldLock` in ``<tmp>/dipnet-port-locks``; the
+    :meth:`release` (a :class:`dipnet.core.locks.HeldLock` in ``<tmp>/dipnet-port-locks``; the
     operating system drops it when the process dies). ``fakerig://`` URLs live inside one process
     and are not locked.
 

@@ -16,7 +16,8 @@ class Serial(SerialBase):
     """A serial port whose other end is a fake device (see :mod:`dipnet.rig.fake`)."""
 
     def open(self) -> None:
-        from dipnet.rig.fake import WORLDS, make_device
+        from dipnet.rig.fake.server import make_device
+        from dipnet.rig.fake.world import WORLDS
 
         if self.is_open:
             raise SerialException("Port is already open.")

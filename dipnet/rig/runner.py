@@ -3,7 +3,7 @@
 Per orientation: lift to the safe height, rotate, go to the start height (object clear of the
 water), then lower in steps of ``step_mm``; after each step wait until the controller is idle,
 settle, read the sensor (averaged, with a stability check) and append the reading to the raw
-scan file at once (:class:`~dipnet.rawscan.RawScanWriter`, flushed and fsynced). When the
+scan file at once (:class:`~dipnet.core.rawscan_writer.RawScanWriter`, flushed and fsynced). When the
 orientation is done it is marked complete and the object is lifted clear.
 
 Running the same scan again resumes after the last complete orientation. On any exception
@@ -32,20 +32,18 @@ import signal
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import serial
-import torch
 from tqdm.auto import tqdm
 
-from dipnet.orientations import make_directions
-from dipnet.rawscan import RawScan, RawScanFileError, RawScanWriter, ScanHeader
-from dipnet.resources import MAX_READINGS_PER_DIP
-from dipnet.rig.calibration_file import TANK_CONFIG_KEY, Calibration, load_calibration
+from dipnet.core.orientations import direction_to_rig, make_directions
+from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
+from dipnet.core.rawscan_writer import RawScanWriter
+from dipnet.core.memory import MAX_READINGS_PER_DIP
 from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
                                    SensorUnstable)
-from dipnet.rig.geometry import GEOMETRY_CONFIG_KEY, RigGeometry
+from dipnet.core.geometry import GEOMETRY_CONFIG_KEY, RigGeometry
 from dipnet.rig.sensors import AveragingSensor, Reading, SensorError
 
 log = logging.getLogger(__name__)
@@ -98,24 +96,13 @@ def defer_signal(signum, frame) -> None:
     log.warning("%s during the safe stop: finishing the stop first", signal.Signals(signum).name)
 
 
-def direction_to_rig(directions) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`~dipnet.orientations.rig_to_direction`: unit "up" vectors ``(K, 3)``
-    (upper hemisphere) to ``(tilt_deg (K,), spin_deg (K,))``; spin is 0 for vertical ones."""
-    d = np.asarray(torch.as_tensor(directions, dtype=torch.float64).numpy(), dtype=np.float64).reshape(-1, 3)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    tilt = np.degrees(np.arccos(np.clip(d[:, 2], -1.0, 1.0)))
-    lateral = np.hypot(d[:, 0], d[:, 1])
-    spin = np.where(lateral > 1e-12, np.degrees(np.arctan2(-d[:, 1], d[:, 0])), 0.0)
-    return tilt, np.mod(spin, 360.0)
-
-
 def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=None, seed: int = 0,
                       max_tilt_deg: float = 90.0) -> list[tuple[float, float]]:
     """The orientations to dip, as ``(tilt_deg, spin_deg)`` pairs in acquisition order.
 
     Args:
         kind: ``"grid"`` (every ``tilts`` x ``spins`` pair, tilt-major, as the authors' robot),
-            or an orientation set of :func:`~dipnet.orientations.make_directions`
+            or an orientation set of :func:`~dipnet.core.orientations.make_directions`
             (``fibonacci`` | ``random``) with ``n`` directions, converted to rig angles.
         max_tilt_deg: drop directions tilted further than this (a rig's mechanical limit).
     """
@@ -149,15 +136,15 @@ class ScanPlan:
             ``t_start_mm`` (the water line in the object frame at stage 0).
         pivot_mm: distance of the tilt pivot above the object's origin along its axis (mm); a
             shorthand for ``geometry.pivot_mm`` (non-zero overrides it).
-        geometry: the rig's calibrated geometry (:class:`~dipnet.rig.geometry.RigGeometry`), used
+        geometry: the rig's calibrated geometry (:class:`~dipnet.core.geometry.RigGeometry`), used
             for ``t_start_mm`` and recorded in the header (``config["rig_geometry"]``).
         max_lower_mm: the deepest lowering (mm) before the object reaches the tank bottom, if
-            known (``rig.max_lower_mm``, or the fake rig's tank: :meth:`~dipnet.rig.fake.FakeRig.deepest_lower_mm`).
+            known (``rig.max_lower_mm``, or the fake rig's tank: :meth:`~dipnet.rig.fake.world.FakeRig.deepest_lower_mm`).
         max_lower_source: where ``max_lower_mm`` comes from (for the message).
 
     Raises:
         ValueError: a plan that cannot be run: steps, a stop below the tank bottom, or more than
-            :data:`~dipnet.resources.MAX_READINGS_PER_DIP` readings per orientation (the message names
+            :data:`~dipnet.core.memory.MAX_READINGS_PER_DIP` readings per orientation (the message names
             the ``protocol`` option and the limit; nothing has moved).
     """
 
@@ -448,94 +435,3 @@ def value_ranges(moves: list[dict[str, float | None]]) -> dict[str, tuple[float,
 
 class RigConfigError(RigError, ValueError):
     """The rig config does not fit the controller's settings (one message per mismatch)."""
-
-
-# ---------------------------------------------------------------------------- from config
-def build_header(cfg: dict[str, Any], controller: Controller, sensor, plan: ScanPlan) -> ScanHeader:
-    """The raw scan header from the scan config (the runner adds the rig identity)."""
-    rig = cfg.get("rig", {})
-    return ScanHeader(
-        quantity=sensor.quantity, ndim=3, tank_cross_section_mm2=rig.get("tank_cross_section_mm2"),
-        step_mm=float(plan.step_mm), resolution=rig.get("resolution"),
-        rig=str(rig.get("name", controller.dialect)),
-        config={"scan": cfg},
-        metadata=dict(cfg.get("metadata") or {}))
-
-
-def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> RawScan:
-    """Build the rig from a scan config (``conf/scan.yaml``) and run (or resume) the scan.
-
-    ``cfg.rig`` holds ``controller`` (``_target_``), ``sensor_url``, ``tank_cross_section_mm2``,
-    ``geometry`` and optionally ``fake`` (a :class:`~dipnet.rig.fake.FakeRig`, registered under its
-    name so the ``fakerig://`` URLs reach it); ``cfg.sensor`` holds ``device`` (``_target_``) and
-    ``average``; ``cfg.orientations`` and ``cfg.protocol`` the plan.
-    """
-    from omegaconf import OmegaConf
-
-    world = register_fake_rig(cfg)
-    plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)),
-                    **plan_settings(cfg, world))
-    return runner_from_config(cfg, plan, path, progress=progress).run()
-
-
-def register_fake_rig(cfg):
-    """Register ``cfg.rig.fake`` (a :class:`~dipnet.rig.fake.FakeRig`) so its ``fakerig://`` URLs
-    resolve; returns it (``None`` for a real rig)."""
-    from hydra.utils import instantiate
-
-    if cfg.rig.get("fake") is None:
-        return None
-    return instantiate(cfg.rig.fake, _convert_="all").register()
-
-
-def plan_settings(cfg, world=None) -> dict[str, Any]:
-    """The :class:`ScanPlan` keyword arguments of a scan config besides the orientations:
-    ``cfg.protocol``, the origin / pivot of ``cfg.rig.geometry``, the rig geometry of the
-    calibration file ``cfg.rig.calibration`` (the ideal rig without one) and the deepest lowering:
-    ``cfg.rig.max_lower_mm`` or, shallower, the tank bottom of the fake rig ``world``."""
-    from omegaconf import OmegaConf
-
-    geometry = cfg.rig.get("geometry") or {}
-    calibration = rig_calibration(cfg.rig)
-    limits = [] if cfg.rig.get("max_lower_mm") is None else [(float(cfg.rig.max_lower_mm), "rig.max_lower_mm")]
-    if world is not None:
-        limits.append((world.deepest_lower_mm(float(cfg.orientations.get("max_tilt_deg", 90.0))),
-                       f"the fake rig's tank holds {world.tank.rest_level_mm:g} mm of water, the object's radius is "
-                       f"{world.shape.radius():.4g} mm"))
-    deepest = min(limits, default=(None, "rig.max_lower_mm"))
-    return {**OmegaConf.to_container(cfg.protocol, resolve=True),
-            "origin_height_mm": geometry.get("origin_height_mm"), "pivot_mm": float(geometry.get("pivot_mm", 0.0)),
-            "geometry": calibration.geometry if calibration else RigGeometry(),
-            "max_lower_mm": deepest[0], "max_lower_source": deepest[1]}
-
-
-def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = True,
-                       progress: bool | None = None) -> "ScanRunner":
-    """A :class:`ScanRunner` for ``plan`` on the controller and sensor of a scan config, its header
-    recording the config and the rig calibration. ``home=False`` never homes (a later batch of an
-    adaptive scan); otherwise ``cfg.home`` decides (null: home when the board can)."""
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
-    controller = instantiate(cfg.rig.controller, _convert_="all")
-    device = instantiate(cfg.sensor.device, _convert_="all")
-    sensor = AveragingSensor(device, **OmegaConf.to_container(cfg.sensor.average, resolve=True))
-    header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
-    calibration = rig_calibration(cfg.rig)
-    if calibration is not None:
-        header.config.update({TANK_CONFIG_KEY: calibration.tank, "calibration": calibration.to_dict()})
-        header.tank_cross_section_mm2 = calibration.geometry.area(header.tank_cross_section_mm2)
-    configured = cfg.get("home")
-    return ScanRunner(controller, sensor, plan, path, header,
-                      home=(None if configured is None else bool(configured)) if home else False,
-                      progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
-                      rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
-                      confirm_position=bool(cfg.get("confirm_position", False)))
-
-
-def rig_calibration(rig_cfg) -> Calibration | None:
-    """The calibration file named by ``rig.calibration`` (checked against ``rig.name`` and ``rig.tank``)."""
-    path = rig_cfg.get("calibration")
-    if not path:
-        return None
-    return load_calibration(path, rig=str(rig_cfg.get("name")), tank=rig_cfg.get("tank"))

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 import trimesh
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 from dipnet.shapes.base import Shape, ShapeError, check_dips
 from dipnet.shapes.divergence import boundary_volume_below
 

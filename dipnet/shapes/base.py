@@ -23,7 +23,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 import torch
 
-from dipnet.grid import Grid
+from dipnet.core.grid import Grid
 
 
 class ShapeError(ValueError):

@@ -9,9 +9,9 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from dipnet.measurement import DipMeasurement
+from dipnet.core.measurement import DipMeasurement
 from dipnet.operators.base import DipOperator
-from dipnet.reconstruction import Reconstruction
+from dipnet.core.reconstruction import Reconstruction
 
 
 class Solver(ABC):

@@ -6,7 +6,7 @@ see :func:`~dipnet.solvers.optimize.support_hull`) to apply the dip operator and
 After the fit the field can be sampled on a finer grid (``output_upsample``) for a smoother
 surface: :attr:`Reconstruction.occupancy` is always on the data grid, the fine
 sampling is the attribute ``fine`` of the returned reconstruction (a
-:class:`~dipnet.reconstruction.Reconstruction` on ``Grid(N * output_upsample)``, same
+:class:`~dipnet.core.reconstruction.Reconstruction` on ``Grid(N * output_upsample)``, same
 extent), or ``None``. The fitted field stays available as ``solver.field_`` and
 :meth:`ImplicitSolver.sample` samples it on any grid.
 
@@ -25,11 +25,11 @@ from collections.abc import Mapping
 import torch
 import torch.nn.functional as F
 
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
-from dipnet.options import forwards_to
-from dipnet.reconstruction import Reconstruction
+from dipnet.core.keywords import forwards_to
+from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.fields import OccupancyField
 from dipnet.solvers.optimize import OptimisationSolver, plain, seeded
 

@@ -67,10 +67,10 @@ import torch
 from skimage.filters import threshold_otsu
 from tqdm.auto import tqdm
 
-from dipnet.measurement import DipMeasurement
-from dipnet.options import forwards_to
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.keywords import forwards_to
 from dipnet.operators import SPLAT_MATRIX_BACKENDS, DipOperator, backend_name, make_operator
-from dipnet.reconstruction import Reconstruction
+from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
 
 log = logging.getLogger(__name__)

@@ -28,10 +28,10 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
-from dipnet.reconstruction import Reconstruction
+from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
 from dipnet.solvers.priors import build_priors
 
@@ -244,7 +244,7 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         desc: progress-bar label.
         before_step: called with the progress fraction ``i / iterations`` before each step
             (annealing hooks).
-        checkpoint: a :class:`~dipnet.checkpoint.Checkpoint`: resume this stage (``desc``) from
+        checkpoint: a :class:`~dipnet.solvers.checkpoint.Checkpoint`: resume this stage (``desc``) from
             it and save to it as the steps go.
 
     Returns:
@@ -378,10 +378,10 @@ class OptimisationSolver(Solver):
         seed: seed of every random choice (initial weights, features).
         threshold: occupancy level of the final binary shape.
         progress: show progress bars.
-        checkpoint: a :class:`~dipnet.checkpoint.Checkpoint` to save every stage to and resume from.
+        checkpoint: a :class:`~dipnet.solvers.checkpoint.Checkpoint` to save every stage to and resume from.
         fit_gain: also fit one gain on every predicted volume (:class:`DataTerm`); the result's
             ``info["gain"]`` holds it. Self-calibration uses it to estimate the tank's
-            cross-section jointly with the shape (:func:`dipnet.calibration.self_calibrate`).
+            cross-section jointly with the shape (:func:`dipnet.calibration.self_calibration.self_calibrate`).
     """
 
     name = "optimisation"

@@ -24,11 +24,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dipnet.grid import Grid
-from dipnet.measurement import DipMeasurement
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
-from dipnet.options import forwards_to
-from dipnet.reconstruction import Reconstruction
+from dipnet.core.keywords import forwards_to
+from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, seeded
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP] before taking logits

@@ -1,0 +1,424 @@
+"""The grid-free stage of rig calibration: dip moments, a global search and a bootstrap over dips.
+
+Every complete dip of a rigid object obeys two range conditions of the Radon transform,
+whatever the object's shape (Helgason-Ludwig, orders 0-2). With ``u_i = s x stage_i + rise_i``
+(the water line relative to its stage-0 height, mm; ``s`` = :attr:`RigGeometry.step_scale`)
+and the level rises ``w_i`` as weights, the dip's centroid and variance are
+
+    t_start_k + mean_w(u)  =  c . theta_k                    (first moment)
+    var_w(u)               =  theta_k^T S theta_k            (second central moment)
+
+with ``c`` the object's centroid (mm), ``S`` its volume covariance (mm^2), ``theta_k`` the
+true direction of dip ``k`` and ``t_start_k = t0 + p (cos r - 1) + e sin r`` its true start
+height (:meth:`RigGeometry.start_heights`, ``r`` the true tilt). These need no grid and no
+shape, so nothing is cut off or rejected before the geometry is known, and they are cheap
+enough for a global search and a bootstrap:
+
+* ``c``, ``S``, the pivot ``p``, the tilt-axis offset ``e`` (and ``t0`` when free) enter
+  linearly and are solved for in closed form (variable projection); the tilt zero, spin zero
+  and step scale are searched on a grid first (:func:`fit_moments`), then refined by least
+  squares, so start heights 50+ mm off never trap a local fit;
+* for a reference object ``c`` and ``S`` are known (a ball of radius ``R`` centred at ``c``:
+  ``S = R^2 / 5 I``) and the object's volume gives the tank's cross-section;
+* level drift is fitted first, from the baselines (:func:`fit_drift`): the level before
+  contact is the same rest level in every dip, so its trend over the session is the drift.
+
+What the data cannot tell, the fit finds flat or degenerate (:data:`GAUGE_REASONS`):
+
+* self-calibration: the spin zero is the object's own rotation about the spin axis, and the
+  step scale is the scale of the whole scene (object, pivot, offset: the first moments are
+  exactly invariant; the rises break it only at second order);
+* a reference object symmetric about the spin axis (a centred ball): its symmetry hides the
+  spin zero, and with pivot and offset near 0 also the tilt zero.
+
+Uncertainty: the 90% intervals are percentiles of a bootstrap over dips (each refit from the
+estimate with dips drawn with replacement), which carries the model error of the moments
+(discretisation, lag, noise, a shape the moments describe imperfectly) instead of assuming
+white noise; a parameter is *determined* when its interval is narrower than its tolerance.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.optimize
+
+from dipnet.core.orientations import rig_to_direction
+from dipnet.core.rawscan import RawScan, complete_dips
+from dipnet.preprocessing.readings import repair_readings
+from dipnet.core.geometry import RigGeometry, scan_geometry
+
+log = logging.getLogger(__name__)
+
+#: The parameters the moment stage estimates (RigGeometry fields plus ``t0_mm``, a common
+#: offset of every dip's start height). The cross-section needs a known volume (reference).
+MOMENT_PARAMETERS = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg", "step_scale", "t0_mm")
+#: Search grid of the nonlinear parameters: half-width and step (the calibrated range).
+SEARCH = {"tilt_zero_deg": (6.0, 0.5), "spin_zero_deg": (6.0, 1.0), "step_scale": (0.05, 0.005)}
+#: A parameter is determined when the half-width of its 90% interval is below this.
+TOLERANCE = {"pivot_mm": 2.5, "tilt_axis_offset_mm": 1.5, "tilt_zero_deg": 0.5, "spin_zero_deg": 0.5,
+             "step_scale": 0.005, "t0_mm": 1.0, "cross_section_mm2": 0.05, "level_drift_mm_per_s": 2e-5}
+GAUGE_REASONS = {
+    ("self", "spin_zero_deg"): "the object's own rotation about the spin axis absorbs it: no dip of an unknown "
+                               "object can show it (calibrate it with a reference object off the spin axis)",
+    ("self", "step_scale"): "the scale of the whole scene: a larger object on a rig with a larger pivot and a longer "
+                            "step gives the same dips; only the section / step_scale^3 ratio is fixed by the shape "
+                            "(calibrate it with a reference object of known size, or measure the stage travel)",
+    ("reference", "spin_zero_deg"): "a reference object symmetric about the spin axis (a centred ball) looks the "
+                                    "same at every spin (its symmetry)",
+    ("reference", "tilt_zero_deg"): "a centred ball's dips depend on the tilt only through the start heights, which "
+                                    "the pivot and offset move too little here to show the tilt zero",
+}
+BOOTSTRAP = 200
+
+
+@dataclass
+class DipMoments:
+    """Per-dip sums of one raw scan, from which the moments follow for any step scale.
+
+    Attributes (all ``(K,)`` float64, mm unless noted):
+        tilt_deg, spin_deg: commanded rig angles (degrees).
+        t_recorded: the start height each dip recorded, less the height shift the rig applied.
+        rise: the total level rise (mm; for a balance: the displaced volume / nominal section).
+        a1, b1: rise-weighted means of the stage and of the rise.
+        ss, sd, dd: rise-weighted means of stage^2, stage x rise and rise^2 (midpoints of each step).
+    """
+
+    tilt_deg: np.ndarray
+    spin_deg: np.ndarray
+    t_recorded: np.ndarray
+    rise: np.ndarray
+    a1: np.ndarray
+    b1: np.ndarray
+    ss: np.ndarray
+    sd: np.ndarray
+    dd: np.ndarray
+    k: list[int] = field(default_factory=list)
+
+    def take(self, index: np.ndarray) -> "DipMoments":
+        """The moments of the dips ``index`` (a bootstrap draw)."""
+        return DipMoments(*(getattr(self, f)[index] for f in
+                            ("tilt_deg", "spin_deg", "t_recorded", "rise", "a1", "b1", "ss", "sd", "dd")),
+                          k=[self.k[i] for i in index])
+
+    def centroid_and_variance(self, step_scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean_w(u), var_w(u))`` per dip (mm, mm^2) for a step scale."""
+        mean = step_scale * self.a1 + self.b1
+        second = step_scale**2 * self.ss + 2 * step_scale * self.sd + self.dd
+        return mean, second - mean**2
+
+
+def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[float, tuple[float, float]]:
+    """Level drift (mm/s) from the rest level before contact: a robust line through every dip's
+    first readings over the session, and its 90% interval from a bootstrap over dips
+    (``(0, (0, 0))`` for a balance or when the readings span no time)."""
+    times, levels, dip = [], [], []
+    for o in complete_dips(raw):
+        if o.time_s.size < 3:
+            continue
+        values = o.values
+        rise = values - values[0]
+        spread = max(float(np.ptp(values)), 1e-300)
+        before = np.flatnonzero(np.cumsum(rise > 0.02 * spread) == 0)  # readings before contact
+        before = before[: max(1, len(before) - 1)]
+        times.extend(o.time_s[before])
+        levels.extend(values[before])
+        dip.extend([len(set(dip))] * len(before))
+    if len(set(dip)) < 2 or np.ptp(times) <= 0 or raw.header.quantity != "level_mm":
+        return 0.0, (0.0, 0.0)
+    t, y, dip = np.asarray(times), np.asarray(levels), np.asarray(dip)
+    slope = _robust_slope(t, y)
+    rng = np.random.default_rng(seed)
+    n = int(dip.max()) + 1
+    draws = []
+    for _ in range(int(bootstrap)):
+        rows = np.concatenate([np.flatnonzero(dip == d) for d in rng.integers(0, n, n)])
+        if np.ptp(t[rows]) > 0:
+            draws.append(_robust_slope(t[rows], y[rows]))
+    return slope, (float(np.percentile(draws, 5)), float(np.percentile(draws, 95)))
+
+
+def _robust_slope(t: np.ndarray, y: np.ndarray) -> float:
+    """Least-squares slope, refitted without readings 4 MADs off the line (spikes)."""
+    for _ in range(3):
+        slope, icept = np.polyfit(t, y, 1)
+        r = y - (slope * t + icept)
+        mad = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-12
+        keep = np.abs(r) <= 4 * mad
+        if keep.all() or keep.sum() < 3:
+            break
+        t, y = t[keep], y[keep]
+    return float(slope)
+
+
+def dip_moments(raw: RawScan, geometry: RigGeometry) -> DipMoments:
+    """The moment sums of every complete dip, with drift and lag of ``geometry`` undone.
+
+    Raises ``ValueError`` naming a dip whose level never rises or that has no rig angles.
+    """
+    applied = scan_geometry(raw.header)
+    repaired, _ = repair_readings(raw)
+    nominal = float(raw.header.tank_cross_section_mm2 or 1.0)
+    rows = []
+    for o in complete_dips(repaired):
+        if o.tilt_deg is None or o.spin_deg is None:
+            raise ValueError(f"dip {o.k} has no rig angles: the rig geometry cannot be calibrated from it")
+        order = np.argsort(o.stage_mm, kind="stable")
+        stage = o.stage_mm[order]
+        if raw.header.quantity == "level_mm":
+            values = geometry.invert_levels(o.values, o.time_s)[order]
+        else:  # a balance: displaced volume over the nominal section, in mm of level
+            values = o.values[order] / raw.header.density_g_per_mm3 / nominal
+        rise = _rise(values)
+        w = np.diff(rise)
+        total = float(w.sum())
+        if not total > 0:
+            raise ValueError(f"dip {o.k}: the level never rises, it cannot place the object")
+        s_mid, r_mid = 0.5 * (stage[1:] + stage[:-1]), 0.5 * (rise[1:] + rise[:-1])
+        recorded = float(o.meta.get("t_start_mm", raw.header.t_start_mm or 0.0))
+        rows.append((o.tilt_deg, o.spin_deg, recorded - float(applied.height_shift([o.tilt_deg])[0]), rise[-1],
+                     w @ s_mid / total, w @ r_mid / total, w @ s_mid**2 / total, w @ (s_mid * r_mid) / total,
+                     w @ r_mid**2 / total, o.k))
+    if len(rows) < 3:
+        raise ValueError(f"calibration needs at least 3 complete dips, the scan has {len(rows)}")
+    cols = list(zip(*rows))
+    return DipMoments(*(np.asarray(c, dtype=np.float64) for c in cols[:9]), k=list(cols[9]))
+
+
+def _rise(values: np.ndarray) -> np.ndarray:
+    """The level rise ``(n,)`` mm of one dip: monotone, exactly 0 before contact and flat once under water.
+
+    Noise in the flat parts would add small rises far from the object's centre and inflate its
+    second moment (a 0.3 % step-scale bias on a 30 mm ball at 30 dB), so the rise is cut to the
+    span where it leaves the rest level and reaches the final one by more than 3 noise sigmas
+    (the noise from the readings' own second differences, MAD).
+    """
+    spread = max(float(np.ptp(values)), 1e-300)
+    second = np.diff(values, 2)  # white noise of sigma gives second differences of sigma sqrt(6)
+    noise = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / np.sqrt(6.0) if second.size else 0.0
+    tol = max(3.0 * noise, 1e-9 * spread)
+    rising = np.flatnonzero(values - values[0] > tol)
+    onset = int(rising[0]) if rising.size else len(values)
+    rise = scipy.optimize.isotonic_regression(values - values[: max(1, onset - 1)].mean()).x
+    final = float(rise[-max(1, min(3, len(rise) // 10)):].mean())
+    inside = (rise > tol) & (rise < final - tol)
+    if inside.any():
+        first, last = np.flatnonzero(inside)[[0, -1]]
+        rise[: max(first - 1, 0)] = 0.0  # one reading either side of the span keeps its partial rise
+        rise[last + 2:] = final
+    return np.clip(rise, 0.0, final)
+
+
+# ------------------------------------------------------------------------------------ the model
+@dataclass
+class KnownObject:
+    """A reference object's moments: centroid ``(3,)`` mm, covariance ``(3, 3)`` mm^2, volume mm^3."""
+
+    centroid: np.ndarray
+    covariance: np.ndarray
+    volume: float
+
+    @classmethod
+    def ball(cls, radius_mm: float, centre=(0.0, 0.0, 0.0)) -> "KnownObject":
+        r = float(radius_mm)
+        return cls(np.asarray(centre, dtype=np.float64), np.eye(3) * r * r / 5.0, 4.0 / 3.0 * np.pi * r**3)
+
+
+@dataclass
+class MomentFit:
+    """The moment stage's estimate.
+
+    Attributes:
+        values: parameter -> estimate (RigGeometry units; ``t0_mm`` the common start-height offset).
+        free: the parameters that were fitted.
+        residual_rms: ``(first, second)`` RMS of the moment residuals (mm, mm^2).
+        centroid, covariance: the object's fitted (or known) moments.
+        start: the configured values the search is centred on.
+        intervals: parameter -> (5th, 95th) bootstrap percentile.
+        bootstrap_sd: parameter -> bootstrap standard deviation.
+        profile_rise: nonlinear parameter -> the least rise of the whitened misfit (chi^2 units)
+            when it is moved by its tolerance and the others refitted: below 2.71 (the 90%
+            profile-likelihood level) the dips cannot pin it to its tolerance.
+    """
+
+    values: dict[str, float]
+    free: tuple[str, ...]
+    residual_rms: tuple[float, float]
+    centroid: np.ndarray
+    covariance: np.ndarray
+    intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    bootstrap_sd: dict[str, float] = field(default_factory=dict)
+    profile_rise: dict[str, float] = field(default_factory=dict)
+    correlations: dict[str, dict[str, float]] = field(default_factory=dict)
+    start: dict[str, float] = field(default_factory=dict)
+
+    def undetermined(self, kind: str) -> dict[str, str]:
+        """Free parameter -> why the dips do not determine it to its :data:`TOLERANCE` (``kind``:
+        ``"self"`` or ``"reference"``, for the named degeneracies of :data:`GAUGE_REASONS`)."""
+        out = {}
+        for name in self.free:
+            if name in SEARCH and abs(self.values[name] - self.start[name]) >= 2 * SEARCH[name][0] - 1e-6:
+                out[name] = (f"the estimate reached the edge of the search range ({self.start[name]:g} "
+                             f"+- {2 * SEARCH[name][0]:g}): the rig is outside the calibrated range, or the dips are "
+                             "not of one rigid object")
+                continue
+            rise = self.profile_rise.get(name)
+            low, high = self.intervals.get(name, (self.values[name], self.values[name]))
+            half = 0.5 * (high - low)
+            if rise is not None and rise < 2.71:
+                out[name] = GAUGE_REASONS.get((kind, name), "the dips barely depend on it") + \
+                    f" (moving it by {TOLERANCE[name]:g} raises the misfit by {rise:.2g}, less than 2.71)"
+            elif half > TOLERANCE[name]:
+                out[name] = f"its 90% interval (bootstrap over dips) is +-{half:.3g}, wider than {TOLERANCE[name]:g}"
+        return out
+
+
+_QUAD = lambda d: np.stack([d[:, 0]**2, d[:, 1]**2, d[:, 2]**2, 2 * d[:, 0] * d[:, 1],  # noqa: E731
+                            2 * d[:, 0] * d[:, 2], 2 * d[:, 1] * d[:, 2]], axis=1)
+
+
+class MomentModel:
+    """Residuals of the two range conditions for trial values of the nonlinear parameters.
+
+    Args:
+        moments: the scan's :class:`DipMoments`.
+        known: a reference object (its moments fixed), or ``None`` (self-calibration: the
+            centroid and covariance are free).
+        fixed: values of parameters that are not fitted (defaults: the ideal rig, ``t0_mm`` 0).
+        linear_free: which of ``pivot_mm``, ``tilt_axis_offset_mm``, ``t0_mm`` are fitted.
+    """
+
+    def __init__(self, moments: DipMoments, known: KnownObject | None, fixed: dict[str, float],
+                 linear_free: tuple[str, ...]) -> None:
+        self.m, self.known, self.fixed, self.linear_free = moments, known, dict(fixed), linear_free
+        self.weights = (1.0, 1.0)
+
+    def solve(self, nonlinear: dict[str, float]) -> tuple[np.ndarray, np.ndarray, dict[str, float], np.ndarray,
+                                                          np.ndarray]:
+        """``(r1 (K,), r2 (K,), linear values, centroid (3,), covariance (3, 3))`` at ``nonlinear``."""
+        p = {**self.fixed, **nonlinear}
+        r = np.radians(self.m.tilt_deg + p["tilt_zero_deg"])
+        theta = rig_to_direction(self.m.tilt_deg + p["tilt_zero_deg"], self.m.spin_deg + p["spin_zero_deg"]).numpy()
+        mean, var = self.m.centroid_and_variance(p["step_scale"])
+        columns = {"pivot_mm": np.cos(r) - 1.0, "tilt_axis_offset_mm": np.sin(r), "t0_mm": np.ones_like(r)}
+        target = self.m.t_recorded + mean + sum(p[n] * columns[n] for n in columns if n not in self.linear_free)
+        # target + sum_j x_j column_j = c . theta
+        lin = [columns[n] for n in self.linear_free]
+        if self.known is None:
+            design = np.column_stack(lin + [-theta]) if lin else -theta
+            x = np.linalg.lstsq(design, -target, rcond=None)[0]
+            r1 = target + design @ x
+            values = dict(zip(self.linear_free, x[: len(lin)]))
+            centroid = x[len(lin):]
+            quad = _QUAD(theta)
+            s6 = np.linalg.lstsq(quad, var, rcond=None)[0]
+            r2 = var - quad @ s6
+            cov = np.array([[s6[0], s6[3], s6[4]], [s6[3], s6[1], s6[5]], [s6[4], s6[5], s6[2]]])
+        else:
+            target = target - theta @ self.known.centroid
+            if lin:
+                design = np.column_stack(lin)
+                x = np.linalg.lstsq(design, -target, rcond=None)[0]
+                r1 = target + design @ x
+            else:
+                x, r1 = np.zeros(0), target
+            values = dict(zip(self.linear_free, x))
+            centroid, cov = self.known.centroid, self.known.covariance
+            r2 = var - np.einsum("ki,ij,kj->k", theta, cov, theta)
+        return r1, r2, values, centroid, cov
+
+    def residual(self, nonlinear: dict[str, float]) -> np.ndarray:
+        r1, r2, *_ = self.solve(nonlinear)
+        return np.concatenate([r1 / self.weights[0], r2 / self.weights[1]])
+
+
+def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObject | None = None,
+                fixed: dict[str, float] | None = None, bootstrap: int = BOOTSTRAP, seed: int = 0) -> MomentFit:
+    """Fit the free parameters (:data:`MOMENT_PARAMETERS`) to the dips' moments.
+
+    The nonlinear ones (tilt zero, spin zero, step scale) are searched on the :data:`SEARCH`
+    grid around their fixed value, then refined with ``scipy.optimize.least_squares`` inside
+    that range; the linear ones are solved in closed form at every trial. ``bootstrap`` refits
+    over dips drawn with replacement give the 90% intervals (0: none).
+    """
+    fixed = {"pivot_mm": 0.0, "tilt_axis_offset_mm": 0.0, "tilt_zero_deg": 0.0, "spin_zero_deg": 0.0,
+             "step_scale": 1.0, "t0_mm": 0.0, **(fixed or {})}
+    unknown = [p for p in free if p not in MOMENT_PARAMETERS]
+    if unknown:
+        raise ValueError(f"the moment stage cannot fit {unknown}; it fits {list(MOMENT_PARAMETERS)}")
+    linear = tuple(p for p in ("pivot_mm", "tilt_axis_offset_mm", "t0_mm") if p in free)
+    nonlinear = tuple(p for p in SEARCH if p in free)
+    model = MomentModel(moments, known, fixed, linear)
+    start = _grid_search(model, nonlinear, fixed)
+    model.weights = _group_scales(model, start)  # each condition in units of its own misfit
+    best = _refine(model, nonlinear, start, fixed)
+    r1, r2, lin, centroid, cov = model.solve(best)
+    fit = MomentFit(values={**fixed, **best, **lin}, free=tuple(free), start=dict(fixed),
+                    residual_rms=(float(np.sqrt(np.mean(r1**2))), float(np.sqrt(np.mean(r2**2)))),
+                    centroid=centroid, covariance=cov)
+    cost = float(np.sum(model.residual(best) ** 2))
+    for name in nonlinear:
+        others = tuple(n for n in nonlinear if n != name)
+        rises = []
+        for sign in (-1.0, 1.0):
+            moved = {**fixed, **best, name: best[name] + sign * TOLERANCE[name]}
+            trial = MomentModel(moments, known, moved, linear)
+            trial.weights = model.weights
+            refit = _refine(trial, others, best, moved)
+            rises.append(float(np.sum(trial.residual({**refit, name: moved[name]}) ** 2)) - cost)
+        fit.profile_rise[name] = min(rises)
+    if bootstrap:
+        rng = np.random.default_rng(seed)
+        draws = {p: [] for p in free}
+        for _ in range(int(bootstrap)):
+            sub = MomentModel(moments.take(rng.integers(0, len(moments.k), len(moments.k))), known, fixed, linear)
+            sub.weights = model.weights
+            b = _refine(sub, nonlinear, best, fixed)
+            values = {**b, **sub.solve(b)[2]}
+            for p in free:
+                draws[p].append(values[p])
+        for p, xs in draws.items():
+            xs = np.asarray(xs)
+            fit.bootstrap_sd[p] = float(xs.std(ddof=1))
+            fit.intervals[p] = (float(np.percentile(xs, 5)), float(np.percentile(xs, 95)))
+        if len(free) > 1:
+            with np.errstate(invalid="ignore", divide="ignore"):  # a parameter at its bound does not vary
+                corr = np.nan_to_num(np.corrcoef(np.asarray([draws[p] for p in free])))
+            fit.correlations = {p: {q: float(corr[i, j]) for j, q in enumerate(free) if j != i}
+                                for i, p in enumerate(free)}
+    return fit
+
+
+def _grid_search(model: MomentModel, names: tuple[str, ...], fixed: dict[str, float]) -> dict[str, float]:
+    """The grid point of the nonlinear parameters with the smallest (scale-free) moment misfit."""
+    if not names:
+        return {}
+    axes = [fixed[n] + np.arange(-SEARCH[n][0], SEARCH[n][0] + 1e-9, SEARCH[n][1]) for n in names]
+    best, best_cost = None, np.inf
+    for point in np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names)):
+        trial = dict(zip(names, point))
+        r1, r2, *_ = model.solve(trial)
+        cost = np.log(np.mean(r1**2) + 1e-30) + np.log(np.mean(r2**2) + 1e-30)  # invariant to each group's scale
+        if cost < best_cost:
+            best, best_cost = trial, cost
+    return {k: float(v) for k, v in best.items()}
+
+
+def _group_scales(model: MomentModel, at: dict[str, float]) -> tuple[float, float]:
+    r1, r2, *_ = model.solve(at)
+    return (float(np.sqrt(np.mean(r1**2))) or 1.0, float(np.sqrt(np.mean(r2**2))) or 1.0)
+
+
+def _refine(model: MomentModel, names: tuple[str, ...], start: dict[str, float],
+            fixed: dict[str, float]) -> dict[str, float]:
+    if not names:
+        return {}
+    scale = np.array([SEARCH[n][1] for n in names])
+    lo = np.array([fixed[n] - 2 * SEARCH[n][0] for n in names]) / scale
+    hi = np.array([fixed[n] + 2 * SEARCH[n][0] for n in names]) / scale
+    x0 = np.clip(np.array([start[n] for n in names]) / scale, lo + 1e-9, hi - 1e-9)
+    result = scipy.optimize.least_squares(lambda x: model.residual(dict(zip(names, x * scale))), x0,
+                                          bounds=(lo, hi), xtol=1e-10, ftol=1e-10, diff_step=1e-4)
+    return {n: float(v) for n, v in zip(names, result.x * scale)}

@@ -1,0 +1,167 @@
+"""Calibration from a reference object of known shape: the moment stage, then the geometry fit."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
+                                      State, _check_params, _warn_undetermined)
+from dipnet.calibration.moments import GAUGE_REASONS, KnownObject, dip_moments, fit_drift, fit_moments
+from dipnet.core.geometry import RigGeometry
+from dipnet.core.grid import Grid
+from dipnet.core.rawscan import RawScan
+
+# ---------------------------------------------------------------------------- moment stage
+SHAPE_MOTION = {
+    "pivot_mm": "each mm moves a dip tilted by r by (1 - cos r) mm along it",
+    "tilt_axis_offset_mm": "each mm moves a dip tilted by r by sin r mm along it",
+    "tilt_zero_deg": "each degree tilts every dip direction by 1 deg: {arc:.2g} mm at the object's radius",
+    "spin_zero_deg": "the shape turns about the spin axis by the spin zero's error: {arc:.2g} mm at the object's "
+                     "radius per degree",
+    "step_scale": "every length scales with it: 1 % moves the surface {pct:.2g} mm at the object's radius, "
+                  "and the cross-section follows by 3 %",
+    "cross_section_mm2": "every volume scales with it: 1 % changes the shape's size by about 0.33 %",
+    "level_drift_mm_per_s": "an unremoved drift adds a rise that grows over the session",
+}
+
+
+def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: KnownObject | None,
+                  seed: int = 0) -> tuple[State, CalibrationReport]:
+    """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
+
+    ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
+    ``"reference"`` (``known`` moments). Undetermined parameters are refitted at their configured value.
+    """
+    geometry = initial
+    report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
+                               method=kind)
+    if "level_drift_mm_per_s" in params and raw.header.quantity == "level_mm":
+        drift, (low, high) = fit_drift(raw)
+        geometry = geometry.with_values(level_drift_mm_per_s=drift)
+        _record(report, "level_drift_mm_per_s", drift, (low, high), (high - low) / 3.29)
+    moments = dip_moments(raw, geometry)
+    if kind == "self":
+        gauges = {p: GAUGE_REASONS[(kind, p)] for p in ("spin_zero_deg", "step_scale") if p in params}
+    else:  # a reference object centred on the spin axis looks alike at every spin
+        on_axis = float(np.hypot(*known.centroid[:2])) < 1e-6 and np.allclose(known.covariance[0, 0],
+                                                                             known.covariance[1, 1])
+        gauges = {"spin_zero_deg": GAUGE_REASONS[(kind, "spin_zero_deg")]} if on_axis and "spin_zero_deg" in params \
+            else {}
+    free = tuple(p for p in params if p in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg",
+                                            "step_scale") and p not in gauges)
+    fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
+                                                     "spin_zero_deg", "step_scale")}
+    fit = fit_moments(moments, free, known=known, fixed=fixed, seed=seed) if free else None
+    undetermined = dict(gauges)
+    if fit is not None:
+        undetermined.update(fit.undetermined(kind))
+        kept = tuple(p for p in free if p not in undetermined)
+        if kept != free:
+            fit = fit_moments(moments, kept, known=known, fixed=fixed, seed=seed) if kept else None
+        if fit is not None:
+            geometry = geometry.with_values(**{p: fit.values[p] for p in fit.free})
+            report.moment_rms = fit.residual_rms
+            for p in fit.free:
+                _record(report, p, fit.values[p], fit.intervals[p], fit.bootstrap_sd[p])
+            report.correlations.update(fit.correlations)
+    radius = _object_radius(fit, known)
+    for p, why in undetermined.items():
+        report.estimates[p] = float(getattr(initial, p))
+        report.undetermined[p] = why
+        report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
+    return State(geometry), report
+
+
+def _record(report: CalibrationReport, name: str, value: float, interval: tuple[float, float], sd: float,
+            floor: float | None = None) -> None:
+    """An estimate with its 90% interval widened by the model-error floor (in quadrature)."""
+    floor = MODEL_FLOOR[name] if floor is None else floor
+    low, high = interval
+    centre, half = 0.5 * (low + high), 0.5 * (high - low)
+    widened = math.hypot(half, floor)
+    shift = value - centre  # keep the estimate inside, the percentile interval may be skewed
+    report.estimates[name] = float(value)
+    report.intervals[name] = (float(min(value, centre - widened + min(shift, 0.0))),
+                              float(max(value, centre + widened + max(shift, 0.0))))
+    report.standard_errors[name] = float(math.hypot(sd, floor / 1.645))
+
+
+def _object_radius(fit, known: KnownObject | None) -> float:
+    """The radius (mm) of a ball with the object's largest moment of volume: ``sqrt(5 lambda_max)``."""
+    cov = known.covariance if known is not None else (None if fit is None else fit.covariance)
+    if cov is None:
+        return float("nan")
+    return float(np.sqrt(5.0 * max(np.linalg.eigvalsh(cov).max(), 0.0)))
+
+
+def known_object(shape, supersample: int = 2) -> KnownObject:
+    """The centroid, covariance and volume of a reference :class:`~dipnet.shapes.Shape` (a
+    ball's in closed form, any other's from its occupancy on a 64^3 grid around it)."""
+    from dipnet.shapes import Ball
+
+    if isinstance(shape, Ball):
+        return KnownObject.ball(shape.r, shape.center)
+    grid = Grid(64, 3, extent=2.05 * float(shape.radius()))
+    occ = shape.occupancy(grid, supersample=supersample).numpy().astype(np.float64)
+    z, y, x = np.meshgrid(*(grid.centers().numpy(),) * 3, indexing="ij")
+    points = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    weights = occ.ravel() / occ.sum()
+    centroid = weights @ points
+    centred = points - centroid
+    return KnownObject(centroid, (centred * weights[:, None]).T @ centred, float(shape.volume))
+
+
+# ---------------------------------------------------------------------------- reference object
+def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
+                        n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
+                        max_relative_residual: float = 0.05, seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
+    """The rig geometry from dips of a reference object of known geometry and pose.
+
+    The moment stage (module docstring) estimates the drift, pivot, offset, tilt zero, spin zero
+    and step scale; the object's known volume gives the cross-section. What the dips cannot
+    determine (a centred ball's spin zero, its tilt zero on a rig with pivot and offset near 0)
+    is named, warned about and kept at ``initial``. Finally the object's profiles on ``grid``
+    must match the calibrated dips.
+
+    Args:
+        raw: the reference object's raw scan (tilted dips for the pivot, offset and tilt zero).
+        shape: the reference object (:class:`~dipnet.shapes.Shape`: e.g. ``Ball(30)``) in the
+            object frame the rig holds it in.
+        grid: the grid of the final check (a voxel << the object's size).
+        params: parameters to estimate (:data:`PARAMETERS`).
+        initial: the configured geometry (default the ideal rig).
+        max_relative_residual: refuse when ``|A f - m| / |m|`` stays above this at the estimate (the
+            object does not fit: wrong size, wrong pose, or the data are not of this object).
+
+    Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
+    """
+    params = _check_params(params)
+    initial = initial or RigGeometry()
+    known = known_object(shape)
+    state, report = _moment_stage(raw, params, initial, "reference", known, seed)
+    if "cross_section_mm2" in params:
+        moments = dip_moments(raw, state.geometry)
+        rng = np.random.default_rng(seed)
+        rises = np.asarray(moments.rise)  # mm of level per dip, drift removed
+        section = known.volume / rises.mean() if raw.header.quantity == "level_mm" else None
+        if section is not None:
+            draws = [known.volume / rises[rng.integers(0, len(rises), len(rises))].mean() for _ in range(200)]
+            state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=float(section)))
+            _record(report, "cross_section_mm2", float(section), tuple(np.percentile(draws, [5, 95])),
+                    float(np.std(draws)), MODEL_FLOOR["cross_section_mm2"] * section)
+    model = ProfileModel(raw, grid, n_slabs, operator_factory)
+    occupancy = shape.occupancy(grid, supersample=supersample).to(torch.float64)
+    measured = model.measurement(state).profiles.numpy().reshape(-1)
+    fit = float(np.linalg.norm(model.residual(state, occupancy, 1.0)) / max(np.linalg.norm(measured), 1e-300))
+    if fit > max_relative_residual:
+        raise CalibrationError(f"the reference object does not fit the dips: relative profile residual {fit:.3f} "
+                               f"> {max_relative_residual} at the calibrated geometry; check its size, pose and "
+                               "the recording")
+    report.residual_rms = fit
+    _warn_undetermined(report, "reference calibration")
+    return state.geometry, report

@@ -1,0 +1,180 @@
+"""Self-calibration: the moment stage, then the geometry and the volume gain fitted jointly with an
+unknown shape."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dipnet.calibration.model import (DEFAULT_SELF, PARTIAL_VOLUME_GAIN, SELF_SECTION_FLOOR, CalibrationError,
+                                      CalibrationReport, ProfileModel, State, _check_params, _get, _warn_undetermined,
+                                      _with, fit_geometry, identifiability)
+from dipnet.calibration.moments import TOLERANCE
+from dipnet.calibration.reference import SHAPE_MOTION, _moment_stage, _record
+from dipnet.core.geometry import RigGeometry
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.rawscan import RawScan
+from dipnet.core.reconstruction import Reconstruction
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------- self-calibration
+@dataclass
+class SelfCalibration:
+    """The result of :func:`self_calibrate`."""
+
+    geometry: RigGeometry
+    t0_mm: float
+    measurement: DipMeasurement
+    reconstruction: Reconstruction
+    report: CalibrationReport
+    history: list[dict] = field(default_factory=list)
+
+
+def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_slabs: int | None = None,
+                   operator_factory: Callable | None = None, smooth: bool = False, finish=None,
+                   initial: RigGeometry | None = None, iterations: int = 1, dip_offset_sigma_mm: float | None = None,
+                   shape: str = "binary", max_nfev: int = 20, gain_solver=None, max_section_change: float = 0.2,
+                   seed: int = 0) -> SelfCalibration:
+    """Estimate the rig geometry jointly with the shape.
+
+    1. The moment stage (module docstring): drift, pivot, offset and tilt zero from the dips'
+       first two moments, with no grid and no shape. The spin zero and the step scale are
+       gauges of an unknown object: named, with how far the shape could move, and kept.
+    2. The cross-section jointly with the shape: the shape step (``gain_solver`` or ``solver``
+       with ``fit_gain``) fits one gain ``a`` on every predicted volume together with the shape;
+       the calibrated cross-section is ``assumed / a``. Fitted jointly, the gain and the shape's
+       size compete through the profiles' *shapes* (a dilated object widens every profile, a gain
+       only scales it; a nearly binary interior cannot exceed 1). Its interval is widened by the
+       shape prior's bias (:data:`SELF_SECTION_FLOOR`). With ``dip_offset_sigma_mm`` a geometry
+       step then fits per-dip height offsets to that shape. ``iterations`` such rounds.
+    3. A final shape step (no gain) with the calibrated geometry.
+
+    Args:
+        raw: the object's raw scan (complete dips that start before contact and end under water).
+        grid, n_slabs, operator_factory, smooth: reconstruction grid, slabs, operators, smoothing.
+        solver: any :class:`~dipnet.solvers.Solver` (the shape step); the cross-section needs
+            an optimisation solver (``fit_gain``: voxel, implicit).
+        params: parameters to estimate (:data:`PARAMETERS`; default all but the lag).
+        finish: applied to every preprocessed measurement (:class:`ProfileModel`).
+        initial: the configured geometry (default: the ideal rig); undetermined parameters keep it.
+        shape: what the report's profile stage fits: ``"binary"`` or ``"occupancy"``.
+        max_section_change: a cross-section further than this (relative) from the assumed one is
+            not trusted: named undetermined and kept (the three cats, with a 56 deg missing cone:
+            the gain came out 1.46, a section 31 % below the tank's).
+        gain_solver: the solver of step 2 (default ``solver``); the final shape is ``solver``'s.
+        seed: the bootstrap's.
+
+    Returns:
+        :class:`SelfCalibration` with the report of both stages.
+    """
+    if shape not in ("occupancy", "binary"):
+        raise CalibrationError(f"shape must be 'occupancy' or 'binary', got {shape!r}")
+    if not max_section_change > 0:
+        raise CalibrationError(f"max_section_change must be positive (relative), got {max_section_change!r}")
+    params = _check_params(params)
+    initial = initial or RigGeometry()
+    volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params else ()
+    shape_solver = _with_gain(gain_solver or solver) if volume_params else (gain_solver or solver)
+    state, report = _moment_stage(raw, params, initial, "self", None, seed)
+    model = ProfileModel(raw, grid, n_slabs, operator_factory, smooth, finish)
+    history: list[dict] = [{"stage": "moments", **{p: _get(state, p, model.nominal_area) for p in params}}]
+    sigma, implausible, occupancy, partial = None, None, None, 0.0
+    for it in range(iterations if volume_params or dip_offset_sigma_mm is not None else 0):
+        measurement = model.measurement(state)
+        recon = shape_solver.solve(measurement, model.operator(measurement.directions))
+        occupancy = _shape_volume(recon, shape)
+        partial = partial_volume(recon)
+        gain = float(recon.info.get("gain", 1.0))
+        if volume_params and abs(1.0 / gain - 1.0) > max_section_change:
+            implausible = (f"the joint shape step moved it by {1 / gain - 1:+.1%} (more than max_section_change "
+                           f"{max_section_change:.0%}): the shape prior, not the data, decided the volume (e.g. a "
+                           "missing cone leaves the object's density free)")
+        elif volume_params:
+            state = _with(state, {"cross_section_mm2": _get(state, "cross_section_mm2", model.nominal_area) / gain})
+        if dip_offset_sigma_mm is not None:
+            state, sigma = fit_geometry(model, occupancy, state, ("t0_mm",), dip_offset_sigma_mm=dip_offset_sigma_mm,
+                                        sigma=sigma, max_nfev=max_nfev)
+        history.append({"stage": f"shape {it}", "gain": gain, "partial_volume": partial,
+                        **{p: _get(state, p, model.nominal_area) for p in params}})
+    for row in history:
+        log.info("self-calibration %s", ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
+                                                  for k, v in row.items()))
+    if volume_params:
+        state = _section_report(report, model, state, occupancy, sigma, initial, implausible, partial)
+    measurement = model.measurement(state)
+    recon = solver.solve(measurement, model.operator(measurement.directions))
+    _warn_undetermined(report, "self-calibration")
+    measurement.metadata = {**measurement.metadata, "self_calibration": report.to_dict(),
+                            "geometry": state.geometry.to_dict(), "t0_mm": state.t0_mm}
+    recon.info = {**recon.info, "self_calibration": report.to_dict()}
+    return SelfCalibration(state.geometry, state.t0_mm, measurement, recon, report, history)
+
+
+def partial_volume(recon: Reconstruction) -> float:
+    """Share of a reconstruction's volume in partly filled voxels (occupancy between 0.1 and 0.9)."""
+    occ = recon.occupancy.detach().to(torch.float64)
+    total = float(occ.sum())
+    return float(occ[(occ > 0.1) & (occ < 0.9)].sum()) / total if total > 0 else 1.0
+
+
+def _section_report(report: CalibrationReport, model: ProfileModel, state: State, occupancy: torch.Tensor,
+                    sigma: float | None, initial: RigGeometry, implausible: str | None, partial: float) -> State:
+    """Enter the self-calibrated cross-section into ``report``: the Gauss-Newton standard error with
+    the shape's gauges, widened by the shape prior's bias and by the volume in partly filled voxels
+    (:data:`PARTIAL_VOLUME_GAIN`); an undetermined one is kept at ``initial``."""
+    if sigma is None:
+        sigma = float(np.sqrt(np.mean(model.residual(state, occupancy, 1.0) ** 2))) or 1.0
+    profile = identifiability(model, occupancy, state, ("cross_section_mm2",), sigma)
+    section = profile.estimates["cross_section_mm2"]
+    se = profile.standard_errors["cross_section_mm2"]
+    model_error = math.hypot(SELF_SECTION_FLOOR, PARTIAL_VOLUME_GAIN * partial)
+    _record(report, "cross_section_mm2", section, (section - 1.645 * se, section + 1.645 * se), se,
+            model_error * section)
+    report.correlations["cross_section_mm2"] = profile.correlations["cross_section_mm2"]
+    report.residual_rms, report.sigma_mm3, report.dip_offsets_mm = \
+        profile.residual_rms, profile.sigma_mm3, profile.dip_offsets_mm
+    report.caveats["cross_section_mm2"] = (
+        f"estimated through the shape prior (a nearly binary shape cannot be denser than 1), its interval widened by "
+        f"{model_error:.1%} for the prior's bias ({partial:.0%} of the shape's volume in partly filled voxels); at "
+        f"the configured step scale "
+        f"({initial.step_scale:g}): a step-scale error moves it too; for a better section, "
+        "calibrate with a reference object")
+    low, high = report.intervals["cross_section_mm2"]
+    too_wide = (f"its 90% interval is +-{(high - low) / 2 / section:.1%}, wider than {TOLERANCE['cross_section_mm2']:.0%}: "
+                f"{partial:.0%} of the shape's volume sits in partly filled voxels (thin parts the grid does not "
+                "resolve), whose density the gain trades against; a finer grid or a reference object")
+    why = implausible or profile.undetermined.get("cross_section_mm2") or \
+        (too_wide if (high - low) / 2 > TOLERANCE["cross_section_mm2"] * section else None)
+    if why:
+        state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=initial.cross_section_mm2))
+        report.undetermined["cross_section_mm2"] = why
+        report.estimates["cross_section_mm2"] = _get(state, "cross_section_mm2", model.nominal_area)
+        report.intervals.pop("cross_section_mm2")
+        report.shape_motion["cross_section_mm2"] = SHAPE_MOTION["cross_section_mm2"]
+    return state
+
+
+def _with_gain(solver):
+    """A copy of ``solver`` that fits a volume gain with the shape (:class:`~dipnet.solvers.optimize.DataTerm`)."""
+    if not hasattr(solver, "fit_gain"):
+        raise CalibrationError(f"the cross-section is estimated with the shape, which needs an optimisation solver "
+                               f"(voxel, implicit); {type(solver).__name__} cannot fit it: drop cross_section_mm2 "
+                               "from the parameters or calibrate it with a reference object (scripts/calibrate.py)")
+    gained = copy.copy(solver)
+    gained.fit_gain = True
+    return gained
+
+
+def _shape_volume(recon: Reconstruction, shape: str) -> torch.Tensor:
+    if shape == "binary":
+        return torch.from_numpy(recon.binary.astype(np.float64))
+    return recon.occupancy.detach().to(torch.float64).clamp(0.0, 1.0)

@@ -1,0 +1,155 @@
+"""Rig calibration files: one :class:`~dipnet.core.geometry.RigGeometry` with the rig and tank it belongs to.
+
+Format (YAML or JSON by suffix, version 2; version 1 files, without ``intervals_90`` and
+``not_estimated``, are read too)::
+
+    format: dipnet.rig_calibration
+    version: 2
+    rig: fake-grbl            # the rig's identity, as scans record it (ScanHeader.rig)
+    tank: lab-tank-1          # the tank's identity (scans record it as header.config["tank_id"])
+    method: reference         # reference | self | manual
+    created: 2026-11-23T11:00:00+0000
+    geometry:                 # RigGeometry fields; omitted ones are ideal
+      pivot_mm: 20.1
+      tilt_axis_offset_mm: 14.8
+      tilt_zero_deg: 1.02
+      cross_section_mm2: 55210.0
+    uncertainty: {pivot_mm: 0.3}   # optional: standard errors of the estimated fields, same units
+    intervals_90: {pivot_mm: [19.6, 20.6]}   # optional: 90% intervals of the estimated fields
+    not_estimated:                 # optional: fields holding configured values, with the reason
+      spin_zero_deg: "a ball centred on the spin axis looks the same at every spin"
+    notes: ball d=60 mm at 7 orientations
+
+A field of ``geometry`` that is listed under ``not_estimated`` is the configured value, not an
+estimate; with ``method: reference`` or ``self`` every other field given was estimated.
+
+:func:`load_calibration` validates everything and raises :class:`CalibrationFileError` (a
+``ValueError``) naming the file and the cause: unknown keys, wrong format or version,
+unphysical values, or a rig / tank other than the one it is used for. It is never used
+silently: :func:`check_identity` compares it with the scan it is applied to.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from dipnet.core.rawscan import ScanHeader
+from dipnet.core.geometry import GeometryError, RigGeometry
+
+FORMAT_NAME = "dipnet.rig_calibration"
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)
+METHODS = ("reference", "self", "manual")
+_KEYS = {"format", "version", "rig", "tank", "method", "created", "geometry", "uncertainty", "intervals_90",
+         "not_estimated", "notes"}
+TANK_CONFIG_KEY = "tank_id"  # ScanHeader.config key holding the tank's identity
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file is missing, malformed, unphysical or belongs to another rig or tank."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A rig geometry with the identity of the rig and tank it was measured on.
+
+    Attributes:
+        geometry: the calibrated geometry.
+        rig: the rig's identity (matches :attr:`ScanHeader.rig`).
+        tank: the tank's identity (matches ``ScanHeader.config["tank_id"]`` when a scan records it).
+        method: how it was obtained: ``reference`` | ``self`` | ``manual``.
+        uncertainty: standard errors per estimated geometry field (same units), if known.
+        intervals: 90% intervals ``(low, high)`` per estimated geometry field.
+        not_estimated: geometry field -> why it holds the configured value, not an estimate.
+        notes: free text.
+        created: ISO 8601 time.
+    """
+
+    geometry: RigGeometry
+    rig: str
+    tank: str
+    method: str = "manual"
+    uncertainty: dict[str, float] = field(default_factory=dict)
+    intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    not_estimated: dict[str, str] = field(default_factory=dict)
+    notes: str = ""
+    created: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT_NAME, "version": FORMAT_VERSION, "rig": self.rig, "tank": self.tank,
+                "method": self.method, "created": self.created,
+                "geometry": {k: v for k, v in self.geometry.to_dict().items() if v is not None},
+                "uncertainty": {k: float(v) for k, v in self.uncertainty.items()},
+                "intervals_90": {k: [float(v[0]), float(v[1])] for k, v in self.intervals.items()},
+                "not_estimated": {k: str(v) for k, v in self.not_estimated.items()}, "notes": self.notes}
+
+
+def save_calibration(calibration: Calibration, path: str | Path) -> Path:
+    """Write ``calibration`` to ``path`` (``.json``, else YAML); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = calibration.to_dict()
+    text = json.dumps(data, indent=2) if path.suffix.lower() == ".json" else yaml.safe_dump(data, sort_keys=False)
+    path.write_text(text)
+    return path
+
+
+def load_calibration(path: str | Path, rig: str | None = None, tank: str | None = None) -> Calibration:
+    """Read and validate a calibration file; ``rig`` / ``tank``, when given, must match its identity."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationFileError(f"calibration file not found: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as exc:
+        raise CalibrationFileError(f"{path}: not a readable calibration file ({' '.join(str(exc).split())})") from exc
+    if not isinstance(data, dict):
+        raise CalibrationFileError(f"{path}: expected a mapping with format {FORMAT_NAME!r}")
+    unknown = sorted(set(data) - _KEYS)
+    if unknown:
+        raise CalibrationFileError(f"{path}: unknown key(s) {unknown}; known: {sorted(_KEYS)}")
+    if data.get("format") != FORMAT_NAME:
+        raise CalibrationFileError(f"{path}: not a rig calibration (format={data.get('format')!r})")
+    if data.get("version") not in READ_VERSIONS:
+        raise CalibrationFileError(f"{path}: unsupported calibration version {data.get('version')!r}")
+    for key in ("rig", "tank"):
+        if not isinstance(data.get(key), str) or not data[key].strip():
+            raise CalibrationFileError(f"{path}: '{key}' must name the {key} the calibration belongs to")
+    if data.get("method", "manual") not in METHODS:
+        raise CalibrationFileError(f"{path}: method must be one of {METHODS}, got {data.get('method')!r}")
+    if not isinstance(data.get("geometry"), dict):
+        raise CalibrationFileError(f"{path}: 'geometry' must be a mapping of rig geometry values")
+    try:
+        geometry = RigGeometry.from_dict(data["geometry"])
+        uncertainty = {str(k): float(v) for k, v in (data.get("uncertainty") or {}).items()}
+        intervals = {str(k): (float(v[0]), float(v[1])) for k, v in (data.get("intervals_90") or {}).items()}
+        not_estimated = {str(k): str(v) for k, v in (data.get("not_estimated") or {}).items()}
+    except (GeometryError, TypeError, ValueError, IndexError, KeyError, AttributeError) as exc:
+        raise CalibrationFileError(f"{path}: {exc}") from exc
+    calibration = Calibration(geometry=geometry, rig=data["rig"], tank=data["tank"],
+                              method=data.get("method", "manual"), uncertainty=uncertainty,
+                              intervals=intervals, not_estimated=not_estimated,
+                              notes=str(data.get("notes") or ""), created=str(data.get("created") or ""))
+    check_identity(calibration, rig, tank, source=str(path))
+    return calibration
+
+
+def check_identity(calibration: Calibration, rig: str | None, tank: str | None, source: str = "calibration") -> None:
+    """Raise :class:`CalibrationFileError` when ``rig`` / ``tank`` (if given) differ from the calibration's."""
+    if rig is not None and rig != calibration.rig:
+        raise CalibrationFileError(f"{source}: calibrated on rig {calibration.rig!r}, not on {rig!r}")
+    if tank is not None and tank != calibration.tank:
+        raise CalibrationFileError(f"{source}: calibrated on tank {calibration.tank!r}, not on {tank!r}")
+
+
+def scan_calibration(path: str | Path, header: ScanHeader) -> Calibration:
+    """Load the calibration at ``path`` for a scan: its rig must be the scan's, and its tank the
+    scan's when the scan records one (``header.config["tank_id"]``)."""
+    return load_calibration(path, rig=header.rig, tank=header.config.get(TANK_CONFIG_KEY))

@@ -1,0 +1,94 @@
+"""Exclusive cross-process locks (Linux, macOS, Windows) for files and run directories.
+
+One mechanism, :class:`HeldLock`, for everything a second process must not share: a raw scan
+file being written (:class:`dipnet.core.rawscan_writer.RawScanWriter`), a serial port
+(:class:`dipnet.rig.controller.PortLock`) and a job's output directory (:func:`run_directory_lock`,
+entered by ``scripts/reconstruct.py`` and ``scripts/scan.py``). The lock is the maintained
+``filelock`` package's OS lock on a lock file (``flock`` on Unix, ``LockFileEx`` on Windows),
+released by the operating system when the process dies, so a crash never leaves a stale lock.
+Beside it the holder writes who it is (pid, host, start time) into ``<lock file>.holder``, so a
+refused second process can say whom it waits for; that file is removed on release.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from pathlib import Path
+
+from filelock import FileLock, Timeout
+
+#: The lock file a job keeps in its run directory while it runs.
+RUN_LOCK_NAME = ".dipnet-run.lock"
+
+
+class LockHeld(OSError):
+    """Another process (or another writer in this one) holds the lock; the message names the holder."""
+
+
+class HeldLock:
+    """An exclusive lock on ``path`` (a lock file, created when needed), taken at once or refused.
+
+    Args:
+        path: the lock file.
+
+    Raises:
+        LockHeld: someone else holds it; the message is the holder as it wrote itself, e.g.
+            ``"pid 4242 on rig-pc, since 2026-11-23T16:10:00+0100"``.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.holder_path = self.path.with_name(self.path.name + ".holder")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock: FileLock | None = FileLock(str(self.path), thread_local=False)
+        try:
+            self._lock.acquire(timeout=0)
+        except Timeout:
+            self._lock = None
+            raise LockHeld(self.holder()) from None
+        with suppress(OSError):  # the holder's identity is a courtesy to the next process, never a failure
+            self.holder_path.write_text(f"pid {os.getpid()} on {socket.gethostname()}, "
+                                        f"since {time.strftime('%Y-%m-%dT%H:%M:%S%z')}\n", encoding="utf-8")
+
+    def holder(self) -> str:
+        """Who holds the lock, as its holder wrote it (``"another process"`` when unknown)."""
+        try:
+            text = self.holder_path.read_text(encoding="utf-8", errors="replace").strip()
+        except OSError:
+            text = ""
+        return text or "another process"
+
+    def release(self) -> None:
+        """Give the lock up (idempotent)."""
+        if self._lock is not None:
+            with suppress(OSError):
+                self.holder_path.unlink()
+            self._lock.release()
+            self._lock = None
+
+
+@contextmanager
+def run_directory_lock(directory: str | Path) -> Iterator[Path]:
+    """Hold ``directory`` (a job's output directory, created when needed) for the ``with`` block.
+
+    Two jobs writing into one directory would overwrite each other's files (and a checkpoint
+    resume would read a half-written state); the second one is refused before it writes anything.
+
+    Raises:
+        LockHeld: another job runs in ``directory``; the one-line message names it (pid, host,
+            start time) and says what to do.
+    """
+    directory = Path(directory)
+    try:
+        lock = HeldLock(directory / RUN_LOCK_NAME)
+    except LockHeld as exc:
+        raise LockHeld(f"run directory {directory} is in use by another job ({exc}): wait for it to finish, "
+                       "stop it, or choose another output directory (hydra.run.dir=...)") from None
+    try:
+        yield directory
+    finally:
+        lock.release()

@@ -1,0 +1,190 @@
+"""Dipping orientations: unit vectors in the object frame.
+
+A *dip direction* ``theta`` is the unit vector, expressed in the object's frame (the grid
+frame, components ordered ``(x, y[, z])``), that points **up** in the tank, i.e. against the
+direction of travel. The water line sits at height ``t = x . theta`` over the object, so the
+parts with the smallest ``t`` go under water first and the dip profile is ordered by
+increasing ``t``. Since a profile along ``-theta`` is the same profile reversed, a hemisphere
+(``z >= 0`` in 3D, angles in ``[0, 180)`` degrees in 2D) holds every distinct orientation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+def angles_2d(k: int, *, start_deg: float = 0.0) -> torch.Tensor:
+    """``k`` equally spaced 2D angles in ``[0, 180)`` degrees, shape ``(k,)``, degrees."""
+    _check_count(k)
+    return start_deg + torch.arange(k, dtype=torch.float64) * (180.0 / k)
+
+
+def directions_2d(angles_deg: torch.Tensor | np.ndarray | list[float]) -> torch.Tensor:
+    """Unit vectors ``(cos a, sin a)`` for angles in degrees; shape ``(k, 2)``."""
+    a = torch.deg2rad(torch.as_tensor(angles_deg, dtype=torch.float64))
+    return torch.stack([torch.cos(a), torch.sin(a)], dim=-1)
+
+
+def fibonacci_hemisphere(k: int) -> torch.Tensor:
+    """``k`` nearly uniform directions on the upper hemisphere (Fibonacci lattice), ``(k, 3)``."""
+    _check_count(k)
+    i = torch.arange(k, dtype=torch.float64)
+    z = 1.0 - (i + 0.5) / k  # uniform in (0, 1): equal-area bands of the hemisphere
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    phi = golden * i
+    r = torch.sqrt(1.0 - z * z)
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+
+
+def random_hemisphere(k: int, seed: int) -> torch.Tensor:
+    """``k`` directions uniform on the upper hemisphere from an explicit seed, ``(k, 3)``."""
+    _check_count(k)
+    gen = torch.Generator().manual_seed(int(seed))
+    v = torch.randn(k, 3, generator=gen, dtype=torch.float64)
+    v = v / v.norm(dim=-1, keepdim=True)
+    return v * torch.where(v[:, 2:] < 0, -1.0, 1.0)
+
+
+def paper_grid(n_theta: int, n_phi: int) -> torch.Tensor:
+    """The paper's grid: polar ``theta`` in ``[0, 90)``, azimuth ``phi`` in ``[0, 360)``.
+
+    Directions ``(sin t cos p, sin t sin p, cos t)``; shape ``(n_theta * n_phi, 3)``, theta-major.
+    """
+    _check_count(n_theta)
+    _check_count(n_phi)
+    t = torch.deg2rad(torch.arange(n_theta, dtype=torch.float64) * (90.0 / n_theta))
+    p = torch.deg2rad(torch.arange(n_phi, dtype=torch.float64) * (360.0 / n_phi))
+    tt, pp = torch.meshgrid(t, p, indexing="ij")
+    v = torch.stack([tt.sin() * pp.cos(), tt.sin() * pp.sin(), tt.cos()], dim=-1)
+    return v.reshape(-1, 3)
+
+
+def rig_to_direction(tilt_deg, spin_deg) -> torch.Tensor:
+    """Rig angles to dip directions in the object frame; shape ``(k, 3)``.
+
+    The rig first *spins* the object by ``spin_deg`` about its own z axis (the axis that is
+    vertical at rest), then *tilts* that axis by ``tilt_deg`` away from the vertical. The
+    vertical "up" then lies at polar angle ``tilt`` from the object's z axis and at azimuth
+    ``-spin`` about it: ``(sin(tilt) cos(spin), -sin(tilt) sin(spin), cos(tilt))``.
+    This is the physically consistent reading of the authors' robot (R1 = tilt, R2 = spin).
+    """
+    t = torch.deg2rad(torch.as_tensor(tilt_deg, dtype=torch.float64)).reshape(-1)
+    s = torch.deg2rad(torch.as_tensor(spin_deg, dtype=torch.float64)).reshape(-1)
+    t, s = torch.broadcast_tensors(t, s)
+    return torch.stack([t.sin() * s.cos(), -t.sin() * s.sin(), t.cos()], dim=-1)
+
+
+
+def direction_to_rig(directions) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`rig_to_direction`: unit "up" vectors ``(K, 3)``
+    (upper hemisphere) to ``(tilt_deg (K,), spin_deg (K,))``; spin is 0 for vertical ones."""
+    d = np.asarray(torch.as_tensor(directions, dtype=torch.float64).numpy(), dtype=np.float64).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    tilt = np.degrees(np.arccos(np.clip(d[:, 2], -1.0, 1.0)))
+    lateral = np.hypot(d[:, 0], d[:, 1])
+    spin = np.where(lateral > 1e-12, np.degrees(np.arctan2(-d[:, 1], d[:, 0])), 0.0)
+    return tilt, np.mod(spin, 360.0)
+
+def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor:
+    """Named orientation set: ``fibonacci`` | ``random`` | ``uniform`` (2D angles); ``(k, ndim)``."""
+    if ndim == 2:
+        if kind == "random":
+            gen = torch.Generator().manual_seed(int(seed))
+            return directions_2d(torch.rand(k, generator=gen, dtype=torch.float64) * 180.0)
+        return directions_2d(angles_2d(k))
+    if kind == "fibonacci" or kind == "uniform":
+        return fibonacci_hemisphere(k)
+    if kind == "random":
+        return random_hemisphere(k, seed)
+    raise ValueError(f"unknown orientation set {kind!r}; choose fibonacci, random or uniform")
+
+
+def _check_count(k: int) -> None:
+    if int(k) != k or k < 1:
+        raise ValueError(f"number of orientations must be a positive integer, got {k!r}")
+
+
+def reachable_candidates(tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0), step_deg: float = 10.0) -> torch.Tensor:
+    """The directions a rig can reach, on a grid of rig angles: the planners' candidate set, ``(C, 3)``.
+
+    Tilts run from ``tilt_range_deg[0]`` to ``tilt_range_deg[1]`` and spins over ``spin_range_deg``
+    (half-open when it spans a full turn) in steps of about ``step_deg`` degrees; at each tilt the
+    spin step widens as ``1 / sin(tilt)`` so the candidates cover the cap evenly (one candidate at
+    tilt 0). Directions come from :func:`rig_to_direction`; duplicates are removed.
+    """
+    t0, t1 = (float(v) for v in tilt_range_deg)
+    s0, s1 = (float(v) for v in spin_range_deg)
+    step = float(step_deg)
+    if not 0.0 <= t0 <= t1 <= 90.0:
+        raise ValueError(f"tilt range must satisfy 0 <= min <= max <= 90 degrees, got {tilt_range_deg!r}")
+    if not s0 <= s1 <= s0 + 360.0:
+        raise ValueError(f"spin range must satisfy min <= max <= min + 360 degrees, got {spin_range_deg!r}")
+    if not 0.0 < step <= 90.0:
+        raise ValueError(f"candidate step must be in (0, 90] degrees, got {step_deg!r}")
+    tilts = np.linspace(t0, t1, max(1, math.ceil((t1 - t0) / step - 1e-9)) + 1) if t1 > t0 else np.array([t0])
+    full_turn = s1 - s0 >= 360.0 - 1e-9
+    pairs = []
+    for tilt in tilts:
+        arc = (s1 - s0) * math.sin(math.radians(tilt))  # arc length of the spin range at this tilt, degrees
+        n = max(1, math.ceil(arc / step - 1e-9))
+        spins = np.linspace(s0, s1, n, endpoint=False) if full_turn else np.linspace(s0, s1, n + 1 if arc > 0 else 1)
+        pairs += [(tilt, spin) for spin in spins]
+    tilt, spin = np.array(pairs).T
+    directions = rig_to_direction(tilt, spin)
+    _, keep = np.unique(np.round(directions.numpy(), 9), axis=0, return_index=True)
+    return directions[np.sort(keep)]
+
+
+def within_reach(directions, tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0), tol_deg: float = 1e-6) -> torch.Tensor:
+    """Boolean mask ``(k,)``: which unit "up" vectors ``(k, 3)`` the rig limits allow (degrees)."""
+    d = torch.as_tensor(directions, dtype=torch.float64).reshape(-1, 3)
+    d = d / d.norm(dim=1, keepdim=True)
+    tilt = torch.rad2deg(torch.arccos(d[:, 2].clamp(-1.0, 1.0)))
+    spin = torch.rad2deg(torch.atan2(-d[:, 1], d[:, 0]))
+    s0, s1 = (float(v) for v in spin_range_deg)
+    rel = torch.remainder(spin - s0, 360.0)
+    spin_ok = (rel <= s1 - s0 + tol_deg) | (rel >= 360.0 - tol_deg) | (tilt < tol_deg)
+    return (tilt >= float(tilt_range_deg[0]) - tol_deg) & (tilt <= float(tilt_range_deg[1]) + tol_deg) & spin_ok
+
+
+
+@dataclass(frozen=True)
+class Reach:
+    """The orientations a rig can reach: tilt and spin ranges (degrees) and the candidate step.
+
+    ``tilt`` is the angle of the dip direction from the object's z axis, ``spin`` the rig's spin
+    (see :func:`rig_to_direction`). The full hemisphere is ``Reach()``; the authors' robot is
+    ``Reach(tilt_range_deg=(0, 35))``.
+    """
+
+    tilt_range_deg: tuple[float, float] = (0.0, 90.0)
+    spin_range_deg: tuple[float, float] = (0.0, 360.0)
+    step_deg: float = 10.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "tilt_range_deg", tuple(float(v) for v in self.tilt_range_deg))
+        object.__setattr__(self, "spin_range_deg", tuple(float(v) for v in self.spin_range_deg))
+        reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)  # validates
+
+    def candidates(self) -> torch.Tensor:
+        """The candidate directions ``(C, 3)`` (:func:`reachable_candidates`)."""
+        return reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)
+
+    def contains(self, directions) -> torch.Tensor:
+        """Boolean mask ``(k,)`` of the directions ``(k, 3)`` within reach (:func:`within_reach`)."""
+        return within_reach(directions, self.tilt_range_deg, self.spin_range_deg)
+
+    def uniform(self, k: int) -> torch.Tensor:
+        """``k`` nearly uniform reachable directions ``(k, 3)``: a Fibonacci lattice over equal-area
+        bands of the reachable tilts, its azimuths spread over the spin range (the baseline plan)."""
+        _check_count(k)
+        z_hi, z_lo = (math.cos(math.radians(t)) for t in self.tilt_range_deg)
+        i = torch.arange(k, dtype=torch.float64)
+        tilt = torch.rad2deg(torch.arccos(z_hi - (i + 0.5) / k * (z_hi - z_lo)))
+        s0, s1 = self.spin_range_deg
+        spin = s0 + (s1 - s0) * torch.remainder(i * (math.sqrt(5.0) - 1.0) / 2.0, 1.0)
+        return rig_to_direction(tilt, spin)

@@ -1,0 +1,46 @@
+"""Reconstruction: what every solver returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from dipnet.core.grid import Grid
+
+
+@dataclass
+class Reconstruction:
+    """A solver's result on a grid.
+
+    Attributes:
+        occupancy: estimated occupancy on ``grid``, ``grid.shape``, float (probabilities in
+            ``[0, 1]`` for the optimisation solvers; raw least-squares values for ``minnorm``).
+        grid: the grid.
+        threshold: the level that separates inside from outside (e.g. Otsu's).
+        history: loss terms per iteration, ``{name: [values]}`` (empty for direct solvers).
+        info: solver name, wall time (s), iterations and other facts, JSON-serialisable.
+        fine: optionally the same result sampled on a finer grid (implicit solver's
+            ``output_upsample``), else ``None``.
+    """
+
+    occupancy: torch.Tensor
+    grid: Grid
+    threshold: float = 0.5
+    history: dict[str, list[float]] = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+    fine: "Reconstruction | None" = None
+
+    @property
+    def binary(self) -> np.ndarray:
+        """Boolean volume ``occupancy > threshold``, ``grid.shape``."""
+        return (self.occupancy.detach().cpu().numpy() > self.threshold)
+
+    def save(self, path, **extra: np.ndarray) -> None:
+        """Write occupancy, binary volume, grid metadata and any ``extra`` named arrays (e.g. the
+        uncertainty maps of :func:`dipnet.outputs.uncertainty.write_uncertainty`) to an ``.npz`` file."""
+        np.savez_compressed(path, **extra, occupancy=self.occupancy.detach().cpu().numpy().astype(np.float32),
+                            binary=self.binary, threshold=self.threshold,
+                            grid_n=self.grid.n, grid_ndim=self.grid.ndim, grid_extent=self.grid.extent,
+                            axis_order="zyx" if self.grid.ndim == 3 else "yx")

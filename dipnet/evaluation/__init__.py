@@ -1,0 +1,2 @@
+"""Numbers about a result: metrics, consistency, uncertainty, resolvability. Writes no files.
+"""

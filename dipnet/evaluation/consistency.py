@@ -1,0 +1,230 @@
+"""Does a reconstruction explain its own data? Residual, volume and the noise that explains them.
+
+For a measurement ``g`` (``(K, M)`` slab volumes on the operator's slabs, mm^3), the dip
+operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous occupancy):
+
+* ``profile_residual`` = ``||A x_binary - g|| / ||g||`` and ``profile_residual_continuous``
+  (same for the occupancy): 0 for a shape that reproduces every slab volume;
+* ``profile_residual_expected``: what the noise alone explains, ``||n|| / ||g||`` with
+  ``||n|| = sqrt(sum sigma^2)`` from the measurement's per-slab ``sigma`` when it has one, else
+  from a per-slab sigma estimated from the profiles (:func:`estimate_slab_sigma`);
+* ``volume_ratio`` = reconstructed (binary) volume / measured volume, the measured volume
+  being a robust mean (:func:`robust_volume`) of every profile's total, with
+  ``volume_ratio_noise`` the relative spread of that mean.
+
+* ``height_trend_pivot_mm``, ``height_trend_offset_mm``: what a wrong rig geometry leaves in
+  the data whatever the reconstruction (:func:`height_trend`): every dip's centroid must be
+  ``c . theta`` for one object centroid ``c``; a trend of the centroids with the tilt ``r`` as
+  ``a (cos r - 1) + b sin r`` is the signature of a pivot missing from the rig's geometry by
+  ``-a`` and a tilt-axis offset missing by ``-b`` (mm), which the two fields hold.
+
+The verdict is ``"consistent"`` unless the residual exceeds ``residual_factor`` times what
+the noise explains (and the discretisation floor ``residual_floor``), the volume ratio
+is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger), or the
+height trend exceeds half a slab and 3 of its standard errors. Each
+failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
+so a result that does not explain its data never passes silently.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from dipnet.core.measurement import DipMeasurement
+from dipnet.operators.base import DipOperator
+from dipnet.core.reconstruction import Reconstruction
+from dipnet.solvers.base import measured_profiles
+
+log = logging.getLogger(__name__)
+
+RESIDUAL_FACTOR = 3.0  # residual allowed above the noise's own share
+RESIDUAL_FLOOR = 0.05  # relative residual below which no result is flagged (voxel discretisation)
+VOLUME_TOL = 0.05  # |volume ratio - 1| allowed at the least
+_HIGHPASS_GAIN = math.sqrt(3.0 / 8.0)  # rms of (1 - [1, 2, 1] / 4) applied to white noise
+_MAD = 1.4826  # MAD -> standard deviation for Gaussian data
+
+
+class DataConsistencyWarning(UserWarning):
+    """A reconstruction does not explain its measurement within what the noise explains."""
+
+
+@dataclass
+class Consistency:
+    """How well a reconstruction explains a measurement (see the module docstring).
+
+    Volumes in mm^3 (mm^2 in 2D); residuals relative to ``||g||``; ``noise_source`` is
+    ``"sigma"`` (the measurement's own) or ``"estimated"`` (from the profiles).
+    """
+
+    profile_residual: float
+    profile_residual_continuous: float
+    profile_residual_expected: float
+    residual_limit: float
+    noise_source: str
+    measured_volume_mm3: float
+    reconstructed_volume_mm3: float
+    continuous_volume_mm3: float
+    volume_ratio: float
+    volume_ratio_noise: float
+    volume_limit: float
+    grid_volume_fraction: float
+    height_trend_pivot_mm: float = float("nan")
+    height_trend_offset_mm: float = float("nan")
+    height_trend_limit_mm: float = float("nan")
+    verdict: str = "consistent"
+    warnings: list[str] = field(default_factory=list)
+
+    def metrics(self) -> dict:
+        """The numbers as a flat, JSON-serialisable dict (for ``metrics.json``)."""
+        out = asdict(self)
+        out["consistency_warnings"] = out.pop("warnings")
+        out["consistency"] = out.pop("verdict")
+        return out
+
+
+def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
+    """``(volume, spread)``: a robust mean of the profiles' totals (the mean of those within
+    3 MAD-sigmas of the median) and its standard error (robust sigma / sqrt(K)), mm^3.
+
+    Args:
+        profiles: slab volumes ``(K, M)``, mm^3.
+    """
+    totals = profiles.sum(1).double().numpy()
+    median = float(np.median(totals))
+    sigma = _MAD * float(np.median(np.abs(totals - median)))
+    keep = np.abs(totals - median) <= 3 * sigma if sigma > 0 else np.ones_like(totals, dtype=bool)
+    return float(totals[keep].mean()), sigma / math.sqrt(int(keep.sum()))
+
+
+def estimate_slab_sigma(profiles: torch.Tensor) -> float:
+    """A per-slab noise sigma (mm^3) estimated from the profiles ``(K, M)`` themselves: the
+    high-pass residual ``g - [1, 2, 1] / 4 * g`` along the slabs, robust sigma (MAD) divided
+    by the filter's white-noise gain. Smooth signal leaks a little into it (more noise, fewer
+    warnings); smoothing in preprocessing hides some noise from it. The spread of the
+    profiles' totals is not used: on real rigs it is dominated by systematic errors
+    (truncated dips, drift), which are exactly what the check should expose.
+    """
+    p = profiles.double().numpy()
+    high = p[:, 1:-1] - 0.25 * (p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:])
+    return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
+
+
+def height_trend(measurement: DipMeasurement) -> tuple[float, float, float]:
+    """``(-a, -b, limit)`` mm: the dips' centroids fitted as ``c . theta + a (cos r - 1) + b sin r``
+    (``r`` the tilt from the z axis): the pivot and tilt-axis offset the rig geometry misses
+    (:meth:`~dipnet.core.geometry.RigGeometry.height_shift`), and the size a trend must exceed to
+    be reported: half a slab or 3 standard errors, whichever is larger. NaNs in 2D, with fewer
+    than 8 dips, when the directions cannot separate the trend from the centroid (one tilt, one
+    spin), or when some profiles are not measured whole dips (truncated dips kept, symmetry
+    images, interpolated directions: their centroids are not the object's).
+    """
+    meta = measurement.metadata or {}
+    if (meta.get("recorded") or {}).get("truncated") or "symmetry_group_order" in meta \
+            or meta.get("interpolated_orientations"):
+        return float("nan"), float("nan"), float("nan")
+    d = measurement.directions.double().numpy()
+    p = measurement.profiles.double().numpy()
+    totals = p.sum(1)
+    if d.shape[1] != 3 or len(d) < 8 or not (totals > 0).all():
+        return float("nan"), float("nan"), float("nan")
+    h = measurement.slab_thickness
+    centres = measurement.offsets.double().numpy()[:, None] + h * (np.arange(p.shape[1]) + 0.5)[None, :]
+    centroid = (p * centres).sum(1) / totals
+    r = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
+    design = np.column_stack([d, np.cos(r) - 1.0, np.sin(r)])
+    if np.linalg.matrix_rank(design, tol=1e-6) < design.shape[1]:
+        return float("nan"), float("nan"), float("nan")
+    coef, *_ = np.linalg.lstsq(design, centroid, rcond=None)
+    residual = centroid - design @ coef
+    s2 = float(residual @ residual) / max(1, len(d) - design.shape[1])
+    se = np.sqrt(s2 * np.diag(np.linalg.inv(design.T @ design)))
+    return float(-coef[3]), float(-coef[4]), float(max(0.5 * h, 3 * se[3], 3 * se[4]))
+
+
+def _relative_residual(operator: DipOperator, volume: torch.Tensor, target: torch.Tensor) -> float:
+    with torch.no_grad():
+        predicted = operator(volume.to(torch.float64))
+    return float((predicted - target).norm() / target.norm().clamp(min=1e-300))
+
+
+def check_consistency(measurement: DipMeasurement, operator: DipOperator, reconstruction: Reconstruction, *,
+                      residual_factor: float = RESIDUAL_FACTOR, residual_floor: float = RESIDUAL_FLOOR,
+                      volume_tol: float = VOLUME_TOL, warn: bool = True) -> Consistency:
+    """Residual, volume ratio and verdict of ``reconstruction`` against ``measurement``.
+
+    Args:
+        measurement: the data (any slabs; resampled onto the operator's).
+        operator: the dip operator of the reconstruction's grid and the measurement's directions.
+        reconstruction: the result (its ``binary`` and ``occupancy`` are both checked).
+        residual_factor: flag a residual above this multiple of what the noise explains.
+        residual_floor: never flag a relative residual below this (voxel discretisation).
+        volume_tol: flag ``|volume_ratio - 1|`` above this (or 3 noise spreads, if larger).
+        warn: log and ``warnings.warn`` a :class:`DataConsistencyWarning` per failed check.
+    """
+    if reconstruction.grid != operator.grid:
+        raise ValueError(f"the reconstruction's grid {reconstruction.grid} is not the operator's {operator.grid}")
+    target = measured_profiles(measurement, operator)
+    binary = torch.from_numpy(reconstruction.binary)
+    occupancy = reconstruction.occupancy.detach().cpu()
+    voxel = operator.grid.voxel_volume
+    mask = operator.mask
+    measured, spread = robust_volume(measurement.profiles)
+    if not measured > 0:
+        raise ValueError(f"the measurement's profiles hold no volume ({measured:g} mm^3): nothing to check against")
+    on_grid, _ = robust_volume(target)
+    sigma = measurement.sigma if measurement.sigma is not None and measurement.sigma.shape == target.shape else None
+    if sigma is not None:
+        noise_norm, source = float(sigma.double().pow(2).sum().sqrt()), "sigma"
+    else:
+        noise_norm, source = estimate_slab_sigma(target) * math.sqrt(target.numel()), "estimated"
+    expected = noise_norm / float(target.norm().clamp(min=1e-300))
+    recon_volume = float((binary & mask).sum()) * voxel
+    result = Consistency(
+        profile_residual=_relative_residual(operator, binary, target),
+        profile_residual_continuous=_relative_residual(operator, occupancy, target),
+        profile_residual_expected=expected, residual_limit=max(residual_factor * expected, residual_floor),
+        noise_source=source, measured_volume_mm3=measured, reconstructed_volume_mm3=recon_volume,
+        continuous_volume_mm3=float((occupancy.double() * mask).sum()) * voxel,
+        volume_ratio=recon_volume / measured, volume_ratio_noise=spread / measured,
+        volume_limit=max(volume_tol, 3 * spread / measured), grid_volume_fraction=on_grid / measured)
+    result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
+    result.warnings = _findings(result)
+    result.verdict = "inconsistent" if result.warnings else "consistent"
+    if warn:
+        for message in result.warnings:
+            log.warning(message)
+            warnings.warn(message, DataConsistencyWarning, stacklevel=2)
+    return result
+
+
+def _findings(c: Consistency) -> list[str]:
+    """One plain message per failed check."""
+    out = []
+    if c.grid_volume_fraction < 1 - c.volume_limit:
+        out.append(f"the grid's slabs hold only {c.grid_volume_fraction:.0%} of the measured volume: the object "
+                   "reaches beyond the working range (increase extent_mm or check the start heights)")
+    if c.profile_residual_continuous > c.residual_limit:
+        out.append(f"the occupancy misses its data: relative profile residual {c.profile_residual_continuous:.3f}, "
+                   f"noise explains {c.profile_residual_expected:.3f} ({c.noise_source}): the rig model "
+                   "(start heights, geometry, cross-section) or the priors disagree with the data")
+    if c.profile_residual > c.residual_limit:
+        out.append(f"the binary shape misses its data: relative profile residual {c.profile_residual:.3f} "
+                   f"(occupancy: {c.profile_residual_continuous:.3f}), noise explains "
+                   f"{c.profile_residual_expected:.3f} ({c.noise_source})")
+    trend = max(abs(c.height_trend_pivot_mm), abs(c.height_trend_offset_mm))
+    if trend > c.height_trend_limit_mm:  # NaN compares False
+        out.append(f"the dips' heights trend with their tilt as a wrong rig geometry leaves them: the pivot looks "
+                   f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by {c.height_trend_offset_mm:+.2f}"
+                   f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
+                   "scripts/calibrate.py)")
+    if abs(c.volume_ratio - 1) > c.volume_limit:
+        out.append(f"the reconstruction holds {c.reconstructed_volume_mm3:.4g} mm^3, the dips measure "
+                   f"{c.measured_volume_mm3:.4g} mm^3 (ratio {c.volume_ratio:.3f}, noise explains "
+                   f"+-{c.volume_ratio_noise:.3f}; continuous occupancy: {c.continuous_volume_mm3:.4g} mm^3)")
+    return out

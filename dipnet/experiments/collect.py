@@ -1,0 +1,284 @@
+"""Collect the jobs of Hydra sweeps: job directories -> :class:`Run` -> flat rows -> aggregates."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import OmegaConf
+
+log = logging.getLogger(__name__)
+
+ERROR_FILE = "error.txt"
+METRICS_FILE = "metrics.json"
+#: Default grouping of :func:`aggregate` (the paper's axes: method x budget x noise).
+GROUP_BY = ("solver", "n_dips", "snr_db")
+#: Metrics summarised by default, in table order (Chamfer/Hausdorff: truth bbox diagonals;
+#: false_positive/false_negative: fractions of voxels; seconds: solver wall time).
+METRICS = ("iou", "chamfer", "hausdorff", "volume_error", "false_positive", "false_negative", "seconds")
+LABELS = {"iou": "IoU", "chamfer": "Chamfer", "hausdorff": "Hausdorff", "volume_error": "volume error",
+           "false_positive": "false positive", "false_negative": "false negative", "seconds": "seconds",
+           "n_dips": "dips", "snr_db": "SNR (dB)", "solver": "solver", "shape": "shape",
+           "dips_percent": "% of dips", "series": "solver", "error_1_minus_iou": "1 - IoU"}
+
+
+
+class NoRunsError(FileNotFoundError):
+    """A directory holds no reconstruction jobs."""
+
+
+@dataclass
+class Run:
+    """One job of a sweep as found on disk.
+
+    Attributes:
+        path: the job directory.
+        status: ``"ok"`` (``metrics.json`` written), ``"failed"`` (``error.txt`` or an unreadable
+            ``metrics.json``) or ``"unfinished"`` (neither: still running, killed, or empty).
+        config: the job's config as a plain dict (``{}`` when ``.hydra/config.yaml`` is missing).
+        overrides: the job's command-line overrides (``.hydra/overrides.yaml``).
+        choices: Hydra's config-group choices (``.hydra/hydra.yaml``), e.g. ``{"solver": "lsmr"}``.
+        metrics: the contents of ``metrics.json`` (``{}`` unless ``status == "ok"``).
+        error: the first line of ``error.txt`` (or why ``metrics.json`` is unreadable).
+    """
+
+    path: Path
+    status: str
+    config: dict = field(default_factory=dict)
+    overrides: list[str] = field(default_factory=list)
+    choices: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    error: str | None = None
+
+
+
+def _load_yaml(path: Path) -> Any:
+    """A YAML file as plain containers, interpolations resolved where possible (``None`` if absent)."""
+    if not path.is_file():
+        return None
+    cfg = OmegaConf.load(path)
+    try:
+        return OmegaConf.to_container(cfg, resolve=True)
+    except Exception:  # noqa: BLE001 - e.g. ${hydra:...} resolvers outside a Hydra run
+        return OmegaConf.to_container(cfg, resolve=False)
+
+
+def _is_job_dir(path: Path) -> bool:
+    return (path / ".hydra" / "config.yaml").is_file() or (path / METRICS_FILE).is_file() \
+        or (path / ERROR_FILE).is_file()
+
+
+def find_job_dirs(root: str | Path) -> list[Path]:
+    """Job directories under ``root`` (``root`` itself if it is one), sorted naturally.
+
+    A job directory holds ``.hydra/config.yaml``, ``metrics.json`` or ``error.txt``; a numbered
+    sub-directory of a sweep root (the folder with Hydra's ``multirun.yaml``) is a job even when
+    empty (it never started).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise NoRunsError(f"{root}: not a directory")
+    if _is_job_dir(root):
+        return [root]
+    found: set[Path] = set()
+    for marker in ("config.yaml", METRICS_FILE, ERROR_FILE):
+        for p in root.rglob(marker):
+            job = p.parent.parent if p.parent.name == ".hydra" else p.parent
+            if marker != "config.yaml" or p.parent.name == ".hydra":
+                found.add(job)
+    for sweep in [root, *(p.parent for p in root.rglob("multirun.yaml"))]:
+        if (sweep / "multirun.yaml").is_file():
+            found.update(d for d in sweep.iterdir() if d.is_dir() and d.name.isdigit())
+
+    def natural(p: Path) -> list:
+        return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in p.relative_to(root).parts]
+
+    return sorted(found, key=natural)
+
+
+def load_run(job_dir: str | Path) -> Run:
+    """Read one job directory (see :class:`Run` for the status rules)."""
+    job_dir = Path(job_dir)
+    config = _load_yaml(job_dir / ".hydra" / "config.yaml") or {}
+    overrides = _load_yaml(job_dir / ".hydra" / "overrides.yaml") or []
+    hydra_cfg = _load_yaml(job_dir / ".hydra" / "hydra.yaml") or {}
+    choices = (hydra_cfg.get("hydra", {}).get("runtime", {}).get("choices") or {}) if isinstance(hydra_cfg, dict) else {}
+    run = Run(job_dir, "unfinished", config, [str(o) for o in overrides], dict(choices))
+    metrics_path, error_path = job_dir / METRICS_FILE, job_dir / ERROR_FILE
+    if metrics_path.is_file():
+        try:
+            run.metrics = json.loads(metrics_path.read_text())
+            if not isinstance(run.metrics, dict):
+                raise ValueError("not a JSON object")
+            run.status = "ok"
+        except ValueError as exc:
+            run.status, run.error = "failed", f"unreadable {metrics_path.name}: {exc}"
+    elif error_path.is_file():
+        lines = error_path.read_text().strip().splitlines()
+        run.status, run.error = "failed", (lines[0] if lines else "error.txt is empty")
+    return run
+
+
+def collect_runs(dirs: str | Path | Iterable[str | Path]) -> list[Run]:
+    """All jobs under one or several sweep directories (or job directories).
+
+    Raises:
+        NoRunsError: a directory does not exist or holds no job at all.
+    """
+    dirs = [dirs] if isinstance(dirs, (str, Path)) else list(dirs)
+    runs: list[Run] = []
+    for d in dirs:
+        jobs = find_job_dirs(d)
+        if not jobs:
+            raise NoRunsError(f"{d}: no reconstruction jobs found (no .hydra/config.yaml, metrics.json "
+                              f"or error.txt below it); pass the directory of a sweep (`-m`) or of a run")
+        runs.extend(load_run(j) for j in jobs)
+    return runs
+
+
+
+def _get(d: dict, dotted: str) -> Any:
+    for key in dotted.split("."):
+        if not isinstance(d, dict) or key not in d:
+            return None
+        d = d[key]
+    return d
+
+
+def _shape_label(config: dict) -> str | None:
+    shape = config.get("shape") or {}
+    if not isinstance(shape, dict):
+        return str(shape)
+    if shape.get("name"):
+        return str(shape["name"])
+    if shape.get("path"):
+        return Path(str(shape["path"])).stem
+    return None
+
+
+def dips_percent(n_dips: int, resolution: int, ndim: int, n_slabs: int | None = None) -> float:
+    """``n_dips`` as a percentage of the dips a square system needs (paper Fig. 13a).
+
+    ``N^ndim`` unknowns and ``M`` slabs per dip (``M = N`` by default) need ``N^ndim / M`` dips
+    (``N^2`` in 3D, ``N`` in 2D).
+    """
+    required = resolution ** ndim / (n_slabs or resolution)
+    return 100.0 * n_dips / required
+
+
+def override_values(overrides: Sequence[str]) -> dict[str, Any]:
+    """``{key: value}`` of ``key=value`` overrides (``+``/``++`` prefixes dropped, deletions and
+    config-group choices such as ``solver=lsmr`` kept as text; numbers parsed), so that swept
+    options (``solver.priors.tv.weight=0.01``) become columns."""
+    values: dict[str, Any] = {}
+    for item in overrides:
+        key, sep, text = item.lstrip("+").partition("=")
+        if not sep or key.startswith("~") or key.startswith("hydra"):
+            continue
+        try:
+            values[key] = int(text)
+        except ValueError:
+            try:
+                values[key] = float(text)
+            except ValueError:
+                values[key] = None if text == "null" else text
+    return values
+
+
+def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
+    """One flat row per job: identity (job, status, error), axes (solver, shape, ndim,
+    resolution, n_dips, dips_percent, snr_db, seed, overrides) and every scalar metric."""
+    cfg, m = run.config, run.metrics
+    solver = run.choices.get("solver") or m.get("solver")
+    if solver is None and isinstance(cfg.get("solver"), dict):
+        solver = str(cfg["solver"].get("_target_", "")).rsplit(".", 1)[-1] or None
+    snr = m["snr_db"] if "snr_db" in m else cfg.get("snr_db", _get(cfg, "source.simulator.sensor.snr_db"))
+    row: dict[str, Any] = {
+        "job": str(run.path.relative_to(root)) if root is not None and run.path.is_relative_to(root) else str(run.path),
+        "status": run.status,
+        "solver": solver,
+        "shape": m.get("shape") or _shape_label(cfg),
+        "ndim": m.get("ndim", cfg.get("ndim")),
+        "resolution": m.get("resolution", cfg.get("resolution")),
+        "n_dips": m.get("n_dips", cfg.get("n_dips")),
+        "snr_db": snr if snr is None or isinstance(snr, str) else float(snr),
+        "seed": cfg.get("seed"),
+    }
+    if None not in (row["n_dips"], row["resolution"], row["ndim"]):
+        row["dips_percent"] = dips_percent(int(row["n_dips"]), int(row["resolution"]), int(row["ndim"]),
+                                           cfg.get("n_slabs"))
+    for key, value in m.items():
+        if key not in row and (isinstance(value, (int, float, str)) or value is None):
+            row[key] = value
+    for key, value in override_values(run.overrides).items():
+        row.setdefault(key, value)
+    row["overrides"] = " ".join(run.overrides)
+    row["error"] = run.error
+    return row
+
+
+def run_rows(runs: Sequence[Run], root: str | Path | None = None) -> list[dict[str, Any]]:
+    """:func:`run_row` of every run (job paths relative to ``root`` when given)."""
+    return [run_row(r, None if root is None else Path(root)) for r in runs]
+
+
+def _sort_key(value: Any) -> tuple:
+    """None last, numbers numerically, anything else as text."""
+    if value is None:
+        return (2, 0.0, "")
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return (0, float(value), "")
+    return (1, 0.0, str(value))
+
+
+def aggregate(rows: Sequence[dict], by: Sequence[str] = GROUP_BY,
+              metrics: Sequence[str] = METRICS) -> list[dict[str, Any]]:
+    """Mean, standard deviation (``ddof=1``; 0 for one run) and count per group of ``ok`` rows.
+
+    Returns one dict per group, sorted by ``by``: the ``by`` keys, ``runs`` (number of ok jobs)
+    and ``<metric>_mean``, ``<metric>_std`` for each metric present in the group (non-finite
+    values are left out of that metric's statistics; a metric absent from every row of a group
+    is absent from the group's dict).
+    """
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        if row.get("status") == "ok":
+            groups.setdefault(tuple(row.get(k) for k in by), []).append(row)
+    out = []
+    for key in sorted(groups, key=lambda k: tuple(_sort_key(v) for v in k)):
+        members = groups[key]
+        entry: dict[str, Any] = dict(zip(by, key))
+        entry["runs"] = len(members)
+        for name in metrics:
+            values = np.array([float(r[name]) for r in members
+                               if isinstance(r.get(name), (int, float)) and not isinstance(r.get(name), bool)])
+            values = values[np.isfinite(values)]
+            if values.size:
+                entry[f"{name}_mean"] = float(values.mean())
+                entry[f"{name}_std"] = float(values.std(ddof=1)) if values.size > 1 else 0.0
+        out.append(entry)
+    return out
+
+
+def label_series(rows: Sequence[dict]) -> list[dict]:
+    """Copies of the rows with a ``series`` label for plotting: the solver, and the noise level
+    too (``"lsmr @ 30 dB"``, ``"lsmr @ no noise"``) when the ok rows hold more than one."""
+    levels = {r.get("snr_db") for r in rows if r.get("status") == "ok"}
+
+    def label(r: dict) -> str:
+        if len(levels) < 2:
+            return str(r.get("solver"))
+        snr = r.get("snr_db")
+        return f"{r.get('solver')} @ " + ("no noise" if snr is None else f"{snr:g} dB")
+
+    return [{**r, "series": label(r)} for r in rows]
+
+
+def problems(runs: Sequence[Run]) -> list[Run]:
+    """The failed and unfinished runs."""
+    return [r for r in runs if r.status != "ok"]

@@ -1,0 +1,64 @@
+"""Tables of a sweep: CSV, Markdown summaries and the list of failed or unfinished jobs."""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from dipnet.experiments.collect import GROUP_BY, LABELS, METRICS, Run, problems, run_rows
+
+
+def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
+    """Rows as CSV; columns are the union of the rows' keys in first-seen order (``""`` = missing)."""
+    columns: list[str] = []
+    for row in rows:
+        columns.extend(k for k in row if k not in columns)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
+    return path
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}" if abs(x) < 1e4 else f"{x:.3e}"
+
+
+def format_cell(value: Any) -> str:
+    if value is None:
+        return "none"
+    if isinstance(value, float):
+        return _fmt(value)
+    return str(value).replace("|", "\\|")
+
+
+def markdown_table(groups: Sequence[dict], by: Sequence[str] = GROUP_BY,
+                   metrics: Sequence[str] = METRICS) -> str:
+    """A Markdown table of :func:`aggregate`'s output: one row per group, ``mean ± std`` cells.
+
+    Metrics absent from every group are left out; ``snr_db = none`` means noise-free.
+    """
+    present = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
+    header = [LABELS.get(k, k) for k in by] + ["runs"] + [LABELS.get(m, m) for m in present]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for g in groups:
+        cells = [format_cell(g.get(k)) for k in by] + [str(g["runs"])]
+        cells += [f"{_fmt(g[f'{m}_mean'])} ± {_fmt(g[f'{m}_std'])}" if f"{m}_mean" in g else "" for m in present]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def markdown_problems(runs: Sequence[Run], root: str | Path | None = None) -> str:
+    """A Markdown list of failed and unfinished jobs (empty string when there are none)."""
+    bad = problems(runs)
+    if not bad:
+        return ""
+    lines = [f"Failed or unfinished jobs ({len(bad)} of {len(runs)}):", ""]
+    for row, run in zip(run_rows(bad, root), bad):
+        what = run.error or "no metrics.json (unfinished or killed)"
+        lines.append(f"- `{row['job']}` ({run.status}): {what}" + (f" [{row['overrides']}]" if row["overrides"] else ""))
+    return "\n".join(lines) + "\n"

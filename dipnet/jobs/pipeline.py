@@ -1,0 +1,191 @@
+"""The reconstruction job behind ``scripts/reconstruct.py``: config in, files and metrics out.
+
+Data flow: shape -> measurement (simulated from the shape's own geometry, or read from a
+file) -> operator -> solver -> reconstruction -> mesh, volume, metrics and figures, all
+written into one output directory.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from dipnet.evaluation import consistency, metrics
+from dipnet.outputs import export, plots
+from dipnet.shapes.isosurface import volume_to_mesh
+from dipnet.jobs.plans import fixed_directions, simulate_adaptive
+from dipnet.solvers.checkpoint import attach_checkpoint
+from dipnet.core.framing import extent_around, measurement_extent
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.operators import backend_name
+from dipnet.jobs.options import ConfigError, check_config, check_grid_options, hydra_overrides
+from dipnet.core.reconstruction import Reconstruction
+from dipnet.jobs.resources import check_memory
+from dipnet.shapes import Shape
+from dipnet.solvers.base import measured_profiles
+from dipnet.preprocessing.symmetry import apply_symmetry
+from dipnet.jobs.threads import configure_threads
+from dipnet.preprocessing.truth import shape_from_recording
+from dipnet.outputs.resolvability import write_resolvability
+from dipnet.outputs.uncertainty import write_uncertainty
+from dipnet.preprocessing.validation import validate_measurement
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class JobResult:
+    """What one reconstruction job produced."""
+
+    measurement: DipMeasurement
+    reconstruction: Reconstruction
+    metrics: dict[str, Any]
+    output_dir: Path
+
+
+def build_grid(cfg: DictConfig, shape: Shape | None = None) -> Grid:
+    """The grid from ``ndim``, ``resolution`` and ``extent_mm`` (``null``: chosen around
+    ``shape``, see :mod:`dipnet.core.framing`, or the saved measurement's slabs); clear errors on bad values."""
+    check_grid_options(cfg)
+    extent = cfg.extent_mm
+    if extent is None and shape is not None:
+        extent = extent_around(shape.radius(), int(cfg.resolution), float(cfg.fill))
+    elif extent is None and cfg.source.kind == "recorded":
+        extent = measurement_extent(cfg.source.reader.path)
+    if extent is None:
+        raise ConfigError("extent_mm is needed: the recording names no shape to choose the grid around")
+    return Grid(int(cfg.resolution), int(cfg.ndim), float(extent))
+
+
+def true_shape(cfg: DictConfig) -> Shape | None:
+    """The object: the configured shape (simulated sources, at its own size in mm), the shape a
+    recording names (fake-rig scans, :mod:`dipnet.preprocessing.truth`), or ``None``."""
+    if cfg.source.kind == "recorded":
+        return shape_from_recording(cfg.source.reader.path)
+    return instantiate(cfg.shape, ndim=int(cfg.ndim))
+
+
+def acquire(cfg: DictConfig, grid: Grid, shape: Shape | None, out: Path) -> DipMeasurement:
+    """The measurement: read (recorded sources) or simulated from ``shape``'s exact geometry."""
+    n_slabs = cfg.n_slabs or grid.n
+    if cfg.source.kind == "recorded":
+        read = instantiate(cfg.source.reader)
+        return read(grid=grid, n_slabs=n_slabs)
+    if shape.radius() > grid.radius * (1 + 1e-6):
+        raise ConfigError(f"shape {shape.name!r} (radius {shape.radius():.1f} mm) does not fit the working "
+                          f"ball of radius {grid.radius:.1f} mm: increase extent_mm (or leave it null)")
+    if cfg.get("planner") is not None and cfg.planner.kind == "adaptive":
+        return simulate_adaptive(cfg, grid, shape, out)
+    directions = fixed_directions(cfg, grid.ndim)
+    simulate = instantiate(cfg.source.simulator)
+    raw, measurement = simulate(shape, directions, grid=grid, n_slabs=n_slabs, seed=cfg.seed,
+                                progress=cfg.output.progress)
+    raw.save(out / "rawscan.jsonl")
+    return measurement
+
+
+def run(cfg: DictConfig, out: Path) -> JobResult:
+    """Run one reconstruction job and write its outputs into ``out`` (every option checked first:
+    :func:`dipnet.jobs.options.check_config`)."""
+    check_config(cfg, *hydra_overrides())
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(int(cfg.seed))
+    configure_threads(cfg.get("threads"))
+    check_memory(cfg)
+    shape = true_shape(cfg)
+    grid = build_grid(cfg, shape)
+    calibrating = bool(cfg.get("calibration"))
+    if not calibrating:
+        measurement = acquire(cfg, grid, shape, out)
+        validation = validate_measurement(measurement, grid)
+        measurement = apply_symmetry(measurement, cfg.get("symmetry"))
+        measurement.save(out / "measurement.npz")
+    elif cfg.source.kind != "recorded":  # the raw scan only: nothing is read with the uncalibrated geometry
+        acquire(cfg, grid, shape, out)
+
+    t0 = time.perf_counter()
+    solver = instantiate(cfg.solver)
+    attach_checkpoint(solver, cfg.output.get("checkpoint"), out, int(cfg.output.get("checkpoint_every", 25)))
+    if calibrating:  # the rig geometry estimated jointly with the shape, before any check that depends on it
+        from dipnet.jobs.calibration_job import self_calibration_job
+
+        measurement, operator, recon = self_calibration_job(cfg, grid, solver, out)
+        validation = validate_measurement(measurement, grid)
+    else:
+        operator = instantiate(cfg.operator)(grid, measurement.directions, cfg.n_slabs or grid.n)
+        recon = solver.solve(measurement, operator)
+    seconds = time.perf_counter() - t0
+    recon.save(out / "reconstruction.npz")
+
+    scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
+                              "operator": recon.info.get("operator", backend_name(operator)),
+                              "seconds": seconds, "n_dips": measurement.n_orientations,
+                              "resolution": grid.n, "ndim": grid.ndim}
+    scores.update(consistency.check_consistency(measurement, operator, recon).metrics())
+    if cfg.output.get("resolvability", True):
+        scores.update(write_resolvability(measurement, grid, out, figure=cfg.output.figures))
+    truth = None
+    if shape is not None:
+        truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
+        scores.update(shape=shape.name, snr_db=cfg.get("snr_db"))
+        level = metrics.reference_level(truth, grid, shape.volume)
+        scores.update(metrics.evaluate(recon, truth, grid, truth_mesh=getattr(shape, "mesh", None),
+                                       truth_volume=shape.volume, truth_level=level))
+        scores.update(metrics.reference_check(truth, grid, shape.volume, level))
+        scores.update(metrics.false_rates(recon.binary, truth > level))
+    scores.update(validation.metrics())
+    if cfg.output.get("uncertainty"):
+        scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures)))
+    (out / "metrics.json").write_text(json.dumps(scores, indent=2))
+    write_outputs(cfg, out, measurement, operator, recon, truth)
+    if cfg.output.get("report"):
+        from dipnet.outputs.report import write_run_report  # optional extra: plotly
+
+        write_run_report(out)
+    log.info("metrics: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                      for k, v in scores.items()))
+    return JobResult(measurement, recon, scores, out)
+
+
+def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, truth) -> None:
+    """Meshes (3D) and PNG figures of one job."""
+    grid = recon.grid
+    meshes = []
+    if grid.ndim == 3:
+        if truth is not None:
+            meshes.append((volume_to_mesh(truth, grid, 0.5), "truth"))
+        meshes.append((volume_to_mesh(recon.occupancy.numpy(), grid, recon.threshold), "reconstruction"))
+        for mesh, name in meshes:
+            if len(mesh.faces):
+                for fmt in cfg.output.mesh_formats:
+                    export.save_mesh(mesh, out / f"{name}.{fmt}")
+    if not cfg.output.figures:
+        return
+    with torch.no_grad():
+        predicted = operator(torch.as_tensor(recon.binary, dtype=torch.float64))
+    plots.plot_sinogram(measured_profiles(measurement, operator).numpy(), out / "sinogram.png",
+                        slab_edges=operator.slab_edges().numpy(), volume_unit_2d=grid.ndim == 2)
+    plots.plot_profiles(measured_profiles(measurement, operator).numpy(), predicted.numpy(), out / "profiles.png",
+                        slab_edges=operator.slab_edges().numpy(), volume_unit_2d=grid.ndim == 2)
+    if truth is not None:
+        plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png")
+    if recon.history:
+        (out / "history.json").write_text(json.dumps(recon.history))
+        plots.plot_history(recon.history, out / "loss.png")
+    if meshes:
+        plots.plot_mesh([m for m, _ in meshes], out / "mesh.png", titles=[t for _, t in meshes])
+
+
+def config_summary(cfg: DictConfig) -> str:
+    """The resolved config as YAML (for logs and headers)."""
+    return OmegaConf.to_yaml(cfg, resolve=True)

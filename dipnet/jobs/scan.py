@@ -1,0 +1,133 @@
+"""The scan job: a rig, sensor and plan built from a scan config (``conf/scan.yaml``), run or resumed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from dipnet.core.calibration_file import TANK_CONFIG_KEY, Calibration, load_calibration
+from dipnet.core.geometry import RigGeometry
+from dipnet.core.grid import Grid
+from dipnet.core.orientations import Reach
+from dipnet.core.rawscan import RawScan, ScanHeader, read_rawscan
+from dipnet.planning.adaptive import AdaptiveSettings
+from dipnet.rig.adaptive import adaptive_scan
+from dipnet.rig.controller import Controller
+from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
+from dipnet.rig.sensors import AveragingSensor
+
+
+def build_header(cfg: dict[str, Any], controller: Controller, sensor, plan: ScanPlan) -> ScanHeader:
+    """The raw scan header from the scan config (the runner adds the rig identity)."""
+    rig = cfg.get("rig", {})
+    return ScanHeader(
+        quantity=sensor.quantity, ndim=3, tank_cross_section_mm2=rig.get("tank_cross_section_mm2"),
+        step_mm=float(plan.step_mm), resolution=rig.get("resolution"),
+        rig=str(rig.get("name", controller.dialect)),
+        config={"scan": cfg},
+        metadata=dict(cfg.get("metadata") or {}))
+
+
+def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> RawScan:
+    """Build the rig from a scan config (``conf/scan.yaml``) and run (or resume) the scan.
+
+    ``cfg.rig`` holds ``controller`` (``_target_``), ``sensor_url``, ``tank_cross_section_mm2``,
+    ``geometry`` and optionally ``fake`` (a :class:`~dipnet.rig.fake.world.FakeRig`, registered under its
+    name so the ``fakerig://`` URLs reach it); ``cfg.sensor`` holds ``device`` (``_target_``) and
+    ``average``; ``cfg.orientations`` and ``cfg.protocol`` the plan.
+    """
+    from omegaconf import OmegaConf
+
+    world = register_fake_rig(cfg)
+    plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)),
+                    **plan_settings(cfg, world))
+    return runner_from_config(cfg, plan, path, progress=progress).run()
+
+
+def register_fake_rig(cfg):
+    """Register ``cfg.rig.fake`` (a :class:`~dipnet.rig.fake.world.FakeRig`) so its ``fakerig://`` URLs
+    resolve; returns it (``None`` for a real rig)."""
+    from hydra.utils import instantiate
+
+    if cfg.rig.get("fake") is None:
+        return None
+    return instantiate(cfg.rig.fake, _convert_="all").register()
+
+
+def plan_settings(cfg, world=None) -> dict[str, Any]:
+    """The :class:`ScanPlan` keyword arguments of a scan config besides the orientations:
+    ``cfg.protocol``, the origin / pivot of ``cfg.rig.geometry``, the rig geometry of the
+    calibration file ``cfg.rig.calibration`` (the ideal rig without one) and the deepest lowering:
+    ``cfg.rig.max_lower_mm`` or, shallower, the tank bottom of the fake rig ``world``."""
+    from omegaconf import OmegaConf
+
+    geometry = cfg.rig.get("geometry") or {}
+    calibration = rig_calibration(cfg.rig)
+    limits = [] if cfg.rig.get("max_lower_mm") is None else [(float(cfg.rig.max_lower_mm), "rig.max_lower_mm")]
+    if world is not None:
+        limits.append((world.deepest_lower_mm(float(cfg.orientations.get("max_tilt_deg", 90.0))),
+                       f"the fake rig's tank holds {world.tank.rest_level_mm:g} mm of water, the object's radius is "
+                       f"{world.shape.radius():.4g} mm"))
+    deepest = min(limits, default=(None, "rig.max_lower_mm"))
+    return {**OmegaConf.to_container(cfg.protocol, resolve=True),
+            "origin_height_mm": geometry.get("origin_height_mm"), "pivot_mm": float(geometry.get("pivot_mm", 0.0)),
+            "geometry": calibration.geometry if calibration else RigGeometry(),
+            "max_lower_mm": deepest[0], "max_lower_source": deepest[1]}
+
+
+def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = True,
+                       progress: bool | None = None) -> "ScanRunner":
+    """A :class:`ScanRunner` for ``plan`` on the controller and sensor of a scan config, its header
+    recording the config and the rig calibration. ``home=False`` never homes (a later batch of an
+    adaptive scan); otherwise ``cfg.home`` decides (null: home when the board can)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    controller = instantiate(cfg.rig.controller, _convert_="all")
+    device = instantiate(cfg.sensor.device, _convert_="all")
+    sensor = AveragingSensor(device, **OmegaConf.to_container(cfg.sensor.average, resolve=True))
+    header = build_header(OmegaConf.to_container(cfg, resolve=True), controller, sensor, plan)
+    calibration = rig_calibration(cfg.rig)
+    if calibration is not None:
+        header.config.update({TANK_CONFIG_KEY: calibration.tank, "calibration": calibration.to_dict()})
+        header.tank_cross_section_mm2 = calibration.geometry.area(header.tank_cross_section_mm2)
+    configured = cfg.get("home")
+    return ScanRunner(controller, sensor, plan, path, header,
+                      home=(None if configured is None else bool(configured)) if home else False,
+                      progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
+                      rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
+                      confirm_position=bool(cfg.get("confirm_position", False)))
+
+
+def rig_calibration(rig_cfg) -> Calibration | None:
+    """The calibration file named by ``rig.calibration`` (checked against ``rig.name`` and ``rig.tank``)."""
+    path = rig_cfg.get("calibration")
+    if not path:
+        return None
+    return load_calibration(path, rig=str(rig_cfg.get("name")), tank=rig_cfg.get("tank"))
+
+
+def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
+    """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and protocol of the
+    scan config (as :func:`~dipnet.jobs.scan.scan_from_config`), the loop settings of
+    ``cfg.planner`` and the reach of ``cfg.reach`` (default the hemisphere); reconstructions with
+    the ``voxel`` solver on a ``cfg.planner.resolution`` grid (default 32) of side ``cfg.planner.extent_mm``
+    (default 100 mm): with ``minnorm`` estimates the planner's noise level (their misfit) is model
+    error far above the sensor noise and its scores hardly tell candidates apart (see
+    :mod:`dipnet.planning.planner`). Returns the raw scan."""
+    from hydra.utils import instantiate
+
+    from dipnet.solvers.voxel import VoxelSolver
+
+    protocol = plan_settings(cfg, register_fake_rig(cfg))
+    settings_cfg = cfg.planner
+
+    def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:
+        return runner_from_config(cfg, plan, path, home=home)
+
+    grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
+    settings = AdaptiveSettings.from_config(settings_cfg)
+    reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
+    adaptive_scan(make_runner, protocol, path, grid, VoxelSolver(progress=False), instantiate(settings_cfg.planner),
+                  reach, settings)
+    return read_rawscan(path)

@@ -1,0 +1,88 @@
+"""Sweep jobs under Hydra: a failing job does not stop the sweep, one log line per job, failures listed."""
+
+from __future__ import annotations
+
+import logging
+import traceback
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+from hydra.core.utils import JobReturn, JobStatus
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+from dipnet.experiments.collect import ERROR_FILE, NoRunsError, collect_runs, load_run, problems
+from dipnet.experiments.tables import markdown_problems
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+
+def guarded_job(task: Callable[[], T], out: str | Path) -> T | None:
+    """Run one sweep job so that its failure does not stop the sweep.
+
+    Any exception (also ``SystemExit`` from a CLI error wrapper) is written to
+    ``out/error.txt`` (first line: ``Type: message``, then the traceback), logged in one line,
+    and ``None`` is returned (Optuna counts it as a failed trial). ``KeyboardInterrupt`` still
+    stops everything.
+    """
+    try:
+        return task()
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # noqa: BLE001 - the point is to keep the sweep going
+        message = " ".join(str(exc).split()) or "(no message)"
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / ERROR_FILE).write_text(f"{type(exc).__name__}: {message}\n\n{traceback.format_exc()}")
+        log.error("job failed: %s: %s (details in %s)", type(exc).__name__, message, out / ERROR_FILE)
+        return None
+
+
+def job_summary(metrics: dict, keys: Sequence[str] = ("iou", "chamfer", "false_positive", "false_negative",
+                                                       "profile_residual", "volume_ratio", "consistency",
+                                                       "seconds")) -> str:
+    """``key=value`` pairs of the given metrics that are present, 4 significant digits."""
+    return " ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics[k], float) else f"{k}={metrics[k]}"
+                    for k in keys if k in metrics)
+
+
+class JobLogCallback(Callback):
+    """Hydra callback: one log line per finished job, and the failures listed after a sweep.
+
+    Enable with ``hydra/callbacks: job_log`` (``conf/hydra/callbacks/job_log.yaml``). A job whose
+    task raised (without :func:`guarded_job`) also gets its ``error.txt`` here.
+    """
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        out = Path(config.hydra.runtime.output_dir)
+        num = config.hydra.job.get("num")
+        overrides = " ".join(job_return.overrides or [])
+        tag = f"job {num}" if num is not None else "job"
+        if job_return.status == JobStatus.FAILED:
+            exc = job_return._return_value
+            if not (out / ERROR_FILE).is_file():
+                text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+                (out / ERROR_FILE).write_text(f"{type(exc).__name__}: {' '.join(str(exc).split())}\n\n{text}")
+            log.error("%s FAILED [%s]: %s", tag, overrides, exc)
+            return
+        run = load_run(out)
+        if run.status == "ok":
+            log.info("%s done [%s]: %s", tag, overrides, job_summary(run.metrics))
+        else:
+            log.warning("%s %s [%s]: %s", tag, run.status, overrides, run.error or "no metrics.json written")
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        try:
+            runs = collect_runs(sweep_dir)
+        except NoRunsError as exc:
+            log.warning("sweep finished: %s", exc)
+            return
+        bad = problems(runs)
+        log.info("sweep finished: %d of %d jobs ok in %s", len(runs) - len(bad), len(runs), sweep_dir)
+        for line in markdown_problems(runs, sweep_dir).splitlines()[2:]:
+            log.warning("%s", line)
+        if bad:
+            log.warning("compare the finished ones with: python scripts/compare.py %s", sweep_dir)

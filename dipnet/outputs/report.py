@@ -1,0 +1,342 @@
+"""Self-contained HTML reports of one run and of a sweep (needs the optional extra ``report``).
+
+``write_run_report(job_dir)`` writes ``job_dir/report.html``: the truth and reconstruction
+meshes side by side in linked interactive 3D views (2D runs: the reconstructed image), the
+sinogram, the loss curves, the metrics table and the run's PNG figures. ``write_sweep_report``
+writes one page for a whole comparison: the summary table, interactive error curves and links
+to the runs' own pages. Each page inlines plotly's JavaScript once, so it opens offline from a
+file; a page is a few MB.
+
+Install the extra with ``pip install -e ".[report]"`` (plotly).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from dipnet.experiments import collect, figures, tables
+from dipnet.experiments.collect import GROUP_BY, METRICS, Run
+
+REPORT_FILE = "report.html"
+_TRUTH_COLOR, _RECON_COLOR = "#9aa5b1", "#3b7dd8"
+_CSS = """
+body{font-family:system-ui,sans-serif;margin:1.5em auto;max-width:1200px;color:#222}
+h1{font-size:1.5em} h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;font-size:.9em} td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right;white-space:nowrap}
+th{background:#f3f3f3} td.l,th.l{text-align:left} .ok{color:#1a7f37} .failed{color:#b42318} .unfinished{color:#b54708}
+img{max-width:100%;border:1px solid #eee} .note{color:#666;font-style:italic}
+"""
+
+
+def require_plotly() -> ModuleType:
+    """``plotly.graph_objects``, or an ImportError that says how to install it."""
+    try:
+        import plotly.graph_objects as go
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError('HTML reports need plotly: pip install -e ".[report]"  (or: pip install plotly)') from exc
+    return go
+
+
+# --------------------------------------------------------------------------- pieces
+
+def mesh_trace(mesh: trimesh.Trimesh, name: str, color: str, scene: str = "scene") -> Any:
+    """A plotly ``Mesh3d`` of a triangle mesh (vertices in mm), lit, in the given scene."""
+    go = require_plotly()
+    v, f = np.asarray(mesh.vertices, dtype=np.float32), np.asarray(mesh.faces, dtype=np.int32)
+    return go.Mesh3d(x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1], k=f[:, 2], name=name,
+                     color=color, flatshading=False, showlegend=True, scene=scene,
+                     lighting={"ambient": 0.35, "diffuse": 0.8, "specular": 0.15, "roughness": 0.6},
+                     lightposition={"x": 200, "y": -300, "z": 500})
+
+
+def _load_mesh(path: Path) -> trimesh.Trimesh | None:
+    if not path.is_file():
+        return None
+    mesh = trimesh.load(path, force="mesh", process=False)
+    return mesh if len(mesh.faces) else None
+
+
+def _volume_from_npz(job_dir: Path) -> dict[str, np.ndarray] | None:
+    path = job_dir / "reconstruction.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}
+
+
+def mesh_figure(truth: trimesh.Trimesh | None, recon: trimesh.Trimesh | None, extent_mm: float | None = None) -> Any:
+    """Truth and reconstruction side by side in two 3D scenes with the same axis ranges
+    (``extent_mm``: the grid side; otherwise the meshes' joint bounding box)."""
+    require_plotly()
+    from plotly.subplots import make_subplots
+
+    panels = [(m, t, c) for m, t, c in ((truth, "truth", _TRUTH_COLOR), (recon, "reconstruction", _RECON_COLOR))
+              if m is not None]
+    fig = make_subplots(rows=1, cols=len(panels), specs=[[{"type": "scene"}] * len(panels)],
+                        subplot_titles=[t for _, t, _ in panels], horizontal_spacing=0.02)
+    if extent_mm:
+        lo, hi = -extent_mm / 2, extent_mm / 2
+    else:
+        bounds = np.concatenate([m.bounds for m, _, _ in panels])
+        lo, hi = float(bounds.min()), float(bounds.max())
+    axis = {"range": [lo, hi], "title": ""}
+    for i, (mesh, title, color) in enumerate(panels):
+        scene = "scene" if i == 0 else f"scene{i + 1}"
+        fig.add_trace(mesh_trace(mesh, title, color, scene), row=1, col=i + 1)
+        fig.update_layout({scene: {"xaxis": {**axis, "title": "x (mm)"}, "yaxis": {**axis, "title": "y (mm)"},
+                                   "zaxis": {**axis, "title": "z (mm)"}, "aspectmode": "cube",
+                                   "camera": {"eye": {"x": 1.5, "y": -1.5, "z": 1.0}}}})
+    fig.update_layout(height=520, margin={"l": 0, "r": 0, "t": 40, "b": 0}, showlegend=False)
+    return fig
+
+
+def image_figure(images: Sequence[tuple[str, np.ndarray]], extent_mm: float | None = None) -> Any:
+    """2D volumes (``[y, x]``) as heatmaps side by side, y up, in mm when ``extent_mm`` is given."""
+    go = require_plotly()
+    from plotly.subplots import make_subplots
+
+    fig = make_subplots(rows=1, cols=len(images), subplot_titles=[t for t, _ in images])
+    for i, (_, img) in enumerate(images):
+        n = img.shape[0]
+        axis = (np.arange(n) + 0.5) * extent_mm / n - extent_mm / 2 if extent_mm else np.arange(n)
+        fig.add_trace(go.Heatmap(z=np.asarray(img, dtype=np.float32), x=axis, y=axis, colorscale="Greys",
+                                 reversescale=True, showscale=False), row=1, col=i + 1)
+        fig.update_yaxes(scaleanchor=f"x{i + 1 if i else ''}", row=1, col=i + 1)
+    fig.update_layout(height=420, margin={"l": 30, "r": 10, "t": 40, "b": 30})
+    return fig
+
+
+def sinogram_figure(profiles: np.ndarray) -> Any:
+    """Slab volumes ``(K, M)`` as a heatmap: orientation index vs slab index."""
+    go = require_plotly()
+    fig = go.Figure(go.Heatmap(z=np.asarray(profiles, dtype=np.float32), colorscale="Viridis",
+                               colorbar={"title": "slab volume"}))
+    fig.update_layout(xaxis_title="slab (bottom to top)", yaxis_title="orientation", height=420,
+                      margin={"l": 50, "r": 10, "t": 20, "b": 40})
+    return fig
+
+
+def history_figure(history: dict[str, Sequence[float]]) -> Any:
+    """Loss terms per iteration (log scale when all positive)."""
+    go = require_plotly()
+    fig = go.Figure()
+    values = []
+    for name, series in history.items():
+        fig.add_trace(go.Scatter(y=np.asarray(series, dtype=np.float64), mode="lines", name=name))
+        values.extend(series)
+    finite = np.asarray(values, dtype=np.float64)
+    finite = finite[np.isfinite(finite)]
+    fig.update_layout(xaxis_title="iteration", yaxis_title="value", height=380,
+                      yaxis_type="log" if finite.size and (finite > 0).all() else "linear",
+                      margin={"l": 50, "r": 10, "t": 20, "b": 40})
+    return fig
+
+
+def metrics_table(items: dict[str, Any]) -> str:
+    """A two-column HTML table of scalar values (floats with 4 significant digits)."""
+    rows = "".join(f"<tr><th class=l>{html.escape(str(k))}</th><td>{html.escape(_fmt(v))}</td></tr>"
+                   for k, v in items.items() if not isinstance(v, (dict, list)))
+    return f"<table>{rows}</table>"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return "none" if v is None else str(v)
+
+
+def _png(path: Path, alt: str) -> str:
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _figure_html(fig: Any, div_id: str) -> str:
+    return fig.to_html(full_html=False, include_plotlyjs=False, div_id=div_id,
+                       config={"responsive": True, "displaylogo": False})
+
+
+def page(title: str, sections: Sequence[tuple[str, str]]) -> str:
+    """A complete HTML page with plotly's JavaScript inlined once and the given ``(heading, html)`` sections."""
+    require_plotly()
+    from plotly.offline import get_plotlyjs
+
+    body = "".join(f"<h2>{html.escape(h)}</h2>\n{content}\n" for h, content in sections)
+    return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{_CSS}</style><script type='text/javascript'>{get_plotlyjs()}</script></head>"
+            f"<body><h1>{html.escape(title)}</h1>\n{body}</body></html>\n")
+
+
+# --------------------------------------------------------------------------- run page
+
+def run_sections(job_dir: str | Path) -> list[tuple[str, str]]:
+    """The sections of one run's page (see the module docstring), from the files in ``job_dir``."""
+    job_dir = Path(job_dir)
+    run = collect.load_run(job_dir)
+    row = collect.run_row(run)
+    volume = _volume_from_npz(job_dir)
+    extent = float(volume["grid_extent"]) if volume is not None and "grid_extent" in volume else None
+    sections: list[tuple[str, str]] = []
+
+    summary = {k: row.get(k) for k in ("status", "solver", "shape", "ndim", "resolution", "n_dips",
+                                       "dips_percent", "snr_db", "seed") if row.get(k) is not None or k == "snr_db"}
+    summary.update({k: v for k, v in run.metrics.items() if k not in summary})
+    if run.error:
+        summary["error"] = run.error
+    sections.append(("metrics", metrics_table(summary)))
+
+    ndim = int(volume["grid_ndim"]) if volume is not None else row.get("ndim")
+    if ndim == 2 and volume is not None:
+        images = [("reconstruction (binary)", volume["binary"]), ("occupancy", volume["occupancy"])]
+        sections.append(("reconstruction", _figure_html(image_figure(images, extent), "recon")))
+    else:
+        truth = _load_mesh(job_dir / "truth.ply")
+        recon = _load_mesh(job_dir / "reconstruction.ply")
+        if recon is None and volume is not None and volume["binary"].any():
+            from dipnet.shapes.isosurface import volume_to_mesh
+            from dipnet.core.grid import Grid
+
+            grid = Grid(int(volume["grid_n"]), 3, float(volume["grid_extent"]))
+            recon = volume_to_mesh(volume["occupancy"], grid, float(volume["threshold"]))
+        if truth is None and recon is None:
+            sections.append(("meshes", "<p class=note>no mesh in this run (empty reconstruction)</p>"))
+        else:
+            sections.append(("truth and reconstruction (drag to rotate)",
+                             _figure_html(mesh_figure(truth, recon, extent), "meshes")))
+
+    if (job_dir / "measurement.npz").is_file():
+        from dipnet.core.measurement import DipMeasurement
+
+        profiles = DipMeasurement.load(job_dir / "measurement.npz").profiles.numpy()
+        sections.append(("sinogram (measured slab volumes)", _figure_html(sinogram_figure(profiles), "sinogram")))
+
+    if (job_dir / "history.json").is_file():
+        history = json.loads((job_dir / "history.json").read_text())
+        sections.append(("loss", _figure_html(history_figure(history), "loss")))
+    elif (job_dir / "loss.png").is_file():
+        sections.append(("loss", _png(job_dir / "loss.png", "loss curves")))
+    else:
+        sections.append(("loss", "<p class=note>no loss history (direct solver)</p>"))
+
+    pngs = [p for p in ("slices.png", "profiles.png") if (job_dir / p).is_file()]
+    if pngs:
+        sections.append(("figures", "\n".join(_png(job_dir / p, p) for p in pngs)))
+    if run.overrides:
+        sections.append(("overrides", f"<pre>{html.escape(' '.join(run.overrides))}</pre>"))
+    return sections
+
+
+def write_run_report(job_dir: str | Path, path: str | Path | None = None) -> Path:
+    """Write one run's page (default ``job_dir/report.html``) and return its path."""
+    job_dir = Path(job_dir)
+    if not job_dir.is_dir():
+        raise FileNotFoundError(f"{job_dir}: not a run directory")
+    path = Path(path) if path is not None else job_dir / REPORT_FILE
+    row = collect.run_row(collect.load_run(job_dir))
+    title = f"dipnet run {job_dir.name}: {row.get('solver')}, {row.get('shape')}, {row.get('n_dips')} dips"
+    path.write_text(page(title, run_sections(job_dir)), encoding="utf-8")
+    return path
+
+
+# --------------------------------------------------------------------------- sweep page
+
+def curves_figure(groups: Sequence[dict], x: str, metrics: Sequence[str], line: str = "solver",
+                  log_x: bool = True) -> Any:
+    """Mean ± std of ``metrics`` vs ``x`` (one line per ``line`` value), one panel per metric."""
+    go = require_plotly()
+    from plotly.subplots import make_subplots
+
+    panels = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
+    fig = make_subplots(rows=1, cols=max(len(panels), 1), subplot_titles=[collect.LABELS.get(m, m) for m in panels])
+    palette = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f"]
+    for col, metric in enumerate(panels, start=1):
+        for i, (key, (xs, mean, std)) in enumerate(figures.mean_series(groups, line, x, metric).items()):
+            fig.add_trace(go.Scatter(x=xs, y=mean, error_y={"type": "data", "array": std}, mode="lines+markers",
+                                     name=tables.format_cell(key), legendgroup=str(key), showlegend=col == 1,
+                                     line={"color": palette[i % len(palette)]}), row=1, col=col)
+        fig.update_xaxes(title_text=collect.LABELS.get(x, x), type="log" if log_x else "linear", row=1, col=col)
+    fig.update_layout(height=400, margin={"l": 50, "r": 10, "t": 40, "b": 40}, legend_title_text=line)
+    return fig
+
+
+def _runs_table(runs: Sequence[Run], root: Path, out_dir: Path) -> str:
+    cols = ("job", "status", "solver", "shape", "n_dips", "snr_db", "seed", "iou", "chamfer", "seconds")
+    head = "".join(f"<th class=l>{c}</th>" for c in cols) + "<th class=l>page / error</th>"
+    body = []
+    for run, row in zip(runs, collect.run_rows(runs, root)):
+        cells = "".join(f"<td class='l {row['status'] if c == 'status' else ''}'>{html.escape(_fmt(row.get(c)))}</td>"
+                        for c in cols)
+        page_path = run.path / REPORT_FILE
+        if page_path.is_file():
+            extra = f"<a href='{html.escape(_relative(page_path, out_dir))}'>report</a>"
+        else:
+            extra = html.escape(run.error or "")
+        body.append(f"<tr>{cells}<td class=l>{extra}</td></tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def _relative(target: Path, start: Path) -> str:
+    return Path(os.path.relpath(target.resolve(), start.resolve())).as_posix()
+
+
+def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Path | None = None,
+                       by: Sequence[str] = GROUP_BY, images: Sequence[str | Path] = ()) -> Path:
+    """Write the comparison page of a sweep: summary table (mean ± std per ``by`` group),
+    interactive IoU / Chamfer vs dips and FP / FN vs SNR curves, the given PNG ``images``
+    (e.g. the montage), and every job with its status and a link to its own page."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    root = Path(root) if root is not None else path.parent
+    rows = collect.run_rows(runs, root)
+    groups = collect.aggregate(rows, by)
+    n_ok = sum(r.status == "ok" for r in runs)
+    sections = [("summary", f"<p>{n_ok} of {len(runs)} jobs finished.</p>"
+                 + _groups_table(groups, by))]
+    if any("n_dips" in g for g in groups) and "n_dips" in by:
+        sections.append(("error vs number of dips",
+                         _figure_html(curves_figure(groups, "n_dips", ("iou", "chamfer")), "vs-dips")))
+    if "snr_db" in by and any(isinstance(g.get("snr_db"), (int, float)) for g in groups):
+        metrics = [m for m in ("false_positive", "false_negative") if any(f"{m}_mean" in g for g in groups)] or ["iou"]
+        sections.append(("error vs SNR", _figure_html(curves_figure(groups, "snr_db", metrics, log_x=False), "vs-snr")))
+    for image in images:
+        image = Path(image)
+        if image.is_file():
+            sections.append((image.stem, _png(image, image.stem)))
+    sections.append(("jobs", _runs_table(runs, root, path.parent)))
+    path.write_text(page(f"dipnet sweep: {root}", sections), encoding="utf-8")
+    return path
+
+
+def _groups_table(groups: Sequence[dict], by: Sequence[str]) -> str:
+    present = [m for m in METRICS if any(f"{m}_mean" in g for g in groups)]
+    head = "".join(f"<th class=l>{collect.LABELS.get(k, k)}</th>" for k in by) + "<th>runs</th>" + \
+        "".join(f"<th>{collect.LABELS.get(m, m)}</th>" for m in present)
+    body = []
+    for g in groups:
+        cells = "".join(f"<td class=l>{html.escape(tables.format_cell(g.get(k)))}</td>" for k in by)
+        cells += f"<td>{g['runs']}</td>"
+        cells += "".join(f"<td>{g[f'{m}_mean']:.4g} ± {g[f'{m}_std']:.2g}</td>" if f"{m}_mean" in g else "<td></td>"
+                         for m in present)
+        body.append(f"<tr>{cells}</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m dipnet.report JOB_DIR [JOB_DIR ...]``: write each run's ``report.html``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Write report.html into reconstruction job directories.")
+    parser.add_argument("jobs", nargs="+", type=Path, help="job directories (Hydra run or sweep job dirs)")
+    args = parser.parse_args(argv)
+    for job in args.jobs:
+        print(write_run_report(job))
+    return 0

@@ -1,0 +1,197 @@
+"""The closed planning loop: dip, reconstruct, measure the doubt, plan the next batch, repeat.
+
+:func:`adaptive_loop` is the loop itself, independent of where dips come from: the simulator
+(:func:`dipnet.jobs.plans.simulate_adaptive`, behind ``planner=adaptive`` in ``scripts/reconstruct.py``; ``planner=fixed``
+plans up front with :func:`dipnet.jobs.plans.fixed_directions`) and the
+rig (:mod:`dipnet.rig.adaptive`) give it an ``acquire`` callback. It starts from
+``initial_dips`` directions spread uniformly over the reachable set, and after each
+reconstruction either stops - at the ``budget`` of dips, or when the expected misclassified
+fraction (:func:`dipnet.evaluation.uncertainty.summarise`) falls below ``stop_uncertainty`` - or asks the
+planner for the next ``batch_size`` reachable directions.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.operators import DipOperator
+from dipnet.core.orientations import Reach
+from dipnet.planning.planner import Planner
+from dipnet.core.rawscan import RawScan, RawScanFileError
+from dipnet.core.reconstruction import Reconstruction
+from dipnet.solvers.minnorm import MinNormSolver
+from dipnet.evaluation.uncertainty import summarise, voxel_maps
+
+log = logging.getLogger(__name__)
+
+Acquire = Callable[[torch.Tensor], DipMeasurement]
+Reconstruct = Callable[[DipMeasurement], tuple[Reconstruction, DipOperator]]
+
+
+@dataclass(frozen=True)
+class AdaptiveSettings:
+    """How the loop runs.
+
+    Attributes:
+        budget: the most dips in all.
+        batch_size: dips planned per step.
+        initial_dips: dips spread uniformly over the reach before the first plan.
+        stop_uncertainty: stop early when ``expected_error_fraction`` drops below this (``None``: never).
+    """
+
+    budget: int = 41
+    batch_size: int = 8
+    initial_dips: int = 8
+    stop_uncertainty: float | None = None
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.initial_dips <= self.budget or self.batch_size < 1:
+            raise ValueError(f"need 1 <= initial_dips <= budget and batch_size >= 1, got initial_dips "
+                             f"{self.initial_dips}, budget {self.budget}, batch_size {self.batch_size}")
+        if self.stop_uncertainty is not None and not self.stop_uncertainty > 0:
+            raise ValueError(f"stop_uncertainty must be positive or null, got {self.stop_uncertainty}")
+
+    @classmethod
+    def from_config(cls, planner_cfg) -> "AdaptiveSettings":
+        """From a ``conf/planner/adaptive.yaml`` node."""
+        stop = planner_cfg.get("stop_uncertainty")
+        return cls(budget=int(planner_cfg.budget), batch_size=int(planner_cfg.batch_size),
+                   initial_dips=int(planner_cfg.initial_dips), stop_uncertainty=None if stop is None else float(stop))
+
+
+@dataclass
+class AdaptiveResult:
+    """What the loop ended with: the last measurement and reconstruction, its uncertainty maps
+    (:func:`dipnet.evaluation.uncertainty.voxel_maps`), one history row per step and why it stopped."""
+
+    measurement: DipMeasurement
+    reconstruction: Reconstruction
+    operator: DipOperator
+    maps: dict[str, np.ndarray]
+    history: list[dict[str, Any]] = field(default_factory=list)
+    stop_reason: str = "budget"
+
+
+def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, reach: Reach,
+                  settings: AdaptiveSettings, initial: torch.Tensor | None = None) -> AdaptiveResult:
+    """Run the loop (module docstring).
+
+    Args:
+        acquire: dips the new directions ``(k, 3)`` and returns the measurement of *all* dips so far.
+        reconstruct: measurement -> (reconstruction, its operator).
+        planner: chooses the next directions among ``reach.candidates()``.
+        reach: what the rig reaches.
+        settings: budget, batch size, initial dips, stopping threshold.
+        initial: the first directions (default ``reach.uniform(settings.initial_dips)``).
+    """
+    planned = reach.uniform(settings.initial_dips) if initial is None else torch.as_tensor(initial, dtype=torch.float64)
+    candidates = reach.candidates()
+    history: list[dict[str, Any]] = []
+    while True:
+        measurement = acquire(planned)
+        recon, operator = reconstruct(measurement)
+        posterior = planner.posterior(recon, measurement, operator)  # fitted once: reported and planned with
+        maps = voxel_maps(recon, posterior)
+        summary = summarise(maps, recon.binary)
+        n = measurement.n_orientations
+        history.append({"n_dips": n, **summary})
+        log.info("adaptive step: %d dips, expected error fraction %.4f", n, summary["expected_error_fraction"])
+        if n >= settings.budget:
+            return AdaptiveResult(measurement, recon, operator, maps, history, "budget")
+        if settings.stop_uncertainty is not None and summary["expected_error_fraction"] < settings.stop_uncertainty:
+            return AdaptiveResult(measurement, recon, operator, maps, history, "uncertainty")
+        start = time.perf_counter()
+        planned = planner.next(measurement, recon, candidates, min(settings.batch_size, settings.budget - n), operator,
+                               posterior=posterior)
+        history[-1]["plan_seconds"] = time.perf_counter() - start
+
+
+def concatenate(first: DipMeasurement, second: DipMeasurement) -> DipMeasurement:
+    """The dips of ``first`` followed by those of ``second`` (same slabs), as one measurement."""
+    if first.n_slabs != second.n_slabs or abs(first.slab_thickness - second.slab_thickness) > 1e-9:
+        raise ValueError("measurements to concatenate must share the slab count and thickness")
+    sigma = None
+    if first.sigma is not None and second.sigma is not None:
+        sigma = torch.cat([first.sigma, second.sigma])
+    return DipMeasurement(torch.cat([first.directions, second.directions]), torch.cat([first.profiles, second.profiles]),
+                          first.slab_thickness, torch.cat([first.offsets, second.offsets]), sigma, dict(first.metadata))
+
+
+def warn_linear_loop_solver(solver) -> None:
+    """Warn when the loop reconstructs with ``minnorm``: the planner takes its noise level from the
+    estimate's misfit, which for a min-norm estimate is model error (120x the sensor noise on the
+    bunny after 16 dips), and every candidate then scores about the same."""
+    if isinstance(solver, MinNormSolver):
+        message = ("planner=adaptive with solver=minnorm: the planner's noise level comes from the estimate's "
+                   "misfit, which for minnorm is model error, so the candidates score alike; use solver=voxel")
+        log.warning(message)
+        warnings.warn(message, stacklevel=2)
+
+
+class SimulatedDips:
+    """The loop's ``acquire`` for simulated dips: simulates the new directions and returns the
+    measurement of all dips so far (:attr:`measurement`; their raw scan in :attr:`raw`).
+
+    Args:
+        simulate: :func:`dipnet.simulator.simulate.simulate_measurement` or a partial of it.
+        shape, grid, n_slabs: what is dipped and the reconstruction slabs.
+        seed: noise seed; each batch gets its own stream (``seed + 7919 * dips so far``).
+    """
+
+    def __init__(self, simulate: Callable[..., tuple[RawScan, DipMeasurement]], shape, grid: Grid, n_slabs: int,
+                 seed: int, progress: bool = False) -> None:
+        self.simulate, self.shape, self.grid, self.n_slabs = simulate, shape, grid, n_slabs
+        self.seed, self.progress = seed, progress
+        self.raw: RawScan | None = None
+        self.measurement: DipMeasurement | None = None
+
+    def __call__(self, directions: torch.Tensor) -> DipMeasurement:
+        done = 0 if self.measurement is None else self.measurement.n_orientations
+        raw, new = self.simulate(self.shape, directions, grid=self.grid, n_slabs=self.n_slabs,
+                                 seed=self.seed + 7919 * done, progress=self.progress)
+        self.raw = raw if self.raw is None else merge_raw(self.raw, raw)
+        self.measurement = new if self.measurement is None else concatenate(self.measurement, new)
+        return self.measurement
+
+
+def merge_raw(first: RawScan, second: RawScan) -> RawScan:
+    """The orientations of ``second`` appended to ``first``'s, renumbered after them."""
+    offset = len(first.orientations)
+    return replace(first, orientations=first.orientations + [replace(o, k=o.k + offset) for o in second.orientations])
+
+
+
+def keep_recorded(recorded: RawScan, planned: list[tuple[float, float]], first: int, reach: Reach | None,
+                  path: Path) -> list[tuple[float, float]]:
+    """``planned`` ``(tilt_deg, spin_deg)`` angles of dips ``first, first + 1, ...`` with every dip
+    that ``recorded`` started put back at its recorded angles (module docstring): a warning per
+    step that differs; :class:`RawScanFileError` for a recorded dip outside ``reach``."""
+    out, moved = list(planned), []
+    for o in recorded.orientations:
+        i = o.k - first
+        if 0 <= i < len(out) and not np.allclose((o.tilt_deg, o.spin_deg), out[i], atol=1e-6):
+            direction = torch.as_tensor(o.unit_direction, dtype=torch.float64)[None]
+            if reach is not None and not bool(reach.contains(direction)[0]):
+                raise RawScanFileError(f"{path}: dip {o.k} was recorded at (tilt, spin) = ({o.tilt_deg}, {o.spin_deg}), "
+                                       f"outside the rig's reach now ({reach}): the config changed; use another "
+                                       f"scan name")
+            moved.append(f"dip {o.k}: recorded ({o.tilt_deg:g}, {o.spin_deg:g}), replayed plan ({out[i][0]:g}, "
+                         f"{out[i][1]:g})")
+            out[i] = (float(o.tilt_deg), float(o.spin_deg))
+    if moved:
+        message = (f"{path}: the replayed plan differs from the recorded dips ({'; '.join(moved)}); the recorded "
+                   f"dips are kept and planning goes on from them (a different thread count or library version "
+                   f"changes floating-point sums, or the planner's config changed)")
+        log.warning(message)
+        warnings.warn(message, stacklevel=2)
+    return out

@@ -1,0 +1,170 @@
+"""Measurement validation before any solver: refuse what cannot be right, warn about what disagrees.
+
+:func:`validate_measurement` checks a :class:`~dipnet.core.measurement.DipMeasurement` against the
+reconstruction grid and returns a :class:`ValidationReport` (its :meth:`~ValidationReport.metrics`
+go into ``metrics.json``). The rules (``V_k`` = the total of profile ``k``, ``V_ball`` = the
+volume of the grid's working ball, ``s_k`` = the noise of ``V_k``: ``sqrt(sum_j sigma_kj^2)``
+when the measurement carries ``sigma``, else 0):
+
+* **finite**: NaN or infinite values: error.
+* **magnitude**: an object inside the working ball displaces at most ``V_ball``; any
+  ``|V_k|`` or slab above ``V_ball (1 + size_tol)``: error (wrong units, a scaled file, a grid
+  too small for the object).
+* **sign**: slab volumes are non-negative. A profile whose total is not positive: error.
+  Negative slabs below ``-max(4 sigma_kj, neg_tol max_j |p_kj|)`` are beyond noise: error when
+  their magnitude exceeds ``neg_tol`` of the positive volume, else a warning.
+* **totals**: every dip measures the same object, so the totals agree within noise. The spread
+  (``(max - min) / median``) is reported; totals off the median by more than
+  ``max(5 s_k, total_tol median)`` give a warning naming them (truncated dips do this too).
+* **duplicates**: directions within ``dup_deg`` of each other are reported. Such pairs measure
+  the same profile: when their totals differ by more than ``max(5 noise, total_tol V)`` a
+  warning gives the discrepancy. The profiles are kept (a least-squares solver averages them).
+
+Errors raise :class:`MeasurementValidationError` (one line, the first problem found);
+warnings go to the log and to :mod:`warnings`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+
+log = logging.getLogger(__name__)
+
+
+class MeasurementValidationError(ValueError):
+    """The measurement cannot describe an object in the grid (negative, huge, non-finite...)."""
+
+
+@dataclass
+class ValidationReport:
+    """What :func:`validate_measurement` found.
+
+    Attributes:
+        warnings: one-line findings that did not stop the run.
+        stats: numbers behind them (totals, spread, duplicates, ...), JSON-serialisable.
+    """
+
+    warnings: list[str] = field(default_factory=list)
+    stats: dict = field(default_factory=dict)
+
+    def metrics(self) -> dict:
+        """Entries for ``metrics.json``: flat counts plus the details under ``validation``."""
+        readings = self.stats.get("readings", {})
+        return {"readings_repaired": int(readings.get("readings_repaired", 0)),
+                "dips_rejected": int(readings.get("dips_rejected", 0)),
+                "validation_warnings": len(self.warnings),
+                "validation": {**self.stats, "warnings": self.warnings}}
+
+
+def working_ball_volume(grid: Grid) -> float:
+    """Volume (mm^3; area in mm^2 in 2D) of the grid's working ball."""
+    r = grid.radius
+    return 4.0 / 3.0 * math.pi * r**3 if grid.ndim == 3 else math.pi * r**2
+
+
+def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: float = 0.05,
+                         neg_tol: float = 0.02, total_tol: float = 0.05, dup_deg: float = 0.5) -> ValidationReport:
+    """Check ``measurement`` against ``grid`` by the module's rules.
+
+    Args:
+        measurement: profiles ``(K, M)`` (mm^3; mm^2 in 2D), directions ``(K, d)``.
+        grid: the reconstruction grid (its working ball bounds the object).
+        size_tol, neg_tol, total_tol: relative tolerances, see the module docstring.
+        dup_deg: directions closer than this (degrees) are duplicates.
+
+    Raises:
+        MeasurementValidationError: the first error found.
+    """
+    source = measurement.metadata.get("path") or measurement.metadata.get("rawscan") or "measurement"
+    prof = measurement.profiles.numpy()
+    if measurement.ndim != grid.ndim:
+        raise MeasurementValidationError(f"{source}: {measurement.ndim}D directions for a {grid.ndim}D grid")
+    if not np.isfinite(prof).all() or not np.isfinite(measurement.directions.numpy()).all():
+        raise MeasurementValidationError(f"{source}: the profiles or directions hold NaN or infinite values")
+    sigma = None if measurement.sigma is None else measurement.sigma.numpy()
+    report = ValidationReport(stats={"readings": measurement.metadata.get("readings", {})})
+    _check_magnitude(prof, grid, size_tol, source)
+    totals = prof.sum(axis=1)
+    noise = np.zeros(len(prof)) if sigma is None else np.sqrt((sigma**2).sum(axis=1))
+    _check_signs(prof, totals, sigma, neg_tol, source, report)
+    _check_totals(totals, noise, total_tol, source, report)
+    _check_duplicates(measurement.directions.numpy(), totals, noise, total_tol, dup_deg, source, report)
+    for message in report.warnings:
+        log.warning("%s", message)
+        warnings.warn(message, stacklevel=2)
+    return report
+
+
+def _check_magnitude(prof: np.ndarray, grid: Grid, size_tol: float, source: str) -> None:
+    ball = working_ball_volume(grid)
+    largest = float(max(np.abs(prof).max(), np.abs(prof).sum(axis=1).max()))
+    if largest > ball * (1 + size_tol):
+        raise MeasurementValidationError(
+            f"{source}: a profile holds {largest:.4g} mm^3, more than the working ball's {ball:.4g} mm^3 "
+            f"(extent_mm={grid.extent:g}): wrong units or scale, or increase extent_mm")
+
+
+def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: ValidationReport) -> None:
+    worst = int(np.argmin(totals))
+    if totals[worst] <= 0:
+        raise MeasurementValidationError(f"{source}: profile {worst} sums to {totals[worst]:.4g} mm^3: "
+                                         "a dip cannot displace a negative or zero volume")
+    floor = neg_tol * np.abs(prof).max(axis=1, keepdims=True)
+    if sigma is not None:
+        floor = np.maximum(floor, 4.0 * sigma)
+    beyond = prof < -floor
+    negative = float(np.abs(prof[prof < 0]).sum())
+    positive = float(prof[prof > 0].sum())
+    report.stats.update(negative_slabs=int((prof < 0).sum()), negative_beyond_noise=int(beyond.sum()),
+                        negative_fraction=negative / positive)
+    if beyond.any():
+        message = (f"{source}: {int(beyond.sum())} slab volume(s) are negative beyond noise (down to "
+                   f"{prof.min():.4g} mm^3; {negative / positive:.1%} of the positive volume)")
+        if negative > neg_tol * positive:
+            raise MeasurementValidationError(message)
+        report.warnings.append(message)
+
+
+def _check_totals(totals, noise, total_tol: float, source: str, report: ValidationReport) -> None:
+    median = float(np.median(totals))
+    allowed = np.maximum(5.0 * noise, total_tol * median)
+    off = np.flatnonzero(np.abs(totals - median) > allowed)
+    report.stats.update(total_median_mm3=median, total_min_mm3=float(totals.min()),
+                        total_max_mm3=float(totals.max()), total_spread=float(np.ptp(totals) / median),
+                        total_noise_rel=float(np.median(noise) / median), totals_off=[int(k) for k in off])
+    if off.size:
+        report.warnings.append(
+            f"{source}: {off.size} of {len(totals)} dip total(s) differ from the median {median:.4g} mm^3 by more "
+            f"than noise explains (range {totals.min():.4g}..{totals.max():.4g}; dips {off[:8].tolist()}"
+            f"{'...' if off.size > 8 else ''}): truncated dips, leaks or bad readings?")
+
+
+def _check_duplicates(directions, totals, noise, total_tol: float, dup_deg: float, source: str,
+                      report: ValidationReport) -> None:
+    unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    chord = 2.0 * math.sin(math.radians(dup_deg) / 2.0)
+    pairs = np.array(sorted(cKDTree(unit).query_pairs(chord)), dtype=int).reshape(-1, 2)
+    report.stats["duplicate_direction_pairs"] = int(len(pairs))
+    if not len(pairs):
+        return
+    i, j = pairs[:, 0], pairs[:, 1]
+    scale = 0.5 * (totals[i] + totals[j])
+    gap = np.abs(totals[i] - totals[j])
+    allowed = np.maximum(5.0 * np.hypot(noise[i], noise[j]), total_tol * scale)
+    disagree = gap > allowed
+    worst = int(np.argmax(gap / scale))
+    report.stats["duplicate_max_discrepancy"] = float(gap[worst] / scale[worst])
+    if disagree.any():
+        report.warnings.append(
+            f"{source}: {int(disagree.sum())} pair(s) of directions within {dup_deg:g} deg measure different "
+            f"volumes (worst: dips {i[worst]} and {j[worst]}, {totals[i[worst]]:.4g} vs {totals[j[worst]]:.4g} "
+            f"mm^3, {gap[worst] / scale[worst]:.1%})")

@@ -1,0 +1,99 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement, MeasurementFileError
+from dipnet.operators import make_operator
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.solvers.base import measured_profiles
+
+
+def _measurement(k=4, m=10, sigma=True):
+    gen = torch.Generator().manual_seed(0)
+    return DipMeasurement(directions=fibonacci_hemisphere(k), profiles=torch.rand(k, m, generator=gen, dtype=torch.float64),
+                          slab_thickness=2.5, offsets=torch.full((k,), -12.5),
+                          sigma=torch.full((k, m), 0.1) if sigma else None, metadata={"source": "test"})
+
+
+def test_save_load_round_trip(tmp_path):
+    m = _measurement()
+    back = DipMeasurement.load(m.save(tmp_path / "m.npz"))
+    assert torch.equal(back.profiles, m.profiles) and torch.equal(back.directions, m.directions)
+    assert torch.equal(back.sigma, m.sigma) and back.slab_thickness == 2.5 and back.metadata == {"source": "test"}
+    assert DipMeasurement.load(_measurement(sigma=False).save(tmp_path / "n.npz")).sigma is None
+
+
+def test_missing_and_corrupt_files_name_the_file(tmp_path):
+    with pytest.raises(MeasurementFileError, match="not found"):
+        DipMeasurement.load(tmp_path / "absent.npz")
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"this is not a zip file")
+    with pytest.raises(MeasurementFileError, match="bad.npz"):
+        DipMeasurement.load(bad)
+
+
+def test_mismatched_shapes_are_reported(tmp_path):
+    m = _measurement()
+    path = m.save(tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays["profiles"] = arrays["profiles"][:3]
+    np.savez(path, **arrays)
+    with pytest.raises(MeasurementFileError, match=r"m.npz.*profiles must have shape"):
+        DipMeasurement.load(path)
+    meta = json.loads(str(arrays["metadata"]))
+    meta["version"] = 99
+    arrays["metadata"] = np.array(json.dumps(meta))
+    np.savez(path, **arrays)
+    with pytest.raises(MeasurementFileError, match="version"):
+        DipMeasurement.load(path)
+
+
+def test_resampling_keeps_volume_and_matches_on_same_edges():
+    m = _measurement()
+    same = m.resampled(m.offsets[0] + 2.5 * torch.arange(11, dtype=torch.float64))
+    assert torch.allclose(same, m.profiles)
+    coarse = m.resampled(torch.linspace(-20, 20, 6, dtype=torch.float64))
+    assert torch.allclose(coarse.sum(1), m.profiles.sum(1))
+
+
+def test_measured_profiles_aligns_to_the_operator():
+    grid = Grid(16, 3, 40.0)
+    op = make_operator(grid, fibonacci_hemisphere(4), 10)
+    m = _measurement()
+    m.slab_thickness, m.offsets = op.slab_thickness, torch.full((4,), -20.0)
+    assert torch.equal(measured_profiles(m, op), m.profiles)
+    with pytest.raises(ValueError, match="orientations"):
+        measured_profiles(m, make_operator(grid, fibonacci_hemisphere(5), 10))
+
+
+def test_rebinning_round_trip_preserves_profile_totals(tmp_path):
+    """A saved measurement re-bins onto any slab count: totals kept exactly, cumulative volumes
+    kept at the common edges, and 10 -> 5 -> 10 slabs is exact where the coarse edges fall."""
+    m = _measurement(m=10)  # slabs of 2.5 mm over [-12.5, 12.5]
+    for n in (3, 5, 7, 24):
+        edges = torch.linspace(-15.0, 15.0, n + 1, dtype=torch.float64)  # a wider grid, any count
+        r = DipMeasurement.load(m.save(tmp_path / "m.npz")).rebinned(edges)
+        assert r.profiles.shape == (4, n) and r.slab_thickness == pytest.approx(30.0 / n)
+        torch.testing.assert_close(r.profiles.sum(1), m.profiles.sum(1))
+        assert r.sigma.shape == (4, n) and r.metadata["rebinned_from"]["n_slabs"] == 10
+    coarse = m.rebinned(torch.linspace(-12.5, 12.5, 6, dtype=torch.float64))
+    torch.testing.assert_close(coarse.profiles, m.profiles.reshape(4, 5, 2).sum(2))
+    torch.testing.assert_close(coarse.sigma, (0.1**2 * 2) ** 0.5 * torch.ones(4, 5, dtype=torch.float64))  # independent slabs
+    with pytest.warns(UserWarning, match="does not fit the grid"):
+        m.rebinned(torch.linspace(-5.0, 5.0, 5, dtype=torch.float64))
+    with pytest.raises(MeasurementFileError, match="uniform"):
+        m.rebinned(torch.tensor([0.0, 1.0, 3.0], dtype=torch.float64))
+
+
+def test_recorded_source_reconstructs_a_saved_measurement_at_another_resolution(tmp_path):
+    from dipnet.preprocessing.sources import read_recorded
+
+    m = _measurement(m=10)
+    path = m.save(tmp_path / "m.npz")
+    r = read_recorded(str(path), Grid(16, 3, extent=30.0))
+    assert r.profiles.shape == (4, 16)
+    torch.testing.assert_close(r.profiles.sum(1), m.profiles.sum(1))

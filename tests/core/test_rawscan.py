@@ -1,0 +1,164 @@
+"""RawScan: in-memory construction, the append-only JSON Lines file, crash tolerance, resume."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dipnet.core.orientations import rig_to_direction
+from dipnet.core.rawscan import OrientationScan, RawScan, RawScanFileError, ScanHeader, read_rawscan
+from dipnet.core.rawscan_writer import RawScanWriter
+
+
+def _header(**changes) -> ScanHeader:
+    base = dict(tank_cross_section_mm2=60000.0, step_mm=1.0, rig="test-rig", t_start_mm=-50.0,
+                config={"sensor": "level"}, metadata={"object": "cup"})
+    return ScanHeader(**{**base, **changes})
+
+
+def _scan() -> RawScan:
+    a = OrientationScan(k=0, direction=[0.0, 0.0, 1.0], meta={"noise_sigma": 0.02},
+                        stage_mm=[0.0, 1.0, 2.0], values=[150.0, 150.1, 150.3], time_s=[2.0, 4.0, 6.0],
+                        flags=[[], ["unstable"], []], complete=True)
+    b = OrientationScan(k=1, tilt_deg=30.0, spin_deg=40.0, stage_mm=[0.0, 1.0], values=[150.0, 150.05],
+                        time_s=[40.0, 42.0], complete=False)
+    return RawScan(header=_header(), orientations=[a, b])
+
+
+def _write_partial(path) -> None:
+    """Orientation 0 complete, orientation 1 with two readings and a line cut mid-write."""
+    with RawScanWriter(path, _header(), resume=False) as w:
+        w.begin_orientation(0, tilt_deg=0.0, spin_deg=0.0)
+        for i in range(3):
+            w.append_reading(i * 1.0, 150.0 + 0.1 * i, 2.0 * i)
+        w.complete_orientation()
+        w.begin_orientation(1, tilt_deg=10.0, spin_deg=0.0)
+        w.append_reading(0.0, 150.0, 10.0)
+        w.append_reading(1.0, 150.2, 12.0)
+    with open(path, "ab") as fh:
+        fh.write(b'{"type": "reading", "k": 1, "stage_mm": 2.0, "val')
+
+
+def test_file_round_trip(tmp_path):
+    scan = _scan()
+    scan.sessions = [{"first_k": 0, "controller": {"dialect": "grbl", "firmware": "1.1h"}}]
+    path = scan.save(tmp_path / "scan.jsonl")
+    back = read_rawscan(path)
+    assert back.header == scan.header and back.sessions == scan.sessions
+    assert back.header.units == {"stage": "mm", "value": "mm", "time": "s", "angles": "deg",
+                                 "tank_cross_section": "mm^2"}
+    assert len(back.orientations) == 2 and not back.truncated
+    for a, b in zip(scan.orientations, back.orientations):
+        np.testing.assert_array_equal(a.stage_mm, b.stage_mm)
+        np.testing.assert_array_equal(a.values, b.values)
+        np.testing.assert_array_equal(a.time_s, b.time_s)
+        assert a.flags == b.flags and a.complete == b.complete and a.meta == b.meta
+    assert back.complete_orientations() == [0]
+    # every line is one JSON object with a type
+    kinds = [json.loads(line)["type"] for line in path.read_text().splitlines()]
+    assert kinds == ["header", "session", "orientation", "reading", "reading", "reading", "complete",
+                     "orientation", "reading", "reading"]
+
+
+def test_direction_from_rig_angles():
+    scan = _scan()
+    np.testing.assert_allclose(scan.orientations[1].unit_direction, rig_to_direction(30.0, 40.0)[0].numpy())
+    np.testing.assert_allclose(scan.directions(complete_only=False)[0].numpy(), [0, 0, 1])
+    assert scan.directions().shape == (1, 3)
+    with pytest.raises(ValueError, match="direction or both"):
+        OrientationScan(k=3, tilt_deg=10.0)
+
+
+def test_truncated_last_line_is_tolerated_and_resume_info(tmp_path):
+    path = tmp_path / "scan.jsonl"
+    _write_partial(path)
+    scan = read_rawscan(path)
+    assert scan.truncated
+    assert scan.complete_orientations() == [0]
+    assert scan.next_orientation() == 1
+    assert scan.orientations[1].n_readings == 2 and not scan.orientations[1].complete
+
+
+def test_resume_restarts_the_incomplete_orientation(tmp_path):
+    path = tmp_path / "scan.jsonl"
+    _write_partial(path)
+    with RawScanWriter(path, _header(), resume=True) as w:
+        assert w.scan.next_orientation() == 1
+        w.begin_orientation(1, tilt_deg=10.0, spin_deg=0.0)
+        for i in range(4):
+            w.append_reading(i * 1.0, 151.0 + i, 100.0 + i)
+        w.complete_orientation()
+        with pytest.raises(ValueError, match="already complete"):
+            w.begin_orientation(0, tilt_deg=0.0, spin_deg=0.0)
+    for line in path.read_text().splitlines():  # the cut line is gone, nothing is glued to it
+        json.loads(line)
+    scan = read_rawscan(path)
+    assert not scan.truncated and scan.complete_orientations() == [0, 1]
+    np.testing.assert_array_equal(scan.orientations[1].values, [151.0, 152.0, 153.0, 154.0])
+
+
+def test_resume_after_unterminated_complete_line(tmp_path):
+    path = tmp_path / "scan.jsonl"
+    with RawScanWriter(path, _header(), resume=False) as w:
+        w.begin_orientation(0, direction=[0, 0, 1])
+        w.append_reading(0.0, 150.0, 0.0)
+    path.write_bytes(path.read_bytes().rstrip(b"\n"))
+    with RawScanWriter(path, _header(), resume=True) as w:
+        assert w.scan.orientations[0].n_readings == 1  # the unterminated reading was kept
+        w.begin_orientation(0, direction=[0, 0, 1])
+        w.append_reading(0.0, 150.5, 1.0)
+        w.complete_orientation()
+    scan = read_rawscan(path)
+    assert scan.complete_orientations() == [0] and scan.orientations[0].values.tolist() == [150.5]
+
+
+def test_writer_refuses_incompatible_or_existing_files(tmp_path):
+    path = tmp_path / "scan.jsonl"
+    _write_partial(path)
+    with pytest.raises(RawScanFileError, match="cannot resume"):
+        RawScanWriter(path, _header(step_mm=2.0), resume=True)
+    with pytest.raises(FileExistsError):
+        RawScanWriter(path, _header(), resume=False)
+    with RawScanWriter(tmp_path / "new.jsonl", _header(), resume=True) as w:  # resume on a new file
+        with pytest.raises(RuntimeError, match="begin_orientation"):
+            w.append_reading(0.0, 1.0, 0.0)
+
+
+@pytest.mark.parametrize("lines, line_no, message", [
+    (["HEADER", '{"type": "reading", "k": 0, "stage_mm": 0, "value": 1, "time_s": 0}'], 2, "never begun"),
+    (["HEADER", "not json", '{"type": "orientation", "k": 0, "direction": [0, 0, 1]}'], 2, "not valid JSON"),
+    (["HEADER", '{"type": "orientation", "k": 0, "direction": [0, 0, 1]}',
+      '{"type": "reading", "k": 0, "value": 1, "time_s": 0}'], 3, "missing field 'stage_mm'"),
+    (["HEADER", '{"type": "orientation", "k": 0, "direction": [0, 1]}'], 2, "3 components"),
+    (["HEADER", '{"type": "pause"}'], 2, "unknown record type"),
+    (['{"type": "orientation", "k": 0}'], 1, "first line must be the header"),
+    (['{"type": "header", "format": "other"}'], 1, "not a dipnet raw scan"),
+    (["HEADER", '{"type": "orientation", "k": 0, "direction": [0, 0, 1]}',
+      '{"type": "complete", "k": 0, "n_readings": 5}'], 3, "marked complete with 5"),
+])
+def test_malformed_file_names_file_and_line(tmp_path, lines, line_no, message):
+    path = tmp_path / "bad.jsonl"
+    header = json.dumps(_header().to_json())
+    path.write_text("\n".join(header if x == "HEADER" else x for x in lines) + "\n")
+    with pytest.raises(RawScanFileError, match=message) as info:
+        read_rawscan(path)
+    assert f"{path}:{line_no}:" in str(info.value)
+
+
+def test_missing_and_empty_files(tmp_path):
+    with pytest.raises(RawScanFileError, match="not found"):
+        read_rawscan(tmp_path / "nope.jsonl")
+    (tmp_path / "empty.jsonl").write_text("\n")
+    with pytest.raises(RawScanFileError, match="empty"):
+        read_rawscan(tmp_path / "empty.jsonl")
+
+
+def test_header_validation():
+    with pytest.raises(ValueError, match="quantity"):
+        ScanHeader(quantity="volts")
+    with pytest.raises(ValueError, match="tank_cross_section_mm2"):
+        ScanHeader(tank_cross_section_mm2=-1.0)
+    assert ScanHeader(quantity="mass_g", ndim=2).units["value"] == "g"
+    assert ScanHeader(ndim=2).units["tank_cross_section"] == "mm"

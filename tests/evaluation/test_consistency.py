@@ -1,0 +1,169 @@
+"""Data consistency: residual and volume ratio of a reconstruction against its own measurement."""
+
+import warnings
+
+import pytest
+import torch
+
+from dipnet.evaluation.consistency import DataConsistencyWarning, check_consistency, estimate_slab_sigma, robust_volume
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.operators import make_operator
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.reconstruction import Reconstruction
+
+GRID = Grid(20, 3, 100.0)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    """A voxelised ball (exactly 0/1), its operator and its exact profiles."""
+    operator = make_operator(GRID, fibonacci_hemisphere(30))
+    ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
+    with torch.no_grad():
+        profiles = operator(ball)
+    edges = operator.slab_edges()
+    measurement = DipMeasurement(operator.directions, profiles, operator.slab_thickness,
+                                 torch.full((30,), float(edges[0])))
+    return operator, ball, measurement
+
+
+def _check(measurement, operator, volume, **options):
+    recon = Reconstruction(occupancy=volume.float(), grid=GRID)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = check_consistency(measurement, operator, recon, **options)
+    return result, [w for w in caught if issubclass(w.category, DataConsistencyWarning)]
+
+
+def test_exact_answer_has_no_residual_and_a_wrong_one_does(problem):
+    operator, ball, measurement = problem
+    exact, caught = _check(measurement, operator, ball)
+    assert exact.profile_residual < 1e-6 and exact.profile_residual_continuous < 1e-6
+    assert exact.volume_ratio == pytest.approx(1.0, abs=1e-9)
+    assert exact.verdict == "consistent" and not caught
+    shifted = torch.roll(ball, shifts=2, dims=2)  # same volume, moved by 10 mm along x
+    wrong, caught = _check(measurement, operator, shifted)
+    assert wrong.volume_ratio == pytest.approx(1.0, abs=1e-9)
+    assert wrong.profile_residual > 0.2 and wrong.verdict == "inconsistent"
+    assert any("misses its data" in str(w.message) for w in caught)
+    further, _ = _check(measurement, operator, torch.roll(ball, shifts=4, dims=2))
+    assert further.profile_residual > wrong.profile_residual
+
+
+def test_missing_30_percent_of_the_volume_warns(problem):
+    operator, ball, measurement = problem
+    keep = torch.rand(GRID.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) < 0.7
+    partial = ball * keep  # 30% of the voxels gone, spread everywhere
+    result, caught = _check(measurement, operator, partial)
+    assert result.volume_ratio == pytest.approx(0.7, abs=0.03)
+    assert result.verdict == "inconsistent"
+    assert any("the dips measure" in str(w.message) for w in caught)
+    assert result.metrics()["consistency_warnings"] == result.warnings
+
+
+@pytest.mark.parametrize("give_sigma", [True, False])
+def test_noisy_measurement_with_the_true_answer_does_not_warn(problem, give_sigma):
+    operator, ball, measurement = problem
+    gen = torch.Generator().manual_seed(0)
+    sigma = 0.02 * float(measurement.profiles.max())
+    noisy = measurement.profiles + sigma * torch.randn(measurement.profiles.shape, generator=gen, dtype=torch.float64)
+    noisy_measurement = DipMeasurement(measurement.directions, noisy, measurement.slab_thickness,
+                                       measurement.offsets, torch.full_like(noisy, sigma) if give_sigma else None)
+    result, caught = _check(noisy_measurement, operator, ball)
+    assert result.noise_source == ("sigma" if give_sigma else "estimated")
+    assert result.profile_residual > 0.01  # the noise itself
+    assert result.profile_residual < result.residual_limit
+    assert result.verdict == "consistent" and not caught
+
+
+def test_noise_estimate_recovers_white_noise_on_smooth_profiles():
+    t = torch.linspace(-1, 1, 60, dtype=torch.float64)
+    smooth = 1000.0 * (1 - t**2).clamp(min=0).expand(200, -1)
+    noise = 5.0 * torch.randn(smooth.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    assert estimate_slab_sigma(smooth + noise) == pytest.approx(5.0, rel=0.15)
+    assert estimate_slab_sigma(smooth) < 0.1
+
+
+def test_robust_volume_ignores_outlying_totals():
+    profiles = torch.full((20, 10), 10.0, dtype=torch.float64)
+    profiles[:2] *= 0.3  # two truncated dips
+    profiles[2:] += torch.linspace(-0.1, 0.1, 18, dtype=torch.float64)[:, None]
+    volume, spread = robust_volume(profiles)
+    assert volume == pytest.approx(100.0, rel=1e-3) and 0 < spread < 0.5
+
+
+def test_a_reconstruction_on_another_grid_is_refused(problem):
+    operator, _, measurement = problem
+    other = Reconstruction(occupancy=torch.zeros(16, 16, 16), grid=Grid(16, 3, 100.0))
+    with pytest.raises(ValueError, match="grid"):
+        check_consistency(measurement, operator, other)
+
+
+def _cats(tmp_path, *overrides):
+    from hydra import compose, initialize_config_module
+
+    from dipnet.jobs.pipeline import run
+
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "experiment=cats_real", "resolution=24", "output.progress=false", "solver.progress=false",
+            "output.mesh_formats=[]", "output.figures=false", *overrides])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = run(cfg, tmp_path)
+    return result.metrics, [w for w in caught if issubclass(w.category, DataConsistencyWarning)]
+
+
+def test_real_cats_keep_the_measured_volume_and_the_old_priors_are_flagged(tmp_path):
+    """The bundled recording at 24^3: the reconstruction holds the volume the dips measure
+    (it held two thirds before the binary prior), and without that prior the run warns."""
+    scores, caught = _cats(tmp_path / "fixed")
+    assert abs(scores["volume_ratio"] - 1) < 0.05, scores["volume_ratio"]
+    assert scores["profile_residual"] < 0.12 and scores["consistency"] == "consistent" and not caught
+    assert scores["missing_cone_deg"] == pytest.approx(55.0, abs=1.5) and scores["azimuthal_coverage"] < 0.02
+    for name in ("resolvability.npz", "metrics.json"):
+        assert (tmp_path / "fixed" / name).stat().st_size > 0
+    scores, caught = _cats(tmp_path / "old", "solver.priors.binary.weight=0")
+    assert scores["volume_ratio"] < 0.8 and scores["consistency"] == "inconsistent"
+    assert any("the dips measure" in str(w.message) for w in caught)
+
+
+def test_an_object_beyond_the_grid_and_an_empty_measurement_are_named(problem):
+    operator, ball, measurement = problem
+    shifted = DipMeasurement(measurement.directions, measurement.profiles, measurement.slab_thickness,
+                             measurement.offsets + 40.0)  # the profiles start 40 mm higher: beyond the slabs
+    result, caught = _check(shifted, operator, ball)
+    assert result.grid_volume_fraction < 0.9
+    assert any("beyond the working range" in str(w.message) for w in caught)
+    empty = DipMeasurement(measurement.directions, torch.zeros_like(measurement.profiles),
+                           measurement.slab_thickness, measurement.offsets)
+    with pytest.raises(ValueError, match="no volume"):
+        check_consistency(empty, operator, Reconstruction(occupancy=ball.float(), grid=GRID))
+
+
+def test_a_wrong_rig_geometry_is_seen_in_the_dips_heights():
+    """Pivot 8 mm and tilt-axis offset -5 mm that the reader does not know: the dips' centroids trend with
+    the tilt as (1 - cos r) and sin r; the check names both errors, and is silent once the geometry is right."""
+    from dipnet.evaluation.consistency import height_trend
+    from dipnet.core.orientations import fibonacci_hemisphere
+    from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
+    from dipnet.preprocessing.preprocess import preprocess
+    from dipnet.core.geometry import RigGeometry, invert_scan
+    from dipnet.shapes import Box
+
+    true = RigGeometry(pivot_mm=8.0, tilt_axis_offset_mm=-5.0)
+    raw = simulate_scan(Box((20.0, 12.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(60), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=30.0), progress=False)
+    grid = Grid(32, extent=100.0)
+    nominal = preprocess(raw, grid=grid, t_start="metadata")
+    pivot, offset, limit = height_trend(nominal)
+    assert pivot == pytest.approx(8.0, abs=0.3) and offset == pytest.approx(-5.0, abs=0.3) and limit < 2.0
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    operator = make_operator(grid, nominal.directions, grid.n)
+    with pytest.warns(DataConsistencyWarning, match="the pivot looks off by .* and the tilt-axis offset by"):
+        result = check_consistency(nominal, operator, MinNormSolver(progress=False).solve(nominal, operator))
+    assert result.verdict == "inconsistent"
+    pivot, offset, limit = height_trend(preprocess(invert_scan(raw, true), grid=grid, t_start="metadata"))
+    assert max(abs(pivot), abs(offset)) < limit

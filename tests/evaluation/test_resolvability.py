@@ -1,0 +1,94 @@
+"""Resolvability: missing cone and frequency coverage of a dipping plan."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.operators import make_operator
+from dipnet.core.orientations import directions_2d, fibonacci_hemisphere, rig_to_direction
+from dipnet.evaluation.resolvability import Resolvability, resolvability
+from dipnet.outputs.resolvability import plot_resolvability
+
+GRID = Grid(24, 3, 100.0)
+
+
+def _cats_plan():
+    """The authors' robot: tilts 0-35 deg every 5 deg, spins 0-340 deg every 20 deg."""
+    tilt, spin = np.meshgrid(np.arange(0, 36, 5.0), np.arange(0, 360, 20.0), indexing="ij")
+    return rig_to_direction(tilt.ravel(), spin.ravel())
+
+
+def test_full_hemisphere_plan_has_a_small_missing_cone_and_even_coverage():
+    res = resolvability(fibonacci_hemisphere(200), GRID)
+    assert res.missing_cone_deg < 10.0
+    assert res.mean_gap_deg < 5.0
+    assert abs(res.azimuthal_coverage - res.polar_coverage) < 0.1
+    assert res.azimuthal_coverage > 0.3
+
+
+def test_tilts_up_to_35_deg_leave_a_55_deg_cone_and_no_azimuthal_frequencies():
+    res = resolvability(_cats_plan(), GRID)
+    assert res.missing_cone_deg == pytest.approx(55.0, abs=1.0)
+    # the farthest direction is on the equator
+    assert abs(res.uncovered_direction[2]) < math.sin(math.radians(2.0))
+    assert res.polar_coverage > 0.8
+    assert res.azimuthal_coverage < 0.02
+    # coverage falls with the frequency's angle from the axis
+    assert res.coverage_by_polar[0] > 0.95 and res.coverage_by_polar[-1] < 0.02
+
+
+def test_pole_only_plan_has_low_azimuthal_coverage_whatever_the_spin():
+    spins = rig_to_direction(np.full(36, 10.0), np.arange(0, 360, 10.0))  # many spins, one small tilt
+    res = resolvability(spins, GRID)
+    assert res.azimuthal_coverage < 0.02
+    assert res.missing_cone_deg > 75.0
+
+
+def test_2d_plan_gap_is_half_the_largest_angle_between_dips():
+    res = resolvability(directions_2d([0.0, 30.0, 60.0, 90.0]), Grid(32, 2, 100.0))
+    assert res.missing_cone_deg == pytest.approx(45.0, abs=0.5)
+
+
+def test_outputs_are_written(tmp_path):
+    res = resolvability(_cats_plan(), GRID, diameter_mm=60.0)
+    assert isinstance(res, Resolvability) and res.diameter_mm == 60.0
+    saved = np.load(res.save(tmp_path / "resolvability.npz"))
+    assert saved["coverage"].shape == GRID.shape
+    assert float(saved["missing_cone_deg"]) == pytest.approx(res.missing_cone_deg)
+    assert plot_resolvability(res, tmp_path / "resolvability.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("directions,message", [
+    (np.zeros((3, 3)), "zero vector"),
+    (np.ones((3, 2)), "shape"),
+])
+def test_bad_plans_are_refused(directions, message):
+    with pytest.raises(ValueError, match=message):
+        resolvability(directions, GRID)
+
+
+def _ring_measurement(centre_x_mm: float) -> DipMeasurement:
+    """A ball of radius 20 mm at ``(centre_x, 0, 0)`` dipped at tilt 30 deg and 6 spins, plus
+    white noise of 1% of the largest slab."""
+    grid = Grid(24, 3, 100.0)
+    operator = make_operator(grid, rig_to_direction(np.full(6, 30.0), np.arange(0, 360, 60.0)))
+    ball = ((grid.centers() - torch.tensor([centre_x_mm, 0.0, 0.0], dtype=torch.float64)).norm(dim=-1) <= 20).double()
+    with torch.no_grad():
+        profiles = operator(ball)
+    noise = 0.01 * float(profiles.max()) * torch.randn(profiles.shape, generator=torch.Generator().manual_seed(0),
+                                                         dtype=torch.float64)
+    return DipMeasurement(operator.directions, profiles + noise, operator.slab_thickness,
+                          torch.full((6,), float(operator.slab_edges()[0])))
+
+
+def test_spin_signal_is_noise_for_an_axisymmetric_object_and_large_otherwise():
+    on_axis = resolvability(_ring_measurement(0.0).directions, GRID, _ring_measurement(0.0))
+    off_axis = resolvability(_ring_measurement(15.0).directions, GRID, _ring_measurement(15.0))
+    assert on_axis.ring_polar_deg == pytest.approx([30.0]) and len(on_axis.ring_rms) == 1
+    assert on_axis.azimuthal_signal_ratio < 2.0
+    assert off_axis.azimuthal_signal_ratio > 3 * max(on_axis.azimuthal_signal_ratio, 1.0)
+    assert resolvability(fibonacci_hemisphere(50), GRID).azimuthal_signal_ratio is None

@@ -1,0 +1,43 @@
+"""scripts/paper_figures.py: the Fig. 11 / Fig. 13a jobs through the pipeline, on a tiny grid."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "paper_figures.py"
+
+
+@pytest.fixture(scope="module")
+def paper_figures():
+    spec = importlib.util.spec_from_file_location("paper_figures", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_job_overrides_take_the_percent_of_n_squared(paper_figures):
+    overrides = paper_figures.job_overrides("bunny", 64, 1.0, ["solver=voxel"])
+    assert "n_dips=41" in overrides and "resolution=64" in overrides  # ceil(0.01 * 4096)
+    assert "n_dips=1639" in paper_figures.job_overrides("hand", 128, 10.0, [])  # ceil(1638.4)
+    assert overrides[-1] == "solver=voxel"  # the command line wins
+
+
+def test_figures_and_table_from_a_tiny_sweep(paper_figures, tmp_path, capsys):
+    out = tmp_path / "figs"
+    args = ["--n", "16", "--meshes", "bunny", "spot", "--percent", "10", "40", "--out", str(out)]
+    assert paper_figures.main(args) == 0
+    printed = capsys.readouterr().out
+    for name in ("fig13a.png", "fig11_n16.png", "summary.md", "runs.csv"):
+        assert (out / name).stat().st_size > 0, name
+    result = dict(item.split("=") for item in printed.strip().splitlines()[-1].split()[1:])
+    assert set(result) == {"chamfer_10", "hausdorff_10", "chamfer_40", "hausdorff_40"}
+    # more dips, smaller mean surface error (averaged over the two meshes)
+    assert 0 < float(result["chamfer_40"]) < float(result["chamfer_10"]) < 0.2
+    # finished jobs are reused: a second call runs nothing and prints the same numbers
+    mtime = (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime
+    assert paper_figures.main(args) == 0
+    assert (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime == mtime
+    assert capsys.readouterr().out.strip().splitlines()[-1] == printed.strip().splitlines()[-1]

@@ -1,0 +1,78 @@
+"""Multirun smoke tests of scripts/reconstruct.py: tiny 2D sweeps with the basic sweeper and with
+the joblib launcher (skipped when hydra-joblib-launcher is missing), a failing job that does not
+stop the sweep, and the experiment presets composing."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dipnet.experiments import collect
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "reconstruct.py"
+TINY = ["ndim=2", "resolution=24", "output.figures=false", "output.progress=false"]
+
+
+def reconstruct(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    proc = subprocess.run([sys.executable, str(SCRIPT), *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def check_sweep(sweep: Path, n_dips: list[int]) -> list[collect.Run]:
+    runs = collect.collect_runs(sweep)
+    assert [r.status for r in runs] == ["ok"] * len(n_dips), [r.error for r in runs]
+    for run, n in zip(runs, n_dips):
+        assert run.config["n_dips"] == n and f"n_dips={n}" in run.overrides
+        assert run.metrics["n_dips"] == n and 0.5 < run.metrics["iou"] <= 1.0
+        assert (run.path / "reconstruction.npz").is_file() and (run.path / "measurement.npz").is_file()
+    return runs
+
+
+def test_basic_sweeper_two_jobs(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = reconstruct("-m", *TINY, "n_dips=6,12", "hydra/callbacks=job_log", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    check_sweep(sweep, [6, 12])
+    log = proc.stdout + proc.stderr
+    assert "job 0 done" in log and "job 1 done" in log and "sweep finished: 2 of 2 jobs ok" in log
+
+
+def test_a_failing_job_does_not_stop_the_sweep(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = reconstruct("-m", *TINY, "n_dips=0,6", "hydra/callbacks=job_log", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    runs = collect.collect_runs(sweep)
+    assert [r.status for r in runs] == ["failed", "ok"]
+    assert "n_dips" in runs[0].error and (runs[0].path / "error.txt").is_file()
+    assert "sweep finished: 1 of 2 jobs ok" in proc.stdout + proc.stderr
+
+
+@pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None,
+                    reason="needs hydra-joblib-launcher (pip install -e '.[sweeps]')")
+def test_joblib_launcher_two_jobs(tmp_path):
+    sweep = tmp_path / "sweep"
+    reconstruct("-m", *TINY, "n_dips=6,12", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+                f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    check_sweep(sweep, [6, 12])
+
+
+@pytest.mark.parametrize("preset", ["paper_2d", "dips_sweep", "snr_sweep", "table1"])
+def test_experiment_presets_compose(preset, tmp_path):
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(version_base="1.3", config_module="dipnet.conf"):
+        extra = ["meshes_dir=/meshes"] if preset == "table1" else []
+        cfg = compose("config", overrides=[f"experiment={preset}", *extra], return_hydra_config=True)
+    params = cfg.hydra.sweeper.params or {}
+    if preset == "paper_2d":
+        assert (cfg.ndim, cfg.n_dips, cfg.shape.name) == (2, 20, "elephant")
+        assert cfg.solver._target_.endswith("LSMRSolver")
+    elif preset == "table1":
+        assert cfg.shape.path == "/meshes/bunny.ply" and "mesh" in params
+    else:
+        assert str(cfg.hydra.sweep.dir) == f"sweeps/{preset}" and len(params) == 2

@@ -1,0 +1,109 @@
+"""Issue 22, options: every option of scripts/reconstruct.py is checked before any work (one line
+``error: ...`` naming the option, exit 2, nothing written), options no code reads are refused,
+every preset takes every solver, and Ctrl-C / an unwritable run directory end in one line."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
+
+from dipnet.preprocessing.datasets import CATS_CSV
+from dipnet.jobs.options import check_config
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reconstruct.py"
+CONF = Path(__file__).resolve().parents[2] / "conf"
+SMALL = ("output.progress=false", "output.figures=false", "output.uncertainty=false", "output.resolvability=false",
+         "resolution=16")
+RECORDED = ("source=recorded", f"source.reader.path={CATS_CSV}")
+
+
+def _cli(run_dir: Path, *overrides: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), f"hydra.run.dir={run_dir}", *SMALL, *overrides],
+                          capture_output=True, text=True, timeout=300, env=env)
+
+
+def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: str = "error: ") -> str:
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == code and len(lines) == 1 and lines[0].startswith(prefix), proc.stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (["snr_db=abc"], "error: snr_db must be a number (dB) or null (noise-free), got 'abc'"),
+    (["resolution=abc"], "error: resolution must be an integer >= 4 (voxels per axis), got 'abc'"),
+    (["seed=-1"], "error: seed must be an integer >= 0 and below 4294967296, got -1"),
+    (["+n_dip=40"], "error: unknown option n_dip: no code reads it; did you mean n_dips?"),
+    (["+operator.bogus_option=1"], "error: unknown option operator.bogus_option: make_operator takes "),
+    (["+solver.tikhonovv=0.2"], "error: unknown option solver.tikhonovv: MinNormSolver takes "),
+    (["+output.figure=false"], "error: unknown option output.figure: no code reads it; did you mean output.figures?"),
+    ([*RECORDED, "+source.reader.smoth=false"], "error: unknown option source.reader.smoth: read_recorded takes "),
+    ([*RECORDED, "planner=adaptive"], "error: planner=adaptive is ignored with source=recorded"),
+    ([*RECORDED, "n_dips=40"], "error: option n_dips is ignored with source=recorded"),
+    ([*RECORDED, "snr_db=20"], "error: option snr_db is ignored with source=recorded"),
+    ([*RECORDED, "reach=authors_rig"], "error: option reach is ignored with source=recorded"),
+    (["planner=adaptive", "orientations=random"], "error: option orientations is ignored with planner=adaptive"),
+    (["output.mesh_formats=[xyz]"], "error: output.mesh_formats must be a list of ply, stl, obj, got ['xyz']"),
+    (["output.checkpoint_every=0"], "error: output.checkpoint_every must be a positive integer, got 0"),
+])
+def test_bad_options_are_refused_before_any_work(tmp_path, overrides, message):
+    line = _one_line_error(_cli(tmp_path, *overrides))
+    assert line.startswith(message), line
+    assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "measurement.npz").exists()
+
+
+def test_report_without_plotly_is_refused_before_any_work(tmp_path):
+    fake = tmp_path / "site" / "plotly"  # an environment without the `report` extra
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('No module named plotly')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(fake.parent), os.environ.get("PYTHONPATH")]))}
+    line = _one_line_error(_cli(tmp_path / "run", "output.report=true", env=env))
+    assert line.startswith("error: output.report=true: HTML reports need plotly: pip install"), line
+    assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_unwritable_run_directory_is_named(tmp_path):
+    (tmp_path / "reconstruct.log").mkdir()  # the log file cannot be written (root ignores chmod)
+    line = _one_line_error(_cli(tmp_path))
+    assert line.startswith(f"error: the run directory {tmp_path} is not writable"), line
+    assert "hydra.run.dir" in line
+
+
+def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
+    proc = subprocess.Popen([sys.executable, str(SCRIPT), f"hydra.run.dir={tmp_path}", *SMALL, "n_dips=12",
+                             "solver=voxel", "solver.iterations=100000", "solver.tol=0", "output.checkpoint=true"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stdout:  # Hydra logs to stdout: wait until the solve has started
+        if "checkpointing the solve" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    line = _one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, "", stderr), code=130,
+                           prefix="interrupted: ")
+    assert f"rerun the same command with hydra.run.dir={tmp_path} to resume" in line, line
+
+
+# ----------------------------------------------------------------------------- presets x solvers
+PRESETS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+SOLVERS = sorted(p.stem for p in (CONF / "solver").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_takes_every_solver(preset, solver):
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"experiment={preset}", f"solver={solver}"])
+    check_config(cfg)
+    assert type(instantiate(cfg.solver)).__name__.lower().startswith(solver[:3])
+
+
+def test_real_data_preset_solves_with_minnorm(tmp_path):
+    proc = _cli(tmp_path, "experiment=cats_real", "solver=minnorm")
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "metrics.json").is_file()

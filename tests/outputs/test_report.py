@@ -1,0 +1,114 @@
+"""HTML reports (dipnet.outputs.report): the pages hold the run's pieces, and headless Chromium renders the
+meshes in WebGL without console errors (skipped without plotly or chromium)."""
+
+from __future__ import annotations
+
+import html
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import plotly  # noqa: F401  (the `report` extra, installed by the README test command)
+import pytest
+
+from dipnet.experiments import collect
+from dipnet.outputs import report
+from sweep_fixtures import write_job
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+#: Injected at the top of a copy of the page: records console errors, uncaught exceptions and
+#: rejected promises, then (after load) what every plotly graph holds, into <pre id="probe">.
+PROBE = """<script>
+window.__errors = [];
+(function () {
+  const error = console.error;
+  console.error = function (...args) { window.__errors.push(args.map(String).join(' ')); error.apply(console, args); };
+  window.addEventListener('error', e => window.__errors.push('uncaught: ' + e.message));
+  window.addEventListener('unhandledrejection', e => window.__errors.push('rejection: ' + e.reason));
+  window.addEventListener('load', () => setTimeout(() => {
+    const plots = [...document.querySelectorAll('.js-plotly-plot')].map(gd => ({
+      id: gd.id,
+      traces: (gd._fullData || []).map(t => ({type: t.type, name: t.name, faces: t.i ? t.i.length : 0})),
+      canvases: gd.querySelectorAll('.gl-container canvas').length}));
+    const pre = document.createElement('pre');
+    pre.id = 'probe';
+    pre.textContent = JSON.stringify({errors: window.__errors, plots: plots});
+    document.body.appendChild(pre);
+  }, 1000));
+})();
+</script>"""
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("sweep")
+    (root / "multirun.yaml").write_text("hydra: {}\n")
+    for i, n in enumerate((4, 8)):
+        write_job(root / str(i), solver="minnorm", n_dips=n, snr_db=None, seed=0, ndim=3, resolution=20,
+                  metrics={"iou": 1 - 1 / n, "chamfer": 0.1 / n})
+    (root / "0" / "history.json").write_text(json.dumps({"data": [1.0, 0.5, 0.2], "tv": [0.1, 0.1, 0.05]}))
+    write_job(root / "2", solver="minnorm", n_dips=16, snr_db=None, seed=0, metrics=None, error="ValueError: boom")
+    return root
+
+
+def test_run_page_holds_meshes_sinogram_loss_and_metrics(sweep):
+    path = report.write_run_report(sweep / "0")
+    assert path == sweep / "0" / "report.html"
+    text = path.read_text()
+    assert text.startswith("<!DOCTYPE html>") and "<script src" not in text      # self-contained
+    assert text.count("<script type='text/javascript'>") == 1                    # plotly.js inlined once
+    for div in ("meshes", "sinogram", "loss"):
+        assert f'id="{div}"' in text, div
+    assert '"type":"mesh3d"' in text.replace(" ", "") and text.count('"name":"truth"') == 1
+    assert "<th class=l>iou</th><td>0.75</td>" in text and "solver=minnorm" in text
+    # without history.json and without loss.png the page says why there is no curve
+    assert "no loss history" in report.write_run_report(sweep / "1").read_text()
+
+
+def test_2d_run_page_shows_images(tmp_path):
+    job = write_job(tmp_path / "job", solver="lsmr", n_dips=6, snr_db=20.0, seed=1, ndim=2, resolution=16,
+                    metrics={"iou": 0.7})
+    text = report.write_run_report(job, tmp_path / "page.html").read_text()
+    assert 'id="recon"' in text and 'id="meshes"' not in text and '"type":"heatmap"' in text.replace(" ", "")
+
+
+def test_sweep_page_links_the_runs_and_lists_failures(sweep, tmp_path):
+    runs = collect.collect_runs(sweep)
+    report.write_run_report(sweep / "0")
+    path = report.write_sweep_report(runs, tmp_path / "cmp" / "report.html", root=sweep)
+    text = path.read_text()
+    link = re.search(r"<a href='([^']+)'>report</a>", text).group(1)
+    assert (path.parent / link).resolve() == (sweep / "0" / "report.html").resolve()
+    assert "2 of 3 jobs finished" in text and "ValueError: boom" in text and 'id="vs-dips"' in text
+
+
+def _render(page: Path, tmp_path: Path) -> dict:
+    """Load a probed copy of ``page`` in headless Chromium; the probe's JSON."""
+    probed = tmp_path / f"probed_{page.parent.name}_{page.name}"
+    probed.write_text(page.read_text().replace("<head>", "<head>" + PROBE, 1))
+    proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+                           "--disable-background-networking", "--virtual-time-budget=10000", "--window-size=1280,2000",
+                           "--dump-dom", probed.as_uri()], capture_output=True, text=True, timeout=120)
+    found = re.search(r'<pre id="probe">(.*?)</pre>', proc.stdout, re.S)
+    assert found, f"no probe output; chromium exit {proc.returncode}: {proc.stderr[-2000:]}"
+    return json.loads(html.unescape(found.group(1)))
+
+
+@pytest.mark.browser
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (apt-get install chromium)")
+def test_chromium_shows_the_meshes_without_console_errors(sweep, tmp_path):
+    probe = _render(report.write_run_report(sweep / "0"), tmp_path)
+    assert probe["errors"] == []
+    plots = {p["id"]: p for p in probe["plots"]}
+    assert {"meshes", "sinogram", "loss"} <= set(plots)
+    meshes = plots["meshes"]
+    assert [(t["type"], t["name"]) for t in meshes["traces"]] == [("mesh3d", "truth"), ("mesh3d", "reconstruction")]
+    assert all(t["faces"] > 100 for t in meshes["traces"])
+    assert meshes["canvases"] >= 2                                   # WebGL scenes were created
+
+    runs = collect.collect_runs(sweep)
+    sweep_probe = _render(report.write_sweep_report(runs, tmp_path / "sweep.html", root=sweep), tmp_path)
+    assert sweep_probe["errors"] == [] and any(p["id"] == "vs-dips" for p in sweep_probe["plots"])

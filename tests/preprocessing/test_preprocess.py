@@ -1,0 +1,158 @@
+"""Preprocessing raw scans into uniform slabs, on hand-built scans of a prism (analytic physics)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dipnet.core.grid import Grid
+from dipnet.operators import make_operator
+from dipnet.preprocessing.preprocess import gausswin, preprocess, preprocess_file, slab_edges, smooth_profiles
+from dipnet.core.rawscan import OrientationScan, RawScan, ScanHeader
+
+AREA = 60000.0  # tank cross-section, mm^2
+A_PRISM, T0, T1 = 2000.0, -30.0, 30.0  # prism cross-section (mm^2) and extent along theta (mm)
+T_START = -40.0
+EDGES = np.linspace(-50.0, 50.0, 41)
+VOLUME = A_PRISM * (T1 - T0)
+
+
+def _prism_rise(stage: np.ndarray) -> np.ndarray:
+    """Exact water rise for a prism: A delta = a (t_start + s + delta - t0), clipped."""
+    partial = A_PRISM * (T_START + stage - T0) / (AREA - A_PRISM)
+    return np.clip(partial, 0.0, VOLUME / AREA)
+
+
+def _exact_slabs(edges: np.ndarray = EDGES) -> np.ndarray:
+    lo, hi = np.maximum(edges[:-1], T0), np.minimum(edges[1:], T1)
+    return A_PRISM * np.clip(hi - lo, 0.0, None)
+
+
+def _scan(k: int = 1, sigma: float = 0.0, quantity: str = "level_mm", seed: int = 0, **header) -> RawScan:
+    stage = np.arange(0.0, 80.0, 1.0)
+    rise = _prism_rise(stage)
+    rng = np.random.default_rng(seed)
+    head = ScanHeader(**{"quantity": quantity, "tank_cross_section_mm2": AREA, "step_mm": 1.0,
+                         "t_start_mm": T_START, **header})
+    scans = []
+    for i in range(k):
+        ideal = 150.0 + rise if quantity == "level_mm" else 1e-3 * AREA * rise
+        values = ideal + rng.normal(0.0, sigma, stage.shape) if sigma else ideal
+        meta = {"noise_sigma": sigma} if sigma else {}
+        scans.append(OrientationScan(k=i, direction=[0.0, 0.0, 1.0], meta=meta, stage_mm=stage, values=values,
+                                     time_s=2.0 * np.arange(len(stage)), complete=True))
+    return RawScan(header=head, orientations=scans)
+
+
+def test_prism_profiles_sum_and_layout():
+    m = preprocess(_scan(), edges=EDGES)
+    p = m.profiles[0].numpy()
+    assert np.abs(p - _exact_slabs()).max() < 0.01 * VOLUME
+    np.testing.assert_allclose(p[8:32], A_PRISM * 2.5, rtol=1e-9)  # linear parts are exact
+    assert p.sum() == pytest.approx(VOLUME, rel=1e-12)
+    assert m.slab_thickness == pytest.approx(2.5) and float(m.offsets[0]) == -50.0
+    assert m.sigma is None and m.metadata["t_start_mm"] == [T_START]
+
+
+def test_default_edges_are_the_operators():
+    grid = Grid(16, 3, 100.0)
+    op = make_operator(grid, np.array([[0.0, 0.0, 1.0]]), n_slabs=8)
+    np.testing.assert_allclose(slab_edges(grid, 8), op.slab_edges().numpy())
+    m = preprocess(_scan(), grid=grid, n_slabs=8)
+    assert m.n_slabs == 8 and m.profiles.sum().item() == pytest.approx(VOLUME)
+
+
+def test_start_height_estimates():
+    raw = _scan()
+    ref = preprocess(raw, edges=EDGES).profiles
+    centred = preprocess(raw, edges=EDGES, t_start="centroid", object_centre=[0.0, 0.0, 0.5 * (T0 + T1)])
+    assert centred.metadata["t_start_mm"][0] == pytest.approx(T_START, abs=0.05)
+    assert np.abs((centred.profiles - ref).numpy()).max() < 0.01 * VOLUME
+    given = preprocess(raw, edges=EDGES, t_start=T_START)
+    np.testing.assert_array_equal(given.profiles.numpy(), ref.numpy())
+    onset = preprocess(raw, edges=EDGES, t_start="onset")  # contact at the lowest edge
+    assert onset.metadata["t_start_mm"][0] - T_START == pytest.approx(EDGES[0] - T0, abs=1.0)
+    assert onset.profiles[0, 0] > 0
+    no_meta = _scan(t_start_mm=None)
+    with pytest.raises(ValueError, match="t_start_mm"):
+        preprocess(no_meta, edges=EDGES, t_start="metadata")
+    auto = preprocess(no_meta, edges=EDGES)  # falls back to the centroid at the origin
+    assert auto.metadata["t_start_mm"][0] == pytest.approx(T_START, abs=0.05)
+
+
+def test_flagged_and_repeated_readings():
+    raw = _scan()
+    ref = preprocess(raw, edges=EDGES).profiles
+    o = raw.orientations[0]
+    for stage, value, flags in [(30.5, 170.0, ["unstable"]), (31.0, o.values[31], [])]:  # spike + repeat
+        o.stage_mm = np.append(o.stage_mm, stage)
+        o.values = np.append(o.values, value)
+        o.time_s = np.append(o.time_s, 500.0)
+        o.flags.append(flags)
+    np.testing.assert_allclose(preprocess(raw, edges=EDGES).profiles.numpy(), ref.numpy(), rtol=1e-12)
+
+
+def test_balance_scan_gives_the_same_profiles():
+    level = preprocess(_scan(), edges=EDGES).profiles
+    mass = preprocess(_scan(quantity="mass_g"), edges=EDGES).profiles
+    np.testing.assert_allclose(mass.numpy(), level.numpy(), rtol=1e-9, atol=1e-6)
+
+
+def test_noise_monotone_output_and_sigma():
+    sigma_r = 0.005
+    raw = _scan(k=300, sigma=sigma_r, seed=1)
+    m = preprocess(raw, edges=EDGES)
+    assert (m.profiles >= 0).all()
+    predicted = np.sqrt(2.0) * AREA * sigma_r
+    np.testing.assert_allclose(m.sigma.numpy(), predicted, rtol=1e-12)
+    inner = slice(10, 30)  # slabs well inside the prism (the monotone fit is inactive there)
+    err = m.profiles.numpy()[:, inner] - _exact_slabs()[inner]
+    assert abs(err.mean()) < 0.1 * predicted
+    assert err.std(axis=0).mean() == pytest.approx(predicted, rel=0.25)
+    smoothed = preprocess(raw, edges=EDGES, smooth=True)
+    assert (smoothed.sigma < m.sigma).all()
+    serr = smoothed.profiles.numpy()[:, inner] - _exact_slabs()[inner]
+    assert serr.std(axis=0).mean() == pytest.approx(smoothed.sigma[0, inner].mean().item(), rel=0.25)
+    np.testing.assert_allclose(smoothed.profiles.sum(1).numpy(), m.profiles.sum(1).numpy(), rtol=1e-12)
+
+
+def test_quantum_enters_sigma():
+    m = preprocess(_scan(sigma=0.003, resolution=0.01), edges=EDGES)
+    expected = np.sqrt(2.0) * AREA * np.hypot(0.003, 0.01 / np.sqrt(12))
+    np.testing.assert_allclose(m.sigma.numpy(), expected, rtol=1e-12)
+
+
+def test_gausswin_and_volume_conserving_smoothing():
+    np.testing.assert_allclose(gausswin(), [0.02193, 0.22851, 0.49912, 0.22851, 0.02193], atol=1e-5)
+    p = np.zeros((2, 10))
+    p[0, 0], p[0, 1], p[1, -1] = 5.0, 3.0, 7.0  # volume at the very ends
+    s = smooth_profiles(p)
+    np.testing.assert_allclose(s.sum(1), p.sum(1), rtol=1e-12)
+    assert s[0, 2] > 0 and s[0, 0] < 5.0
+
+
+def test_incomplete_orientations_and_errors():
+    raw = _scan(k=2)
+    raw.orientations[1].complete = False
+    with pytest.warns(UserWarning, match="incomplete"):
+        assert preprocess(raw, edges=EDGES).n_orientations == 1
+    assert preprocess(raw, edges=EDGES, include_incomplete=True).n_orientations == 2
+    raw.orientations[0].complete = False
+    with pytest.raises(ValueError, match="holds no complete dip"), pytest.warns(UserWarning):
+        preprocess(raw, edges=EDGES)
+    with pytest.raises(ValueError, match="cross-section"):
+        preprocess(_scan(tank_cross_section_mm2=None), edges=EDGES)
+    with pytest.raises(ValueError, match="equally spaced"):
+        preprocess(_scan(), edges=[0.0, 1.0, 3.0])
+    with pytest.raises(ValueError, match="edges or the reconstruction grid"):
+        preprocess(_scan())
+    with pytest.raises(ValueError, match="t_start"):
+        preprocess(_scan(), edges=EDGES, t_start="guess")
+
+
+def test_preprocess_file(tmp_path):
+    raw = _scan(k=2)
+    path = raw.save(tmp_path / "scan.jsonl")
+    m = preprocess_file(path, edges=EDGES, smooth=True)
+    np.testing.assert_allclose(m.profiles.numpy(), preprocess(raw, edges=EDGES, smooth=True).profiles.numpy())
+    assert m.metadata["rawscan"] == str(path) and m.metadata["orientation_k"] == [0, 1]

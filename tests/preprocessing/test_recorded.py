@@ -1,0 +1,216 @@
+"""Recordings to measurements: the authors' CSV, fixture, rig geometry, symmetry, interpolation, calibration."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.orientations import fibonacci_hemisphere, rig_to_direction
+from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank, simulate_scan
+from dipnet.preprocessing.preprocess import preprocess
+from dipnet.core.rawscan import RawScanFileError
+from dipnet.core.geometry import RigGeometry
+from dipnet.preprocessing.recorded import (calibrate_cross_section, expand_symmetry, interpolate_orientations,
+                                 geometry_start_heights, read_authors_csv, read_recorded, read_scan, subtract_fixture,
+                                 symmetry_group, truncated_orientations)
+from dipnet.shapes import Ball, Box
+from dipnet.simulator.simulate import simulate_measurement
+
+from dipnet.preprocessing.datasets import CATS_CSV as CSV
+
+
+@pytest.fixture(scope="module")
+def cats_csv() -> Path:
+    return CSV
+
+
+class Union:
+    """Disjoint shapes as one (volumes add)."""
+
+    ndim = 3
+
+    def __init__(self, *parts):
+        self.parts = parts
+        self.volume = sum(p.volume for p in parts)
+        self.name = "union"
+
+    def volume_below(self, directions, heights):
+        return sum(p.volume_below(directions, heights) for p in self.parts)
+
+    def radius(self):
+        return max(p.radius() for p in self.parts)
+
+
+def three_balls(radius: float = 12.0, ring: float = 22.0, z: float = 5.0) -> Union:
+    """Three balls at azimuths 0, 120, 240 degrees: symmetric under D3 with a mirror plane at 0."""
+    return Union(*(Ball(radius, (ring * math.cos(a), ring * math.sin(a), z))
+                   for a in np.radians([0.0, 120.0, 240.0])))
+
+
+# --------------------------------------------------------------------------- authors' CSV
+def test_authors_csv_reader(cats_csv):
+    raw = read_authors_csv(cats_csv)
+    assert len(raw.orientations) == 32 and all(o.complete and o.n_readings == 111 for o in raw.orientations)
+    assert sorted({o.tilt_deg for o in raw.orientations}) == [0, 5, 10, 15, 20, 25, 30, 35]
+    assert sorted({o.spin_deg for o in raw.orientations}) == [0, 20, 40, 60]
+    assert [(o.tilt_deg, o.spin_deg) for o in raw.orientations[:5]] == [(0, 0), (0, 20), (0, 40), (0, 60), (5, 0)]
+    o = raw.orientations[0]
+    assert o.stage_mm[0] == 25.0 and o.stage_mm[-1] == 355.0 and np.all(np.diff(o.stage_mm) == 3.0)
+    h = raw.header
+    assert (h.quantity, h.step_mm, h.tank_cross_section_mm2, h.resolution) == ("level_mm", 3.0, 183600.0, 0.04)
+    assert 188.0 < o.values.min() and o.values.max() < 200.0
+    cut = truncated_orientations(raw)
+    tilt = {o.k: o.tilt_deg for o in raw.orientations}
+    assert all(tilt[k] >= 15 for k in cut) and all(o.k in cut for o in raw.orientations if o.tilt_deg >= 25)
+
+
+def test_authors_csv_errors(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("SN,R1,R2,H,L\n1,0,0,-25,188\n")
+    with pytest.raises(RawScanFileError, match="bad.csv:1: expected the header"):
+        read_authors_csv(bad)
+    bad.write_text("SN,R1_deg,R2_deg,Height_mm,WaterLevel_mm\n1,0,0,-25,abc\n")
+    with pytest.raises(RawScanFileError, match="bad.csv:2"):
+        read_authors_csv(bad)
+    with pytest.raises(RawScanFileError, match="not found"):
+        read_authors_csv(tmp_path / "missing.csv")
+
+
+def test_cats_preprocessing(cats_csv):
+    grid = Grid(24, extent=360.0)
+    m = read_recorded(cats_csv, grid, truncated="keep", smooth=True)
+    info = m.metadata["recorded"]
+    assert m.profiles.shape == (32, 24) and m.slab_thickness == pytest.approx(15.0)
+    assert torch.allclose(m.directions, rig_to_direction([o // 4 * 5 for o in range(32)],
+                                                         [o % 4 * 20 for o in range(32)]))
+    assert (m.profiles >= 0).all()  # monotone cumulative volume, also after smoothing
+    cumulative = torch.cumsum(m.profiles, 1)
+    assert (torch.diff(cumulative, dim=1) >= 0).all()
+    complete = [k for k in range(32) if k not in info["truncated"]]
+    totals = m.profiles.sum(1)[complete]  # mm^3: level rise ~10.2 mm x 183,600 mm^2
+    assert torch.all((totals > 1.8e6) & (totals < 1.95e6))
+    placed = info["start_heights"]  # the default (ideal) rig: one rigid centroid explains the dips within 2 mm
+    assert placed["centroid_rms_mm"] < 2.0 and info["geometry"]["pivot_mm"] == 0.0
+    # first contact lies inside the grid: before smoothing the lowest slab holds at most
+    # baseline noise (a quantum of 0.04 mm x 183,600 mm^2 = 7,344 mm^3), the next ones the object
+    raw_profiles = read_recorded(cats_csv, grid, truncated="keep", smooth=False).profiles
+    assert (raw_profiles[complete, 0] <= 0.04 * 183600 * 1.3).all() and (raw_profiles[complete, 1:3].sum(1) > 2e4).all()
+    assert torch.allclose(raw_profiles.sum(1), m.profiles.sum(1))  # smoothing keeps the volume
+
+
+def test_cats_symmetry_counts(cats_csv):
+    grid = Grid(16, extent=360.0)
+    m = read_recorded(cats_csv, grid, truncated="keep", symmetry={"n_fold": 3, "mirror": True})
+    assert m.n_orientations == 7 * 18 + 1  # D3 images of tilt > 0 give 18 azimuths, tilt 0 one direction
+    tilts = np.degrees(np.arccos(m.directions[:, 2].numpy()))
+    assert np.isclose(tilts, 0).sum() == 1 and np.isclose(tilts, 35).sum() == 18
+    m2 = read_recorded(cats_csv, grid, truncated="drop", symmetry={"n_fold": 3, "mirror": True},
+                       interpolate={"n": 400, "k": 3, "max_angle_deg": 5})
+    assert m2.metadata["interpolated_orientations"] > 0
+    assert m2.metadata["recorded"]["measured_orientations"] == 32 - len(m2.metadata["recorded"]["truncated"])
+
+
+# --------------------------------------------------------------------------- steps on simulated data
+def test_symmetry_group_is_a_group():
+    g = symmetry_group(3, mirror=True)
+    assert g.shape == (6, 3, 3)
+    assert np.allclose(np.einsum("gij,gkj->gik", g, g), np.eye(3))  # orthogonal
+    products = np.einsum("aij,bjk->abik", g, g).reshape(-1, 3, 3)
+    assert all(np.any(np.all(np.isclose(p, g), axis=(1, 2))) for p in products)  # closed
+    assert len(symmetry_group(4)) == 4 and len(symmetry_group(1, mirror=True)) == 2
+
+
+def test_expand_symmetry_matches_simulated_images():
+    shape = three_balls()
+    edges = np.linspace(-40, 40, 33)
+    dirs = rig_to_direction([20.0, 40.0], [10.0, 75.0])
+    _, m = simulate_measurement(shape, dirs, edges=edges, progress=False)
+    group = symmetry_group(3, mirror=True)
+    e = expand_symmetry(m, group)
+    assert e.n_orientations == 12  # no image coincides
+    _, truth = simulate_measurement(shape, e.directions, edges=edges, progress=False)
+    assert torch.allclose(e.profiles, truth.profiles, atol=1e-6 * truth.profiles.max().item())
+    # a direction on a mirror plane is its own mirror image: 3 distinct images, repeats averaged
+    e2 = expand_symmetry(simulate_measurement(shape, rig_to_direction([30.0], [0.0]), edges=edges,
+                                              progress=False)[1], group)
+    assert e2.n_orientations == 3
+
+
+def test_interpolate_orientations():
+    shape = three_balls()
+    edges = np.linspace(-40, 40, 33)
+    dirs = fibonacci_hemisphere(60)
+    _, m = simulate_measurement(shape, dirs, edges=edges, progress=False)
+    targets = fibonacci_hemisphere(200)
+    out = interpolate_orientations(m, targets, k=3, max_angle_deg=12.0)
+    added = out.n_orientations - m.n_orientations
+    assert added > 0 and torch.equal(out.profiles[:60], m.profiles)
+    _, truth = simulate_measurement(shape, out.directions[60:], edges=edges, progress=False)
+    err = (out.profiles[60:] - truth.profiles).abs().sum(1) / truth.profiles.sum(1)
+    nearest = (out.directions[60:] @ m.directions.T).argmax(1)  # copying the nearest measured profile
+    err_nearest = (m.profiles[nearest] - truth.profiles).abs().sum(1) / truth.profiles.sum(1)
+    assert err.mean() < err_nearest.mean()
+    assert torch.allclose(out.profiles[60:].sum(1), truth.profiles.sum(1), rtol=1e-6)  # volume kept
+    far = interpolate_orientations(m, torch.tensor([[0.0, 0.0, 1.0]]), max_angle_deg=1e-3)
+    assert far.n_orientations == m.n_orientations
+
+
+def test_calibrate_cross_section_from_a_ball():
+    ball = Ball(20.0)
+    tank = Tank(cross_section_mm2=31415.0)
+    raw = simulate_scan(ball, torch.tensor([[0.0, 0.0, 1.0]]), tank=tank, sensor=LevelSensor(quantum_mm=0.0),
+                        protocol=DipProtocol(step_mm=2.0, clearance_mm=10.0, extra_steps=4), progress=False)
+    area = calibrate_cross_section(raw.orientations[0], ball.volume)
+    assert area == pytest.approx(31415.0, rel=1e-6)
+    with pytest.raises(ValueError, match="did not rise"):
+        calibrate_cross_section(np.full(10, 150.0), 1000.0)
+
+
+def test_fixture_subtraction_recovers_object():
+    obj, fixture = Ball(15.0, (0.0, 0.0, -10.0)), Box((4.0, 4.0, 15.0), (0.0, 0.0, 23.0))
+    both = Union(obj, fixture)
+    dirs = rig_to_direction([0.0, 20.0], [0.0, 0.0])
+    tank, sensor = Tank(cross_section_mm2=8000.0), LevelSensor(quantum_mm=0.0)
+    proto = DipProtocol(step_mm=1.0)
+
+    def dip(shape, directions):
+        # every shape dipped from the same stage origin: t_start fixed by the rig, not the shape
+        raw = simulate_scan(Union(shape, Ball(1e-3, (0.0, 0.0, -39.0)), Ball(1e-3, (0.0, 0.0, 39.0))),
+                            directions, tank=tank, sensor=sensor, protocol=proto, progress=False)
+        return raw
+
+    combined, fix, alone = dip(both, dirs), dip(fixture, dirs[:1]), dip(obj, dirs)
+    fix.orientations[0].tilt_deg, fix.orientations[0].spin_deg = 0.0, 0.0
+    for raw in (combined, alone):
+        for o, (t, s) in zip(raw.orientations, [(0.0, 0.0), (20.0, 0.0)]):
+            o.tilt_deg, o.spin_deg = t, s
+    cleaned = subtract_fixture(combined, fix, n_baseline=2)
+    edges = np.linspace(-40, 40, 41)
+    a = preprocess(cleaned, edges=edges, t_start="metadata").profiles[0]
+    b = preprocess(alone, edges=edges, t_start="metadata").profiles[0]
+    assert torch.allclose(a, b, atol=0.02 * b.max().item())
+    assert a.sum().item() == pytest.approx(obj.volume, rel=0.01)
+
+
+def test_geometry_start_heights_recover_rig_geometry(tmp_path):
+    """A scan from a rig with a pivot and a tilt-axis offset, its start height unknown: the geometry
+    places every dip where the simulator had it, and the ideal rig cannot explain the centroids."""
+    shape = three_balls(z=0.0)
+    tilts = [0.0, 10.0, 20.0, 30.0, 30.0]
+    truth_geometry = RigGeometry(pivot_mm=120.0, tilt_axis_offset_mm=10.0)
+    dirs = rig_to_direction(tilts, [0.0, 0.0, 0.0, 0.0, 90.0])
+    raw = simulate_scan(shape, dirs, tank=Tank(cross_section_mm2=10000.0), sensor=LevelSensor(quantum_mm=0.0),
+                        protocol=DipProtocol(step_mm=1.0, clearance_mm=5.0, extra_steps=5),
+                        geometry=truth_geometry, progress=False)
+    truth = raw.header.t_start_mm + truth_geometry.height_shift(tilts)
+    starts, info = geometry_start_heights(raw, 10000.0, truth_geometry, centre="centroid")
+    assert np.allclose(starts, truth, atol=0.05) and info["centroid_rms_mm"] < 0.05
+    _, ideal = geometry_start_heights(raw, 10000.0, RigGeometry(), centre="centroid")
+    assert ideal["centroid_rms_mm"] > 1.0
+    path = raw.save(tmp_path / "scan.jsonl")
+    assert len(read_scan(path).orientations) == 5

@@ -1,0 +1,25 @@
+"""Symmetry duplication is a pipeline step for any source (here: simulated dips)."""
+
+from __future__ import annotations
+
+import pytest
+from hydra import compose, initialize_config_module
+
+from dipnet.jobs.pipeline import run
+from dipnet.preprocessing.symmetry import apply_symmetry
+
+
+def _cfg(*overrides):
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=["output.progress=false", "output.figures=false", *overrides])
+
+
+def test_simulated_job_duplicates_profiles_under_the_declared_group(tmp_path):
+    plain = run(_cfg("resolution=16", "n_dips=6", "shape.name=ball"), tmp_path / "plain")
+    sym = run(_cfg("resolution=16", "n_dips=6", "shape.name=ball", "symmetry={n_fold: 4}"), tmp_path / "sym")
+    assert plain.measurement.n_orientations == 6
+    assert sym.measurement.n_orientations == 24 and sym.measurement.metadata["symmetry_group_order"] == 4
+    assert sym.metrics["n_dips"] == 24 and sym.metrics["iou"] >= plain.metrics["iou"] - 0.01
+    assert apply_symmetry(plain.measurement, None) is plain.measurement
+    with pytest.raises(ValueError, match="unknown symmetry option"):
+        apply_symmetry(plain.measurement, {"nfold": 3})

@@ -1,0 +1,156 @@
+"""Mesh shapes: loading, exact dips, sealed voids, repair of broken meshes, clear file errors."""
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from dipnet.core.grid import Grid
+from dipnet.shapes import Ball, MeshShape, ShapeError, ShapeWarning, from_trimesh, load_mesh
+
+from dipnet.preprocessing.datasets import MESHES_DIR as MESHES
+
+SHARED = sorted(MESHES.glob("*.ply"))
+
+
+def unit_directions(k: int, seed: int) -> torch.Tensor:
+    v = torch.randn(k, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    return v / v.norm(dim=1, keepdim=True)
+
+
+@pytest.mark.parametrize("path", SHARED, ids=lambda p: p.stem)
+def test_shared_meshes_volume_and_dips(path):
+    expected = trimesh.load(path).volume
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ShapeWarning)  # hollow_cube: void filled (tested below)
+        shape = load_mesh(path)
+    if path.stem != "hollow_cube":
+        assert shape.notes == []
+        assert shape.volume == pytest.approx(expected, rel=1e-9)
+    r = shape.radius()
+    v = shape.volume_below(unit_directions(20, 0), torch.linspace(-1.01 * r, 1.01 * r, 80))
+    assert (v[:, 0] == 0).all()
+    torch.testing.assert_close(v[:, -1], torch.full((20,), shape.volume, dtype=torch.float64))
+    assert (v.diff(dim=1) >= -1e-9 * shape.volume).all()
+
+
+@pytest.mark.parametrize("stem", ["bunny", "spot", "torus"])
+def test_shared_mesh_occupancy_matches_volume(stem):
+    grid = Grid(40, 3, 100.0)
+    shape = load_mesh(MESHES / f"{stem}.ply", radius=0.9 * grid.radius)
+    assert shape.radius() == pytest.approx(0.9 * grid.radius)
+    assert np.allclose(shape.mesh.center_mass, 0, atol=1e-9 * grid.extent)
+    occ = shape.occupancy(grid, supersample=2)
+    assert occ.sum().item() * grid.voxel_volume == pytest.approx(shape.volume, rel=0.03)
+
+
+def test_hollow_cube_sealed_void_is_filled_by_default():
+    with pytest.warns(ShapeWarning, match="filled 1 sealed"):
+        filled = load_mesh(MESHES / "hollow_cube.ply")
+    assert filled.volume == pytest.approx(8.0) and any("sealed" in n for n in filled.notes)
+    with pytest.warns(ShapeWarning, match="kept 1 sealed"):
+        kept = load_mesh(MESHES / "hollow_cube.ply", fill_sealed_voids=False)
+    assert kept.volume == pytest.approx(7.0)
+    up = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    h = torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(filled.volume_below(up, h)[0], 4 * (h + 1))
+    void_below = h.clamp(-0.5, 0.5) + 0.5
+    torch.testing.assert_close(kept.volume_below(up, h)[0], 4 * (h + 1) - void_below)
+    grid = Grid(16, 3, 2.5)
+    centre = (slice(6, 10),) * 3  # voxels inside the cavity [-0.5, 0.5]^3
+    assert (filled.occupancy(grid)[centre] == 1).all() and (kept.occupancy(grid)[centre] == 0).all()
+
+
+def test_nested_shells_outer_void_island():
+    """Shells nested three deep: solid, sealed void, solid island inside the void."""
+    boxes = [trimesh.creation.box(extents=[e] * 3) for e in (4.0, 2.0, 1.0)]
+    boxes[1].invert()  # written as a void, like a CAD export would
+    mesh = trimesh.util.concatenate(boxes)
+    with pytest.warns(ShapeWarning):
+        assert from_trimesh(mesh).volume == pytest.approx(64.0)
+    with pytest.warns(ShapeWarning):
+        assert from_trimesh(mesh, fill_sealed_voids=False).volume == pytest.approx(64 - 8 + 1)
+
+
+def test_overlapping_shells_are_merged():
+    a = trimesh.creation.box(extents=[2.0, 2.0, 2.0])
+    b = trimesh.creation.box(extents=[2.0, 2.0, 2.0])
+    b.apply_translation([1.0, 0.5, 0.0])  # overlap volume 1 * 1.5 * 2 = 3
+    with pytest.warns(ShapeWarning, match="merged 2 overlapping"):
+        shape = from_trimesh(trimesh.util.concatenate([a, b]))
+    assert shape.volume == pytest.approx(16.0 - 3.0)
+
+
+def broken_icosphere(extra_hole: bool) -> trimesh.Trimesh:
+    """An icosphere with 5 deleted faces, one flipped face and, optionally, a pentagonal hole."""
+    m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    rng = np.random.default_rng(0)
+    faces = np.delete(m.faces, rng.choice(len(m.faces), 5, replace=False), axis=0)
+    faces[10] = faces[10][::-1]
+    if extra_hole:
+        faces = faces[~np.any(faces == 0, axis=1)]
+    return trimesh.Trimesh(m.vertices, faces, process=False)
+
+
+@pytest.mark.parametrize("extra_hole", [False, True])
+def test_broken_mesh_loads_with_warning_and_sensible_occupancy(tmp_path, extra_hole):
+    path = tmp_path / "broken.stl"
+    broken_icosphere(extra_hole).export(path)
+    with pytest.warns(ShapeWarning, match="broken.stl") as record:
+        shape = load_mesh(path, radius=40.0)
+    message = str(record[0].message)
+    assert "flipped" in message and "not watertight" in message
+    assert shape.exact == (not extra_hole)  # tri holes are filled, the pentagon stays open
+    if extra_hole:
+        assert "approximate" in message
+    grid = Grid(32, 3, 100.0)
+    occ = shape.occupancy(grid, supersample=2)
+    ball = Ball(40.0).occupancy(grid, supersample=2)
+    assert (occ - ball).abs().sum() / ball.sum() < 0.03
+    assert shape.volume == pytest.approx(Ball(40.0).volume, rel=0.02)
+
+
+@pytest.mark.parametrize("suffix", ["stl", "obj", "off", "ply", "glb"])
+def test_formats_round_trip(tmp_path, suffix):
+    m = trimesh.creation.icosphere(subdivisions=2, radius=3.0)
+    path = tmp_path / f"ball.{suffix}"
+    m.export(path)
+    shape = load_mesh(path, center=False)
+    assert isinstance(shape, MeshShape) and shape.name == "ball"
+    assert shape.volume == pytest.approx(m.volume, rel=1e-6)
+
+
+def test_glb_scene_is_concatenated(tmp_path):
+    box = trimesh.creation.box(extents=[1.0, 1.0, 1.0])
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=1.0).apply_translation([4.0, 0, 0])
+    path = tmp_path / "scene.glb"
+    trimesh.Scene([box, ball]).export(path)
+    assert load_mesh(path).volume == pytest.approx(box.volume + ball.volume, rel=1e-6)
+
+
+def test_physical_size_is_kept_without_radius(tmp_path):
+    m = trimesh.creation.box(extents=[10.0, 20.0, 30.0]).apply_translation([5.0, 5.0, 5.0])
+    path = tmp_path / "brick.stl"
+    m.export(path)
+    shape = load_mesh(path)
+    assert shape.volume == pytest.approx(6000.0)
+    assert shape.radius() == pytest.approx(np.linalg.norm([5.0, 10.0, 15.0]))
+
+
+def test_file_errors_name_the_file(tmp_path):
+    missing = tmp_path / "missing.stl"
+    garbage = tmp_path / "garbage.stl"
+    garbage.write_bytes(b"\x00not a mesh\xff" * 20)
+    empty = tmp_path / "empty.ply"
+    empty.write_text("")
+    flat = tmp_path / "flat.obj"
+    plane = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0, 1, 2], [1, 3, 2]])
+    plane.export(flat)
+    for path in (missing, garbage, empty, flat):
+        with pytest.raises(ShapeError, match=path.name):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ShapeWarning)
+                load_mesh(path)

@@ -1,0 +1,113 @@
+"""The dipping physics: Archimedes' fixed point, sensors (noise, SNR, quantisation, drift), balance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.orientations import directions_2d, fibonacci_hemisphere
+from dipnet.simulator.physics import Balance, DipProtocol, LevelSensor, Tank, simulate_scan, solve_dip
+from dipnet.shapes import Ball, Disk
+
+BALL = Ball(40.0, center=(3.0, -2.0, 1.0))
+DIRS = fibonacci_hemisphere(6)
+EXACT = LevelSensor(quantum_mm=0.0)
+
+
+def _exact_volume(shape, direction, heights) -> np.ndarray:
+    return shape.volume_below(torch.as_tensor(direction).reshape(1, -1), torch.as_tensor(heights))[0].numpy()
+
+
+@pytest.mark.parametrize("shape, dirs, area", [(BALL, DIRS, 60000.0),
+                                               (Disk(40.0, (2.0, 1.0)), directions_2d([0, 50, 120]), 300.0)])
+def test_levels_satisfy_archimedes_fixed_point(shape, dirs, area):
+    tank = Tank(cross_section_mm2=area, rest_level_mm=150.0)
+    scan = simulate_scan(shape, dirs, tank=tank, sensor=EXACT, progress=False)
+    t_start = scan.header.t_start_mm
+    assert t_start == pytest.approx(-(shape.radius() + DipProtocol().clearance_mm))
+    for o in scan.orientations:
+        rise = o.values - tank.rest_level_mm
+        volume = _exact_volume(shape, o.unit_direction, t_start + o.stage_mm + rise)
+        np.testing.assert_allclose(area * rise, volume, rtol=0, atol=1e-9 * shape.volume)
+        assert rise[0] == 0.0 and np.all(np.diff(rise) >= 0)
+        assert rise[-1] == pytest.approx(shape.volume / area, rel=1e-12)  # fully under water at the end
+        assert o.meta["residual_mm3"] < 1e-9 * shape.volume
+        # the submerged depth grows by d + (delta_{i+1} - delta_i) per step
+        depth = o.stage_mm + rise
+        np.testing.assert_allclose(np.diff(depth), 1.0 + np.diff(rise))
+
+
+def test_rise_exceeds_the_naive_one_by_the_displacement_feedback():
+    """Without the feedback the rise would be V(t_start + s) / A: the true one is larger."""
+    tank = Tank()
+    stage = np.arange(60.0)
+    state = solve_dip(BALL, DIRS[0].numpy(), tank, stage, -45.0)
+    naive = _exact_volume(BALL, DIRS[0].numpy(), -45.0 + stage) / tank.cross_section_mm2
+    partial = (naive > 0) & (naive < BALL.volume / tank.cross_section_mm2)
+    assert np.all(state.rise_mm[partial] > naive[partial])
+
+
+def test_object_wider_than_tank_is_refused():
+    with pytest.raises(ValueError, match="cannot be dipped"):
+        simulate_scan(BALL, DIRS, tank=Tank(cross_section_mm2=4000.0), sensor=EXACT, progress=False)
+
+
+def test_timing_and_schedule():
+    protocol = DipProtocol(step_mm=2.0, clearance_mm=4.0, extra_steps=2, settle_s=3.0, reorient_s=20.0)
+    scan = simulate_scan(BALL, DIRS[:2], sensor=EXACT, protocol=protocol, progress=False)
+    a, b = scan.orientations
+    n = protocol.n_readings(BALL.radius())
+    assert a.n_readings == n and np.all(np.diff(a.stage_mm) == 2.0)
+    np.testing.assert_allclose(np.diff(a.time_s), 3.0)
+    assert b.time_s[0] - a.time_s[-1] == pytest.approx(20.0 + 3.0)
+    assert np.all(a.values[-protocol.extra_steps - 1:] == a.values[-1])  # extra readings under water
+    assert a.values[1] == a.values[0]  # the clearance gives flat readings first
+
+
+def test_snr_sets_the_stated_noise_level():
+    snr_db = 20.0
+    noisy = simulate_scan(BALL, DIRS, sensor=LevelSensor(snr_db=snr_db, quantum_mm=0.0), seed=3, progress=False)
+    clean = simulate_scan(BALL, DIRS, sensor=EXACT, progress=False)
+    residuals, sigmas = [], []
+    for o, c in zip(noisy.orientations, clean.orientations):
+        rises = np.diff(c.values)
+        rises = rises[rises > 1e-12]
+        expected = np.sqrt(np.mean(rises**2)) / 10 ** (snr_db / 20)
+        assert o.meta["noise_sigma"] == pytest.approx(expected, rel=1e-6)
+        residuals.append(o.values - c.values)
+        sigmas.append(expected)
+    r = np.concatenate(residuals)
+    assert abs(r.mean()) < 0.2 * np.mean(sigmas)
+    assert np.std(r) == pytest.approx(np.sqrt(np.mean(np.square(sigmas))), rel=0.1)
+
+
+def test_fixed_sigma_quantisation_drift_and_seeds():
+    clean = simulate_scan(BALL, DIRS, sensor=EXACT, progress=False)
+    q = simulate_scan(BALL, DIRS[:3], sensor=LevelSensor(quantum_mm=0.04), progress=False)
+    for o, c in zip(q.orientations, clean.orientations):
+        steps = o.values / 0.04
+        np.testing.assert_allclose(steps, np.round(steps), atol=1e-9)
+        assert np.abs(o.values - c.values).max() <= 0.02 + 1e-12
+    drift = simulate_scan(BALL, DIRS[:3], sensor=LevelSensor(quantum_mm=0.0, drift_mm_per_s=1e-3), progress=False)
+    for o, c in zip(drift.orientations, clean.orientations):
+        np.testing.assert_allclose(o.values - c.values, 1e-3 * o.time_s, atol=1e-12)
+    sensor = LevelSensor(sigma_mm=0.05, quantum_mm=0.0)
+    a = simulate_scan(BALL, DIRS, sensor=sensor, seed=1, progress=False)
+    b = simulate_scan(BALL, DIRS, sensor=sensor, seed=1, progress=False)
+    c = simulate_scan(BALL, DIRS, sensor=sensor, seed=2, progress=False)
+    noise = np.concatenate([o.values - x.values for o, x in zip(a.orientations, clean.orientations)])
+    assert np.std(noise) == pytest.approx(0.05, rel=0.1)
+    assert all(np.array_equal(x.values, y.values) for x, y in zip(a.orientations, b.orientations))
+    assert not np.array_equal(a.orientations[0].values, c.orientations[0].values)
+
+
+def test_balance_reads_displaced_mass():
+    scan = simulate_scan(BALL, DIRS[:2], sensor=Balance(quantum_g=0.0), progress=False)
+    assert scan.header.quantity == "mass_g" and scan.header.units["value"] == "g"
+    area = scan.header.tank_cross_section_mm2
+    for o in scan.orientations:
+        volume = o.values / 1e-3
+        t = scan.header.t_start_mm + o.stage_mm + volume / area
+        np.testing.assert_allclose(volume, _exact_volume(BALL, o.unit_direction, t), atol=1e-9 * BALL.volume)
+        assert o.values[-1] == pytest.approx(1e-3 * BALL.volume)
