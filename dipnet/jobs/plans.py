@@ -15,6 +15,14 @@ from dipnet.operators import DipOperator
 from dipnet.planning.adaptive import AdaptiveSettings, SimulatedDips, adaptive_loop, warn_linear_loop_solver
 
 
+def adaptive_settings(planner_cfg) -> AdaptiveSettings:
+    """The loop settings of a ``conf/planner/adaptive.yaml`` node."""
+    stop = planner_cfg.get("stop_uncertainty")
+    return AdaptiveSettings(budget=int(planner_cfg.budget), batch_size=int(planner_cfg.batch_size),
+                            initial_dips=int(planner_cfg.initial_dips),
+                            stop_uncertainty=None if stop is None else float(stop))
+
+
 def fixed_directions(cfg, ndim: int) -> torch.Tensor:
     """The up-front plan of ``planner=fixed``: ``cfg.orientations`` with ``cfg.n_dips`` dips, kept
     within ``cfg.reach`` (a Fibonacci / uniform plan becomes the uniform plan over the reach)."""
@@ -52,7 +60,7 @@ def simulate_adaptive(cfg, grid: Grid, shape, out: Path) -> DipMeasurement:
         return solver.solve(measurement, operator), operator
 
     result = adaptive_loop(acquire, reconstruct, instantiate(cfg.planner.planner), instantiate(cfg.reach),
-                           AdaptiveSettings.from_config(cfg.planner))
+                           adaptive_settings(cfg.planner))
     acquire.raw.save(out / "rawscan.jsonl")
     (out / "planning.json").write_text(json.dumps({"stop_reason": result.stop_reason, "history": result.history},
                                                   indent=2))

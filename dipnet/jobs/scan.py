@@ -10,7 +10,7 @@ from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import Reach
 from dipnet.core.rawscan import RawScan, ScanHeader, read_rawscan
-from dipnet.planning.adaptive import AdaptiveSettings
+from dipnet.jobs.plans import adaptive_settings
 from dipnet.rig.adaptive import adaptive_scan
 from dipnet.rig.controller import Controller
 from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
@@ -126,7 +126,7 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
         return runner_from_config(cfg, plan, path, home=home)
 
     grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
-    settings = AdaptiveSettings.from_config(settings_cfg)
+    settings = adaptive_settings(settings_cfg)
     reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
     adaptive_scan(make_runner, protocol, path, grid, VoxelSolver(progress=False), instantiate(settings_cfg.planner),
                   reach, settings)

@@ -61,13 +61,6 @@ class AdaptiveSettings:
         if self.stop_uncertainty is not None and not self.stop_uncertainty > 0:
             raise ValueError(f"stop_uncertainty must be positive or null, got {self.stop_uncertainty}")
 
-    @classmethod
-    def from_config(cls, planner_cfg) -> "AdaptiveSettings":
-        """From a ``conf/planner/adaptive.yaml`` node."""
-        stop = planner_cfg.get("stop_uncertainty")
-        return cls(budget=int(planner_cfg.budget), batch_size=int(planner_cfg.batch_size),
-                   initial_dips=int(planner_cfg.initial_dips), stop_uncertainty=None if stop is None else float(stop))
-
 
 @dataclass
 class AdaptiveResult:

@@ -7,8 +7,8 @@ Readers
   ``SN,R1_deg,R2_deg,Height_mm,WaterLevel_mm``; R1 = tilt, R2 = spin, Height decreasing as the
   object goes down), both as a :class:`~dipnet.core.rawscan.RawScan`.
 
-Real-data steps (used by :func:`read_recorded`, the ``source=recorded`` reader)
-------------------------------------------------------------------------------
+Real-data steps (used by :func:`read_raw_recording`, behind ``source=recorded``)
+--------------------------------------------------------------------------------
 1. fixture subtraction (:func:`subtract_fixture`) when a fixture-only recording is given;
 2. truncated dips (the object still going under when the scan stopped) are detected
    (:func:`truncated_orientations`) and kept or dropped;
@@ -332,7 +332,7 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     cross-section), keeps complete dips, drops or keeps truncated ones and, when the recording
     does not know its start height (the authors' CSV), gives every dip ``t_start_mm = t0``
     placed by :func:`geometry_start_heights` (the geometry's height shift is *not* in it:
-    ``invert_scan`` adds it). Arguments as for :func:`read_recorded`.
+    ``invert_scan`` adds it). Arguments as for :func:`read_raw_recording`.
 
     Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``.
     """
@@ -383,9 +383,9 @@ def finish_measurement(measurement: DipMeasurement, symmetry: dict | None = None
 
 
 @forwards_to(prepare_recording)
-def read_recorded(path: str | Path, grid: Grid, n_slabs: int | None = None, *, t_start: str | float = "geometry",
-                  smooth: bool = False, symmetry: dict | None = None, interpolate: dict | None = None,
-                  **options) -> DipMeasurement:
+def read_raw_recording(path: str | Path, grid: Grid, n_slabs: int | None = None, *,
+                       t_start: str | float = "geometry", smooth: bool = False, symmetry: dict | None = None,
+                       interpolate: dict | None = None, **options) -> DipMeasurement:
     """A recorded scan (dipnet ``.jsonl`` or the authors' ``.csv``) as a measurement on ``grid``.
 
     Args:

@@ -3,7 +3,7 @@
 * ``.npz``: a :class:`~dipnet.core.measurement.DipMeasurement` file, re-binned onto the grid's
   ``n_slabs`` slabs (any resolution; :meth:`~dipnet.core.measurement.DipMeasurement.rebinned`);
 * ``.jsonl`` (a dipnet raw scan from ``scripts/scan.py``) or ``.csv`` (the authors' robot):
-  preprocessed onto the grid's slabs by :func:`dipnet.preprocessing.recorded.read_recorded`.
+  preprocessed onto the grid's slabs by :func:`dipnet.preprocessing.recorded.read_raw_recording`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement, MeasurementFileError
 from dipnet.core.keywords import forwards_to
 from dipnet.core.rawscan import naming_file
-from dipnet.preprocessing.recorded import read_recorded as read_raw_recording
+from dipnet.preprocessing.recorded import read_raw_recording
 
 
 @forwards_to(read_raw_recording)
@@ -27,7 +27,7 @@ def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) 
         path: ``.npz`` measurement, ``.jsonl`` raw scan or the authors' ``.csv``.
         grid, n_slabs: the reconstruction grid and slab count (raw recordings are resampled).
         options: preprocessing options for raw recordings (see
-            :func:`dipnet.preprocessing.recorded.read_recorded`: cross-section, smoothing, symmetry...).
+            :func:`dipnet.preprocessing.recorded.read_raw_recording`: cross-section, smoothing, symmetry...).
     """
     p = Path(path)
     if not p.is_file():

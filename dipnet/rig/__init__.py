@@ -1,4 +1,4 @@
-"""Hardware adapter: motion controllers (GRBL, Marlin), sensors, scan runner, fake rig, recordings.
+"""Hardware only: motion controllers (GRBL, Marlin), sensors, the scan runner, adaptive scans, the fake rig.
 
 Ports are opened with ``serial.serial_for_url``; :func:`register_url_handlers` adds the fake
 rig's ``fakerig://<world>/<device>`` scheme (module :mod:`dipnet.rig.protocol_fakerig`).

@@ -27,7 +27,7 @@ Sensors
 -------
 :class:`LevelSensor` reads the water level (mm), :class:`Balance` a tared balance under the
 tank (apparent mass ``rho V`` in g). Both add white Gaussian noise (standard deviation given
-directly, or from an SNR in dB, see :meth:`Sensor.noise_sigma`), a slow linear drift in time
+directly, or from an SNR in dB, see :meth:`SensorModel.noise_sigma`), a slow linear drift in time
 and quantisation, in that order.
 """
 
@@ -74,7 +74,7 @@ class Tank:
         return cls(cross_section_mm2=300.0 * 200.0 if ndim == 3 else 300.0)
 
 
-class Sensor(ABC):
+class SensorModel(ABC):
     """A noisy, quantised, drifting reading of the submerged volume.
 
     Subclasses set :attr:`quantity` and map the submerged volume to an ideal reading.
@@ -127,12 +127,12 @@ class Sensor(ABC):
 
 
 @dataclass
-class LevelSensor(Sensor):
+class LevelSensor(SensorModel):
     """Water-level transducer (mm).
 
     Attributes:
         sigma_mm: white noise standard deviation per reading (mm); ignored if ``snr_db`` is set.
-        snr_db: noise from a signal-to-noise ratio instead (see :meth:`Sensor.noise_sigma`).
+        snr_db: noise from a signal-to-noise ratio instead (see :meth:`SensorModel.noise_sigma`).
         quantum_mm: reading resolution (mm); 0 (default) for none. The authors' robot: 0.04 mm.
             Mind the scale: one quantum is ``quantum_mm * A`` mm^3 (600 mm^3 for 0.01 mm in a
             300 x 200 mm tank), which for a small object is several percent of a slab.
@@ -155,7 +155,7 @@ class LevelSensor(Sensor):
 
 
 @dataclass
-class Balance(Sensor):
+class Balance(SensorModel):
     """A tared balance under the tank: apparent mass ``rho V`` (g) of the displaced liquid.
 
     Attributes:
@@ -288,7 +288,7 @@ def _bracket(curve, base: np.ndarray, area: float, below: np.ndarray) -> tuple[n
     return lo, hi
 
 
-def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor | None = None,
+def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: SensorModel | None = None,
                   protocol: DipProtocol | None = None, geometry: RigGeometry | None = None,
                   seed: int | None = None, progress: bool = True) -> RawScan:
     """Dip ``shape`` along every direction and record what the rig would: a :class:`RawScan`.

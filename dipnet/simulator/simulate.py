@@ -22,14 +22,14 @@ import numpy as np
 
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
-from dipnet.simulator.physics import DipProtocol, Sensor, Tank, simulate_scan
+from dipnet.simulator.physics import DipProtocol, SensorModel, Tank, simulate_scan
 from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.rawscan import RawScan
 from dipnet.core.geometry import RigGeometry, as_geometry, invert_scan
 
 
 def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs: int | None = None,
-                         edges=None, tank: Tank | None = None, sensor: Sensor | None = None,
+                         edges=None, tank: Tank | None = None, sensor: SensorModel | None = None,
                          step_mm: float | None = None, protocol: DipProtocol | None = None,
                          geometry: RigGeometry | None = None, reader_geometry: RigGeometry | None = None,
                          smooth: bool = False, t_start: str | float = "metadata", seed: int | None = None,

@@ -19,7 +19,7 @@ from dipnet.core.calibration_file import Calibration, load_calibration, save_cal
 from dipnet.rig.fake.world import FakeRig
 from dipnet.core.geometry import RigGeometry
 from dipnet.rig.grbl import GrblController
-from dipnet.preprocessing.recorded import read_recorded
+from dipnet.preprocessing.recorded import read_raw_recording
 from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
 from dipnet.rig.sensors import LineSensor
 from dipnet.shapes import Ball, Box
@@ -75,7 +75,7 @@ def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
     grid = Grid(32, extent=80.0)
     ideal = Ball(RADIUS).occupancy(grid, supersample=3).sum().item() * grid.voxel_volume
     for source in ({"calibration": out}, {}):
-        m = read_recorded(ball_scan, grid, smooth=False, **source)
+        m = read_raw_recording(ball_scan, grid, smooth=False, **source)
         centroids = (m.profiles.numpy() @ (np.arange(32) + 0.5 - 16) * grid.voxel_size) / m.profiles.sum(1).numpy()
         if source:  # a ball at the origin: every profile centred on 0 and holding its volume
             assert np.abs(centroids).max() < 0.3 and m.volume_estimate() == pytest.approx(ideal, rel=0.01)
@@ -179,7 +179,7 @@ def test_a_scan_with_the_calibration_reads_right(tmp_path):
     file = save_calibration(cal, tmp_path / "cal.yaml")
     path = scan_ball(tmp_path / "calibrated.jsonl", FAKE_TRUTH)
     grid = Grid(32, extent=80.0)
-    m = read_recorded(path, grid, smooth=False, calibration=file)
+    m = read_raw_recording(path, grid, smooth=False, calibration=file)
     centroids = (m.profiles.numpy() @ (np.arange(32) + 0.5 - 16) * grid.voxel_size) / m.profiles.sum(1).numpy()
     assert np.abs(centroids).max() < 0.3
     assert m.volume_estimate() == pytest.approx(Ball(RADIUS).volume, rel=0.01)

@@ -16,7 +16,7 @@ from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.rawscan import RawScanFileError
 from dipnet.core.geometry import RigGeometry
 from dipnet.preprocessing.recorded import (calibrate_cross_section, expand_symmetry, interpolate_orientations,
-                                 geometry_start_heights, read_authors_csv, read_recorded, read_scan, subtract_fixture,
+                                 geometry_start_heights, read_authors_csv, read_raw_recording, read_scan, subtract_fixture,
                                  symmetry_group, truncated_orientations)
 from dipnet.shapes import Ball, Box
 from dipnet.simulator.simulate import simulate_measurement
@@ -83,7 +83,7 @@ def test_authors_csv_errors(tmp_path):
 
 def test_cats_preprocessing(cats_csv):
     grid = Grid(24, extent=360.0)
-    m = read_recorded(cats_csv, grid, truncated="keep", smooth=True)
+    m = read_raw_recording(cats_csv, grid, truncated="keep", smooth=True)
     info = m.metadata["recorded"]
     assert m.profiles.shape == (32, 24) and m.slab_thickness == pytest.approx(15.0)
     assert torch.allclose(m.directions, rig_to_direction([o // 4 * 5 for o in range(32)],
@@ -98,18 +98,18 @@ def test_cats_preprocessing(cats_csv):
     assert placed["centroid_rms_mm"] < 2.0 and info["geometry"]["pivot_mm"] == 0.0
     # first contact lies inside the grid: before smoothing the lowest slab holds at most
     # baseline noise (a quantum of 0.04 mm x 183,600 mm^2 = 7,344 mm^3), the next ones the object
-    raw_profiles = read_recorded(cats_csv, grid, truncated="keep", smooth=False).profiles
+    raw_profiles = read_raw_recording(cats_csv, grid, truncated="keep", smooth=False).profiles
     assert (raw_profiles[complete, 0] <= 0.04 * 183600 * 1.3).all() and (raw_profiles[complete, 1:3].sum(1) > 2e4).all()
     assert torch.allclose(raw_profiles.sum(1), m.profiles.sum(1))  # smoothing keeps the volume
 
 
 def test_cats_symmetry_counts(cats_csv):
     grid = Grid(16, extent=360.0)
-    m = read_recorded(cats_csv, grid, truncated="keep", symmetry={"n_fold": 3, "mirror": True})
+    m = read_raw_recording(cats_csv, grid, truncated="keep", symmetry={"n_fold": 3, "mirror": True})
     assert m.n_orientations == 7 * 18 + 1  # D3 images of tilt > 0 give 18 azimuths, tilt 0 one direction
     tilts = np.degrees(np.arccos(m.directions[:, 2].numpy()))
     assert np.isclose(tilts, 0).sum() == 1 and np.isclose(tilts, 35).sum() == 18
-    m2 = read_recorded(cats_csv, grid, truncated="drop", symmetry={"n_fold": 3, "mirror": True},
+    m2 = read_raw_recording(cats_csv, grid, truncated="drop", symmetry={"n_fold": 3, "mirror": True},
                        interpolate={"n": 400, "k": 3, "max_angle_deg": 5})
     assert m2.metadata["interpolated_orientations"] > 0
     assert m2.metadata["recorded"]["measured_orientations"] == 32 - len(m2.metadata["recorded"]["truncated"])
