@@ -16,7 +16,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement, MeasurementFileError
 from dipnet.operators import BACKENDS, DipOperator, make_operator
 from dipnet.core.orientations import (angles_2d, directions_2d, fibonacci_hemisphere, make_directions, paper_grid,
-                                 random_hemisphere, rig_to_direction)
+                                      random_hemisphere, rig_to_direction)
 from dipnet.simulator.physics import Balance, DipProtocol, LevelSensor, Tank
 from dipnet.preprocessing.preprocess import preprocess, preprocess_file
 from dipnet.core.rawscan import RawScan, read_rawscan

@@ -6,7 +6,8 @@ step scale +-3 %, a level drift of up to +-0.5 mm over the session and a sensor 
 0-0.5 s. Rig ``i`` dips bundled mesh ``MESHES[i % 4]`` (scaled to ``--fill`` of the working ball
 on an ``--n``^3 grid) along ``--dips`` Fibonacci directions with ``--snr`` dB of level noise,
 and a 30 mm reference ball along the same directions. The voxel solver then reconstructs the
-mesh (i) with the nominal geometry, (ii) self-calibrated (:func:`dipnet.calibration.self_calibration.self_calibrate`, the cross-section fitted with the
+mesh (i) with the nominal geometry, (ii) self-calibrated
+(:func:`dipnet.calibration.self_calibration.self_calibrate`, the cross-section fitted with the
 implicit field's shape, the final shape by the voxel solver),
 (iii) with the true geometry; the ball gives a reference calibration
 (:func:`dipnet.calibration.reference.calibrate_reference`).

@@ -5,8 +5,9 @@ finished job wrote the files of :mod:`dipnet.jobs.pipeline` (``.hydra/config.yam
 ``metrics.json``, ``reconstruction.npz``, ...). A job that raised wrote ``error.txt`` instead
 of ``metrics.json`` (see :func:`dipnet.jobs.sweep_jobs.guarded_job`); a job with neither is unfinished.
 
-Pipeline: :func:`~dipnet.experiments.collect.collect_runs` (directories -> :class:`Run`) -> :func:`run_rows` (flat dicts,
-one per job) -> :func:`aggregate` (mean and spread per solver x n_dips x snr_db) ->
-:mod:`~dipnet.experiments.tables` / :mod:`~dipnet.experiments.figures`. :class:`dipnet.jobs.sweep_jobs.JobLogCallback` logs one line
-per finished job and lists the failures at the end of a sweep.
+Pipeline (:mod:`~dipnet.experiments.collect`): ``collect_runs`` (directories -> ``Run``) -> ``run_rows``
+(flat dicts, one per job) -> ``aggregate`` (mean and spread per solver x n_dips x snr_db) -> tables
+(:mod:`~dipnet.experiments.tables`) and figures (:mod:`~dipnet.experiments.figures`).
+:class:`dipnet.jobs.sweep_jobs.JobLogCallback` logs one line per finished job and lists the failures
+at the end of a sweep.
 """

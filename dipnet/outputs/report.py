@@ -334,7 +334,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m dipnet.report JOB_DIR [JOB_DIR ...]``: write each run's ``report.html``."""
     import argparse
 
-    parser = argparse.ArgumentParser(description="Write report.html into reconstruction job directories.")
+    parser = argparse.ArgumentParser(prog="python -m dipnet.report",
+                                     description="Write report.html into reconstruction job directories.")
     parser.add_argument("jobs", nargs="+", type=Path, help="job directories (Hydra run or sweep job dirs)")
     args = parser.parse_args(argv)
     for job in args.jobs:

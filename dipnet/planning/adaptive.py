@@ -1,8 +1,8 @@
 """The closed planning loop: dip, reconstruct, measure the doubt, plan the next batch, repeat.
 
 :func:`adaptive_loop` is the loop itself, independent of where dips come from: the simulator
-(:func:`dipnet.jobs.plans.simulate_adaptive`, behind ``planner=adaptive`` in ``scripts/reconstruct.py``; ``planner=fixed``
-plans up front with :func:`dipnet.jobs.plans.fixed_directions`) and the
+(:func:`dipnet.jobs.plans.simulate_adaptive`, behind ``planner=adaptive`` in ``scripts/reconstruct.py``;
+``planner=fixed`` plans up front with :func:`dipnet.jobs.plans.fixed_directions`) and the
 rig (:mod:`dipnet.rig.adaptive`) give it an ``acquire`` callback. It starts from
 ``initial_dips`` directions spread uniformly over the reachable set, and after each
 reconstruction either stops - at the ``budget`` of dips, or when the expected misclassified

@@ -19,9 +19,10 @@ Real-data steps (used by :func:`read_raw_recording`, behind ``source=recorded``)
    when it does not know it (the authors' CSV), placed by :func:`geometry_start_heights`;
 4. rise -> volume with the tank cross-section, non-uniform -> uniform slabs and (optionally) the 5-tap
    Gaussian smoothing (:func:`dipnet.preprocessing.preprocess.preprocess`);
-5. symmetry exploitation (:func:`dipnet.preprocessing.symmetry.expand_symmetry`, for any source): every profile is copied to the
-   directions a declared symmetry group (n-fold rotation about z, optionally with mirror
-   planes: D3 for the three cats) maps it to; coinciding directions are merged (averaged);
+5. symmetry exploitation (:func:`dipnet.preprocessing.symmetry.expand_symmetry`, for any source):
+   every profile is copied to the directions a declared symmetry group (n-fold rotation about z,
+   optionally with mirror planes: D3 for the three cats) maps it to; coinciding directions are merged
+   (averaged);
 6. interpolation of missing orientations (:func:`interpolate_orientations`);
 plus :func:`calibrate_cross_section` (the tank cross-section from a dip of a reference object
 of known volume).
@@ -45,8 +46,8 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.preprocessing.preprocess import preprocess
-from dipnet.core.rawscan import (OrientationScan, RawScan, RawScanFileError, ScanHeader, check_level_unit, complete_dips,
-                            read_rawscan)
+from dipnet.core.rawscan import (OrientationScan, RawScan, RawScanFileError, ScanHeader, check_level_unit,
+                                 complete_dips, read_rawscan)
 from dipnet.preprocessing.readings import max_object_section, repair_readings
 from dipnet.core.calibration_file import scan_calibration
 from dipnet.core.geometry import RigGeometry, as_geometry, invert_scan
@@ -372,8 +373,8 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
 def finish_measurement(measurement: DipMeasurement, symmetry: dict | None = None,
                        interpolate: dict | None = None) -> DipMeasurement:
     """The readers' last steps: symmetry expansion (``{n_fold, mirror, mirror_azimuth_deg, tol_deg}``,
-    :func:`dipnet.preprocessing.symmetry.apply_symmetry`) and interpolation (``{n, k, max_angle_deg}``: Fibonacci-hemisphere
-    targets for :func:`interpolate_orientations`)."""
+    :func:`dipnet.preprocessing.symmetry.apply_symmetry`) and interpolation (``{n, k, max_angle_deg}``:
+    Fibonacci-hemisphere targets for :func:`interpolate_orientations`)."""
     m = measurement
     m = apply_symmetry(m, symmetry)
     if interpolate:

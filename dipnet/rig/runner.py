@@ -139,7 +139,8 @@ class ScanPlan:
         geometry: the rig's calibrated geometry (:class:`~dipnet.core.geometry.RigGeometry`), used
             for ``t_start_mm`` and recorded in the header (``config["rig_geometry"]``).
         max_lower_mm: the deepest lowering (mm) before the object reaches the tank bottom, if
-            known (``rig.max_lower_mm``, or the fake rig's tank: :meth:`~dipnet.rig.fake.world.FakeRig.deepest_lower_mm`).
+            known (``rig.max_lower_mm``, or the fake rig's tank:
+            :meth:`~dipnet.rig.fake.world.FakeRig.deepest_lower_mm`).
         max_lower_source: where ``max_lower_mm`` comes from (for the message).
 
     Raises:

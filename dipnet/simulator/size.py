@@ -1,12 +1,12 @@
 """Size check of the dip simulator before it allocates.
 
-The dip simulator's (:func:`dipnet.simulator.physics.simulate_scan`) size follows from the object, not the grid: one reading per stage step across the object's
-bounding sphere, ``n = (2 R + clearance) / step``, so a mesh in the wrong units (a 3e7 mm
-"sphere") asks for 60 million readings per dip. It refuses more than
-:data:`MAX_READINGS_PER_DIP` readings per dip (100 m of travel at 1 mm steps: no rig dips that
-deep) or more memory than is available: one dip's solver arrays (``n`` times
-:meth:`~dipnet.shapes.Shape.dip_bytes_per_reading`) plus the raw scan it keeps (stage, value
-and time of every reading, ``24 K n``).
+The dip simulator's size (:func:`dipnet.simulator.physics.simulate_scan`) follows from the object,
+not the grid: one reading per stage step across the object's bounding sphere,
+``n = (2 R + clearance) / step``, so a mesh in the wrong units (a 3e7 mm "sphere") asks for 60
+million readings per dip. It refuses more than :data:`MAX_READINGS_PER_DIP` readings per dip (100 m
+of travel at 1 mm steps: no rig dips that deep) or more memory than is available: one dip's solver
+arrays (``n`` times :meth:`~dipnet.shapes.Shape.dip_bytes_per_reading`) plus the raw scan it keeps
+(stage, value and time of every reading, ``24 K n``).
 """
 
 from __future__ import annotations

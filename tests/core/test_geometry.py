@@ -14,7 +14,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor, Tank
 from dipnet.core.calibration_file import (Calibration, CalibrationFileError, load_calibration, save_calibration,
-                                         scan_calibration)
+                                          scan_calibration)
 from dipnet.preprocessing.recorded import read_scan
 from dipnet.core.orientations import direction_to_rig
 from dipnet.core.geometry import GeometryError, RigGeometry, invert_scan

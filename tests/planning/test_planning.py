@@ -17,7 +17,8 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes import builtin_shape
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.minnorm import MinNormSolver
-from dipnet.evaluation.uncertainty import resample, calibration_by_decile, fit_posterior, support, uncertainty, voxel_maps
+from dipnet.evaluation.uncertainty import (calibration_by_decile, fit_posterior, resample, support, uncertainty,
+                                           voxel_maps)
 
 
 def _tilt_spin(directions):

@@ -16,8 +16,8 @@ from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.rawscan import RawScanFileError
 from dipnet.core.geometry import RigGeometry
 from dipnet.preprocessing.recorded import (calibrate_cross_section, expand_symmetry, interpolate_orientations,
-                                 geometry_start_heights, read_authors_csv, read_raw_recording, read_scan, subtract_fixture,
-                                 symmetry_group, truncated_orientations)
+                                           geometry_start_heights, read_authors_csv, read_raw_recording, read_scan,
+                                           subtract_fixture, symmetry_group, truncated_orientations)
 from dipnet.shapes import Ball, Box
 from dipnet.simulator.simulate import simulate_measurement
 

@@ -6,9 +6,7 @@ import torch
 import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.shapes import (
-    DEFAULT_SHAPE, ChamberBox, ShapeError, Torus, builtin_names, builtin_shape, from_trimesh,
-)
+from dipnet.shapes import DEFAULT_SHAPE, ChamberBox, ShapeError, Torus, builtin_names, builtin_shape, from_trimesh
 
 ALL_BUILTINS = [(3, n) for n in builtin_names(3)] + [(2, n) for n in builtin_names(2)]
 

@@ -5,18 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dipnet.solvers.priors import (
-    BinaryPrior,
-    GradientPenalty,
-    L1Prior,
-    SymmetryPrior,
-    TotalVariation,
-    TransformL1Prior,
-    VolumePrior,
-    build_priors,
-    dct_matrix,
-    haar_matrix,
-)
+from dipnet.solvers.priors import (BinaryPrior, GradientPenalty, L1Prior, SymmetryPrior, TotalVariation,
+                                   TransformL1Prior, VolumePrior, build_priors, dct_matrix, haar_matrix)
 
 
 def ramp(n: int, ndim: int, power: int = 1) -> torch.Tensor:

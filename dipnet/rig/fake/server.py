@@ -103,7 +103,8 @@ def serve(world: FakeRig, devices=("grbl", "level"), host: str = "127.0.0.1", po
 
 def main(argv=None) -> None:
     """``python -m dipnet.rig.fake MESH [--radius R] [--devices grbl,level] [--port P]``."""
-    parser = argparse.ArgumentParser(description="Serve a fake dipping rig over TCP (socket:// URLs).")
+    parser = argparse.ArgumentParser(prog="python -m dipnet.rig.fake",
+                                     description="Serve a fake dipping rig over TCP (socket:// URLs).")
     parser.add_argument("mesh", help="mesh file of the object")
     parser.add_argument("--radius", type=float, default=40.0, help="object radius (mm)")
     parser.add_argument("--devices", default="grbl,level", help=f"comma-separated, from {','.join(DEVICES)}")
