@@ -384,7 +384,8 @@ def _warn_undetermined(report: CalibrationReport, what: str) -> None:
 def to_calibration(geometry: RigGeometry, report: CalibrationReport, rig: str, tank: str, notes: str = "") -> Calibration:
     """The calibration file's record of a result: estimates with their intervals; every other field
     listed under ``not_estimated`` with the reason (never a configured value labelled an estimate)."""
-    fields = [f for f in geometry.to_dict() if f != "cross_section_mm2" or geometry.cross_section_mm2 is not None]
+    fields = [f for f in geometry.to_dict() if f != "cross_section_mm2" or geometry.cross_section_mm2 is not None
+              or f in report.undetermined]
     not_estimated = {f: "not determined by the dips, configured value kept: " + report.undetermined[f]
                      for f in fields if f in report.undetermined}
     not_estimated.update({f: why for f, why in report.not_estimated.items() if f in fields})
@@ -421,7 +422,11 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     geometry = initial
     report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
                                method=kind)
-    if "level_drift_mm_per_s" in params and raw.header.quantity == "level_mm":
+    timed = raw.header.metadata.get("format") != "authors_csv" and any(np.ptp(o.time_s) > 0 for o in raw.orientations)
+    if "level_drift_mm_per_s" in params and not (timed and raw.header.quantity == "level_mm"):
+        report.not_estimated["level_drift_mm_per_s"] = ("not estimated: the recording has no reading times (or no "
+                                                        "level readings); the configured value is used")
+    elif "level_drift_mm_per_s" in params:
         drift, (low, high) = fit_drift(raw)
         geometry = geometry.with_values(level_drift_mm_per_s=drift)
         _record(report, "level_drift_mm_per_s", drift, (low, high), (high - low) / 3.29)
