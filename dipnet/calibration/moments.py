@@ -142,6 +142,7 @@ def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[
 
 def _robust_slope(t: np.ndarray, y: np.ndarray) -> float:
     """Least-squares slope, refitted without readings 4 MADs off the line (spikes)."""
+    t = t - t.mean()  # clock times (epoch seconds) would make the fit ill-conditioned
     for _ in range(3):
         slope, icept = np.polyfit(t, y, 1)
         r = y - (slope * t + icept)

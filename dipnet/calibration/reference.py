@@ -11,7 +11,7 @@ import torch
 
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
                                       State, _check_params, _warn_undetermined)
-from dipnet.calibration.moments import GAUGE_REASONS, KnownObject, dip_moments, fit_drift, fit_moments
+from dipnet.calibration.moments import GAUGE_REASONS, TOLERANCE, KnownObject, dip_moments, fit_drift, fit_moments
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
@@ -40,10 +40,22 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     geometry = initial
     report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
                                method=kind)
-    if "level_drift_mm_per_s" in params and raw.header.quantity == "level_mm":
+    timed = raw.header.metadata.get("format") != "authors_csv" and any(np.ptp(o.time_s) > 0 for o in raw.orientations)
+    if "level_drift_mm_per_s" in params and not (timed and raw.header.quantity == "level_mm"):
+        report.not_estimated["level_drift_mm_per_s"] = ("not estimated: the recording has no reading times (or no "
+                                                        "level readings); the configured value is used")
+    elif "level_drift_mm_per_s" in params:
         drift, (low, high) = fit_drift(raw)
-        geometry = geometry.with_values(level_drift_mm_per_s=drift)
-        _record(report, "level_drift_mm_per_s", drift, (low, high), (high - low) / 3.29)
+        _record(report, "level_drift_mm_per_s", drift, (low, high), (high - low) / 3.29,
+                MODEL_FLOOR[kind]["level_drift_mm_per_s"])
+        low, high = report.intervals["level_drift_mm_per_s"]
+        if (high - low) / 2 > TOLERANCE["level_drift_mm_per_s"]:
+            report.undetermined["level_drift_mm_per_s"] = (f"its 90% interval (bootstrap over dips) is "
+                                                           f"+-{(high - low) / 2:.2g} mm/s, wider than "
+                                                           f"{TOLERANCE['level_drift_mm_per_s']:g}")
+            del report.intervals["level_drift_mm_per_s"]
+        else:
+            geometry = geometry.with_values(level_drift_mm_per_s=drift)
     moments = dip_moments(raw, geometry)
     if kind == "self":
         gauges = {p: GAUGE_REASONS[(kind, p)] for p in ("spin_zero_deg", "step_scale") if p in params}
@@ -66,10 +78,16 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         if fit is not None:
             geometry = geometry.with_values(**{p: fit.values[p] for p in fit.free})
             report.moment_rms = fit.residual_rms
+            floors = dict(MODEL_FLOOR[kind])
+            if known is not None:  # the midpoint rule misses h^2 / 12 of every dip's variance (h: the stage step)
+                step = float(np.median(np.concatenate([np.diff(o.stage_mm) for o in raw.orientations])))
+                floors["step_scale"] = math.hypot(floors["step_scale"],
+                                                  step**2 / 12.0 / np.trace(known.covariance) * 3.0)
             for p in fit.free:
-                _record(report, p, fit.values[p], fit.intervals[p], fit.bootstrap_sd[p])
+                _record(report, p, fit.values[p], fit.intervals[p], fit.bootstrap_sd[p], floors[p])
             report.correlations.update(fit.correlations)
     radius = _object_radius(fit, known)
+    undetermined.update(report.undetermined)
     for p, why in undetermined.items():
         report.estimates[p] = float(getattr(initial, p))
         report.undetermined[p] = why
@@ -78,9 +96,8 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
 
 
 def _record(report: CalibrationReport, name: str, value: float, interval: tuple[float, float], sd: float,
-            floor: float | None = None) -> None:
-    """An estimate with its 90% interval widened by the model-error floor (in quadrature)."""
-    floor = MODEL_FLOOR[name] if floor is None else floor
+            floor: float) -> None:
+    """An estimate with its 90% interval widened by the model-error half-width ``floor`` (in quadrature)."""
     low, high = interval
     centre, half = 0.5 * (low + high), 0.5 * (high - low)
     widened = math.hypot(half, floor)
@@ -153,7 +170,7 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
             draws = [known.volume / rises[rng.integers(0, len(rises), len(rises))].mean() for _ in range(200)]
             state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=float(section)))
             _record(report, "cross_section_mm2", float(section), tuple(np.percentile(draws, [5, 95])),
-                    float(np.std(draws)), MODEL_FLOOR["cross_section_mm2"] * section)
+                    float(np.std(draws)), MODEL_FLOOR["reference"]["cross_section_mm2"] * section)
     model = ProfileModel(raw, grid, n_slabs, operator_factory)
     occupancy = shape.occupancy(grid, supersample=supersample).to(torch.float64)
     measured = model.measurement(state).profiles.numpy().reshape(-1)

@@ -71,7 +71,7 @@ def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
     for name in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "cross_section_mm2", "step_scale"):
         low, high = cal.intervals[name]
         assert low <= getattr(FAKE_TRUTH, name) <= high, name  # 8 dips: the intervals hold the truth
-    assert set(cal.not_estimated) == {"spin_zero_deg", "sensor_lag_s"}  # a centred ball's symmetry; never
+    assert {"spin_zero_deg", "sensor_lag_s"} <= set(cal.not_estimated)  # a centred ball's symmetry; never
     grid = Grid(32, extent=80.0)
     ideal = Ball(RADIUS).occupancy(grid, supersample=3).sum().item() * grid.voxel_volume
     for source in ({"calibration": out}, {}):
