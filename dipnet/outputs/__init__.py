@@ -1,0 +1,2 @@
+"""Everything that writes into a run directory: meshes, figures, reports.
+"""
