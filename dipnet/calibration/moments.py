@@ -276,8 +276,10 @@ class MomentFit:
         return out
 
 
-_QUAD = lambda d: np.stack([d[:, 0]**2, d[:, 1]**2, d[:, 2]**2, 2 * d[:, 0] * d[:, 1],  # noqa: E731
-                            2 * d[:, 0] * d[:, 2], 2 * d[:, 1] * d[:, 2]], axis=1)
+def _quadratic_design(d: np.ndarray) -> np.ndarray:
+    """``(K, 6)`` columns of ``theta^T S theta`` for the 6 entries of a symmetric ``S`` (xx, yy, zz, xy, xz, yz)."""
+    return np.stack([d[:, 0]**2, d[:, 1]**2, d[:, 2]**2, 2 * d[:, 0] * d[:, 1], 2 * d[:, 0] * d[:, 2],
+                     2 * d[:, 1] * d[:, 2]], axis=1)
 
 
 class MomentModel:
@@ -313,7 +315,7 @@ class MomentModel:
             r1 = target + design @ x
             values = dict(zip(self.linear_free, x[: len(lin)]))
             centroid = x[len(lin):]
-            quad = _QUAD(theta)
+            quad = _quadratic_design(theta)
             s6 = np.linalg.lstsq(quad, var, rcond=None)[0]
             r2 = var - quad @ s6
             cov = np.array([[s6[0], s6[3], s6[4]], [s6[3], s6[1], s6[5]], [s6[4], s6[5], s6[2]]])
