@@ -45,10 +45,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.optimize
 
+from dipnet.core.geometry import RigGeometry, scan_geometry
 from dipnet.core.orientations import rig_to_direction
 from dipnet.core.rawscan import RawScan, complete_dips
+from dipnet.preprocessing.preprocess import onset_index
 from dipnet.preprocessing.readings import repair_readings
-from dipnet.core.geometry import RigGeometry, scan_geometry
 
 log = logging.getLogger(__name__)
 
@@ -200,8 +201,7 @@ def _rise(values: np.ndarray) -> np.ndarray:
     second = np.diff(values, 2)  # white noise of sigma gives second differences of sigma sqrt(6)
     noise = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / np.sqrt(6.0) if second.size else 0.0
     tol = max(3.0 * noise, 1e-9 * spread)
-    rising = np.flatnonzero(values - values[0] > tol)
-    onset = int(rising[0]) if rising.size else len(values)
+    onset = onset_index(values, tol)
     rise = scipy.optimize.isotonic_regression(values - values[: max(1, onset - 1)].mean()).x
     final = float(rise[-max(1, min(3, len(rise) // 10)):].mean())
     inside = (rise > tol) & (rise < final - tol)

@@ -11,7 +11,8 @@ import torch
 
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
                                       State, _check_params, _warn_undetermined)
-from dipnet.calibration.moments import GAUGE_REASONS, TOLERANCE, KnownObject, dip_moments, fit_drift, fit_moments
+from dipnet.calibration.moments import (GAUGE_REASONS, TOLERANCE, DipMoments, KnownObject, dip_moments, fit_drift,
+                                       fit_moments)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
@@ -31,11 +32,13 @@ SHAPE_MOTION = {
 
 
 def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: KnownObject | None,
-                  seed: int = 0) -> tuple[State, CalibrationReport]:
+                  seed: int = 0) -> tuple[State, CalibrationReport, DipMoments]:
     """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
     ``"reference"`` (``known`` moments). Undetermined parameters are refitted at their configured value.
+    Returns the state, the report and the dips' moments (drift removed: their rises give a reference
+    object's cross-section).
     """
     geometry = initial
     report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
@@ -92,7 +95,7 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         report.estimates[p] = float(getattr(initial, p))
         report.undetermined[p] = why
         report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
-    return State(geometry), report
+    return State(geometry), report, moments
 
 
 def _record(report: CalibrationReport, name: str, value: float, interval: tuple[float, float], sd: float,
@@ -160,9 +163,8 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
     params = _check_params(params)
     initial = initial or RigGeometry()
     known = known_object(shape)
-    state, report = _moment_stage(raw, params, initial, "reference", known, seed)
+    state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed)
     if "cross_section_mm2" in params:
-        moments = dip_moments(raw, state.geometry)
         rng = np.random.default_rng(seed)
         rises = np.asarray(moments.rise)  # mm of level per dip, drift removed
         section = known.volume / rises.mean() if raw.header.quantity == "level_mm" else None

@@ -128,7 +128,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         noise = o.meta.get("noise_sigma", header.noise_sigma)
         quantum = header.resolution or 0.0
         tol = onset_tol if onset_tol is not None else _default_tol(values, noise, quantum)
-        onset = _onset_index(values, tol)
+        onset = onset_index(values, tol)
         baseline = values[: max(1, onset - 1)].mean()
         volume = scipy.optimize.isotonic_regression(scale * (values - baseline)).x
         u = stage + volume / float(area)  # t - t_start, strictly increasing
@@ -192,7 +192,7 @@ def _default_tol(values: np.ndarray, noise: float | None, quantum: float) -> flo
     return tol if tol > 0 else 1e-9 * max(float(np.ptp(values)), 1e-300)
 
 
-def _onset_index(values: np.ndarray, tol: float) -> int:
+def onset_index(values: np.ndarray, tol: float) -> int:
     """Index of the first reading more than ``tol`` above the first one (``len`` if none)."""
     above = np.flatnonzero(values - values[0] > tol)
     return int(above[0]) if above.size else len(values)
