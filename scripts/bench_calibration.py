@@ -17,8 +17,9 @@ and the step scale (the scale of the whole scene); they stay at the configured 0
 report names them. So the calibrated shape is compared with the truth both as it is
 (``calibrated``) and moved by those two gauges (``gauged``: rotated by the spin zero, scaled by
 1 / step scale about the stage-0 water line), and the self-calibrated pivot and offset are
-compared with their gauge-equivalent values (``p' = (1 - l) t0 + l p``, ``e' = l e``, ``l`` = 1 /
-step scale). Coverage counts, over (rig, parameter) pairs marked determined, how often the 90%
+compared with their gauge-equivalent values (``p' = (1 - l) t0 + l p``, ``e' = l e``, ``A' = l^3 A``
+for the cross-section, ``l`` = 1 / step scale: the scene seen at step scale 1 is ``l`` times the true one,
+its volume ``l^3`` times, for the same level rises). Coverage counts, over (rig, parameter) pairs marked determined, how often the 90%
 interval holds the true value.
 
 Prints a table per rig and last ``RESULT median_calibrated_over_true=<> worst_calibrated_over_true=<>
@@ -95,11 +96,13 @@ def gauged_truth(shape: MeshShape, true: RigGeometry, t0: float) -> MeshShape:
 
 
 def self_truth(true: RigGeometry, t0: float) -> dict[str, float]:
-    """The true values self-calibration can reach: pivot and offset in the stage's length unit."""
+    """The true values self-calibration can reach at the configured step scale 1: pivot and offset in the
+    stage's length unit, the cross-section that turns the rises into the volume of the scene scaled by
+    ``l`` = 1 / step scale (``l^3`` times the true section)."""
     lam = 1.0 / true.step_scale
     return {"pivot_mm": (1 - lam) * t0 + lam * true.pivot_mm, "tilt_axis_offset_mm": lam * true.tilt_axis_offset_mm,
             "tilt_zero_deg": true.tilt_zero_deg, "level_drift_mm_per_s": true.level_drift_mm_per_s,
-            "cross_section_mm2": true.cross_section_mm2}
+            "cross_section_mm2": lam**3 * true.cross_section_mm2}
 
 
 def covered(report, truth: dict[str, float]) -> list[tuple[str, bool]]:

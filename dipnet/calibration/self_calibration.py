@@ -145,9 +145,9 @@ def _section_report(report: CalibrationReport, model: ProfileModel, state: State
     report.caveats["cross_section_mm2"] = (
         f"estimated through the shape prior (a nearly binary shape cannot be denser than 1), its interval widened by "
         f"{model_error:.1%} for the prior's bias ({partial:.0%} of the shape's volume in partly filled voxels); at "
-        f"the configured step scale "
-        f"({initial.step_scale:g}): a step-scale error moves it too; for a better section, "
-        "calibrate with a reference object")
+        f"the configured step scale ({initial.step_scale:g}): with a true step scale s times the configured one "
+        "the scene is 1/s times its true size and the true section s^3 times this one; for the section and the "
+        "step scale, calibrate with a reference object")
     low, high = report.intervals["cross_section_mm2"]
     too_wide = (f"its 90% interval is +-{(high - low) / 2 / section:.1%}, wider than {TOLERANCE['cross_section_mm2']:.0%}: "
                 f"{partial:.0%} of the shape's volume sits in partly filled voxels (thin parts the grid does not "
