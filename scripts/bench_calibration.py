@@ -33,6 +33,7 @@ coverage90=<> refused=<> ball_coverage90=<> median_gauged_over_true=<> worst_gau
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import statistics
 import time
@@ -71,6 +72,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="3 rigs at 32^3, 80 solver iterations")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--json", metavar="PATH", help="also write every rig's truth, estimates and intervals here")
     args = p.parse_args(argv)
     if args.quick:
         args.rigs, args.n, args.iterations = 3, 32, 80
@@ -172,6 +174,8 @@ def main(argv=None) -> list[dict]:
         ball_cover += [c for _, c in ball_cov]
         row.update(scores=scores, self_covered=self_cov, ball_covered=ball_cov,
                    self_estimates=result.report.estimates, ball_estimates=ball_report.estimates,
+                   self_truth=self_truth(true, t0), self_intervals=result.report.intervals,
+                   ball_intervals=ball_report.intervals,
                    seconds=time.perf_counter() - t_start)
         rows.append(row)
         print(f"{i:>3} {name:<9} {true.pivot_mm:6.1f} {true.tilt_axis_offset_mm:6.1f} {true.tilt_zero_deg:5.1f} "
@@ -194,6 +198,9 @@ def main(argv=None) -> list[dict]:
           f"worst_calibrated_over_true={max(ratios):.3f} coverage90={np.mean(cover):.3f} "
           f"refused={refused / args.rigs:.3f} ball_coverage90={np.mean(ball_cover):.3f} "
           f"median_gauged_over_true={statistics.median(gauged):.3f} worst_gauged_over_true={max(gauged):.3f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1, default=float)
     return rows
 
 
