@@ -175,7 +175,7 @@ def main(argv=None) -> list[dict]:
         row.update(scores=scores, self_covered=self_cov, ball_covered=ball_cov,
                    self_estimates=result.report.estimates, ball_estimates=ball_report.estimates,
                    self_truth=self_truth(true, t0), self_intervals=result.report.intervals,
-                   ball_intervals=ball_report.intervals,
+                   ball_intervals=ball_report.intervals, self_history=result.history,
                    seconds=time.perf_counter() - t_start)
         rows.append(row)
         print(f"{i:>3} {name:<9} {true.pivot_mm:6.1f} {true.tilt_axis_offset_mm:6.1f} {true.tilt_zero_deg:5.1f} "
