@@ -178,6 +178,9 @@ def main(argv=None) -> list[dict]:
                    ball_intervals=ball_report.intervals, self_history=result.history,
                    seconds=time.perf_counter() - t_start)
         rows.append(row)
+        if args.json:  # after every rig, so an interrupted run keeps what it measured
+            with open(args.json, "w") as f:
+                json.dump(rows, f, indent=1, default=float)
         print(f"{i:>3} {name:<9} {true.pivot_mm:6.1f} {true.tilt_axis_offset_mm:6.1f} {true.tilt_zero_deg:5.1f} "
               f"{true.spin_zero_deg:5.1f} {true.step_scale:6.3f} {true.cross_section_mm2 / tank.cross_section_mm2:7.3f}"
               f" | {scores['nominal']:7.4f} {scores['calibrated']:7.4f} {scores['gauged']:7.4f} {scores['true']:7.4f}"
@@ -198,9 +201,6 @@ def main(argv=None) -> list[dict]:
           f"worst_calibrated_over_true={max(ratios):.3f} coverage90={np.mean(cover):.3f} "
           f"refused={refused / args.rigs:.3f} ball_coverage90={np.mean(ball_cover):.3f} "
           f"median_gauged_over_true={statistics.median(gauged):.3f} worst_gauged_over_true={max(gauged):.3f}")
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1, default=float)
     return rows
 
 
