@@ -60,7 +60,7 @@ MOMENT_PARAMETERS = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_z
 SEARCH = {"tilt_zero_deg": (6.0, 0.5), "spin_zero_deg": (6.0, 1.0), "step_scale": (0.05, 0.005)}
 #: A parameter is determined when the half-width of its 90% interval is below this.
 TOLERANCE = {"pivot_mm": 2.5, "tilt_axis_offset_mm": 1.5, "tilt_zero_deg": 0.5, "spin_zero_deg": 0.5,
-             "step_scale": 0.005, "t0_mm": 1.0, "cross_section_mm2": 0.05, "level_drift_mm_per_s": 2e-5}
+             "step_scale": 0.005, "t0_mm": 1.0, "cross_section_mm2": 0.10, "level_drift_mm_per_s": 2e-5}
 GAUGE_REASONS = {
     ("self", "spin_zero_deg"): "the object's own rotation about the spin axis absorbs it: no dip of an unknown "
                                "object can show it (calibrate it with a reference object off the spin axis)",

@@ -14,7 +14,7 @@ import torch
 
 from dipnet.calibration.model import (DEFAULT_SELF, PARTIAL_VOLUME_GAIN, SELF_SECTION_FLOOR, CalibrationError,
                                       CalibrationReport, ProfileModel, State, _check_params, _get, _warn_undetermined,
-                                      _with, fit_geometry, identifiability)
+                                      _with, fit_geometry, identifiability, self_section_bias)
 from dipnet.calibration.moments import TOLERANCE
 from dipnet.calibration.reference import SHAPE_MOTION, _moment_stage, _record
 from dipnet.core.geometry import RigGeometry
@@ -51,7 +51,8 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
        gauges of an unknown object: named, with how far the shape could move, and kept.
     2. The cross-section jointly with the shape: the shape step (``gain_solver`` or ``solver``
        with ``fit_gain``) fits one gain ``a`` on every predicted volume together with the shape;
-       the calibrated cross-section is ``assumed / a``. Fitted jointly, the gain and the shape's
+       the calibrated cross-section is ``assumed / a``, corrected for the field's volume deficit in
+       partly filled voxels (:func:`~dipnet.calibration.model.self_section_bias`). Fitted jointly, the gain and the shape's
        size compete through the profiles' *shapes* (a dilated object widens every profile, a gain
        only scales it; a nearly binary interior cannot exceed 1). Its interval is widened by the
        shape prior's bias (:data:`SELF_SECTION_FLOOR`). With ``dip_offset_sigma_mm`` a geometry
@@ -98,12 +99,14 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
             implausible = (f"the joint shape step moved it by {1 / gain - 1:+.1%} (more than max_section_change "
                            f"{max_section_change:.0%}): the shape prior, not the data, decided the volume (e.g. a "
                            "missing cone leaves the object's density free)")
-        elif volume_params:
-            state = _with(state, {"cross_section_mm2": _get(state, "cross_section_mm2", model.nominal_area) / gain})
+        elif volume_params:  # the gain, less the field's known volume deficit (self_section_bias)
+            section = _get(state, "cross_section_mm2", model.nominal_area) / gain / (1.0 - self_section_bias(partial))
+            state = _with(state, {"cross_section_mm2": section})
         if dip_offset_sigma_mm is not None:
             state, sigma = fit_geometry(model, occupancy, state, ("t0_mm",), dip_offset_sigma_mm=dip_offset_sigma_mm,
                                         sigma=sigma, max_nfev=max_nfev)
         history.append({"stage": f"shape {it}", "gain": gain, "partial_volume": partial,
+                        "section_bias": self_section_bias(partial),
                         **{p: _get(state, p, model.nominal_area) for p in params}})
     for row in history:
         log.info("self-calibration %s", ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
