@@ -166,7 +166,7 @@ def plot_slices(truth: np.ndarray | torch.Tensor, recon: np.ndarray | torch.Tens
     return save_figure(fig, path)
 
 
-def _decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+def decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     """At most ``max_faces`` faces (quadric decimation by libigl; the mesh itself if that fails)."""
     if len(mesh.faces) <= max_faces:
         return mesh
@@ -205,7 +205,7 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
         box = ((lo + hi) / 2, (hi - lo).max() / 2)
     rows = [(m, t, elev, azim) for m, t in zip(meshes, titles)]
     if cutaway:
-        rows += [(_cut(m), f"{t} (cut at y = 0)".strip(), 10.0, -90.0) for m, t in zip(meshes, titles)]
+        rows += [(cut_away(m), f"{t} (cut at y = 0)".strip(), 10.0, -90.0) for m, t in zip(meshes, titles)]
     n_rows = 2 if cutaway else 1
     fig = plt.figure(figsize=(4.5 * len(meshes), 4.5 * n_rows))
     for i, (mesh, title, el, az) in enumerate(rows):
@@ -214,13 +214,13 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
     return save_figure(fig, path)
 
 
-def _cut(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """The faces of ``mesh`` with every vertex at ``y >= 0`` (an open cut, to the nearest
-    face: the inside walls show through)."""
+def cut_away(mesh: trimesh.Trimesh, y0: float = 0.0) -> trimesh.Trimesh:
+    """The faces of ``mesh`` with every vertex at ``y >= y0`` (mm): an open cut, to the nearest
+    face, so seen from ``-y`` the inside walls show through."""
     if len(mesh.faces) == 0:
         return mesh
     faces = np.asarray(mesh.faces)
-    keep = (np.asarray(mesh.vertices)[faces][:, :, 1] >= 0).all(axis=1)
+    keep = (np.asarray(mesh.vertices)[faces][:, :, 1] >= y0).all(axis=1)
     return trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=faces[keep], process=False)
 
 
@@ -230,7 +230,7 @@ def _draw_mesh(ax, mesh: trimesh.Trimesh, title: str, box, max_faces: int, elev:
         ax.text2D(0.5, 0.5, "empty mesh", ha="center", transform=ax.transAxes)
         ax.set_axis_off()
         return
-    m = _decimated(mesh, max_faces)
+    m = decimated(mesh, max_faces)
     tris = np.asarray(m.vertices)[np.asarray(m.faces)]
     normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)

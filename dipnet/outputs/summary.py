@@ -17,7 +17,10 @@ from typing import Any
 
 #: ``metric key: (group, label in words)``; keys not listed go to the group "other".
 METRIC_LABELS: dict[str, tuple[str, str]] = {
+    "status": ("run", "status"),
     "solver": ("run", "solver"),
+    "seed": ("run", "random seed"),
+    "dips_percent": ("run", "dips as % of a square system"),
     "operator": ("run", "operator backend"),
     "seconds": ("run", "solve time (s)"),
     "n_dips": ("run", "number of dips"),
@@ -100,13 +103,14 @@ def answers(metrics: dict[str, Any]) -> list[Answer]:
     residual, expected = _num(metrics, "profile_residual"), _num(metrics, "profile_residual_expected")
     ratio = _num(metrics, "volume_ratio")
     if residual is not None:
-        verdict = metrics.get("consistency", "")
-        detail = f"profile residual {100 * residual:.1f}%"
+        head = f"residual {100 * residual:.1f}%"
         if expected is not None:
-            detail += f" (noise and voxels explain {100 * expected:.1f}%)"
-        if ratio is not None:
-            detail += f"; volume {ratio:.3f} × the measured"
-        out.append(Answer("How consistent with its data?", str(verdict or f"residual {100 * residual:.1f}%"), detail))
+            head += f" (noise {100 * expected:.1f}%)"
+        parts = [] if ratio is None else [f"reconstructed volume {ratio:.3f} × the measured"]
+        if metrics.get("consistency"):
+            parts.append(f"verdict: {metrics['consistency']}")
+        out.append(Answer("How consistent with its data?", head,
+                          "; ".join(parts) or "profile residual relative to the measured profiles"))
     uncertain, expected_error = _num(metrics, "uncertain_fraction"), _num(metrics, "expected_error_fraction")
     if uncertain is not None:
         detail = f"{100 * uncertain:.0f}% of the object's voxels have P(wrong) > 0.2"
