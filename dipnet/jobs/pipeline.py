@@ -164,7 +164,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         stage("report")
         write_run_report(out)
     stage.close()
-    log.info("%s (every metric: %s)", headline(scores), out / "metrics.json")
+    log.info("done: %s (every metric: %s)", headline(scores), out / "metrics.json")
     return JobResult(measurement, recon, scores, out)
 
 

@@ -221,7 +221,9 @@ def cut_away(mesh: trimesh.Trimesh, y0: float = 0.0) -> trimesh.Trimesh:
         return mesh
     faces = np.asarray(mesh.faces)
     keep = (np.asarray(mesh.vertices)[faces][:, :, 1] >= y0).all(axis=1)
-    return trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=faces[keep], process=False)
+    cut = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=faces[keep], process=False)
+    cut.remove_unreferenced_vertices()
+    return cut
 
 
 def _draw_mesh(ax, mesh: trimesh.Trimesh, title: str, box, max_faces: int, elev: float, azim: float) -> None:

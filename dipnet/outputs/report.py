@@ -11,8 +11,8 @@ for a whole comparison: the summary table, interactive error curves and links to
 own pages.
 
 plotly's JavaScript is loaded from one shared ``plotly.min.js`` file (:data:`PLOTLY_JS`): the
-sweep directory holds one for all its jobs' pages, a single run directory its own, a sweep page
-one beside it. A run page is then a few hundred kB (meshes decimated to :data:`MAX_FACES`) and
+sweep directory holds one for all its jobs' pages and its comparison page (when that is inside
+it), a single run directory its own. A run page is then a few hundred kB (meshes decimated to :data:`MAX_FACES`) and
 opens offline from its folder.
 
 Install the extra with ``pip install -e ".[report]"`` (plotly).
@@ -398,7 +398,8 @@ def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Pat
         if image.is_file():
             sections.append((image.stem, _png(image, image.stem, path.parent)))
     sections.append(("jobs", _runs_table(runs, root, path.parent)))
-    script = _relative(plotly_js(path.parent), path.parent)
+    inside = path.parent.resolve().is_relative_to(root.resolve())  # e.g. <sweep>/compare: the jobs' file
+    script = _relative(plotly_js(root if inside else path.parent), path.parent)
     path.write_text(page(f"dipnet sweep: {root}", sections, script), encoding="utf-8")
     return path
 

@@ -121,7 +121,7 @@ def answers(metrics: dict[str, Any]) -> list[Answer]:
 
 
 def headline(metrics: dict[str, Any]) -> str:
-    """A short log line: the few numbers of :func:`answers` (and the solve time)."""
+    """The few numbers of :func:`answers` (and the solve time) for a short log line."""
     parts = []
     for key, fmt in (("iou", "IoU {:.3f}"), ("chamfer", "Chamfer {:.4f}"), ("profile_residual", "residual {:.3f}"),
                      ("volume_ratio", "volume ratio {:.3f}"), ("uncertain_fraction", "uncertain {:.2f}"),
@@ -131,7 +131,7 @@ def headline(metrics: dict[str, Any]) -> str:
             parts.append(fmt.format(value))
     if metrics.get("consistency"):
         parts.append(str(metrics["consistency"]))
-    return "done: " + ", ".join(parts)
+    return ", ".join(parts)
 
 
 def grouped(metrics: dict[str, Any]) -> dict[str, list[tuple[str, str, Any]]]:
