@@ -25,6 +25,8 @@ from hydra.errors import HydraException, InstantiationException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from dipnet.jobs.warnings_once import log_warnings_once
+
 log = logging.getLogger("dipnet")
 
 #: Exceptions that mean "the user's input is wrong", reported in one line, not a traceback.
@@ -92,9 +94,11 @@ def run_hydra(main: Callable[[], Any]) -> Any:
 
     A log handler that cannot write (the log file's disk is full) stays quiet instead of printing
     a traceback per record (``logging.raiseExceptions``), so the one line that says what happened
-    (e.g. a scan's safe stop) is not buried.
+    (e.g. a scan's safe stop) is not buried. Each warning is shown once, through logging
+    (:func:`~dipnet.jobs.warnings_once.log_warnings_once`).
     """
     os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    log_warnings_once()
     raise_exceptions, logging.raiseExceptions = logging.raiseExceptions, False
     try:
         with user_errors():

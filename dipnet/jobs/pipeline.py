@@ -14,12 +14,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet.evaluation import consistency, metrics
 from dipnet.outputs import export, plots
+from dipnet.outputs.progress import OutputStages
+from dipnet.outputs.summary import headline
 from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.jobs.plans import fixed_directions, simulate_adaptive
 from dipnet.solvers.checkpoint import attach_checkpoint
@@ -131,11 +134,15 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                               "operator": recon.info.get("operator", backend_name(operator)),
                               "seconds": seconds, "n_dips": measurement.n_orientations,
                               "resolution": grid.n, "ndim": grid.ndim}
+    stage = OutputStages(bool(cfg.output.progress))
+    stage("consistency")
     scores.update(consistency.check_consistency(measurement, operator, recon).metrics())
     if cfg.output.get("resolvability", True):
+        stage("resolvability")
         scores.update(write_resolvability(measurement, grid, out, figure=cfg.output.figures))
-    truth = None
+    truth = level = None
     if shape is not None:
+        stage("truth and metrics")
         truth = shape.occupancy(grid, supersample=int(cfg.output.truth_supersample)).numpy()
         scores.update(shape=shape.name, snr_db=cfg.get("snr_db"))
         level = metrics.reference_level(truth, grid, shape.volume)
@@ -143,22 +150,41 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                                        truth_volume=shape.volume, truth_level=level))
         scores.update(metrics.reference_check(truth, grid, shape.volume, level))
         scores.update(metrics.false_rates(recon.binary, truth > level))
+    frame = frame_offset(shape, grid, scores)
     scores.update(validation.metrics())
     if cfg.output.get("uncertainty"):
+        stage("uncertainty")
         scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures)))
     (out / "metrics.json").write_text(json.dumps(scores, indent=2))
-    write_outputs(cfg, out, measurement, operator, recon, truth)
+    stage("meshes and figures")
+    write_outputs(cfg, out, measurement, operator, recon, truth, level, frame)
     if cfg.output.get("report"):
         from dipnet.outputs.report import write_run_report  # optional extra: plotly
 
+        stage("report")
         write_run_report(out)
-    log.info("metrics: %s", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                      for k, v in scores.items()))
+    stage.close()
+    log.info("done: %s (every metric: %s)", headline(scores), out / "metrics.json")
     return JobResult(measurement, recon, scores, out)
 
 
-def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, truth) -> None:
-    """Meshes (3D) and PNG figures of one job."""
+def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:
+    """The shift (3,) mm from the grid frame to the frame of the user's mesh file (``None``: no
+    shift), stated in ``scores["frame_offset_mm"]`` and the log (the mesh files are written in
+    the file's frame; volumes and figures stay centred)."""
+    offset = getattr(shape, "frame_offset", None)
+    if offset is None or grid.ndim != 3 or not np.any(offset != 0):
+        return None
+    scores["frame_offset_mm"] = [float(v) for v in offset]
+    log.info("mesh files are in the frame of the shape's file: grid frame + %s mm (frame_offset_mm); "
+             "volumes and figures are centred", [round(float(v), 4) for v in offset])
+    return np.asarray(offset, dtype=np.float64)
+
+
+def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, truth, level: float | None = None,
+                  offset: np.ndarray | None = None) -> None:
+    """Meshes (3D; moved by ``offset`` (3,) mm into the frame of the user's mesh file) and
+    PNG figures of one job (``level``: the truth occupancy counted as inside in the slices)."""
     grid = recon.grid
     meshes = []
     if grid.ndim == 3:
@@ -167,8 +193,9 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
         meshes.append((volume_to_mesh(recon.occupancy.numpy(), grid, recon.threshold), "reconstruction"))
         for mesh, name in meshes:
             if len(mesh.faces):
+                placed = mesh if offset is None else mesh.copy().apply_translation(offset)
                 for fmt in cfg.output.mesh_formats:
-                    export.save_mesh(mesh, out / f"{name}.{fmt}")
+                    export.save_mesh(placed, out / f"{name}.{fmt}")
     if not cfg.output.figures:
         return
     with torch.no_grad():
@@ -178,7 +205,8 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
     plots.plot_profiles(measured_profiles(measurement, operator).numpy(), predicted.numpy(), out / "profiles.png",
                         slab_edges=operator.slab_edges().numpy(), volume_unit_2d=grid.ndim == 2)
     if truth is not None:
-        plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png")
+        plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png", extent_mm=grid.extent,
+                          truth_level=0.5 if level is None else level)
     if recon.history:
         (out / "history.json").write_text(json.dumps(recon.history))
         plots.plot_history(recon.history, out / "loss.png")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -14,6 +14,7 @@ from omegaconf import DictConfig
 
 from dipnet.experiments.collect import ERROR_FILE, NoRunsError, collect_runs, load_run, problems
 from dipnet.experiments.tables import markdown_problems
+from dipnet.outputs.summary import headline
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -40,14 +41,6 @@ def guarded_job(task: Callable[[], T], out: str | Path) -> T | None:
         return None
 
 
-def job_summary(metrics: dict, keys: Sequence[str] = ("iou", "chamfer", "false_positive", "false_negative",
-                                                       "profile_residual", "volume_ratio", "consistency",
-                                                       "seconds")) -> str:
-    """``key=value`` pairs of the given metrics that are present, 4 significant digits."""
-    return " ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics[k], float) else f"{k}={metrics[k]}"
-                    for k in keys if k in metrics)
-
-
 class JobLogCallback(Callback):
     """Hydra callback: one log line per finished job, and the failures listed after a sweep.
 
@@ -69,7 +62,7 @@ class JobLogCallback(Callback):
             return
         run = load_run(out)
         if run.status == "ok":
-            log.info("%s done [%s]: %s", tag, overrides, job_summary(run.metrics))
+            log.info("%s done [%s]: %s", tag, overrides, headline(run.metrics))
         else:
             log.warning("%s %s [%s]: %s", tag, run.status, overrides, run.error or "no metrics.json written")
 

@@ -6,13 +6,16 @@ Every function writes one PNG and returns its path. Volumes follow :mod:`dipnet.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import matplotlib
 
 matplotlib.use("Agg")
+import matplotlib.colors  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
@@ -72,37 +75,98 @@ def plot_sinogram(profiles: np.ndarray | torch.Tensor, path: str | Path, *,
     return save_figure(fig, path)
 
 
-def _mid_slices(vol: np.ndarray) -> list[tuple[str, np.ndarray]]:
+@dataclass
+class Slice:
+    """One planar cut of a volume: its title (with the plane's position), the image (rows up)
+    and the names of its horizontal and vertical axes."""
+
+    name: str
+    image: np.ndarray
+    xlabel: str
+    ylabel: str
+
+
+def mid_slices(vol: np.ndarray, extent_mm: float | None = None) -> list[Slice]:
+    """The image itself in 2D; in 3D the mid-plane cuts ``z``, ``y``, ``x`` of a ``[z, y, x]``
+    volume, titled with their position (mm when the grid side ``extent_mm`` is given, else
+    the voxel index)."""
+    unit = "mm" if extent_mm else "voxels"
     if vol.ndim == 2:
-        return [("image (y up, x right)", vol)]
+        return [Slice("image", vol, f"x ({unit})", f"y ({unit})")]
     n = vol.shape[0] // 2
-    return [("z = mid (xy)", vol[n]), ("y = mid (xz)", vol[:, n, :]), ("x = mid (yz)", vol[:, :, n])]
+    at = f"{-extent_mm / 2 + (n + 0.5) * extent_mm / vol.shape[0]:.3g} mm" if extent_mm else f"index {n}"
+    return [Slice(f"z = {at}", vol[n], f"x ({unit})", f"y ({unit})"),
+            Slice(f"y = {at}", vol[:, n, :], f"x ({unit})", f"z ({unit})"),
+            Slice(f"x = {at}", vol[:, :, n], f"y ({unit})", f"z ({unit})")]
+
+
+def show_slice(ax: plt.Axes, cut: Slice, extent_mm: float | None, title: str, **imshow: Any) -> Any:
+    """Draw ``cut`` on ``ax`` with mm axes (voxel indices without ``extent_mm``); returns the image."""
+    rows, cols = cut.image.shape
+    box = (-extent_mm / 2, extent_mm / 2, -extent_mm / 2, extent_mm / 2) if extent_mm else (0, cols, 0, rows)
+    im = ax.imshow(cut.image, origin="lower", interpolation="nearest", extent=box, **imshow)
+    ax.set_title(f"{title}: {cut.name}", fontsize=9)
+    ax.set_xlabel(cut.xlabel, fontsize=8)
+    ax.set_ylabel(cut.ylabel, fontsize=8)
+    ax.tick_params(labelsize=7)
+    return im
+
+
+def _zoom(occupied: np.ndarray, extent_mm: float | None, margin: int = 2) -> tuple[float, float]:
+    """Axis limits (mm, or voxel units without ``extent_mm``) around the occupied voxels of a
+    cube ``occupied`` plus ``margin`` voxels, the same on every axis; the whole grid if none is."""
+    n = occupied.shape[0]
+    idx = np.argwhere(occupied)
+    reach = n / 2 if not len(idx) else min(float(np.abs(idx + 0.5 - n / 2).max()) + margin, n / 2)
+    scale = extent_mm / n if extent_mm else 1.0
+    centre = 0.0 if extent_mm else n / 2
+    return centre - reach * scale, centre + reach * scale
+
+
+#: Colours of the difference panels: agreement (transparent), missed and extra voxels.
+MISSED_COLOR, EXTRA_COLOR = "#d62728", "#1f77b4"
 
 
 def plot_slices(truth: np.ndarray | torch.Tensor, recon: np.ndarray | torch.Tensor, path: str | Path, *,
-                titles: tuple[str, str] = ("truth", "reconstruction")) -> Path:
-    """Truth, reconstruction and their difference: the image in 2D, mid-slices along the three
-    axes in 3D (one row per axis). Volumes ``grid.shape``, occupancy-like values."""
+                titles: tuple[str, str] = ("truth", "reconstruction"), extent_mm: float | None = None,
+                truth_level: float = 0.5) -> Path:
+    """Truth, reconstruction and where they differ: the image in 2D, mid-plane cuts along the
+    three axes in 3D (one row per axis), on mm axes when the grid side ``extent_mm`` is given.
+
+    Volumes ``grid.shape``, occupancy-like values; the truth counts as inside above
+    ``truth_level``, the reconstruction above 0.5. The difference panel colours the *missed*
+    voxels (in the truth, not reconstructed) and the *extra* ones (reconstructed, not in the
+    truth) over the faint truth, with a legend giving their counts in the cut.
+    """
     t, r = _numpy(truth).astype(np.float64), _numpy(recon).astype(np.float64)
     if t.shape != r.shape or t.ndim not in (2, 3):
         raise ValueError(f"truth and reconstruction must be 2D or 3D volumes of one shape, got {t.shape}, {r.shape}")
-    rows = list(zip(_mid_slices(t), _mid_slices(r)))
+    inside_t, inside_r = t > truth_level, r > 0.5
+    code = np.where(inside_t & ~inside_r, 1, np.where(inside_r & ~inside_t, 2, 0)).astype(float)
+    rows = list(zip(mid_slices(t, extent_mm), mid_slices(r, extent_mm), mid_slices(code, extent_mm)))
     lo, hi = min(t.min(), r.min()), max(t.max(), r.max())
-    dmax = max(float(np.abs(r - t).max()), 1e-12)
-    fig, axes = plt.subplots(len(rows), 3, figsize=(10, 3.3 * len(rows)), squeeze=False)
-    for row, ((name, ts), (_, rs)) in zip(axes, rows):
-        for ax, img, label, kw in ((row[0], ts, titles[0], {"vmin": lo, "vmax": hi, "cmap": "gray"}),
-                                   (row[1], rs, titles[1], {"vmin": lo, "vmax": hi, "cmap": "gray"}),
-                                   (row[2], rs - ts, "difference", {"vmin": -dmax, "vmax": dmax, "cmap": "RdBu_r"})):
-            im = ax.imshow(img, origin="lower", interpolation="nearest", **kw)
-            ax.set_title(f"{label}: {name}", fontsize=9)
-            ax.set_xticks([])
-            ax.set_yticks([])
-        fig.colorbar(im, ax=row[2], fraction=0.046)
+    cmap = matplotlib.colors.ListedColormap([MISSED_COLOR, EXTRA_COLOR])
+    zoom = _zoom(inside_t | inside_r, extent_mm)
+    fig, axes = plt.subplots(len(rows), 3, figsize=(11, 3.5 * len(rows) + 0.6), squeeze=False, layout="constrained")
+    for row, (ts, rs, cs) in zip(axes, rows):
+        show_slice(row[0], ts, extent_mm, titles[0], vmin=lo, vmax=hi, cmap="gray")
+        show_slice(row[1], rs, extent_mm, titles[1], vmin=lo, vmax=hi, cmap="gray")
+        show_slice(row[2], Slice(cs.name, ts.image, cs.xlabel, cs.ylabel), extent_mm, "difference",
+                   vmin=lo, vmax=hi + 3 * (hi - lo), cmap="Greys")  # the truth, faint
+        show_slice(row[2], Slice(cs.name, np.ma.masked_equal(cs.image, 0), cs.xlabel, cs.ylabel), extent_mm,
+                   "difference", vmin=1, vmax=2, cmap=cmap)
+        for ax in row:
+            ax.set(xlim=zoom, ylim=zoom)
+        missed, extra = int((cs.image == 1).sum()), int((cs.image == 2).sum())
+        row[2].legend(handles=[Patch(color=MISSED_COLOR, label=f"missed ({missed})"),
+                               Patch(color=EXTRA_COLOR, label=f"extra ({extra})")],
+                      fontsize=7, loc="upper right", framealpha=0.8)
+    fig.suptitle("missed: in the truth, not reconstructed; extra: reconstructed, not in the truth "
+                 "(voxels in each cut)", fontsize=9)
     return save_figure(fig, path)
 
 
-def _decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+def decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     """At most ``max_faces`` faces (quadric decimation by libigl; the mesh itself if that fails)."""
     if len(mesh.faces) <= max_faces:
         return mesh
@@ -141,7 +205,7 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
         box = ((lo + hi) / 2, (hi - lo).max() / 2)
     rows = [(m, t, elev, azim) for m, t in zip(meshes, titles)]
     if cutaway:
-        rows += [(_cut(m), f"{t} (cut at y = 0)".strip(), 10.0, -90.0) for m, t in zip(meshes, titles)]
+        rows += [(cut_away(m), f"{t} (cut at y = 0)".strip(), 10.0, -90.0) for m, t in zip(meshes, titles)]
     n_rows = 2 if cutaway else 1
     fig = plt.figure(figsize=(4.5 * len(meshes), 4.5 * n_rows))
     for i, (mesh, title, el, az) in enumerate(rows):
@@ -150,14 +214,16 @@ def plot_mesh(meshes: trimesh.Trimesh | Sequence[trimesh.Trimesh], path: str | P
     return save_figure(fig, path)
 
 
-def _cut(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """The faces of ``mesh`` with every vertex at ``y >= 0`` (an open cut, to the nearest
-    face: the inside walls show through)."""
+def cut_away(mesh: trimesh.Trimesh, y0: float = 0.0) -> trimesh.Trimesh:
+    """The faces of ``mesh`` with every vertex at ``y >= y0`` (mm): an open cut, to the nearest
+    face, so seen from ``-y`` the inside walls show through."""
     if len(mesh.faces) == 0:
         return mesh
     faces = np.asarray(mesh.faces)
-    keep = (np.asarray(mesh.vertices)[faces][:, :, 1] >= 0).all(axis=1)
-    return trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=faces[keep], process=False)
+    keep = (np.asarray(mesh.vertices)[faces][:, :, 1] >= y0).all(axis=1)
+    cut = trimesh.Trimesh(vertices=np.asarray(mesh.vertices), faces=faces[keep], process=False)
+    cut.remove_unreferenced_vertices()
+    return cut
 
 
 def _draw_mesh(ax, mesh: trimesh.Trimesh, title: str, box, max_faces: int, elev: float, azim: float) -> None:
@@ -166,7 +232,7 @@ def _draw_mesh(ax, mesh: trimesh.Trimesh, title: str, box, max_faces: int, elev:
         ax.text2D(0.5, 0.5, "empty mesh", ha="center", transform=ax.transAxes)
         ax.set_axis_off()
         return
-    m = _decimated(mesh, max_faces)
+    m = decimated(mesh, max_faces)
     tris = np.asarray(m.vertices)[np.asarray(m.faces)]
     normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)

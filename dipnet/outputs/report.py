@@ -1,18 +1,25 @@
-"""Self-contained HTML reports of one run and of a sweep (needs the optional extra ``report``).
+"""HTML reports of one run and of a sweep (needs the optional extra ``report``).
 
-``write_run_report(job_dir)`` writes ``job_dir/report.html``: the truth and reconstruction
-meshes side by side in linked interactive 3D views (2D runs: the reconstructed image), the
-sinogram, the loss curves, the metrics table and the run's PNG figures. ``write_sweep_report``
-writes one page for a whole comparison: the summary table, interactive error curves and links
-to the runs' own pages. Each page inlines plotly's JavaScript once, so it opens offline from a
-file; a page is a few MB.
+``write_run_report(job_dir)`` writes ``job_dir/report.html``. It opens with the answer: the
+truth and the reconstruction in linked interactive 3D views, cut open at the grid's ``y = 0``
+plane so inner cavities show (a button shows them whole; 2D runs: the images), beside the three
+numbers a person asks first (:func:`dipnet.outputs.summary.answers`: how close, how consistent
+with its data, how sure). Then the run's figures (slices, uncertainty, resolvability,
+profiles; linked PNG files of the run, not copies), the sinogram, the loss curves, and every
+metric of ``metrics.json`` grouped and labelled in words. ``write_sweep_report`` writes one page
+for a whole comparison: the summary table, interactive error curves and links to the runs'
+own pages.
+
+plotly's JavaScript is loaded from one shared ``plotly.min.js`` file (:data:`PLOTLY_JS`): the
+sweep directory holds one for all its jobs' pages and its comparison page (when that is inside
+it), a single run directory its own. A run page is then a few hundred kB (meshes decimated to :data:`MAX_FACES`) and
+opens offline from its folder.
 
 Install the extra with ``pip install -e ".[report]"`` (plotly).
 """
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import os
@@ -26,8 +33,19 @@ import trimesh
 
 from dipnet.experiments import collect, figures, tables
 from dipnet.experiments.collect import GROUP_BY, METRICS, Run
+from dipnet.outputs import plots, summary
 
 REPORT_FILE = "report.html"
+#: plotly's JavaScript, written once per folder of reports (see :func:`plotly_js`).
+PLOTLY_JS = "plotly.min.js"
+#: Faces per mesh in the interactive views (decimated beyond: the page stays small).
+MAX_FACES = 6000
+#: The run's PNG figures the page shows (those present), with a caption.
+RUN_FIGURES = (("slices.png", "mid-plane cuts: truth, reconstruction, missed and extra voxels"),
+               ("uncertainty.png", "how sure: posterior std and the probability that each voxel's call is wrong"),
+               ("resolvability.png", "what the plan of dips can resolve"),
+               ("profiles.png", "measured and predicted dip profiles"),
+               ("mesh.png", "rendered meshes, whole and cut open"))
 _TRUTH_COLOR, _RECON_COLOR = "#9aa5b1", "#3b7dd8"
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em auto;max-width:1200px;color:#222}
@@ -35,6 +53,11 @@ h1{font-size:1.5em} h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid 
 table{border-collapse:collapse;font-size:.9em} td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right;white-space:nowrap}
 th{background:#f3f3f3} td.l,th.l{text-align:left} .ok{color:#1a7f37} .failed{color:#b42318} .unfinished{color:#b54708}
 img{max-width:100%;border:1px solid #eee} .note{color:#666;font-style:italic}
+.top{display:grid;grid-template-columns:minmax(0,1fr) 290px;gap:1em;align-items:start}
+.answer{border:1px solid #ddd;border-radius:6px;padding:.6em .8em;margin-bottom:.7em;background:#fafafa}
+.answer .q{color:#555;font-size:.9em} .answer .h{font-size:1.5em;font-weight:600;margin:.15em 0}
+.answer .d{color:#444;font-size:.85em} figure{margin:1em 0} figcaption{color:#555;font-size:.9em}
+h3{font-size:1em;margin:1.2em 0 .3em} table.wrap td{white-space:normal;max-width:40em} pre{white-space:pre-wrap}
 """
 
 
@@ -49,13 +72,14 @@ def require_plotly() -> ModuleType:
 
 # --------------------------------------------------------------------------- pieces
 
-def mesh_trace(mesh: trimesh.Trimesh, name: str, color: str, scene: str = "scene") -> Any:
+def mesh_trace(mesh: trimesh.Trimesh, name: str, color: str, scene: str = "scene", visible: bool = True) -> Any:
     """A plotly ``Mesh3d`` of a triangle mesh (vertices in mm), lit, in the given scene."""
     go = require_plotly()
     v, f = np.asarray(mesh.vertices, dtype=np.float32), np.asarray(mesh.faces, dtype=np.int32)
     return go.Mesh3d(x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1], k=f[:, 2], name=name,
-                     color=color, flatshading=False, showlegend=True, scene=scene,
-                     lighting={"ambient": 0.35, "diffuse": 0.8, "specular": 0.15, "roughness": 0.6},
+                     color=color, flatshading=False, showlegend=True, scene=scene, visible=visible,
+                     lighting={"ambient": 0.45, "diffuse": 0.8, "specular": 0.15, "roughness": 0.6,
+                               "facenormalsepsilon": 0},
                      lightposition={"x": 200, "y": -300, "z": 500})
 
 
@@ -74,29 +98,43 @@ def _volume_from_npz(job_dir: Path) -> dict[str, np.ndarray] | None:
         return {k: data[k] for k in data.files}
 
 
-def mesh_figure(truth: trimesh.Trimesh | None, recon: trimesh.Trimesh | None, extent_mm: float | None = None) -> Any:
-    """Truth and reconstruction side by side in two 3D scenes with the same axis ranges
-    (``extent_mm``: the grid side; otherwise the meshes' joint bounding box)."""
+def mesh_figure(truth: trimesh.Trimesh | None, recon: trimesh.Trimesh | None,
+                origin: Sequence[float] = (0.0, 0.0, 0.0), max_faces: int = MAX_FACES) -> Any:
+    """Truth and reconstruction side by side in two 3D scenes with the same axis ranges (the
+    meshes' joint bounding box, mm).
+
+    Each mesh (decimated to ``max_faces``) is shown cut open by the plane ``y = origin[1]`` (mm;
+    ``origin``: the grid centre in the meshes' frame; the half nearer the camera removed,
+    :func:`~dipnet.outputs.plots.cut_away`), so inner cavities show; a button shows the whole meshes.
+    """
     require_plotly()
     from plotly.subplots import make_subplots
 
-    panels = [(m, t, c) for m, t, c in ((truth, "truth", _TRUTH_COLOR), (recon, "reconstruction", _RECON_COLOR))
+    panels = [(plots.decimated(m, max_faces), t, c)
+              for m, t, c in ((truth, "truth", _TRUTH_COLOR), (recon, "reconstruction", _RECON_COLOR))
               if m is not None]
     fig = make_subplots(rows=1, cols=len(panels), specs=[[{"type": "scene"}] * len(panels)],
                         subplot_titles=[t for _, t, _ in panels], horizontal_spacing=0.02)
-    if extent_mm:
-        lo, hi = -extent_mm / 2, extent_mm / 2
-    else:
-        bounds = np.concatenate([m.bounds for m, _, _ in panels])
-        lo, hi = float(bounds.min()), float(bounds.max())
-    axis = {"range": [lo, hi], "title": ""}
+    centre = np.asarray(origin, dtype=np.float64)
+    bounds = np.concatenate([m.bounds for m, _, _ in panels])
+    half = 0.55 * float((bounds.max(axis=0) - bounds.min(axis=0)).max())
+    mid = (bounds.max(axis=0) + bounds.min(axis=0)) / 2
+    ranges = [[c - half, c + half] for c in mid]
     for i, (mesh, title, color) in enumerate(panels):
         scene = "scene" if i == 0 else f"scene{i + 1}"
-        fig.add_trace(mesh_trace(mesh, title, color, scene), row=1, col=i + 1)
-        fig.update_layout({scene: {"xaxis": {**axis, "title": "x (mm)"}, "yaxis": {**axis, "title": "y (mm)"},
-                                   "zaxis": {**axis, "title": "z (mm)"}, "aspectmode": "cube",
-                                   "camera": {"eye": {"x": 1.5, "y": -1.5, "z": 1.0}}}})
-    fig.update_layout(height=520, margin={"l": 0, "r": 0, "t": 40, "b": 0}, showlegend=False)
+        fig.add_trace(mesh_trace(plots.cut_away(mesh, centre[1]), title, color, scene), row=1, col=i + 1)
+        fig.add_trace(mesh_trace(mesh, title, color, scene, visible=False), row=1, col=i + 1)
+        fig.update_layout({scene: {"xaxis": {"range": ranges[0], "title": "x (mm)"},
+                                   "yaxis": {"range": ranges[1], "title": "y (mm)"},
+                                   "zaxis": {"range": ranges[2], "title": "z (mm)"}, "aspectmode": "cube",
+                                   "camera": {"eye": {"x": 0.9, "y": -1.9, "z": 0.9}}}})
+    cut, whole = [True, False] * len(panels), [False, True] * len(panels)
+    fig.update_layout(height=520, margin={"l": 0, "r": 0, "t": 60, "b": 0}, showlegend=False,
+                      updatemenus=[{"type": "buttons", "direction": "right", "x": 0.5, "y": 1.1, "xanchor": "center",
+                                    "buttons": [{"label": f"cut open at y = {centre[1]:.3g} mm", "method": "restyle",
+                                                 "args": [{"visible": cut}]},
+                                                {"label": "whole", "method": "restyle",
+                                                 "args": [{"visible": whole}]}]}])
     return fig
 
 
@@ -149,15 +187,37 @@ def metrics_table(items: dict[str, Any]) -> str:
     return f"<table>{rows}</table>"
 
 
+def grouped_metrics(metrics: dict[str, Any]) -> str:
+    """Every entry of ``metrics.json`` under its group (:func:`dipnet.outputs.summary.grouped`):
+    a label in words, the value and the key it has in the file."""
+    parts = []
+    for group, rows in summary.grouped(metrics).items():
+        body = "".join(f"<tr><th class=l>{html.escape(label)}</th><td class=l>{html.escape(_fmt(value))}</td>"
+                       f"<td class='l note'>{html.escape(key)}</td></tr>" for label, key, value in rows)
+        parts.append(f"<h3>{html.escape(group)}</h3><table class=wrap>{body}</table>")
+    return "\n".join(parts)
+
+
+def answers_html(metrics: dict[str, Any]) -> str:
+    """The three first answers (:func:`dipnet.outputs.summary.answers`) as cards."""
+    cards = [f"<div class=answer><div class=q>{html.escape(a.question)}</div><div class=h>{html.escape(a.headline)}"
+             f"</div><div class=d>{html.escape(a.detail)}</div></div>" for a in summary.answers(metrics)]
+    return "<div class=answers>" + ("".join(cards) or "<p class=note>no metrics (the run did not finish)</p>") + "</div>"
+
+
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
+    if isinstance(v, list):
+        return ", ".join(_fmt(x) for x in v)
+    if isinstance(v, dict):
+        return "; ".join(f"{k}: {_fmt(x)}" for k, x in v.items())
     return "none" if v is None else str(v)
 
 
-def _png(path: Path, alt: str) -> str:
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+def _png(path: Path, alt: str, page_dir: Path) -> str:
+    """An ``<img>`` linking a PNG by its path relative to ``page_dir`` (the page's folder)."""
+    return f'<img alt="{html.escape(alt)}" src="{html.escape(_relative(path, page_dir))}">'
 
 
 def _figure_html(fig: Any, div_id: str) -> str:
@@ -165,53 +225,76 @@ def _figure_html(fig: Any, div_id: str) -> str:
                        config={"responsive": True, "displaylogo": False})
 
 
-def page(title: str, sections: Sequence[tuple[str, str]]) -> str:
-    """A complete HTML page with plotly's JavaScript inlined once and the given ``(heading, html)`` sections."""
+def plotly_js(folder: str | Path) -> Path:
+    """``folder/plotly.min.js`` (:data:`PLOTLY_JS`), written from the installed plotly unless it
+    is already there with the same content; the pages in and below ``folder`` load it."""
     require_plotly()
     from plotly.offline import get_plotlyjs
 
-    body = "".join(f"<h2>{html.escape(h)}</h2>\n{content}\n" for h, content in sections)
+    path = Path(folder) / PLOTLY_JS
+    code = get_plotlyjs()
+    if not path.is_file() or path.stat().st_size != len(code.encode("utf-8")):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(code, encoding="utf-8")
+    return path
+
+
+def page(title: str, sections: Sequence[tuple[str, str]], script: str | Path) -> str:
+    """A complete HTML page loading plotly from ``script`` (a path relative to the page, e.g.
+    from :func:`plotly_js`) with the given ``(heading, html)`` sections (an empty heading: none)."""
+    body = "".join((f"<h2>{html.escape(h)}</h2>\n" if h else "") + f"{content}\n" for h, content in sections)
     return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-            f"<style>{_CSS}</style><script type='text/javascript'>{get_plotlyjs()}</script></head>"
+            f"<style>{_CSS}</style><script src='{html.escape(Path(script).as_posix())}'></script></head>"
             f"<body><h1>{html.escape(title)}</h1>\n{body}</body></html>\n")
+
+
+def report_root(job_dir: Path) -> Path:
+    """Where a run page's shared ``plotly.min.js`` goes: the sweep directory of a Hydra sweep job
+    (its parent holds ``multirun.yaml``), else the run directory itself."""
+    return job_dir.parent if (job_dir.parent / "multirun.yaml").is_file() else job_dir
 
 
 # --------------------------------------------------------------------------- run page
 
-def run_sections(job_dir: str | Path) -> list[tuple[str, str]]:
-    """The sections of one run's page (see the module docstring), from the files in ``job_dir``."""
+def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, metrics: dict[str, Any]) -> str:
+    """The interactive view of the result: images (2D) or meshes cut open (3D)."""
+    extent = float(volume["grid_extent"]) if volume is not None and "grid_extent" in volume else None
+    if ndim == 2 and volume is not None:
+        images = [("reconstruction (binary)", volume["binary"]), ("occupancy", volume["occupancy"])]
+        return _figure_html(image_figure(images, extent), "recon")
+    truth = _load_mesh(job_dir / "truth.ply")
+    recon = _load_mesh(job_dir / "reconstruction.ply")
+    origin = np.asarray(metrics.get("frame_offset_mm") or (0.0, 0.0, 0.0), dtype=np.float64)
+    if recon is None and volume is not None and volume["binary"].any():
+        from dipnet.shapes.isosurface import volume_to_mesh
+        from dipnet.core.grid import Grid
+
+        grid = Grid(int(volume["grid_n"]), 3, float(volume["grid_extent"]))
+        recon = volume_to_mesh(volume["occupancy"], grid, float(volume["threshold"])).apply_translation(origin)
+    if truth is None and recon is None:
+        return "<p class=note>no mesh in this run (empty reconstruction)</p>"
+    return _figure_html(mesh_figure(truth, recon, origin), "meshes")
+
+
+def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> list[tuple[str, str]]:
+    """The sections of one run's page (see the module docstring), from the files in ``job_dir``;
+    its PNG figures are linked relative to ``page_dir`` (default ``job_dir``)."""
     job_dir = Path(job_dir)
+    page_dir = Path(page_dir) if page_dir is not None else job_dir
     run = collect.load_run(job_dir)
     row = collect.run_row(run)
     volume = _volume_from_npz(job_dir)
-    extent = float(volume["grid_extent"]) if volume is not None and "grid_extent" in volume else None
-    sections: list[tuple[str, str]] = []
-
-    summary = {k: row.get(k) for k in ("status", "solver", "shape", "ndim", "resolution", "n_dips",
-                                       "dips_percent", "snr_db", "seed") if row.get(k) is not None or k == "snr_db"}
-    summary.update({k: v for k, v in run.metrics.items() if k not in summary})
-    if run.error:
-        summary["error"] = run.error
-    sections.append(("metrics", metrics_table(summary)))
-
     ndim = int(volume["grid_ndim"]) if volume is not None else row.get("ndim")
-    if ndim == 2 and volume is not None:
-        images = [("reconstruction (binary)", volume["binary"]), ("occupancy", volume["occupancy"])]
-        sections.append(("reconstruction", _figure_html(image_figure(images, extent), "recon")))
-    else:
-        truth = _load_mesh(job_dir / "truth.ply")
-        recon = _load_mesh(job_dir / "reconstruction.ply")
-        if recon is None and volume is not None and volume["binary"].any():
-            from dipnet.shapes.isosurface import volume_to_mesh
-            from dipnet.core.grid import Grid
+    status = "" if run.status == "ok" else f"<p class={run.status}>{html.escape(run.status)}: " \
+        f"{html.escape(run.error or 'no metrics.json')}</p>"
+    view = _shape_view(job_dir, volume, ndim, run.metrics)
+    sections: list[tuple[str, str]] = [
+        ("", f"{status}<div class=top><div class=view>{view}</div>{answers_html(run.metrics)}</div>")]
 
-            grid = Grid(int(volume["grid_n"]), 3, float(volume["grid_extent"]))
-            recon = volume_to_mesh(volume["occupancy"], grid, float(volume["threshold"]))
-        if truth is None and recon is None:
-            sections.append(("meshes", "<p class=note>no mesh in this run (empty reconstruction)</p>"))
-        else:
-            sections.append(("truth and reconstruction (drag to rotate)",
-                             _figure_html(mesh_figure(truth, recon, extent), "meshes")))
+    figures_html = [f"<figure>{_png(job_dir / name, name, page_dir)}<figcaption>{html.escape(caption)}"
+                    f"</figcaption></figure>" for name, caption in RUN_FIGURES if (job_dir / name).is_file()]
+    if figures_html:
+        sections.append(("figures", "\n".join(figures_html)))
 
     if (job_dir / "measurement.npz").is_file():
         from dipnet.core.measurement import DipMeasurement
@@ -223,27 +306,30 @@ def run_sections(job_dir: str | Path) -> list[tuple[str, str]]:
         history = json.loads((job_dir / "history.json").read_text())
         sections.append(("loss", _figure_html(history_figure(history), "loss")))
     elif (job_dir / "loss.png").is_file():
-        sections.append(("loss", _png(job_dir / "loss.png", "loss curves")))
+        sections.append(("loss", _png(job_dir / "loss.png", "loss curves", page_dir)))
     else:
         sections.append(("loss", "<p class=note>no loss history (direct solver)</p>"))
 
-    pngs = [p for p in ("slices.png", "profiles.png") if (job_dir / p).is_file()]
-    if pngs:
-        sections.append(("figures", "\n".join(_png(job_dir / p, p) for p in pngs)))
+    settings = {k: row.get(k) for k in ("status", "solver", "shape", "ndim", "resolution", "n_dips",
+                                        "dips_percent", "snr_db", "seed") if row.get(k) is not None or k == "snr_db"}
+    sections.append(("every metric (metrics.json)",
+                     grouped_metrics({**settings, **run.metrics}) if run.metrics else metrics_table(settings)))
     if run.overrides:
         sections.append(("overrides", f"<pre>{html.escape(' '.join(run.overrides))}</pre>"))
     return sections
 
 
 def write_run_report(job_dir: str | Path, path: str | Path | None = None) -> Path:
-    """Write one run's page (default ``job_dir/report.html``) and return its path."""
+    """Write one run's page (default ``job_dir/report.html``) and return its path; plotly's
+    JavaScript goes to :func:`report_root` (or beside a page written elsewhere)."""
     job_dir = Path(job_dir)
     if not job_dir.is_dir():
         raise FileNotFoundError(f"{job_dir}: not a run directory")
     path = Path(path) if path is not None else job_dir / REPORT_FILE
     row = collect.run_row(collect.load_run(job_dir))
     title = f"dipnet run {job_dir.name}: {row.get('solver')}, {row.get('shape')}, {row.get('n_dips')} dips"
-    path.write_text(page(title, run_sections(job_dir)), encoding="utf-8")
+    script = plotly_js(report_root(job_dir) if path.parent.resolve() == job_dir.resolve() else path.parent)
+    path.write_text(page(title, run_sections(job_dir, path.parent), _relative(script, path.parent)), encoding="utf-8")
     return path
 
 
@@ -310,9 +396,11 @@ def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Pat
     for image in images:
         image = Path(image)
         if image.is_file():
-            sections.append((image.stem, _png(image, image.stem)))
+            sections.append((image.stem, _png(image, image.stem, path.parent)))
     sections.append(("jobs", _runs_table(runs, root, path.parent)))
-    path.write_text(page(f"dipnet sweep: {root}", sections), encoding="utf-8")
+    inside = path.parent.resolve().is_relative_to(root.resolve())  # e.g. <sweep>/compare: the jobs' file
+    script = _relative(plotly_js(root if inside else path.parent), path.parent)
+    path.write_text(page(f"dipnet sweep: {root}", sections, script), encoding="utf-8")
     return path
 
 

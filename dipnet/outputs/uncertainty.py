@@ -13,7 +13,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
 from dipnet.operators import DipOperator
-from dipnet.outputs.plots import _mid_slices, plt, save_figure
+from dipnet.outputs.plots import mid_slices, plt, save_figure, show_slice
 
 log = logging.getLogger(__name__)
 
@@ -35,23 +35,21 @@ def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: Di
             log.warning(message)
             warnings.warn(message, stacklevel=2)
     if figure:
-        plot_uncertainty(reconstruction.binary, maps, out / "uncertainty.png")
+        plot_uncertainty(reconstruction.binary, maps, out / "uncertainty.png", reconstruction.grid.extent)
     return scores
 
 
-def plot_uncertainty(binary: np.ndarray, maps: dict[str, np.ndarray], path: Path) -> Path:
-    """Mid-slices of the binary reconstruction, the posterior std and ``p_wrong`` (one row per axis)."""
+def plot_uncertainty(binary: np.ndarray, maps: dict[str, np.ndarray], path: Path, extent_mm: float | None = None) -> Path:
+    """Mid-plane cuts of the binary reconstruction, the posterior std and ``p_wrong`` (one row
+    per axis), on mm axes when the grid side ``extent_mm`` is given."""
     columns = [("reconstruction", np.asarray(binary, float), "gray", 1.0),
                ("posterior std", maps["std"], "magma", float(maps["std"].max())),
                ("P(binary call wrong)", maps["p_wrong"], "magma", 0.5)]
-    slices = [_mid_slices(volume) for _, volume, _, _ in columns]
-    fig, axes = plt.subplots(len(slices[0]), 3, figsize=(10, 3.3 * len(slices[0])), squeeze=False)
+    slices = [mid_slices(volume, extent_mm) for _, volume, _, _ in columns]
+    fig, axes = plt.subplots(len(slices[0]), 3, figsize=(11, 3.4 * len(slices[0])), squeeze=False,
+                             layout="constrained")
     for r, row in enumerate(axes):
         for c, (ax, (label, _, cmap, vmax)) in enumerate(zip(row, columns)):
-            name, img = slices[c][r]
-            im = ax.imshow(img, origin="lower", interpolation="nearest", cmap=cmap, vmin=0.0, vmax=max(vmax, 1e-9))
-            ax.set_title(f"{label}: {name}", fontsize=9)
-            ax.set_xticks([])
-            ax.set_yticks([])
+            im = show_slice(ax, slices[c][r], extent_mm, label, cmap=cmap, vmin=0.0, vmax=max(vmax, 1e-9))
             fig.colorbar(im, ax=ax, fraction=0.046)
     return save_figure(fig, path)

@@ -33,6 +33,11 @@ class MeshShape(Shape):
         name: a label.
         notes: what was changed when the mesh was prepared.
         exact: False when the mesh is not watertight (volumes are then approximate).
+
+    Attributes:
+        frame_offset: (3,) mm; a point of the grid frame plus ``frame_offset`` is the same point
+            in the frame of the file the mesh came from (its units times the scale): what
+            :func:`from_trimesh` moved the mesh by when it centred it, so outputs can be moved back.
     """
 
     ndim = 3
@@ -47,6 +52,7 @@ class MeshShape(Shape):
         self.name = name
         self.notes = list(notes or [])
         self.exact = exact
+        self.frame_offset = np.zeros(3)
         self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         self._triangles = self._vertices[self._faces]  # (F, 3, 3) mm, closed by caps below
@@ -120,7 +126,7 @@ def load_mesh(
             the file's units (taken as mm, times ``scale``).
         fill_sealed_voids: fill cavities bounded by closed inner shells (water cannot reach them).
         center: move the volume centroid (bounding-box centre if the volume is not meaningful)
-            to the origin.
+            to the origin (the shape's ``frame_offset`` keeps the move).
         name: label (default: the file stem).
         scale: mm per file unit (``None``: 1), applied when ``radius`` is ``None``.
 
@@ -174,13 +180,17 @@ def from_trimesh(
     size = float(np.ptp(mesh.vertices, axis=0).max())
     if not volume > 1e-9 * size**3:
         raise ShapeError(f"mesh {where} encloses no volume (flat, open or empty surface)")
-    if center:
-        mesh.apply_translation(-_centre(mesh))
+    shift = _centre(mesh) if center else np.zeros(3)
+    mesh.apply_translation(-shift)
+    factor = 1.0
     if radius is not None:
-        mesh.apply_scale(radius / float(np.linalg.norm(mesh.vertices, axis=1).max()))
-    elif scale is not None and scale != 1:
-        mesh.apply_scale(float(scale))
+        factor = radius / float(np.linalg.norm(mesh.vertices, axis=1).max())
+    elif scale is not None:
+        factor = float(scale)
+    if factor != 1:
+        mesh.apply_scale(factor)
     shape = MeshShape(mesh, name=name, exact=mesh.is_watertight)
+    shape.frame_offset = factor * shift
     if problems:
         _check_repair(shape, where)
         tail = "" if mesh.is_watertight else "; volumes and dips are approximate"

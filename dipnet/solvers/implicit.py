@@ -24,6 +24,7 @@ from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
+from tqdm.auto import tqdm
 
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
@@ -134,7 +135,8 @@ class ImplicitSolver(OptimisationSolver):
         """Pre-fit the field to a warm-start occupancy ``(P,)`` by binary cross-entropy."""
         opt = torch.optim.Adam(field.parameters(), lr=self.lr)
         losses = []
-        for _ in range(self.warm_iterations):
+        for _ in tqdm(range(self.warm_iterations), desc="implicit warm start", disable=not self.progress,
+                      leave=False):
             opt.zero_grad(set_to_none=True)
             loss = F.binary_cross_entropy_with_logits(field(points), target.clamp(_CLIP, 1 - _CLIP))
             loss.backward()

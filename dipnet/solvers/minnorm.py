@@ -72,6 +72,7 @@ from dipnet.core.keywords import forwards_to
 from dipnet.operators import SPLAT_MATRIX_BACKENDS, DipOperator, backend_name, make_operator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers.progress import stop_bar
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +239,7 @@ class MinNormSolver(Solver):
             tol = {"damp": damp, "atol": self.atol, "btol": self.btol}
             out = (scipy.sparse.linalg.lsqr(op, g, iter_lim=self.iter_lim, **tol) if method == "lsqr"
                    else scipy.sparse.linalg.lsmr(op, g, maxiter=self.iter_lim, **tol))
+            stop_bar(bar, "converged")
         return out[0], {"iterations": int(out[2]), "stop_reason": int(out[1]), "damp": damp}
 
 

@@ -33,6 +33,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
 
 log = logging.getLogger(__name__)
@@ -310,6 +311,7 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
                 checkpoint.save(desc, fingerprint, i + 1, flat, opt, sched, history, done)
             if done:
                 if i < iterations - 1:
+                    stop_bar(bar, f"plateau at step {i + 1}")
                     log.info("%s: loss plateaued at step %d of %d (best of the last %d steps < %.2g below "
                              "the best before)", desc, i + 1, iterations, window, tol)
                 break

@@ -256,8 +256,8 @@ def test_callback_logs_one_line_per_job_and_the_failures(sweep, tmp_path, caplog
     with caplog.at_level(logging.INFO, logger="dipnet.jobs.sweep_jobs"):
         callback.on_job_end(_hydra_cfg(sweep / "0", 0), ok)
     line = caplog.records[-1].getMessage()
-    assert line.startswith("job 0 done [solver=minnorm n_dips=4]: iou=")
-    assert f"chamfer={chamfer_of(4, 0):.4g}" in line
+    assert line.startswith("job 0 done [solver=minnorm n_dips=4]: IoU ")
+    assert f"Chamfer {chamfer_of(4, 0):.4f}" in line and len(line) < 200   # the headline numbers only
 
     out = tmp_path / "crashed"
     out.mkdir()

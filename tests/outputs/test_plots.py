@@ -10,7 +10,7 @@ import trimesh
 
 from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.core.grid import Grid
-from dipnet.outputs.plots import _cut, plot_history, plot_mesh, plot_profiles, plot_sinogram, plot_slices
+from dipnet.outputs.plots import cut_away, plot_history, plot_mesh, plot_profiles, plot_sinogram, plot_slices
 from dipnet.shapes import builtin_shape
 
 
@@ -72,7 +72,7 @@ def test_mesh_figure_has_a_cutaway_row_that_shows_an_inner_chamber(tmp_path):
     grid = Grid(24, 3, 110.0)
     shape = builtin_shape("chamber_box", 3, 45.0)
     mesh = volume_to_mesh(shape.occupancy(grid).numpy(), grid, 0.5)
-    cut = _cut(mesh)
+    cut = cut_away(mesh)
     used = cut.vertices[np.unique(cut.faces)]
     assert 0 < len(cut.faces) < len(mesh.faces) and used[:, 1].min() >= 0
     chamber = shape.chamber[1][0]  # chamber half size (mm): its walls lie well inside the box

@@ -1,0 +1,143 @@
+"""A run's metrics in words: the three answers a person asks first, a short log line, and the
+full ``metrics.json`` grouped and labelled for the report.
+
+The three answers (:func:`answers`):
+
+* **how close** to the truth (when a truth exists): IoU and Chamfer distance;
+* **how consistent** with its own data: the profile residual against what noise explains, and
+  the reconstructed volume against the measured one;
+* **how sure**: the share of the reconstruction whose binary call is uncertain and the
+  expected error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+#: ``metric key: (group, label in words)``; keys not listed go to the group "other".
+METRIC_LABELS: dict[str, tuple[str, str]] = {
+    "status": ("run", "status"),
+    "solver": ("run", "solver"),
+    "seed": ("run", "random seed"),
+    "dips_percent": ("run", "dips as % of a square system"),
+    "operator": ("run", "operator backend"),
+    "seconds": ("run", "solve time (s)"),
+    "n_dips": ("run", "number of dips"),
+    "resolution": ("run", "voxels per axis"),
+    "ndim": ("run", "dimensions"),
+    "shape": ("run", "shape"),
+    "snr_db": ("run", "level-sensor SNR (dB; none: noise-free)"),
+    "frame_offset_mm": ("run", "mesh files: grid frame + this shift = your file's frame (mm)"),
+    "iou": ("how close to the truth", "intersection over union (1 = identical)"),
+    "chamfer": ("how close to the truth", "Chamfer distance (fraction of the truth's diagonal)"),
+    "hausdorff": ("how close to the truth", "Hausdorff distance (fraction of the truth's diagonal)"),
+    "volume_error": ("how close to the truth", "volume error (relative to the exact volume)"),
+    "false_positive": ("how close to the truth", "extra voxels (fraction of the truth's voxels)"),
+    "false_negative": ("how close to the truth", "missed voxels (fraction of the truth's voxels)"),
+    "empty": ("how close to the truth", "reconstruction empty"),
+    "truth_voxel_volume_error": ("how close to the truth", "truth voxelisation: partial-volume error"),
+    "truth_binary_volume_error": ("how close to the truth", "truth voxelisation: binary volume error"),
+    "truth_level": ("how close to the truth", "truth occupancy counted as inside"),
+    "profile_residual": ("how consistent with the data", "profile residual (relative)"),
+    "profile_residual_continuous": ("how consistent with the data", "profile residual of the continuous occupancy"),
+    "profile_residual_expected": ("how consistent with the data", "residual that noise and voxels explain"),
+    "residual_limit": ("how consistent with the data", "residual limit of the check"),
+    "noise_source": ("how consistent with the data", "where the noise level comes from"),
+    "measured_volume_mm3": ("how consistent with the data", "volume the dips measure (mm³)"),
+    "reconstructed_volume_mm3": ("how consistent with the data", "volume of the reconstruction (mm³)"),
+    "continuous_volume_mm3": ("how consistent with the data", "volume of the continuous occupancy (mm³)"),
+    "volume_ratio": ("how consistent with the data", "reconstructed / measured volume"),
+    "volume_ratio_noise": ("how consistent with the data", "volume ratio that noise explains (±)"),
+    "volume_limit": ("how consistent with the data", "volume-ratio limit of the check"),
+    "grid_volume_fraction": ("how consistent with the data", "share of the measured volume on the grid"),
+    "height_trend_pivot_mm": ("how consistent with the data", "height trend: pivot offset (mm)"),
+    "height_trend_offset_mm": ("how consistent with the data", "height trend: level offset (mm)"),
+    "height_trend_limit_mm": ("how consistent with the data", "height trend limit (mm)"),
+    "consistency": ("how consistent with the data", "verdict"),
+    "consistency_warnings": ("how consistent with the data", "findings"),
+    "uncertainty_mean": ("how sure", "mean posterior std over the support"),
+    "uncertain_fraction": ("how sure", "share of the support with P(wrong) > 0.2"),
+    "expected_error_fraction": ("how sure", "expected wrong voxels / reconstructed voxels"),
+    "error_rate_by_uncertainty_decile": ("how sure", "true error rate per uncertainty decile (least to most)"),
+    "missing_cone_deg": ("what the plan resolves", "missing cone (deg)"),
+    "mean_direction_gap_deg": ("what the plan resolves", "mean angle to the nearest dip (deg)"),
+    "frequency_coverage": ("what the plan resolves", "covered share of the frequency ball"),
+    "polar_coverage": ("what the plan resolves", "polar coverage"),
+    "azimuthal_coverage": ("what the plan resolves", "azimuthal coverage"),
+    "resolvability_diameter_mm": ("what the plan resolves", "diameter of the resolvable ball (mm)"),
+    "azimuthal_signal_ratio": ("what the plan resolves", "azimuthal signal ratio"),
+    "readings_repaired": ("data checks", "readings repaired"),
+    "dips_rejected": ("data checks", "dips rejected"),
+    "validation_warnings": ("data checks", "validation warnings"),
+    "validation": ("data checks", "validation details"),
+}
+
+GROUPS = ("how close to the truth", "how consistent with the data", "how sure", "what the plan resolves",
+          "data checks", "run", "other")
+
+
+@dataclass
+class Answer:
+    """One of the three first answers: a question, its headline and a sentence of detail."""
+
+    question: str
+    headline: str
+    detail: str
+
+
+def _num(metrics: dict[str, Any], key: str) -> float | None:
+    value = metrics.get(key)
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def answers(metrics: dict[str, Any]) -> list[Answer]:
+    """How close (IoU, Chamfer; only with a truth), how consistent (residual vs noise, volume
+    ratio), how sure (uncertain share, expected error), from a run's ``metrics.json``."""
+    out = []
+    iou, chamfer = _num(metrics, "iou"), _num(metrics, "chamfer")
+    if iou is not None:
+        out.append(Answer("How close to the truth?", f"IoU {iou:.3f}",
+                          f"Chamfer distance {100 * chamfer:.2f}% of the object's diagonal" if chamfer is not None
+                          else "no surface distance"))
+    residual, expected = _num(metrics, "profile_residual"), _num(metrics, "profile_residual_expected")
+    ratio = _num(metrics, "volume_ratio")
+    if residual is not None:
+        head = f"residual {100 * residual:.1f}%"
+        if expected is not None:
+            head += f" (noise {100 * expected:.1f}%)"
+        parts = [] if ratio is None else [f"reconstructed volume {ratio:.3f} × the measured"]
+        if metrics.get("consistency"):
+            parts.append(f"verdict: {metrics['consistency']}")
+        out.append(Answer("How consistent with its data?", head,
+                          "; ".join(parts) or "profile residual relative to the measured profiles"))
+    uncertain, expected_error = _num(metrics, "uncertain_fraction"), _num(metrics, "expected_error_fraction")
+    if uncertain is not None:
+        detail = f"{100 * uncertain:.0f}% of the object's voxels have P(wrong) > 0.2"
+        if expected_error is not None:
+            detail += f"; expected wrong voxels {100 * expected_error:.0f}% of its volume"
+        out.append(Answer("How sure?", f"{100 * uncertain:.0f}% uncertain", detail))
+    return out
+
+
+def headline(metrics: dict[str, Any]) -> str:
+    """The few numbers of :func:`answers` (and the solve time) for a short log line."""
+    parts = []
+    for key, fmt in (("iou", "IoU {:.3f}"), ("chamfer", "Chamfer {:.4f}"), ("profile_residual", "residual {:.3f}"),
+                     ("volume_ratio", "volume ratio {:.3f}"), ("uncertain_fraction", "uncertain {:.2f}"),
+                     ("seconds", "{:.1f} s")):
+        value = _num(metrics, key)
+        if value is not None:
+            parts.append(fmt.format(value))
+    if metrics.get("consistency"):
+        parts.append(str(metrics["consistency"]))
+    return ", ".join(parts)
+
+
+def grouped(metrics: dict[str, Any]) -> dict[str, list[tuple[str, str, Any]]]:
+    """``{group: [(label in words, key, value), ...]}`` in :data:`GROUPS` order, empty groups left out."""
+    out: dict[str, list[tuple[str, str, Any]]] = {g: [] for g in GROUPS}
+    for key, value in metrics.items():
+        group, label = METRIC_LABELS.get(key, ("other", key.replace("_", " ")))
+        out[group].append((label, key, value))
+    return {g: rows for g, rows in out.items() if rows}
