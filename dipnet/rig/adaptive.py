@@ -53,7 +53,7 @@ class RigDips:
         make_runner: ``(plan, home) -> ScanRunner`` writing to :attr:`path` (a fresh controller
             and sensor each time: the runner closes them when it returns).
         protocol: the plan's lowering settings (``start_mm``, ``stop_mm``, ``step_mm``, ...) and
-            geometry (``origin_height_mm``, ``pivot_mm``): :class:`ScanPlan` fields except orientations.
+            geometry (``origin_height_mm``, ``geometry``): :class:`ScanPlan` fields except orientations.
         path: the raw scan file.
         to_measurement: raw scan (complete dips only) -> measurement on the reconstruction grid.
         reach: what the rig reaches now; a recorded dip outside it stops the scan (module docstring).
