@@ -27,44 +27,35 @@ def deprecated(old: str, new: str) -> None:
     warnings.warn(message, ConfigDeprecation, stacklevel=3)
 
 
-def _move_reader_symmetry(cfg: DictConfig) -> None:
-    """``source.reader.symmetry`` -> the top-level ``symmetry`` (applied once, to every source)."""
-    reader = OmegaConf.select(cfg, "source.reader")
-    if not isinstance(reader, DictConfig) or reader.get("symmetry") is None:
+def _move(cfg: DictConfig, old: str, new: str) -> None:
+    """Move the value of dotted key ``old`` to ``new`` (replacing it) with a warning when it is given
+    (not null); the old key is removed either way, so nothing below reads it."""
+    parent_key, _, leaf = old.rpartition(".")
+    parent = OmegaConf.select(cfg, parent_key)
+    if not isinstance(parent, DictConfig) or leaf not in parent:
         return
-    spec = reader.symmetry
-    deprecated("source.reader.symmetry", f"symmetry={OmegaConf.to_yaml(spec, resolve=True).strip() or '{}'} "
-               "(top level: every source's measurement is symmetrised once)")
+    value = parent[leaf]
     with open_dict(cfg):
-        if not cfg.get("symmetry"):
-            cfg.symmetry = spec
-        del reader["symmetry"]
+        if value is not None:
+            shown = value
+            if isinstance(value, DictConfig):  # as typed on the command line: {n_fold: 3, mirror: true}
+                shown = "{" + ", ".join(f"{k}: {v}" for k, v in OmegaConf.to_container(value, resolve=True).items()) + "}"
+            deprecated(old, f"{new}={shown}")
+            OmegaConf.update(cfg, new, value, force_add=True)
+        del parent[leaf]
 
 
 def upgrade_config(cfg: DictConfig) -> DictConfig:
-    """A copy of ``cfg`` with every deprecated spelling rewritten to the new one (module docstring)."""
+    """A copy of a reconstruct config with every deprecated spelling rewritten to the new one:
+    ``source.reader.symmetry`` -> ``symmetry`` (top level: every source's measurement is symmetrised once)."""
     cfg = copy.deepcopy(cfg)
-    for step in (_move_reader_symmetry,):
-        step(cfg)
+    _move(cfg, "source.reader.symmetry", "symmetry")
     return cfg
 
 
-def _move_origin_height(cfg: DictConfig) -> None:
-    """``rig.geometry.origin_height_mm`` -> ``rig.origin_height_mm`` (the geometry node is a RigGeometry)."""
-    geometry = OmegaConf.select(cfg, "rig.geometry")
-    if not isinstance(geometry, DictConfig) or "origin_height_mm" not in geometry:
-        return
-    value = geometry.origin_height_mm
-    with open_dict(cfg):
-        if value is not None:
-            deprecated("rig.geometry.origin_height_mm", f"rig.origin_height_mm={value}")
-            cfg.rig.origin_height_mm = value
-        del geometry["origin_height_mm"]
-
-
 def upgrade_scan_config(cfg: DictConfig) -> DictConfig:
-    """:func:`upgrade_config` for a scan config (``conf/scan.yaml``)."""
+    """:func:`upgrade_config` for a scan config (``conf/scan.yaml``): ``rig.geometry.origin_height_mm`` ->
+    ``rig.origin_height_mm`` (the geometry node is a :class:`~dipnet.core.geometry.RigGeometry`)."""
     cfg = copy.deepcopy(cfg)
-    for step in (_move_origin_height,):
-        step(cfg)
+    _move(cfg, "rig.geometry.origin_height_mm", "rig.origin_height_mm")
     return cfg

@@ -13,17 +13,17 @@ def _compose(name, *overrides):
 
 def test_the_readers_symmetry_moves_to_the_top_level():
     cfg = _compose("config", "source=recorded", "source.reader.path=x.npz", "+source.reader.symmetry={n_fold: 3}")
-    with pytest.warns(ConfigDeprecation, match=r"source.reader.symmetry is deprecated: use symmetry="):
+    with pytest.warns(ConfigDeprecation, match=r"source.reader.symmetry is deprecated: use symmetry=\{n_fold: 3\}"):
         upgraded = upgrade_config(cfg)
     assert upgraded.symmetry == {"n_fold": 3} and "symmetry" not in upgraded.source.reader
     assert cfg.source.reader.symmetry == {"n_fold": 3}  # the job's config is left as it was
 
 
-def test_the_top_level_symmetry_wins_and_the_new_spelling_is_silent(recwarn):
+def test_a_given_old_spelling_replaces_the_new_and_the_new_spelling_is_silent(recwarn):
     cfg = _compose("config", "source=recorded", "source.reader.path=x.npz", "+source.reader.symmetry={n_fold: 3}",
                    "symmetry={n_fold: 2}")
     with pytest.warns(ConfigDeprecation):
-        assert upgrade_config(cfg).symmetry == {"n_fold": 2}
+        assert upgrade_config(cfg).symmetry == {"n_fold": 3}
     recwarn.clear()
     upgrade_config(_compose("config", "symmetry={n_fold: 2}"))
     assert not [w for w in recwarn if issubclass(w.category, ConfigDeprecation)]
