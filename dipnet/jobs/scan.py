@@ -129,7 +129,7 @@ def rig_calibration(rig_cfg) -> Calibration | None:
 
 
 def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
-    """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and protocol of the
+    """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and dip protocol of the
     scan config (as :func:`~dipnet.jobs.scan.scan_from_config`), the loop of ``cfg.planner`` (an
     :class:`~dipnet.planning.plans.AdaptivePlan`) and the reach of ``cfg.reach`` (default the hemisphere);
     reconstructions with the ``voxel`` solver on a ``cfg.planner.resolution`` grid (default 32) of side
@@ -142,7 +142,7 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
     from dipnet.solvers.voxel import VoxelSolver
 
     cfg = upgrade_scan_config(cfg)
-    protocol = plan_settings(cfg, register_fake_rig(cfg))
+    scan_settings = plan_settings(cfg, register_fake_rig(cfg))
     node = OmegaConf.to_container(cfg.planner, resolve=True)
     grid = Grid(int(node.pop("resolution", 32)), 3, float(node.pop("extent_mm", 100.0)))  # the scan's own keys
     plan: AdaptivePlan = instantiate(node)
@@ -151,7 +151,7 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
         return runner_from_config(cfg, plan, path, home=home)
 
     reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
-    adaptive_scan(make_runner, protocol, path, grid, VoxelSolver(progress=False), plan.planner, reach, plan.settings)
+    adaptive_scan(make_runner, scan_settings, path, grid, VoxelSolver(progress=False), plan.planner, reach, plan.settings)
     return read_rawscan(path)
 
 
