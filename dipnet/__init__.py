@@ -11,7 +11,7 @@ A small scripting API (see README, "Python API")::
     recon = dipnet.make_solver("minnorm").solve(meas, op)
 """
 
-from dipnet.preprocessing import datasets  # noqa: F401 (registers the ${dipnet_data:...} config resolver)
+from dipnet.jobs import resolvers  # noqa: F401 (registers the ${dipnet_data:...} config resolver)
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement, MeasurementFileError
 from dipnet.operators import BACKENDS, DipOperator, make_operator

@@ -48,7 +48,8 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from dipnet.planning.adaptive import AdaptiveSettings, SimulatedDips, adaptive_loop, concatenate
+from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
+from dipnet.simulator.source import SimulatedDips, concatenate
 from dipnet.preprocessing.datasets import mesh_names, mesh_path
 from dipnet.core.grid import Grid
 from dipnet.evaluation.metrics import evaluate

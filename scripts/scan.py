@@ -26,7 +26,7 @@ from omegaconf import DictConfig
 
 from dipnet.jobs.cli import run_hydra, user_errors
 from dipnet.core.locks import run_directory_lock
-from dipnet.jobs.scan import adaptive_scan_from_config, scan_from_config
+from dipnet.jobs.scan import scan_job
 from dipnet.rig.runner import ScanAborted
 
 log = logging.getLogger("dipnet")
@@ -37,8 +37,7 @@ def main(cfg: DictConfig) -> None:
     path = Path(HydraConfig.get().runtime.output_dir) / "rawscan.jsonl"
     with user_errors(), run_directory_lock(path.parent):
         try:
-            adaptive = cfg.get("planner") is not None and cfg.planner.kind == "adaptive"
-            scan = adaptive_scan_from_config(cfg, path) if adaptive else scan_from_config(cfg, path)
+            scan = scan_job(cfg, path)
         except ScanAborted as exc:
             log.error("%s", exc)
             print(f"error: {exc}", file=sys.stderr)

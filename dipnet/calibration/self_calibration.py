@@ -122,6 +122,32 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     return SelfCalibration(state.geometry, state.t0_mm, measurement, recon, report, history)
 
 
+class SelfCalibrator:
+    """Self-calibration as a step of a reconstruction job (``calibration=self``): the options of
+    :func:`self_calibrate`, applied by :meth:`run` to a source's recording.
+
+    Args:
+        params, iterations, dip_offset_sigma_mm, shape, gain_solver, max_section_change: as for :func:`self_calibrate`.
+        tank: the tank's identity for the written calibration file (``None``: the scan's).
+    """
+
+    def __init__(self, params=DEFAULT_SELF, iterations: int = 1, gain_solver=None, max_section_change: float = 0.2,
+                 shape: str = "binary", dip_offset_sigma_mm: float | None = None, tank: str | None = None) -> None:
+        self.params, self.iterations, self.gain_solver = tuple(params), int(iterations), gain_solver
+        self.max_section_change, self.shape = float(max_section_change), str(shape)
+        self.dip_offset_sigma_mm = None if dip_offset_sigma_mm is None else float(dip_offset_sigma_mm)
+        self.tank = tank
+
+    def run(self, recording, grid: Grid, solver, n_slabs: int, operator_factory: Callable) -> SelfCalibration:
+        """:func:`self_calibrate` on ``recording`` (a :class:`dipnet.preprocessing.sources.Recording`:
+        raw scan, configured geometry, smoothing, finishing step)."""
+        return self_calibrate(recording.raw, grid, solver, self.params, n_slabs=n_slabs,
+                              operator_factory=operator_factory, smooth=recording.smooth, finish=recording.finish,
+                              initial=recording.initial, iterations=self.iterations,
+                              dip_offset_sigma_mm=self.dip_offset_sigma_mm, shape=self.shape,
+                              gain_solver=self.gain_solver, max_section_change=self.max_section_change)
+
+
 def partial_volume(recon: Reconstruction) -> float:
     """Share of a reconstruction's volume in partly filled voxels (occupancy between 0.1 and 0.9)."""
     occ = recon.occupancy.detach().to(torch.float64)

@@ -9,8 +9,8 @@ written, and a sweep job with a bad option fails instead of counting as finished
 * options no code reads: a key of a ``_target_`` node that its target does not take (following
   ``**options`` through :func:`~dipnet.core.keywords.forwards_to`), e.g. ``+operator.bogus_option=1``, and a key added
   with ``+`` anywhere else (``+n_dip=40`` for ``n_dips=40``);
-* options the chosen source or planner ignores (:data:`IGNORED`), e.g. ``n_dips`` or
-  ``planner=adaptive`` with ``source=recorded``.
+* options the chosen source or planner ignores (:data:`IGNORED`, by the class the group instantiates),
+  e.g. ``n_dips`` or ``planner=adaptive`` with ``source=recorded``.
 """
 
 from __future__ import annotations
@@ -23,16 +23,20 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from dipnet.core.keywords import accepted_keywords
+from dipnet.planning.plans import AdaptivePlan
+from dipnet.preprocessing.sources import RecordedSource
 
 #: Hydra's own keys of a ``_target_`` node (not arguments of the target).
 HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_convert_"})
 #: Mesh formats of ``output.mesh_formats`` (:func:`dipnet.outputs.export.save_mesh`).
 MESH_FORMATS = ("ply", "stl", "obj")
-#: Options (or config groups) a source or planner does not read: ``(key, value, ignored options, why)``.
-IGNORED: tuple[tuple[str, str, tuple[str, ...], str], ...] = (
-    ("source.kind", "recorded", ("n_dips", "orientations", "snr_db", "shape", "reach"),
+#: Options (or config groups) a source or planner does not read: ``(group, class it instantiates, its
+#: command-line choice, ignored options, why)``.
+IGNORED: tuple[tuple[str, type, str, tuple[str, ...], str], ...] = (
+    ("source", RecordedSource, "source=recorded", ("n_dips", "orientations", "snr_db", "shape", "reach"),
      "the recording fixes the dips, their directions, their noise and the object"),
-    ("planner.kind", "adaptive", ("n_dips", "orientations"), "the planner chooses the dips: set planner.budget"),
+    ("planner", AdaptivePlan, "planner=adaptive", ("n_dips", "orientations"),
+     "the planner chooses the dips: set planner.budget"),
 )
 
 
@@ -60,6 +64,15 @@ def _target_nodes(node: Any, path: str = "") -> Iterator[tuple[str, DictConfig]]
         return
     for key, child in items:
         yield from _target_nodes(child, f"{path}.{key}" if path else key)
+
+
+def instantiates(cfg: DictConfig, group: str, cls: type) -> bool:
+    """Whether config group ``group`` of ``cfg`` instantiates ``cls`` (or a subclass): its ``_target_``."""
+    from hydra._internal.utils import _locate
+
+    target = OmegaConf.select(cfg, f"{group}._target_", default=None)
+    located = _locate(str(target)) if target is not None else None
+    return isinstance(located, type) and issubclass(located, cls)
 
 
 def check_targets(cfg: DictConfig) -> None:
@@ -107,16 +120,15 @@ def check_overrides(cfg: DictConfig, overrides: Sequence[str], groups: Sequence[
             known = [str(k) for k in parent.keys() if str(k) != key.rsplit(".", 1)[-1]] \
                 if isinstance(parent, DictConfig) else []
             raise unknown_option(key, known)
-    if cfg.source.get("kind") == "recorded" and OmegaConf.select(cfg, "planner.kind") == "adaptive":
+    if instantiates(cfg, "source", RecordedSource) and instantiates(cfg, "planner", AdaptivePlan):
         raise ConfigError("planner=adaptive is ignored with source=recorded: the recording's dips are fixed; plan "
                           "a scan dip by dip on the rig (scripts/scan.py +planner=adaptive) or with simulated dips")
-    for selector, value, ignored, why in IGNORED:
-        if OmegaConf.select(cfg, selector) != value:
+    for group, cls, choice, ignored, why in IGNORED:
+        if not instantiates(cfg, group, cls):
             continue
         for o in parsed:
             if o.key_or_group.split(".")[0] in ignored and not o.is_delete():
-                raise ConfigError(f"option {o.key_or_group} is ignored with {selector.split('.')[0]}={value} "
-                                  f"({why}): remove it")
+                raise ConfigError(f"option {o.key_or_group} is ignored with {choice} ({why}): remove it")
 
 
 def _integer(cfg: DictConfig, key: str, low: int, high: float = math.inf, *, nullable: bool = False,

@@ -24,20 +24,20 @@ from dipnet.outputs import export, plots
 from dipnet.outputs.progress import OutputStages
 from dipnet.outputs.summary import headline
 from dipnet.shapes.isosurface import volume_to_mesh
-from dipnet.jobs.plans import fixed_directions, simulate_adaptive
+from dipnet.jobs.calibration_job import self_calibration_job
+from dipnet.jobs.deprecations import upgrade_config
 from dipnet.solvers.checkpoint import attach_checkpoint
-from dipnet.core.framing import extent_around, measurement_extent
+from dipnet.core.framing import extent_around
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
+from dipnet.core.rawscan import RawScan
 from dipnet.operators import backend_name
 from dipnet.jobs.options import ConfigError, check_config, check_grid_options, hydra_overrides
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.jobs.resources import check_memory
 from dipnet.shapes import Shape
 from dipnet.solvers.base import measured_profiles
-from dipnet.preprocessing.symmetry import apply_symmetry
 from dipnet.jobs.threads import configure_threads
-from dipnet.preprocessing.truth import shape_from_recording
 from dipnet.outputs.resolvability import write_resolvability
 from dipnet.outputs.uncertainty import write_uncertainty
 from dipnet.preprocessing.validation import validate_measurement
@@ -55,77 +55,66 @@ class JobResult:
     output_dir: Path
 
 
-def build_grid(cfg: DictConfig, shape: Shape | None = None) -> Grid:
-    """The grid from ``ndim``, ``resolution`` and ``extent_mm`` (``null``: chosen around
-    ``shape``, see :mod:`dipnet.core.framing`, or the saved measurement's slabs); clear errors on bad values."""
+def build_grid(cfg: DictConfig, shape: Shape | None, source) -> Grid:
+    """The grid from ``ndim``, ``resolution`` and ``extent_mm`` (``null``: chosen around ``shape``,
+    see :mod:`dipnet.core.framing`, or the source's own extent); clear errors on bad values."""
     check_grid_options(cfg)
     extent = cfg.extent_mm
     if extent is None and shape is not None:
         extent = extent_around(shape.radius(), int(cfg.resolution), float(cfg.fill))
-    elif extent is None and cfg.source.kind == "recorded":
-        extent = measurement_extent(cfg.source.reader.path)
+    elif extent is None:
+        extent = source.extent_mm()
     if extent is None:
         raise ConfigError("extent_mm is needed: the recording names no shape to choose the grid around")
     return Grid(int(cfg.resolution), int(cfg.ndim), float(extent))
 
 
-def true_shape(cfg: DictConfig) -> Shape | None:
-    """The object: the configured shape (simulated sources, at its own size in mm), the shape a
-    recording names (fake-rig scans, :mod:`dipnet.preprocessing.truth`), or ``None``."""
-    if cfg.source.kind == "recorded":
-        return shape_from_recording(cfg.source.reader.path)
-    return instantiate(cfg.shape, ndim=int(cfg.ndim))
-
-
-def acquire(cfg: DictConfig, grid: Grid, shape: Shape | None, out: Path) -> DipMeasurement:
-    """The measurement: read (recorded sources) or simulated from ``shape``'s exact geometry."""
+def acquisition_options(cfg: DictConfig, grid: Grid, shape: Shape | None, factory) -> dict[str, Any]:
+    """The keyword arguments of a source's ``measure`` / ``record`` (:mod:`dipnet.preprocessing.sources`)
+    from the job's config: the plan, slabs, object, seed, reach, loop solver, operators (of ``factory``)
+    and symmetry."""
     n_slabs = cfg.n_slabs or grid.n
-    if cfg.source.kind == "recorded":
-        read = instantiate(cfg.source.reader)
-        return read(grid=grid, n_slabs=n_slabs)
-    if shape.radius() > grid.radius * (1 + 1e-6):
-        raise ConfigError(f"shape {shape.name!r} (radius {shape.radius():.1f} mm) does not fit the working "
-                          f"ball of radius {grid.radius:.1f} mm: increase extent_mm (or leave it null)")
-    if cfg.get("planner") is not None and cfg.planner.kind == "adaptive":
-        return simulate_adaptive(cfg, grid, shape, out)
-    directions = fixed_directions(cfg, grid.ndim)
-    simulate = instantiate(cfg.source.simulator)
-    raw, measurement = simulate(shape, directions, grid=grid, n_slabs=n_slabs, seed=cfg.seed,
-                                progress=cfg.output.progress)
-    raw.save(out / "rawscan.jsonl")
-    return measurement
+    reach = instantiate(cfg.reach) if cfg.get("reach") is not None else None
+    return {"plan": instantiate(cfg.planner), "grid": grid, "n_slabs": n_slabs, "shape": shape, "seed": int(cfg.seed),
+            "progress": bool(cfg.output.progress), "reach": reach, "solver": instantiate(cfg.solver),
+            "make_operator": lambda directions: factory(grid, directions, n_slabs),
+            "symmetry": OmegaConf.to_container(cfg.symmetry, resolve=True) if cfg.get("symmetry") else None}
 
 
 def run(cfg: DictConfig, out: Path) -> JobResult:
     """Run one reconstruction job and write its outputs into ``out`` (every option checked first:
     :func:`dipnet.jobs.options.check_config`)."""
+    cfg = upgrade_config(cfg)
     check_config(cfg, *hydra_overrides())
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
     configure_threads(cfg.get("threads"))
     check_memory(cfg)
-    shape = true_shape(cfg)
-    grid = build_grid(cfg, shape)
-    calibrating = bool(cfg.get("calibration"))
-    if not calibrating:
-        measurement = acquire(cfg, grid, shape, out)
-        validation = validate_measurement(measurement, grid)
-        measurement = apply_symmetry(measurement, cfg.get("symmetry"))
+    source = instantiate(cfg.source)
+    shape = source.truth(lambda: instantiate(cfg.shape, ndim=int(cfg.ndim)))
+    grid = build_grid(cfg, shape, source)
+    factory = instantiate(cfg.operator)
+    options = acquisition_options(cfg, grid, shape, factory)
+    calibration = instantiate(cfg.calibration) if cfg.get("calibration") else None
+    if calibration is None:
+        acquired = source.measure(**options)
+        measurement, validation = acquired.measurement, acquired.validation
+        save_acquisition(out, acquired.raw, acquired.planning)
         measurement.save(out / "measurement.npz")
-    elif cfg.source.kind != "recorded":  # the raw scan only: nothing is read with the uncalibrated geometry
-        acquire(cfg, grid, shape, out)
+    else:  # the raw scan only: nothing is read with the uncalibrated geometry
+        recording = source.record(**options)
+        save_acquisition(out, recording.raw if recording.new else None, None)
 
     t0 = time.perf_counter()
     solver = instantiate(cfg.solver)
     attach_checkpoint(solver, cfg.output.get("checkpoint"), out, int(cfg.output.get("checkpoint_every", 25)))
-    if calibrating:  # the rig geometry estimated jointly with the shape, before any check that depends on it
-        from dipnet.jobs.calibration_job import self_calibration_job
-
-        measurement, operator, recon = self_calibration_job(cfg, grid, solver, out)
+    if calibration is not None:  # the rig geometry estimated jointly with the shape, before any check on it
+        measurement, operator, recon = self_calibration_job(calibration, recording, grid, solver, options["n_slabs"],
+                                                             factory, out)
         validation = validate_measurement(measurement, grid)
     else:
-        operator = instantiate(cfg.operator)(grid, measurement.directions, cfg.n_slabs or grid.n)
+        operator = options["make_operator"](measurement.directions)
         recon = solver.solve(measurement, operator)
     seconds = time.perf_counter() - t0
     recon.save(out / "reconstruction.npz")
@@ -166,6 +155,14 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     stage.close()
     log.info("done: %s (every metric: %s)", headline(scores), out / "metrics.json")
     return JobResult(measurement, recon, scores, out)
+
+
+def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> None:
+    """Save what the run made while dipping: its raw scan (``rawscan.jsonl``) and a plan's report (``planning.json``)."""
+    if raw is not None:
+        raw.save(out / "rawscan.jsonl")
+    if planning is not None:
+        (out / "planning.json").write_text(json.dumps(planning, indent=2))
 
 
 def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:

@@ -37,6 +37,8 @@ import math
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet.core.memory import MemoryEstimate, ResourceError, available_memory, format_bytes
+from dipnet.jobs.options import instantiates
+from dipnet.preprocessing.sources import RecordedSource
 
 SPLAT_CACHE_BYTES = 1 << 29
 CHUNK_PAIRS = 1 << 22
@@ -57,7 +59,7 @@ def estimate_memory(cfg: DictConfig) -> MemoryEstimate:
     if backend == "auto":  # as dipnet.operators.select_backend
         backend = "splat" if k * voxels <= 2_000_000 else "fourier"
     parts = {"grid": (8 * d + 24) * voxels, "measurement": 32.0 * k * m}
-    if get("source.kind", "simulated") != "recorded":
+    if not instantiates(cfg, "source", RecordedSource):
         parts["truth"] = 8 * (3 * d + 2) * voxels
     pairs = k * ball
     if backend == "splat":

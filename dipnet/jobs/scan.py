@@ -6,11 +6,13 @@ from pathlib import Path
 from typing import Any
 
 from dipnet.core.calibration_file import TANK_CONFIG_KEY, Calibration, load_calibration
-from dipnet.core.geometry import RigGeometry
+from dipnet.core.geometry import RigGeometry, as_geometry
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import Reach
 from dipnet.core.rawscan import RawScan, ScanHeader, read_rawscan
-from dipnet.jobs.plans import adaptive_settings
+from dipnet.jobs.deprecations import upgrade_scan_config
+from dipnet.jobs.options import instantiates
+from dipnet.planning.plans import AdaptivePlan
 from dipnet.rig.adaptive import adaptive_scan
 from dipnet.rig.controller import Controller
 from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
@@ -38,6 +40,7 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
     """
     from omegaconf import OmegaConf
 
+    cfg = upgrade_scan_config(cfg)
     world = register_fake_rig(cfg)
     plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)),
                     **plan_settings(cfg, world))
@@ -56,23 +59,41 @@ def register_fake_rig(cfg):
 
 def plan_settings(cfg, world=None) -> dict[str, Any]:
     """The :class:`ScanPlan` keyword arguments of a scan config besides the orientations:
-    ``cfg.protocol``, the origin / pivot of ``cfg.rig.geometry``, the rig geometry of the
-    calibration file ``cfg.rig.calibration`` (the ideal rig without one) and the deepest lowering:
-    ``cfg.rig.max_lower_mm`` or, shallower, the tank bottom of the fake rig ``world``."""
+    ``cfg.protocol``, ``cfg.rig.origin_height_mm``, the rig geometry (``cfg.rig.geometry``, a
+    :class:`~dipnet.core.geometry.RigGeometry` node, or the calibration file ``cfg.rig.calibration``:
+    not both) and the deepest lowering: ``cfg.rig.max_lower_mm`` or, shallower, the tank bottom of the
+    fake rig ``world``."""
     from omegaconf import OmegaConf
 
-    geometry = cfg.rig.get("geometry") or {}
-    calibration = rig_calibration(cfg.rig)
+    return {**OmegaConf.to_container(cfg.protocol, resolve=True), "origin_height_mm": cfg.rig.get("origin_height_mm"),
+            "geometry": scan_geometry(cfg.rig), **deepest_lowering(cfg, world)}
+
+
+def scan_geometry(rig_cfg) -> RigGeometry:
+    """The geometry the scan assumes: ``rig.calibration``'s (a file) or ``rig.geometry``'s (values), the
+    ideal rig without either; both given (values not ideal) is an error."""
+    from hydra.utils import instantiate
+
+    node = rig_cfg.get("geometry")
+    configured = as_geometry(instantiate(node) if node is not None and "_target_" in node else node)
+    calibration = rig_calibration(rig_cfg)
+    if calibration is None:
+        return configured
+    if configured != RigGeometry():
+        raise ValueError("give the rig geometry either as a calibration file (rig.calibration) or as values "
+                         "(rig.geometry), not both")
+    return calibration.geometry
+
+
+def deepest_lowering(cfg, world=None) -> dict[str, Any]:
+    """``max_lower_mm`` and where it comes from: ``cfg.rig.max_lower_mm`` or the fake rig's tank bottom."""
     limits = [] if cfg.rig.get("max_lower_mm") is None else [(float(cfg.rig.max_lower_mm), "rig.max_lower_mm")]
     if world is not None:
         limits.append((world.deepest_lower_mm(float(cfg.orientations.get("max_tilt_deg", 90.0))),
                        f"the fake rig's tank holds {world.tank.rest_level_mm:g} mm of water, the object's radius is "
                        f"{world.shape.radius():.4g} mm"))
     deepest = min(limits, default=(None, "rig.max_lower_mm"))
-    return {**OmegaConf.to_container(cfg.protocol, resolve=True),
-            "origin_height_mm": geometry.get("origin_height_mm"), "pivot_mm": float(geometry.get("pivot_mm", 0.0)),
-            "geometry": calibration.geometry if calibration else RigGeometry(),
-            "max_lower_mm": deepest[0], "max_lower_source": deepest[1]}
+    return {"max_lower_mm": deepest[0], "max_lower_source": deepest[1]}
 
 
 def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = True,
@@ -108,26 +129,35 @@ def rig_calibration(rig_cfg) -> Calibration | None:
 
 
 def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
-    """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and protocol of the
-    scan config (as :func:`~dipnet.jobs.scan.scan_from_config`), the loop settings of
-    ``cfg.planner`` and the reach of ``cfg.reach`` (default the hemisphere); reconstructions with
-    the ``voxel`` solver on a ``cfg.planner.resolution`` grid (default 32) of side ``cfg.planner.extent_mm``
-    (default 100 mm): with ``minnorm`` estimates the planner's noise level (their misfit) is model
-    error far above the sensor noise and its scores hardly tell candidates apart (see
+    """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and dip protocol of the
+    scan config (as :func:`~dipnet.jobs.scan.scan_from_config`), the loop of ``cfg.planner`` (an
+    :class:`~dipnet.planning.plans.AdaptivePlan`) and the reach of ``cfg.reach`` (default the hemisphere);
+    reconstructions with the ``voxel`` solver on a ``cfg.planner.resolution`` grid (default 32) of side
+    ``cfg.planner.extent_mm`` (default 100 mm): with ``minnorm`` estimates the planner's noise level (their
+    misfit) is model error far above the sensor noise and its scores hardly tell candidates apart (see
     :mod:`dipnet.planning.planner`). Returns the raw scan."""
     from hydra.utils import instantiate
+    from omegaconf import OmegaConf
 
     from dipnet.solvers.voxel import VoxelSolver
 
-    protocol = plan_settings(cfg, register_fake_rig(cfg))
-    settings_cfg = cfg.planner
+    cfg = upgrade_scan_config(cfg)
+    scan_settings = plan_settings(cfg, register_fake_rig(cfg))
+    node = OmegaConf.to_container(cfg.planner, resolve=True)
+    grid = Grid(int(node.pop("resolution", 32)), 3, float(node.pop("extent_mm", 100.0)))  # the scan's own keys
+    plan: AdaptivePlan = instantiate(node)
 
     def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:
         return runner_from_config(cfg, plan, path, home=home)
 
-    grid = Grid(int(settings_cfg.get("resolution", 32)), 3, float(settings_cfg.get("extent_mm", 100.0)))
-    settings = adaptive_settings(settings_cfg)
     reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
-    adaptive_scan(make_runner, protocol, path, grid, VoxelSolver(progress=False), instantiate(settings_cfg.planner),
-                  reach, settings)
+    adaptive_scan(make_runner, scan_settings, path, grid, VoxelSolver(progress=False), plan.planner, reach, plan.settings)
     return read_rawscan(path)
+
+
+def scan_job(cfg, path: str | Path) -> RawScan:
+    """The scan of ``scripts/scan.py``: planned dip by dip when ``cfg.planner`` is an adaptive plan
+    (:func:`adaptive_scan_from_config`), else up front from ``cfg.orientations`` (:func:`scan_from_config`)."""
+    if cfg.get("planner") is not None and instantiates(cfg, "planner", AdaptivePlan):
+        return adaptive_scan_from_config(cfg, path)
+    return scan_from_config(cfg, path)

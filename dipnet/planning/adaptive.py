@@ -1,9 +1,9 @@
 """The closed planning loop: dip, reconstruct, measure the doubt, plan the next batch, repeat.
 
 :func:`adaptive_loop` is the loop itself, independent of where dips come from: the simulator
-(:func:`dipnet.jobs.plans.simulate_adaptive`, behind ``planner=adaptive`` in ``scripts/reconstruct.py``;
-``planner=fixed`` plans up front with :func:`dipnet.jobs.plans.fixed_directions`) and the
-rig (:mod:`dipnet.rig.adaptive`) give it an ``acquire`` callback. It starts from
+(:class:`dipnet.simulator.source.SimulatedDips`, driven by :class:`dipnet.planning.plans.AdaptivePlan`
+behind ``planner=adaptive`` in ``scripts/reconstruct.py``) and the rig (:mod:`dipnet.rig.adaptive`)
+give it an ``acquire`` callback. It starts from
 ``initial_dips`` directions spread uniformly over the reachable set, and after each
 reconstruction either stops - at the ``budget`` of dips, or when the expected misclassified
 fraction (:func:`dipnet.evaluation.uncertainty.summarise`) falls below ``stop_uncertainty`` - or asks the
@@ -15,14 +15,13 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import torch
 
-from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
 from dipnet.core.orientations import Reach
@@ -109,17 +108,6 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
         history[-1]["plan_seconds"] = time.perf_counter() - start
 
 
-def concatenate(first: DipMeasurement, second: DipMeasurement) -> DipMeasurement:
-    """The dips of ``first`` followed by those of ``second`` (same slabs), as one measurement."""
-    if first.n_slabs != second.n_slabs or abs(first.slab_thickness - second.slab_thickness) > 1e-9:
-        raise ValueError("measurements to concatenate must share the slab count and thickness")
-    sigma = None
-    if first.sigma is not None and second.sigma is not None:
-        sigma = torch.cat([first.sigma, second.sigma])
-    return DipMeasurement(torch.cat([first.directions, second.directions]), torch.cat([first.profiles, second.profiles]),
-                          first.slab_thickness, torch.cat([first.offsets, second.offsets]), sigma, dict(first.metadata))
-
-
 def warn_linear_loop_solver(solver) -> None:
     """Warn when the loop reconstructs with ``minnorm``: the planner takes its noise level from the
     estimate's misfit, which for a min-norm estimate is model error (120x the sensor noise on the
@@ -129,39 +117,6 @@ def warn_linear_loop_solver(solver) -> None:
                    "misfit, which for minnorm is model error, so the candidates score alike; use solver=voxel")
         log.warning(message)
         warnings.warn(message, stacklevel=2)
-
-
-class SimulatedDips:
-    """The loop's ``acquire`` for simulated dips: simulates the new directions and returns the
-    measurement of all dips so far (:attr:`measurement`; their raw scan in :attr:`raw`).
-
-    Args:
-        simulate: :func:`dipnet.simulator.simulate.simulate_measurement` or a partial of it.
-        shape, grid, n_slabs: what is dipped and the reconstruction slabs.
-        seed: noise seed; each batch gets its own stream (``seed + 7919 * dips so far``).
-    """
-
-    def __init__(self, simulate: Callable[..., tuple[RawScan, DipMeasurement]], shape, grid: Grid, n_slabs: int,
-                 seed: int, progress: bool = False) -> None:
-        self.simulate, self.shape, self.grid, self.n_slabs = simulate, shape, grid, n_slabs
-        self.seed, self.progress = seed, progress
-        self.raw: RawScan | None = None
-        self.measurement: DipMeasurement | None = None
-
-    def __call__(self, directions: torch.Tensor) -> DipMeasurement:
-        done = 0 if self.measurement is None else self.measurement.n_orientations
-        raw, new = self.simulate(self.shape, directions, grid=self.grid, n_slabs=self.n_slabs,
-                                 seed=self.seed + 7919 * done, progress=self.progress)
-        self.raw = raw if self.raw is None else merge_raw(self.raw, raw)
-        self.measurement = new if self.measurement is None else concatenate(self.measurement, new)
-        return self.measurement
-
-
-def merge_raw(first: RawScan, second: RawScan) -> RawScan:
-    """The orientations of ``second`` appended to ``first``'s, renumbered after them."""
-    offset = len(first.orientations)
-    return replace(first, orientations=first.orientations + [replace(o, k=o.k + offset) for o in second.orientations])
-
 
 
 def keep_recorded(recorded: RawScan, planned: list[tuple[float, float]], first: int, reach: Reach | None,

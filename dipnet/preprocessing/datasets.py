@@ -9,14 +9,12 @@ dipnet finds it outside the repository):
 - ``real/3cats_fixture_3mm.csv``: the authors' real three-cats recording (Aberman et al. 2017,
   repository Kewiee/DipTransform), with ``README.md`` saying what is known about it.
 
-In Hydra configs the folder is reachable as ``${dipnet_data:meshes/bunny.ply}``.
+In Hydra configs the folder is reachable as ``${dipnet_data:meshes/bunny.ply}`` (:mod:`dipnet.jobs.resolvers`).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-
-from omegaconf import OmegaConf
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 MESHES_DIR = DATA_DIR / "meshes"
@@ -51,6 +49,3 @@ def mesh_path(name: str) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"no bundled mesh {name!r}; bundled: {', '.join(mesh_names())}")
     return path
-
-
-OmegaConf.register_new_resolver("dipnet_data", lambda relative="": str(data_path(relative)), replace=True)

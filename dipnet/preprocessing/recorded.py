@@ -34,7 +34,6 @@ import codecs
 import csv
 import io
 import math
-import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -340,7 +339,7 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     raw = read_scan(path, cross_section_mm2)
     raw.orientations = complete_dips(raw)
     raw, readings = repair_readings(raw, max_cross_section=max_cross_section)
-    if calibration is not None and geometry is not None:
+    if calibration is not None and as_geometry(geometry) != RigGeometry():
         raise ValueError("give the rig geometry either as a calibration file or as values, not both")
     if calibration is not None:
         geometry = scan_calibration(calibration, raw.header).geometry
@@ -420,10 +419,10 @@ def read_raw_recording(path: str | Path, grid: Grid, n_slabs: int | None = None,
         dropped dips, counts).
     """
     raw, geometry, info = prepare_recording(path, max_cross_section=max_object_section(grid), **options)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        m = preprocess(invert_scan(raw, geometry), grid=grid, n_slabs=n_slabs,
-                       t_start="metadata" if t_start == "geometry" else t_start, smooth=smooth, repair=False)
+    # cleaned once, by prepare_recording: complete dips kept, outliers repaired
+    m = preprocess(invert_scan(raw, geometry), grid=grid, n_slabs=n_slabs,
+                   t_start="metadata" if t_start == "geometry" else t_start, smooth=smooth, repair=False,
+                   include_incomplete=True)
     info["measured_orientations"] = m.n_orientations
     m = finish_measurement(m, symmetry, interpolate)
     m.metadata = {**m.metadata, "recorded": info, "path": str(path), "readings": info["readings"]}

@@ -52,16 +52,16 @@ class RigDips:
     Args:
         make_runner: ``(plan, home) -> ScanRunner`` writing to :attr:`path` (a fresh controller
             and sensor each time: the runner closes them when it returns).
-        protocol: the plan's lowering settings (``start_mm``, ``stop_mm``, ``step_mm``, ...) and
-            geometry (``origin_height_mm``, ``pivot_mm``): :class:`ScanPlan` fields except orientations.
+        plan_settings: the :class:`ScanPlan` fields except the orientations: the dip protocol (``start_mm``,
+            ``stop_mm``, ``step_mm``, ...), ``origin_height_mm``, ``geometry``, the deepest lowering.
         path: the raw scan file.
         to_measurement: raw scan (complete dips only) -> measurement on the reconstruction grid.
         reach: what the rig reaches now; a recorded dip outside it stops the scan (module docstring).
     """
 
-    def __init__(self, make_runner: MakeRunner, protocol: dict, path: str | Path,
+    def __init__(self, make_runner: MakeRunner, plan_settings: dict, path: str | Path,
                  to_measurement: Callable[[RawScan], DipMeasurement], reach: Reach | None = None) -> None:
-        self.make_runner, self.protocol, self.path = make_runner, dict(protocol), Path(path)
+        self.make_runner, self.plan_settings, self.path = make_runner, dict(plan_settings), Path(path)
         self.to_measurement, self.reach = to_measurement, reach
         self.orientations: list[tuple[float, float]] = []
         self.homed = False
@@ -76,7 +76,7 @@ class RigDips:
         n = len(self.orientations)
         if recorded is None or len(recorded.complete_orientations()) < n or \
                 sorted(recorded.complete_orientations())[:n] != list(range(n)):
-            runner = self.make_runner(ScanPlan(list(self.orientations), **self.protocol), not self.homed)
+            runner = self.make_runner(ScanPlan(list(self.orientations), **self.plan_settings), not self.homed)
             self.homed = True
             recorded = runner.run()
         else:
@@ -85,12 +85,12 @@ class RigDips:
         return self.to_measurement(replace(recorded, orientations=first))
 
 
-def adaptive_scan(make_runner: MakeRunner, protocol: dict, path: str | Path, grid: Grid, solver, planner: Planner,
+def adaptive_scan(make_runner: MakeRunner, plan_settings: dict, path: str | Path, grid: Grid, solver, planner: Planner,
                   reach: Reach, settings: AdaptiveSettings) -> AdaptiveResult:
     """Scan adaptively (or resume such a scan) on a rig; reconstructions with ``solver`` on ``grid``.
 
     Args:
-        make_runner, protocol, path: see :class:`RigDips`.
+        make_runner, plan_settings, path: see :class:`RigDips`.
         grid: reconstruction grid of the loop (a coarse one keeps each step quick).
         solver: a :class:`~dipnet.solvers.base.Solver`.
         planner, reach, settings: see :func:`dipnet.planning.adaptive.adaptive_loop` (every planned
@@ -103,5 +103,5 @@ def adaptive_scan(make_runner: MakeRunner, protocol: dict, path: str | Path, gri
         operator = make_operator(grid, measurement.directions, grid.n)
         return solver.solve(measurement, operator), operator
 
-    return adaptive_loop(RigDips(make_runner, protocol, path, to_measurement, reach), reconstruct, planner, reach,
+    return adaptive_loop(RigDips(make_runner, plan_settings, path, to_measurement, reach), reconstruct, planner, reach,
                          settings)

@@ -138,11 +138,11 @@ class AxisMap:
             raise ValueError(f"the three rig axes need distinct letters, got {letters}")
 
     @classmethod
-    def from_config(cls, cfg: dict | None) -> "AxisMap":
-        """From ``{lower: {letter, scale, sign, offset}, tilt: {...}, spin: {...}}`` (any subset)."""
-        cfg = dict(cfg or {})
+    def from_config(cls, axes: dict | None) -> "AxisMap":
+        """From a plain mapping ``{lower: {letter, scale, sign, offset}, tilt: {...}, spin: {...}}`` (any subset)."""
+        axes = dict(axes or {})
         default = cls()
-        return cls(**{name: Axis(**{**default.__dict__[name].__dict__, **dict(cfg.get(name) or {})})
+        return cls(**{name: Axis(**{**default.__dict__[name].__dict__, **dict(axes.get(name) or {})})
                       for name in ("lower", "tilt", "spin")})
 
     def short_way(self, target: dict[str, float | None], current: dict[str, float]) -> dict[str, float | None]:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import warnings
 import signal
 import time
 from dataclasses import asdict, dataclass, field
@@ -134,8 +135,8 @@ class ScanPlan:
         origin_height_mm: if the rig geometry is calibrated, the height of the object's origin
             over the resting water at ``lower_mm = 0``, untilted; recorded per orientation as
             ``t_start_mm`` (the water line in the object frame at stage 0).
-        pivot_mm: distance of the tilt pivot above the object's origin along its axis (mm); a
-            shorthand for ``geometry.pivot_mm`` (non-zero overrides it).
+        pivot_mm: deprecated shorthand for ``geometry.pivot_mm`` (non-zero overrides it, with a
+            ``DeprecationWarning``): give ``geometry=RigGeometry(pivot_mm=...)``.
         geometry: the rig's calibrated geometry (:class:`~dipnet.core.geometry.RigGeometry`), used
             for ``t_start_mm`` and recorded in the header (``config["rig_geometry"]``).
         max_lower_mm: the deepest lowering (mm) before the object reaches the tank bottom, if
@@ -164,6 +165,8 @@ class ScanPlan:
 
     def __post_init__(self) -> None:
         if self.pivot_mm:
+            warnings.warn("ScanPlan(pivot_mm=...) is deprecated: use geometry=RigGeometry(pivot_mm=...) "
+                          "(config: rig.geometry.pivot_mm)", DeprecationWarning, stacklevel=3)
             self.geometry = self.geometry.with_values(pivot_mm=float(self.pivot_mm))
         self.orientations = [(float(t), float(s)) for t, s in self.orientations]
         if not (math.isfinite(self.start_mm) and math.isfinite(self.stop_mm) and self.step_mm > 0

@@ -204,15 +204,10 @@ def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
     assert torch.equal(shared, NextBestDipPlanner(resolution=10).next(result.measurement, recon, candidates, 2, operator))
 
 
-def test_bad_loop_settings_and_plans_are_user_errors(tmp_path):
-    from dipnet.jobs.plans import fixed_directions
+def test_bad_loop_settings_are_user_errors(tmp_path):
     from dipnet.planning.adaptive import AdaptiveSettings
 
     with pytest.raises(ValueError, match="initial_dips <= budget"):
         AdaptiveSettings(budget=4, initial_dips=8)
     with pytest.raises(ValueError, match="plans 3D dips"):
         run(_cfg("ndim=2", "planner=adaptive"), tmp_path)
-    with pytest.raises(ValueError, match="leaves the reach"):
-        fixed_directions(_cfg("reach=authors_rig", "orientations=random", "n_dips=20"), 3)
-    tilt, _ = _tilt_spin(fixed_directions(_cfg("reach=authors_rig", "n_dips=20"), 3))
-    assert tilt.max() <= 35 + 1e-9

@@ -154,7 +154,7 @@ def test_scan_config_runs_through_hydra(tmp_path):
     assert len(raw.completed()) == 2
     stored = read_rawscan(tmp_path / "rawscan.jsonl")
     assert stored.header.quantity == "mass_g" and stored.header.rig == "fake-marlin"
-    assert stored.orientations[0].meta["t_start_mm"] == -cfg.rig.geometry.origin_height_mm
+    assert stored.orientations[0].meta["t_start_mm"] == -cfg.rig.origin_height_mm
     assert stored.header.config["scan"]["sensor"]["device"]["style"] == "sics"
 
 

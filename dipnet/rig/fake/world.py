@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,8 +85,8 @@ class FakeRig:
         tank: the tank (default :meth:`Tank.default`).
         origin_height_mm: height of the object's origin over the resting water at
             ``lower_mm = 0``, untilted (default: the shape's radius + 10 mm).
-        pivot_mm: distance of the tilt pivot above the object's origin, along its axis (a
-            shorthand for ``geometry.pivot_mm``; non-zero overrides it).
+        pivot_mm: deprecated shorthand for ``geometry.pivot_mm`` (non-zero overrides it, with a
+            ``DeprecationWarning``): give ``geometry=RigGeometry(pivot_mm=...)``.
         geometry: the rig's true geometry (:class:`~dipnet.core.geometry.RigGeometry` or a mapping).
         axes, status_axes: the machine axis mapping and GRBL status order (as the driver's).
         level_sigma_mm, level_quantum_mm: level noise and resolution (mm).
@@ -119,7 +120,11 @@ class FakeRig:
         r = float(shape.radius())
         self.origin_height_mm = r + 10.0 if origin_height_mm is None else float(origin_height_mm)
         geometry = as_geometry(geometry)
-        self.geometry = geometry.with_values(pivot_mm=float(pivot_mm)) if pivot_mm else geometry
+        if pivot_mm:
+            warnings.warn("FakeRig(pivot_mm=...) is deprecated: use geometry=RigGeometry(pivot_mm=...) "
+                          "(config: rig.geometry.pivot_mm)", DeprecationWarning, stacklevel=2)
+            geometry = geometry.with_values(pivot_mm=float(pivot_mm))
+        self.geometry = geometry
         self.created = time.monotonic()
         self.axes = axes if isinstance(axes, AxisMap) else AxisMap.from_config(axes)
         self.status_axes = status_axes.upper()

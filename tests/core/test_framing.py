@@ -1,0 +1,29 @@
+"""Grid framing: the object keeps its size in mm at every resolution; a saved measurement's extent."""
+
+import numpy as np
+import pytest
+
+from dipnet.core.framing import extent_around, measurement_extent
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.orientations import fibonacci_hemisphere
+
+@pytest.mark.parametrize("n", [16, 24, 40, 96])
+def test_the_object_fills_its_share_of_the_working_ball(n):
+    extent = extent_around(30.0, n, 0.9)
+    working_radius = extent * (n - 2) / (2 * n)  # half the side less one voxel
+    assert working_radius * 0.9 == pytest.approx(30.0)
+    assert Grid(n, 3, extent).radius == pytest.approx(working_radius)
+
+def test_bad_radius_or_fill_are_refused():
+    with pytest.raises(ValueError, match="radius must be positive"):
+        extent_around(0.0, 16, 0.9)
+    with pytest.raises(ValueError, match=r"fill must be in \(0, 1\]"):
+        extent_around(10.0, 16, 1.5)
+
+def test_a_saved_measurement_knows_its_extent_and_other_files_do_not(tmp_path):
+    k, m = 4, 10
+    offsets = np.array([-40.0, -40.0, -35.0, -30.0])  # the farthest slab edge: -40 or -30 + 10 * 7 = 40
+    DipMeasurement(fibonacci_hemisphere(k), np.ones((k, m)), 7.0, offsets).save(tmp_path / "m.npz")
+    assert measurement_extent(tmp_path / "m.npz") == pytest.approx(2 * max(40.0, -30.0 + 70.0))
+    assert measurement_extent(tmp_path / "scan.jsonl") is None

@@ -1,0 +1,40 @@
+"""One-line user errors: the message behind a failed instantiation, exit codes, missing options."""
+
+import pytest
+from hydra.errors import InstantiationException
+from omegaconf import OmegaConf
+
+from dipnet.jobs.cli import MissingOptionError, error_message, interrupted, require_options, user_errors
+
+
+def test_the_message_is_the_user_error_behind_an_instantiation():
+    try:
+        try:
+            raise ValueError("resolution must be an integer")
+        except ValueError as cause:
+            raise InstantiationException("Error in call to target 'x'") from cause
+    except InstantiationException as exc:
+        assert error_message(exc) == "resolution must be an integer"
+    assert error_message(KeyError("solver")) == "missing key 'solver'"
+    assert error_message(FileNotFoundError(2, "No such file or directory", "/x.npz")) == "/x.npz: No such file or directory"
+    assert error_message(ValueError("a\n  b   c")) == "a b c"
+
+
+def test_user_errors_exit_2_with_one_line(capsys):
+    with pytest.raises(SystemExit) as exit_info, user_errors():
+        raise ValueError("bad option")
+    assert exit_info.value.code == 2 and capsys.readouterr().err == "error: bad option\n"
+    with pytest.raises(RuntimeError), user_errors():  # not a user error: the traceback stays
+        raise RuntimeError("a bug")
+
+
+def test_ctrl_c_exits_130_saying_how_to_resume(capsys):
+    with pytest.raises(SystemExit) as exit_info, interrupted(lambda: "rerun the same command"):
+        raise KeyboardInterrupt
+    assert exit_info.value.code == 130 and capsys.readouterr().err == "interrupted: rerun the same command\n"
+
+
+def test_every_missing_option_is_named():
+    require_options(OmegaConf.create({"a": 1}))
+    with pytest.raises(MissingOptionError, match=r"option b, c.d is required: .* e.g. b=\.\.\."):
+        require_options(OmegaConf.create({"a": 1, "b": "???", "c": {"d": "???"}}))

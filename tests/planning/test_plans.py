@@ -1,0 +1,68 @@
+"""Dip plans (config group ``planner``): the fixed plan's directions and reach, the adaptive plan's loop."""
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
+
+from dipnet.core.orientations import Reach, fibonacci_hemisphere
+from dipnet.planning.plans import AdaptivePlan, FixedPlan, PlanResult
+
+AUTHORS_RIG = Reach(tilt_range_deg=(0.0, 35.0), step_deg=5.0)
+
+
+def _tilt_deg(directions: torch.Tensor) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(directions[:, 2].numpy(), -1, 1)))
+
+
+def _cfg(*overrides):
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def test_the_planner_groups_instantiate_plans_with_the_top_level_options():
+    fixed = instantiate(_cfg("n_dips=20", "orientations=random", "seed=3").planner)
+    assert isinstance(fixed, FixedPlan) and (fixed.n_dips, fixed.orientations, fixed.seed) == (20, "random", 3)
+    adaptive = instantiate(_cfg("planner=adaptive", "planner.budget=11", "planner.planner.resolution=16").planner)
+    assert isinstance(adaptive, AdaptivePlan) and adaptive.settings.budget == 11
+    assert adaptive.planner.options["resolution"] == 16
+
+
+def test_a_fixed_plan_inside_the_reach_is_the_orientation_set():
+    directions = FixedPlan("fibonacci", 30).directions(3, Reach())
+    assert torch.allclose(directions, fibonacci_hemisphere(30))
+
+
+def test_a_fibonacci_plan_leaving_the_reach_becomes_uniform_over_it():
+    directions = FixedPlan("fibonacci", 20).directions(3, AUTHORS_RIG)
+    assert directions.shape == (20, 3) and _tilt_deg(directions).max() <= 35 + 1e-9
+    assert torch.allclose(directions.norm(dim=1), torch.ones(20, dtype=directions.dtype))
+
+
+def test_a_random_plan_leaving_the_reach_is_refused():
+    with pytest.raises(ValueError, match="leaves the reach"):
+        FixedPlan("random", 20, seed=1).directions(3, AUTHORS_RIG)
+
+
+def test_2d_plans_ignore_the_reach():
+    directions = FixedPlan("uniform", 6).directions(2, AUTHORS_RIG)
+    angles = np.degrees(np.arctan2(directions[:, 1].numpy(), directions[:, 0].numpy())) % 180
+    assert np.allclose(np.sort(angles) - np.sort(angles)[0], np.arange(6) * 30.0, atol=1e-9)
+
+
+def test_a_fixed_plan_dips_once_and_has_no_report():
+    calls = []
+    result = FixedPlan("fibonacci", 12).run(lambda d: calls.append(d) or "measured", 3, None)
+    assert isinstance(result, PlanResult) and result.measurement == "measured" and result.report is None
+    assert len(calls) == 1 and calls[0].shape == (12, 3)
+
+
+def test_the_adaptive_plan_needs_3d_and_a_solver():
+    plan = AdaptivePlan(budget=4, initial_dips=2)
+    with pytest.raises(ValueError, match="plans 3D dips"):
+        plan.run(lambda d: None, 2, None)
+    with pytest.raises(ValueError, match="give solver and make_operator"):
+        plan.run(lambda d: None, 3, None)
+    with pytest.raises(ValueError, match="initial_dips <= budget"):
+        AdaptivePlan(budget=4, initial_dips=8)

@@ -1,0 +1,44 @@
+"""Robust readings: a spike is repaired back onto the curve, a clean dip is left alone, a noisy one rejected."""
+
+import numpy as np
+import pytest
+
+from dipnet.core.rawscan import OrientationScan, RawScan, ScanHeader
+from dipnet.preprocessing.readings import outlier_mask, repair_readings
+
+STAGE = np.arange(40.0)
+CURVE = 100.0 + 0.5 * np.clip(STAGE - 10.0, 0.0, 20.0)  # rest, a steady rise, the plateau
+
+
+def _scan(*value_sets) -> RawScan:
+    raw = RawScan(header=ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=6e4, step_mm=1.0))
+    for k, values in enumerate(value_sets):
+        raw.orientations.append(OrientationScan(k=k, tilt_deg=0.0, spin_deg=0.0, stage_mm=STAGE.copy(),
+                                                values=np.asarray(values, dtype=float), time_s=STAGE.copy(),
+                                                complete=True))
+    return raw
+
+
+def test_a_clean_monotone_dip_has_no_outlier():
+    mask, tolerance = outlier_mask(STAGE, CURVE)
+    assert not mask.any() and (tolerance > 0).all()
+
+
+def test_a_spike_is_found_and_repaired_by_its_neighbours():
+    spiked = CURVE.copy()
+    spiked[25] += 5.0
+    with pytest.warns(UserWarning, match=r"repaired 1 outlier reading\(s\), rejected 0 dip"):
+        repaired, report = repair_readings(_scan(spiked))
+    assert report.to_json()["readings_repaired"] == 1 and report.repaired[0]["index"] == 25
+    assert np.allclose(repaired.orientations[0].values, CURVE)  # linear between good readings: the curve itself
+
+
+def test_a_dip_with_too_many_outliers_is_rejected():
+    rng = np.random.default_rng(0)
+    bad = CURVE.copy()
+    bad[rng.choice(40, 8, replace=False)] += 50.0  # 20% of the readings, more than max_fraction
+    with pytest.warns(UserWarning, match=r"rejected 1 dip"):
+        repaired, report = repair_readings(_scan(CURVE, bad), max_fraction=0.1)
+    assert [r["k"] for r in report.rejected] == [1]
+    assert [o.k for o in repaired.orientations] == [0]
+    assert report.to_json()["dips_rejected"] == 1

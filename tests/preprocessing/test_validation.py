@@ -1,0 +1,52 @@
+"""Measurement validation: consistent dips pass, impossible ones are refused, disagreeing ones named."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.operators.analytic import ball_profiles
+from dipnet.preprocessing.validation import MeasurementValidationError, validate_measurement, working_ball_volume
+
+GRID = Grid(16, 3, 100.0)
+EDGES = torch.linspace(-50, 50, 17, dtype=torch.float64)
+
+
+def _ball(k=12, radius=20.0) -> np.ndarray:
+    return ball_profiles(fibonacci_hemisphere(k), EDGES, torch.zeros(3), radius).numpy()
+
+
+def _measurement(profiles, k=12) -> DipMeasurement:
+    return DipMeasurement(fibonacci_hemisphere(k), profiles, 100.0 / 16, np.full(k, -50.0))
+
+
+def test_the_working_ball_volume():
+    assert working_ball_volume(GRID) == pytest.approx(4 / 3 * math.pi * GRID.radius**3)
+    assert working_ball_volume(Grid(16, 2, 100.0)) == pytest.approx(math.pi * Grid(16, 2, 100.0).radius**2)
+
+
+def test_consistent_dips_pass_without_warnings():
+    report = validate_measurement(_measurement(_ball()), GRID)
+    assert report.warnings == [] and report.metrics()["validation_warnings"] == 0
+    assert report.stats["total_spread"] == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda p: p * 1e3, "working ball"),         # wrong units: a thousand times the ball
+    (lambda p: -p, "sums to"),
+])
+def test_impossible_dips_are_refused(change, message):
+    with pytest.raises(MeasurementValidationError, match=message):
+        validate_measurement(_measurement(change(_ball())), GRID)
+
+
+def test_a_dip_measuring_less_is_named():
+    profiles = _ball()
+    profiles[3] *= 0.8  # a truncated dip
+    with pytest.warns(UserWarning, match=r"dips \[3\]"):
+        report = validate_measurement(_measurement(profiles), GRID)
+    assert report.stats["totals_off"] == [3] and len(report.warnings) == 1
