@@ -1,8 +1,9 @@
-"""Sweep jobs: a failing job writes error.txt and returns None; Ctrl-C still stops; one summary line."""
+"""Sweep jobs: a failing job writes error.txt and returns None; Ctrl-C still stops; one short job line."""
 
 import pytest
 
-from dipnet.jobs.sweep_jobs import ERROR_FILE, guarded_job, job_summary
+from dipnet.jobs.sweep_jobs import ERROR_FILE, guarded_job
+from dipnet.outputs.summary import headline
 
 
 def test_a_finished_job_returns_its_value(tmp_path):
@@ -28,6 +29,6 @@ def test_ctrl_c_is_not_swallowed(tmp_path):
         guarded_job(interrupt, tmp_path)
 
 
-def test_the_summary_keeps_the_known_metrics_in_order():
-    assert job_summary({"seconds": 1.23456, "iou": 0.912345, "other": 3, "empty": False}) == "iou=0.9123 seconds=1.235"
-    assert job_summary({"iou": 1}, keys=("iou",)) == "iou=1"
+def test_the_job_line_keeps_the_headline_numbers_in_order():
+    line = headline({"seconds": 1.23456, "iou": 0.912345, "other": 3, "consistency": "consistent"})
+    assert line == "IoU 0.912, 1.2 s, consistent"
