@@ -84,12 +84,21 @@ def test_malformed_measurement_and_unknown_option(tmp_path):
 
 
 def test_prior_weights_and_warm_start_override_from_the_command_line():
+    """The overrides reach the solver: the priors it builds carry the given weights and options,
+    and its warm start is a quiet min-norm solver."""
+    from dipnet.solvers import MinNormSolver
+    from dipnet.solvers.priors import build_priors
+
     cfg = _cfg("solver=voxel", "solver.priors.tv.weight=0.1", "solver.priors.symmetry.weight=0.5",
                "solver.priors.symmetry.plane_normal=[1,0,0]",
                "+solver.warm_start={_target_: dipnet.solvers.MinNormSolver, progress: false}")
     solver = instantiate(cfg.solver)
-    assert cfg.solver.priors.tv.weight == 0.1
     assert type(solver).__name__ == "VoxelSolver"
+    built = {name: (weight, module) for name, weight, module in build_priors(solver.priors, volume_fraction=0.1)}
+    assert set(built) == {"tv", "symmetry"}  # every other prior keeps weight 0 (off)
+    assert built["tv"][0] == 0.1 and built["symmetry"][0] == 0.5
+    assert list(built["symmetry"][1].plane_normal) == [1, 0, 0]
+    assert isinstance(solver.warm_start, MinNormSolver) and solver.warm_start.progress is False
 
 
 @pytest.mark.parametrize("progress", [True, False])
