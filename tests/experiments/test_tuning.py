@@ -24,6 +24,7 @@ def tune_script():
     return module
 
 
+@pytest.mark.slow
 def test_a_study_runs_its_trials_and_keeps_the_best(tmp_path, monkeypatch, tune_script):
     received = []  # the weight each job's solver was configured with
     real_run = tuning.run

@@ -48,6 +48,7 @@ def test_2d_end_to_end_reaches_the_iou_floor(tmp_path):
     assert (again.reconstruction.binary == result.reconstruction.binary).mean() > 0.999
 
 
+@pytest.mark.slow
 def test_3d_end_to_end_reaches_the_iou_floor(tmp_path):
     result = run(_cfg("resolution=32", "n_dips=100", "shape.name=ball", "output.figures=false"), tmp_path)
     assert result.metrics["iou"] >= 0.85
@@ -63,9 +64,9 @@ def _cli(tmp_path, *overrides):
 
 @pytest.mark.parametrize("overrides,message", [
     (["resolution=-4"], "resolution must be"),
-    (["n_dips=0"], "n_dips must be a positive integer"),
-    (["shape=mesh", "shape.path=/nonexistent/bunny.stl"], "/nonexistent/bunny.stl"),
-    (["source=recorded", "source.reader.path=/nonexistent/m.npz"], "/nonexistent/m.npz"),
+    pytest.param(["n_dips=0"], "n_dips must be a positive integer", marks=pytest.mark.slow),
+    pytest.param(["shape=mesh", "shape.path=/nonexistent/bunny.stl"], "/nonexistent/bunny.stl", marks=pytest.mark.slow),
+    pytest.param(["source=recorded", "source.reader.path=/nonexistent/m.npz"], "/nonexistent/m.npz", marks=pytest.mark.slow),
 ])
 def test_bad_input_gets_a_one_line_error(tmp_path, overrides, message):
     proc = _cli(tmp_path, *overrides)
@@ -74,6 +75,7 @@ def test_bad_input_gets_a_one_line_error(tmp_path, overrides, message):
     assert message in proc.stderr
 
 
+@pytest.mark.slow
 def test_malformed_measurement_and_unknown_option(tmp_path):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"garbage")
