@@ -30,7 +30,7 @@ IDS = [f"{name}-{ndim}d" for name, ndim in ALL]
 @dataclass(frozen=True)
 class Tolerance:
     """What one backend must reach (relative errors), set at 1.5-3x what it reaches on the very
-    problems of the tests below (float64; measured on every backend, 1 and 2 threads)."""
+    problems of the tests below (float64, measured on every backend with 1 thread; they pass with 2)."""
 
     sum_to_volume: float  # measured: exact backends < 5e-16; fourier 2.5e-5 (2D), 3.8e-7 (3D)
     adjoint: float        # <Ax, y> vs <x, A^T y>: measured < 4e-16 for every backend
