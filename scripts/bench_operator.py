@@ -154,16 +154,17 @@ def bench_table(sizes: list[int], counts: list[int], backends: list[str], limit:
 def _format_row(row: dict, rows: list[dict]) -> str:
     head = f"| {row['n']:>4} | {row['k']:>5} | {row['backend']:<10} |"
     if row.get("skipped"):
-        return head + f" skipped (est. {row['estimate_s']:.0f} s) | | | |"
+        return head + f" skipped (extrapolated from K={CALIBRATION_K}: {row['estimate_s']:.0f} s) | | | |"
     if "stopped_gb" in row:
         return head + f" stopped: > {row['stopped_gb']:.1f} GB | | | |"
+    reference_s, how = reference_time(rows, row["n"], row["k"])
     ref = {r["backend"]: r for r in rows if r["n"] == row["n"] and r["k"] == row["k"]}
-    if "seconds" in ref.get("rotate_sum", {}):
-        speed = f"{ref['rotate_sum']['seconds'] / row['seconds']:.0f}x"
+    if how == "measured":
+        speed = f"{reference_s / row['seconds']:.0f}x"
     elif "seconds" in ref.get("splat", {}):
         speed = f"{ref['splat']['seconds'] / row['seconds']:.1f}x vs splat"
-    elif "estimate_s" in ref.get("rotate_sum", {}):
-        speed = f"{ref['rotate_sum']['estimate_s'] / row['seconds']:.0f}x vs est. rotate_sum"
+    elif how == "extrapolated":
+        speed = f"{reference_s / row['seconds']:.0f}x vs extrapolated rotate_sum"
     else:
         speed = "-"
     return head + (f" {row['seconds']:.3f} (fwd {row['forward_s']:.3f}, setup {row['setup_s']:.2f}) | {speed} |"
@@ -251,18 +252,29 @@ def main() -> None:
     print(result_line(rows))
 
 
+def reference_time(rows: list[dict], n: int, k: int) -> tuple[float | None, str]:
+    """Seconds of the ``rotate_sum`` reference at ``(n, k)`` and how they were had: ``"measured"``,
+    ``"extrapolated"`` (the case was skipped: linear in K from a K=20 run) or ``"none"`` (not run)."""
+    ref = next((r for r in rows if r["backend"] == "rotate_sum" and (r["n"], r["k"]) == (n, k)), {})
+    if "seconds" in ref:
+        return ref["seconds"], "measured"
+    if "estimate_s" in ref:
+        return ref["estimate_s"], "extrapolated"
+    return None, "none"
+
+
 def result_line(rows: list[dict]) -> str:
     """``RESULT`` of the largest measured fourier case: its seconds, peak memory and speed-up over the
-    reference (measured, or extrapolated linearly in K when the reference was skipped)."""
+    reference, with ``rotate_sum_time=measured|extrapolated|none`` saying where the reference time
+    came from (extrapolated linearly in K from a K=20 run when the reference case was skipped)."""
     timed = [r for r in rows if r["backend"] == "fourier" and "seconds" in r]
     if not timed:
         return "RESULT fourier_cases=0"
     top = max(timed, key=lambda r: (r["n"], r["k"]))
-    ref = next((r for r in rows if r["backend"] == "rotate_sum" and (r["n"], r["k"]) == (top["n"], top["k"])), {})
-    reference_s = ref.get("seconds", ref.get("estimate_s"))
+    reference_s, how = reference_time(rows, top["n"], top["k"])
     speed = f"{reference_s / top['seconds']:.0f}" if reference_s else "nan"
     return (f"RESULT n={top['n']} k={top['k']} fourier_s={top['seconds']:.3f} peak_gb={top['peak_gb']:.2f} "
-            f"speedup_vs_rotate_sum={speed}")
+            f"speedup_vs_rotate_sum={speed} rotate_sum_time={how}")
 
 
 if __name__ == "__main__":

@@ -14,8 +14,9 @@ Chamfer at the smallest budget / minnorm's at the largest (noise-free).
     python scripts/bench_quality.py --meshes bunny torus --budgets 41 --noise clean --solvers voxel
     python scripts/bench_quality.py --options voxel='{"iterations": 300}'
 
-Simulated measurements and truths are cached in ``--cache`` (``.npz``) so repeated runs only
-pay for the solvers.
+Simulated measurements and truths are cached in ``--cache`` (``.npz``), keyed by their parameters
+and the simulation code version (:func:`dipnet.core.code_version.simulation_digest`), so repeated
+runs only pay for the solvers and a run after a change to the simulator simulates afresh.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 
 from dipnet.preprocessing.datasets import MESHES_DIR
+from dipnet.core.code_version import simulation_digest
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.evaluation.metrics import evaluate
@@ -89,9 +91,11 @@ def solver_options(specs: list[str]) -> dict[str, dict]:
 def case_data(args, mesh_path: Path, grid: Grid, k: int, noise: str):
     """``(measurement, truth occupancy bool, shape)`` for one mesh / budget / noise, cached."""
     shape = load_mesh(mesh_path, radius=args.fill * grid.radius)
+    code = simulation_digest()  # a rerun after a change to the simulator simulates afresh
     tag = (f"{mesh_path.stem}_n{grid.n}_k{k}_{noise}{args.snr if noise == 'snr' else ''}_q{args.quantum_mm}"
-           f"_f{args.fill}_s{args.seed}")
-    meas_file, truth_file = args.cache / f"{tag}.npz", args.cache / f"{mesh_path.stem}_n{grid.n}_f{args.fill}_truth.npy"
+           f"_f{args.fill}_s{args.seed}_code{code}")
+    meas_file = args.cache / f"{tag}.npz"
+    truth_file = args.cache / f"{mesh_path.stem}_n{grid.n}_f{args.fill}_code{code}_truth.npy"
     args.cache.mkdir(parents=True, exist_ok=True)
     if meas_file.is_file():
         measurement = DipMeasurement.load(meas_file)

@@ -15,7 +15,9 @@ times longer), IoU and Chamfer (truth bounding-box diagonals). Ends with
 
 holding only the keys that were measured (``simN_s``: simulation of the largest budget of the
 first mesh at ``N``; ``minnormN_s`` / ``voxelN_s``: its clean solve). ``--quick``: 128^3 only,
-the bunny, 3% of N^2 (492 dips), clean, a 150-step voxel run.
+the bunny, 3% of N^2 (492 dips), clean, a 150-step voxel run. Simulated scans are cached in
+``--cache``, keyed by their parameters and the simulation code version
+(:func:`dipnet.core.code_version.simulation_digest`).
 
     python scripts/bench_scale.py --quick
     python scripts/bench_scale.py --n 240 --meshes bunny --fractions 0.10 --noise clean
@@ -36,6 +38,7 @@ import torch
 
 from dipnet.solvers.checkpoint import Checkpoint
 from dipnet.preprocessing.datasets import mesh_path
+from dipnet.core.code_version import simulation_digest
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.evaluation.metrics import evaluate
@@ -93,7 +96,7 @@ def noisy_copy(raw: RawScan, snr_db: float, seed: int = 0) -> RawScan:
 
 def simulate(args, shape, grid: Grid, k: int) -> tuple[dict[str, DipMeasurement], float]:
     """Clean and noisy measurements for ``k`` dips on ``grid`` and the simulation seconds (0 if cached)."""
-    tag = f"{shape.name}_n{grid.n}_k{k}_f{args.fill}"
+    tag = f"{shape.name}_n{grid.n}_k{k}_f{args.fill}_code{simulation_digest()}"
     files = {noise: args.cache / f"{tag}_{noise}{args.snr if noise == 'snr' else ''}.npz" for noise in args.noise}
     if all(f.is_file() for f in files.values()):
         return {noise: DipMeasurement.load(f) for noise, f in files.items()}, 0.0

@@ -22,14 +22,20 @@ import re
 import struct
 import time
 from abc import abstractmethod
+from types import ModuleType
 from typing import NamedTuple
 
-import minimalmodbus
 import numpy as np
 import serial
 
+from dipnet.core.optional import optional_import
 from dipnet.rig.controller import (LineChannel, PortLock, RigDisconnected, RigError, RigTimeout, SerialDevice,
                                    open_channel, open_port)
+
+
+def modbus() -> ModuleType:
+    """The ``minimalmodbus`` module (the ``rig`` extra), or an ImportError naming that extra."""
+    return optional_import("minimalmodbus", extra="rig", purpose="a Modbus level sensor (sensor=modbus)")
 
 
 class SensorError(RigError):
@@ -249,6 +255,7 @@ class ModbusLevelSensor(Sensor):
                  word_order: str = "big", scale: float = 0.001, offset: float = 0.0, unit: str = "mm",
                  **options) -> None:
         super().__init__(url, **options)
+        modbus()  # the `rig` extra, checked before any port is opened
         if data_type not in DATA_TYPES:
             raise ValueError(f"data_type must be one of {sorted(DATA_TYPES)}, got {data_type!r}")
         self.slave, self.address = int(slave), int(address)
@@ -265,7 +272,7 @@ class ModbusLevelSensor(Sensor):
         lock = PortLock(self.url)
         try:
             port = open_port(self.url, timeout=self.timeout, baudrate=self.baudrate)
-            self.instrument = minimalmodbus.Instrument(port, self.slave)
+            self.instrument = modbus().Instrument(port, self.slave)
         except BaseException:
             lock.release()
             raise
@@ -275,9 +282,9 @@ class ModbusLevelSensor(Sensor):
         self._link()
         try:
             registers = self.instrument.read_registers(self.address, self.count, functioncode=3)
-        except minimalmodbus.NoResponseError as exc:
+        except modbus().NoResponseError as exc:
             raise RigTimeout(f"Modbus slave {self.slave} on {self.url}: {exc}") from exc
-        except minimalmodbus.ModbusException as exc:  # exception replies, bad CRC, malformed frames
+        except modbus().ModbusException as exc:  # exception replies, bad CRC, malformed frames
             raise SensorError(f"Modbus slave {self.slave} on {self.url}: {type(exc).__name__}: {exc}") from exc
         except (serial.SerialException, OSError) as exc:
             raise RigDisconnected(f"lost the link to {self.url}: {exc}") from exc

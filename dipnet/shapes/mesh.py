@@ -17,6 +17,7 @@ import numpy as np
 import torch
 import trimesh
 
+from dipnet.core.optional import optional_import
 from dipnet.shapes.base import Shape, ShapeError, check_dips
 from dipnet.shapes.divergence import PlaneSweep, boundary_volume_below
 from dipnet.shapes.holes import boundary_caps
@@ -226,6 +227,7 @@ def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> trimesh.Trimesh:
     if len(mesh.faces) < n_f:
         problems.append(f"removed {n_f - len(mesh.faces)} degenerate or duplicate faces")
     if not mesh.is_winding_consistent:
+        optional_import("networkx", extra="repair", purpose="repairing the winding of a mesh's faces")
         before = mesh.faces.copy()
         trimesh.repair.fix_winding(mesh)
         flipped = int(np.any(mesh.faces != before, axis=1).sum())
@@ -236,6 +238,7 @@ def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> trimesh.Trimesh:
     if not mesh.is_watertight:
         n_open = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
         n_f = len(mesh.faces)
+        optional_import("networkx", extra="repair", purpose="filling the holes of a mesh that is not watertight")
         trimesh.repair.fill_holes(mesh)
         filled = len(mesh.faces) - n_f
         msg = f"not watertight ({n_open} boundary edges)"
@@ -314,9 +317,10 @@ def _union_overlapping(
             f"{len(shells)} separate outer shells, not all closed: overlaps may count twice"
         )
         return merged
+    optional_import("manifold3d", extra="repair", purpose="merging overlapping mesh shells")
     try:
         union = trimesh.boolean.union(shells, engine="manifold")
-    except Exception as err:  # engine missing or failed: keep the shells as they are
+    except Exception as err:  # the boolean failed: keep the shells as they are
         problems.append(f"{len(shells)} outer shells could not be merged ({err})")
         return merged
     overlap = merged.volume - union.volume

@@ -236,6 +236,7 @@ def test_an_implausible_cross_section_is_named_and_kept():
                        max_section_change=0.0)
 
 
+@pytest.mark.slow
 def test_the_command_line_calibrates_a_rig_far_from_nominal(tmp_path):
     """The issue's case: start heights tens of mm off at high tilt. Nothing validates with the nominal
     geometry before the calibration ran; the run writes a calibration file that says what it holds."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,30 @@ from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisph
 from dipnet.preprocessing.datasets import MESHES_DIR as MESHES
 ALL = [(name, ndim) for name in BACKENDS for ndim in (2, 3)]
 IDS = [f"{name}-{ndim}d" for name, ndim in ALL]
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """What one backend must reach (relative errors), set at 1.5-3x what it reaches on the very
+    problems of the tests below (float64, measured on every backend with 1 thread; they pass with 2)."""
+
+    sum_to_volume: float  # measured: exact backends < 5e-16; fourier 2.5e-5 (2D), 3.8e-7 (3D)
+    adjoint: float        # <Ax, y> vs <x, A^T y>: measured < 4e-16 for every backend
+    vs_reference: float   # against rotate_sum on a 64^3 mesh: splat < 2e-15, fourier 6.2e-3 (hand)
+
+
+EXACT = Tolerance(sum_to_volume=1e-12, adjoint=1e-12, vs_reference=1e-12)
+TOLERANCES = {"rotate_sum": EXACT, "splat": EXACT,
+              "fourier": Tolerance(sum_to_volume=1e-4, adjoint=1e-12, vs_reference=1e-2)}
+#: The voxelised ball against its analytic profiles: the voxel model's own error, the same for
+#: every backend (measured 1.07e-2 in 2D, 3.7e-3 in 3D at 64 voxels; fourier 9.3e-3, 3.0e-3).
+BALL_TOLERANCE = {2: 1.5e-2, 3: 5e-3}
+#: The profiles' centroid against the ball centre, in slabs (measured < 4.2e-3 in 2D, 2.9e-4 in 3D).
+CENTROID_TOLERANCE = {2: 1e-2, 3: 1e-3}
+
+
+def test_every_backend_has_measured_tolerances():
+    assert set(TOLERANCES) == set(BACKENDS)
 
 
 def _directions(k: int, ndim: int) -> torch.Tensor:
@@ -59,10 +84,10 @@ def test_analytic_ball_profiles(backend, ndim):
     op = make_operator(grid, dirs, backend=backend)
     prof = op(ball_occupancy(grid, centre, radius))
     edges = op.slab_edges()
-    assert _rel(prof, ball_profiles(dirs, edges, centre, radius)) < 0.02
+    assert _rel(prof, ball_profiles(dirs, edges, centre, radius)) < BALL_TOLERANCE[ndim]
     mids = (edges[1:] + edges[:-1]) / 2
     centroid = (prof * mids).sum(1) / prof.sum(1)
-    assert (centroid - dirs @ centre).abs().max() < 0.1 * op.slab_thickness
+    assert (centroid - dirs @ centre).abs().max() < CENTROID_TOLERANCE[ndim] * op.slab_thickness
 
 
 # ---------------------------------------------------------------- invariants
@@ -79,7 +104,7 @@ def test_profiles_sum_to_volume(backend, ndim):
     op = make_operator(grid, dirs, 30, backend=backend)
     volume = float((x * grid.working_mask()).sum()) * grid.voxel_volume
     sums = op(x).sum(1)
-    assert ((sums - volume).abs() / volume).max() < 1e-4
+    assert ((sums - volume).abs() / volume).max() < TOLERANCES[backend].sum_to_volume
 
 
 @pytest.mark.parametrize("backend,ndim", ALL, ids=IDS)
@@ -89,7 +114,7 @@ def test_adjoint_is_exact_transpose(backend, ndim):
     y = torch.rand(op.profile_shape, generator=gen, dtype=torch.float64)
     lhs = float((op(x) * y).sum())
     rhs = float((x * op.adjoint(y)).sum())
-    assert abs(lhs - rhs) <= 1e-5 * abs(lhs)
+    assert abs(lhs - rhs) <= TOLERANCES[backend].adjoint * abs(lhs)
 
 
 @pytest.mark.parametrize("backend,ndim", ALL, ids=IDS)
@@ -151,7 +176,7 @@ def test_agrees_with_reference_on_mesh(backend, mesh):
     vol = _mesh_volume(n, mesh)
     dirs = fibonacci_hemisphere(5)
     ref = make_operator(grid, dirs, backend="rotate_sum")(vol)
-    assert _rel(make_operator(grid, dirs, backend=backend)(vol), ref) <= 0.01
+    assert _rel(make_operator(grid, dirs, backend=backend)(vol), ref) <= TOLERANCES[backend].vs_reference
 
 
 # ---------------------------------------------------------------- backend specifics
@@ -198,9 +223,9 @@ def test_fourier_single_precision_keeps_accuracy_and_adjoint():
     grid, dirs, x, _ = _random_problem(3, seed=6)
     double = FourierOperator(grid, dirs, 20, eps=1e-4)
     single = FourierOperator(grid, dirs, 20, eps=1e-4, single=True)
-    assert _rel(single(x), double(x)) < 1e-3
+    assert _rel(single(x), double(x)) < 1e-4  # both within the requested eps (measured 1.6e-5)
     y = torch.rand(single.profile_shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     lhs, rhs = float((single(x) * y).sum()), float((x * single.adjoint(y)).sum())
-    assert abs(lhs - rhs) <= 1e-5 * abs(lhs)  # the exact transpose, to single-precision rounding
+    assert abs(lhs - rhs) <= 3e-7 * abs(lhs)  # the exact transpose, to single-precision rounding (measured < 7e-8)
     with pytest.raises(ValueError, match="single-precision NUFFT needs eps"):
         FourierOperator(grid, dirs, 20, eps=1e-7, single=True)

@@ -11,7 +11,8 @@ import torch
 import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.evaluation.metrics import EMPTY_DISTANCE, chamfer_hausdorff, evaluate, iou, surface_points, volume_error
+from dipnet.evaluation.metrics import (EMPTY_DISTANCE, chamfer_hausdorff, evaluate, iou, reference_check,
+                                     reference_level, surface_points, volume_error)
 from dipnet.core.reconstruction import Reconstruction
 
 
@@ -112,3 +113,53 @@ def test_evaluate_against_a_truth_mesh():
     shifted = evaluate(Reconstruction(torch.from_numpy(truth), grid, 0.5), truth, grid,
                        truth_mesh=mesh.copy().apply_translation([5.0, 0, 0]), n_points=5000)
     assert shifted["hausdorff"] > 4.0 / (2 * r * math.sqrt(3))
+
+
+def test_chamfer_averages_both_directions_of_an_asymmetric_pair():
+    """Truth: the segment (0,0)-(10,0); other: the single point (0,1). From the segment to the
+    point the mean distance is (1/10) * integral_0^10 sqrt(x^2 + 1) dx = [x sqrt(x^2+1) + asinh x] / 20
+    over [0, 10]; from the point to the segment it is 1. A one-sided Chamfer gives one of the two."""
+    segment, point = [np.array([[0.0, 0.0], [10.0, 0.0]])], np.array([[0.0, 1.0]])
+    to_point = (10 * math.sqrt(101) + math.asinh(10)) / 20  # 5.1748 mm
+    out = chamfer_hausdorff(segment, point, n_points=20_000, seed=3)
+    diag = 10.0  # the truth's bounding box: the segment
+    assert out["chamfer"] == pytest.approx((to_point + 1.0) / 2 / diag, rel=0.01)
+    assert out["hausdorff"] == pytest.approx(math.sqrt(101) / diag, rel=1e-3)  # the far end to the point
+
+
+def test_chamfer_of_point_sets_is_exact_in_both_directions():
+    """Truth {0, 10} and other {1, 2, 3} on the x axis: truth -> other distances 1 and 7 (mean 4),
+    other -> truth 1, 2, 3 (mean 2); the truth's diagonal is 10 (the other's, 2, when swapped)."""
+    on_x = lambda *xs: np.array([[x, 0.0, 0.0] for x in xs])  # noqa: E731
+    truth, other = on_x(0.0, 10.0), on_x(1.0, 2.0, 3.0)
+    out = chamfer_hausdorff(truth, other)
+    assert out["chamfer"] == pytest.approx((4 + 2) / 2 / 10) and out["hausdorff"] == pytest.approx(7 / 10)
+    swapped = chamfer_hausdorff(other, truth)
+    assert swapped["chamfer"] == pytest.approx((2 + 4) / 2 / 2) and swapped["hausdorff"] == pytest.approx(7 / 2)
+
+
+def test_reference_level_keeps_the_voxels_that_hold_the_exact_volume():
+    """An axis-aligned box 4.9 voxels wide, centred on an 8-voxel grid: 1D occupancy
+    [0, .45, 1, 1, 1, 1, .45, 0], in 3D its outer product (exact, so its sum is the exact volume
+    4.9^3 voxels). Thresholds: above 0.5 only the 4^3 = 64 core voxels (-46%); between the edge
+    value .45^2 = .2025 and the face value .45 the core and the 6 x 16 face voxels, 160 (+36%), the
+    closest count; below .2025 also the edges (208). So the level is the midpoint .32625, not 0.5."""
+    grid = Grid(8, 3, 8.0)  # 1 mm voxels
+    profile = np.array([0, 0.45, 1, 1, 1, 1, 0.45, 0])
+    occupancy = np.einsum("i,j,k->ijk", profile, profile, profile)
+    exact = 4.9**3 * grid.voxel_volume
+    level = reference_level(occupancy, grid, exact)
+    assert level == pytest.approx((0.45 + 0.45**2) / 2)
+    assert (occupancy > level).sum() == 64 + 6 * 16 and (occupancy > 0.5).sum() == 64
+    with pytest.warns(UserWarning, match=r"\+36\.0% off the exact volume"):  # coarse: it says so
+        check = reference_check(occupancy, grid, exact, level)
+    assert check["truth_voxel_volume_error"] == pytest.approx(0.0, abs=1e-12)
+    assert check["truth_binary_volume_error"] == pytest.approx(160 / 4.9**3 - 1)
+
+
+def test_reference_level_of_a_binary_truth_is_any_level_between_its_values():
+    grid = Grid(8, 3, 8.0)
+    truth = np.zeros(grid.shape)
+    truth[2:6, 2:6, 2:6] = 1.0
+    level = reference_level(truth, grid, 64 * grid.voxel_volume)
+    assert 0.0 < level < 1.0 and (truth > level).sum() == 64

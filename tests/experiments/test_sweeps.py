@@ -54,6 +54,7 @@ def test_a_failing_job_does_not_stop_the_sweep(tmp_path):
 
 @pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None,
                     reason="needs hydra-joblib-launcher (pip install -e '.[sweeps]')")
+@pytest.mark.slow
 def test_joblib_launcher_two_jobs(tmp_path):
     sweep = tmp_path / "sweep"
     reconstruct("-m", *TINY, "n_dips=6,12", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",

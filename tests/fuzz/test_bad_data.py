@@ -314,6 +314,7 @@ def _measured_volume(proc: subprocess.CompletedProcess, run_dir: Path) -> float:
     return json.loads((run_dir / "metrics.json").read_text())["measured_volume_mm3"]
 
 
+@pytest.mark.slow
 def test_declared_units_are_honoured(tmp_path, scan_file):
     inches = _edit_jsonl(scan_file, tmp_path / "inches.jsonl", lambda rows: _in_units(rows, "in", "cm", 25.4, 10.0))
     quiet = ("source=recorded", "resolution=16", "extent_mm=100", "output.figures=false", "output.uncertainty=false",
@@ -335,6 +336,7 @@ def test_unknown_units_are_refused_naming_the_field(tmp_path, scan_file, units, 
     assert re.search(rf"error: {re.escape(str(path))}:1: {message}", line), line
 
 
+@pytest.mark.slow
 def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path):
     lines = CATS_CSV.read_text().splitlines()
     metres = [lines[0]] + [",".join([*row.split(",")[:4], f"{float(row.split(',')[4]) / 1000:.5f}"]) for row in lines[1:]]

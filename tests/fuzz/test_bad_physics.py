@@ -46,6 +46,7 @@ def _metrics(out: Path, *overrides: str) -> dict:
 
 
 # ----------------------------------------------------------------------------- case 2: one scan, two files
+@pytest.mark.slow
 def test_ball_scan_reads_the_same_from_its_npz_and_its_jsonl(tmp_path):
     """Before: the .jsonl reader smoothed by default (the .npz was not): 0.871 inconsistent vs 0.957."""
     simulated = _metrics(tmp_path / "sim", "shape.name=ball", "n_dips=40")
@@ -132,6 +133,7 @@ def test_mesh_whose_repair_disagrees_with_its_inside_test_is_refused(tmp_path):
     assert inside == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.15) and encloses < 0.5 * inside
 
 
+@pytest.mark.slow
 def test_open_pieces_off_the_origin_are_oriented_by_their_capped_volume(tmp_path):
     """Before: a ball in two open pieces 200 mm off the origin came out with one piece inverted
     (trimesh's open-surface volume depends on the origin): -18,867 mm^3 against 33,510."""

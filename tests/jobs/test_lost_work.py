@@ -54,6 +54,7 @@ def _job_in(directory: Path) -> Iterator[int]:
 
 
 # ----------------------------------------------------------------------------- portability
+@pytest.mark.slow
 def test_dipnet_imports_without_fcntl():
     """Before: ``import dipnet`` failed on Windows (``fcntl`` imported by the scan-file lock)."""
     code = ("import sys, serial\n"  # pyserial brings its own backend per platform (serialwin32 on Windows)
@@ -65,6 +66,7 @@ def test_dipnet_imports_without_fcntl():
 
 # ----------------------------------------------------------------------------- run directory lock
 @pytest.mark.parametrize("script,overrides", [(RECONSTRUCT, QUICK), (SCAN, QUICK_SCAN)])
+@pytest.mark.slow
 def test_second_job_into_a_busy_run_directory_is_refused(tmp_path, script, overrides):
     """Before: both jobs exited 0 saying "outputs written"; only the second one's files remained."""
     with _job_in(tmp_path) as pid:
@@ -185,6 +187,7 @@ def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(fi
 
 
 # ----------------------------------------------------------------------------- scans: messages
+@pytest.mark.slow
 def test_refused_scan_resume_names_the_differing_fields_in_one_line(tmp_path):
     """Before: both full headers (~2,500 characters) and no word on what differs."""
     first = _script(SCAN, f"hydra.run.dir={tmp_path}", *QUICK_SCAN)
@@ -214,6 +217,7 @@ runpy.run_path(sys.argv[0], run_name="__main__")
 """
 
 
+@pytest.mark.slow
 def test_full_disk_during_a_scan_ends_in_the_safe_stop_message_alone(tmp_path):
     """Before: every log record the full disk refused printed a "--- Logging error ---" traceback."""
     proc = subprocess.run([sys.executable, "-c", FULL_DISK, str(SCAN), f"hydra.run.dir={tmp_path}", *QUICK_SCAN,

@@ -52,12 +52,14 @@ def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: st
     (["output.mesh_formats=[xyz]"], "error: output.mesh_formats must be a list of ply, stl, obj, got ['xyz']"),
     (["output.checkpoint_every=0"], "error: output.checkpoint_every must be a positive integer, got 0"),
 ])
+@pytest.mark.slow
 def test_bad_options_are_refused_before_any_work(tmp_path, overrides, message):
     line = _one_line_error(_cli(tmp_path, *overrides))
     assert line.startswith(message), line
     assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "measurement.npz").exists()
 
 
+@pytest.mark.slow
 def test_report_without_plotly_is_refused_before_any_work(tmp_path):
     fake = tmp_path / "site" / "plotly"  # an environment without the `report` extra
     fake.mkdir(parents=True)
@@ -68,6 +70,7 @@ def test_report_without_plotly_is_refused_before_any_work(tmp_path):
     assert not (tmp_path / "run" / "metrics.json").exists()
 
 
+@pytest.mark.slow
 def test_unwritable_run_directory_is_named(tmp_path):
     (tmp_path / "reconstruct.log").mkdir()  # the log file cannot be written (root ignores chmod)
     line = _one_line_error(_cli(tmp_path))
@@ -75,6 +78,7 @@ def test_unwritable_run_directory_is_named(tmp_path):
     assert "hydra.run.dir" in line
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     proc = subprocess.Popen([sys.executable, str(SCRIPT), f"hydra.run.dir={tmp_path}", *SMALL, "n_dips=12",
                              "solver=voxel", "solver.iterations=100000", "solver.tol=0", "output.checkpoint=true"],
@@ -103,6 +107,7 @@ def test_every_preset_takes_every_solver(preset, solver):
     assert type(instantiate(cfg.solver)).__name__.lower().startswith(solver[:3])
 
 
+@pytest.mark.slow
 def test_real_data_preset_solves_with_minnorm(tmp_path):
     proc = _cli(tmp_path, "experiment=cats_real", "solver=minnorm")
     assert proc.returncode == 0, proc.stderr

@@ -48,6 +48,7 @@ def test_2d_end_to_end_reaches_the_iou_floor(tmp_path):
     assert (again.reconstruction.binary == result.reconstruction.binary).mean() > 0.999
 
 
+@pytest.mark.slow
 def test_3d_end_to_end_reaches_the_iou_floor(tmp_path):
     result = run(_cfg("resolution=32", "n_dips=100", "shape.name=ball", "output.figures=false"), tmp_path)
     assert result.metrics["iou"] >= 0.85
@@ -63,9 +64,9 @@ def _cli(tmp_path, *overrides):
 
 @pytest.mark.parametrize("overrides,message", [
     (["resolution=-4"], "resolution must be"),
-    (["n_dips=0"], "n_dips must be a positive integer"),
-    (["shape=mesh", "shape.path=/nonexistent/bunny.stl"], "/nonexistent/bunny.stl"),
-    (["source=recorded", "source.reader.path=/nonexistent/m.npz"], "/nonexistent/m.npz"),
+    pytest.param(["n_dips=0"], "n_dips must be a positive integer", marks=pytest.mark.slow),
+    pytest.param(["shape=mesh", "shape.path=/nonexistent/bunny.stl"], "/nonexistent/bunny.stl", marks=pytest.mark.slow),
+    pytest.param(["source=recorded", "source.reader.path=/nonexistent/m.npz"], "/nonexistent/m.npz", marks=pytest.mark.slow),
 ])
 def test_bad_input_gets_a_one_line_error(tmp_path, overrides, message):
     proc = _cli(tmp_path, *overrides)
@@ -74,6 +75,7 @@ def test_bad_input_gets_a_one_line_error(tmp_path, overrides, message):
     assert message in proc.stderr
 
 
+@pytest.mark.slow
 def test_malformed_measurement_and_unknown_option(tmp_path):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"garbage")
@@ -84,12 +86,21 @@ def test_malformed_measurement_and_unknown_option(tmp_path):
 
 
 def test_prior_weights_and_warm_start_override_from_the_command_line():
+    """The overrides reach the solver: the priors it builds carry the given weights and options,
+    and its warm start is a quiet min-norm solver."""
+    from dipnet.solvers import MinNormSolver
+    from dipnet.solvers.priors import build_priors
+
     cfg = _cfg("solver=voxel", "solver.priors.tv.weight=0.1", "solver.priors.symmetry.weight=0.5",
                "solver.priors.symmetry.plane_normal=[1,0,0]",
                "+solver.warm_start={_target_: dipnet.solvers.MinNormSolver, progress: false}")
     solver = instantiate(cfg.solver)
-    assert cfg.solver.priors.tv.weight == 0.1
     assert type(solver).__name__ == "VoxelSolver"
+    built = {name: (weight, module) for name, weight, module in build_priors(solver.priors, volume_fraction=0.1)}
+    assert set(built) == {"tv", "symmetry"}  # every other prior keeps weight 0 (off)
+    assert built["tv"][0] == 0.1 and built["symmetry"][0] == 0.5
+    assert list(built["symmetry"][1].plane_normal) == [1, 0, 0]
+    assert isinstance(solver.warm_start, MinNormSolver) and solver.warm_start.progress is False
 
 
 @pytest.mark.parametrize("progress", [True, False])

@@ -88,6 +88,7 @@ def test_a_replay_that_plans_otherwise_keeps_the_recorded_dips(world, tmp_path):
     assert resumed.measurement.n_orientations == 8
 
 
+@pytest.mark.slow
 def test_scan_script_runs_an_adaptive_scan(tmp_path):
     import subprocess
     import sys

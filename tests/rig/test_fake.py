@@ -44,8 +44,8 @@ def test_fake_physics_matches_solve_dip(world):
         assert world.rise_mm() == pytest.approx(state.rise_mm[0], abs=2e-4)
 
 
-@pytest.mark.parametrize("dialect,sensor", [("grbl", "level"), ("grbl", "modbus"), ("grbl", "ad"),
-                                            ("grbl", "sics"), ("marlin", "level")])
+@pytest.mark.parametrize("dialect,sensor", [("grbl", "level"), ("marlin", "level"),
+                                            *(pytest.param("grbl", s, marks=pytest.mark.slow) for s in ("modbus", "ad", "sics"))])
 def test_scan_reconstructs_mesh(world, tmp_path, dialect, sensor):
     world.reset()
     raw = scan(world, dialect, sensor, plan_for(30), tmp_path / "scan.jsonl")

@@ -335,6 +335,7 @@ def test_config_mismatch_fails_before_anything_moves(world, tmp_path):
 SCAN_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "scan.py"
 
 
+@pytest.mark.slow
 def test_link_lost_while_lowering_needs_confirmation_to_resume(tmp_path):
     """t4e3 from the command line: the controller's link dies with a lowering under way (the board
     may restart and count from 0); a board without homing can only resume on the operator's word."""

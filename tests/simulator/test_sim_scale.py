@@ -96,6 +96,7 @@ def broken_hand(tmp_path, subdivide: bool = True) -> tuple[str, float]:
     return str(path), float(mesh.volume)
 
 
+@pytest.mark.slow
 def test_broken_mesh_loads_and_dips_in_seconds(tmp_path):
     path, intact = broken_hand(tmp_path)
     started = time.perf_counter()

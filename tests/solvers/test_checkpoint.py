@@ -21,6 +21,7 @@ def _cfg(*overrides):
         return compose(config_name="config", overrides=[*SMALL, *overrides])
 
 
+@pytest.mark.slow
 def test_interrupted_pipeline_solve_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch):
     torch.set_num_threads(1)
     reference = run(_cfg(), tmp_path / "reference").reconstruction

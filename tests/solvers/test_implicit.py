@@ -33,7 +33,7 @@ FLOORS = {2: 0.95, 3: 0.9}
 FAST = dict(iterations=250, progress=False)
 
 
-@pytest.mark.parametrize("ndim", [2, 3])
+@pytest.mark.parametrize("ndim", [2, pytest.param(3, marks=pytest.mark.slow)])
 def test_recovers_shape_that_minnorm_misses(ndim):
     truth, op, meas = problem(ndim)
     baseline = MinNormSolver(progress=False).solve(meas, op)

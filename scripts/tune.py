@@ -1,0 +1,49 @@
+"""Tune prior weights by minimising the Chamfer distance of the jobs (Optuna >= 3; the `sweeps` extra).
+
+    python scripts/tune.py                                    # 20 trials: voxel solver, 32^3, 51 dips
+    python scripts/tune.py --trials 50 solver=implicit        # any job option as a Hydra override
+    python scripts/tune.py --param solver.priors.tv.weight=1e-4:1 --param solver.lr=0.01:0.3
+    python scripts/tune.py --storage sqlite:///optuna.db      # resume or share a study
+    python scripts/compare.py tune/dipnet_prior_weights       # tabulate the trials
+
+Trial ``i`` runs in ``<out>/<i>``; the best values go to ``<out>/best.yaml``
+(:mod:`dipnet.experiments.tuning`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from dipnet.experiments.tuning import DEFAULT_PARAMS, Param, tune
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides of every job, e.g. solver=implicit n_dips=80")
+    parser.add_argument("--trials", type=int, default=20, help="number of trials")
+    parser.add_argument("--param", action="append", type=Param.parse, metavar="KEY=LOW:HIGH[:log|linear]",
+                        help="a tuned option (repeat; default: the tv and binary prior weights in [1e-4, 1], log)")
+    parser.add_argument("--out", type=Path, help="study directory (default: tune/<study name>)")
+    parser.add_argument("--study-name", default="dipnet_prior_weights")
+    parser.add_argument("--storage", help="Optuna storage URL, e.g. sqlite:///optuna.db (default: in memory)")
+    parser.add_argument("--seed", type=int, default=0, help="sampler seed")
+    parser.add_argument("--startup-trials", type=int, default=8, help="random trials before TPE")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    out = args.out or Path("tune") / args.study_name
+    study = tune(out, args.trials, args.param or DEFAULT_PARAMS, args.overrides, seed=args.seed,
+                 n_startup_trials=args.startup_trials, storage=args.storage, study_name=args.study_name)
+    print(f"best chamfer {study.best_value:.5f} (trial {study.best_trial.number}): {study.best_params}; "
+          f"written to {out / 'best.yaml'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,76 @@
+"""The benchmark scripts' bookkeeping: the operator benchmark's reference time says whether it was
+measured, and the simulation caches are keyed by the simulator's code version."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+from dipnet.preprocessing.datasets import MESHES_DIR
+
+SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
+
+
+def load_script(name: str):
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def bench_operator():
+    return load_script("bench_operator")
+
+
+def fourier_row(seconds: float) -> dict:
+    return {"backend": "fourier", "n": 64, "k": 1000, "seconds": seconds, "forward_s": seconds / 2,
+            "setup_s": 0.1, "peak_gb": 0.5, "rel_error": 1e-3}
+
+
+def test_a_measured_reference_is_said_to_be_measured(bench_operator):
+    rows = [{"backend": "rotate_sum", "n": 64, "k": 1000, "seconds": 40.0, "forward_s": 20.0, "setup_s": 0.0,
+             "peak_gb": 1.0, "rel_error": 1e-2}, fourier_row(0.5)]
+    assert bench_operator.result_line(rows).endswith("speedup_vs_rotate_sum=80 rotate_sum_time=measured")
+    assert "| 80x |" in bench_operator._format_row(rows[1], rows)
+
+
+def test_an_extrapolated_reference_is_said_to_be_extrapolated(bench_operator):
+    rows = [{"backend": "rotate_sum", "n": 64, "k": 1000, "skipped": True, "estimate_s": 400.0}, fourier_row(0.5)]
+    assert bench_operator.result_line(rows).endswith("speedup_vs_rotate_sum=800 rotate_sum_time=extrapolated")
+    assert "800x vs extrapolated rotate_sum" in bench_operator._format_row(rows[1], rows)
+    assert "skipped (extrapolated from K=" in bench_operator._format_row(rows[0], rows)
+    assert bench_operator.result_line([fourier_row(0.5)]).endswith("speedup_vs_rotate_sum=nan rotate_sum_time=none")
+
+
+def test_the_quality_cache_is_keyed_by_the_simulation_code(tmp_path, monkeypatch):
+    """A second call with the same code reads the cache; after a (simulated) change to the simulator's
+    sources it simulates afresh into new files."""
+    bench = load_script("bench_quality")
+    args = bench.parse_args(["--cache", str(tmp_path), "--n", "8"])
+    grid = bench.Grid(8)
+    bench.case_data(args, MESHES_DIR / "torus.ply", grid, 3, "clean")
+    first = sorted(p.name for p in tmp_path.iterdir())
+    assert len(first) == 2 and all(f"_code{bench.simulation_digest()}" in name for name in first)
+    bench.case_data(args, MESHES_DIR / "torus.ply", grid, 3, "clean")
+    assert sorted(p.name for p in tmp_path.iterdir()) == first  # cached
+    monkeypatch.setattr(bench, "simulation_digest", lambda: "0123456789ab")
+    bench.case_data(args, MESHES_DIR / "torus.ply", grid, 3, "clean")
+    assert len(list(tmp_path.glob("*_code0123456789ab*"))) == 2
+
+
+def test_the_scale_cache_is_keyed_by_the_simulation_code(tmp_path, monkeypatch):
+    bench = load_script("bench_scale")
+    args = argparse.Namespace(cache=tmp_path, fill=0.9, noise=["clean"], snr=30.0)
+    grid = bench.Grid(8)
+    shape = bench.load_mesh(MESHES_DIR / "torus.ply", radius=0.9 * grid.radius)
+    _, seconds = bench.simulate(args, shape, grid, 3)
+    assert seconds > 0 and [p.name for p in tmp_path.iterdir()][0].count(f"_code{bench.simulation_digest()}") == 1
+    assert bench.simulate(args, shape, grid, 3)[1] == 0.0  # cached
+    monkeypatch.setattr(bench, "simulation_digest", lambda: "0123456789ab")
+    assert bench.simulate(args, shape, grid, 3)[1] > 0  # the code changed: simulated again

@@ -1,0 +1,69 @@
+"""scripts/tune.py: Optuna (ask and tell) over the ordinary pipeline, on tiny jobs."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from dipnet.experiments import collect, tuning
+from dipnet.experiments.tuning import Param
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "tune.py"
+TINY = ["resolution=16", "n_dips=12", "solver.iterations=15", "output.uncertainty=false", "output.resolvability=false"]
+
+
+@pytest.fixture(scope="module")
+def tune_script():
+    spec = importlib.util.spec_from_file_location("tune", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_a_study_runs_its_trials_and_keeps_the_best(tmp_path, monkeypatch, tune_script):
+    received = []  # the weight each job's solver was configured with
+    real_run = tuning.run
+
+    def spy(cfg, out):
+        received.append(cfg.solver.priors.tv.weight)
+        return real_run(cfg, out)
+
+    monkeypatch.setattr(tuning, "run", spy)
+    out = tmp_path / "study"
+    assert tune_script.main(["--trials", "3", "--startup-trials", "2", "--out", str(out),
+                             "--param", "solver.priors.tv.weight=1e-3:1e-1", *TINY]) == 0
+    best = OmegaConf.load(out / "best.yaml")
+    chamfers = {i: json.loads((out / str(i) / "metrics.json").read_text())["chamfer"] for i in range(3)}
+    assert best.trials == 3 and best.failed == 0
+    assert best.chamfer == pytest.approx(min(chamfers.values())) and chamfers[best.trial] == best.chamfer
+    assert len(set(received)) == 3 and all(1e-3 <= w <= 1e-1 for w in received)
+    assert best.params["solver.priors.tv.weight"] == received[best.trial]
+    # each trial directory is a sweep job that scripts/compare.py reads
+    runs = collect.collect_runs([out])
+    assert sorted(r.status for r in runs) == ["ok"] * 3
+    assert {r.config["solver"]["priors"]["tv"]["weight"] for r in runs} == set(received)
+
+
+def test_a_failing_job_is_a_failed_trial(tmp_path):
+    with pytest.raises(RuntimeError, match="every trial failed"):
+        tuning.tune(tmp_path, n_trials=2, overrides=[*TINY, "solver.lr=-1"])
+    assert all("lr" in (tmp_path / str(i) / "error.txt").read_text() for i in range(2))
+
+
+@pytest.mark.parametrize("text,param", [
+    ("solver.lr=0.01:0.3", Param("solver.lr", 0.01, 0.3, True)),
+    ("fill=0.5:0.95:linear", Param("fill", 0.5, 0.95, False)),
+])
+def test_a_tuned_option_parses(text, param):
+    assert Param.parse(text) == param
+
+
+@pytest.mark.parametrize("text", ["solver.lr", "solver.lr=0.3:0.01", "solver.lr=0:1", "x=1:2:cubic"])
+def test_a_bad_tuned_option_is_refused(text):
+    with pytest.raises(ValueError, match="LOW"):
+        Param.parse(text)
