@@ -23,6 +23,7 @@ from pathlib import Path
 from dipnet.calibration.model import DEFAULT_REFERENCE, PARAMETERS, to_calibration
 from dipnet.calibration.reference import calibrate_reference
 from dipnet.jobs.cli import user_errors
+from dipnet.jobs.warnings_once import log_warnings_once
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import read_rawscan
 from dipnet.core.calibration_file import TANK_CONFIG_KEY, save_calibration
@@ -45,6 +46,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    log_warnings_once()  # a warning both logged and warned shows once
     with user_errors():
         raw = read_rawscan(args.scan)
         tank = args.tank or raw.header.config.get(TANK_CONFIG_KEY)
