@@ -1,6 +1,6 @@
 """dipnet: 3D shape reconstruction from dip transform (fluid displacement) measurements.
 
-A small scripting API (see README, "Python API")::
+A small scripting API (see README.md and docs/getting-started.md)::
 
     import dipnet
     grid = dipnet.Grid(32, ndim=3, extent=100.0)                 # 32^3 voxels over 100 mm

@@ -17,7 +17,7 @@ from the mesh geometry with level-sensor noise at ``--snr`` dB:
   any plan, not only well-spread ones).
 
 Every final reconstruction uses ``--solver`` (default voxel: at 41 dips and 30 dB it ties with
-implicit, 4x faster, and beats minnorm 4x in Chamfer, README "Reconstruction as optimisation");
+implicit, 4x faster, and beats minnorm 4x in Chamfer, docs/guide/solvers.md);
 the loop's intermediate reconstructions use ``--plan-solver``, by default the same: with minnorm
 estimates the planner's noise level is their model error and it plans no better than a uniform
 plan (:mod:`dipnet.planning.planner`). With the same solver the loop's last reconstruction is the final

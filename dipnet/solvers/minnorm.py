@@ -90,7 +90,7 @@ def matrix_backend(operator: DipOperator) -> str:
     ``splat`` and ``rotate_sum`` (alias ``grid_sample``) are the same linear map, so their
     matrix is the operator itself. A ``fourier`` operator has no explicit matrix; when
     ``operator=auto`` chose it, the splat matrix stands in (the two discretisations differ by
-    0.2-0.6%, see README "Operators") and the solver's ``info`` says so; when the user chose
+    0.2-0.6%, see docs/guide/operators.md) and the solver's ``info`` says so; when the user chose
     it, :class:`OperatorChoiceError` (building its ``B B^T`` would take one forward and adjoint
     per row: about 800 s for 120 dips at 40^3).
     """
