@@ -26,6 +26,7 @@ from dipnet.shapes import Ball, Box
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
+from script_modules import load_script
 
 AREA = 20000.0
 RADIUS = 25.0
@@ -56,12 +57,7 @@ def ball_scan(tmp_path_factory):
 def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
     """scripts/calibrate.py end to end: the file it writes holds the fake rig's true geometry, and a
     reader using that file places the ball's profiles where an ideal rig would have."""
-    import importlib.util
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location("calibrate", Path(__file__).parents[2] / "scripts" / "calibrate.py")
-    calibrate = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(calibrate)
+    calibrate = load_script("calibrate")
     out = tmp_path / "rig_calibration.yaml"
     assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out)]) == 0
     cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
@@ -279,17 +275,12 @@ def test_calibrate_script_on_a_rig_far_from_nominal(tmp_path):
     """The issue's refusal: start heights ~50 mm off at 70 deg of tilt made scripts/calibrate.py say the ball
     'does not fit'. At the range's edges (pivot 55 mm, offset -35 mm, tilt zero 4 deg, step +2 %, section -15 %)
     the script now calibrates, and the file holds the truth inside its intervals."""
-    import importlib.util
-    from pathlib import Path
-
     true = RigGeometry(pivot_mm=55.0, tilt_axis_offset_mm=-35.0, tilt_zero_deg=4.0, step_scale=1.02,
                        cross_section_mm2=0.85 * 60000.0)
     raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(60), tank=Tank(60000.0), geometry=true,
                         sensor=LevelSensor(snr_db=30.0, seed=2), progress=False)
     scan = raw.save(tmp_path / "ball.jsonl")
-    spec = importlib.util.spec_from_file_location("calibrate", Path(__file__).parents[2] / "scripts" / "calibrate.py")
-    calibrate = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(calibrate)
+    calibrate = load_script("calibrate")
     out = tmp_path / "cal.yaml"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)

@@ -4,7 +4,6 @@ on a synthetic sweep directory whose metrics follow known formulas."""
 from __future__ import annotations
 
 import csv
-import importlib.util
 import logging
 import subprocess
 import sys
@@ -19,6 +18,7 @@ from dipnet.experiments import collect, figures, tables
 from dipnet.jobs import sweep_jobs
 from dipnet.core.grid import Grid
 from sweep_fixtures import ball, write_job
+from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 SOLVERS, DIPS, SEEDS, SNRS = ("minnorm", "lsmr"), (4, 8, 16), (0, 1), (10.0, 20.0, 30.0)
@@ -277,10 +277,7 @@ def test_callback_logs_one_line_per_job_and_the_failures(sweep, tmp_path, caplog
 
 
 def _load_compare():
-    spec = importlib.util.spec_from_file_location("compare", ROOT / "scripts" / "compare.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("compare")
 
 
 def test_compare_writes_tables_and_figures(sweep, tmp_path, capsys):

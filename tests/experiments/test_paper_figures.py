@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import pytest
+from script_modules import load_script
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "paper_figures.py"
 
 
 @pytest.fixture(scope="module")
 def paper_figures():
-    spec = importlib.util.spec_from_file_location("paper_figures", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("paper_figures")
 
 
 def test_job_overrides_take_the_percent_of_n_squared(paper_figures):

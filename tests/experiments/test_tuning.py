@@ -2,26 +2,21 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
 from dipnet.experiments import collect, tuning
 from dipnet.experiments.tuning import Param
+from script_modules import load_script
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "tune.py"
 TINY = ["resolution=16", "n_dips=12", "solver.iterations=15", "output.uncertainty=false", "output.resolvability=false"]
 
 
 @pytest.fixture(scope="module")
 def tune_script():
-    spec = importlib.util.spec_from_file_location("tune", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("tune")
 
 
 @pytest.mark.slow

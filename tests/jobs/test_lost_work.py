@@ -4,7 +4,6 @@ user would (a subprocess of the script)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import pickle
 import re
@@ -20,6 +19,7 @@ import pytest
 import torch
 
 from dipnet.jobs.cli import run_hydra
+from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 RECONSTRUCT = ROOT / "scripts" / "reconstruct.py"
@@ -88,9 +88,7 @@ FINE = "voxel_16_3.pt"  # the fine stage's file (the coarse stage is voxel_8_3.p
 
 def _reconstruct_in_process(monkeypatch, run_dir: Path, *overrides: str) -> dict:
     """``python scripts/reconstruct.py hydra.run.dir=<run_dir> ...`` in this process; its metrics."""
-    spec = importlib.util.spec_from_file_location("reconstruct", RECONSTRUCT)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("reconstruct")
     monkeypatch.setattr(sys, "argv", [str(RECONSTRUCT), f"hydra.run.dir={run_dir}", *CHECKPOINTED, *overrides])
     run_hydra(script.main)
     return json.loads((run_dir / "metrics.json").read_text())
