@@ -137,7 +137,7 @@ def test_homing_disabled_gives_error5_and_config_check(world):
 
 
 def test_soft_limit_travel_check():
-    from dipnet.rig.grbl_protocol import check_settings
+    from dipnet.rig.grbl_dialect import check_settings
 
     settings = {10: 1, 20: 1, 22: 1, 130: 200.0, 131: 400.0, 132: 100.0}
     axes = AxisMap(lower=Axis("Z", sign=-1), tilt=Axis("X"), spin=Axis("Y"))
