@@ -38,7 +38,6 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
     name so the ``fakerig://`` URLs reach it); ``cfg.sensor`` holds ``device`` (``_target_``) and
     ``average``; ``cfg.protocol`` and the orientations (:func:`orientations_from_config`) the plan.
     """
-    from omegaconf import OmegaConf
 
     cfg = upgrade_scan_config(cfg)
     world = register_fake_rig(cfg)
