@@ -148,7 +148,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     stage("meshes and figures")
     write_outputs(cfg, out, measurement, operator, recon, truth, level, frame)
     if cfg.output.get("report"):
-        from dipnet.outputs.report import write_run_report  # optional extra: plotly
+        from dipnet.experiments.report import write_run_report  # optional extra: plotly
 
         stage("report")
         write_run_report(out)
