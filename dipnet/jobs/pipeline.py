@@ -92,7 +92,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     configure_threads(cfg.get("threads"))
     check_memory(cfg)
     source = instantiate(cfg.source)
-    shape = source.truth(lambda: instantiate(cfg.shape, ndim=int(cfg.ndim)))
+    shape = source.truth(lambda: instantiate(cfg.shape, ndim=int(cfg.ndim)), build=instantiate)
     grid = build_grid(cfg, shape, source)
     factory = instantiate(cfg.operator)
     options = acquisition_options(cfg, grid, shape, factory)
