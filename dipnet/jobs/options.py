@@ -178,7 +178,7 @@ def check_values(cfg: DictConfig) -> None:
     if method not in (True, False, None, "linearised", "samples"):
         raise ConfigError(f"output.uncertainty must be true, false, linearised or samples, got {method!r}")
     if cfg.output.get("report"):
-        from dipnet.outputs.report import require_plotly
+        from dipnet.experiments.report import require_plotly
 
         try:
             require_plotly()
