@@ -8,6 +8,7 @@ import argparse
 import pytest
 
 from dipnet.preprocessing.datasets import MESHES_DIR
+
 from script_modules import load_script
 
 

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-
 import pytest
-from script_modules import load_script
 
+from script_modules import load_script
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ from omegaconf import OmegaConf
 
 from dipnet.experiments import collect, tuning
 from dipnet.experiments.tuning import Param
+
 from script_modules import load_script
 
 TINY = ["resolution=16", "n_dips=12", "solver.iterations=15", "output.uncertainty=false", "output.resolvability=false"]
