@@ -1,4 +1,5 @@
-"""Shared scenes of the calibration tests: a reference ball dipped on a fake GRBL rig of known geometry, ideal ball dips and a ball in a tank smaller than assumed."""
+"""Shared scenes of the calibration tests: a reference ball dipped on a fake GRBL rig of known geometry, ideal ball
+dips and a ball in a tank smaller than assumed."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Moments of the dips (dipnet.calibration.moments): a ball's first two moments give the geometry exactly; the rest level gives the drift."""
+"""Moments of the dips (dipnet.calibration.moments): a ball's first two moments give the geometry exactly; the rest
+level gives the drift."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Calibration against a reference object (dipnet.calibration.reference): a ball of known radius gives the rig geometry, or a named refusal."""
+"""Calibration against a reference object (dipnet.calibration.reference): a ball of known radius gives the rig
+geometry, or a named refusal."""
 
 from __future__ import annotations
 
