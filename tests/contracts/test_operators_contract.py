@@ -20,6 +20,7 @@ from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators import BACKENDS, SplatOperator, make_operator, select_backend
 from dipnet.operators.analytic import ball_occupancy, ball_profiles
 from dipnet.preprocessing.datasets import MESHES_DIR as MESHES
+
 from operator_problems import generic_directions, random_problem, rel_error
 
 ALL = [(name, ndim) for name in BACKENDS for ndim in (2, 3)]

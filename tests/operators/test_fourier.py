@@ -11,6 +11,7 @@ import torch
 from dipnet.core.grid import Grid
 from dipnet.operators import FourierOperator
 from dipnet.operators.box_model import box_voxel_profiles
+
 from operator_problems import generic_directions, random_problem, rel_error
 
 

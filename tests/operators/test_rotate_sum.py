@@ -9,6 +9,7 @@ import torch
 from dipnet.core.grid import Grid
 from dipnet.operators import RotateSumOperator, SplatOperator
 from dipnet.operators.rotate_sum import orthonormal_frame
+
 from operator_problems import generic_directions, random_problem, rel_error
 
 

@@ -13,6 +13,7 @@ from dipnet.core.grid import Grid
 from dipnet.operators import SplatOperator
 from dipnet.operators.analytic import ball_occupancy
 from dipnet.operators.splat import planes_per_slab
+
 from operator_problems import generic_directions, random_problem
 
 
