@@ -17,8 +17,9 @@ from dipnet.solvers.base import Solver, measured_profiles
 def _measurement(k=4, m=10):
     """k random profiles of m slabs 2.5 mm thick from -12.5 mm, along Fibonacci directions."""
     gen = torch.Generator().manual_seed(0)
-    return DipMeasurement(directions=fibonacci_hemisphere(k), profiles=torch.rand(k, m, generator=gen, dtype=torch.float64),
-                          slab_thickness=2.5, offsets=torch.full((k,), -12.5))
+    profiles = torch.rand(k, m, generator=gen, dtype=torch.float64)
+    return DipMeasurement(directions=fibonacci_hemisphere(k), profiles=profiles, slab_thickness=2.5,
+                          offsets=torch.full((k,), -12.5))
 
 
 def test_measured_profiles_aligns_to_the_operator():
