@@ -37,6 +37,6 @@ def test_no_job_directory_is_a_usage_error(monkeypatch, capsys):
 def test_importing_the_module_runs_nothing(monkeypatch, capsys):
     """Imported (not run), the module only names the entry point: the report's own ``main``."""
     from dipnet import report
-    from dipnet.outputs.report import main
+    from dipnet.experiments.report import main
 
     assert report.main is main and capsys.readouterr().out == ""

@@ -22,8 +22,10 @@ from dipnet.calibration.model import (
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.shapes import Box
+from dipnet.shapes import Ball, Box
 from dipnet.simulator.physics import DipProtocol, Tank, simulate_scan
+
+from calibration_helpers import AREA, RADIUS
 
 TRUE = RigGeometry(pivot_mm=10.0)
 
@@ -116,3 +118,27 @@ def test_the_calibration_file_never_labels_a_kept_value_an_estimate():
     assert cal.not_estimated["sensor_lag_s"] == NOT_ESTIMATED["sensor_lag_s"]
     assert "not among the calibrated parameters" in cal.not_estimated["tilt_axis_offset_mm"]
     assert "pivot_mm" not in cal.not_estimated and "cross_section_mm2" not in cal.not_estimated  # None: no field
+
+
+def test_the_profile_model_repairs_a_level_spike_once_not_per_trial(monkeypatch):
+    from dipnet.calibration.model import ProfileModel, State
+    from dipnet.preprocessing import preprocess as preprocess_module
+
+    grid = Grid(16, 3, 80.0)
+    raw = simulate_scan(Ball(RADIUS), fibonacci_hemisphere(6), tank=Tank(cross_section_mm2=AREA))
+    clean = ProfileModel(raw, grid).measurement(State(RigGeometry()))
+    spiked = simulate_scan(Ball(RADIUS), fibonacci_hemisphere(6), tank=Tank(cross_section_mm2=AREA))
+    middle = len(spiked.orientations[2].values) // 2
+    spiked.orientations[2].values[middle] += 5.0  # a 5 mm level spike in one reading
+    with pytest.warns(UserWarning, match="repaired 1 outlier"):
+        model = ProfileModel(spiked, grid)  # the spike is found once, when the model is made
+
+    def no_repair(*args, **kwargs):
+        raise AssertionError("readings repaired again in a trial")
+
+    monkeypatch.setattr(preprocess_module, "repair_readings", no_repair)
+    for offset in (0.0, 2.0):  # two trial geometries
+        trial = model.measurement(State(RigGeometry(tilt_axis_offset_mm=offset)))
+        assert trial.metadata["readings"] == model.readings.to_json()
+    repaired = model.measurement(State(RigGeometry()))
+    np.testing.assert_allclose(repaired.profiles, clean.profiles, atol=1e-4 * float(clean.profiles.max()))  # interpolated

@@ -8,7 +8,6 @@ import argparse
 import pytest
 
 from dipnet.preprocessing.datasets import MESHES_DIR
-
 from script_modules import load_script
 
 

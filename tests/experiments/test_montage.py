@@ -10,7 +10,6 @@ import numpy as np
 from dipnet.core.grid import Grid
 from dipnet.experiments import collect, figures
 from dipnet.experiments.collect import Run
-
 from sweep_fixtures import ball, write_job
 
 

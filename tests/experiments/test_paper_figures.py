@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import pytest
 
+import pytest
 from script_modules import load_script
+
 
 
 @pytest.fixture(scope="module")

@@ -15,9 +15,9 @@ def test_a_warning_that_was_logged_is_shown_once(monkeypatch, capfd):
     monkeypatch.setattr(warnings_once, "_logged", set())
     monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)
     factory = logging.getLogRecordFactory()
-    log = logging.getLogger("dipnet.test_answers")
+    log = logging.getLogger("dipnet.test_warnings_once")
     handler = logging.StreamHandler()                                 # stderr, as Hydra's console handler
-    for name in ("dipnet.test_answers", warnings_once.WARNINGS_LOGGER):
+    for name in ("dipnet.test_warnings_once", warnings_once.WARNINGS_LOGGER):
         logging.getLogger(name).addHandler(handler)
     try:
         with warnings.catch_warnings():
@@ -31,7 +31,7 @@ def test_a_warning_that_was_logged_is_shown_once(monkeypatch, capfd):
                 warnings.warn("an error now", UserWarning)
     finally:
         logging.setLogRecordFactory(factory)
-        for name in ("dipnet.test_answers", warnings_once.WARNINGS_LOGGER):
+        for name in ("dipnet.test_warnings_once", warnings_once.WARNINGS_LOGGER):
             logging.getLogger(name).removeHandler(handler)
     err = capfd.readouterr().err
     assert err.count("the reconstruction holds too much") == 1
