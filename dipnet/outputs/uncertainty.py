@@ -26,12 +26,14 @@ METHODS = ("linearised", "samples")
 
 def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator,
                       truth: np.ndarray | None = None, figure: bool = True, method: str = "linearised",
-                      solver: Solver | None = None, n_samples: int = 4, seed: int = 0) -> dict[str, Any]:
+                      solver: Solver | None = None, n_samples: int = 4, seed: int = 0,
+                      iterations_scale: float = 1.0) -> dict[str, Any]:
     """Add the maps ``uncertainty_std`` / ``uncertainty_p_wrong`` (and with ``method="samples"``
     ``uncertainty_probability``, the ensemble's occupancy probability) to ``out/reconstruction.npz``,
     draw ``out/uncertainty.png`` and return the summary metrics (with the error rate per
     uncertainty decile and the Brier score of the occupancy probability when the true occupancy
-    ``truth`` is known). ``method="samples"`` re-runs ``solver`` ``n_samples`` times (seeded by ``seed``)."""
+    ``truth`` is known). ``method="samples"`` re-runs ``solver`` ``n_samples`` times (seeded by ``seed``),
+    each with ``iterations_scale`` of its iterations."""
     if method not in METHODS:
         raise ValueError(f"unknown uncertainty method {method!r}; choose one of {METHODS}")
     extra: dict[str, np.ndarray] = {}
@@ -39,7 +41,7 @@ def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: Di
         if solver is None:
             raise ValueError("uncertainty method 'samples' needs the solver that made the reconstruction")
         maps, summary = ensemble_uncertainty(reconstruction, measurement, operator, solver, n_samples=n_samples,
-                                             seed=seed)
+                                             seed=seed, iterations_scale=iterations_scale)
         extra["uncertainty_probability"] = maps["probability"]
         probability = maps["probability"]
     else:

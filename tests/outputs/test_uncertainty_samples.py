@@ -20,7 +20,8 @@ def _cfg(*overrides):
 
 def test_a_job_writes_the_ensemble_probability(tmp_path):
     result = run(_cfg("resolution=16", "n_dips=12", "solver=voxel", "solver.iterations=60", "output.mesh_formats=[]",
-                      "output.uncertainty=samples", "output.uncertainty_samples=2", "output.figures=false"), tmp_path)
+                      "output.uncertainty=samples", "output.uncertainty_samples=2", "output.uncertainty_iterations=0.5",
+                      "output.figures=false"), tmp_path)
     with np.load(tmp_path / "reconstruction.npz") as saved:
         p, p_wrong = saved["uncertainty_probability"], saved["uncertainty_p_wrong"]
         assert p.shape == (16, 16, 16) and 0 <= p.min() and p.max() <= 1
@@ -32,7 +33,8 @@ def test_a_job_writes_the_ensemble_probability(tmp_path):
 
 
 @pytest.mark.parametrize("override, message", [("output.uncertainty=often", "output.uncertainty must be"),
-                                               ("output.uncertainty_samples=1", "uncertainty_samples")])
+                                               ("output.uncertainty_samples=1", "uncertainty_samples"),
+                                               ("output.uncertainty_iterations=0", "uncertainty_iterations")])
 def test_bad_uncertainty_options_are_named(tmp_path, override, message):
     with pytest.raises(ConfigError, match=message):
         run(_cfg(override), tmp_path)
