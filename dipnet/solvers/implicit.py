@@ -70,7 +70,7 @@ class ImplicitSolver(OptimisationSolver):
                  **options) -> None:
         options.setdefault("iterations", 400)
         options.setdefault("lr", 0.01)
-        options.setdefault("priors", {"tv": {"weight": 1e-3}, "binary": {"weight": 0.0},
+        options.setdefault("priors", {"tv": {"weight": "auto"}, "binary": {"weight": 0.0},
                                       "volume": {"weight": 0.0}})
         super().__init__(**options)
         if int(output_upsample) < 1 or int(warm_iterations) < 0:
@@ -91,7 +91,8 @@ class ImplicitSolver(OptimisationSolver):
         docstring); ``info`` holds steps, seconds and the number of field parameters."""
         started = time.perf_counter()
         grid = operator.grid
-        data, priors, fraction, support = self._problem(measurement, operator)
+        problem = self._problem(measurement, operator)
+        data, fraction, support = problem.data, problem.volume_fraction, problem.support
         index, points = _normalised_points(grid, support)
         init = self._initial_occupancy(measurement, operator)
         with seeded(self.seed):
@@ -107,13 +108,17 @@ class ImplicitSolver(OptimisationSolver):
             history = {}
             if init is not None and self.warm_iterations:
                 history = self._fit_warm_start(field, points, init.reshape(-1)[index])
-            history.update(self._loop(field.parameters(), occupancy, data, priors, self.iterations,
-                                      f"implicit {grid.n}^{grid.ndim}"))
+            desc = f"implicit {grid.n}^{grid.ndim}"
+            update = self.weight_update(problem, occupancy)  # None when every weight is fixed
+            priors = problem.priors if update is None else update.priors
+            history.update(self._loop(field.parameters(), occupancy, data, priors, self.iterations, desc,
+                                      before_step=update))
             with torch.no_grad():
                 occ = occupancy()
         self.field_ = field
         n_params = sum(p.numel() for p in field.parameters())
-        recon = self._result(occ, operator, history, started, data=data, parameters=n_params,
+        recon = self._result(occ, operator, history, started, data=data, priors=priors, update=update,
+                             parameters=n_params,
                              output_upsample=self.output_upsample, support_voxels=int(index.numel()))
         recon.fine = None
         if self.output_upsample > 1:

@@ -64,7 +64,7 @@ class VoxelSolver(OptimisationSolver):
                  coarse_fraction: float = 0.3, **options) -> None:
         options.setdefault("iterations", 400)
         options.setdefault("lr", 0.1)
-        options.setdefault("priors", {"tv": {"weight": 1e-3}, "binary": {"weight": 0.0},
+        options.setdefault("priors", {"tv": {"weight": "auto"}, "binary": {"weight": 0.0},
                                       "volume": {"weight": 0.0}})
         super().__init__(**options)
         if not 0 < temperature_end <= temperature_start:
@@ -98,7 +98,8 @@ class VoxelSolver(OptimisationSolver):
         histories, stage_info = [], []
         with seeded(self.seed):
             for op, steps, f0, f1 in self._stages(operator):  # a gain is fitted on the full grid only (see fit_gain)
-                data, priors, fraction, support = self._problem(measurement, op, self.fit_gain and op is operator)
+                problem = self._problem(measurement, op, self.fit_gain and op is operator)
+                data, priors, fraction, support = problem.data, problem.priors, problem.volume_fraction, problem.support
                 mask = support.to(torch.float32)
                 if logits is None:
                     room = float(mask.mean())  # share of the cube that may be filled
@@ -117,9 +118,18 @@ class VoxelSolver(OptimisationSolver):
                     return torch.sigmoid(z / temp["T"]) * mask
 
                 desc = f"voxel {op.grid.n}^{op.grid.ndim}"
-                histories.append(self._loop([z], occupancy, data, priors, steps, desc, before_step=anneal))
+                update = self.weight_update(problem, occupancy) if op is operator else None  # "auto" weights
+                if update is not None:  # chosen on the full grid, during its stage
+                    priors = update.priors
+
+                    def step_hooks(p: float, anneal=anneal, update=update) -> None:
+                        anneal(p)
+                        update(p)
+                histories.append(self._loop([z], occupancy, data, priors, steps, desc,
+                                            before_step=anneal if update is None else step_hooks))
                 logits = (z.detach() / temp["T"])
                 stage_info.append({"n": op.grid.n, "steps": len(histories[-1]["loss"])})
         occ = torch.sigmoid(logits) * mask
-        return self._result(occ, operator, merge_histories(*histories), started, data=data, stages=stage_info,
+        return self._result(occ, operator, merge_histories(*histories), started, data=data, priors=priors,
+                            update=update, stages=stage_info,
                             final_temperature=temp["T"], support_voxels=int(mask.sum()))
