@@ -35,7 +35,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
-from dipnet.solvers.weights import DiscrepancyUpdate, WeightRule, auto_names, noise_level, with_weight
+from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,7 @@ class Problem(NamedTuple):
     """What a solver optimises on one grid."""
 
     data: "DataTerm"
-    priors: Priors  # "auto" weights at the weight rule's start (see OptimisationSolver.weight_update)
+    priors: Priors  # "auto" weights at the weight rule's start (see OptimisationSolver.choose_weights)
     volume_fraction: float  # measured object volume / grid cube volume
     support: torch.Tensor  # bool, grid.shape: voxels that may be occupied
     noise: tuple[float, str]  # the data term of the noise alone and where it comes from (weights.noise_level)
@@ -427,19 +427,37 @@ class OptimisationSolver(Solver):
                         optimizer=self.optimizer, schedule=self.schedule, tol=self.tol, window=self.window,
                         progress=self.progress, desc=desc, before_step=before_step, checkpoint=self.checkpoint)
 
-    def weight_update(self, problem: Problem, occupancy: Callable[[], torch.Tensor]) -> DiscrepancyUpdate | None:
-        """The ``before_step`` hook that chooses the ``"auto"`` weights of ``problem``'s priors during
-        a run (:class:`~dipnet.solvers.weights.DiscrepancyUpdate`; run with its ``priors`` list), or
-        ``None`` when every weight is fixed."""
-        names = auto_names(self.priors)
-        if not names:
-            return None
+    def choose_weights(self, problem: Problem, parameters: list, occupancy: Callable[[], torch.Tensor], steps: int,
+                       desc: str) -> tuple[dict[str, list[float]], Priors, dict]:
+        """After a run with ``problem.priors`` (``"auto"`` weights at the rule's ``start``), choose
+        those weights by :attr:`weight_rule` and refit ``parameters`` with them.
+
+        The first run's data term ``D`` gives the weight
+        (:meth:`~dipnet.solvers.weights.WeightRule.next_weight`); when it differs from the start,
+        ``refit`` x ``steps`` more steps (learning rate x ``refit_lr``) continue from the first run's
+        state. Returns the refit's history (``{}`` without one), the priors of the result and the
+        record of the choice (``{"rule": "fixed"}`` when no weight is ``"auto"``).
+        """
+        if not auto_names(self.priors):
+            return {}, problem.priors, {"rule": "fixed"}
+        rule, data = self.weight_rule, problem.data
 
         def residual() -> float:
             with torch.no_grad():
-                return float(problem.data(occupancy()))
+                return float(data(occupancy()))
 
-        return DiscrepancyUpdate(list(problem.priors), names, residual, problem.noise, self.weight_rule)
+        first = residual()
+        weight = rule.next_weight(rule.start, first, problem.noise[0])
+        priors, history = problem.priors, {}
+        if weight != rule.start:
+            priors = build_priors(with_weight(self.priors, weight), problem.volume_fraction)
+            history = self._loop(parameters, occupancy, data, priors, max(1, round(rule.refit * steps)),
+                                 f"{desc} refit", lr_scale=rule.refit_lr)
+        record = {**rule.record(weight, first, residual(), problem.noise), "refit_steps": len(history.get("loss", []))}
+        log.info("%s: prior weight %.3g (%s; relative residual %.3g, then %.3g; noise %.3g from %s)", desc, weight,
+                 record["reason"], record["first_residual"], record["residual_reached"], record["noise_residual"],
+                 record["noise_source"])
+        return history, priors, record
 
     def _problem(self, measurement: DipMeasurement, operator: DipOperator, fit_gain: bool | None = None) -> Problem:
         """Data term (fitting a gain with ``fit_gain``, default :attr:`fit_gain`), priors, measured
@@ -478,22 +496,18 @@ class OptimisationSolver(Solver):
         return start.clamp(0, 1)
 
     def _result(self, occupancy: torch.Tensor, operator: DipOperator, history: dict, started: float,
-                data: DataTerm | None = None, priors: Priors | None = None,
-                update: DiscrepancyUpdate | None = None, **info) -> Reconstruction:
+                data: DataTerm | None = None, priors: Priors | None = None, weights: dict | None = None,
+                **info) -> Reconstruction:
         """The reconstruction with ``info`` (and ``info["gain"]`` when ``data`` fitted one); with
-        ``priors`` (those of the last run), ``info["prior_weights"]`` (``{name: weight}``) and
-        ``info["weight_rule"]``: ``{"rule": "fixed"}``, or the record of ``update`` (how the
-        ``"auto"`` weights were chosen, with the residual the result reached)."""
+        ``priors`` (those of the result), ``info["prior_weights"]`` (``{name: weight}``), and
+        ``info["weight_rule"]``, the record of :meth:`choose_weights`."""
         steps = len(history.get("loss", []))
         if data is not None and data.log_gain is not None:
             info["gain"] = data.gain
         if priors is not None:
             info["prior_weights"] = {name: weight for name, weight, _ in priors}
-            info["weight_rule"] = {"rule": "fixed"}
-        if update is not None and data is not None:
-            with torch.no_grad():
-                final = float(data(occupancy.to(data.target)))
-            info["weight_rule"] = update.record(final)
+        if weights is not None:
+            info["weight_rule"] = weights
         info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,
                 "final": {k: v[-1] for k, v in history.items() if v}, "optimizer": self.optimizer,
                 "seed": self.seed, **info}

@@ -9,10 +9,9 @@ Voxels outside the working ball, and outside the data's support hull (see
 slabs, so the same measured profiles), whose logits are then upsampled to start the full grid.
 
 Defaults (chosen with ``scripts/bench_quality.py`` at 64^3 on the shared meshes): Adam, lr 0.1,
-cosine schedule, 400 steps (30% at 32^3), temperature 1 -> 0.25, isotropic TV 1e-3. TV 3e-4
-and 1e-3 tie on noise-free data (bunny, 41 dips: IoU 0.968 / 0.965, Chamfer 0.0024 / 0.0027);
-3e-3 costs ~0.01 Chamfer-diagonals there but gains ~0.01-0.03 IoU at 30 dB SNR, so raise
-``priors.tv.weight`` for noisy data. Binarising harder (``temperature_end`` << 0.25) loses the
+cosine schedule, 400 steps (30% at 32^3), temperature 1 -> 0.25, isotropic TV with its weight
+chosen from the noise (``"auto"``, :mod:`dipnet.solvers.weights`: 1e-3 for the first solve, then
+a refit at the chosen weight; a number fixes it). Binarising harder (``temperature_end`` << 0.25) loses the
 partial-volume sub-voxel surface that the Chamfer distance rewards.
 """
 
@@ -118,18 +117,15 @@ class VoxelSolver(OptimisationSolver):
                     return torch.sigmoid(z / temp["T"]) * mask
 
                 desc = f"voxel {op.grid.n}^{op.grid.ndim}"
-                update = self.weight_update(problem, occupancy) if op is operator else None  # "auto" weights
-                if update is not None:  # chosen on the full grid, during its stage
-                    priors = update.priors
-
-                    def step_hooks(p: float, anneal=anneal, update=update) -> None:
-                        anneal(p)
-                        update(p)
-                histories.append(self._loop([z], occupancy, data, priors, steps, desc,
-                                            before_step=anneal if update is None else step_hooks))
+                histories.append(self._loop([z], occupancy, data, priors, steps, desc, before_step=anneal))
                 logits = (z.detach() / temp["T"])
                 stage_info.append({"n": op.grid.n, "steps": len(histories[-1]["loss"])})
+            # "auto" weights: chosen from the full grid's residual, then refitted at the final temperature
+            refit, priors, weights = self.choose_weights(problem, [z], occupancy, steps, desc)
+            if refit:
+                histories.append(refit)
+                logits = z.detach() / temp["T"]
         occ = torch.sigmoid(logits) * mask
         return self._result(occ, operator, merge_histories(*histories), started, data=data, priors=priors,
-                            update=update, stages=stage_info,
+                            weights=weights, stages=stage_info,
                             final_temperature=temp["T"], support_voxels=int(mask.sum()))

@@ -12,7 +12,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.voxel import VoxelSolver
-from dipnet.solvers.weights import DiscrepancyUpdate, WeightRule, auto_names, noise_level, with_weight
+from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
 
 
 def ellipse_with_bar(p: torch.Tensor) -> torch.Tensor:
@@ -52,7 +52,8 @@ def test_residual_of_the_chosen_weight_is_near_the_noise(clean, solver):
     _, op, meas = clean
     rec = solver(progress=False).solve(noisy(meas, 0.1), op)
     rule = rec.info["weight_rule"]
-    assert rule["reason"].startswith("the weight whose solution's residual matches")
+    assert rule["reason"] in ("the weight expected to bring the residual to tau times the noise",
+                              "the first weight's solution already matches tau times the noise")
     assert 0.6 < rule["residual_reached"] / rule["target_residual"] < 1.5, rule
     assert rule["target_residual"] == pytest.approx(rule["tau"] * rule["noise_residual"])
 
@@ -64,7 +65,7 @@ def test_noise_below_the_reachable_residual_gets_the_floor_weight_and_says_why(c
     rule = rec.info["weight_rule"]
     assert rule["weight"] == pytest.approx(WeightRule().floor)
     assert "floor weight" in rule["reason"] and rule["residual_reached"] > rule["target_residual"]
-    assert rule["updates"] and all(len(u) == 3 for u in rule["updates"])
+    assert rule["refit_steps"] > 0 and rule["first_residual"] > rule["target_residual"]
 
 
 def test_without_sigma_the_noise_is_estimated(clean):
@@ -80,33 +81,26 @@ def test_a_fixed_weight_is_honoured(clean):
     assert rec.info["weight_rule"] == {"rule": "fixed"}
 
 
-def test_update_settles_where_the_residual_meets_the_target():
-    """A residual growing as ``w^0.4`` (as the voxel solver's does at 30 dB): the hook moves the
-    weight to the one whose residual is the target, and stops moving after ``until``."""
-    priors = build_priors({"tv": {"weight": 1e-3}, "binary": {"weight": 0.5}})
-    rule = WeightRule(tau=1.0, every=1, until=0.5, gain=1.0)
-    state = {}
-    update = DiscrepancyUpdate(priors, ["tv"], lambda: 1e-3 * (state["w"] / 1e-2) ** 0.4, (4e-4, "sigma"), rule)
-    for i in range(400):
-        state["w"] = update.weight
-        update(i / 400)
-    expected = 1e-2 * 0.4 ** (1 / 0.4)
-    assert update.weight == pytest.approx(expected, rel=0.02)
-    assert dict((n, w) for n, w, _ in priors) == {"tv": update.weight, "binary": 0.5}  # only "auto" ones move
-    assert update.trace[-1][0] < 200  # no update after `until`
-    record = update.record(4e-4)
-    assert record["target_residual"] == pytest.approx(math.sqrt(4e-4))
+def test_next_weight_steps_toward_the_target_along_the_assumed_slope():
+    rule = WeightRule(tau=0.5, slope=0.5, tolerance=0.1, floor=1e-4, largest=1e-1)
+    goal = rule.target(4e-4)
+    assert goal == pytest.approx(1e-4)
+    # D = 1e-4 (w / 1e-3)^0.5 meets the goal at w = 1e-3: one step from either side lands there
+    for start in (1e-4 * 3, 3e-3):
+        assert rule.next_weight(start, 1e-4 * (start / 1e-3) ** 0.5, 4e-4) == pytest.approx(1e-3)
+    assert rule.next_weight(2e-3, 1.05e-4, 4e-4) == 2e-3  # within the tolerance: kept
+    assert rule.next_weight(1e-3, 1.0, 4e-4) == 1e-4  # far above the noise: the floor
+    assert rule.next_weight(1e-3, 1e-12, 4e-4) == 1e-1  # far below: the largest
+    assert rule.next_weight(1e-3, 1e-3, 0.0) == 1e-4  # no noise at all: the floor
 
 
-def test_weights_stay_within_floor_and_largest():
-    rule = WeightRule(floor=1e-4, largest=1e-2, every=1, until=1.0)
-    low = DiscrepancyUpdate(build_priors({"tv": 1e-3}), ["tv"], lambda: 1.0, (1e-6, "estimated"), rule)
-    high = DiscrepancyUpdate(build_priors({"tv": 1e-3}), ["tv"], lambda: 1e-9, (1e-3, "sigma"), rule)
-    for i in range(50):
-        low(i / 50)
-        high(i / 50)
-    assert low.weight == pytest.approx(1e-4) and "floor" in low.record(1.0)["reason"]
-    assert high.weight == pytest.approx(1e-2) and "largest" in high.record(1e-9)["reason"]
+def test_record_says_why():
+    rule = WeightRule()
+    assert "floor" in rule.record(rule.floor, 1e-2, 1e-2, (1e-6, "estimated"))["reason"]
+    assert "largest" in rule.record(rule.largest, 1e-9, 1e-9, (1e-3, "sigma"))["reason"]
+    kept = rule.record(rule.start, rule.target(1e-3), 1e-4, (1e-3, "sigma"))
+    assert "already matches" in kept["reason"] and kept["noise_source"] == "sigma"
+    assert kept["noise_residual"] == pytest.approx(math.sqrt(1e-3)) and kept["residual_reached"] == pytest.approx(1e-2)
 
 
 def test_noise_level_counts_filled_slabs_only():
@@ -127,5 +121,7 @@ def test_auto_spec_helpers_and_bad_rules():
         WeightRule(rule="sure")
     with pytest.raises(ValueError, match="floor <= start <= largest"):
         VoxelSolver(weight_rule={"floor": 1e-2, "start": 1e-3})
+    with pytest.raises(TypeError):
+        VoxelSolver(weight_rule={"taux": 1.0})
     with pytest.raises(ValueError, match="unknown prior"):
         VoxelSolver(priors={"tvv": {"weight": "auto"}})
