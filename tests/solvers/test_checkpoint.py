@@ -46,7 +46,8 @@ def test_interrupted_pipeline_solve_resumes_to_the_uninterrupted_result(tmp_path
 
     monkeypatch.setattr(Checkpoint, "restore", spy_restore)
     resumed = run(_cfg("output.checkpoint=true", "output.checkpoint_every=20"), tmp_path / "job").reconstruction
-    assert [step for _, step in restored] == [24, 20]  # coarse stage finished (24 steps), fine stage at step 20
+    # coarse stage finished (24 steps), fine stage at step 20, the TV weight's refit not begun
+    assert [step for _, step in restored] == [24, 20, 0]
     torch.testing.assert_close(resumed.occupancy, reference.occupancy, atol=1e-5, rtol=0)
     assert resumed.history["loss"] == pytest.approx(reference.history["loss"], rel=1e-5)
 
