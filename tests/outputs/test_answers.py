@@ -133,3 +133,20 @@ def test_a_warning_that_was_logged_is_shown_once(monkeypatch, capfd):
     err = capfd.readouterr().err
     assert err.count("the reconstruction holds too much") == 1
     assert err.count("only warned, never logged") == 1 and "UserWarning: only warned" in err
+
+
+def test_prior_weights_and_their_reason_go_into_the_metrics():
+    info = {"solver": "voxel", "prior_weights": {"tv": 2.4e-3},
+            "weight_rule": {"rule": "discrepancy", "reason": "the weight expected to bring the residual to tau "
+                            "times the noise", "noise_residual": 0.029, "target_residual": 0.020,
+                            "residual_reached": 0.019, "noise_source": "sigma", "first_residual": 0.017}}
+    flat = summary.prior_weight_metrics(info)
+    assert flat == {"prior_weights": {"tv": 2.4e-3}, "prior_weight_rule": "discrepancy",
+                    "prior_weight_reason": info["weight_rule"]["reason"], "prior_weight_noise_residual": 0.029,
+                    "prior_weight_target_residual": 0.020, "prior_weight_residual_reached": 0.019,
+                    "prior_weight_noise_source": "sigma"}
+    assert all(group == "run" for group, rows in summary.grouped(flat).items() for _ in rows)
+    assert summary.prior_weight_metrics({"solver": "voxel", "prior_weights": {"tv": 1e-3},
+                                         "weight_rule": {"rule": "fixed"}}) == {
+        "prior_weights": {"tv": 1e-3}, "prior_weight_rule": "fixed"}
+    assert summary.prior_weight_metrics({"solver": "minnorm"}) == {}
