@@ -447,7 +447,7 @@ class OptimisationSolver(Solver):
                 return float(data(occupancy()))
 
         first = residual()
-        weight = rule.next_weight(rule.start, first, problem.noise[0])
+        weight = rule.next_weight(rule.start, first, problem.noise[0], may_raise=problem.noise[1] == "sigma")
         priors, history = problem.priors, {}
         if weight != rule.start:
             priors = build_priors(with_weight(self.priors, weight), problem.volume_fraction)

@@ -68,10 +68,13 @@ def test_noise_below_the_reachable_residual_gets_the_floor_weight_and_says_why(c
     assert rule["refit_steps"] > 0 and rule["first_residual"] > rule["target_residual"]
 
 
-def test_without_sigma_the_noise_is_estimated(clean):
+def test_an_estimated_noise_never_raises_the_weight(clean):
+    """Noise-free data the grid reproduces exactly: the estimate reads the profiles' curvature as
+    noise (about the residual here); the weight may fall, never rise above the start."""
     _, op, meas = clean
-    rule = VoxelSolver(progress=False, iterations=60).solve(meas, op).info["weight_rule"]
+    rule = VoxelSolver(progress=False).solve(meas, op).info["weight_rule"]
     assert rule["noise_source"] == "estimated" and rule["noise_residual"] > 0
+    assert rule["weight"] <= WeightRule().start
 
 
 def test_a_fixed_weight_is_honoured(clean):
@@ -92,6 +95,8 @@ def test_next_weight_steps_toward_the_target_along_the_assumed_slope():
     assert rule.next_weight(1e-3, 1.0, 4e-4) == 1e-4  # far above the noise: the floor
     assert rule.next_weight(1e-3, 1e-12, 4e-4) == 1e-1  # far below: the largest
     assert rule.next_weight(1e-3, 1e-3, 0.0) == 1e-4  # no noise at all: the floor
+    assert rule.next_weight(1e-3, 1e-12, 4e-4, may_raise=False) == 1e-3  # an estimated noise only lowers
+    assert rule.next_weight(1e-3, 1.0, 4e-4, may_raise=False) == 1e-4
 
 
 def test_record_says_why():
