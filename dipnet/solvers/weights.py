@@ -56,7 +56,7 @@ class WeightRule:
         start: the weight of the first solve.
         floor, largest: the chosen weight stays in ``[floor, largest]``.
         slope: ``d log D / d log w`` assumed for the step from the first solve's residual to the weight
-            (measured 0.25-0.5 for the voxel solver at 64^3, 41 dips, 30 dB).
+            (measured 0.25-0.53 for the voxel solver at 64^3, 41 dips, 30 dB).
         tolerance: keep the first weight when ``|D / target - 1|`` is below this.
         refit: steps of the refit at the chosen weight, as a share of the solver's (last-stage) steps.
         refit_lr: the refit's learning rate as a share of the solver's.
@@ -120,20 +120,26 @@ class WeightRule:
                 "first_residual": root(max(first_residual, 0.0)), "residual_reached": root(max(residual, 0.0))}
 
 
+def _weight(name: str, options) -> object:
+    """The weight entry of one prior's options (a bare number or string is the weight itself)."""
+    weight = options if isinstance(options, (int, float, str)) else dict(options).get("weight", 0.0)
+    if isinstance(weight, str) and weight != AUTO:
+        raise ValueError(f"prior {name!r} has weight {weight!r}: give a number or {AUTO!r}")
+    return weight
+
+
 def auto_names(spec: Mapping[str, Mapping]) -> list[str]:
     """Names of the priors of ``spec`` (``{name: {"weight": w, ...}}``) whose weight is ``"auto"``."""
-    return [name for name, options in spec.items()
-            if (options if isinstance(options, str) else dict(options).get("weight")) == AUTO]
+    return [name for name, options in spec.items() if _weight(name, options) == AUTO]
 
 
 def with_weight(spec: Mapping[str, Mapping], weight: float) -> dict[str, dict]:
     """``spec`` with every ``"auto"`` weight replaced by ``weight``."""
     out = {}
     for name, options in spec.items():
+        auto = _weight(name, options) == AUTO
         options = {"weight": options} if isinstance(options, (int, float, str)) else dict(options)
-        if options.get("weight") == AUTO:
-            options["weight"] = weight
-        out[name] = options
+        out[name] = {**options, "weight": weight} if auto else options
     return out
 
 

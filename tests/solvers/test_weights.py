@@ -118,10 +118,12 @@ def test_noise_level_counts_filled_slabs_only():
 
 
 def test_auto_spec_helpers_and_bad_rules():
-    spec = {"tv": {"weight": "auto", "isotropic": True}, "binary": {"weight": 0.0}, "l1": "auto"}
+    spec = {"tv": {"weight": "auto", "isotropic": True}, "binary": {"weight": 0.0}, "l1": "auto", "volume": 0.5}
     assert auto_names(spec) == ["tv", "l1"]
     assert with_weight(spec, 2e-3) == {"tv": {"weight": 2e-3, "isotropic": True}, "binary": {"weight": 0.0},
-                                       "l1": {"weight": 2e-3}}
+                                       "l1": {"weight": 2e-3}, "volume": {"weight": 0.5}}
+    with pytest.raises(ValueError, match="give a number or 'auto'"):
+        VoxelSolver(priors={"tv": {"weight": "automatic"}})
     with pytest.raises(ValueError, match="unknown weight rule"):
         WeightRule(rule="sure")
     with pytest.raises(ValueError, match="floor <= start <= largest"):
