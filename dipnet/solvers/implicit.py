@@ -12,8 +12,8 @@ extent), or ``None``. The fitted field stays available as ``solver.field_`` and
 
 Defaults (chosen with ``scripts/bench_quality.py`` at 64^3): a 6-level dense feature grid
 (4^3 .. N^3 cells, 2 features each), a 64-wide MLP with 2 hidden layers, Adam lr 0.01 with a
-cosine schedule, 400 steps, isotropic TV with its weight from the noise (``"auto"``). Lighter fields (4 levels, width 32) ran ~1.5x
-faster but under-fitted (bunny, 41 dips: IoU 0.93 vs 0.96). Cost per step: the dip operator
+cosine schedule, 400 steps, isotropic TV with its weight from the noise (``"auto"``). Lighter
+fields (4 levels, width 32) ran ~1.5x faster but under-fitted (bunny, 41 dips: IoU 0.93 vs 0.96). Cost per step: the dip operator
 and the MLP over the support-hull voxels (see :func:`~dipnet.solvers.optimize.support_hull`).
 """
 

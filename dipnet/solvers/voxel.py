@@ -11,8 +11,8 @@ slabs, so the same measured profiles), whose logits are then upsampled to start 
 Defaults (chosen with ``scripts/bench_quality.py`` at 64^3 on the shared meshes): Adam, lr 0.1,
 cosine schedule, 400 steps (30% at 32^3), temperature 1 -> 0.25, isotropic TV with its weight
 chosen from the noise (``"auto"``, :mod:`dipnet.solvers.weights`: 1e-3 for the first solve, then
-a refit at the chosen weight; a number fixes it). Binarising harder (``temperature_end`` << 0.25) loses the
-partial-volume sub-voxel surface that the Chamfer distance rewards.
+a refit at the chosen weight; a number fixes it). Binarising harder (``temperature_end`` << 0.25)
+loses the partial-volume sub-voxel surface that the Chamfer distance rewards.
 """
 
 from __future__ import annotations

@@ -10,7 +10,6 @@ import torch
 from solver_helpers import noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from dipnet.core.measurement import DipMeasurement
 from dipnet.solvers.implicit import ImplicitSolver
-from dipnet.solvers.priors import build_priors
 from dipnet.solvers.voxel import VoxelSolver
 from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
 
