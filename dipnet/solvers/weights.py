@@ -23,15 +23,16 @@ part of the noise, so the residual at the best weight lies well below the noise 
 
 An estimated noise only lowers the weight: the high-pass that estimates it also reads the
 profiles' own curvature, which on noise-free data the grid reproduces well dominates it (the
-torus at 32^3, 41 dips: the weight went to 0.1 and the Chamfer from 0.0037 to 0.0049).
+torus at 32^3, 41 dips: weight 0.1 and Chamfer 0.0049 instead of 0.0017).
 
 ``delta^2`` counts the slabs the object fills (volume above ``rel_tol`` of the profile's
 largest): the preprocessing's monotone fit of each dip's volume curve leaves the empty slabs
 at exactly 0, so they hold no noise, and counting their sigma would set the target at about
 twice the residual of the true shape. With no per-slab sigma the noise is estimated from the
-profiles (:func:`~dipnet.evaluation.consistency.estimate_slab_sigma`, a high-pass of each
-profile), which sees white noise but underestimates the smooth, correlated noise of
-interpolated level readings, so such data get smaller weights than their noise deserves.
+profiles as the consistency check does
+(:func:`~dipnet.preprocessing.validation.estimate_slab_sigma`, a high-pass of each profile),
+which sees white noise but underestimates the smooth, correlated noise of interpolated level
+readings, so such data get smaller weights than their noise deserves.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
+
+from dipnet.preprocessing.validation import estimate_slab_sigma
 
 AUTO = "auto"
 RULES = ("discrepancy",)
@@ -156,9 +159,6 @@ def noise_level(target: torch.Tensor, sigma: torch.Tensor | None, weight: torch.
     Returns:
         ``delta^2`` (dimensionless) and ``"sigma"`` or ``"estimated"``.
     """
-    # imported here: dipnet.evaluation imports dipnet.solvers
-    from dipnet.evaluation.consistency import estimate_slab_sigma
-
     if sigma is None:
         sigma, source = torch.full_like(target, estimate_slab_sigma(target)), "estimated"
     else:
