@@ -132,10 +132,10 @@ class DeepImagePriorSolver(OptimisationSolver):
         return self.temperature_start * (self.temperature_end / self.temperature_start) ** fraction
 
     def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
-        """Reconstruct on ``operator.grid``; ``info`` holds the network's size and the final temperature."""
+        """Reconstruct on ``operator.grid``; ``info`` holds the network's size (``network_weights``) and the final temperature."""
         started = time.perf_counter()
-        data, priors, _, support = self._problem(measurement, operator)
-        mask = support.to(torch.float32)
+        problem = self._problem(measurement, operator)  # an "auto" prior weight stays at the rule's start
+        data, priors, mask = problem.data, problem.priors, problem.support.to(torch.float32)
         with seeded(self.seed):
             net = DeepDecoder(operator.grid.shape, self.channels, self.levels, self.kernel_size, self.fine_kernel)
             temp = {"T": self.temperature_start}
@@ -151,5 +151,5 @@ class DeepImagePriorSolver(OptimisationSolver):
             with torch.no_grad():
                 occ = occupancy()
         n_weights = sum(p.numel() for p in net.parameters())
-        return self._result(occ, operator, history, started, data=data, weights=n_weights,
+        return self._result(occ, operator, history, started, data=data, priors=priors, network_weights=n_weights,
                             final_temperature=temp["T"], support_voxels=int(mask.sum()))
