@@ -20,7 +20,7 @@ def _compose(name, overrides):
 
 
 def test_fake_rig_scan_is_scored_against_its_shape(tmp_path):
-    scan_cfg = _compose("scan", ["orientations.n=24", "protocol.step_mm=4", "fsync=false", "progress=false",
+    scan_cfg = _compose("scan", ["n_dips=24", "protocol.step_mm=4", "fsync=false", "progress=false",
                                  "rig.fake.shape.name=ball", "rig.fake.shape.radius=30"])
     path = tmp_path / "rawscan.jsonl"
     scan_from_config(scan_cfg, path)
