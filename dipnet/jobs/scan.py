@@ -175,12 +175,8 @@ def adaptive_scan_from_config(cfg, path: str | Path, journal=None) -> RawScan:
 
 def scan_job(cfg, path: str | Path, journal=None) -> RawScan:
     """The scan of ``scripts/scan.py``: planned dip by dip when ``cfg.planner`` is an adaptive plan
-<<<<<<< HEAD
-    (:func:`adaptive_scan_from_config`), else up front from ``cfg.orientations`` (:func:`scan_from_config`).
+    (:func:`adaptive_scan_from_config`), else up front from the orientations of the config (:func:`scan_from_config`).
     ``journal``: the monitor's (``monitor=true``), sampling the runner."""
-=======
-    (:func:`adaptive_scan_from_config`), else up front from the orientations of the config (:func:`scan_from_config`)."""
->>>>>>> main
     if cfg.get("planner") is not None and instantiates(cfg, "planner", AdaptivePlan):
         return adaptive_scan_from_config(cfg, path, journal=journal)
     return scan_from_config(cfg, path, journal=journal)
