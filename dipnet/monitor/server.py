@@ -15,8 +15,7 @@ the loopback, every request must carry the access token (``?token=``, then a coo
 without it the answer is 403.
 """
 
-from __future__ import annotations
-
+# (no "from __future__ import annotations": FastAPI reads the endpoints' annotations, e.g. Request, at run time)
 import asyncio
 import hmac
 import json
@@ -201,20 +200,15 @@ def page_url(host: str, port: int, token: str | None) -> str:
     return f"http://{shown}:{port}/" + (f"?token={token}" if token else "")
 
 
-def serve(monitor: Monitor, host: str = "127.0.0.1", port: int = 8765, token: str | None = None,
-          ready: threading.Event | None = None) -> None:
-    """Serve ``monitor`` until interrupted (uvicorn); ``token`` as :func:`make_app`."""
+def make_server(monitor: Monitor, host: str = "127.0.0.1", port: int = 8765, token: str | None = None):
+    """The uvicorn server of :func:`make_app` on ``host:port`` (``run()`` it; ``should_exit = True`` stops it)."""
     import uvicorn
 
     check_port(host, port)
     config = uvicorn.Config(make_app(monitor, token), host=host, port=port, log_level="warning", lifespan="off")
-    server = uvicorn.Server(config)
-    if ready is not None:
-        threading.Thread(target=_signal_ready, args=(server, ready), daemon=True).start()
-    server.run()
+    return uvicorn.Server(config)
 
 
-def _signal_ready(server: Any, ready: threading.Event) -> None:
-    while not server.started:
-        time.sleep(0.05)
-    ready.set()
+def serve(monitor: Monitor, host: str = "127.0.0.1", port: int = 8765, token: str | None = None) -> None:
+    """Serve ``monitor`` until interrupted (uvicorn); ``token`` as :func:`make_app`."""
+    make_server(monitor, host, port, token).run()

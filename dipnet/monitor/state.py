@@ -118,7 +118,8 @@ def finish_estimate(tail: ScanTail, now: float) -> dict[str, Any]:
     current = tail.dips[-1] if tail.dips and not tail.dips[-1].complete else None
     remaining = (len(planned) - done - (current is not None)) * per_dip
     if current is not None and n is not None and per_reading is not None:
-        remaining += max(n - len(current.values), 0) * per_reading + max(per_dip - n * per_reading, 0.0)
+        # to the dip's last reading, then the lift and rotation before the next dip starts
+        remaining += max(n - len(current.values), 0) * per_reading + max(per_dip - (n - 1) * per_reading, 0.0)
     out["remaining_s"] = max(remaining, 0.0)
     out["finish_time"] = now + out["remaining_s"]
     return out
