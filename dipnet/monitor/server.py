@@ -205,7 +205,8 @@ def make_server(monitor: Monitor, host: str = "127.0.0.1", port: int = 8765, tok
     import uvicorn
 
     check_port(host, port)
-    config = uvicorn.Config(make_app(monitor, token), host=host, port=port, log_level="warning", lifespan="off")
+    config = uvicorn.Config(make_app(monitor, token), host=host, port=port, log_level="warning", lifespan="off",
+                            timeout_graceful_shutdown=1)   # the event streams never end by themselves
     return uvicorn.Server(config)
 
 

@@ -28,6 +28,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+#: The reader's warning that the dip being scanned is left out: the normal state of a running scan.
+INCOMPLETE = "are incomplete and left out"
 #: Grid side (mm) when neither the option nor the recording fixes it: this many times the stage travel.
 TRAVEL_EXTENT_FACTOR = 1.3
 
@@ -108,7 +110,7 @@ def reconstruct_scan(path: str | Path, resolution: int = 48, extent_mm: float | 
                      "j": mesh.faces[:, 1].tolist(), "k": mesh.faces[:, 2].tolist()},
             "edges": np.round(edges, 4).tolist(), "cumulative": cumulative,
             "uncertainty": {k: float(v) for k, v in summary.items()},
-            "warnings": list(dict.fromkeys(str(w.message) for w in caught))}
+            "warnings": list(dict.fromkeys(str(w.message) for w in caught if INCOMPLETE not in str(w.message)))}
 
 
 def _resize(volume: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -126,8 +128,9 @@ def count_complete(path: Path) -> int:
 
 
 def worker_main(path: str, out: "mp.Queue", every: int, resolution: int, extent_mm: float | None,
-                stop: "mp.Event", nice: int, poll_s: float = 0.5) -> None:
-    """The worker process: re-solve when ``every`` more dips are complete (and once at the end)."""
+                stop: "mp.Event", nice: int, parent: int, poll_s: float = 0.5) -> None:
+    """The worker process: re-solve when ``every`` more dips are complete (and once at the end); it ends
+    with ``stop`` or when its ``parent`` process is gone (killed: nothing else would end it)."""
     import torch
 
     if nice and hasattr(os, "nice"):
@@ -146,7 +149,7 @@ def worker_main(path: str, out: "mp.Queue", every: int, resolution: int, extent_
                 out.put({"error": f"{type(exc).__name__}: {exc}", "n_dips": n,
                          "trace": traceback.format_exc(limit=3)})
             done = n
-        if stopping:
+        if stopping or os.getppid() != parent:
             return
         stop.wait(poll_s)
 
@@ -167,7 +170,8 @@ class ReconWorker:
         ctx = mp.get_context("spawn")
         self.queue, self.stop = ctx.Queue(), ctx.Event()
         self.process = ctx.Process(target=worker_main, name="dipnet-monitor-recon", daemon=True,
-                                   args=(str(path), self.queue, int(every), int(resolution), extent_mm, self.stop, nice))
+                                   args=(str(path), self.queue, int(every), int(resolution), extent_mm, self.stop, nice,
+                                         os.getpid()))
         self.result: dict[str, Any] | None = None
         self.error: str | None = None
 

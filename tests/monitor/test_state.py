@@ -139,3 +139,19 @@ def test_the_predicted_trace_solves_the_tank_balance():
     np.testing.assert_allclose(predicted, 150.0 + rise, atol=1e-6)
     assert predicted_trace(recon, Dip(0, 10.0, 20.0, None, {}, [0.0], [1.0]), area) is None   # no start height
     assert predicted_trace(None, dip, area) is None
+
+
+def test_a_resumed_scan_shows_what_was_recorded_before_and_goes_on(tmp_path):
+    path = synthetic_scan(tmp_path / "rawscan.jsonl", [RISING, RISING[:3]], complete=1)   # stopped in dip 1
+    tail, journal = ScanTail(path), JournalTail(path)
+    tail.poll()
+    assert [len(d.values) for d in tail.dips] == [5, 3]
+    header = ScanHeader(tank_cross_section_mm2=1e4, step_mm=1.0, resolution=0.001, config={"plan": PLAN})
+    with RawScanWriter(path, header, resume=True, fsync=False) as writer:   # the resumed run redoes dip 1
+        writer.record_session({"first_k": 1})
+        writer.begin_orientation(1, tilt_deg=20.0, spin_deg=90.0)
+        writer.append_reading(0.0, 100.0, 30.0, [])
+    tail.poll()
+    state = snapshot(tail, journal, alive=True, now=31.0)
+    assert [len(d.values) for d in tail.dips] == [5, 1] and state["sessions"] == 1
+    assert [o["status"] for o in state["orientations"]] == ["done", "in progress", "planned", "planned"]
