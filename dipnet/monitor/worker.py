@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 
 #: The reader's warning that the dip being scanned is left out: the normal state of a running scan.
 INCOMPLETE = "are incomplete and left out"
+#: Seconds without a new line after which the scan is taken as ended (the last dips are solved then).
+QUIET_S = 5.0
 #: Grid side (mm) when neither the option nor the recording fixes it: this many times the stage travel.
 TRAVEL_EXTENT_FACTOR = 1.3
 
@@ -129,18 +131,19 @@ def count_complete(path: Path) -> int:
 
 def worker_main(path: str, out: "mp.Queue", every: int, resolution: int, extent_mm: float | None,
                 stop: "mp.Event", nice: int, parent: int, poll_s: float = 0.5) -> None:
-    """The worker process: re-solve when ``every`` more dips are complete (and once at the end); it ends
-    with ``stop`` or when its ``parent`` process is gone (killed: nothing else would end it)."""
+    """The worker process: re-solve when ``every`` more dips are complete, or when dips were added and the
+    file has not grown for :data:`QUIET_S` (the scan finished or stopped); it ends with ``stop`` or when
+    its ``parent`` process is gone (killed: nothing else would end it)."""
     import torch
 
+    out.cancel_join_thread()   # exit without waiting for the monitor to read the last result (it may be gone)
     if nice and hasattr(os, "nice"):
         os.nice(nice)
     torch.set_num_threads(1)
     done, version = 0, 0
-    while True:
-        stopping = stop.is_set()
+    while not stop.is_set() and os.getppid() == parent:
         n = count_complete(Path(path))
-        if n > done and (n - done >= every or done == 0 or stopping):
+        if n > done and (n - done >= every or done == 0 or quiet(Path(path))):
             try:
                 result = reconstruct_scan(path, resolution, extent_mm)
                 version += 1
@@ -149,9 +152,15 @@ def worker_main(path: str, out: "mp.Queue", every: int, resolution: int, extent_
                 out.put({"error": f"{type(exc).__name__}: {exc}", "n_dips": n,
                          "trace": traceback.format_exc(limit=3)})
             done = n
-        if stopping or os.getppid() != parent:
-            return
         stop.wait(poll_s)
+
+
+def quiet(path: Path) -> bool:
+    """The file has not changed for :data:`QUIET_S` seconds."""
+    try:
+        return time.time() - path.stat().st_mtime > QUIET_S
+    except OSError:
+        return False
 
 
 class ReconWorker:
@@ -194,7 +203,7 @@ class ReconWorker:
                 self.result, self.error = item, None
             changed = True
 
-    def close(self, timeout: float = 5.0) -> None:
+    def close(self, timeout: float = 10.0) -> None:
         self.stop.set()
         self.process.join(timeout)
         if self.process.is_alive():

@@ -89,8 +89,9 @@ def test_the_page_follows_a_fake_rig_scan(browser, tmp_path):
     """``scripts/scan.py monitor=true``: the scan and, beside it, the monitor process."""
     port = free_port()
     run = tmp_path / "scan"
-    command = [sys.executable, str(SCRIPTS / "scan.py"), f"hydra.run.dir={run}", *SCAN_OVERRIDES,
-               "protocol.settle_s=0.25", "sensor.device.timeout=10", "monitor=true", f"monitor_port={port}"]  # ~45 s
+    # 10 dips of ~7 s: the monitor process and the page (plotly.js) come up within the first dips on a loaded machine
+    command = [sys.executable, str(SCRIPTS / "scan.py"), f"hydra.run.dir={run}", *SCAN_OVERRIDES[1:], "n_dips=10",
+               "protocol.settle_s=0.25", "sensor.device.timeout=10", "monitor=true", f"monitor_port={port}"]
     scan = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         url = f"http://127.0.0.1:{port}/"
@@ -114,13 +115,15 @@ def test_the_page_follows_a_replay(browser, recorded_scan, tmp_path):
     target = tmp_path / "replay" / "rawscan.jsonl"
     replay = Replay(recorded_scan, target, speed=1.0)
     raw_span = replay.raw.orientations[-1].time_s[-1] - replay.raw.orientations[0].time_s[0]
-    replay.speed = raw_span / 20.0                                   # the recording in about 20 s
+    replay.speed = raw_span / 40.0                                   # the recording in about 40 s
     monitor = Monitor(target, replay=True, worker=ReconWorker(target, every=2, resolution=16, nice=0))
-    replay.start()
     monitor.start()
     try:
         with running(monitor) as (_, url):
-            check_updates(browser, url, "replay")
+            browser.get(url + "/")
+            wait_for(browser, "return document.body.dataset.mode", what="the page")   # before the replay starts
+            replay.start()
+            check_updates(browser, url + "/", "replay")
             assert "replay of a recorded scan" in browser.find_element("id", "banner").text
     finally:
         replay.stop()
