@@ -1,8 +1,9 @@
 """The running reconstruction: a background process that re-solves the scan every few dips.
 
 :func:`reconstruct_scan` reads the complete dips of the scan file as the reconstruction job would
-(:func:`~dipnet.preprocessing.sources.read_recorded`), solves them on an ``N^3`` grid (default the
-``minnorm`` solver: a Cholesky solve, about a second at 48^3) and returns what the page draws: three
+(:func:`~dipnet.preprocessing.sources.read_recorded`), checks them
+(:func:`~dipnet.preprocessing.validation.validate_measurement`: its warnings go to the page), solves them
+on an ``N^3`` grid (default the ``minnorm`` solver: a Cholesky solve) and returns what the page draws: three
 central slices of the occupancy and of its posterior standard deviation
 (:func:`~dipnet.evaluation.uncertainty.uncertainty`), the surface mesh, and the cumulative volume
 ``C(t)`` the reconstruction predicts along every orientation the scan records or plans (for the
@@ -73,6 +74,7 @@ def reconstruct_scan(path: str | Path, resolution: int = 48, extent_mm: float | 
     from dipnet.monitor.state import planned_orientations
     from dipnet.operators import make_operator
     from dipnet.preprocessing.sources import read_recorded
+    from dipnet.preprocessing.validation import validate_measurement
     from dipnet.shapes.isosurface import volume_to_mesh
     from dipnet.solvers.minnorm import MinNormSolver
 
@@ -83,6 +85,7 @@ def reconstruct_scan(path: str | Path, resolution: int = 48, extent_mm: float | 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         measurement = read_recorded(str(path), grid)
+        validate_measurement(measurement, grid)   # its warnings are caught here; an error ends this update
     operator = make_operator(grid, measurement.directions, grid.n)
     recon = (solver or MinNormSolver(progress=False)).solve(measurement, operator)
     maps, summary = uncertainty(recon, measurement, operator, n_samples=16)
