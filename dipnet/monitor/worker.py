@@ -38,16 +38,16 @@ TRAVEL_EXTENT_FACTOR = 1.3
 
 
 def grid_extent(path: Path, resolution: int, fill: float = 0.9) -> float:
-    """The grid side (mm) around the object: the radius the recording names (a fake-rig scan,
-    :func:`~dipnet.preprocessing.truth.shape_from_recording`), else :data:`TRAVEL_EXTENT_FACTOR` x the
-    stage travel of its readings (the object passes the water line within it)."""
+    """The grid side (mm) around the object: the radius of the object a fake-rig scan names in its header
+    (:func:`~dipnet.preprocessing.truth.recorded_shape_spec`, its ``radius``), else
+    :data:`TRAVEL_EXTENT_FACTOR` x the stage travel of its readings (the object passes the water line within it)."""
     from dipnet.core.framing import extent_around
     from dipnet.preprocessing.recorded import read_scan
-    from dipnet.preprocessing.truth import shape_from_recording
+    from dipnet.preprocessing.truth import recorded_shape_spec
 
-    shape = shape_from_recording(path)
-    if shape is not None:
-        return extent_around(shape.radius(), resolution, fill)
+    spec = recorded_shape_spec(path) or {}
+    if isinstance(spec.get("radius"), (int, float)) and spec["radius"] > 0:
+        return extent_around(float(spec["radius"]), resolution, fill)
     raw = read_scan(path)
     stages = np.concatenate([o.stage_mm for o in raw.orientations if o.n_readings] or [np.zeros(1)])
     travel = float(stages.max() - stages.min())
