@@ -6,13 +6,15 @@ dips are simulated from the mesh geometry itself (:func:`dipnet.simulator.simula
 a level sensor with exact readings (``--quantum-mm 0``), noise-free or with white noise at
 ``--snr`` dB) and each solver reconstructs on the ``auto``
 operator. Prints one table (IoU, Chamfer / bbox diagonal, Hausdorff / bbox diagonal, wall
-time), the means per solver / budget / noise, and the headline ratio: best optimiser's mean
-Chamfer at the smallest budget / minnorm's at the largest (noise-free).
+time, the TV weight the solver used), the means per solver / budget / noise, the headline ratio
+(best optimiser's mean Chamfer at the smallest budget / minnorm's at the largest, noise-free) and
+each mesh's ratio of voxel's Chamfer at the smallest budget to minnorm's at the largest, per noise.
 
     python scripts/bench_quality.py                                   # the full table
     python scripts/bench_quality.py --quick                           # bunny and torus, 32^3, minnorm and voxel
     python scripts/bench_quality.py --meshes bunny torus --budgets 41 --noise clean --solvers voxel
     python scripts/bench_quality.py --options voxel='{"iterations": 300}'
+    python scripts/bench_quality.py --dips voxel=41 minnorm=410                   # the headline pair only
 
 Simulated measurements and truths are cached in ``--cache`` (``.npz``), keyed by their parameters
 and the simulation code version (:func:`dipnet.core.code_version.simulation_digest`), so repeated
@@ -40,11 +42,12 @@ from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
 
-SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver}
+SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver}
 DEFAULT_MESHES = MESHES_DIR
 
 
@@ -54,7 +57,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--meshes", nargs="*", help="mesh names (file stems) to use; default all")
     p.add_argument("--n", type=int, default=64, help="grid resolution N")
     p.add_argument("--budgets", type=int, nargs="+", default=[41, 123, 410], help="numbers of dips")
-    p.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
+    p.add_argument("--solvers", nargs="+", default=["minnorm", "voxel", "implicit"], choices=list(SOLVERS),
+                   help="solvers to run (dip, the untrained deep image prior, only when named)")
+    p.add_argument("--dips", nargs="+", default=[], metavar="SOLVER=K[,K...]",
+                   help="numbers of dips per solver, e.g. voxel=41 minnorm=410 (replaces --budgets and "
+                        "--solvers: only the solvers named run, each at its own budgets)")
     p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=["clean", "snr"],
                    help="noise-free and/or level-sensor noise at --snr dB")
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR in dB for --noise snr")
@@ -75,7 +82,23 @@ def parse_args(argv=None) -> argparse.Namespace:
     if args.quick:
         args.meshes, args.n, args.budgets = args.meshes or ["bunny", "torus"], 32, [41, 123]
         args.noise, args.solvers = ["clean"], ["minnorm", "voxel"]
+    args.plan = solver_budgets(args.dips) if args.dips else {name: list(args.budgets) for name in args.solvers}
     return args
+
+
+def solver_budgets(specs: list[str]) -> dict[str, list[int]]:
+    """``{solver: [numbers of dips]}`` from ``--dips`` entries ``SOLVER=K[,K...]``."""
+    out: dict[str, list[int]] = {}
+    for spec in specs:
+        name, _, text = spec.partition("=")
+        try:
+            budgets = [int(k) for k in text.split(",")]
+        except ValueError:
+            budgets = []
+        if name not in SOLVERS or not budgets or min(budgets) < 1:
+            raise SystemExit(f"--dips expects SOLVER=K[,K...] with SOLVER in {list(SOLVERS)}, got {spec!r}")
+        out.setdefault(name, []).extend(budgets)
+    return out
 
 
 def solver_options(specs: list[str]) -> dict[str, dict]:
@@ -124,24 +147,31 @@ def main(argv=None) -> list[dict]:
         raise SystemExit(f"no meshes found in {args.meshes_dir} (names {args.meshes})")
     grid = Grid(args.n, 3)
     rows = []
-    print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<9} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} {'time s':>7}",
-          flush=True)
+    print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<9} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} {'time s':>7} "
+          f"{'TV w':>8}", flush=True)
+    budgets = sorted({k for ks in args.plan.values() for k in ks})
     for path in paths:
-        for k in args.budgets:
+        for k in budgets:
             for noise in args.noise:
+                names = [name for name, ks in args.plan.items() if k in ks]
                 measurement, truth, shape = case_data(args, path, grid, k, noise)
                 operator = make_operator(grid, measurement.directions, grid.n)
-                for name in args.solvers:
+                for name in names:
                     solver = SOLVERS[name](progress=False, **options.get(name, {}))
                     t0 = time.perf_counter()
                     recon = solver.solve(measurement, operator)
                     seconds = time.perf_counter() - t0
                     scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
+                    rule = recon.info.get("weight_rule") or {}
                     row = {"mesh": path.stem, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
-                           **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")}}
+                           **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
+                           "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
+                           "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
+                           "target_residual": rule.get("target_residual")}
                     rows.append(row)
+                    weight = "" if row["tv_weight"] is None else f"{row['tv_weight']:8.2e}"
                     print(f"{path.stem:<12} {k:>5} {noise:>6} {name:<9} {row['iou']:6.3f} {row['chamfer']:8.4f} "
-                          f"{row['hausdorff']:7.4f} {seconds:7.1f}", flush=True)
+                          f"{row['hausdorff']:7.4f} {seconds:7.1f} {weight}", flush=True)
     print_summary(rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
@@ -168,8 +198,33 @@ def print_summary(rows: list[dict]) -> None:
         ratio = means[("clean", budgets[0], best)]["chamfer"] / means[("clean", budgets[-1], "minnorm")]["chamfer"]
         print(f"\nheadline (noise-free): {best} at {budgets[0]} dips / minnorm at {budgets[-1]} dips, "
               f"mean Chamfer ratio = {ratio:.2f} (<= 1 means the {budgets[-1] / budgets[0]:.0f}x saving holds)")
-    print("RESULT " + " ".join(f"{name}_{noise}_{k}_chamfer={m['chamfer']:.4f}"
-                               for (noise, k, name), m in sorted(means.items())))
+    ratios = mesh_ratios(rows)
+    for noise, per_mesh in ratios.items():
+        print(f"\nvoxel at {budgets[0]} / minnorm at {budgets[-1]} dips, Chamfer ratio per mesh ({noise}): "
+              + ", ".join(f"{mesh} {r:.2f}" for mesh, r in per_mesh.items()))
+    summary = {f"voxel{budgets[0]}_over_minnorm{budgets[-1]}_{noise}_{stat}": value
+               for noise, per_mesh in ratios.items()
+               for stat, value in (("mean", statistics.fmean(per_mesh.values())),
+                                   ("median", statistics.median(per_mesh.values())),
+                                   ("worst", max(per_mesh.values())))}
+    print("RESULT " + " ".join([f"{name}_{noise}_{k}_chamfer={m['chamfer']:.4f}"
+                                for (noise, k, name), m in sorted(means.items())]
+                               + [f"{key}={value:.3f}" for key, value in summary.items()]))
+
+
+def mesh_ratios(rows: list[dict]) -> dict[str, dict[str, float]]:
+    """``{noise: {mesh: voxel's Chamfer at the smallest budget / minnorm's at the largest}}`` over
+    the meshes that have both (``{}`` without voxel and minnorm rows at two budgets)."""
+    budgets = sorted({r["dips"] for r in rows})
+    chamfer = {(r["noise"], r["mesh"], r["dips"], r["solver"]): r["chamfer"] for r in rows}
+    out: dict[str, dict[str, float]] = {}
+    if len(budgets) < 2:
+        return out
+    for noise, mesh, k, name in sorted(chamfer):
+        low, high = chamfer.get((noise, mesh, budgets[0], "voxel")), chamfer.get((noise, mesh, budgets[-1], "minnorm"))
+        if k == budgets[0] and name == "voxel" and low is not None and high:
+            out.setdefault(noise, {})[mesh] = low / high
+    return out
 
 
 if __name__ == "__main__":

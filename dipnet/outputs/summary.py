@@ -29,6 +29,13 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "shape": ("run", "shape"),
     "snr_db": ("run", "level-sensor SNR (dB; none: noise-free)"),
     "frame_offset_mm": ("run", "mesh files: grid frame + this shift = your file's frame (mm)"),
+    "prior_weights": ("run", "prior weights used by the solver"),
+    "prior_weight_rule": ("run", "how the prior weights were set (fixed: from the config)"),
+    "prior_weight_reason": ("run", "why that weight"),
+    "prior_weight_noise_residual": ("run", "weight rule: relative residual of the noise alone"),
+    "prior_weight_target_residual": ("run", "weight rule: residual aimed at (tau x the noise's)"),
+    "prior_weight_residual_reached": ("run", "weight rule: residual of the result"),
+    "prior_weight_noise_source": ("run", "weight rule: noise from the measurement's sigma or estimated"),
     "iou": ("how close to the truth", "intersection over union (1 = identical)"),
     "chamfer": ("how close to the truth", "Chamfer distance (fraction of the truth's diagonal)"),
     "hausdorff": ("how close to the truth", "Hausdorff distance (fraction of the truth's diagonal)"),
@@ -56,10 +63,15 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "height_trend_limit_mm": ("how consistent with the data", "height trend limit (mm)"),
     "consistency": ("how consistent with the data", "verdict"),
     "consistency_warnings": ("how consistent with the data", "findings"),
-    "uncertainty_mean": ("how sure", "mean posterior std over the support"),
+    "uncertainty_mean": ("how sure", "mean posterior (or ensemble) std over the support"),
     "uncertain_fraction": ("how sure", "share of the support with P(wrong) > 0.2"),
     "expected_error_fraction": ("how sure", "expected wrong voxels / reconstructed voxels"),
     "error_rate_by_uncertainty_decile": ("how sure", "true error rate per uncertainty decile (least to most)"),
+    "uncertainty_method": ("how sure", "uncertainty method (linearised posterior or samples)"),
+    "uncertainty_brier": ("how sure", "Brier score of the occupancy probability"),
+    "uncertainty_samples": ("how sure", "ensemble members"),
+    "uncertainty_noise_std": ("how sure", "noise added to each member's slabs (mm³)"),
+    "uncertainty_seconds": ("how sure", "time of the ensemble (s)"),
     "missing_cone_deg": ("what the plan resolves", "missing cone (deg)"),
     "mean_direction_gap_deg": ("what the plan resolves", "mean angle to the nearest dip (deg)"),
     "frequency_coverage": ("what the plan resolves", "covered share of the frequency ball"),
@@ -132,6 +144,22 @@ def headline(metrics: dict[str, Any]) -> str:
     if metrics.get("consistency"):
         parts.append(str(metrics["consistency"]))
     return ", ".join(parts)
+
+
+def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
+    """The prior weights a solver used and why, from its ``Reconstruction.info``
+    (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`), as flat
+    ``metrics.json`` entries; ``{}`` for solvers without priors."""
+    out: dict[str, Any] = {}
+    if "prior_weights" in info:
+        out["prior_weights"] = dict(info["prior_weights"])
+    rule = info.get("weight_rule") or {}
+    if rule:
+        out["prior_weight_rule"] = rule["rule"]
+    for key in ("reason", "noise_residual", "target_residual", "residual_reached", "noise_source"):
+        if key in rule:
+            out[f"prior_weight_{key}"] = rule[key]
+    return out
 
 
 def grouped(metrics: dict[str, Any]) -> dict[str, list[tuple[str, str, Any]]]:

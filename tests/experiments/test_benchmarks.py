@@ -62,3 +62,15 @@ def test_the_scale_cache_is_keyed_by_the_simulation_code(tmp_path, monkeypatch):
     assert bench.simulate(args, shape, grid, 3)[1] == 0.0  # cached
     monkeypatch.setattr(bench, "simulation_digest", lambda: "0123456789ab")
     assert bench.simulate(args, shape, grid, 3)[1] > 0  # the code changed: simulated again
+
+
+def test_the_quality_bench_runs_each_solver_at_its_own_budgets():
+    bench = load_script("bench_quality")
+    assert bench.parse_args(["--dips", "voxel=41", "minnorm=123,410"]).plan == {"voxel": [41], "minnorm": [123, 410]}
+    assert bench.parse_args(["--budgets", "41", "--solvers", "voxel"]).plan == {"voxel": [41]}
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--dips", "voxel=many"])
+    rows = [{"noise": "clean", "mesh": "a", "dips": 41, "solver": "voxel", "chamfer": 0.003},
+            {"noise": "clean", "mesh": "a", "dips": 410, "solver": "minnorm", "chamfer": 0.002},
+            {"noise": "clean", "mesh": "b", "dips": 41, "solver": "voxel", "chamfer": 0.001}]
+    assert bench.mesh_ratios(rows) == {"clean": {"a": pytest.approx(1.5)}}  # b has no minnorm row

@@ -31,3 +31,20 @@ def test_every_metric_is_grouped_once_with_a_label():
 def test_the_job_line_keeps_the_headline_numbers_in_order():
     line = headline({"seconds": 1.23456, "iou": 0.912345, "other": 3, "consistency": "consistent"})
     assert line == "IoU 0.912, 1.2 s, consistent"
+
+
+def test_prior_weights_and_their_reason_go_into_the_metrics():
+    info = {"solver": "voxel", "prior_weights": {"tv": 2.4e-3},
+            "weight_rule": {"rule": "discrepancy", "reason": "the weight expected to bring the residual to tau "
+                            "times the noise", "noise_residual": 0.029, "target_residual": 0.020,
+                            "residual_reached": 0.019, "noise_source": "sigma", "first_residual": 0.017}}
+    flat = summary.prior_weight_metrics(info)
+    assert flat == {"prior_weights": {"tv": 2.4e-3}, "prior_weight_rule": "discrepancy",
+                    "prior_weight_reason": info["weight_rule"]["reason"], "prior_weight_noise_residual": 0.029,
+                    "prior_weight_target_residual": 0.020, "prior_weight_residual_reached": 0.019,
+                    "prior_weight_noise_source": "sigma"}
+    assert list(summary.grouped(flat)) == ["run"]
+    assert summary.prior_weight_metrics({"solver": "voxel", "prior_weights": {"tv": 1e-3},
+                                         "weight_rule": {"rule": "fixed"}}) == {
+        "prior_weights": {"tv": 1e-3}, "prior_weight_rule": "fixed"}
+    assert summary.prior_weight_metrics({"solver": "minnorm"}) == {}

@@ -12,7 +12,7 @@ from dipnet.evaluation.metrics import iou
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 
-from solver_helpers import noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
+from solver_helpers import FIXED_TV, noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
 
 
 def crescent_2d(p: torch.Tensor) -> torch.Tensor:
@@ -37,7 +37,7 @@ FAST = dict(iterations=250, progress=False)
 def test_recovers_shape_that_minnorm_misses(ndim):
     truth, op, meas = problem(ndim)
     baseline = MinNormSolver(progress=False).solve(meas, op)
-    rec = ImplicitSolver(progress=False).solve(meas, op)
+    rec = ImplicitSolver(progress=False, priors=FIXED_TV).solve(meas, op)
     assert iou(baseline.binary, truth > 0.5) < FLOORS[ndim] <= iou(rec.binary, truth > 0.5)
     assert rec.occupancy.shape == op.grid.shape and rec.fine is None
     assert float(rec.occupancy[~op.mask].abs().max()) == 0.0
