@@ -7,7 +7,7 @@ from pathlib import Path
 import dipnet
 
 FLOORS = ("core", "operators", "shapes", "preprocessing", "simulator", "solvers", "calibration", "evaluation",
-          "planning", "outputs", "experiments", "rig", "jobs")
+          "planning", "outputs", "experiments", "rig", "monitor", "jobs")
 PACKAGE = Path(dipnet.__file__).parent
 
 

@@ -30,19 +30,20 @@ def build_header(cfg: dict[str, Any], controller: Controller, sensor, plan: Scan
         metadata=dict(cfg.get("metadata") or {}))
 
 
-def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> RawScan:
+def scan_from_config(cfg, path: str | Path, progress: bool | None = None, journal=None) -> RawScan:
     """Build the rig from a scan config (``conf/scan.yaml``) and run (or resume) the scan.
 
     ``cfg.rig`` holds ``controller`` (``_target_``), ``sensor_url``, ``tank_cross_section_mm2``,
     ``geometry`` and optionally ``fake`` (a :class:`~dipnet.rig.fake.world.FakeRig`, registered under its
     name so the ``fakerig://`` URLs reach it); ``cfg.sensor`` holds ``device`` (``_target_``) and
     ``average``; ``cfg.protocol`` and the orientations (:func:`orientations_from_config`) the plan.
+    ``journal``: a :class:`~dipnet.monitor.journal.MonitorJournal` sampling the runner (``monitor=true``).
     """
 
     cfg = upgrade_scan_config(cfg)
     world = register_fake_rig(cfg)
     plan = ScanPlan(orientations_from_config(cfg), **plan_settings(cfg, world))
-    return runner_from_config(cfg, plan, path, progress=progress).run()
+    return runner_from_config(cfg, plan, path, progress=progress, journal=journal).run()
 
 
 def orientations_from_config(cfg) -> list[tuple[float, float]]:
@@ -110,10 +111,11 @@ def deepest_lowering(cfg, world=None) -> dict[str, Any]:
 
 
 def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = True,
-                       progress: bool | None = None) -> "ScanRunner":
+                       progress: bool | None = None, journal=None) -> "ScanRunner":
     """A :class:`ScanRunner` for ``plan`` on the controller and sensor of a scan config, its header
     recording the config and the rig calibration. ``home=False`` never homes (a later batch of an
-    adaptive scan); otherwise ``cfg.home`` decides (null: home when the board can)."""
+    adaptive scan); otherwise ``cfg.home`` decides (null: home when the board can). A ``journal``
+    (:class:`~dipnet.monitor.journal.MonitorJournal`) samples the runner's state from then on."""
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
@@ -126,11 +128,14 @@ def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = Tr
         header.config.update({TANK_CONFIG_KEY: calibration.tank, "calibration": calibration.to_dict()})
         header.tank_cross_section_mm2 = calibration.geometry.area(header.tank_cross_section_mm2)
     configured = cfg.get("home")
-    return ScanRunner(controller, sensor, plan, path, header,
-                      home=(None if configured is None else bool(configured)) if home else False,
-                      progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
-                      rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
-                      confirm_position=bool(cfg.get("confirm_position", False)))
+    runner = ScanRunner(controller, sensor, plan, path, header,
+                        home=(None if configured is None else bool(configured)) if home else False,
+                        progress=bool(cfg.progress if progress is None else progress), fsync=bool(cfg.fsync),
+                        rehome_on_fault=bool(cfg.get("rehome_on_fault", False)),
+                        confirm_position=bool(cfg.get("confirm_position", False)))
+    if journal is not None:
+        journal.watch(runner)
+    return runner
 
 
 def rig_calibration(rig_cfg) -> Calibration | None:
@@ -141,7 +146,7 @@ def rig_calibration(rig_cfg) -> Calibration | None:
     return load_calibration(path, rig=str(rig_cfg.get("name")), tank=rig_cfg.get("tank"))
 
 
-def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
+def adaptive_scan_from_config(cfg, path: str | Path, journal=None) -> RawScan:
     """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and dip protocol of the
     scan config (as :func:`~dipnet.jobs.scan.scan_from_config`), the loop of ``cfg.planner`` (an
     :class:`~dipnet.planning.plans.AdaptivePlan`) and the reach of ``cfg.reach`` (default the hemisphere);
@@ -161,16 +166,17 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
     plan: AdaptivePlan = instantiate(node)
 
     def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:
-        return runner_from_config(cfg, plan, path, home=home)
+        return runner_from_config(cfg, plan, path, home=home, journal=journal)
 
     reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
     adaptive_scan(make_runner, scan_settings, path, grid, VoxelSolver(progress=False), plan.planner, reach, plan.settings)
     return read_rawscan(path)
 
 
-def scan_job(cfg, path: str | Path) -> RawScan:
+def scan_job(cfg, path: str | Path, journal=None) -> RawScan:
     """The scan of ``scripts/scan.py``: planned dip by dip when ``cfg.planner`` is an adaptive plan
-    (:func:`adaptive_scan_from_config`), else up front from the orientations of the config (:func:`scan_from_config`)."""
+    (:func:`adaptive_scan_from_config`), else up front from the orientations of the config (:func:`scan_from_config`).
+    ``journal``: the monitor's (``monitor=true``), sampling the runner."""
     if cfg.get("planner") is not None and instantiates(cfg, "planner", AdaptivePlan):
-        return adaptive_scan_from_config(cfg, path)
-    return scan_from_config(cfg, path)
+        return adaptive_scan_from_config(cfg, path, journal=journal)
+    return scan_from_config(cfg, path, journal=journal)

@@ -1,0 +1,95 @@
+"""``scripts/monitor.py``: watch a scan (running or finished) or replay a recording in a browser.
+
+    python scripts/monitor.py scans/demo                       # the scan in scans/demo (live or finished)
+    python scripts/monitor.py --replay dipnet/data/real/3cats_fixture_3mm.csv --speed 20
+    python scripts/monitor.py scans/demo --host 0.0.0.0        # reachable from the network: token printed
+
+It prints the page's address and serves until Ctrl-C. Exit code 2 with ``error: ...`` when there is no
+scan to show or the port is taken.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from dipnet.core.optional import MissingExtraError, optional_import
+from dipnet.core.rawscan import RawScanFileError
+
+DEFAULT_PORT = 8765
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="monitor.py", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", nargs="?", help="the scan's run directory (scans/<name>) or its rawscan.jsonl")
+    p.add_argument("--replay", metavar="FILE", help="play back a recording (.jsonl or the authors' .csv)")
+    p.add_argument("--speed", type=float, default=10.0, help="replay speed, x the recorded pace (default 10; inf: at once)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default 127.0.0.1; any other needs the printed access token)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT})")
+    p.add_argument("--token", help="the access token for a non-loopback --host (default: a random one)")
+    p.add_argument("--every", type=int, default=4, help="re-solve the running reconstruction every N dips (default 4)")
+    p.add_argument("--resolution", type=int, default=48, help="voxels per axis of the running reconstruction (default 48)")
+    p.add_argument("--extent-mm", type=float, default=None,
+                   help="grid side (mm); default from the recording's object or its stage travel")
+    p.add_argument("--no-recon", action="store_true", help="no running reconstruction")
+    p.add_argument("--nice", type=int, default=0, help="lower this process's priority by N (scan.py monitor=true: 10)")
+    p.add_argument("--wait", action="store_true", help="the scan may not have started writing yet (scan.py monitor=true)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        optional_import("fastapi", "monitor", "the scan monitor")
+        optional_import("uvicorn", "monitor", "the scan monitor")
+        optional_import("plotly", "report", "the scan monitor's page")
+        return run(args)
+    except (MissingExtraError, RawScanFileError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    from dipnet.monitor.replay import Replay
+    from dipnet.monitor.server import Monitor, MonitorError, access_token, check_port, find_scan, page_url, serve
+    from dipnet.monitor.worker import ReconWorker
+
+    if (args.run is None) == (args.replay is None):
+        raise MonitorError("give either a run directory (RUN) or --replay FILE")
+    check_port(args.host, args.port)  # before anything starts: one clear message
+    if args.nice and hasattr(os, "nice"):
+        os.nice(args.nice)
+    replay = None
+    if args.replay is not None:
+        if not Path(args.replay).is_file():
+            raise MonitorError(f"recording not found: {args.replay}")
+        path = Path(tempfile.mkdtemp(prefix="dipnet-replay-")) / "rawscan.jsonl"
+        replay = Replay(args.replay, path, args.speed)
+    else:
+        path = find_scan(args.run, wait=args.wait)
+    worker = None if args.no_recon else ReconWorker(path, every=args.every, resolution=args.resolution,
+                                                   extent_mm=args.extent_mm)
+    token = access_token(args.host, args.token)
+    monitor = Monitor(path, replay=replay is not None, worker=worker)
+    if replay is not None:
+        replay.start()
+    monitor.start()
+    print(f"monitor of {args.replay or path}: {page_url(args.host, args.port, token)}", flush=True)
+    if token:
+        print(f"access token: {token} (bound to {args.host}: requests without it are refused)", flush=True)
+    try:
+        serve(monitor, args.host, args.port, token)
+    finally:
+        if replay is not None:
+            replay.stop()
+        monitor.close()
+    return 0
