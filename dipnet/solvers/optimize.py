@@ -428,7 +428,11 @@ class OptimisationSolver(Solver):
         fraction = volume_fraction(measurement, operator)
         support = self.support(target, operator, operator.grid)
         data = DataTerm(operator, target, sigma, fit_gain=self.fit_gain if fit_gain is None else fit_gain)
-        return Problem(data, build_priors(self.priors, fraction), fraction, support)
+        priors = build_priors(self.priors, fraction)
+        for _, _, module in priors:  # priors made for one grid / operator (the learned prior) refuse others
+            if hasattr(module, "check_operator"):
+                module.check_operator(operator)
+        return Problem(data, priors, fraction, support)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),
