@@ -6,7 +6,7 @@ every reading to `rawscan.jsonl` as it is taken. Without hardware it talks to th
 speaking the real GRBL protocol. This script runs a short scan (12 Fibonacci orientations instead of 40),
 then reconstructs the recording with the `voxel` solver. A fake-rig scan records the object it dipped, so
 the reconstruction is scored against it as a simulated one would be. The commands:
-`python scripts/scan.py orientations.n=12` and
+`python scripts/scan.py n_dips=12` and
 `python scripts/reconstruct.py source=recorded source.reader.path=scans/demo/rawscan.jsonl solver=voxel`.
 Running the same scan command again resumes after the last complete orientation.
 """
@@ -24,7 +24,7 @@ out.mkdir(parents=True, exist_ok=True)
 scan_file = out / "rawscan.jsonl"
 
 with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
-    scan_cfg = compose(config_name="scan", overrides=["orientations.n=12", "progress=false", "fsync=false"])
+    scan_cfg = compose(config_name="scan", overrides=["n_dips=12", "progress=false", "fsync=false"])
     scan = scan_from_config(scan_cfg, scan_file)
     print(f"scanned {len(scan.completed())} orientations, "
           f"{sum(o.n_readings for o in scan.orientations)} readings into {scan_file}")

@@ -8,7 +8,7 @@ rig (pivot 20 mm, tilt-axis offset 10 mm, tilt zero 1 deg, a free cross-section 
 config says 20,000; the scan is planned for the ideal rig) and a
 grid plan of tilts x spins, then estimates the geometry as `scripts/calibrate.py` does and writes the
 calibration file. With hardware the same steps are
-`python scripts/scan.py name=ball orientations.kind=grid '+orientations.tilts=[0,25,50,70]' '+orientations.spins=[0,180]' +rig.tank=lab-tank-1`
+`python scripts/scan.py name=ball orientations=grid 'tilts=[0,25,50,70]' 'spins=[0,180]' +rig.tank=lab-tank-1`
 (a 30 mm ball held at the object origin), then
 `python scripts/calibrate.py scans/ball/rawscan.jsonl --ball-radius 30 --output rig_calibration.yaml`;
 later scans record the file with `+rig.calibration=rig_calibration.yaml`, readers take it with
@@ -36,7 +36,7 @@ overrides = [
     "rig.fake.shape._target_=dipnet.shapes.Ball", f"rig.fake.shape.radius={RADIUS}",   # the reference ball
     "~rig.fake.shape.name", "~rig.fake.shape.ndim",
     "+rig.fake.geometry={pivot_mm: 20.0, tilt_axis_offset_mm: 10.0, tilt_zero_deg: 1.0, cross_section_mm2: 19000.0}",
-    "orientations.kind=grid", "+orientations.tilts=[0,25,50,70]", "+orientations.spins=[0,180]",
+    "orientations=grid", "tilts=[0,25,50,70]", "spins=[0,180]",
     "protocol.stop_mm=100", "protocol.step_mm=1.5", "+rig.tank=lab-tank-1",
     "progress=false", "fsync=false"]
 with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):

@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"skipping montage.png: {exc}")
     if args.html:
-        from dipnet.outputs import report
+        from dipnet.experiments import report
 
         try:
             report.require_plotly()

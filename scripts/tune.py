@@ -7,7 +7,7 @@
     python scripts/compare.py tune/dipnet_prior_weights       # tabulate the trials
 
 Trial ``i`` runs in ``<out>/<i>``; the best values go to ``<out>/best.yaml``
-(:mod:`dipnet.experiments.tuning`).
+(:mod:`dipnet.jobs.tuning`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import logging
 import sys
 from pathlib import Path
 
-from dipnet.experiments.tuning import DEFAULT_PARAMS, Param, tune
+from dipnet.jobs.tuning import DEFAULT_PARAMS, Param, tune
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -22,6 +22,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
 from dipnet.operators import make_operator
 from dipnet.preprocessing.preprocess import preprocess
+from dipnet.preprocessing.readings import max_object_section, repair_readings
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +153,9 @@ class ProfileModel:
     """Readings -> slabs for a trial geometry, and the operator's profiles of a shape along its directions.
 
     Args:
-        raw: the raw scan (commanded angles and stage, readings).
+        raw: the raw scan (commanded angles and stage, readings); its outlier readings are repaired once
+            here (:func:`~dipnet.preprocessing.readings.repair_readings`, the report in :attr:`readings`), not
+            in every trial geometry's preprocessing.
         grid, n_slabs: the reconstruction grid and slabs (default ``grid.n``).
         operator_factory: ``(grid, directions, n_slabs) -> DipOperator`` (default
             :func:`~dipnet.operators.make_operator`, auto backend).
@@ -162,7 +165,8 @@ class ProfileModel:
 
     def __init__(self, raw: RawScan, grid: Grid, n_slabs: int | None = None,
                  operator_factory: Callable | None = None, smooth: bool = False, finish: Callable[[DipMeasurement], DipMeasurement] | None = None) -> None:
-        self.raw, self.grid, self.finish = raw, grid, finish
+        self.raw, self.readings = repair_readings(raw, max_cross_section=max_object_section(grid))  # once, not per trial
+        self.grid, self.finish = grid, finish
         self.n_slabs = grid.n if n_slabs is None else int(n_slabs)
         self.operator_factory, self.smooth = operator_factory or make_operator, smooth
         self.nominal_area = float(raw.header.tank_cross_section_mm2 or 0.0)
@@ -181,7 +185,9 @@ class ProfileModel:
             o.direction = direction
             o.meta["t_start_mm"] = float(o.meta.get("t_start_mm", inverted.header.t_start_mm)) + extra \
                 + float(shift @ direction)
-        m = preprocess(inverted, grid=self.grid, n_slabs=self.n_slabs, t_start="metadata", smooth=self.smooth)
+        m = preprocess(inverted, grid=self.grid, n_slabs=self.n_slabs, t_start="metadata", smooth=self.smooth,
+                       repair=False)
+        m.metadata["readings"] = self.readings.to_json()
         return m if self.finish is None or not finish else self.finish(m)
 
     def operator(self, directions: torch.Tensor):

@@ -55,7 +55,20 @@ def upgrade_config(cfg: DictConfig) -> DictConfig:
 
 def upgrade_scan_config(cfg: DictConfig) -> DictConfig:
     """:func:`upgrade_config` for a scan config (``conf/scan.yaml``): ``rig.geometry.origin_height_mm`` ->
-    ``rig.origin_height_mm`` (the geometry node is a :class:`~dipnet.core.geometry.RigGeometry`)."""
+    ``rig.origin_height_mm`` (the geometry node is a :class:`~dipnet.core.geometry.RigGeometry`), and an
+    ``orientations`` node ``{kind, n, seed, tilts, spins, max_tilt_deg}`` (the old spelling) ->
+    ``orientations=<kind>`` with top-level ``n_dips``, ``seed``, ``tilts``, ``spins``, ``max_tilt_deg`` (one
+    meaning of ``orientations``: the set's name, as in ``conf/config.yaml``)."""
     cfg = copy.deepcopy(cfg)
     _move(cfg, "rig.geometry.origin_height_mm", "rig.origin_height_mm")
+    if isinstance(cfg.get("orientations"), DictConfig):
+        node = OmegaConf.to_container(cfg.orientations, resolve=True)
+        with open_dict(cfg):
+            cfg.orientations = node.pop("kind", "fibonacci")
+            deprecated("orientations.kind", f"orientations={cfg.orientations}")
+            for old, new in (("n", "n_dips"), ("seed", "seed"), ("tilts", "tilts"), ("spins", "spins"),
+                             ("max_tilt_deg", "max_tilt_deg")):
+                if node.get(old) is not None:
+                    deprecated(f"orientations.{old}", f"{new}={node[old]}")
+                    OmegaConf.update(cfg, new, node[old], force_add=True)
     return cfg

@@ -174,7 +174,7 @@ def check_values(cfg: DictConfig) -> None:
     _integer(cfg, "output.truth_supersample", 1)
     _integer(cfg, "output.checkpoint_every", 1)
     if cfg.output.get("report"):
-        from dipnet.outputs.report import require_plotly
+        from dipnet.experiments.report import require_plotly
 
         try:
             require_plotly()

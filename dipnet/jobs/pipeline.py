@@ -92,7 +92,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     configure_threads(cfg.get("threads"))
     check_memory(cfg)
     source = instantiate(cfg.source)
-    shape = source.truth(lambda: instantiate(cfg.shape, ndim=int(cfg.ndim)))
+    shape = source.truth(lambda: instantiate(cfg.shape, ndim=int(cfg.ndim)), build=instantiate)
     grid = build_grid(cfg, shape, source)
     factory = instantiate(cfg.operator)
     options = acquisition_options(cfg, grid, shape, factory)
@@ -148,7 +148,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     stage("meshes and figures")
     write_outputs(cfg, out, measurement, operator, recon, truth, level, frame)
     if cfg.output.get("report"):
-        from dipnet.outputs.report import write_run_report  # optional extra: plotly
+        from dipnet.experiments.report import write_run_report  # optional extra: plotly
 
         stage("report")
         write_run_report(out)

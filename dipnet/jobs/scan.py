@@ -36,15 +36,28 @@ def scan_from_config(cfg, path: str | Path, progress: bool | None = None) -> Raw
     ``cfg.rig`` holds ``controller`` (``_target_``), ``sensor_url``, ``tank_cross_section_mm2``,
     ``geometry`` and optionally ``fake`` (a :class:`~dipnet.rig.fake.world.FakeRig`, registered under its
     name so the ``fakerig://`` URLs reach it); ``cfg.sensor`` holds ``device`` (``_target_``) and
-    ``average``; ``cfg.orientations`` and ``cfg.protocol`` the plan.
+    ``average``; ``cfg.protocol`` and the orientations (:func:`orientations_from_config`) the plan.
     """
-    from omegaconf import OmegaConf
 
     cfg = upgrade_scan_config(cfg)
     world = register_fake_rig(cfg)
-    plan = ScanPlan(plan_orientations(**OmegaConf.to_container(cfg.orientations, resolve=True)),
-                    **plan_settings(cfg, world))
+    plan = ScanPlan(orientations_from_config(cfg), **plan_settings(cfg, world))
     return runner_from_config(cfg, plan, path, progress=progress).run()
+
+
+def orientations_from_config(cfg) -> list[tuple[float, float]]:
+    """The ``(tilt_deg, spin_deg)`` pairs of a scan config: ``cfg.orientations`` names the set (as in
+    ``conf/config.yaml``), with ``n_dips`` and ``seed`` (fibonacci, random) or ``tilts`` x ``spins`` (grid),
+    within ``max_tilt_deg``."""
+    from omegaconf import OmegaConf
+
+    def angles(key: str):
+        value = cfg.get(key)
+        return None if value is None else OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) \
+            else value
+
+    return plan_orientations(str(cfg.orientations), n=int(cfg.n_dips), tilts=angles("tilts"), spins=angles("spins"),
+                             seed=int(cfg.seed), max_tilt_deg=float(cfg.max_tilt_deg))
 
 
 def register_fake_rig(cfg):
@@ -89,7 +102,7 @@ def deepest_lowering(cfg, world=None) -> dict[str, Any]:
     """``max_lower_mm`` and where it comes from: ``cfg.rig.max_lower_mm`` or the fake rig's tank bottom."""
     limits = [] if cfg.rig.get("max_lower_mm") is None else [(float(cfg.rig.max_lower_mm), "rig.max_lower_mm")]
     if world is not None:
-        limits.append((world.deepest_lower_mm(float(cfg.orientations.get("max_tilt_deg", 90.0))),
+        limits.append((world.deepest_lower_mm(float(cfg.get("max_tilt_deg", 90.0))),
                        f"the fake rig's tank holds {world.tank.rest_level_mm:g} mm of water, the object's radius is "
                        f"{world.shape.radius():.4g} mm"))
     deepest = min(limits, default=(None, "rig.max_lower_mm"))
@@ -157,7 +170,7 @@ def adaptive_scan_from_config(cfg, path: str | Path) -> RawScan:
 
 def scan_job(cfg, path: str | Path) -> RawScan:
     """The scan of ``scripts/scan.py``: planned dip by dip when ``cfg.planner`` is an adaptive plan
-    (:func:`adaptive_scan_from_config`), else up front from ``cfg.orientations`` (:func:`scan_from_config`)."""
+    (:func:`adaptive_scan_from_config`), else up front from the orientations of the config (:func:`scan_from_config`)."""
     if cfg.get("planner") is not None and instantiates(cfg, "planner", AdaptivePlan):
         return adaptive_scan_from_config(cfg, path)
     return scan_from_config(cfg, path)

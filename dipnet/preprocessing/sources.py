@@ -19,10 +19,11 @@ Every source's measurement ends in :func:`finish_dips`: checked against the grid
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping
 
 import torch
 
@@ -34,9 +35,13 @@ from dipnet.core.measurement import DipMeasurement, MeasurementFileError
 from dipnet.core.rawscan import RawScan, naming_file
 from dipnet.preprocessing.recorded import finish_measurement, prepare_recording, read_raw_recording
 from dipnet.preprocessing.symmetry import apply_symmetry
-from dipnet.preprocessing.truth import shape_from_recording
+from dipnet.preprocessing.truth import recorded_shape_spec
 from dipnet.preprocessing.validation import ValidationReport, validate_measurement
-from dipnet.shapes import Shape
+
+if TYPE_CHECKING:
+    from dipnet.shapes import Shape
+
+log = logging.getLogger(__name__)
 
 #: options of :func:`read_raw_recording` that are not :func:`prepare_recording`'s
 _READ_KEYS = ("t_start", "smooth", "symmetry", "interpolate")
@@ -123,10 +128,17 @@ class RecordedSource:
         self.reader = reader
         self.path = Path(reader.keywords["path"])
 
-    def truth(self, configured: Callable[[], Shape] | None = None) -> Shape | None:
-        """The shape the recording names (fake-rig scans, :mod:`dipnet.preprocessing.truth`), else
-        ``None``; the configured shape is not the recorded object and is not built."""
-        return shape_from_recording(self.path)
+    def truth(self, configured: Callable[[], Shape] | None = None,
+              build: Callable[[dict], Shape] | None = None) -> Shape | None:
+        """The shape the recording names (fake-rig scans, :mod:`dipnet.preprocessing.truth`), built by
+        ``build(spec)`` (the job's ``hydra.utils.instantiate``), else ``None``; the configured shape is not
+        the recorded object and is not built."""
+        spec = recorded_shape_spec(self.path)
+        if spec is None or build is None:
+            return None
+        shape = build(spec)
+        log.info("%s names its shape (%s, radius %.1f mm): scoring against it", self.path, shape.name, shape.radius())
+        return shape
 
     def extent_mm(self) -> float | None:
         """The slabs' extent of a saved ``.npz`` measurement (:func:`~dipnet.core.framing.measurement_extent`)."""

@@ -1,4 +1,4 @@
-"""GRBL 1.1 driver: :class:`GrblController` (the protocol's parsers and facts: :mod:`dipnet.rig.grbl_protocol`)."""
+"""GRBL 1.1 driver: :class:`GrblController` (the dialect: parsers and facts, :mod:`dipnet.rig.grbl_dialect`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from collections import deque
 
 from dipnet.rig.controller import (AlarmError, Controller, ControllerError, MotionHeld, Position, PositionUnknown,
                                    ResetError, RigTimeout, require_link)
-from dipnet.rig.grbl_protocol import (FEED_HOLD, POSITION_LOST_ALARMS, RESET_ALARMS, SOFT_RESET, STATUS_QUERY,
+from dipnet.rig.grbl_dialect import (FEED_HOLD, POSITION_LOST_ALARMS, RESET_ALARMS, SOFT_RESET, STATUS_QUERY,
                                       AxisCountError, GrblLine, GrblStatus, check_settings, classify, describe,
                                       in_motion, parse_status, read_settings)
 

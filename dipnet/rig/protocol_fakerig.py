@@ -2,7 +2,8 @@
 
 pyserial's ``serial_for_url`` imports ``<package>.protocol_<scheme>`` for every package in
 ``serial.protocol_handler_packages`` and uses its ``Serial`` class (as ``loop://`` does);
-:func:`dipnet.rig.register_url_handlers` adds ``dipnet.rig`` to that list.
+:func:`dipnet.rig.register_url_handlers` adds ``dipnet.rig`` to that list. The module name is
+that convention's, not a choice: ``protocol`` here means a pyserial URL scheme.
 """
 
 from __future__ import annotations

@@ -79,8 +79,9 @@ class SimulatedSource:
     def __init__(self, simulator: Simulate) -> None:
         self.simulator = simulator
 
-    def truth(self, configured: Callable[[], Shape]) -> Shape:
-        """The object the dips are scored against: the configured shape (``configured()``)."""
+    def truth(self, configured: Callable[[], Shape], build: Callable[[dict], Shape] | None = None) -> Shape:
+        """The object the dips are scored against: the configured shape (``configured()``; ``build`` is
+        for sources that name their own shape)."""
         return configured()
 
     def extent_mm(self) -> float | None:

@@ -291,3 +291,27 @@ def test_calibrate_script_on_a_rig_far_from_nominal(tmp_path):
         assert low <= getattr(true, name) <= high, name
     assert cal.geometry.cross_section_mm2 == pytest.approx(0.85 * 60000.0, rel=0.002)  # from the ball's volume
     assert "spin_zero_deg" in cal.not_estimated  # the ball's symmetry, never an optimiser's trial value
+
+
+def test_the_profile_model_repairs_a_level_spike_once_not_per_trial(monkeypatch):
+    from dipnet.calibration.model import ProfileModel, State
+    from dipnet.preprocessing import preprocess as preprocess_module
+
+    grid = Grid(16, 3, 80.0)
+    raw = simulate_scan(Ball(RADIUS), fibonacci_hemisphere(6), tank=Tank(cross_section_mm2=AREA))
+    clean = ProfileModel(raw, grid).measurement(State(RigGeometry()))
+    spiked = simulate_scan(Ball(RADIUS), fibonacci_hemisphere(6), tank=Tank(cross_section_mm2=AREA))
+    middle = len(spiked.orientations[2].values) // 2
+    spiked.orientations[2].values[middle] += 5.0  # a 5 mm level spike in one reading
+    with pytest.warns(UserWarning, match="repaired 1 outlier"):
+        model = ProfileModel(spiked, grid)  # the spike is found once, when the model is made
+
+    def no_repair(*args, **kwargs):
+        raise AssertionError("readings repaired again in a trial")
+
+    monkeypatch.setattr(preprocess_module, "repair_readings", no_repair)
+    for offset in (0.0, 2.0):  # two trial geometries
+        trial = model.measurement(State(RigGeometry(tilt_axis_offset_mm=offset)))
+        assert trial.metadata["readings"] == model.readings.to_json()
+    repaired = model.measurement(State(RigGeometry()))
+    np.testing.assert_allclose(repaired.profiles, clean.profiles, atol=1e-4 * float(clean.profiles.max()))  # interpolated

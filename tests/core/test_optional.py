@@ -65,4 +65,4 @@ def test_the_extras_named_in_messages_install_those_packages(extra, packages):
     requires = importlib.metadata.requires("dipnet") or []
     declared = {re.split(r"[<>=!~ ;\[]", r)[0].lower() for r in requires if f'extra == "{extra}"' in r}
     assert packages <= declared
-    assert any(f"dipnet[" in r and extra in r and 'extra == "dev"' in r for r in requires)
+    assert any("dipnet[" in r and extra in r and 'extra == "dev"' in r for r in requires)

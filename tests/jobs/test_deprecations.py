@@ -44,3 +44,26 @@ def test_the_rig_geometry_is_one_node_in_every_config():
     for node in nodes:
         assert node._target_ == "dipnet.core.geometry.RigGeometry" and set(node) - {"_target_"} == fields
     assert nodes[1].pivot_mm == 188.0
+
+
+def test_an_orientations_node_in_a_scan_config_becomes_the_sets_name_and_top_level_keys():
+    from omegaconf import OmegaConf
+
+    old = OmegaConf.merge(_compose("scan"), {"orientations": {"kind": "grid", "tilts": [0, 30], "spins": [0, 180],
+                                                               "max_tilt_deg": 45.0}})
+    with pytest.warns(ConfigDeprecation, match="orientations.kind is deprecated: use orientations=grid"):
+        upgraded = upgrade_scan_config(old)
+    assert upgraded.orientations == "grid" and list(upgraded.tilts) == [0, 30] and list(upgraded.spins) == [0, 180]
+    assert upgraded.max_tilt_deg == 45.0
+
+
+def test_orientations_mean_the_same_in_the_scan_and_the_reconstruct_config(recwarn):
+    from dipnet.jobs.scan import orientations_from_config
+
+    scan, reconstruct = _compose("scan", "n_dips=12"), _compose("config", "n_dips=12")
+    assert scan.orientations == reconstruct.orientations == "fibonacci"
+    assert len(orientations_from_config(upgrade_scan_config(scan))) == 12
+    grid = upgrade_scan_config(_compose("scan", "orientations=grid", "tilts=[0,25,50]", "spins=[0,180]",
+                                        "max_tilt_deg=30"))
+    assert orientations_from_config(grid) == [(0.0, 0.0), (0.0, 180.0), (25.0, 0.0), (25.0, 180.0)]
+    assert not [w for w in recwarn if issubclass(w.category, ConfigDeprecation)]

@@ -26,7 +26,7 @@ RECONSTRUCT = ROOT / "scripts" / "reconstruct.py"
 SCAN = ROOT / "scripts" / "scan.py"
 QUICK = ["output.progress=false", "output.figures=false", "output.uncertainty=false",
          "output.resolvability=false", "resolution=16", "n_dips=12", "shape.name=ball"]
-QUICK_SCAN = ["orientations.n=2", "protocol.step_mm=20", "fsync=false", "progress=false"]
+QUICK_SCAN = ["n_dips=2", "protocol.step_mm=20", "fsync=false", "progress=false"]
 
 
 def _script(script: Path, *overrides: str) -> subprocess.CompletedProcess:

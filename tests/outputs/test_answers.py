@@ -79,7 +79,7 @@ def sweep(tmp_path):
 
 
 def test_run_pages_share_one_plotly_file_and_stay_under_a_megabyte(sweep):
-    from dipnet.outputs import report
+    from dipnet.experiments import report
 
     pages = [report.write_run_report(sweep / str(i)) for i in (0, 1)]
     assert sorted(p.name for p in sweep.rglob("plotly.min.js")) == ["plotly.min.js"]    # one, in the sweep dir
@@ -97,7 +97,7 @@ def test_run_pages_share_one_plotly_file_and_stay_under_a_megabyte(sweep):
 
 
 def test_the_3d_view_is_cut_open_with_a_button_for_the_whole(sweep):
-    from dipnet.outputs import report
+    from dipnet.experiments import report
 
     text = report.write_run_report(sweep / "0").read_text()
     spec = json.loads(re.search(r'Plotly.newPlot\(\s*"meshes",\s*(\[.*?\]),\s*(\{.*?\})\s*,\s*\{"responsive"',

@@ -6,12 +6,15 @@ import json
 import math
 
 import pytest
+from functools import partial
 
 from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
 
 from dipnet.jobs.pipeline import run
 from dipnet.jobs.scan import scan_from_config
-from dipnet.preprocessing.truth import shape_from_recording
+from dipnet.preprocessing.sources import RecordedSource, read_recorded
+from dipnet.preprocessing.truth import recorded_shape_spec
 
 
 def _compose(name, overrides):
@@ -20,11 +23,11 @@ def _compose(name, overrides):
 
 
 def test_fake_rig_scan_is_scored_against_its_shape(tmp_path):
-    scan_cfg = _compose("scan", ["orientations.n=24", "protocol.step_mm=4", "fsync=false", "progress=false",
+    scan_cfg = _compose("scan", ["n_dips=24", "protocol.step_mm=4", "fsync=false", "progress=false",
                                  "rig.fake.shape.name=ball", "rig.fake.shape.radius=30"])
     path = tmp_path / "rawscan.jsonl"
     scan_from_config(scan_cfg, path)
-    shape = shape_from_recording(path)
+    shape = RecordedSource(partial(read_recorded, path=path)).truth(build=instantiate)
     assert shape.name == "ball" and abs(shape.radius() - 30.0) < 1e-6
 
     result = run(_compose("config", ["source=recorded", f"source.reader.path={path}", "resolution=20",
@@ -38,4 +41,4 @@ def test_fake_rig_scan_is_scored_against_its_shape(tmp_path):
 
 def test_files_without_a_named_shape_give_none(tmp_path):
     (tmp_path / "m.npz").write_bytes(b"")
-    assert shape_from_recording(tmp_path / "m.npz") is None
+    assert recorded_shape_spec(tmp_path / "m.npz") is None

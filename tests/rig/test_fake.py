@@ -146,7 +146,7 @@ def test_scan_config_runs_through_hydra(tmp_path):
 
     from dipnet.jobs.scan import scan_from_config
 
-    overrides = ["rig=fake_marlin", "sensor=sics", "orientations.n=2", "protocol.step_mm=10", "fsync=false",
+    overrides = ["rig=fake_marlin", "sensor=sics", "n_dips=2", "protocol.step_mm=10", "fsync=false",
                  "progress=false", "rig.fake.shape.radius=30"]
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
         cfg = compose(config_name="scan", overrides=overrides)
@@ -164,7 +164,7 @@ def test_stock_3axis_preset_works_out_of_the_box(meshes_dir, tmp_path):
     from dipnet.jobs.scan import scan_from_config
 
     overrides = ["rig=grbl_3axis", "rig.controller.url=fakerig://stock3/grbl", "rig.sensor_url=fakerig://stock3/level",
-                 "rig.controller.timeout=0.3", "orientations.n=3", "protocol.step_mm=20", "fsync=false",
+                 "rig.controller.timeout=0.3", "n_dips=3", "protocol.step_mm=20", "fsync=false",
                  "progress=false"]
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
         cfg = compose(config_name="scan", overrides=overrides)

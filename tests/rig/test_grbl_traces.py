@@ -13,7 +13,7 @@ from dipnet.core.rawscan import ScanHeader
 from dipnet.rig.controller import (AlarmError, AxisMap, ControllerError, LineChannel, MotionHeld, PositionUnknown,
                                    RigDisconnected, RigTimeout)
 from dipnet.rig.grbl import GrblController
-from dipnet.rig.grbl_protocol import check_settings, parse_status
+from dipnet.rig.grbl_dialect import check_settings, parse_status
 from dipnet.rig.runner import RigConfigError, ScanAborted, ScanPlan, ScanRunner, value_ranges
 from dipnet.rig.sensors import Reading
 from grbl_replay import ReplayPort, asked_first, read_trace, recorded_replies

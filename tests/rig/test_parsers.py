@@ -7,7 +7,7 @@ import operator
 
 import pytest
 
-from dipnet.rig import grbl_protocol as grbl, marlin, sensors
+from dipnet.rig import grbl_dialect as grbl, marlin, sensors
 from dipnet.rig.controller import Axis, AxisMap, ControllerError, Position
 
 # A GRBL 1.1 session: reset banner, alarm message, status reports with different $10 masks.

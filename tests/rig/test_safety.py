@@ -137,7 +137,7 @@ def test_homing_disabled_gives_error5_and_config_check(world):
 
 
 def test_soft_limit_travel_check():
-    from dipnet.rig.grbl_protocol import check_settings
+    from dipnet.rig.grbl_dialect import check_settings
 
     settings = {10: 1, 20: 1, 22: 1, 130: 200.0, 131: 400.0, 132: 100.0}
     axes = AxisMap(lower=Axis("Z", sign=-1), tilt=Axis("X"), spin=Axis("Y"))
@@ -339,7 +339,7 @@ SCAN_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "scan.py"
 def test_link_lost_while_lowering_needs_confirmation_to_resume(tmp_path):
     """t4e3 from the command line: the controller's link dies with a lowering under way (the board
     may restart and count from 0); a board without homing can only resume on the operator's word."""
-    base = [sys.executable, str(SCAN_SCRIPT), f"hydra.run.dir={tmp_path}", "orientations.n=2", "protocol.step_mm=20",
+    base = [sys.executable, str(SCAN_SCRIPT), f"hydra.run.dir={tmp_path}", "n_dips=2", "protocol.step_mm=20",
             "fsync=false", "progress=false", "rig.fake.shape.radius=30", "+rig.fake.grbl_settings.22=0"]
 
     def run(*overrides: str) -> tuple[int, str]:

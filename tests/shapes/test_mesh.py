@@ -1,7 +1,6 @@
 """Mesh shapes: loading, exact dips, sealed voids, repair of broken meshes, clear file errors."""
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -12,7 +12,7 @@ import trimesh
 from dipnet.preprocessing.datasets import mesh_path
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan, solve_dip
-from dipnet.shapes import ShapeWarning, from_trimesh, load_mesh
+from dipnet.shapes import ShapeWarning, load_mesh
 from dipnet.shapes.divergence import PlaneSweep, boundary_volume_below
 
 

@@ -7,8 +7,9 @@ import json
 import pytest
 from omegaconf import OmegaConf
 
-from dipnet.experiments import collect, tuning
-from dipnet.experiments.tuning import Param
+from dipnet.experiments import collect
+from dipnet.jobs import tuning
+from dipnet.jobs.tuning import Param
 from script_modules import load_script
 
 TINY = ["resolution=16", "n_dips=12", "solver.iterations=15", "output.uncertainty=false", "output.resolvability=false"]

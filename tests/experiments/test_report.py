@@ -1,4 +1,4 @@
-"""HTML reports (dipnet.outputs.report): the pages hold the run's pieces, and headless Chromium renders the
+"""HTML reports (dipnet.experiments.report): the pages hold the run's pieces, and headless Chromium renders the
 meshes in WebGL without console errors, plotly loaded from the shared file (skipped without plotly or chromium)."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import plotly  # noqa: F401  (the `report` extra, installed by the README test c
 import pytest
 
 from dipnet.experiments import collect
-from dipnet.outputs import report
+from dipnet.experiments import report
 from sweep_fixtures import write_job
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
