@@ -53,7 +53,7 @@ from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
-from dipnet.learning.denoiser import load_weights
+from dipnet.solvers.denoiser import load_weights
 from dipnet.shapes import load_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.simulate import simulate_measurement

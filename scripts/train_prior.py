@@ -2,7 +2,7 @@
 
 Builds (and caches) training pairs -- a voxel reconstruction from ``--dips`` Fibonacci dips of a
 generated shape (clean, or at ``--snr`` dB for every other seed) and its true occupancy -- then
-trains :class:`dipnet.learning.denoiser.OccupancyDenoiser` and writes the weights with their
+trains :class:`dipnet.solvers.denoiser.OccupancyDenoiser` and writes the weights with their
 config (``.pt`` + ``.json``). The bundled meshes are never used. A checkpoint (``.ckpt`` next to
 the weights) is written every ``--checkpoint-every`` steps; ``--resume`` continues from it (also
 to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint.
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import torch
 
-from dipnet.learning.denoiser import SHIPPED_WEIGHTS
-from dipnet.learning.train import TrainConfig, train
+from dipnet.solvers.denoiser import SHIPPED_WEIGHTS
+from dipnet.experiments.prior_training import TrainConfig, train
 
 
 def parse_args(argv=None) -> argparse.Namespace:

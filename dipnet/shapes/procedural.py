@@ -107,7 +107,9 @@ def _limbs(rng: np.random.Generator, info: dict) -> Inside:
 def _polyhedron(rng: np.random.Generator, info: dict) -> Inside:
     normals = np.stack([_unit(rng) for _ in range(int(rng.integers(8, 15)))])
     offsets = rng.uniform(0.35, 0.65, len(normals))
-    hull: Inside = lambda p: np.all(p @ normals.T <= offsets, axis=1)
+
+    def hull(p: np.ndarray) -> np.ndarray:
+        return np.all(p @ normals.T <= offsets, axis=1)
     boxes = [_box(_unit(rng) * rng.uniform(0.1, 0.3), rng.uniform(0.1, 0.4, 3), _rotation(rng))
              for _ in range(int(rng.integers(1, 4)))]
     cuts = [_box(_unit(rng) * rng.uniform(0.4, 0.7), rng.uniform(0.1, 0.3, 3), _rotation(rng))

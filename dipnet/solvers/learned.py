@@ -1,7 +1,7 @@
 """The learned prior: regularisation by denoising (RED) with a 3D CNN trained on generated shapes.
 
 ``LearnedPrior(o) = 0.5 <o, o - D(o)> / N^3`` with the denoiser ``D``
-(:class:`~dipnet.learning.denoiser.OccupancyDenoiser`, trained by ``scripts/train_prior.py``).
+(:class:`~dipnet.solvers.denoiser.OccupancyDenoiser`, trained by ``scripts/train_prior.py``).
 Its gradient is taken as the RED gradient ``(o - D(o)) / N^3`` (``D``'s Jacobian treated as
 symmetric, ``D`` detached), which pulls the occupancy toward what the denoiser makes of it:
 shapes like the generated training shapes (thin limbs and plates, flat faces, holes, cavities).
@@ -11,7 +11,7 @@ shapes like the generated training shapes (thin limbs and plates, flat faces, ho
 
 On a grid whose ``N`` is half the weights' (the voxel solver's coarse stage) ``D`` runs on the
 volume upsampled (trilinear) to the weights' grid and its output is area-averaged back; any other
-resolution, dimension or slab spacing raises :class:`~dipnet.learning.denoiser.PriorMismatchError`.
+resolution, dimension or slab spacing raises :class:`~dipnet.solvers.denoiser.PriorMismatchError`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dipnet.learning.denoiser import PriorMismatchError, load_weights
+from dipnet.solvers.denoiser import PriorMismatchError, load_weights
 
 
 class LearnedPrior(nn.Module):

@@ -9,7 +9,7 @@ import torch
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.learning.denoiser import OccupancyDenoiser, PriorMismatchError, PriorWeightsError, save_weights
+from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, PriorWeightsError, save_weights
 from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_occupancy
 from dipnet.solvers.learned import LearnedPrior

@@ -1,7 +1,7 @@
 """Training the learned prior's denoiser on generated shapes (``scripts/train_prior.py``).
 
-Pairs (:mod:`dipnet.learning.pairs`) of voxel reconstructions from few dips and the true occupancy
-of generated shapes (never the bundled meshes) train :class:`~dipnet.learning.denoiser.OccupancyDenoiser`
+Pairs (:mod:`dipnet.experiments.prior_pairs`) of voxel reconstructions from few dips and the true occupancy
+of generated shapes (never the bundled meshes) train :class:`~dipnet.solvers.denoiser.OccupancyDenoiser`
 by Adam on the mean squared error over random ``crop^3`` blocks, with random flips and axis
 permutations (the dip directions cover the sphere evenly, so the artifacts have no preferred axis).
 Every random draw comes from one generator seeded by ``seed``; its state is saved in each
@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
-from dipnet.learning.denoiser import OccupancyDenoiser, save_weights
-from dipnet.learning.pairs import build_pairs
+from dipnet.solvers.denoiser import OccupancyDenoiser, save_weights
+from dipnet.experiments.prior_pairs import build_pairs
 
 
 @dataclass

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dipnet.learning.denoiser import (
+from dipnet.solvers.denoiser import (
     SHIPPED_WEIGHTS,
     OccupancyDenoiser,
     PriorWeightsError,
