@@ -61,14 +61,21 @@ from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
 
-LEARNED = {"learned": {"weight": 1.0, "weights": None, "refresh": 10}}  # added to a solver's default priors
+LEARNED = {"weight": 1.0, "weights": None, "refresh": 10, "mode": "red"}  # the learned prior's default options
 
 
 def _with_prior(cls):
-    """A solver factory: ``cls`` with the learned prior added to its default priors."""
+    """A solver factory: ``cls`` with the learned prior added to its default priors. Options
+    ``learned`` (a dict) override :data:`LEARNED`; in ``anchor`` mode the solver starts from the
+    voxel solver's result (``warm_start``; the voxel solver then refines it on the full grid)."""
     def make(**options):
-        priors = {"tv": {"weight": 1e-3}, **LEARNED}
-        priors.update(options.pop("priors", {}))
+        learned = {**LEARNED, **options.pop("learned", {})}
+        priors = {"tv": {"weight": 1e-3}, "learned": learned, **options.pop("priors", {})}
+        if learned["mode"] == "anchor":
+            options.setdefault("warm_start", VoxelSolver(progress=False))
+            if cls is VoxelSolver:
+                options.setdefault("coarse_to_fine", False)
+                options.setdefault("iterations", 200)
         return cls(priors=priors, **options)
     return make
 

@@ -9,6 +9,10 @@ shapes like the generated training shapes (thin limbs and plates, flat faces, ho
 ``D`` costs about as much as 10 dip-operator applications at 64^3, so it is evaluated every
 ``refresh`` calls and its output reused in between (lagged RED); ``refresh=1`` is exact RED.
 
+``mode="anchor"`` is the plug-and-play alternative: ``D`` is evaluated once, at the first call
+(the solver's starting occupancy, e.g. a voxel result given as ``warm_start``), and the prior is
+``0.5 mean (o - D(o_0))^2``: the solve refines the denoised start under the data term.
+
 On a grid whose ``N`` is half the weights' (the voxel solver's coarse stage) ``D`` runs on the
 volume upsampled (trilinear) to the weights' grid and its output is area-averaged back; any other
 resolution, dimension or slab spacing raises :class:`~dipnet.solvers.denoiser.PriorMismatchError`.
@@ -30,13 +34,19 @@ class LearnedPrior(nn.Module):
 
     Args:
         weights: path of a weights file (``None``: the weights shipped in ``dipnet/data/priors``).
-        refresh: evaluate the denoiser every ``refresh`` calls (>= 1).
+        refresh: evaluate the denoiser every ``refresh`` calls (>= 1; ``red`` mode).
+        mode: ``"red"`` or ``"anchor"`` (see the module docstring).
     """
 
-    def __init__(self, weights: str | Path | None = None, refresh: int = 10) -> None:
+    MODES = ("red", "anchor")
+
+    def __init__(self, weights: str | Path | None = None, refresh: int = 10, mode: str = "red") -> None:
         super().__init__()
         if int(refresh) < 1:
             raise ValueError(f"refresh must be >= 1, got {refresh}")
+        if mode not in self.MODES:
+            raise ValueError(f"unknown learned-prior mode {mode!r}; choose one of {self.MODES}")
+        self.mode = mode
         self.denoiser, self.meta = load_weights(weights)
         for p in self.denoiser.parameters():
             p.requires_grad_(False)
@@ -77,12 +87,15 @@ class LearnedPrior(nn.Module):
             return F.avg_pool3d(self.denoiser(up), 2)[0, 0].to(occupancy.dtype)
 
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
-        """``0.5 <o, o - D(o)> / N^3`` with gradient ``(o - D(o)) / N^3``."""
+        """``0.5 <o, o - D(o)> / N^3`` with gradient ``(o - D(o)) / N^3`` (``red``), or
+        ``0.5 mean (o - D(o_0))^2`` (``anchor``)."""
         self._check_grid(occupancy.ndim, occupancy.shape[-1])
         stale = self._denoised is None or self._denoised.shape != occupancy.shape
-        if stale or self._calls % self.refresh == 0:
+        if stale or (self.mode == "red" and self._calls % self.refresh == 0):
             self._denoised = self.denoise(occupancy)
         self._calls += 1
+        if self.mode == "anchor":
+            return 0.5 * (occupancy - self._denoised).pow(2).mean()
         residual = occupancy.detach() - self._denoised
         inner = (occupancy * residual).mean()
         return inner - 0.5 * inner.detach()

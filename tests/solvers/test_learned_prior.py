@@ -41,6 +41,18 @@ def test_value_and_gradient_are_red(weights16):
     assert torch.allclose(o.grad, (o.detach() - d) / o.numel(), atol=1e-9)  # RED gradient, D detached
 
 
+def test_anchor_mode_pulls_toward_the_first_denoised_volume(weights16):
+    prior = LearnedPrior(weights16, mode="anchor")
+    first = torch.rand(16, 16, 16)
+    target = prior.denoise(first)
+    assert torch.allclose(prior(first), 0.5 * (first - target).pow(2).mean())
+    o = torch.rand(16, 16, 16, requires_grad=True)
+    prior(o).backward()  # the target stays D(first)
+    assert torch.allclose(o.grad, (o.detach() - target) / o.numel(), atol=1e-9)
+    with pytest.raises(ValueError, match="mode"):
+        LearnedPrior(weights16, mode="pnp")
+
+
 def test_refresh_reuses_the_denoised_volume(weights16):
     prior = LearnedPrior(weights16, refresh=3)
     o = torch.rand(16, 16, 16)
