@@ -16,6 +16,7 @@ Chamfer at the smallest budget / minnorm's at the largest (noise-free).
     python scripts/bench_quality.py --options voxel='{"iterations": 300}'
     python scripts/bench_quality.py --headline --generated 50           # the learned prior's targets
     python scripts/bench_quality.py --headline --quick                  # bunny + 2 generated shapes (64^3)
+    python scripts/bench_quality.py --headline --from-json a.json b.json  # summaries of earlier runs' rows
 
 ``prior`` is the voxel solver and ``implicit_prior`` the implicit solver, each with the learned
 prior (:class:`dipnet.solvers.learned.LearnedPrior`, the shipped 64^3 weights) added to their
@@ -61,7 +62,7 @@ from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
 
-LEARNED = {"weight": 1.0, "weights": None, "refresh": 10, "mode": "red"}  # the learned prior's default options
+LEARNED = {"weight": 0.3, "weights": None, "refresh": 10, "mode": "red"}  # the learned prior's default options
 
 
 def _with_prior(cls):
@@ -107,6 +108,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="folder caching simulated measurements and truths")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
+    p.add_argument("--from-json", type=Path, nargs="+", metavar="JSON",
+                   help="solve nothing: print the summaries (and RESULT line) of rows saved by earlier --json runs")
     p.add_argument("--generated", type=int, default=0, help="number of generated test shapes")
     p.add_argument("--generated-first", type=int, default=0, help="seed of the first generated test shape")
     p.add_argument("--headline", action="store_true",
@@ -194,6 +197,12 @@ def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
 
 def main(argv=None) -> list[dict]:
     args = parse_args(argv)
+    if args.from_json:
+        rows = [row for path in args.from_json for row in json.loads(path.read_text())]
+        print_summary([r for r in rows if r.get("set", "mesh") == "mesh"], headline=not args.headline)
+        if args.headline:
+            print_prior_summary(rows, min(args.budgets), max(args.budgets))
+        return rows
     if args.threads:
         torch.set_num_threads(args.threads)
     options = solver_options(args.options)
