@@ -7,13 +7,15 @@ dips are simulated from the mesh geometry itself (:func:`dipnet.simulator.simula
 a level sensor with exact readings (``--quantum-mm 0``), noise-free or with white noise at
 ``--snr`` dB) and each solver reconstructs on the ``auto``
 operator. Prints one table (IoU, Chamfer / bbox diagonal, Hausdorff / bbox diagonal, wall
-time), the means per solver / budget / noise, and the headline ratio: best optimiser's mean
-Chamfer at the smallest budget / minnorm's at the largest (noise-free).
+time, the TV weight the solver used), the means per solver / budget / noise, the headline ratio
+(best optimiser's mean Chamfer at the smallest budget / minnorm's at the largest, noise-free) and
+each mesh's ratio of voxel's Chamfer at the smallest budget to minnorm's at the largest, per noise.
 
     python scripts/bench_quality.py                                   # the full table
     python scripts/bench_quality.py --quick                           # bunny and torus, 32^3, minnorm and voxel
     python scripts/bench_quality.py --meshes bunny torus --budgets 41 --noise clean --solvers voxel
     python scripts/bench_quality.py --options voxel='{"iterations": 300}'
+    python scripts/bench_quality.py --dips voxel=41 minnorm=410                   # the headline pair only
     python scripts/bench_quality.py --headline --generated 50           # the learned prior's targets
     python scripts/bench_quality.py --headline --quick                  # bunny + 2 generated shapes (64^3)
     python scripts/bench_quality.py --headline --from-json a.json b.json  # summaries of earlier runs' rows
@@ -54,12 +56,12 @@ from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
-from dipnet.solvers.denoiser import load_weights
 from dipnet.shapes import load_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
+from dipnet.solvers.denoiser import load_weights
 from dipnet.solvers.voxel import VoxelSolver
 
 LEARNED = {"weight": 0.3, "weights": None, "refresh": 10, "mode": "red"}  # the learned prior's default options
@@ -94,6 +96,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--n", type=int, default=64, help="grid resolution N")
     p.add_argument("--budgets", type=int, nargs="+", default=[41, 123, 410], help="numbers of dips")
     p.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
+    p.add_argument("--dips", nargs="+", default=[], metavar="SOLVER=K[,K...]",
+                   help="numbers of dips per solver, e.g. voxel=41 minnorm=410 (replaces --budgets and "
+                        "--solvers: only the solvers named run, each at its own budgets)")
     p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=["clean", "snr"],
                    help="noise-free and/or level-sensor noise at --snr dB")
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR in dB for --noise snr")
@@ -124,6 +129,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     elif args.quick:
         args.meshes, args.n, args.budgets = args.meshes or ["bunny", "torus"], 32, [41, 123]
         args.noise, args.solvers = ["clean"], ["minnorm", "voxel"]
+    if args.headline:  # minnorm at the largest budget, the optimisers at the smallest
+        args.plan = {name: [max(args.budgets) if name == "minnorm" else min(args.budgets)] for name in args.solvers}
+    else:
+        args.plan = solver_budgets(args.dips) if args.dips else {name: list(args.budgets) for name in args.solvers}
     return args
 
 
@@ -140,13 +149,21 @@ def check_test_seeds(first: int, count: int) -> None:
                          f"validation seeds ({min(overlap)}..{max(overlap)}): choose another --generated-first")
 
 
-def runs(args, name: str, k: int, generated: bool) -> bool:
-    """Whether solver ``name`` runs at budget ``k`` (``--headline`` runs only what the ratios need)."""
-    if not args.headline:
-        return True
-    if name == "minnorm":
-        return k == max(args.budgets) and not generated
-    return k == min(args.budgets)
+
+
+def solver_budgets(specs: list[str]) -> dict[str, list[int]]:
+    """``{solver: [numbers of dips]}`` from ``--dips`` entries ``SOLVER=K[,K...]``."""
+    out: dict[str, list[int]] = {}
+    for spec in specs:
+        name, _, text = spec.partition("=")
+        try:
+            budgets = [int(k) for k in text.split(",")]
+        except ValueError:
+            budgets = []
+        if name not in SOLVERS or not budgets or min(budgets) < 1:
+            raise SystemExit(f"--dips expects SOLVER=K[,K...] with SOLVER in {list(SOLVERS)}, got {spec!r}")
+        out.setdefault(name, []).extend(budgets)
+    return out
 
 
 def solver_options(specs: list[str]) -> dict[str, dict]:
@@ -199,9 +216,7 @@ def main(argv=None) -> list[dict]:
     args = parse_args(argv)
     if args.from_json:
         rows = [row for path in args.from_json for row in json.loads(path.read_text())]
-        print_summary([r for r in rows if r.get("set", "mesh") == "mesh"], headline=not args.headline)
-        if args.headline:
-            print_prior_summary(rows, min(args.budgets), max(args.budgets))
+        print_all(rows, args)
         return rows
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -218,12 +233,13 @@ def main(argv=None) -> list[dict]:
     cases += [(f"gen{seed}", "generated", lambda k, noise, seed=seed: generated_case_data(args, seed, grid, k, noise))
               for seed in range(args.generated_first, args.generated_first + args.generated)]
     rows = []
-    print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<14} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} "
-          f"{'time s':>7}", flush=True)
+    print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<14} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} {'time s':>7} "
+          f"{'TV w':>8}", flush=True)
+    budgets = sorted({k for ks in args.plan.values() for k in ks})
     for label, kind, make_case in cases:
-        for k in args.budgets:
-            for noise in args.noise:
-                names = [n for n in args.solvers if runs(args, n, k, kind == "generated")]
+        for k in budgets:
+            for noise in args.noise:  # minnorm is the meshes' reference only
+                names = [name for name, ks in args.plan.items() if k in ks and (kind == "mesh" or name != "minnorm")]
                 if not names:
                     continue
                 measurement, truth, shape = make_case(k, noise)
@@ -234,21 +250,33 @@ def main(argv=None) -> list[dict]:
                     recon = solver.solve(measurement, operator)
                     seconds = time.perf_counter() - t0
                     scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
+                    rule = recon.info.get("weight_rule") or {}
                     row = {"mesh": label, "set": kind, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
-                           **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")}}
+                           **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
+                           "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
+                           "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
+                           "target_residual": rule.get("target_residual")}
                     rows.append(row)
+                    weight = "" if row["tv_weight"] is None else f"{row['tv_weight']:8.2e}"
                     print(f"{label:<12} {k:>5} {noise:>6} {name:<14} {row['iou']:6.3f} {row['chamfer']:8.4f} "
-                          f"{row['hausdorff']:7.4f} {seconds:7.1f}", flush=True)
+                          f"{row['hausdorff']:7.4f} {seconds:7.1f} {weight}", flush=True)
                     if args.json:
                         args.json.write_text(json.dumps(rows, indent=1))
-    print_summary([r for r in rows if r["set"] == "mesh"], headline=not args.headline)
-    if args.headline:
-        print_prior_summary(rows, min(args.budgets), max(args.budgets))
+    print_all(rows, args)
     return rows
 
 
-def print_summary(rows: list[dict], headline: bool = True) -> None:
-    """Means per (solver, budget, noise), the headline ratio and (``headline``) the RESULT line."""
+def print_all(rows: list[dict], args) -> None:
+    """The meshes' summary and, with ``--headline``, the learned prior's (its RESULT line last)."""
+    meshes = [r for r in rows if r.get("set", "mesh") == "mesh"]
+    if len({r["dips"] for r in meshes}) > 1:
+        print_summary(meshes)
+    if args.headline:
+        print_prior_summary(rows, min(args.budgets), max(args.budgets))
+
+
+def print_summary(rows: list[dict]) -> None:
+    """Means per (solver, budget, noise) and the headline ratio."""
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
         groups.setdefault((row["noise"], row["dips"], row["solver"]), []).append(row)
@@ -267,9 +295,33 @@ def print_summary(rows: list[dict], headline: bool = True) -> None:
         ratio = means[("clean", budgets[0], best)]["chamfer"] / means[("clean", budgets[-1], "minnorm")]["chamfer"]
         print(f"\nheadline (noise-free): {best} at {budgets[0]} dips / minnorm at {budgets[-1]} dips, "
               f"mean Chamfer ratio = {ratio:.2f} (<= 1 means the {budgets[-1] / budgets[0]:.0f}x saving holds)")
-    if headline:
-        print("RESULT " + " ".join(f"{name}_{noise}_{k}_chamfer={m['chamfer']:.4f}"
-                                   for (noise, k, name), m in sorted(means.items())))
+    ratios = mesh_ratios(rows)
+    for noise, per_mesh in ratios.items():
+        print(f"\nvoxel at {budgets[0]} / minnorm at {budgets[-1]} dips, Chamfer ratio per mesh ({noise}): "
+              + ", ".join(f"{mesh} {r:.2f}" for mesh, r in per_mesh.items()))
+    summary = {f"voxel{budgets[0]}_over_minnorm{budgets[-1]}_{noise}_{stat}": value
+               for noise, per_mesh in ratios.items()
+               for stat, value in (("mean", statistics.fmean(per_mesh.values())),
+                                   ("median", statistics.median(per_mesh.values())),
+                                   ("worst", max(per_mesh.values())))}
+    print("RESULT " + " ".join([f"{name}_{noise}_{k}_chamfer={m['chamfer']:.4f}"
+                                for (noise, k, name), m in sorted(means.items())]
+                               + [f"{key}={value:.3f}" for key, value in summary.items()]))
+
+
+def mesh_ratios(rows: list[dict]) -> dict[str, dict[str, float]]:
+    """``{noise: {mesh: voxel's Chamfer at the smallest budget / minnorm's at the largest}}`` over
+    the meshes that have both (``{}`` without voxel and minnorm rows at two budgets)."""
+    budgets = sorted({r["dips"] for r in rows})
+    chamfer = {(r["noise"], r["mesh"], r["dips"], r["solver"]): r["chamfer"] for r in rows}
+    out: dict[str, dict[str, float]] = {}
+    if len(budgets) < 2:
+        return out
+    for noise, mesh, k, name in sorted(chamfer):
+        low, high = chamfer.get((noise, mesh, budgets[0], "voxel")), chamfer.get((noise, mesh, budgets[-1], "minnorm"))
+        if k == budgets[0] and name == "voxel" and low is not None and high:
+            out.setdefault(noise, {})[mesh] = low / high
+    return out
 
 
 def prior_ratios(rows: list[dict], small: int, large: int, noise: str, solver: str = "prior") -> dict[str, float]:

@@ -1,4 +1,5 @@
-"""Fake reconstruction jobs with the files of dipnet.jobs.pipeline's contract, for the sweep tests."""
+"""Fake reconstruction jobs with the files of dipnet.jobs.pipeline's contract, for the sweep tests: one job
+(:func:`write_job`) or a whole sweep whose metrics follow known formulas (:func:`write_sweep`)."""
 
 from __future__ import annotations
 
@@ -9,12 +10,18 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from dipnet.outputs import export
-from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import make_directions
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.outputs import export
+from dipnet.shapes.isosurface import volume_to_mesh
+
+#: The metrics of a typical run (every group, and one key no group knows).
+METRICS = {"iou": 0.9687, "chamfer": 0.004018, "profile_residual": 0.0588, "profile_residual_expected": 0.0226,
+           "volume_ratio": 1.059, "consistency": "inconsistent", "uncertain_fraction": 0.2624,
+           "expected_error_fraction": 0.3087, "seconds": 12.05, "validation": {"readings_repaired": 0},
+           "error_rate_by_uncertainty_decile": [0.0] * 9 + [0.24], "some_new_metric": 1.5}
 
 
 def ball(grid: Grid, radius_mm: float) -> np.ndarray:
@@ -57,3 +64,42 @@ def write_job(job: Path, *, solver: str, n_dips: int, snr_db: float | None, seed
     if error is not None:
         (job / "error.txt").write_text(f"{error}\n\nTraceback (most recent call last): ...\n")
     return job
+
+
+SOLVERS, DIPS, SEEDS, SNRS = ("minnorm", "lsmr"), (4, 8, 16), (0, 1), (10.0, 20.0, 30.0)
+
+
+def iou_of(solver: str, n_dips: int, seed: int) -> float:
+    return 1 - 1 / n_dips - 0.01 * seed + (0.02 if solver == "lsmr" else 0.0)
+
+
+def chamfer_of(n_dips: int, seed: int) -> float:
+    return 0.1 / n_dips + 0.001 * seed
+
+
+def write_sweep(root: Path) -> Path:
+    """12 noise-free jobs (2 solvers x 3 budgets x 2 seeds), 3 noisy ones, a failed one, a
+    partial one (config only) and an empty numbered directory, in ``root``."""
+    (root / "multirun.yaml").write_text("hydra: {}\n")
+    num = 0
+    for solver in SOLVERS:
+        for n in DIPS:
+            for seed in SEEDS:
+                write_job(root / str(num), solver=solver, n_dips=n, snr_db=None, seed=seed,
+                          metrics={"iou": iou_of(solver, n, seed), "chamfer": chamfer_of(n, seed),
+                                   "false_positive": 0.0, "false_negative": 0.0})
+                num += 1
+    for snr in SNRS:
+        write_job(root / str(num), solver="minnorm", n_dips=8, snr_db=snr, seed=0,
+                  metrics={"iou": iou_of("minnorm", 8, 0) - 1 / snr, "chamfer": chamfer_of(8, 0),
+                           "false_positive": 1 / snr, "false_negative": 0.5 / snr})
+        num += 1
+    write_job(root / str(num), solver="lsmr", n_dips=32, snr_db=None, seed=0, metrics=None,
+              error="ValueError: n_dips too large for the test")
+    write_job(root / str(num + 1), solver="lsmr", n_dips=64, snr_db=None, seed=0, metrics=None)
+    (root / str(num + 2)).mkdir()
+    return root
+
+
+def is_png(path: Path) -> bool:
+    return path.is_file() and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -7,7 +7,8 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   (same for the occupancy): 0 for a shape that reproduces every slab volume;
 * ``profile_residual_expected``: what the noise alone explains, ``||n|| / ||g||`` with
   ``||n|| = sqrt(sum sigma^2)`` from the measurement's per-slab ``sigma`` when it has one, else
-  from a per-slab sigma estimated from the profiles (:func:`estimate_slab_sigma`);
+  from a per-slab sigma estimated from the profiles
+  (:func:`~dipnet.preprocessing.validation.estimate_slab_sigma`);
 * ``volume_ratio`` = reconstructed (binary) volume / measured volume, the measured volume
   being a robust mean (:func:`robust_volume`) of every profile's total, with
   ``volume_ratio_noise`` the relative spread of that mean.
@@ -39,6 +40,7 @@ import torch
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.preprocessing.validation import estimate_slab_sigma
 from dipnet.solvers.base import measured_profiles
 
 log = logging.getLogger(__name__)
@@ -46,7 +48,6 @@ log = logging.getLogger(__name__)
 RESIDUAL_FACTOR = 3.0  # residual allowed above the noise's own share
 RESIDUAL_FLOOR = 0.05  # relative residual below which no result is flagged (voxel discretisation)
 VOLUME_TOL = 0.05  # |volume ratio - 1| allowed at the least
-_HIGHPASS_GAIN = math.sqrt(3.0 / 8.0)  # rms of (1 - [1, 2, 1] / 4) applied to white noise
 _MAD = 1.4826  # MAD -> standard deviation for Gaussian data
 
 
@@ -100,19 +101,6 @@ def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
     sigma = _MAD * float(np.median(np.abs(totals - median)))
     keep = np.abs(totals - median) <= 3 * sigma if sigma > 0 else np.ones_like(totals, dtype=bool)
     return float(totals[keep].mean()), sigma / math.sqrt(int(keep.sum()))
-
-
-def estimate_slab_sigma(profiles: torch.Tensor) -> float:
-    """A per-slab noise sigma (mm^3) estimated from the profiles ``(K, M)`` themselves: the
-    high-pass residual ``g - [1, 2, 1] / 4 * g`` along the slabs, robust sigma (MAD) divided
-    by the filter's white-noise gain. Smooth signal leaks a little into it (more noise, fewer
-    warnings); smoothing in preprocessing hides some noise from it. The spread of the
-    profiles' totals is not used: on real rigs it is dominated by systematic errors
-    (truncated dips, drift), which are exactly what the check should expose.
-    """
-    p = profiles.double().numpy()
-    high = p[:, 1:-1] - 0.25 * (p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:])
-    return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
 
 
 def height_trend(measurement: DipMeasurement) -> tuple[float, float, float]:

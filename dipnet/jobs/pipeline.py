@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from dipnet.evaluation import consistency, metrics
 from dipnet.outputs import export, plots
 from dipnet.outputs.progress import OutputStages
-from dipnet.outputs.summary import headline
+from dipnet.outputs.summary import headline, prior_weight_metrics
 from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.jobs.calibration_job import self_calibration_job
 from dipnet.jobs.deprecations import upgrade_config
@@ -122,7 +122,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
                               "operator": recon.info.get("operator", backend_name(operator)),
                               "seconds": seconds, "n_dips": measurement.n_orientations,
-                              "resolution": grid.n, "ndim": grid.ndim}
+                              "resolution": grid.n, "ndim": grid.ndim, **prior_weight_metrics(recon.info)}
     stage = OutputStages(bool(cfg.output.progress))
     stage("consistency")
     scores.update(consistency.check_consistency(measurement, operator, recon).metrics())

@@ -29,6 +29,13 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "shape": ("run", "shape"),
     "snr_db": ("run", "level-sensor SNR (dB; none: noise-free)"),
     "frame_offset_mm": ("run", "mesh files: grid frame + this shift = your file's frame (mm)"),
+    "prior_weights": ("run", "prior weights used by the solver"),
+    "prior_weight_rule": ("run", "how the prior weights were set (fixed: from the config)"),
+    "prior_weight_reason": ("run", "why that weight"),
+    "prior_weight_noise_residual": ("run", "weight rule: relative residual of the noise alone"),
+    "prior_weight_target_residual": ("run", "weight rule: residual aimed at (tau x the noise's)"),
+    "prior_weight_residual_reached": ("run", "weight rule: residual of the result"),
+    "prior_weight_noise_source": ("run", "weight rule: noise from the measurement's sigma or estimated"),
     "iou": ("how close to the truth", "intersection over union (1 = identical)"),
     "chamfer": ("how close to the truth", "Chamfer distance (fraction of the truth's diagonal)"),
     "hausdorff": ("how close to the truth", "Hausdorff distance (fraction of the truth's diagonal)"),
@@ -132,6 +139,22 @@ def headline(metrics: dict[str, Any]) -> str:
     if metrics.get("consistency"):
         parts.append(str(metrics["consistency"]))
     return ", ".join(parts)
+
+
+def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
+    """The prior weights a solver used and why, from its ``Reconstruction.info``
+    (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`), as flat
+    ``metrics.json`` entries; ``{}`` for solvers without priors."""
+    out: dict[str, Any] = {}
+    if "prior_weights" in info:
+        out["prior_weights"] = dict(info["prior_weights"])
+    rule = info.get("weight_rule") or {}
+    if rule:
+        out["prior_weight_rule"] = rule["rule"]
+    for key in ("reason", "noise_residual", "target_residual", "residual_reached", "noise_source"):
+        if key in rule:
+            out[f"prior_weight_{key}"] = rule[key]
+    return out
 
 
 def grouped(metrics: dict[str, Any]) -> dict[str, list[tuple[str, str, Any]]]:

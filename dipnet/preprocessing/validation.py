@@ -32,12 +32,30 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
 
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 
 log = logging.getLogger(__name__)
+
+_HIGHPASS_GAIN = math.sqrt(3.0 / 8.0)  # rms of (1 - [1, 2, 1] / 4) applied to white noise
+_MAD = 1.4826  # MAD -> standard deviation for Gaussian data
+
+
+def estimate_slab_sigma(profiles: torch.Tensor) -> float:
+    """A per-slab noise sigma (mm^3) estimated from the profiles ``(K, M)`` themselves: the
+    high-pass residual ``g - [1, 2, 1] / 4 * g`` along the slabs, robust sigma (MAD) divided
+    by the filter's white-noise gain. Smooth signal leaks a little into it (more noise, fewer
+    warnings); smoothing in preprocessing hides some noise from it. The spread of the
+    profiles' totals is not used: on real rigs it is dominated by systematic errors
+    (truncated dips, drift), which are exactly what the consistency check
+    (:mod:`dipnet.evaluation.consistency`, which uses this estimate) should expose.
+    """
+    p = profiles.double().numpy()
+    high = p[:, 1:-1] - 0.25 * (p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:])
+    return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
 
 
 class MeasurementValidationError(ValueError):

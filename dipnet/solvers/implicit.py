@@ -12,8 +12,8 @@ extent), or ``None``. The fitted field stays available as ``solver.field_`` and
 
 Defaults (chosen with ``scripts/bench_quality.py`` at 64^3): a 6-level dense feature grid
 (4^3 .. N^3 cells, 2 features each), a 64-wide MLP with 2 hidden layers, Adam lr 0.01 with a
-cosine schedule, 400 steps, isotropic TV 1e-3. Lighter fields (4 levels, width 32) ran ~1.5x
-faster but under-fitted (bunny, 41 dips: IoU 0.93 vs 0.96). Cost per step: the dip operator
+cosine schedule, 400 steps, isotropic TV with its weight from the noise (``"auto"``). Lighter
+fields (4 levels, width 32) ran ~1.5x faster but under-fitted (bunny, 41 dips: IoU 0.93 vs 0.96). Cost per step: the dip operator
 and the MLP over the support-hull voxels (see :func:`~dipnet.solvers.optimize.support_hull`).
 """
 
@@ -32,7 +32,7 @@ from dipnet.operators import DipOperator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.fields import OccupancyField
-from dipnet.solvers.optimize import OptimisationSolver, plain, seeded
+from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP]
 _SAMPLE_CHUNK = 1 << 18  # points per forward pass when sampling a fine grid
@@ -70,7 +70,7 @@ class ImplicitSolver(OptimisationSolver):
                  **options) -> None:
         options.setdefault("iterations", 400)
         options.setdefault("lr", 0.01)
-        options.setdefault("priors", {"tv": {"weight": 1e-3}, "binary": {"weight": 0.0},
+        options.setdefault("priors", {"tv": {"weight": "auto"}, "binary": {"weight": 0.0},
                                       "volume": {"weight": 0.0}})
         super().__init__(**options)
         if int(output_upsample) < 1 or int(warm_iterations) < 0:
@@ -91,7 +91,8 @@ class ImplicitSolver(OptimisationSolver):
         docstring); ``info`` holds steps, seconds and the number of field parameters."""
         started = time.perf_counter()
         grid = operator.grid
-        data, priors, fraction, support = self._problem(measurement, operator)
+        problem = self._problem(measurement, operator)
+        data, fraction, support = problem.data, problem.volume_fraction, problem.support
         index, points = _normalised_points(grid, support)
         init = self._initial_occupancy(measurement, operator)
         with seeded(self.seed):
@@ -107,13 +108,17 @@ class ImplicitSolver(OptimisationSolver):
             history = {}
             if init is not None and self.warm_iterations:
                 history = self._fit_warm_start(field, points, init.reshape(-1)[index])
-            history.update(self._loop(field.parameters(), occupancy, data, priors, self.iterations,
-                                      f"implicit {grid.n}^{grid.ndim}"))
+            desc = f"implicit {grid.n}^{grid.ndim}"
+            params = list(field.parameters())
+            history.update(self._loop(params, occupancy, data, problem.priors, self.iterations, desc))
+            refit, priors, weights = self.choose_weights(problem, params, occupancy, self.iterations, desc)
+            history = merge_histories(history, refit)
             with torch.no_grad():
                 occ = occupancy()
         self.field_ = field
         n_params = sum(p.numel() for p in field.parameters())
-        recon = self._result(occ, operator, history, started, data=data, parameters=n_params,
+        recon = self._result(occ, operator, history, started, data=data, priors=priors, weights=weights,
+                             parameters=n_params,
                              output_upsample=self.output_upsample, support_voxels=int(index.numel()))
         recon.fine = None
         if self.output_upsample > 1:

@@ -35,6 +35,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.base import Solver, measured_profiles
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
+from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
 
 log = logging.getLogger(__name__)
 
@@ -52,9 +53,10 @@ class Problem(NamedTuple):
     """What a solver optimises on one grid."""
 
     data: "DataTerm"
-    priors: Priors
+    priors: Priors  # "auto" weights at the weight rule's start (see OptimisationSolver.choose_weights)
     volume_fraction: float  # measured object volume / grid cube volume
     support: torch.Tensor  # bool, grid.shape: voxels that may be occupied
+    noise: tuple[float, str]  # the data term of the noise alone and where it comes from (weights.noise_level)
 
 
 class DataTerm(nn.Module):
@@ -368,7 +370,9 @@ class OptimisationSolver(Solver):
         schedule: ``"cosine"``, ``"step"`` or ``"constant"`` (Adam).
         tol, window: stop when the loss improved by less than ``tol`` (relative) over the last
             ``window`` steps (see :func:`plateaued`).
-        priors: ``{name: {"weight": w, **options}}`` (see :func:`~dipnet.solvers.priors.build_priors`).
+        priors: ``{name: {"weight": w, **options}}`` (see :func:`~dipnet.solvers.priors.build_priors`);
+            ``w = "auto"`` chooses the weight from the data by ``weight_rule`` (:mod:`dipnet.solvers.weights`).
+        weight_rule: options of :class:`~dipnet.solvers.weights.WeightRule` (the discrepancy principle).
         warm_start: initial occupancy: ``None`` (uniform, at the measured volume), a tensor
             ``grid.shape``, a solver (its ``solve(measurement, operator)`` result, e.g. a
             ``MinNormSolver``), or a callable ``(measurement, operator) -> tensor | Reconstruction``.
@@ -391,7 +395,8 @@ class OptimisationSolver(Solver):
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
                  tol: float = 1e-3, window: int = 25, priors: Mapping[str, Mapping] | None = None,
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
-                 progress: bool = True, hull_margin: float = 1.5, checkpoint=None, fit_gain: bool = False) -> None:
+                 progress: bool = True, hull_margin: float = 1.5, checkpoint=None, fit_gain: bool = False,
+                 weight_rule: Mapping | None = None) -> None:
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
         if schedule not in SCHEDULES:
@@ -399,7 +404,8 @@ class OptimisationSolver(Solver):
         if int(iterations) < 1 or not lr > 0 or int(window) < 1:
             raise ValueError("iterations and window must be positive integers and lr positive")
         priors = plain(priors or {})
-        build_priors(priors, volume_fraction=1.0)  # validate names and options now
+        self.weight_rule = WeightRule(**plain(weight_rule or {}))
+        build_priors(with_weight(priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.iterations, self.lr, self.optimizer, self.schedule = int(iterations), float(lr), optimizer, schedule
         self.tol, self.window = float(tol), int(window)
         self.priors = priors
@@ -421,6 +427,38 @@ class OptimisationSolver(Solver):
                         optimizer=self.optimizer, schedule=self.schedule, tol=self.tol, window=self.window,
                         progress=self.progress, desc=desc, before_step=before_step, checkpoint=self.checkpoint)
 
+    def choose_weights(self, problem: Problem, parameters: list, occupancy: Callable[[], torch.Tensor], steps: int,
+                       desc: str) -> tuple[dict[str, list[float]], Priors, dict]:
+        """After a run with ``problem.priors`` (``"auto"`` weights at the rule's ``start``), choose
+        those weights by :attr:`weight_rule` and refit ``parameters`` with them.
+
+        The first run's data term ``D`` gives the weight
+        (:meth:`~dipnet.solvers.weights.WeightRule.next_weight`); when it differs from the start,
+        ``refit`` x ``steps`` more steps (learning rate x ``refit_lr``) continue from the first run's
+        state. Returns the refit's history (``{}`` without one), the priors of the result and the
+        record of the choice (``{"rule": "fixed"}`` when no weight is ``"auto"``).
+        """
+        if not auto_names(self.priors):
+            return {}, problem.priors, {"rule": "fixed"}
+        rule, data = self.weight_rule, problem.data
+
+        def residual() -> float:
+            with torch.no_grad():
+                return float(data(occupancy()))
+
+        first = residual()
+        weight = rule.next_weight(rule.start, first, problem.noise[0], may_raise=problem.noise[1] == "sigma")
+        priors, history = problem.priors, {}
+        if weight != rule.start:
+            priors = build_priors(with_weight(self.priors, weight), problem.volume_fraction)
+            history = self._loop(parameters, occupancy, data, priors, max(1, round(rule.refit * steps)),
+                                 f"{desc} refit", lr_scale=rule.refit_lr)
+        record = {**rule.record(weight, first, residual(), problem.noise), "refit_steps": len(history.get("loss", []))}
+        log.info("%s: prior weight %.3g (%s; relative residual %.3g, then %.3g; noise %.3g from %s)", desc, weight,
+                 record["reason"], record["first_residual"], record["residual_reached"], record["noise_residual"],
+                 record["noise_source"])
+        return history, priors, record
+
     def _problem(self, measurement: DipMeasurement, operator: DipOperator, fit_gain: bool | None = None) -> Problem:
         """Data term (fitting a gain with ``fit_gain``, default :attr:`fit_gain`), priors, measured
         volume fraction and support mask for ``operator``."""
@@ -428,11 +466,12 @@ class OptimisationSolver(Solver):
         fraction = volume_fraction(measurement, operator)
         support = self.support(target, operator, operator.grid)
         data = DataTerm(operator, target, sigma, fit_gain=self.fit_gain if fit_gain is None else fit_gain)
-        priors = build_priors(self.priors, fraction)
+        noise = noise_level(target, sigma, data.weight, self.hull_tol if self.hull_tol is not None else 0.005)
+        priors = build_priors(with_weight(self.priors, self.weight_rule.start), fraction)
         for _, _, module in priors:  # priors made for one grid / operator (the learned prior) refuse others
             if hasattr(module, "check_operator"):
                 module.check_operator(operator)
-        return Problem(data, priors, fraction, support)
+        return Problem(data, priors, fraction, support, noise)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),
@@ -460,11 +499,18 @@ class OptimisationSolver(Solver):
         return start.clamp(0, 1)
 
     def _result(self, occupancy: torch.Tensor, operator: DipOperator, history: dict, started: float,
-                data: DataTerm | None = None, **info) -> Reconstruction:
-        """The reconstruction with ``info`` (and ``info["gain"]`` when ``data`` fitted one)."""
+                data: DataTerm | None = None, priors: Priors | None = None, weights: dict | None = None,
+                **info) -> Reconstruction:
+        """The reconstruction with ``info`` (and ``info["gain"]`` when ``data`` fitted one); with
+        ``priors`` (those of the result), ``info["prior_weights"]`` (``{name: weight}``), and
+        ``info["weight_rule"]``, the record of :meth:`choose_weights`."""
         steps = len(history.get("loss", []))
         if data is not None and data.log_gain is not None:
             info["gain"] = data.gain
+        if priors is not None:
+            info["prior_weights"] = {name: weight for name, weight, _ in priors}
+        if weights is not None:
+            info["weight_rule"] = weights
         info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,
                 "final": {k: v[-1] for k, v in history.items() if v}, "optimizer": self.optimizer,
                 "seed": self.seed, **info}

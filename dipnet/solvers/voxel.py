@@ -9,11 +9,10 @@ Voxels outside the working ball, and outside the data's support hull (see
 slabs, so the same measured profiles), whose logits are then upsampled to start the full grid.
 
 Defaults (chosen with ``scripts/bench_quality.py`` at 64^3 on the shared meshes): Adam, lr 0.1,
-cosine schedule, 400 steps (30% at 32^3), temperature 1 -> 0.25, isotropic TV 1e-3. TV 3e-4
-and 1e-3 tie on noise-free data (bunny, 41 dips: IoU 0.968 / 0.965, Chamfer 0.0024 / 0.0027);
-3e-3 costs ~0.01 Chamfer-diagonals there but gains ~0.01-0.03 IoU at 30 dB SNR, so raise
-``priors.tv.weight`` for noisy data. Binarising harder (``temperature_end`` << 0.25) loses the
-partial-volume sub-voxel surface that the Chamfer distance rewards.
+cosine schedule, 400 steps (30% at 32^3), temperature 1 -> 0.25, isotropic TV with its weight
+chosen from the noise (``"auto"``, :mod:`dipnet.solvers.weights`: 1e-3 for the first solve, then
+a refit at the chosen weight; a number fixes it). Binarising harder (``temperature_end`` << 0.25)
+loses the partial-volume sub-voxel surface that the Chamfer distance rewards.
 """
 
 from __future__ import annotations
@@ -64,7 +63,7 @@ class VoxelSolver(OptimisationSolver):
                  coarse_fraction: float = 0.3, **options) -> None:
         options.setdefault("iterations", 400)
         options.setdefault("lr", 0.1)
-        options.setdefault("priors", {"tv": {"weight": 1e-3}, "binary": {"weight": 0.0},
+        options.setdefault("priors", {"tv": {"weight": "auto"}, "binary": {"weight": 0.0},
                                       "volume": {"weight": 0.0}})
         super().__init__(**options)
         if not 0 < temperature_end <= temperature_start:
@@ -98,7 +97,8 @@ class VoxelSolver(OptimisationSolver):
         histories, stage_info = [], []
         with seeded(self.seed):
             for op, steps, f0, f1 in self._stages(operator):  # a gain is fitted on the full grid only (see fit_gain)
-                data, priors, fraction, support = self._problem(measurement, op, self.fit_gain and op is operator)
+                problem = self._problem(measurement, op, self.fit_gain and op is operator)
+                data, priors, fraction, support = problem.data, problem.priors, problem.volume_fraction, problem.support
                 mask = support.to(torch.float32)
                 if logits is None:
                     room = float(mask.mean())  # share of the cube that may be filled
@@ -120,6 +120,12 @@ class VoxelSolver(OptimisationSolver):
                 histories.append(self._loop([z], occupancy, data, priors, steps, desc, before_step=anneal))
                 logits = (z.detach() / temp["T"])
                 stage_info.append({"n": op.grid.n, "steps": len(histories[-1]["loss"])})
+            # "auto" weights: chosen from the full grid's residual, then refitted at the final temperature
+            refit, priors, weights = self.choose_weights(problem, [z], occupancy, steps, desc)
+            if refit:
+                histories.append(refit)
+                logits = z.detach() / temp["T"]
         occ = torch.sigmoid(logits) * mask
-        return self._result(occ, operator, merge_histories(*histories), started, data=data, stages=stage_info,
+        return self._result(occ, operator, merge_histories(*histories), started, data=data, priors=priors,
+                            weights=weights, stages=stage_info,
                             final_temperature=temp["T"], support_voxels=int(mask.sum()))

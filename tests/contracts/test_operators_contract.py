@@ -1,8 +1,8 @@
 """The agreement contract every dip operator backend must meet (parametrised over BACKENDS).
 
 Analytic ball / disk profiles, sum-to-volume, exact adjoint, autograd, batching, shape
-errors, agreement with the reference ``rotate_sum`` on a real mesh, plus backend specifics
-(the splat's explicit matrix, the Fourier backend against the exact box-voxel model).
+errors, agreement with the reference ``rotate_sum`` on a real mesh, and the ``auto`` choice. What only one
+backend does lives in its own file: tests/operators/test_<backend>.py.
 """
 
 from __future__ import annotations
@@ -16,12 +16,13 @@ import pytest
 import torch
 
 from dipnet.core.grid import Grid
-from dipnet.operators import BACKENDS, FourierOperator, SplatOperator, make_operator, select_backend
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.operators import BACKENDS, SplatOperator, make_operator, select_backend
 from dipnet.operators.analytic import ball_occupancy, ball_profiles
-from dipnet.operators.box_model import box_voxel_profiles
-from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisphere
-
 from dipnet.preprocessing.datasets import MESHES_DIR as MESHES
+
+from operator_problems import generic_directions, random_problem, rel_error
+
 ALL = [(name, ndim) for name in BACKENDS for ndim in (2, 3)]
 IDS = [f"{name}-{ndim}d" for name, ndim in ALL]
 
@@ -50,15 +51,6 @@ def test_every_backend_has_measured_tolerances():
     assert set(TOLERANCES) == set(BACKENDS)
 
 
-def _directions(k: int, ndim: int) -> torch.Tensor:
-    """Generic test orientations (no grid axis), ``(k, ndim)``."""
-    return fibonacci_hemisphere(k) if ndim == 3 else directions_2d(angles_2d(k, start_deg=7.0))
-
-
-def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a - b).norm() / b.norm())
-
-
 # ---------------------------------------------------------------- analytic ball / disk
 @pytest.mark.parametrize("ndim", (2, 3))
 def test_analytic_ball_helpers_are_consistent(ndim):
@@ -68,7 +60,7 @@ def test_analytic_ball_helpers_are_consistent(ndim):
     occ = ball_occupancy(grid, centre, radius)
     assert abs(float(occ.sum()) * grid.voxel_volume / exact - 1) < 2e-3
     edges = torch.linspace(-50.0, 50.0, 31, dtype=torch.float64)
-    prof = ball_profiles(_directions(4, ndim), edges, centre, radius)
+    prof = ball_profiles(generic_directions(4, ndim), edges, centre, radius)
     torch.testing.assert_close(prof.sum(1), torch.full((4,), exact, dtype=torch.float64))
     assert bool((prof >= 0).all())
 
@@ -79,27 +71,20 @@ def test_analytic_ball_profiles(backend, ndim):
     grid = Grid(n, ndim)
     centre = torch.tensor([6.0, -4.0, 3.0][:ndim], dtype=torch.float64)
     radius = 25.0
-    dirs = _directions(5, ndim)
+    dirs = generic_directions(5, ndim)
     op = make_operator(grid, dirs, backend=backend)
     prof = op(ball_occupancy(grid, centre, radius))
     edges = op.slab_edges()
-    assert _rel(prof, ball_profiles(dirs, edges, centre, radius)) < BALL_TOLERANCE[ndim]
+    assert rel_error(prof, ball_profiles(dirs, edges, centre, radius)) < BALL_TOLERANCE[ndim]
     mids = (edges[1:] + edges[:-1]) / 2
     centroid = (prof * mids).sum(1) / prof.sum(1)
     assert (centroid - dirs @ centre).abs().max() < CENTROID_TOLERANCE[ndim] * op.slab_thickness
 
 
 # ---------------------------------------------------------------- invariants
-def _random_problem(ndim: int, seed: int = 0):
-    grid = Grid(24 if ndim == 3 else 40, ndim)
-    gen = torch.Generator().manual_seed(seed)
-    x = torch.rand(grid.shape, generator=gen, dtype=torch.float64)
-    return grid, _directions(6, ndim), x, gen
-
-
 @pytest.mark.parametrize("backend,ndim", ALL, ids=IDS)
 def test_profiles_sum_to_volume(backend, ndim):
-    grid, dirs, x, _ = _random_problem(ndim)
+    grid, dirs, x, _ = random_problem(ndim)
     op = make_operator(grid, dirs, 30, backend=backend)
     volume = float((x * grid.working_mask()).sum()) * grid.voxel_volume
     sums = op(x).sum(1)
@@ -108,7 +93,7 @@ def test_profiles_sum_to_volume(backend, ndim):
 
 @pytest.mark.parametrize("backend,ndim", ALL, ids=IDS)
 def test_adjoint_is_exact_transpose(backend, ndim):
-    grid, dirs, x, gen = _random_problem(ndim, seed=1)
+    grid, dirs, x, gen = random_problem(ndim, seed=1)
     op = make_operator(grid, dirs, 30, backend=backend)
     y = torch.rand(op.profile_shape, generator=gen, dtype=torch.float64)
     lhs = float((op(x) * y).sum())
@@ -119,7 +104,7 @@ def test_adjoint_is_exact_transpose(backend, ndim):
 @pytest.mark.parametrize("backend,ndim", ALL, ids=IDS)
 def test_gradcheck(backend, ndim):
     grid = Grid(8 if ndim == 3 else 7, ndim, extent=8.0)  # unit voxels; odd n: the other centring
-    op = make_operator(grid, _directions(3, ndim), 6, backend=backend)
+    op = make_operator(grid, generic_directions(3, ndim), 6, backend=backend)
     gen = torch.Generator().manual_seed(2)
     x = torch.rand(grid.shape, generator=gen, dtype=torch.float64, requires_grad=True)
     y = torch.rand(op.profile_shape, generator=gen, dtype=torch.float64, requires_grad=True)
@@ -130,7 +115,7 @@ def test_gradcheck(backend, ndim):
 
 @pytest.mark.parametrize("backend,ndim", ALL, ids=IDS)
 def test_batched_equals_per_item(backend, ndim):
-    grid, dirs, x, gen = _random_problem(ndim, seed=3)
+    grid, dirs, x, gen = random_problem(ndim, seed=3)
     op = make_operator(grid, dirs, 20, backend=backend)
     xb = torch.stack([x, 1 - x])
     torch.testing.assert_close(op(xb), torch.stack([op(x), op(1 - x)]), rtol=1e-10, atol=1e-9)
@@ -142,7 +127,7 @@ def test_batched_equals_per_item(backend, ndim):
 @pytest.mark.parametrize("backend,ndim", ALL, ids=IDS)
 def test_invalid_shapes_raise(backend, ndim):
     grid = Grid(8, ndim)
-    op = make_operator(grid, _directions(3, ndim), 6, backend=backend)
+    op = make_operator(grid, generic_directions(3, ndim), 6, backend=backend)
     with pytest.raises(ValueError, match="volume must have shape"):
         op(torch.zeros((9,) * ndim))
     with pytest.raises(ValueError, match="profiles must have shape"):
@@ -175,39 +160,7 @@ def test_agrees_with_reference_on_mesh(backend, mesh):
     vol = _mesh_volume(n, mesh)
     dirs = fibonacci_hemisphere(5)
     ref = make_operator(grid, dirs, backend="rotate_sum")(vol)
-    assert _rel(make_operator(grid, dirs, backend=backend)(vol), ref) <= TOLERANCES[backend].vs_reference
-
-
-# ---------------------------------------------------------------- backend specifics
-def test_splat_sparse_matrix_equals_operator():
-    grid, dirs, x, gen = _random_problem(3, seed=4)
-    op = SplatOperator(grid, dirs, 20)
-    mat = op.to_sparse()
-    np.testing.assert_allclose(mat @ x.reshape(-1).numpy(), op(x).reshape(-1).numpy(), rtol=1e-12, atol=1e-9)
-    y = torch.rand(op.profile_shape, generator=gen, dtype=torch.float64)
-    np.testing.assert_allclose(mat.T @ y.reshape(-1).numpy(), op.adjoint(y).reshape(-1).numpy(), rtol=1e-12, atol=1e-9)
-
-
-@pytest.mark.parametrize("n,ndim", [(32, 3), (31, 3), (64, 2)])
-def test_fourier_matches_exact_box_voxel_model(n, ndim):
-    grid = Grid(n, ndim)
-    centers = grid.centers()
-    cube = ((centers - torch.tensor([5.0, -3.0, 2.0][:ndim])).abs().max(-1).values < 25).to(torch.float64)
-    axis = torch.zeros(1, ndim, dtype=torch.float64)
-    axis[0, -1] = 1.0  # the hardest orientation: faces aligned with the slabs
-    dirs = torch.cat([axis, _directions(5, ndim)])
-    exact = box_voxel_profiles(grid, dirs, n, cube)
-    prof = FourierOperator(grid, dirs)(cube)
-    assert _rel(prof, exact) < 1e-3
-    assert ((prof - exact).norm(dim=1) / exact.norm(dim=1)).max() < 2e-3
-
-
-def test_fourier_float32_input_keeps_dtype():
-    grid, dirs, x, _ = _random_problem(3, seed=5)
-    op = FourierOperator(grid, dirs, 20)
-    out = op(x.float())
-    assert out.dtype == torch.float32
-    torch.testing.assert_close(out.double(), op(x), rtol=1e-5, atol=1e-4)
+    assert rel_error(make_operator(grid, dirs, backend=backend)(vol), ref) <= TOLERANCES[backend].vs_reference
 
 
 def test_auto_backend_follows_problem_size():
@@ -216,15 +169,3 @@ def test_auto_backend_follows_problem_size():
     assert isinstance(make_operator(small, fibonacci_hemisphere(10), backend="auto"), SplatOperator)
     with pytest.raises(ValueError, match="unknown operator backend"):
         make_operator(small, fibonacci_hemisphere(3), backend="nope")
-
-
-def test_fourier_single_precision_keeps_accuracy_and_adjoint():
-    grid, dirs, x, _ = _random_problem(3, seed=6)
-    double = FourierOperator(grid, dirs, 20, eps=1e-4)
-    single = FourierOperator(grid, dirs, 20, eps=1e-4, single=True)
-    assert _rel(single(x), double(x)) < 1e-4  # both within the requested eps (measured 1.6e-5)
-    y = torch.rand(single.profile_shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    lhs, rhs = float((single(x) * y).sum()), float((x * single.adjoint(y)).sum())
-    assert abs(lhs - rhs) <= 3e-7 * abs(lhs)  # the exact transpose, to single-precision rounding (measured < 7e-8)
-    with pytest.raises(ValueError, match="single-precision NUFFT needs eps"):
-        FourierOperator(grid, dirs, 20, eps=1e-7, single=True)

@@ -6,9 +6,7 @@ import torch
 
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement, MeasurementFileError
-from dipnet.operators import make_operator
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.solvers.base import measured_profiles
 
 
 def _measurement(k=4, m=10, sigma=True):
@@ -58,16 +56,6 @@ def test_resampling_keeps_volume_and_matches_on_same_edges():
     assert torch.allclose(same, m.profiles)
     coarse = m.resampled(torch.linspace(-20, 20, 6, dtype=torch.float64))
     assert torch.allclose(coarse.sum(1), m.profiles.sum(1))
-
-
-def test_measured_profiles_aligns_to_the_operator():
-    grid = Grid(16, 3, 40.0)
-    op = make_operator(grid, fibonacci_hemisphere(4), 10)
-    m = _measurement()
-    m.slab_thickness, m.offsets = op.slab_thickness, torch.full((4,), -20.0)
-    assert torch.equal(measured_profiles(m, op), m.profiles)
-    with pytest.raises(ValueError, match="orientations"):
-        measured_profiles(m, make_operator(grid, fibonacci_hemisphere(5), 10))
 
 
 def test_rebinning_round_trip_preserves_profile_totals(tmp_path):

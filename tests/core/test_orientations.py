@@ -1,9 +1,19 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from dipnet.core import orientations as o
+from dipnet.core.orientations import (
+    Reach,
+    direction_to_rig,
+    fibonacci_hemisphere,
+    reachable_candidates,
+    rig_to_direction,
+)
+
+from planning_fixtures import reconstruct_cfg, tilt_spin
 
 
 def test_fibonacci_hemisphere_is_unit_upper_and_uniform():
@@ -58,3 +68,35 @@ def test_make_directions_names():
     assert o.make_directions("uniform", 10, 2).shape == (10, 2)
     with pytest.raises(ValueError, match="unknown orientation set"):
         o.make_directions("spiral", 10, 3)
+
+
+def test_candidates_stay_within_the_rig_limits_and_cover_them():
+    reach = Reach(tilt_range_deg=(10, 35), spin_range_deg=(0, 90), step_deg=5)
+    tilt, spin = tilt_spin(reach.candidates())
+    assert tilt.min() >= 10 - 1e-9 and tilt.max() <= 35 + 1e-9
+    assert spin.min() >= -1e-9 and spin.max() <= 90 + 1e-9
+    # every reachable direction lies within about one step of a candidate
+    rng = np.random.default_rng(0)
+    t, s = rng.uniform(10, 35, 500), rng.uniform(0, 90, 500)
+    from dipnet.core.orientations import rig_to_direction
+    probes = rig_to_direction(t, s).numpy()
+    nearest = np.degrees(np.arccos(np.clip(probes @ reach.candidates().numpy().T, -1, 1))).min(axis=1)
+    assert nearest.max() < 5.0
+    assert bool(reach.contains(reach.uniform(30)).all())
+    assert not bool(reach.contains(fibonacci_hemisphere(30)).all())
+
+
+def test_presets_and_bad_limits():
+    authors = reconstruct_cfg("reach=authors_rig").reach
+    assert list(authors.tilt_range_deg) == [0.0, 35.0]
+    assert len(reachable_candidates()) > len(reachable_candidates((0, 35)))
+    with pytest.raises(ValueError, match="tilt range"):
+        Reach(tilt_range_deg=(0, 120))
+    with pytest.raises(ValueError, match="step"):
+        Reach(step_deg=0)
+
+
+def test_direction_rig_round_trip():
+    tilt, spin = np.array([0.0, 10.0, 35.0, 80.0]), np.array([0.0, 20.0, 300.0, 123.0])
+    t2, s2 = direction_to_rig(rig_to_direction(tilt, spin))
+    assert np.allclose(t2, tilt) and np.allclose(s2[1:], spin[1:])

@@ -70,8 +70,7 @@ def test_the_prior_headline_ratios_and_result_line(capsys):
     bench = load_script("bench_quality")
     args = bench.parse_args(["--headline", "--quick"])
     assert (args.n, args.budgets, args.generated, args.meshes) == (64, [41, 410], 2, ["bunny"])
-    assert bench.runs(args, "minnorm", 410, False) and not bench.runs(args, "minnorm", 410, True)
-    assert bench.runs(args, "prior", 41, True) and not bench.runs(args, "prior", 410, False)
+    assert args.plan == {"minnorm": [410], "voxel": [41], "prior": [41]}
 
     def row(mesh, kind, dips, noise, solver, chamfer):
         return {"mesh": mesh, "set": kind, "dips": dips, "noise": noise, "solver": solver, "chamfer": chamfer,
@@ -94,3 +93,15 @@ def test_generated_test_seeds_must_not_overlap_the_training_seeds():
     bench.check_test_seeds(0, 50)
     with pytest.raises(SystemExit, match="overlap"):
         bench.check_test_seeds(990, 20)
+
+
+def test_the_quality_bench_runs_each_solver_at_its_own_budgets():
+    bench = load_script("bench_quality")
+    assert bench.parse_args(["--dips", "voxel=41", "minnorm=123,410"]).plan == {"voxel": [41], "minnorm": [123, 410]}
+    assert bench.parse_args(["--budgets", "41", "--solvers", "voxel"]).plan == {"voxel": [41]}
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--dips", "voxel=many"])
+    rows = [{"noise": "clean", "mesh": "a", "dips": 41, "solver": "voxel", "chamfer": 0.003},
+            {"noise": "clean", "mesh": "a", "dips": 410, "solver": "minnorm", "chamfer": 0.002},
+            {"noise": "clean", "mesh": "b", "dips": 41, "solver": "voxel", "chamfer": 0.001}]
+    assert bench.mesh_ratios(rows) == {"clean": {"a": pytest.approx(1.5)}}  # b has no minnorm row

@@ -1,5 +1,6 @@
-"""HTML reports (dipnet.experiments.report): the pages hold the run's pieces, and headless Chromium renders the
-meshes in WebGL without console errors, plotly loaded from the shared file (skipped without plotly or chromium)."""
+"""HTML reports (dipnet.experiments.report): the pages hold the run's pieces, a run page stays under 1 MB with one
+shared plotly file, opens with the three answers and a cut-open 3D view, and headless Chromium renders the meshes
+in WebGL without console errors, plotly loaded from the shared file (skipped without plotly or chromium)."""
 
 from __future__ import annotations
 
@@ -13,9 +14,9 @@ from pathlib import Path
 import plotly  # noqa: F401  (the `report` extra, installed by the README test command)
 import pytest
 
-from dipnet.experiments import collect
-from dipnet.experiments import report
-from sweep_fixtures import write_job
+from dipnet.experiments import collect, report
+
+from sweep_fixtures import METRICS, write_job
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
@@ -113,3 +114,44 @@ def test_chromium_shows_the_meshes_without_console_errors(sweep, tmp_path):
     runs = collect.collect_runs(sweep)
     sweep_probe = _render(report.write_sweep_report(runs, tmp_path / "sweep.html", root=sweep), tmp_path)
     assert sweep_probe["errors"] == [] and any(p["id"] == "vs-dips" for p in sweep_probe["plots"])
+
+
+@pytest.fixture()
+def answered_sweep(tmp_path):
+    """Two 3D jobs whose metrics hold every group (METRICS), with their figures."""
+    (tmp_path / "multirun.yaml").write_text("hydra: {}\n")
+    for i, n in enumerate((10, 40)):
+        job = write_job(tmp_path / str(i), solver="minnorm", n_dips=n, snr_db=None, seed=0, ndim=3, resolution=40,
+                        metrics=METRICS)
+        for name in ("slices.png", "uncertainty.png", "resolvability.png"):
+            (job / name).write_bytes(b"\x89PNG fake")
+    return tmp_path
+
+
+def test_run_pages_share_one_plotly_file_and_stay_under_a_megabyte(answered_sweep):
+    from dipnet.experiments import report
+
+    pages = [report.write_run_report(answered_sweep / str(i)) for i in (0, 1)]
+    assert sorted(p.name for p in answered_sweep.rglob("plotly.min.js")) == ["plotly.min.js"]  # one, in the sweep dir
+    assert (answered_sweep / "plotly.min.js").stat().st_size > 1_000_000
+    for page in pages:
+        text = page.read_text()
+        assert page.stat().st_size < 1_000_000
+        assert re.findall(r"<script src='([^']+)'", text) == ["../plotly.min.js"]
+        assert "Plotly.newPlot" in text and len(re.findall(r"<script[^>]*>", text)) == 1 + text.count("Plotly.newPlot")
+        for name in ("slices.png", "uncertainty.png", "resolvability.png"):
+            assert f'src="{name}"' in text                             # linked, not inlined
+        # the page opens with the view and the three answers; the grouped table comes after them
+        assert text.index('id="meshes"') < text.index("How close to the truth?") < text.index("How sure?") \
+            < text.index("every metric") < text.index("how consistent with the data</h3>")
+
+
+def test_the_3d_view_is_cut_open_with_a_button_for_the_whole(answered_sweep):
+    from dipnet.experiments import report
+
+    text = report.write_run_report(answered_sweep / "0").read_text()
+    spec = json.loads(re.search(r'Plotly.newPlot\(\s*"meshes",\s*(\[.*?\]),\s*(\{.*?\})\s*,\s*\{"responsive"',
+                                text, re.S).group(1))
+    assert [(t["name"], t.get("visible", True)) for t in spec] == [
+        ("truth", True), ("truth", False), ("reconstruction", True), ("reconstruction", False)]
+    assert "cut open at y = 0 mm" in text and ">whole<" not in text and '"label":"whole"' in text.replace(" ", "")

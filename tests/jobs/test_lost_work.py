@@ -150,7 +150,7 @@ def test_checkpoint_of_another_operator_is_not_resumed(finished, tmp_path, monke
         _reconstruct_in_process(monkeypatch, tmp_path, "operator=grid_sample")
     assert [m.split(" is not used: ")[1] for m in _checkpoint_warnings(record)] == [
         f"it was made for another problem (grid, operator, measured data or solver settings differ); "
-        f"starting {stage!r} afresh" for stage in ("voxel 8^3", "voxel 16^3")]
+        f"starting {stage!r} afresh" for stage in ("voxel 8^3", "voxel 16^3", "voxel 16^3 refit")]
 
 
 def test_stale_tmp_beside_a_checkpoint_is_harmless(finished, tmp_path, monkeypatch):
@@ -159,7 +159,8 @@ def test_stale_tmp_beside_a_checkpoint_is_harmless(finished, tmp_path, monkeypat
     with pytest.warns(UserWarning) as record:
         _reconstruct_in_process(monkeypatch, tmp_path)
     assert _checkpoint_warnings(record) == []  # resumed from the finished stages
-    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["voxel_16_3.pt", "voxel_8_3.pt"]
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
+        "voxel_16_3.pt", "voxel_16_3_refit.pt", "voxel_8_3.pt"]  # the refit: the TV weight's (weight_rule)
 
 
 def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(finished, tmp_path, monkeypatch):
@@ -179,7 +180,8 @@ def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(fi
     [message] = _checkpoint_warnings(record)
     assert message.startswith(f"checkpoint {tmp_path / 'checkpoints' / FINE} could not be written (RuntimeError: ")
     assert message.endswith("the solve goes on, a rerun resumes from the previous checkpoint (if any)")
-    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["voxel_8_3.pt"]  # no partial file
+    # no partial file of the fine stage (the TV weight's refit after it saved its own)
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["voxel_16_3_refit.pt", "voxel_8_3.pt"]
     reference = json.loads((finished / "metrics.json").read_text())
     assert metrics["chamfer"] == pytest.approx(reference["chamfer"], rel=1e-4)
 

@@ -14,6 +14,8 @@ from hydra.utils import instantiate
 from dipnet.core.measurement import DipMeasurement
 from dipnet.jobs.pipeline import run
 
+from planning_fixtures import reconstruct_cfg, tilt_spin
+
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reconstruct.py"
 QUIET = ["output.progress=false"]
 
@@ -139,3 +141,10 @@ def test_an_object_keeps_its_size_in_mm_at_any_resolution(tmp_path):
         assert result.metrics["volume_error"] == pytest.approx(recon_volume / exact - 1, rel=1e-3)
         assert abs(result.metrics["truth_voxel_volume_error"]) < 1e-6  # exact box occupancy
     assert runs[16].reconstruction.grid.extent != runs[24].reconstruction.grid.extent
+
+
+def test_fixed_plan_under_the_authors_rig_stays_in_the_cap(tmp_path):
+    result = run(reconstruct_cfg("resolution=16", "n_dips=12", "reach=authors_rig", "output.figures=false",
+                                 "output.uncertainty=false"), tmp_path)
+    tilt, _ = tilt_spin(result.measurement.directions)
+    assert result.measurement.n_orientations == 12 and tilt.max() <= 35 + 1e-9

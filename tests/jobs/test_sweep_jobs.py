@@ -1,9 +1,23 @@
-"""Sweep jobs: a failing job writes error.txt and returns None; Ctrl-C still stops; one short job line."""
+"""Sweep jobs (dipnet.jobs.sweep_jobs): a failing job writes error.txt and returns None; Ctrl-C still stops; the
+Hydra callback logs one short line per job and the failures at the end."""
+
+import logging
+from pathlib import Path
 
 import pytest
+from hydra.core.utils import JobReturn, JobStatus
+from omegaconf import OmegaConf
 
+from dipnet.experiments import collect
+from dipnet.jobs import sweep_jobs
 from dipnet.jobs.sweep_jobs import ERROR_FILE, guarded_job
-from dipnet.outputs.summary import headline
+
+from sweep_fixtures import chamfer_of, write_sweep
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Path:
+    return write_sweep(tmp_path_factory.mktemp("sweep"))
 
 
 def test_a_finished_job_returns_its_value(tmp_path):
@@ -29,6 +43,61 @@ def test_ctrl_c_is_not_swallowed(tmp_path):
         guarded_job(interrupt, tmp_path)
 
 
-def test_the_job_line_keeps_the_headline_numbers_in_order():
-    line = headline({"seconds": 1.23456, "iou": 0.912345, "other": 3, "consistency": "consistent"})
-    assert line == "IoU 0.912, 1.2 s, consistent"
+def test_guarded_job_records_failures(tmp_path, caplog):
+    assert sweep_jobs.guarded_job(lambda: 0.25, tmp_path / "ok") == 0.25
+    assert not (tmp_path / "ok" / "error.txt").exists()
+
+    def boom():
+        raise ValueError("resolution must be at least 4 voxels")
+
+    with caplog.at_level(logging.ERROR, logger="dipnet.jobs.sweep_jobs"):
+        assert sweep_jobs.guarded_job(boom, tmp_path / "bad") is None
+    text = (tmp_path / "bad" / "error.txt").read_text()
+    assert text.splitlines()[0] == "ValueError: resolution must be at least 4 voxels"
+    assert "Traceback" in text and "boom" in text
+    assert "job failed: ValueError" in caplog.text
+    assert collect.load_run(tmp_path / "bad").status == "failed"
+
+    def cli_exit():
+        raise SystemExit(2)
+
+    assert sweep_jobs.guarded_job(cli_exit, tmp_path / "exit") is None
+    assert (tmp_path / "exit" / "error.txt").read_text().startswith("SystemExit: 2")
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        sweep_jobs.guarded_job(interrupted, tmp_path / "stop")
+
+
+def _hydra_cfg(out: Path, num: int, sweep_dir: Path | None = None):
+    return OmegaConf.create({"hydra": {"runtime": {"output_dir": str(out)}, "job": {"num": num},
+                                       "sweep": {"dir": str(sweep_dir or out.parent)}}})
+
+
+def test_callback_logs_one_line_per_job_and_the_failures(sweep, tmp_path, caplog):
+    callback = sweep_jobs.JobLogCallback()
+    ok = JobReturn(overrides=["solver=minnorm", "n_dips=4"], status=JobStatus.COMPLETED)
+    ok.return_value = 0.1
+    with caplog.at_level(logging.INFO, logger="dipnet.jobs.sweep_jobs"):
+        callback.on_job_end(_hydra_cfg(sweep / "0", 0), ok)
+    line = caplog.records[-1].getMessage()
+    assert line.startswith("job 0 done [solver=minnorm n_dips=4]: IoU ")
+    assert f"Chamfer {chamfer_of(4, 0):.4f}" in line and len(line) < 200   # the headline numbers only
+
+    out = tmp_path / "crashed"
+    out.mkdir()
+    failed = JobReturn(overrides=["n_dips=-1"], status=JobStatus.FAILED)
+    failed.return_value = RuntimeError("solver diverged")
+    with caplog.at_level(logging.INFO, logger="dipnet.jobs.sweep_jobs"):
+        callback.on_job_end(_hydra_cfg(out, 7), failed)
+    assert "job 7 FAILED [n_dips=-1]: solver diverged" in caplog.text
+    assert (out / "error.txt").read_text().startswith("RuntimeError: solver diverged")
+
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="dipnet.jobs.sweep_jobs"):
+        callback.on_multirun_end(_hydra_cfg(sweep / "0", 0, sweep))
+    n = len(collect.collect_runs(sweep))
+    assert f"sweep finished: {n - 3} of {n} jobs ok" in caplog.text
+    assert "ValueError: n_dips too large" in caplog.text and "scripts/compare.py" in caplog.text

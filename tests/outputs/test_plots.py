@@ -8,10 +8,11 @@ import pytest
 import torch
 import trimesh
 
-from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.core.grid import Grid
+from dipnet.outputs import plots
 from dipnet.outputs.plots import cut_away, plot_history, plot_mesh, plot_profiles, plot_sinogram, plot_slices
 from dipnet.shapes import builtin_shape
+from dipnet.shapes.isosurface import volume_to_mesh
 
 
 def check_png(path) -> None:
@@ -82,3 +83,29 @@ def test_mesh_figure_has_a_cutaway_row_that_shows_an_inner_chamber(tmp_path):
         check_png(plot_mesh([mesh, mesh], tmp_path / name, titles=["truth", "recon"], cutaway=cutaway))
     rows = mpimg.imread(tmp_path / "cut.png").shape[0] / mpimg.imread(tmp_path / "flat.png").shape[0]
     assert rows > 1.8  # a second row of panels
+
+
+def _captured(monkeypatch):
+    figs = []
+    monkeypatch.setattr(plots, "save_figure", lambda fig, path: figs.append(fig) or path)
+    return figs
+
+
+def test_slices_have_mm_axes_positions_and_a_counted_missed_extra_legend(monkeypatch, tmp_path):
+    figs = _captured(monkeypatch)
+    grid = Grid(16, 3, 80.0)                                          # voxel 5 mm, centres at -37.5 ... 37.5
+    truth = np.zeros(grid.shape)
+    truth[4:12, 4:12, 4:12] = 1.0
+    recon = truth.copy()
+    recon[8, 5, 6] = 0.0                                              # missed in the z = mid cut
+    recon[8, 2, 6] = recon[8, 2, 7] = 1.0                             # two extra there
+    plots.plot_slices(truth, recon, tmp_path / "s.png", extent_mm=grid.extent)
+    (fig,) = figs
+    axes = fig.axes
+    assert axes[0].get_title() == "truth: z = 2.5 mm"                 # voxel 8: -40 + 8.5 * 5
+    assert axes[0].get_xlabel() == "x (mm)" and axes[4].get_ylabel() == "z (mm)" and axes[7].get_xlabel() == "y (mm)"
+    assert axes[0].get_xlim()[1] <= 40.0
+    legend = [t.get_text() for t in axes[2].get_legend().get_texts()]
+    assert legend == ["missed (1)", "extra (2)"]
+    assert [t.get_text() for t in axes[5].get_legend().get_texts()] == ["missed (0)", "extra (0)"]  # y = mid cut
+    assert "missed: in the truth, not reconstructed" in fig._suptitle.get_text()

@@ -3,6 +3,8 @@ uninterrupted result."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 from hydra import compose, initialize_config_module
@@ -25,6 +27,9 @@ def _cfg(*overrides):
 def test_interrupted_pipeline_solve_resumes_to_the_uninterrupted_result(tmp_path, monkeypatch):
     torch.set_num_threads(1)
     reference = run(_cfg(), tmp_path / "reference").reconstruction
+    written = json.loads((tmp_path / "reference" / "metrics.json").read_text())  # the TV weight and why
+    assert written["prior_weight_rule"] == "discrepancy" and written["prior_weight_reason"]
+    assert written["prior_weights"]["tv"] == reference.info["weight_rule"]["weight"]
     saves, restored = [], []
     original_save, original_restore = Checkpoint.save, Checkpoint.restore
 
@@ -46,7 +51,8 @@ def test_interrupted_pipeline_solve_resumes_to_the_uninterrupted_result(tmp_path
 
     monkeypatch.setattr(Checkpoint, "restore", spy_restore)
     resumed = run(_cfg("output.checkpoint=true", "output.checkpoint_every=20"), tmp_path / "job").reconstruction
-    assert [step for _, step in restored] == [24, 20]  # coarse stage finished (24 steps), fine stage at step 20
+    # coarse stage finished (24 steps), fine stage at step 20, the TV weight's refit not begun
+    assert [step for _, step in restored] == [24, 20, 0]
     torch.testing.assert_close(resumed.occupancy, reference.occupancy, atol=1e-5, rtol=0)
     assert resumed.history["loss"] == pytest.approx(reference.history["loss"], rel=1e-5)
 

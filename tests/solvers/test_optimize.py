@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from dipnet.core.grid import Grid
 from dipnet.solvers.optimize import slab_support, support_hull
+from dipnet.solvers.voxel import VoxelSolver
 
 
 def brute_force_hull(target, grid, directions, edges, rel_tol, margin):
@@ -66,3 +68,19 @@ def test_a_flat_direction_that_misses_a_column_empties_it():
     x = grid.axis()
     keep = (x >= edges[6]) & (x <= edges[9])
     assert torch.equal(hull, keep[None, None, :].expand(grid.shape) & grid.working_mask())
+
+
+def test_a_solver_given_dips_that_share_no_voxel_says_so():
+    """Profiles that put the object in two places at once (up: 20-25 mm above the centre; down: 20-25 mm
+    below it, as far-off start heights do): the support hull is empty; one named error, no ZeroDivisionError."""
+    from dipnet.core.measurement import DipMeasurement
+    from dipnet.operators import make_operator
+    from dipnet.solvers.optimize import EmptySupportError
+
+    grid = Grid(16, extent=60.0)
+    profiles = np.zeros((2, 16))
+    profiles[:, 13:15] = 100.0  # slabs at 22.5-30 mm along each direction
+    m = DipMeasurement(directions=np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]), profiles=profiles,
+                       slab_thickness=grid.voxel_size, offsets=np.full(2, -30.0))
+    with pytest.raises(EmptySupportError, match="calibrate the rig geometry"):
+        VoxelSolver(iterations=5, progress=False).solve(m, make_operator(grid, m.directions, grid.n))

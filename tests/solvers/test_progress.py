@@ -1,30 +1,16 @@
-"""Progress bars end where the work ended: a plateau stop leaves no bar stalled short of its total."""
+"""Progress bars end where the work ended (dipnet.solvers.progress): a plateau stop leaves no bar stalled short of its
+total."""
 
 from __future__ import annotations
 
-import io
-
-import pytest
 import torch
-from tqdm.auto import tqdm
 
-from solver_helpers import noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
-from dipnet.outputs.progress import STAGES, OutputStages
 from dipnet.solvers import optimize
 from dipnet.solvers.optimize import DataTerm, optimise
 from dipnet.solvers.progress import stop_bar
 
-
-class RecordingBar(tqdm):
-    """A tqdm that keeps every instance, to read its final count and total after it closed."""
-
-    made: list["RecordingBar"] = []
-
-    def __init__(self, *args, **kwargs):
-        kwargs["disable"] = False
-        kwargs["file"] = io.StringIO()
-        super().__init__(*args, **kwargs)
-        RecordingBar.made.append(self)
+from progress_bars import RecordingBar
+from solver_helpers import noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
 
 
 def test_a_plateau_stop_ends_the_bar_at_the_steps_run(monkeypatch):
@@ -47,19 +33,3 @@ def test_a_bar_that_ran_to_its_total_is_left_as_it_is():
         bar.update(5)
         stop_bar(bar, "converged")
     assert bar.n == bar.total == 5 and not bar.postfix
-
-
-@pytest.mark.parametrize("skipped", [(), ("resolvability", "report")])
-def test_output_stages_end_full_whatever_was_skipped(monkeypatch, skipped):
-    from dipnet.outputs import progress
-
-    RecordingBar.made = []
-    monkeypatch.setattr(progress, "tqdm", RecordingBar)
-    stage = OutputStages()
-    ran = [s for s in STAGES if s not in skipped]
-    for name in ran:
-        stage(name)
-        assert stage.bar.postfix.endswith(name)
-    stage.close()
-    (bar,) = RecordingBar.made
-    assert bar.n == bar.total == len(ran)

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from solver_helpers import noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
+from solver_helpers import FIXED_TV, noise_free_problem, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from dipnet.core.grid import Grid
 from dipnet.evaluation.metrics import iou
 from dipnet.operators import make_operator
@@ -48,7 +48,7 @@ def test_recovers_shape_that_minnorm_misses(case):
     truth, op, meas = case
     floor = FLOORS[op.grid.ndim]
     baseline = MinNormSolver(progress=False).solve(meas, op)
-    rec = VoxelSolver(progress=False).solve(meas, op)
+    rec = VoxelSolver(progress=False, priors=FIXED_TV).solve(meas, op)
     assert iou(baseline.binary, truth > 0.5) < floor
     assert iou(rec.binary, truth > 0.5) >= floor
     assert rec.occupancy.shape == op.grid.shape and 0 <= float(rec.occupancy.min()) <= float(rec.occupancy.max()) <= 1
@@ -95,7 +95,7 @@ def test_early_stopping_and_lbfgs():
     stopped = VoxelSolver(iterations=400, tol=0.5, window=5, progress=False).solve(meas, op)
     assert stopped.info["iterations"] < 400
     lbfgs = VoxelSolver(optimizer="lbfgs", lr=1.0, iterations=30, coarse_to_fine=False, temperature_end=1.0,
-                        progress=False).solve(meas, op)
+                        progress=False, priors=FIXED_TV).solve(meas, op)
     assert lbfgs.history["data"][-1] < 0.05 * lbfgs.history["data"][0]
 
 

@@ -1,14 +1,15 @@
-"""Helpers shared by the rig tests: a fake world with a torus, scans through the real drivers."""
+"""Helpers shared by the rig tests (tests/rig, tests/rig/fake, tests/jobs/test_scan.py): a fake world with a torus,
+scans through the real drivers."""
 
 from __future__ import annotations
 
-from dipnet.simulator.physics import Tank
 from dipnet.core.rawscan import ScanHeader
 from dipnet.rig.fake.world import FakeRig
 from dipnet.rig.grbl import GrblController
 from dipnet.rig.marlin import MarlinController
 from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
 from dipnet.rig.sensors import AveragingSensor, BalanceSensor, LineSensor, ModbusLevelSensor
+from dipnet.simulator.physics import Tank
 
 AREA = 20000.0  # tank cross-section (mm^2): a 200 x 100 mm tank
 ORIGIN = 50.0   # object origin above the water at lower_mm = 0 (mm)

@@ -1,0 +1,34 @@
+"""Moments of the dips (dipnet.calibration.moments): a ball's first two moments give the geometry exactly; the rest
+level gives the drift."""
+
+from __future__ import annotations
+
+import pytest
+
+from dipnet.calibration.moments import KnownObject, fit_drift, fit_moments
+from dipnet.core.geometry import RigGeometry
+
+from calibration_helpers import ideal_ball_moments
+
+
+def test_ball_moments_give_the_exact_geometry():
+    """Noise-free dips of a ball: its first two moments (centroid 0, variance R^2 / 5 along every
+    direction) give pivot, offset, tilt zero and step scale exactly, and its volume the section."""
+    true = RigGeometry(pivot_mm=-45.0, tilt_axis_offset_mm=30.0, tilt_zero_deg=-3.0, step_scale=1.025,
+                       cross_section_mm2=52000.0)
+    raw, moments = ideal_ball_moments(true)
+    fit = fit_moments(moments, ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "step_scale"),
+                      known=KnownObject.ball(30.0), bootstrap=0)
+    assert fit.values["pivot_mm"] == pytest.approx(-45.0, abs=0.05)
+    assert fit.values["tilt_axis_offset_mm"] == pytest.approx(30.0, abs=0.05)
+    assert fit.values["tilt_zero_deg"] == pytest.approx(-3.0, abs=0.1)
+    assert fit.values["step_scale"] == pytest.approx(1.025, abs=3e-4)
+    assert KnownObject.ball(30.0).volume / moments.rise.mean() == pytest.approx(52000.0, rel=1e-3)
+
+
+def test_drift_is_read_from_the_rest_level():
+    """A level drift of 0.5 mm over the session: the rest level before every dip's contact gives it."""
+    true = RigGeometry(level_drift_mm_per_s=2e-5)
+    raw, _ = ideal_ball_moments(true, snr_db=30.0)
+    drift, (low, high) = fit_drift(raw)
+    assert drift == pytest.approx(2e-5, rel=0.02) and low <= 2e-5 <= high

@@ -1,0 +1,73 @@
+"""Posterior uncertainty of a reconstruction (dipnet.evaluation.uncertainty): larger along the missing cone,
+calibrated against the truth, maps on the reconstruction's grid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.orientations import Reach, fibonacci_hemisphere
+from dipnet.core.reconstruction import Reconstruction
+from dipnet.evaluation.uncertainty import (
+    calibration_by_decile,
+    fit_posterior,
+    resample,
+    support,
+    uncertainty,
+    voxel_maps,
+)
+from dipnet.operators import make_operator
+from dipnet.solvers.minnorm import MinNormSolver
+
+from planning_fixtures import box_problem as make_box_problem
+
+
+@pytest.fixture(scope="module")
+def box_problem():
+    return make_box_problem()
+
+
+def test_uncertainty_is_higher_along_the_missing_cone(box_problem):
+    grid, truth, dips = box_problem
+    exact = Reconstruction(occupancy=torch.from_numpy(truth).float(), grid=grid)
+    cap_dips = dips(Reach(tilt_range_deg=(0, 35)).uniform(12))
+    cap = fit_posterior(exact, cap_dips, resolution=20)
+    # the cap plan leaves the profiles along tilted directions undetermined: the predicted slab
+    # variance grows with the tilt beyond the cap
+    variance = [cap.profile_samples(Reach(tilt_range_deg=band).candidates()).var(axis=0).sum(axis=1).mean()
+                for band in ((0, 30), (40, 50), (60, 90))]
+    assert variance[0] < variance[1] < variance[2] and variance[2] > 1.3 * variance[0], variance
+    # per voxel (on a coarse posterior grid, where a few dips can pin voxels down), the object is
+    # more uncertain after the cap plan than after as many dips over the hemisphere, and less
+    # uncertain after more dips
+    where = support(exact.binary)
+    std = {name: resample(torch.from_numpy(fit_posterior(exact, dips(d), resolution=10, band_voxels=0.75).std()),
+                           grid.shape, mode="trilinear")[where].mean()
+           for name, d in (("cap", Reach(tilt_range_deg=(0, 35)).uniform(12)), ("full", fibonacci_hemisphere(12)),
+                           ("full48", fibonacci_hemisphere(48)))}
+    assert std["cap"] > 1.03 * std["full"] and std["full48"] < 0.97 * std["full"], std
+
+
+def test_uncertainty_is_calibrated(box_problem):
+    grid, truth, dips = box_problem
+    measurement = dips(fibonacci_hemisphere(16))
+    operator = make_operator(grid, measurement.directions, grid.n)
+    recon = MinNormSolver(progress=False).solve(measurement, operator)
+    maps, summary = uncertainty(recon, measurement, operator, resolution=20)
+    rates = calibration_by_decile(maps["p_wrong"], recon.binary, truth > 0.5)
+    assert (recon.binary != (truth > 0.5)).any()
+    # error rate rises with the uncertainty decile: rank correlation and a clear top/bottom gap
+    rank = np.corrcoef(np.arange(10), np.argsort(np.argsort(rates)))[0, 1]
+    assert rank > 0.7, rates
+    assert rates[-1] > 3 * rates[:5].mean() + 0.01, rates
+    assert 0 < summary["uncertainty_mean"] < 0.5 and 0 < summary["uncertain_fraction"] < 1
+
+
+def test_maps_have_the_reconstruction_grid(box_problem):
+    grid, truth, dips = box_problem
+    measurement = dips(fibonacci_hemisphere(6))
+    recon = Reconstruction(occupancy=torch.from_numpy(truth).float(), grid=grid)
+    maps = voxel_maps(recon, fit_posterior(recon, measurement, resolution=10))
+    assert maps["std"].shape == grid.shape and maps["p_wrong"].shape == grid.shape
+    assert float(maps["p_wrong"].max()) <= 0.5 + 1e-6 and float(maps["p_wrong"][~grid.working_mask().numpy()].max()) == 0

@@ -1,0 +1,108 @@
+"""Collecting and aggregating a sweep (dipnet.experiments.collect), on a synthetic sweep directory whose metrics
+follow known formulas (tests/sweep_fixtures.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dipnet.experiments import collect
+
+from sweep_fixtures import DIPS, SEEDS, SNRS, SOLVERS, chamfer_of, iou_of, write_job, write_sweep
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Path:
+    return write_sweep(tmp_path_factory.mktemp("sweep"))
+
+
+def test_collect_finds_every_job_with_its_status(sweep):
+    runs = collect.collect_runs(sweep)
+    assert len(runs) == len(SOLVERS) * len(DIPS) * len(SEEDS) + len(SNRS) + 3
+    assert [r.path.name for r in runs] == [str(i) for i in range(len(runs))]     # natural order, not 1, 10, 11
+    status = {r.path.name: r.status for r in runs}
+    n = len(runs)
+    assert (status[str(n - 3)], status[str(n - 2)], status[str(n - 1)]) == ("failed", "unfinished", "unfinished")
+    assert sum(s == "ok" for s in status.values()) == n - 3
+    failed = runs[n - 3]
+    assert failed.error == "ValueError: n_dips too large for the test"
+    assert collect.problems(runs) == runs[n - 3:]
+
+
+def test_a_single_job_dir_and_a_corrupt_metrics_file(tmp_path):
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics={"iou": 0.5})
+    assert [r.status for r in collect.collect_runs(job)] == ["ok"]
+    (job / "metrics.json").write_text("{not json")
+    run = collect.load_run(job)
+    assert run.status == "failed" and "metrics.json" in run.error
+
+
+def test_no_runs_is_a_clear_error(tmp_path):
+    (tmp_path / "notes").mkdir()
+    with pytest.raises(collect.NoRunsError, match="no reconstruction jobs found"):
+        collect.collect_runs(tmp_path)
+    with pytest.raises(collect.NoRunsError, match="not a directory"):
+        collect.collect_runs(tmp_path / "missing")
+
+
+def test_rows_carry_the_sweep_axes(sweep):
+    runs = collect.collect_runs(sweep)
+    rows = collect.run_rows(runs, sweep)
+    first = rows[0]
+    assert first["job"] == "0" and first["solver"] == "minnorm" and first["shape"] == "disk"
+    assert first["n_dips"] == 4 and first["snr_db"] is None and first["seed"] == 0
+    # 2D, N = M = 16: a square system needs N^2 / M = 16 dips, so 4 dips are 25 %.
+    assert first["dips_percent"] == pytest.approx(25.0)
+    assert first["iou"] == pytest.approx(iou_of("minnorm", 4, 0))
+    noisy = [r for r in rows if r["snr_db"] is not None]
+    assert sorted(r["snr_db"] for r in noisy) == list(SNRS)
+    partial = rows[-2]          # config only: the axes still come from .hydra/config.yaml
+    assert (partial["status"], partial["solver"], partial["n_dips"]) == ("unfinished", "lsmr", 64)
+    assert collect.dips_percent(41, 64, 3) == pytest.approx(100 * 41 / 64 ** 2)
+
+
+def test_swept_options_become_columns():
+    values = collect.override_values(["+experiment=dips_sweep", "solver.priors.tv.weight=0.01", "n_dips=5",
+                                          "snr_db=null", "~output.figures", "hydra.launcher.n_jobs=2"])
+    assert values == {"experiment": "dips_sweep", "solver.priors.tv.weight": 0.01, "n_dips": 5, "snr_db": None}
+    run = collect.Run(Path("job"), "ok", overrides=["solver.priors.tv.weight=0.01", "n_dips=5"],
+                          metrics={"n_dips": 7})
+    row = collect.run_row(run)
+    assert row["solver.priors.tv.weight"] == 0.01 and row["n_dips"] == 7      # metrics win over overrides
+
+
+def test_aggregate_mean_and_spread(sweep):
+    rows = collect.run_rows(collect.collect_runs(sweep))
+    groups = collect.aggregate(rows)
+    assert len(groups) == len(SOLVERS) * len(DIPS) + len(SNRS)       # failed/unfinished ignored
+    by_key = {(g["solver"], g["n_dips"], g["snr_db"]): g for g in groups}
+    for solver in SOLVERS:
+        for n in DIPS:
+            g = by_key[(solver, n, None)]
+            values = [iou_of(solver, n, s) for s in SEEDS]
+            assert g["runs"] == len(SEEDS)
+            assert g["iou_mean"] == pytest.approx(np.mean(values))
+            assert g["iou_std"] == pytest.approx(np.std(values, ddof=1))
+            assert g["chamfer_mean"] == pytest.approx(np.mean([chamfer_of(n, s) for s in SEEDS]))
+    single = by_key[("minnorm", 8, 20.0)]
+    assert single["runs"] == 1 and single["iou_std"] == 0.0
+    assert single["false_positive_mean"] == pytest.approx(1 / 20)
+    assert "hausdorff_mean" not in single                             # absent metric stays absent
+    keys = [(g["solver"], g["n_dips"]) for g in groups]
+    assert keys == sorted(keys)                                       # sorted by the group keys
+    # None (noise-free) sorts after the noise levels of the same solver and budget
+    assert [g["snr_db"] for g in groups if (g["solver"], g["n_dips"]) == ("minnorm", 8)] == [*SNRS, None]
+
+
+def test_aggregate_skips_non_finite_values():
+    rows = [{"status": "ok", "solver": "a", "iou": v} for v in (0.5, float("nan"), 0.7)]
+    (g,) = collect.aggregate(rows, by=("solver",), metrics=("iou",))
+    assert g["runs"] == 3 and g["iou_mean"] == pytest.approx(0.6)
+
+
+def test_label_series_adds_noise_only_when_it_varies():
+    rows = [{"status": "ok", "solver": "a", "snr_db": None}, {"status": "ok", "solver": "a", "snr_db": 30.0}]
+    assert [r["series"] for r in collect.label_series(rows)] == ["a @ no noise", "a @ 30 dB"]
+    assert [r["series"] for r in collect.label_series(rows[:1])] == ["a"]

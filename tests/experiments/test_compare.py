@@ -1,0 +1,67 @@
+"""scripts/compare.py on a synthetic sweep directory whose metrics follow known formulas: tables and figures
+written, one-line errors on empty and unfinished directories."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dipnet.experiments import collect
+
+from script_modules import load_script
+from sweep_fixtures import DIPS, SNRS, SOLVERS, is_png, write_job, write_sweep
+
+ROOT = Path(__file__).resolve().parents[2]
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Path:
+    return write_sweep(tmp_path_factory.mktemp("sweep"))
+
+
+def _load_compare():
+    return load_script("compare")
+
+
+def test_compare_writes_tables_and_figures(sweep, tmp_path, capsys):
+    out = tmp_path / "cmp"
+    assert _load_compare().main([str(sweep), "-o", str(out), "--x", "dips_percent"]) == 0
+    printed = capsys.readouterr().out
+    n = len(collect.collect_runs(sweep))
+    assert f"{n - 3} of {n} jobs finished" in printed and "ValueError: n_dips too large" in printed
+    for name in ("vs_dips.png", "vs_snr.png", "montage.png"):
+        assert is_png(out / name), name
+    with (out / "runs.csv").open() as f:
+        assert len(list(csv.DictReader(f))) == n
+    with (out / "summary.csv").open() as f:
+        summary = list(csv.DictReader(f))
+    assert len(summary) == len(SOLVERS) * len(DIPS) + len(SNRS)
+    md = (out / "summary.md").read_text()
+    assert md.startswith("| solver | dips | SNR (dB) | runs |") and "Failed or unfinished jobs (3 of" in md
+
+
+def _compare_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / "compare.py"), *args],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_compare_cli_errors_on_empty_and_unfinished_dirs(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = _compare_cli(str(empty))
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [f"error: {empty}: no reconstruction jobs found (no "
+                                                ".hydra/config.yaml, metrics.json or error.txt below it); "
+                                                "pass the directory of a sweep (`-m`) or of a run"]
+
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    (partial / "multirun.yaml").write_text("hydra: {}\n")
+    write_job(partial / "0", solver="lsmr", n_dips=4, snr_db=None, seed=0, metrics=None)
+    (partial / "1").mkdir()
+    proc = _compare_cli(str(partial))
+    assert proc.returncode == 1
+    assert "0 of 2 jobs finished" in proc.stdout and "no job in" in proc.stderr
+    assert proc.stderr.count("\n") == 1                               # one line

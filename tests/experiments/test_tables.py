@@ -1,0 +1,44 @@
+"""A sweep's tables (dipnet.experiments.tables): the per-run CSV, the aggregated Markdown table and the list of
+failed or unfinished jobs."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from dipnet.experiments import collect, tables
+
+from sweep_fixtures import write_sweep
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> Path:
+    return write_sweep(tmp_path_factory.mktemp("sweep"))
+
+
+def test_csv_and_markdown(sweep, tmp_path):
+    runs = collect.collect_runs(sweep)
+    rows = collect.run_rows(runs, sweep)
+    path = tables.write_csv(rows, tmp_path / "runs.csv")
+    with path.open() as f:
+        read = list(csv.DictReader(f))
+    assert len(read) == len(runs)
+    assert read[-3]["status"] == "failed" and read[-3]["error"].startswith("ValueError")
+    assert float(read[0]["iou"]) == pytest.approx(rows[0]["iou"])
+    assert read[0]["snr_db"] == ""                                    # None -> empty cell
+
+    groups = collect.aggregate(rows)
+    table = tables.markdown_table(groups).splitlines()
+    assert len(table) == 2 + len(groups)
+    header = [c.strip() for c in table[0].strip("|").split("|")]
+    assert header[:4] == ["solver", "dips", "SNR (dB)", "runs"] and "IoU" in header and "Hausdorff" not in header
+    g = groups[0]
+    cells = [c.strip() for c in table[2].strip("|").split("|")]
+    assert cells[header.index("IoU")] == f"{g['iou_mean']:.3g} ± {g['iou_std']:.3g}"
+
+    listing = tables.markdown_problems(runs, sweep)
+    assert f"({3} of {len(runs)})" in listing and "ValueError: n_dips too large" in listing
+    assert "unfinished" in listing and "solver=lsmr n_dips=64" in listing
+    assert tables.markdown_problems(runs[:2]) == ""

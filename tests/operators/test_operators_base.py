@@ -1,0 +1,97 @@
+"""The interface every backend shares (dipnet.operators.base.DipOperator), on a toy backend whose linear map is
+known in closed form: checks of directions and slabs, the working-ball mask, batching, the cumulative profile,
+the scipy view, named errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.operators.base import DipOperator
+
+
+class MiddleSlab(DipOperator):
+    """A toy backend: every orientation puts the whole voxel volume into the middle slab, ``A x = V(x) e_mid``."""
+
+    def _forward(self, volume: torch.Tensor) -> torch.Tensor:
+        out = volume.new_zeros(volume.shape[0], *self.profile_shape)
+        out[:, :, self.n_slabs // 2] = volume.flatten(1).sum(1, keepdim=True) * self.grid.voxel_volume
+        return out
+
+    def _adjoint(self, profiles: torch.Tensor) -> torch.Tensor:
+        weight = profiles[:, :, self.n_slabs // 2].sum(1) * self.grid.voxel_volume  # (B,)
+        return weight.reshape(-1, *([1] * self.grid.ndim)).expand(-1, *self.grid.shape).clone()
+
+
+GRID = Grid(8, 3, extent=16.0)  # 2 mm voxels, working ball of radius 6 mm
+
+
+def test_directions_are_normalised_and_the_slabs_cover_the_extent():
+    op = MiddleSlab(GRID, torch.tensor([[0.0, 0.0, 2.0], [3.0, 4.0, 0.0]]), n_slabs=4)
+    torch.testing.assert_close(op.directions, torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]], dtype=torch.float64))
+    assert op.directions.dtype == torch.float64
+    assert (op.n_orientations, op.profile_shape, op.slab_thickness) == (2, (2, 4), 4.0)
+    torch.testing.assert_close(op.slab_edges(), torch.tensor([-8.0, -4.0, 0.0, 4.0, 8.0], dtype=torch.float64))
+    assert MiddleSlab(GRID, torch.ones(1, 3)).n_slabs == GRID.n  # default: one slab per voxel
+
+
+@pytest.mark.parametrize("directions,n_slabs,message", [
+    (torch.ones(2, 2), None, r"directions must have shape \(K, 3\)"),
+    (torch.ones(0, 3), None, "K >= 1"),
+    (torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]), None, "zero vector"),
+    (torch.ones(1, 3), 1, "n_slabs must be >= 2"),
+])
+def test_bad_directions_and_slab_counts_are_named(directions, n_slabs, message):
+    with pytest.raises(ValueError, match=message):
+        MiddleSlab(GRID, directions, n_slabs)
+
+
+def test_only_the_working_ball_counts_forward_and_back():
+    """A full cube: the profile holds the volume of the voxels inside the working ball only, and the adjoint is
+    zero outside it; both single and batched calls."""
+    op = MiddleSlab(GRID, torch.eye(3, dtype=torch.float64))
+    inside = GRID.working_mask()
+    full = torch.ones(GRID.shape, dtype=torch.float64)
+    prof = op(full)
+    assert prof.shape == (3, 8)
+    torch.testing.assert_close(prof[:, 4], torch.full((3,), float(inside.sum()) * GRID.voxel_volume,
+                                                      dtype=torch.float64))
+    assert float(prof[:, [0, 1, 2, 3, 5, 6, 7]].abs().max()) == 0.0
+    back = op.adjoint(torch.ones(2, 3, 8, dtype=torch.float64))  # batched
+    assert back.shape == (2, *GRID.shape)
+    assert float(back[:, ~inside].abs().max()) == 0.0
+    torch.testing.assert_close(back[:, inside], torch.full_like(back[:, inside], 3 * GRID.voxel_volume))
+
+
+def test_cumulative_is_the_submerged_volume():
+    op = MiddleSlab(GRID, torch.eye(3, dtype=torch.float64))
+    x = torch.rand(2, *GRID.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    cum = op.cumulative(x)
+    assert cum.shape == (2, 3, 8)
+    torch.testing.assert_close(cum, torch.cumsum(op(x), dim=-1))
+    torch.testing.assert_close(cum[..., -1], op(x).sum(-1))  # all slabs under water: the whole volume
+    assert bool((cum.diff(dim=-1) >= 0).all())  # a non-negative volume only ever adds
+
+
+def test_the_scipy_view_is_the_operator_and_its_transpose():
+    op = MiddleSlab(GRID, torch.eye(3, dtype=torch.float64), n_slabs=4)
+    linear = op.as_linear_operator()
+    assert linear.shape == (3 * 4, GRID.n**3) and linear.dtype == np.float64
+    rng = np.random.default_rng(0)
+    x, y = rng.random(GRID.n**3), rng.random(12)
+    with torch.no_grad():
+        np.testing.assert_allclose(linear.matvec(x), op(torch.from_numpy(x).reshape(GRID.shape)).reshape(-1).numpy())
+        np.testing.assert_allclose(linear.rmatvec(y), op.adjoint(torch.from_numpy(y).reshape(3, 4)).reshape(-1).numpy())
+    assert np.dot(linear.matvec(x), y) == pytest.approx(np.dot(x, linear.rmatvec(y)), rel=1e-12)
+
+
+def test_wrong_shapes_are_named():
+    op = MiddleSlab(GRID, torch.eye(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"volume must have shape \(8, 8, 8\)"):
+        op(torch.zeros(8, 8))
+    with pytest.raises(ValueError, match=r"profiles must have shape \(K, M\) = \(3, 8\)"):
+        op.adjoint(torch.zeros(2, 8))
+    with pytest.raises(TypeError, match="abstract"):
+        DipOperator(GRID, torch.eye(3))

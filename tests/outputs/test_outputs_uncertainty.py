@@ -1,0 +1,63 @@
+"""The uncertainty maps of a run, into the run directory (dipnet.outputs.uncertainty): added to
+reconstruction.npz beside the occupancy, a figure, and the summary with the error rate per decile."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from dipnet.core.grid import Grid
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.operators import make_operator
+from dipnet.outputs.uncertainty import write_uncertainty
+from dipnet.shapes import Ball
+from dipnet.simulator.physics import LevelSensor
+from dipnet.simulator.simulate import simulate_measurement
+from dipnet.solvers.minnorm import MinNormSolver
+
+
+@pytest.fixture(scope="module")
+def solved():
+    """A ball at 12^3 from 6 noisy dips (too few: the binary call has errors), its min-norm reconstruction."""
+    grid = Grid(12, 3, 100.0)
+    shape = Ball(30.0)
+    _, measurement = simulate_measurement(shape, fibonacci_hemisphere(6), grid=grid,
+                                          sensor=LevelSensor(snr_db=30, seed=1), progress=False)
+    operator = make_operator(grid, measurement.directions, grid.n)
+    recon = MinNormSolver(progress=False).solve(measurement, operator)
+    truth = shape.occupancy(grid, supersample=2).numpy()
+    return grid, measurement, operator, recon, truth
+
+
+def test_the_maps_join_the_reconstruction_file_and_the_figure_is_drawn(solved, tmp_path):
+    grid, measurement, operator, recon, truth = solved
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # whether 6 dips give a calibrated map is not the point here
+        scores = write_uncertainty(tmp_path, recon, measurement, operator, truth=truth)
+    with np.load(tmp_path / "reconstruction.npz") as saved:
+        assert saved["uncertainty_std"].shape == grid.shape and saved["uncertainty_p_wrong"].shape == grid.shape
+        np.testing.assert_array_equal(saved["binary"], recon.binary)  # the reconstruction itself is kept
+        p_wrong = saved["uncertainty_p_wrong"]
+    assert 0.0 <= p_wrong.min() and p_wrong.max() <= 0.5 + 1e-6
+    assert {"uncertainty_mean", "uncertain_fraction"} <= set(scores)
+    deciles = scores["error_rate_by_uncertainty_decile"]
+    assert len(deciles) == 10 and all(0.0 <= v <= 1.0 for v in deciles)
+    assert (tmp_path / "uncertainty.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_without_a_truth_no_deciles_and_without_figure_no_png(solved, tmp_path):
+    _, measurement, operator, recon, _ = solved
+    scores = write_uncertainty(tmp_path, recon, measurement, operator, figure=False)
+    assert "error_rate_by_uncertainty_decile" not in scores and "uncertainty_mean" in scores
+    assert not (tmp_path / "uncertainty.png").exists() and (tmp_path / "reconstruction.npz").exists()
+
+
+def test_a_map_that_does_not_rank_the_errors_is_reported(solved, tmp_path):
+    """Judged against a 'truth' equal to the reconstruction, no decile has errors: the most uncertain decile is not
+    worse than the least, and the run says the uncertainty is not calibrated (a warning, the scores still written)."""
+    _, measurement, operator, recon, _ = solved
+    with pytest.warns(UserWarning, match="uncertainty is not calibrated on this run"):
+        scores = write_uncertainty(tmp_path, recon, measurement, operator, truth=recon.binary, figure=False)
+    assert scores["error_rate_by_uncertainty_decile"] == [0.0] * 10

@@ -1,0 +1,50 @@
+"""A run's metrics in words (dipnet.outputs.summary): the three first answers, the short job line, every
+metric grouped once with a label."""
+
+from __future__ import annotations
+
+from dipnet.outputs import summary
+from dipnet.outputs.summary import headline
+
+from sweep_fixtures import METRICS
+
+
+def test_the_three_answers_and_a_short_headline():
+    found = {a.question: a for a in summary.answers(METRICS)}
+    assert found["How close to the truth?"].headline == "IoU 0.969"
+    assert "0.40%" in found["How close to the truth?"].detail
+    assert found["How consistent with its data?"].headline == "residual 5.9% (noise 2.3%)"
+    assert "1.059" in found["How consistent with its data?"].detail
+    assert found["How sure?"].headline == "26% uncertain"
+    assert [a.question for a in summary.answers({"profile_residual": 0.1})] == ["How consistent with its data?"]
+    line = summary.headline(METRICS)
+    assert len(line) < 160 and "IoU 0.969" in line and "inconsistent" in line
+
+
+def test_every_metric_is_grouped_once_with_a_label():
+    groups = summary.grouped(METRICS)
+    keys = [key for rows in groups.values() for _, key, _ in rows]
+    assert sorted(keys) == sorted(METRICS)
+    assert list(groups)[0] == "how close to the truth" and ("some new metric", "some_new_metric", 1.5) in groups["other"]
+
+
+def test_the_job_line_keeps_the_headline_numbers_in_order():
+    line = headline({"seconds": 1.23456, "iou": 0.912345, "other": 3, "consistency": "consistent"})
+    assert line == "IoU 0.912, 1.2 s, consistent"
+
+
+def test_prior_weights_and_their_reason_go_into_the_metrics():
+    info = {"solver": "voxel", "prior_weights": {"tv": 2.4e-3},
+            "weight_rule": {"rule": "discrepancy", "reason": "the weight expected to bring the residual to tau "
+                            "times the noise", "noise_residual": 0.029, "target_residual": 0.020,
+                            "residual_reached": 0.019, "noise_source": "sigma", "first_residual": 0.017}}
+    flat = summary.prior_weight_metrics(info)
+    assert flat == {"prior_weights": {"tv": 2.4e-3}, "prior_weight_rule": "discrepancy",
+                    "prior_weight_reason": info["weight_rule"]["reason"], "prior_weight_noise_residual": 0.029,
+                    "prior_weight_target_residual": 0.020, "prior_weight_residual_reached": 0.019,
+                    "prior_weight_noise_source": "sigma"}
+    assert list(summary.grouped(flat)) == ["run"]
+    assert summary.prior_weight_metrics({"solver": "voxel", "prior_weights": {"tv": 1e-3},
+                                         "weight_rule": {"rule": "fixed"}}) == {
+        "prior_weights": {"tv": 1e-3}, "prior_weight_rule": "fixed"}
+    assert summary.prior_weight_metrics({"solver": "minnorm"}) == {}

@@ -1,0 +1,92 @@
+"""The adaptive loop (dipnet.planning.adaptive): it stops at the budget or when certain enough, fits one posterior
+per step and plans with it; bad settings are user errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.orientations import Reach
+from dipnet.jobs.pipeline import run
+from dipnet.operators import make_operator
+from dipnet.planning.planner import NextBestDipPlanner
+from dipnet.solvers.minnorm import MinNormSolver
+
+from planning_fixtures import box_problem as make_box_problem
+from planning_fixtures import reconstruct_cfg
+
+
+@pytest.fixture(scope="module")
+def box_problem():
+    return make_box_problem()
+
+
+def test_adaptive_loop_stops_at_the_budget(tmp_path):
+    with pytest.warns(UserWarning, match="solver=minnorm: the planner's noise level"):  # the config's default solver
+        result = run(reconstruct_cfg("resolution=16", "planner=adaptive", "planner.budget=11", "planner.batch_size=3",
+                                     "planner.initial_dips=4", "planner.planner.resolution=16", "output.figures=false"),
+                     tmp_path)
+    planning = json.loads((tmp_path / "planning.json").read_text())
+    assert result.measurement.n_orientations == 11 and planning["stop_reason"] == "budget"
+    assert [h["n_dips"] for h in planning["history"]] == [4, 7, 10, 11]
+    with np.load(tmp_path / "reconstruction.npz") as saved:
+        assert saved["uncertainty_std"].shape == (16, 16, 16)
+    assert 0 < result.metrics["uncertainty_mean"] < 0.5 and len(result.metrics["error_rate_by_uncertainty_decile"]) == 10
+
+
+def test_adaptive_loop_stops_when_certain_enough(tmp_path):
+    run(reconstruct_cfg("resolution=16", "planner=adaptive", "planner.budget=20", "planner.initial_dips=5",
+                        "planner.stop_uncertainty=100", "output.figures=false", "output.uncertainty=false"), tmp_path)
+    planning = json.loads((tmp_path / "planning.json").read_text())
+    assert planning["stop_reason"] == "uncertainty" and [h["n_dips"] for h in planning["history"]] == [5]
+
+
+def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
+    from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
+
+    grid, _, dips = box_problem
+    dipped = []
+
+    def acquire(directions):
+        dipped.append(torch.as_tensor(directions))
+        return dips(torch.cat(dipped))
+
+    def reconstruct(measurement):
+        operator = make_operator(grid, measurement.directions, grid.n)
+        return MinNormSolver(progress=False).solve(measurement, operator), operator
+
+    class Counting(NextBestDipPlanner):
+        def __init__(self):
+            super().__init__(resolution=10)
+            self.fitted, self.given = 0, []
+
+        def posterior(self, *args, **kwargs):
+            self.fitted += 1
+            return super().posterior(*args, **kwargs)
+
+        def next(self, *args, posterior=None, **kwargs):
+            self.given.append(posterior)
+            return super().next(*args, posterior=posterior, **kwargs)
+
+    planner = Counting()
+    result = adaptive_loop(acquire, reconstruct, planner, Reach(), AdaptiveSettings(budget=8, batch_size=2, initial_dips=4))
+    assert [h["n_dips"] for h in result.history] == [4, 6, 8]
+    assert planner.fitted == 3 and len(planner.given) == 2 and all(p is not None for p in planner.given)
+    # planning with the loop's posterior is planning with the planner's own fit (seeded: the same)
+    recon, operator = reconstruct(result.measurement)
+    candidates = Reach().candidates()
+    shared = planner.next(result.measurement, recon, candidates, 2, operator,
+                          posterior=planner.posterior(recon, result.measurement, operator))
+    assert torch.equal(shared, NextBestDipPlanner(resolution=10).next(result.measurement, recon, candidates, 2, operator))
+
+
+def test_bad_loop_settings_are_user_errors(tmp_path):
+    from dipnet.planning.adaptive import AdaptiveSettings
+
+    with pytest.raises(ValueError, match="initial_dips <= budget"):
+        AdaptiveSettings(budget=4, initial_dips=8)
+    with pytest.raises(ValueError, match="plans 3D dips"):
+        run(reconstruct_cfg("ndim=2", "planner=adaptive"), tmp_path)

@@ -1,0 +1,83 @@
+"""What every controller driver shares (dipnet.rig.controller): axes and the axis map between rig coordinates and
+machine words (the short way round included), the line channel's reads, timeouts and lost links."""
+
+from __future__ import annotations
+
+import pytest
+import serial
+
+from dipnet.rig.controller import (
+    Axis,
+    AxisMap,
+    ControllerError,
+    LineChannel,
+    Position,
+    RigDisconnected,
+    RigTimeout,
+    open_port,
+)
+
+
+def test_axis_map_round_trip_and_words():
+    axes = AxisMap(lower=Axis("Z", scale=2.0, sign=-1, offset=5.0), tilt=Axis("A", scale=10.0), spin=Axis("B"))
+    assert axes.words(12.5, 3.0, None) == "Z-20.0000 A30.0000"
+    pos = axes.rig_position({"Z": -20.0, "A": 30.0, "B": 7.0, "X": 0.0})
+    assert pos == Position(12.5, 3.0, 7.0)
+    with pytest.raises(ControllerError, match="no B axis"):
+        axes.rig_position({"Z": 0.0, "A": 0.0})
+    with pytest.raises(ValueError, match="distinct"):
+        AxisMap(lower=Axis("Z"), tilt=Axis("Z"), spin=Axis("B"))
+    cfg = AxisMap.from_config({"tilt": {"letter": "X"}, "spin": {"letter": "Y", "sign": -1}})
+    assert (cfg.lower.letter, cfg.lower.sign, cfg.tilt.letter, cfg.spin.sign) == ("Z", -1, "X", -1)
+
+
+def test_an_axis_converts_rig_values_to_machine_words_and_back():
+    axis = Axis("z", scale=2.0, sign=-1, offset=5.0)
+    for value in (-12.5, 0.0, 3.25, 100.0):
+        assert axis.from_machine(axis.to_machine(value)) == pytest.approx(value)
+    assert axis.to_machine(10.0) == -15.0
+    for bad, message in (({"letter": "ZZ"}, "one letter"), ({"letter": "1"}, "one letter"),
+                         ({"letter": "Z", "sign": 2}, "sign must be"), ({"letter": "Z", "scale": 0.0}, "scale positive"),
+                         ({"letter": "B", "wrap": -360.0}, "wrap must be a positive period")):
+        with pytest.raises(ValueError, match=message):
+            Axis(**bad)
+
+
+def test_a_wrapping_axis_takes_the_short_way_round():
+    spin = Axis("B", wrap=360.0)
+    assert spin.nearest(350.0, 5.0) == -10.0 and spin.nearest(10.0, 355.0) == 370.0
+    assert spin.nearest(180.0, None) == 180.0 and Axis("A").nearest(350.0, 5.0) == 350.0
+    axes = AxisMap(spin=spin)
+    moves = [{"lower": 0.0, "tilt": 10.0, "spin": 350.0}, {"lower": 20.0, "tilt": None, "spin": 10.0},
+             {"lower": None, "tilt": None, "spin": -160.0}]  # 190 deg forward is 170 back
+    assert axes.route(moves, {"lower": 0.0, "tilt": 0.0, "spin": 0.0}) == [
+        {"lower": 0.0, "tilt": 10.0, "spin": -10.0}, {"lower": 20.0, "tilt": None, "spin": 10.0},
+        {"lower": None, "tilt": None, "spin": -160.0}]  # 190 deg forward is 170 back
+    assert moves[0]["spin"] == 350.0  # pure: the plan is not changed
+
+
+def test_a_line_channel_reads_whole_lines_and_times_out_by_name():
+    channel = LineChannel(serial.serial_for_url("loop://", timeout=0.01))
+    channel.write_line("ok")
+    channel.write(b"<Idle|MPos:0,0,0>\r\npart")
+    assert channel.read_line(0.5) == "ok" and channel.read_line(0.5) == "<Idle|MPos:0,0,0>"
+    with pytest.raises(RigTimeout, match=r"no reply from loop:// within 0.05 s"):
+        channel.read_line(0.05)  # half a line is not a line
+    channel.write(b"ial\nleft\nover\n")
+    assert channel.read_line(0.5) == "partial" and channel.drain(quiet_s=0.05) == ["left", "over"]
+    channel.write(b"stale\n")
+    channel.discard_input()
+    with pytest.raises(RigTimeout):
+        channel.read_line(0.05)
+
+
+def test_a_failed_port_is_a_lost_link_and_tells_its_owner():
+    channel = LineChannel(serial.serial_for_url("loop://", timeout=0.01))
+    told = []
+    channel.on_lost = told.append
+    channel.port.close()
+    with pytest.raises(RigDisconnected, match="lost the link to loop://"):
+        channel.read_line(0.5)
+    assert len(told) == 1 and told[0].startswith("lost the link to loop://")
+    with pytest.raises(RigDisconnected, match="cannot open fakerig://no-such-rig/grbl"):
+        open_port("fakerig://no-such-rig/grbl")

@@ -1,0 +1,93 @@
+"""The scan runner (dipnet.rig.runner) on the fake rig: scans that reconstruct the mesh with each driver and
+sensor, faults that stop safely and keep the readings, a killed scan resumed to the uninterrupted result."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.rawscan import read_rawscan
+from dipnet.evaluation.metrics import iou
+from dipnet.operators import make_operator
+from dipnet.preprocessing.preprocess import preprocess
+from dipnet.rig.runner import ScanAborted
+from dipnet.solvers.minnorm import MinNormSolver
+
+from rig_helpers import plan_for, scan
+
+
+@pytest.mark.parametrize("dialect,sensor", [("grbl", "level"), ("marlin", "level"),
+                                            *(pytest.param("grbl", s, marks=pytest.mark.slow) for s in ("modbus", "ad", "sics"))])
+def test_scan_reconstructs_mesh(world, tmp_path, dialect, sensor):
+    world.reset()
+    raw = scan(world, dialect, sensor, plan_for(30), tmp_path / "scan.jsonl")
+    assert len(raw.completed()) == 30 and world.position().lower_mm == 0.0
+    stored = read_rawscan(tmp_path / "scan.jsonl")
+    assert stored.header.quantity == ("mass_g" if sensor in ("ad", "sics") else "level_mm")
+    assert stored.header.config["controller"]["dialect"] == dialect
+    grid = Grid(32, extent=100.0)
+    m = preprocess(stored, grid=grid, t_start="metadata")
+    assert m.volume_estimate() == pytest.approx(world.shape.volume, rel=0.01)
+    rec = MinNormSolver(progress=False).solve(m, make_operator(grid, m.directions, 32))
+    truth = world.shape.occupancy(grid, supersample=2).numpy() >= 0.5
+    assert iou(rec.binary, truth) >= 0.85
+
+
+# faults after which the position is still trustworthy (ALARM:2 keeps it; GRBL asks for a reset); a
+# disconnect loses it (tests/rig/test_safety.py)
+FAULT_CASES = [("grbl", k) for k in ("drop", "error", "alarm", "unstable", "hold", "late_ok")] + \
+              [("marlin", k) for k in ("drop", "error")]
+
+
+@pytest.mark.parametrize("dialect,kind", FAULT_CASES)
+def test_fault_stops_safely_and_keeps_readings(world, tmp_path, dialect, kind):
+    plan = plan_for(3, step=5.0)  # 21 readings and 25 moves per orientation
+    world.reset()
+    clean = scan(world, dialect, "level", plan, tmp_path / "clean.jsonl")
+    world.reset(faults=[{"kind": kind, "at_move": 40, "code": 2, "delay_s": 0.6}])
+    with pytest.raises(ScanAborted) as info:
+        scan(world, dialect, "level", plan, tmp_path / "faulty.jsonl", move_timeout=0.4)
+    message = str(info.value)
+    assert "\n" not in message and "resume" in message
+    assert "object lifted: the controller reports lower 0.000 mm" in message.replace("-0.000", "0.000")
+    assert world.fired and world.fired[0].kind == kind
+    assert world.position().lower_mm == pytest.approx(plan.safe_mm) and not world.moving()
+    assert world.max_lower_seen > plan.start_mm  # the fault hit while the object was dipped
+    if kind == "hold":  # reported where the hold stopped the lowering (half-way from 50 to 55 mm)
+        assert "feed hold" in message and "Hold:1 at lower 52.500 mm" in message
+    kept = read_rawscan(tmp_path / "faulty.jsonl")
+    assert kept.complete_orientations() == [0]
+    partial = kept.orientations[-1]
+    assert partial.k == 1 and not partial.complete and partial.n_readings >= 1
+    ref = clean.orientations[1]
+    n = partial.n_readings - (kind == "unstable")  # the unstable reading is kept, flagged
+    assert np.array_equal(partial.stage_mm[:n], ref.stage_mm[:n]) and np.allclose(partial.values[:n], ref.values[:n])
+    if kind == "unstable":
+        assert partial.flags[-1] == ["unstable"]
+
+
+def test_kill_and_resume_equals_uninterrupted(world, tmp_path):
+    plan = plan_for(4, step=5.0)
+    world.reset()
+    clean = scan(world, "grbl", "modbus", plan, tmp_path / "clean.jsonl")
+    world.reset(faults=[{"kind": "disconnect", "at_move": 60}])
+    with pytest.raises(ScanAborted, match="RigDisconnected"):
+        scan(world, "grbl", "modbus", plan, tmp_path / "resumed.jsonl")
+    first = read_rawscan(tmp_path / "resumed.jsonl")
+    assert 0 < len(first.completed()) < 4
+    resumed = scan(world, "grbl", "modbus", plan, tmp_path / "resumed.jsonl")  # the same command again
+    assert [o.k for o in resumed.orientations] == [0, 1, 2, 3] and all(o.complete for o in resumed.orientations)
+    # each run recorded what it connected to, and where it started
+    sessions = read_rawscan(tmp_path / "resumed.jsonl").sessions
+    assert [s["first_k"] for s in sessions] == [0, len(first.completed())]
+    assert all(s["controller"]["firmware"] == "1.1h" and any("VER:1.1h" in line for line in s["controller"]["build"])
+               and s["sensor"]["kind"] == "ModbusLevelSensor" for s in sessions)
+    grid = Grid(24, extent=100.0)
+    a = preprocess(read_rawscan(tmp_path / "clean.jsonl"), grid=grid, t_start="metadata")
+    b = preprocess(read_rawscan(tmp_path / "resumed.jsonl"), grid=grid, t_start="metadata")
+    assert torch.allclose(a.directions, b.directions) and torch.allclose(a.profiles, b.profiles)
+    # a finished scan run again does nothing
+    again = scan(world, "grbl", "modbus", plan, tmp_path / "resumed.jsonl")
+    assert sum(o.n_readings for o in again.orientations) == sum(o.n_readings for o in clean.orientations)

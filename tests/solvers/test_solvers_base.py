@@ -1,0 +1,71 @@
+"""The solver interface (dipnet.solvers.base): a solver is abstract until it solves; the measured profiles are put
+on the operator's slabs (as they are, or resampled keeping every slab's volume) or refused when they are not
+the operator's dips."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.operators import make_operator
+from dipnet.solvers.base import Solver, measured_profiles
+
+
+def _measurement(k=4, m=10):
+    """k random profiles of m slabs 2.5 mm thick from -12.5 mm, along Fibonacci directions."""
+    gen = torch.Generator().manual_seed(0)
+    profiles = torch.rand(k, m, generator=gen, dtype=torch.float64)
+    return DipMeasurement(directions=fibonacci_hemisphere(k), profiles=profiles, slab_thickness=2.5,
+                          offsets=torch.full((k,), -12.5))
+
+
+def test_measured_profiles_aligns_to_the_operator():
+    grid = Grid(16, 3, 40.0)
+    op = make_operator(grid, fibonacci_hemisphere(4), 10)
+    m = _measurement()
+    m.slab_thickness, m.offsets = op.slab_thickness, torch.full((4,), -20.0)
+    assert torch.equal(measured_profiles(m, op), m.profiles)
+    with pytest.raises(ValueError, match="orientations"):
+        measured_profiles(m, make_operator(grid, fibonacci_hemisphere(5), 10))
+
+
+def test_profiles_on_other_slabs_are_resampled_keeping_the_volume():
+    """The measurement's 10 slabs of 2.5 mm from -12.5 mm, the operator's 16 slabs of 2.5 mm from -20 mm: the
+    profiles land shifted by 3 slabs, zero outside, each slab's volume unchanged."""
+    grid = Grid(16, 3, 40.0)
+    op = make_operator(grid, fibonacci_hemisphere(4))
+    m = _measurement()
+    on_op = measured_profiles(m, op)
+    assert on_op.shape == (4, 16) and on_op.dtype == torch.float64
+    torch.testing.assert_close(on_op[:, 3:13], m.profiles)
+    assert float(on_op[:, :3].abs().max()) == 0.0 and float(on_op[:, 13:].abs().max()) == 0.0
+    on_op[0, 5] = -1.0
+    assert float(m.profiles[0, 2]) != -1.0  # a copy: the measurement is not changed through it
+
+
+def test_other_dimensions_and_other_directions_are_refused():
+    m = _measurement()
+    with pytest.raises(ValueError, match="measurement has 4 orientations in 3D, the operator 4 in 2D"):
+        measured_profiles(m, make_operator(Grid(16, 2, 40.0), torch.eye(2)[[0, 1, 0, 1]] * 1.0))
+    with pytest.raises(ValueError, match="the measurement's orientations differ from the operator's"):
+        measured_profiles(m, make_operator(Grid(16, 3, 40.0), fibonacci_hemisphere(4).flip(0)))
+
+
+def test_a_solver_must_solve():
+    with pytest.raises(TypeError, match="abstract"):
+        Solver()
+
+    class Empty(Solver):
+        name = "empty"
+
+        def solve(self, measurement, operator):
+            return operator.adjoint(measured_profiles(measurement, operator))
+
+    grid = Grid(8, 3, 20.0)
+    op = make_operator(grid, fibonacci_hemisphere(4), 8)
+    m = _measurement(m=8)
+    m.slab_thickness, m.offsets = op.slab_thickness, torch.full((4,), -10.0)
+    assert Empty().solve(m, op).shape == grid.shape and Empty.name == "empty" and Solver.name == "solver"
