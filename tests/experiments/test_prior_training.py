@@ -1,35 +1,16 @@
-"""Training the learned prior: pairs from generated shapes, determinism by seed, resume = uninterrupted."""
+"""Training the learned prior: batches, determinism by seed, resume = uninterrupted."""
 
 from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import torch
 
-from dipnet.experiments.prior_pairs import build_pairs, noisy_profiles
 from dipnet.experiments.prior_training import TrainConfig, random_batch, train
 from dipnet.solvers.denoiser import load_weights
 
 TINY = TrainConfig(train_seeds=(5000, 5002), val_seeds=(5002, 5003), n=16, dips=8, solver_iterations=10, channels=2,
                    steps=6, batch=2, crop=8, checkpoint_every=3)
-
-
-def test_noise_has_the_requested_snr_on_the_level_readings():
-    profiles = torch.rand(4, 50, dtype=torch.float64) + 1
-    noisy = noisy_profiles(profiles, 30.0, torch.Generator().manual_seed(0))
-    cum, noise = torch.cumsum(profiles, -1), torch.cumsum(noisy - profiles, -1)
-    snr = 20 * torch.log10(cum.pow(2).mean().sqrt() / noise.pow(2).mean().sqrt())
-    assert abs(float(snr) - 30.0) < 1.0
-    assert noisy_profiles(profiles, None, torch.Generator()) is profiles
-
-
-def test_pairs_are_cached_and_bounded(tmp_path):
-    x, y = build_pairs([5000, 5001], cache=tmp_path, n=16, dips=8, solver_options={"iterations": 10}, progress=False)
-    assert x.shape == y.shape == (2, 16, 16, 16) and len(list(tmp_path.glob("pair_*.npz"))) == 2
-    assert 0 <= x.min() and x.max() <= 1 and 0 <= y.min() and y.max() <= 1
-    x2, _ = build_pairs([5000, 5001], cache=tmp_path, n=16, dips=8, solver_options={"iterations": 10}, progress=False)
-    assert np.array_equal(x, x2)
 
 
 def test_batches_flip_and_permute_input_and_target_alike():
