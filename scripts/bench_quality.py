@@ -59,6 +59,7 @@ from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.denoiser import load_weights
@@ -83,9 +84,9 @@ def _with_prior(cls):
     return make
 
 
-SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver,
+SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver,
            "prior": _with_prior(VoxelSolver), "implicit_prior": _with_prior(ImplicitSolver)}
-OPTIMISERS = ("voxel", "implicit", "prior", "implicit_prior")
+OPTIMISERS = ("voxel", "implicit", "dip", "prior", "implicit_prior")
 DEFAULT_MESHES = MESHES_DIR
 
 
@@ -95,7 +96,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--meshes", nargs="*", help="mesh names (file stems) to use; default all")
     p.add_argument("--n", type=int, default=64, help="grid resolution N")
     p.add_argument("--budgets", type=int, nargs="+", default=[41, 123, 410], help="numbers of dips")
-    p.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
+    p.add_argument("--solvers", nargs="+", default=["minnorm", "voxel", "implicit"], choices=list(SOLVERS),
+                   help="solvers to run (dip, the untrained deep image prior, only when named)")
     p.add_argument("--dips", nargs="+", default=[], metavar="SOLVER=K[,K...]",
                    help="numbers of dips per solver, e.g. voxel=41 minnorm=410 (replaces --budgets and "
                         "--solvers: only the solvers named run, each at its own budgets)")

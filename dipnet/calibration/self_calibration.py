@@ -22,6 +22,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.solvers.weights import with_weight
 
 log = logging.getLogger(__name__)
 
@@ -193,13 +194,19 @@ def _section_report(report: CalibrationReport, model: ProfileModel, state: State
 
 
 def _with_gain(solver):
-    """A copy of ``solver`` that fits a volume gain with the shape (:class:`~dipnet.solvers.optimize.DataTerm`)."""
+    """A copy of ``solver`` that fits a volume gain with the shape (:class:`~dipnet.solvers.optimize.DataTerm`).
+
+    Its ``"auto"`` prior weights are fixed at the weight rule's start (TV 1e-3): the section's bias correction
+    (:func:`~dipnet.calibration.model.self_section_bias`) was measured at that weight, and a weight chosen from
+    the data would trade the gain against the residual the rule aims at."""
     if not hasattr(solver, "fit_gain"):
         raise CalibrationError(f"the cross-section is estimated with the shape, which needs an optimisation solver "
                                f"(voxel, implicit); {type(solver).__name__} cannot fit it: drop cross_section_mm2 "
                                "from the parameters or calibrate it with a reference object (scripts/calibrate.py)")
     gained = copy.copy(solver)
     gained.fit_gain = True
+    if getattr(solver, "weight_rule", None) is not None:
+        gained.priors = with_weight(solver.priors, solver.weight_rule.start)
     return gained
 
 

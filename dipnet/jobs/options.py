@@ -173,6 +173,13 @@ def check_values(cfg: DictConfig) -> None:
                           f"{OmegaConf.to_container(formats) if isinstance(formats, ListConfig) else formats!r}")
     _integer(cfg, "output.truth_supersample", 1)
     _integer(cfg, "output.checkpoint_every", 1)
+    _integer(cfg, "output.uncertainty_samples", 2, nullable=True)
+    method = cfg.output.get("uncertainty")
+    if method not in (True, False, None, "linearised", "samples"):
+        raise ConfigError(f"output.uncertainty must be true, false, linearised or samples, got {method!r}")
+    scale = cfg.output.get("uncertainty_iterations")
+    if scale is not None and (isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 < scale <= 1):
+        raise ConfigError(f"output.uncertainty_iterations must be a number in (0, 1], got {scale!r}")
     if cfg.output.get("report"):
         from dipnet.experiments.report import require_plotly
 

@@ -143,7 +143,10 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     scores.update(validation.metrics())
     if cfg.output.get("uncertainty"):
         stage("uncertainty")
-        scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures)))
+        method = "linearised" if cfg.output.uncertainty is True else str(cfg.output.uncertainty)
+        scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures), method,
+                                        solver, int(cfg.output.get("uncertainty_samples") or 4), int(cfg.seed),
+                                        float(cfg.output.get("uncertainty_iterations") or 1.0)))
     (out / "metrics.json").write_text(json.dumps(scores, indent=2))
     stage("meshes and figures")
     write_outputs(cfg, out, measurement, operator, recon, truth, level, frame)

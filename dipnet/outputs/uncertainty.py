@@ -11,39 +11,66 @@ import numpy as np
 
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.evaluation.ensemble import brier_score, ensemble_uncertainty, occupancy_probability
 from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
 from dipnet.operators import DipOperator
+from dipnet.solvers.base import Solver
 from dipnet.outputs.plots import mid_slices, plt, save_figure, show_slice
 
 log = logging.getLogger(__name__)
 
+#: ``output.uncertainty`` values: the linearised Gaussian posterior (``true`` is the same) or an ensemble
+#: of reconstructions from perturbed data (:mod:`dipnet.evaluation.ensemble`).
+METHODS = ("linearised", "samples")
+
 
 def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator,
-                      truth: np.ndarray | None = None, figure: bool = True) -> dict[str, Any]:
-    """Add the maps ``uncertainty_std`` / ``uncertainty_p_wrong`` to ``out/reconstruction.npz``,
+                      truth: np.ndarray | None = None, figure: bool = True, method: str = "linearised",
+                      solver: Solver | None = None, n_samples: int = 4, seed: int = 0,
+                      iterations_scale: float = 1.0) -> dict[str, Any]:
+    """Add the maps ``uncertainty_std`` / ``uncertainty_p_wrong`` (and with ``method="samples"``
+    ``uncertainty_probability``, the ensemble's occupancy probability) to ``out/reconstruction.npz``,
     draw ``out/uncertainty.png`` and return the summary metrics (with the error rate per
-    uncertainty decile when the true occupancy ``truth`` is known)."""
-    maps, summary = uncertainty(reconstruction, measurement, operator)
-    reconstruction.save(out / "reconstruction.npz", uncertainty_std=maps["std"], uncertainty_p_wrong=maps["p_wrong"])
-    scores: dict[str, Any] = dict(summary)
+    uncertainty decile and the Brier score of the occupancy probability when the true occupancy
+    ``truth`` is known). ``method="samples"`` re-runs ``solver`` ``n_samples`` times (seeded by ``seed``),
+    each with ``iterations_scale`` of its iterations."""
+    if method not in METHODS:
+        raise ValueError(f"unknown uncertainty method {method!r}; choose one of {METHODS}")
+    extra: dict[str, np.ndarray] = {}
+    if method == "samples":
+        if solver is None:
+            raise ValueError("uncertainty method 'samples' needs the solver that made the reconstruction")
+        maps, summary = ensemble_uncertainty(reconstruction, measurement, operator, solver, n_samples=n_samples,
+                                             seed=seed, iterations_scale=iterations_scale)
+        extra["uncertainty_probability"] = maps["probability"]
+        probability = maps["probability"]
+    else:
+        maps, summary = uncertainty(reconstruction, measurement, operator)
+        probability = occupancy_probability(maps["p_wrong"], reconstruction.binary)
+    reconstruction.save(out / "reconstruction.npz", uncertainty_std=maps["std"], uncertainty_p_wrong=maps["p_wrong"],
+                        **extra)
+    scores: dict[str, Any] = {"uncertainty_method": method, **summary}
     if truth is not None:
         deciles = calibration_by_decile(maps["p_wrong"], reconstruction.binary, np.asarray(truth) > 0.5)
         scores["error_rate_by_uncertainty_decile"] = [round(float(v), 5) for v in deciles]
+        scores["uncertainty_brier"] = brier_score(probability, reconstruction.binary, np.asarray(truth) > 0.5)
         if not deciles[-1] > deciles[0]:
             message = (f"uncertainty is not calibrated on this run: error rate {deciles[-1]:.3f} in the most "
                        f"uncertain decile vs {deciles[0]:.3f} in the least")
             log.warning(message)
             warnings.warn(message, stacklevel=2)
     if figure:
-        plot_uncertainty(reconstruction.binary, maps, out / "uncertainty.png", reconstruction.grid.extent)
+        plot_uncertainty(reconstruction.binary, maps, out / "uncertainty.png", reconstruction.grid.extent,
+                         std_label="ensemble std" if method == "samples" else "posterior std")
     return scores
 
 
-def plot_uncertainty(binary: np.ndarray, maps: dict[str, np.ndarray], path: Path, extent_mm: float | None = None) -> Path:
-    """Mid-plane cuts of the binary reconstruction, the posterior std and ``p_wrong`` (one row
-    per axis), on mm axes when the grid side ``extent_mm`` is given."""
+def plot_uncertainty(binary: np.ndarray, maps: dict[str, np.ndarray], path: Path, extent_mm: float | None = None,
+                     std_label: str = "posterior std") -> Path:
+    """Mid-plane cuts of the binary reconstruction, the std map (titled ``std_label``) and ``p_wrong``
+    (one row per axis), on mm axes when the grid side ``extent_mm`` is given."""
     columns = [("reconstruction", np.asarray(binary, float), "gray", 1.0),
-               ("posterior std", maps["std"], "magma", float(maps["std"].max())),
+               (std_label, maps["std"], "magma", float(maps["std"].max())),
                ("P(binary call wrong)", maps["p_wrong"], "magma", 0.5)]
     slices = [mid_slices(volume, extent_mm) for _, volume, _, _ in columns]
     fig, axes = plt.subplots(len(slices[0]), 3, figsize=(11, 3.4 * len(slices[0])), squeeze=False,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import LSMRSolver, LSQRSolver, MinNormSolver
 from dipnet.solvers.optimize import OptimisationSolver
@@ -14,6 +15,7 @@ SOLVERS: dict[str, type[Solver]] = {
     "lsmr": LSMRSolver,
     "voxel": VoxelSolver,
     "implicit": ImplicitSolver,
+    "dip": DeepImagePriorSolver,
 }
 
 
@@ -24,4 +26,4 @@ def make_solver(name: str, **options) -> Solver:
     return SOLVERS[name](**options)
 
 
-__all__ = ["ImplicitSolver", "LSMRSolver", "LSQRSolver", "MinNormSolver", "OptimisationSolver", "SOLVERS", "VoxelSolver", "Solver", "make_solver", "measured_profiles"]
+__all__ = ["DeepImagePriorSolver", "ImplicitSolver", "LSMRSolver", "LSQRSolver", "MinNormSolver", "OptimisationSolver", "SOLVERS", "VoxelSolver", "Solver", "make_solver", "measured_profiles"]

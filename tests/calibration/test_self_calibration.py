@@ -169,3 +169,15 @@ def test_an_implausible_cross_section_is_named_and_kept():
     with pytest.raises(CalibrationError, match="max_section_change must be positive"):
         self_calibrate(raw, Grid(16, extent=80.0), VoxelSolver(progress=False), ("cross_section_mm2",),
                        max_section_change=0.0)
+
+
+def test_the_gain_step_fixes_auto_prior_weights_at_the_rules_start():
+    from dipnet.calibration.self_calibration import _with_gain
+    from dipnet.solvers.voxel import VoxelSolver
+
+    solver = VoxelSolver(progress=False)
+    gained = _with_gain(solver)
+    assert solver.priors["tv"]["weight"] == "auto" and not getattr(solver, "fit_gain", False)
+    assert gained.fit_gain and gained.priors["tv"]["weight"] == solver.weight_rule.start == 1e-3
+    fixed = _with_gain(VoxelSolver(priors={"tv": {"weight": 3e-3}}, progress=False))
+    assert fixed.priors["tv"]["weight"] == 3e-3  # a weight the user fixed stays

@@ -260,7 +260,7 @@ def test_garbage_stl_names_the_file(tmp_path):
 
 
 @pytest.mark.parametrize("overrides,message", [
-    (["solver=foo"], r"error: In 'config': Could not find 'solver/foo' Available options in 'solver': implicit"),
+    (["solver=foo"], r"error: In 'config': Could not find 'solver/foo' Available options in 'solver': .*implicit"),
     (["source=recorded"], r"error: option source.reader.path is required"),
     (["resolution=100000"], r"error: resolution=100000 \(ndim=3, n_dips=120\) needs ~\d+ PB"),
 ])
