@@ -1,4 +1,5 @@
-"""Reconstruction quality of minnorm / voxel / implicit on real meshes (not a timed test).
+"""Reconstruction quality of minnorm / voxel / implicit (with and without the learned prior) on
+the bundled meshes and on generated test shapes (not a timed test).
 
 For every mesh in ``--meshes-dir`` (scaled to ``--fill`` of the working ball) on an
 ``--n``^3 grid, every orientation budget (Fibonacci hemisphere) and every noise level, the
@@ -15,6 +16,21 @@ each mesh's ratio of voxel's Chamfer at the smallest budget to minnorm's at the 
     python scripts/bench_quality.py --meshes bunny torus --budgets 41 --noise clean --solvers voxel
     python scripts/bench_quality.py --options voxel='{"iterations": 300}'
     python scripts/bench_quality.py --dips voxel=41 minnorm=410                   # the headline pair only
+    python scripts/bench_quality.py --headline --generated 50           # the learned prior's targets
+    python scripts/bench_quality.py --headline --quick                  # bunny + 2 generated shapes (64^3)
+    python scripts/bench_quality.py --headline --from-json a.json b.json  # summaries of earlier runs' rows
+
+``prior`` is the voxel solver and ``implicit_prior`` the implicit solver, each with the learned
+prior (:class:`dipnet.solvers.learned.LearnedPrior`, the shipped 64^3 weights) added to their
+default priors. ``--generated K`` adds K generated shapes (:mod:`dipnet.shapes.procedural`) of
+seeds ``--generated-first`` .. + K - 1, which must not overlap the seeds the weights were trained
+or validated on (refused otherwise). ``--headline`` runs minnorm at the largest budget only and the
+optimisers at the smallest only (what the headline ratios need), and on the generated shapes only
+the optimisers. The last line is then
+``RESULT prior41_over_minnorm410_median=.. prior41_over_minnorm410_worst=.. snr_worst=.. beats_voxel_generated=..``
+(per bundled mesh: prior Chamfer at the smallest budget / minnorm's at the largest, noise-free;
+``snr_worst``: the same ratio at ``--snr`` dB, worst mesh; ``beats_voxel_generated``: share of the
+generated shapes on which prior's Chamfer is below voxel's at the smallest budget).
 
 Simulated measurements and truths are cached in ``--cache`` (``.npz``), keyed by their parameters
 and the simulation code version (:func:`dipnet.core.code_version.simulation_digest`), so repeated
@@ -41,13 +57,36 @@ from dipnet.operators import make_operator
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
+from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
+from dipnet.solvers.denoiser import load_weights
 from dipnet.solvers.voxel import VoxelSolver
 
-SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver}
+LEARNED = {"weight": 0.3, "weights": None, "refresh": 10, "mode": "red"}  # the learned prior's default options
+
+
+def _with_prior(cls):
+    """A solver factory: ``cls`` with the learned prior added to its default priors. Options
+    ``learned`` (a dict) override :data:`LEARNED`; in ``anchor`` mode the solver starts from the
+    voxel solver's result (``warm_start``; the voxel solver then refines it on the full grid)."""
+    def make(**options):
+        learned = {**LEARNED, **options.pop("learned", {})}
+        priors = {"tv": {"weight": 1e-3}, "learned": learned, **options.pop("priors", {})}
+        if learned["mode"] == "anchor":
+            options.setdefault("warm_start", VoxelSolver(progress=False))
+            if cls is VoxelSolver:
+                options.setdefault("coarse_to_fine", False)
+                options.setdefault("iterations", 200)
+        return cls(priors=priors, **options)
+    return make
+
+
+SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver,
+           "prior": _with_prior(VoxelSolver), "implicit_prior": _with_prior(ImplicitSolver)}
+OPTIMISERS = ("voxel", "implicit", "dip", "prior", "implicit_prior")
 DEFAULT_MESHES = MESHES_DIR
 
 
@@ -76,14 +115,42 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="folder caching simulated measurements and truths")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
+    p.add_argument("--from-json", type=Path, nargs="+", metavar="JSON",
+                   help="solve nothing: print the summaries (and RESULT line) of rows saved by earlier --json runs")
+    p.add_argument("--generated", type=int, default=0, help="number of generated test shapes")
+    p.add_argument("--generated-first", type=int, default=0, help="seed of the first generated test shape")
+    p.add_argument("--headline", action="store_true",
+                   help="minnorm at the largest budget, optimisers at the smallest only; prior RESULT line")
     p.add_argument("--quick", action="store_true",
-                   help="bunny and torus at 32^3, 41 and 123 dips, noise-free, minnorm and voxel (a few minutes)")
+                   help="bunny and torus at 32^3, 41 and 123 dips, noise-free, minnorm and voxel (a few minutes); "
+                        "with --headline: bunny and 2 generated shapes at 64^3, 41 / 410 dips, minnorm, voxel, prior")
     args = p.parse_args(argv)
-    if args.quick:
+    if args.quick and args.headline:
+        args.meshes, args.n, args.budgets, args.noise = args.meshes or ["bunny"], 64, [41, 410], ["clean"]
+        args.solvers, args.generated = ["minnorm", "voxel", "prior"], args.generated or 2
+    elif args.quick:
         args.meshes, args.n, args.budgets = args.meshes or ["bunny", "torus"], 32, [41, 123]
         args.noise, args.solvers = ["clean"], ["minnorm", "voxel"]
-    args.plan = solver_budgets(args.dips) if args.dips else {name: list(args.budgets) for name in args.solvers}
+    if args.headline:  # minnorm at the largest budget, the optimisers at the smallest
+        args.plan = {name: [max(args.budgets) if name == "minnorm" else min(args.budgets)] for name in args.solvers}
+    else:
+        args.plan = solver_budgets(args.dips) if args.dips else {name: list(args.budgets) for name in args.solvers}
     return args
+
+
+def check_test_seeds(first: int, count: int) -> None:
+    """Refuse generated test seeds that the learned prior's weights were trained or validated on."""
+    config = load_weights(None)[1].get("config", {})
+    used = set()
+    for key in ("train_seeds", "val_seeds"):
+        if key in config:
+            used.update(range(*config[key]))
+    overlap = used & set(range(first, first + count))
+    if overlap:
+        raise SystemExit(f"generated test seeds {first}..{first + count - 1} overlap the prior's training / "
+                         f"validation seeds ({min(overlap)}..{max(overlap)}): choose another --generated-first")
+
+
 
 
 def solver_budgets(specs: list[str]) -> dict[str, list[int]]:
@@ -113,12 +180,24 @@ def solver_options(specs: list[str]) -> dict[str, dict]:
 
 def case_data(args, mesh_path: Path, grid: Grid, k: int, noise: str):
     """``(measurement, truth occupancy bool, shape)`` for one mesh / budget / noise, cached."""
-    shape = load_mesh(mesh_path, radius=args.fill * grid.radius)
+    return cached_case(args, mesh_path.stem, lambda: load_mesh(mesh_path, radius=args.fill * grid.radius), grid, k,
+                       noise)
+
+
+def generated_case_data(args, seed: int, grid: Grid, k: int, noise: str):
+    """As :func:`case_data` for the generated shape of ``seed`` (farthest point at ``--fill`` of the ball)."""
+    return cached_case(args, f"generated{seed}",
+                       lambda: generated_shape(seed, radius=args.fill * grid.radius), grid, k, noise)
+
+
+def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
+    """``(measurement, truth occupancy bool, shape)`` of the shape ``make_shape()`` called ``name``."""
+    shape = make_shape()
     code = simulation_digest()  # a rerun after a change to the simulator simulates afresh
-    tag = (f"{mesh_path.stem}_n{grid.n}_k{k}_{noise}{args.snr if noise == 'snr' else ''}_q{args.quantum_mm}"
+    tag = (f"{name}_n{grid.n}_k{k}_{noise}{args.snr if noise == 'snr' else ''}_q{args.quantum_mm}"
            f"_f{args.fill}_s{args.seed}_code{code}")
     meas_file = args.cache / f"{tag}.npz"
-    truth_file = args.cache / f"{mesh_path.stem}_n{grid.n}_f{args.fill}_code{code}_truth.npy"
+    truth_file = args.cache / f"{name}_n{grid.n}_f{args.fill}_code{code}_truth.npy"
     args.cache.mkdir(parents=True, exist_ok=True)
     if meas_file.is_file():
         measurement = DipMeasurement.load(meas_file)
@@ -137,24 +216,35 @@ def case_data(args, mesh_path: Path, grid: Grid, k: int, noise: str):
 
 def main(argv=None) -> list[dict]:
     args = parse_args(argv)
+    if args.from_json:
+        rows = [row for path in args.from_json for row in json.loads(path.read_text())]
+        print_all(rows, args)
+        return rows
     if args.threads:
         torch.set_num_threads(args.threads)
     options = solver_options(args.options)
     paths = sorted(p for p in args.meshes_dir.glob("*") if p.suffix.lower() in {".ply", ".stl", ".obj", ".off"})
     if args.meshes:
         paths = [p for p in paths if p.stem in set(args.meshes)]
-    if not paths:
+    if not paths and not args.generated:
         raise SystemExit(f"no meshes found in {args.meshes_dir} (names {args.meshes})")
+    if args.generated:
+        check_test_seeds(args.generated_first, args.generated)
     grid = Grid(args.n, 3)
+    cases = [(p.stem, "mesh", lambda k, noise, p=p: case_data(args, p, grid, k, noise)) for p in paths]
+    cases += [(f"gen{seed}", "generated", lambda k, noise, seed=seed: generated_case_data(args, seed, grid, k, noise))
+              for seed in range(args.generated_first, args.generated_first + args.generated)]
     rows = []
-    print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<9} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} {'time s':>7} "
+    print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<14} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} {'time s':>7} "
           f"{'TV w':>8}", flush=True)
     budgets = sorted({k for ks in args.plan.values() for k in ks})
-    for path in paths:
+    for label, kind, make_case in cases:
         for k in budgets:
-            for noise in args.noise:
-                names = [name for name, ks in args.plan.items() if k in ks]
-                measurement, truth, shape = case_data(args, path, grid, k, noise)
+            for noise in args.noise:  # minnorm is the meshes' reference only
+                names = [name for name, ks in args.plan.items() if k in ks and (kind == "mesh" or name != "minnorm")]
+                if not names:
+                    continue
+                measurement, truth, shape = make_case(k, noise)
                 operator = make_operator(grid, measurement.directions, grid.n)
                 for name in names:
                     solver = SOLVERS[name](progress=False, **options.get(name, {}))
@@ -163,19 +253,28 @@ def main(argv=None) -> list[dict]:
                     seconds = time.perf_counter() - t0
                     scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
                     rule = recon.info.get("weight_rule") or {}
-                    row = {"mesh": path.stem, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
+                    row = {"mesh": label, "set": kind, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
                            **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
                            "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
                            "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
                            "target_residual": rule.get("target_residual")}
                     rows.append(row)
                     weight = "" if row["tv_weight"] is None else f"{row['tv_weight']:8.2e}"
-                    print(f"{path.stem:<12} {k:>5} {noise:>6} {name:<9} {row['iou']:6.3f} {row['chamfer']:8.4f} "
+                    print(f"{label:<12} {k:>5} {noise:>6} {name:<14} {row['iou']:6.3f} {row['chamfer']:8.4f} "
                           f"{row['hausdorff']:7.4f} {seconds:7.1f} {weight}", flush=True)
-    print_summary(rows)
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+                    if args.json:
+                        args.json.write_text(json.dumps(rows, indent=1))
+    print_all(rows, args)
     return rows
+
+
+def print_all(rows: list[dict], args) -> None:
+    """The meshes' summary and, with ``--headline``, the learned prior's (its RESULT line last)."""
+    meshes = [r for r in rows if r.get("set", "mesh") == "mesh"]
+    if len({r["dips"] for r in meshes}) > 1:
+        print_summary(meshes)
+    if args.headline:
+        print_prior_summary(rows, min(args.budgets), max(args.budgets))
 
 
 def print_summary(rows: list[dict]) -> None:
@@ -192,7 +291,7 @@ def print_summary(rows: list[dict]) -> None:
         print(f"{noise:>6} {k:>5} {name:<9} {m['iou']:6.3f} {m['chamfer']:8.4f} {m['hausdorff']:7.4f} "
               f"{m['seconds']:7.1f} {len(items):>6}")
     budgets = sorted({k for _, k, _ in means})
-    optimisers = [s for s in ("voxel", "implicit") if ("clean", budgets[0], s) in means]
+    optimisers = [s for s in OPTIMISERS if ("clean", budgets[0], s) in means]
     if ("clean", budgets[-1], "minnorm") in means and optimisers and len(budgets) > 1:
         best = min(optimisers, key=lambda s: means[("clean", budgets[0], s)]["chamfer"])
         ratio = means[("clean", budgets[0], best)]["chamfer"] / means[("clean", budgets[-1], "minnorm")]["chamfer"]
@@ -225,6 +324,47 @@ def mesh_ratios(rows: list[dict]) -> dict[str, dict[str, float]]:
         if k == budgets[0] and name == "voxel" and low is not None and high:
             out.setdefault(noise, {})[mesh] = low / high
     return out
+
+
+def prior_ratios(rows: list[dict], small: int, large: int, noise: str, solver: str = "prior") -> dict[str, float]:
+    """Per bundled mesh: ``solver``'s Chamfer at ``small`` dips / minnorm's at ``large`` dips, at ``noise``."""
+    chamfer = {(r["mesh"], r["dips"], r["noise"], r["solver"]): r["chamfer"] for r in rows if r["set"] == "mesh"}
+    return {mesh: value / chamfer[(mesh, large, n, "minnorm")]
+            for (mesh, k, n, name), value in chamfer.items()
+            if k == small and n == noise and name == solver and (mesh, large, n, "minnorm") in chamfer}
+
+
+def print_prior_summary(rows: list[dict], small: int, large: int) -> None:
+    """The learned prior's targets (see the module docstring) and the RESULT line."""
+    nan = float("nan")
+    clean, snr = prior_ratios(rows, small, large, "clean"), prior_ratios(rows, small, large, "snr")
+    for label, ratios in (("noise-free", clean), ("noisy", snr)):
+        for solver in ("voxel", "prior", "implicit_prior"):
+            r = prior_ratios(rows, small, large, "clean" if label == "noise-free" else "snr", solver)
+            if r:
+                print(f"{label}: {solver} {small} / minnorm {large} per mesh: "
+                      + " ".join(f"{m}={v:.2f}" for m, v in sorted(r.items()))
+                      + f"  (median {statistics.median(r.values()):.2f}, worst {max(r.values()):.2f})")
+    gen = {(r["mesh"], r["noise"], r["solver"]): r["chamfer"] for r in rows if r["set"] == "generated"
+           and r["dips"] == small}
+    pairs = [(v, gen[(m, n, "voxel")]) for (m, n, s), v in gen.items() if s == "prior" and (m, n, "voxel") in gen]
+    beats = sum(p < v for p, v in pairs) / len(pairs) if pairs else nan
+    if pairs:
+        print(f"generated shapes: prior below voxel on {sum(p < v for p, v in pairs)} of {len(pairs)}; median "
+              f"prior / voxel {statistics.median(p / v for p, v in pairs):.2f}")
+    for first, second in (("implicit_prior", "prior"), ("prior", "voxel")):
+        both = [(r["chamfer"], s["chamfer"]) for r in rows for s in rows if r["solver"] == first
+                and s["solver"] == second and (r["mesh"], r["dips"], r["noise"]) == (s["mesh"], s["dips"], s["noise"])]
+        if both:
+            print(f"{first} / {second} Chamfer: median {statistics.median(a / b for a, b in both):.2f} "
+                  f"over {len(both)} cases")
+    seconds = [r["seconds"] for r in rows if r["solver"] in ("prior", "implicit_prior")]
+    if seconds:
+        print(f"prior solve time: median {statistics.median(seconds):.0f} s, worst {max(seconds):.0f} s")
+    median = statistics.median(clean.values()) if clean else nan
+    worst = max(clean.values()) if clean else nan
+    print(f"RESULT prior{small}_over_minnorm{large}_median={median:.3f} prior{small}_over_minnorm{large}_worst="
+          f"{worst:.3f} snr_worst={max(snr.values()) if snr else nan:.3f} beats_voxel_generated={beats:.3f}")
 
 
 if __name__ == "__main__":

@@ -468,6 +468,9 @@ class OptimisationSolver(Solver):
         data = DataTerm(operator, target, sigma, fit_gain=self.fit_gain if fit_gain is None else fit_gain)
         noise = noise_level(target, sigma, data.weight, self.hull_tol if self.hull_tol is not None else 0.005)
         priors = build_priors(with_weight(self.priors, self.weight_rule.start), fraction)
+        for _, _, module in priors:  # priors made for one grid / operator (the learned prior) refuse others
+            if hasattr(module, "check_operator"):
+                module.check_operator(operator)
         return Problem(data, priors, fraction, support, noise)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:

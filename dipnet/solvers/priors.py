@@ -12,7 +12,9 @@ the same at every resolution and in every unit system: with ``h = 1/N``,
 * :class:`SymmetryPrior`, :class:`L1Prior`, :class:`TransformL1Prior`, :class:`BinaryPrior`:
   ``int ... dx`` over the cube = means over voxels;
 * :class:`VolumePrior`: ``(mean(o) / f - 1)^2``, the squared relative error of the volume
-  against the measured volume fraction ``f`` (the object's volume / the cube's).
+  against the measured volume fraction ``f`` (the object's volume / the cube's);
+* :class:`~dipnet.solvers.learned.LearnedPrior` (``learned``): RED with a 3D CNN denoiser
+  trained on generated shapes, ``0.5 <o, o - D(o)> / N^3`` (3D, on the weights' grid).
 
 :func:`build_priors` turns a config dict ``{name: {"weight": w, **options}}`` into weighted
 modules (weight 0 = off), e.g. ``{"tv": {"weight": 0.01}, "symmetry": {"weight": 1,
@@ -27,6 +29,8 @@ from collections.abc import Mapping, Sequence
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from dipnet.solvers.learned import LearnedPrior
 
 
 def _spatial_dims(occupancy: torch.Tensor) -> tuple[int, ...]:
@@ -273,6 +277,7 @@ PRIORS: dict[str, type[nn.Module]] = {
     "transform_l1": TransformL1Prior,
     "binary": BinaryPrior,
     "volume": VolumePrior,
+    "learned": LearnedPrior,
 }
 
 

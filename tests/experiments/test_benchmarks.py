@@ -64,6 +64,37 @@ def test_the_scale_cache_is_keyed_by_the_simulation_code(tmp_path, monkeypatch):
     assert bench.simulate(args, shape, grid, 3)[1] > 0  # the code changed: simulated again
 
 
+def test_the_prior_headline_ratios_and_result_line(capsys):
+    """Per-mesh ratios of prior at the small budget over minnorm at the large one, the noisy worst
+    case and the share of generated shapes where prior beats voxel, from hand-made rows."""
+    bench = load_script("bench_quality")
+    args = bench.parse_args(["--headline", "--quick"])
+    assert (args.n, args.budgets, args.generated, args.meshes) == (64, [41, 410], 2, ["bunny"])
+    assert args.plan == {"minnorm": [410], "voxel": [41], "prior": [41]}
+
+    def row(mesh, kind, dips, noise, solver, chamfer):
+        return {"mesh": mesh, "set": kind, "dips": dips, "noise": noise, "solver": solver, "chamfer": chamfer,
+                "seconds": 1.0}
+    rows = [row("a", "mesh", 410, "clean", "minnorm", 0.002), row("a", "mesh", 41, "clean", "prior", 0.001),
+            row("b", "mesh", 410, "clean", "minnorm", 0.002), row("b", "mesh", 41, "clean", "prior", 0.003),
+            row("c", "mesh", 410, "clean", "minnorm", 0.004), row("c", "mesh", 41, "clean", "prior", 0.003),
+            row("a", "mesh", 410, "snr", "minnorm", 0.002), row("a", "mesh", 41, "snr", "prior", 0.0025),
+            row("g1", "generated", 41, "clean", "voxel", 0.002), row("g1", "generated", 41, "clean", "prior", 0.001),
+            row("g2", "generated", 41, "clean", "voxel", 0.002), row("g2", "generated", 41, "clean", "prior", 0.003)]
+    assert bench.prior_ratios(rows, 41, 410, "clean") == {"a": 0.5, "b": 1.5, "c": 0.75}
+    bench.print_prior_summary(rows, 41, 410)
+    assert capsys.readouterr().out.strip().splitlines()[-1] == (
+        "RESULT prior41_over_minnorm410_median=0.750 prior41_over_minnorm410_worst=1.500 snr_worst=1.250 "
+        "beats_voxel_generated=0.500")
+
+
+def test_generated_test_seeds_must_not_overlap_the_training_seeds():
+    bench = load_script("bench_quality")
+    bench.check_test_seeds(0, 50)
+    with pytest.raises(SystemExit, match="overlap"):
+        bench.check_test_seeds(990, 20)
+
+
 def test_the_quality_bench_runs_each_solver_at_its_own_budgets():
     bench = load_script("bench_quality")
     assert bench.parse_args(["--dips", "voxel=41", "minnorm=123,410"]).plan == {"voxel": [41], "minnorm": [123, 410]}

@@ -1,0 +1,157 @@
+"""Training the learned prior's denoiser on generated shapes (``scripts/train_prior.py``).
+
+Pairs (:mod:`dipnet.experiments.prior_pairs`) of voxel reconstructions from few dips and the true occupancy
+of generated shapes (never the bundled meshes) train :class:`~dipnet.solvers.denoiser.OccupancyDenoiser`
+by Adam on the mean squared error over random ``crop^3`` blocks, with random flips and axis
+permutations (the dip directions cover the sphere evenly, so the artifacts have no preferred axis).
+Every random draw comes from one generator seeded by ``seed``; its state is saved in each
+checkpoint, so a run resumed with ``resume=True`` continues the same sequence of batches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm.auto import tqdm
+
+from dipnet.solvers.denoiser import OccupancyDenoiser, save_weights
+from dipnet.experiments.prior_pairs import build_pairs
+
+
+@dataclass
+class TrainConfig:
+    """What a training run does (stored in the weights' meta).
+
+    Attributes:
+        train_seeds: ``[first, stop)`` of the generated shapes trained on.
+        val_seeds: ``[first, stop)`` of the held-out generated shapes for the validation loss.
+        n, dips, snr_db, fill: the pairs' grid, number of Fibonacci dips, noise (odd seeds), and
+            the shapes' size (farthest point / working-ball radius).
+        solver_iterations: voxel-solver steps of the cheap reconstructions.
+        channels, steps, batch, crop, lr: network width, Adam steps, blocks per step, block side
+            (voxels), learning rate (cosine decay to 5%).
+        seed: the run's random seed.
+        checkpoint_every: steps between checkpoints.
+        max_minutes: stop (with a checkpoint) after this wall time; resume continues.
+    """
+
+    train_seeds: tuple[int, int] = (1000, 1064)
+    val_seeds: tuple[int, int] = (2000, 2004)
+    n: int = 64
+    dips: int = 41
+    snr_db: float = 30.0
+    fill: float = 0.9
+    solver_iterations: int = 100
+    channels: int = 8
+    steps: int = 3000
+    batch: int = 4
+    crop: int = 32
+    lr: float = 2e-3
+    seed: int = 0
+    checkpoint_every: int = 100
+    max_minutes: float = 90.0
+    extra: dict = field(default_factory=dict)
+
+
+def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool):
+    return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, snr_db=config.snr_db,
+                       fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress)
+
+
+def random_batch(inputs: torch.Tensor, targets: torch.Tensor, batch: int, crop: int, generator: torch.Generator
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``batch`` random ``crop^3`` blocks ``(B, 1, c, c, c)`` of random pairs, each flipped along
+    random axes and with its axes permuted at random (the same for input and target)."""
+    n = inputs.shape[-1]
+    xs, ys = [], []
+    for _ in range(batch):
+        i = int(torch.randint(inputs.shape[0], (1,), generator=generator))
+        z, y, x = (int(v) for v in torch.randint(n - crop + 1, (3,), generator=generator))
+        block = torch.stack([inputs[i], targets[i]])[:, z:z + crop, y:y + crop, x:x + crop]
+        flips = [d + 1 for d in range(3) if bool(torch.rand(1, generator=generator) < 0.5)]
+        block = block.flip(flips) if flips else block
+        block = block.permute(0, *(int(a) + 1 for a in torch.randperm(3, generator=generator)))
+        xs.append(block[0])
+        ys.append(block[1])
+    return torch.stack(xs)[:, None], torch.stack(ys)[:, None]
+
+
+def validation_loss(model: OccupancyDenoiser, inputs: torch.Tensor, targets: torch.Tensor) -> tuple[float, float]:
+    """``(MSE of the denoised volumes, MSE of the inputs)`` over whole held-out volumes."""
+    with torch.no_grad():
+        out = torch.cat([model(inputs[i:i + 1, None]) for i in range(inputs.shape[0])])[:, 0]
+    return float(F.mse_loss(out, targets)), float(F.mse_loss(inputs, targets))
+
+
+def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, progress: bool = True) -> dict:
+    """Train (or continue) and write the weights to ``out`` (``.pt`` + ``.json``); the checkpoint
+    is ``out.with_suffix(".ckpt")``. Returns the weights' meta (losses, steps, seconds)."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out.with_suffix(".ckpt")
+    x_np, y_np = _pairs(config, config.train_seeds, cache, progress)
+    xv_np, yv_np = _pairs(config, config.val_seeds, cache, progress)
+    inputs, targets = torch.from_numpy(x_np), torch.from_numpy(y_np)
+    val_in, val_target = torch.from_numpy(xv_np), torch.from_numpy(yv_np)
+    torch.manual_seed(config.seed)
+    model = OccupancyDenoiser(config.channels)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda i: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(i / config.steps, 1.0))))
+    generator = torch.Generator().manual_seed(config.seed)
+    step, history, seconds = 0, {"train": [], "val": []}, 0.0
+    if resume and ckpt_path.is_file():
+        saved = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if saved["config"] != dataclasses.asdict(config) | {"max_minutes": saved["config"]["max_minutes"],
+                                                             "steps": saved["config"]["steps"]}:
+            raise ValueError(f"checkpoint {ckpt_path} was made with another config: {saved['config']}")
+        model.load_state_dict(saved["model"])
+        opt.load_state_dict(saved["optimizer"])
+        sched.load_state_dict(saved["scheduler"])
+        generator.set_state(saved["generator"])
+        step, history, seconds = saved["step"], saved["history"], saved["seconds"]
+
+    def checkpoint() -> None:
+        torch.save({"config": dataclasses.asdict(config), "model": model.state_dict(), "optimizer": opt.state_dict(),
+                    "scheduler": sched.state_dict(), "generator": generator.get_state(), "step": step,
+                    "history": history, "seconds": seconds}, ckpt_path)
+
+    started = time.perf_counter() - seconds
+    session_start = time.perf_counter()
+    model.train()
+    with tqdm(total=config.steps, initial=step, desc="train prior", disable=not progress) as bar:
+        while step < config.steps:
+            x, y = random_batch(inputs, targets, config.batch, config.crop, generator)
+            opt.zero_grad(set_to_none=True)
+            loss = F.mse_loss(model(x), y)
+            loss.backward()
+            opt.step()
+            sched.step()
+            step += 1
+            history["train"].append(loss.item())
+            bar.update()
+            if step % config.checkpoint_every == 0 or step == config.steps:
+                model.eval()
+                val, baseline = validation_loss(model, val_in, val_target)
+                model.train()
+                history["val"].append([step, val, baseline])
+                seconds = time.perf_counter() - started
+                checkpoint()
+                bar.set_postfix(train=f"{np.mean(history['train'][-50:]):.4f}", val=f"{val:.4f}",
+                                input=f"{baseline:.4f}", refresh=False)
+                if (time.perf_counter() - session_start) / 60 > config.max_minutes:
+                    break
+    seconds = time.perf_counter() - started
+    meta = {"n": config.n, "ndim": 3, "n_slabs_per_voxel": 1, "config": dataclasses.asdict(config),
+            "steps_done": step, "seconds": round(seconds, 1), "validation": history["val"][-1] if history["val"] else None,
+            "trained_on": "generated shapes (dipnet.shapes.procedural), seeds " f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"}
+    model.eval()
+    save_weights(model, out, meta)
+    return meta

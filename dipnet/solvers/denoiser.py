@@ -1,0 +1,108 @@
+"""The learned prior's network: a small 3D U-Net denoiser of occupancy volumes, and its weights file.
+
+:class:`OccupancyDenoiser` maps a soft occupancy ``(B, 1, N, N, N)`` (a reconstruction with the
+artifacts of few dips) to a cleaner one, ``D(x) = x + r(x)``: two 2x down-samplings (channels
+``c, 2c, 4c``), two 3^3 convolutions per level, skip connections, a residual ``r`` from the last
+convolution (initialised to 0, so an untrained net is the identity). ``N`` must be divisible by 4.
+
+Weights file: one ``torch.save`` dict ``{"format": WEIGHTS_FORMAT, "state_dict": ..., "meta": ...}``
+with ``meta`` = ``{"n", "channels", "n_slabs_per_voxel", "ndim", ...}`` (the grid and operator the
+weights were trained for, and how they were made); a JSON copy of ``meta`` sits next to it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+WEIGHTS_FORMAT = "dipnet-occupancy-denoiser-1"
+#: The weights shipped in the package (see docs/guide/solvers.md, "Learned prior").
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "data" / "priors" / "denoiser64.pt"
+
+
+class PriorWeightsError(ValueError):
+    """The learned prior's weights file is missing, unreadable or not a dipnet denoiser."""
+
+
+class PriorMismatchError(PriorWeightsError):
+    """The weights were trained for another grid resolution or operator than the one solved on."""
+
+
+def _block(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv3d(c_in, c_out, 3, padding=1), nn.ReLU(inplace=True),
+                         nn.Conv3d(c_out, c_out, 3, padding=1), nn.ReLU(inplace=True))
+
+
+class OccupancyDenoiser(nn.Module):
+    """``D(x) = x + r(x)``: a 3-level 3D U-Net residual (see the module docstring).
+
+    Args:
+        channels: ``c``, channels of the finest level (``2c``, ``4c`` below).
+    """
+
+    def __init__(self, channels: int = 8) -> None:
+        super().__init__()
+        c = int(channels)
+        if c < 1:
+            raise ValueError(f"channels must be positive, got {channels}")
+        self.channels = c
+        self.down0, self.down1, self.bottom = _block(1, c), _block(c, 2 * c), _block(2 * c, 4 * c)
+        self.up1, self.up0 = _block(6 * c, 2 * c), _block(3 * c, c)
+        self.out = nn.Conv3d(c, 1, 3, padding=1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, 1, N, N, N)`` -> same shape (``N % 4 == 0``)."""
+        if x.ndim != 5 or x.shape[1] != 1 or x.shape[-1] % 4:
+            raise ValueError(f"the denoiser takes (B, 1, N, N, N) with N divisible by 4, got {tuple(x.shape)}")
+        a = self.down0(x)
+        b = self.down1(F.max_pool3d(a, 2))
+        c = self.bottom(F.max_pool3d(b, 2))
+        b = self.up1(torch.cat([b, F.interpolate(c, scale_factor=2, mode="nearest")], dim=1))
+        a = self.up0(torch.cat([a, F.interpolate(b, scale_factor=2, mode="nearest")], dim=1))
+        return x + self.out(a)
+
+
+def save_weights(model: OccupancyDenoiser, path: str | Path, meta: dict) -> Path:
+    """Write ``model``'s weights with ``meta`` (must hold ``n``, ``ndim``, ``n_slabs_per_voxel``) to
+    ``path`` and ``meta`` as JSON to ``path.with_suffix(".json")``."""
+    missing = {"n", "ndim", "n_slabs_per_voxel"} - set(meta)
+    if missing:
+        raise ValueError(f"weights meta lacks {sorted(missing)}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {**meta, "channels": model.channels}
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    torch.save({"format": WEIGHTS_FORMAT, "state_dict": state, "meta": meta}, path)
+    path.with_suffix(".json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
+    return path
+
+
+def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dict]:
+    """``(model in eval mode, meta)`` from a weights file (``None``: the shipped weights).
+
+    Raises:
+        PriorWeightsError: the file is missing, unreadable, or not a dipnet denoiser.
+    """
+    path = SHIPPED_WEIGHTS if path is None else Path(path)
+    if not path.is_file():
+        raise PriorWeightsError(f"learned-prior weights not found: {path} (train them with scripts/train_prior.py, "
+                                "or pass weights: null for the shipped ones)")
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a damaged file
+        raise PriorWeightsError(f"learned-prior weights {path} are unreadable ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(saved, dict) or saved.get("format") != WEIGHTS_FORMAT:
+        raise PriorWeightsError(f"{path} is not a dipnet denoiser weights file (format {WEIGHTS_FORMAT})")
+    meta = dict(saved.get("meta") or {})
+    try:
+        model = OccupancyDenoiser(int(meta["channels"]))
+        model.load_state_dict(saved["state_dict"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+        raise PriorWeightsError(f"learned-prior weights {path} do not fit the denoiser: {exc}") from exc
+    return model.eval(), meta

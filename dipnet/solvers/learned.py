@@ -1,0 +1,101 @@
+"""The learned prior: regularisation by denoising (RED) with a 3D CNN trained on generated shapes.
+
+``LearnedPrior(o) = 0.5 <o, o - D(o)> / N^3`` with the denoiser ``D``
+(:class:`~dipnet.solvers.denoiser.OccupancyDenoiser`, trained by ``scripts/train_prior.py``).
+Its gradient is taken as the RED gradient ``(o - D(o)) / N^3`` (``D``'s Jacobian treated as
+symmetric, ``D`` detached), which pulls the occupancy toward what the denoiser makes of it:
+shapes like the generated training shapes (thin limbs and plates, flat faces, holes, cavities).
+
+``D`` costs about as much as 10 dip-operator applications at 64^3, so it is evaluated every
+``refresh`` calls and its output reused in between (lagged RED); ``refresh=1`` is exact RED.
+
+``mode="anchor"`` is the plug-and-play alternative: ``D`` is evaluated once, at the first call
+(the solver's starting occupancy, e.g. a voxel result given as ``warm_start``), and the prior is
+``0.5 mean (o - D(o_0))^2``: the solve refines the denoised start under the data term.
+
+On a grid whose ``N`` is half the weights' (the voxel solver's coarse stage) ``D`` runs on the
+volume upsampled (trilinear) to the weights' grid and its output is area-averaged back; any other
+resolution, dimension or slab spacing raises :class:`~dipnet.solvers.denoiser.PriorMismatchError`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dipnet.solvers.denoiser import PriorMismatchError, load_weights
+
+
+class LearnedPrior(nn.Module):
+    """RED prior with a trained occupancy denoiser (see the module docstring).
+
+    Args:
+        weights: path of a weights file (``None``: the weights shipped in ``dipnet/data/priors``).
+        refresh: evaluate the denoiser every ``refresh`` calls (>= 1; ``red`` mode).
+        mode: ``"red"`` or ``"anchor"`` (see the module docstring).
+    """
+
+    MODES = ("red", "anchor")
+
+    def __init__(self, weights: str | Path | None = None, refresh: int = 10, mode: str = "red") -> None:
+        super().__init__()
+        if int(refresh) < 1:
+            raise ValueError(f"refresh must be >= 1, got {refresh}")
+        if mode not in self.MODES:
+            raise ValueError(f"unknown learned-prior mode {mode!r}; choose one of {self.MODES}")
+        self.mode = mode
+        self.denoiser, self.meta = load_weights(weights)
+        for p in self.denoiser.parameters():
+            p.requires_grad_(False)
+        self.n = int(self.meta["n"])
+        self.refresh = int(refresh)
+        self._calls, self._denoised = 0, None
+
+    def check_operator(self, operator) -> None:
+        """Refuse an operator whose grid or slabs differ from the weights' (called by the solvers).
+
+        Raises:
+            PriorMismatchError: another dimension, resolution or slab spacing.
+        """
+        grid = operator.grid
+        self._check_grid(grid.ndim, grid.n)
+        slabs = float(self.meta["n_slabs_per_voxel"]) * self.n  # a coarse stage keeps the fine grid's slabs
+        if abs(operator.n_slabs - slabs) > 1e-9:
+            raise PriorMismatchError(
+                f"the learned prior's weights were trained with {slabs:g} slabs on a {self.n}^3 grid, the operator "
+                f"has {operator.n_slabs} slabs on a {grid.n}^{grid.ndim} grid: train weights for it "
+                "(scripts/train_prior.py) or drop the learned prior")
+
+    def _check_grid(self, ndim: int, n: int) -> None:
+        if ndim != int(self.meta.get("ndim", 3)) or n not in (self.n, self.n // 2):
+            raise PriorMismatchError(
+                f"the learned prior's weights were trained for a {self.n}^3 grid (or its {self.n // 2}^3 coarse "
+                f"stage), not {n}^{ndim}: train weights for this grid with scripts/train_prior.py --n {n}, "
+                "or solve on the weights' grid")
+
+    def denoise(self, occupancy: torch.Tensor) -> torch.Tensor:
+        """``D(o)`` on the weights' grid (resampled for a coarse stage), same shape as ``occupancy``."""
+        x = occupancy.detach().float()[None, None]
+        n = occupancy.shape[-1]
+        with torch.no_grad():
+            if n == self.n:
+                return self.denoiser(x)[0, 0].to(occupancy.dtype)
+            up = F.interpolate(x, size=(self.n,) * 3, mode="trilinear", align_corners=False)
+            return F.avg_pool3d(self.denoiser(up), 2)[0, 0].to(occupancy.dtype)
+
+    def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
+        """``0.5 <o, o - D(o)> / N^3`` with gradient ``(o - D(o)) / N^3`` (``red``), or
+        ``0.5 mean (o - D(o_0))^2`` (``anchor``)."""
+        self._check_grid(occupancy.ndim, occupancy.shape[-1])
+        stale = self._denoised is None or self._denoised.shape != occupancy.shape
+        if stale or (self.mode == "red" and self._calls % self.refresh == 0):
+            self._denoised = self.denoise(occupancy)
+        self._calls += 1
+        if self.mode == "anchor":
+            return 0.5 * (occupancy - self._denoised).pow(2).mean()
+        residual = occupancy.detach() - self._denoised
+        inner = (occupancy * residual).mean()
+        return inner - 0.5 * inner.detach()

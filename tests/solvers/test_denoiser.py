@@ -1,0 +1,66 @@
+"""The denoiser network and its weights file: shapes, identity at start, round trip, named errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dipnet.solvers.denoiser import (
+    SHIPPED_WEIGHTS,
+    OccupancyDenoiser,
+    PriorWeightsError,
+    load_weights,
+    save_weights,
+)
+
+META = {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1}
+
+
+def test_untrained_denoiser_is_the_identity_and_keeps_the_shape():
+    torch.manual_seed(0)
+    net = OccupancyDenoiser(channels=2)
+    x = torch.rand(2, 1, 16, 16, 16)
+    assert torch.equal(net(x), x)
+    with pytest.raises(ValueError, match="divisible by 4"):
+        net(torch.rand(1, 1, 10, 10, 10))
+
+
+def test_weights_round_trip(tmp_path):
+    torch.manual_seed(1)
+    net = OccupancyDenoiser(channels=2)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    path = save_weights(net, tmp_path / "w.pt", {**META, "seed": 3})
+    loaded, meta = load_weights(path)
+    assert meta["seed"] == 3 and meta["channels"] == 2 and (tmp_path / "w.json").is_file()
+    x = torch.rand(1, 1, 16, 16, 16)
+    with torch.no_grad():
+        assert torch.allclose(loaded(x), net(x))
+        assert not torch.equal(loaded(x), x)
+
+
+def test_missing_corrupt_and_foreign_files_get_one_named_error(tmp_path):
+    with pytest.raises(PriorWeightsError, match="not found"):
+        load_weights(tmp_path / "nothing.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00garbage" * 100)
+    with pytest.raises(PriorWeightsError, match="unreadable"):
+        load_weights(bad)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(PriorWeightsError, match="not a dipnet denoiser"):
+        load_weights(foreign)
+    good = save_weights(OccupancyDenoiser(2), tmp_path / "good.pt", META)
+    saved = torch.load(good, weights_only=True)
+    saved["meta"]["channels"] = 4  # meta that does not fit the tensors
+    torch.save(saved, good)
+    with pytest.raises(PriorWeightsError, match="do not fit"):
+        load_weights(good)
+
+
+def test_shipped_weights_load_without_network():
+    model, meta = load_weights(None)
+    assert SHIPPED_WEIGHTS.is_file() and SHIPPED_WEIGHTS.stat().st_size < 20e6
+    assert meta["n"] == 64 and meta["ndim"] == 3 and "config" in meta and "seed" in meta["config"]
+    assert SHIPPED_WEIGHTS.with_suffix(".json").is_file()
