@@ -108,7 +108,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     generator = torch.Generator().manual_seed(config.seed)
     step, history, seconds = 0, {"train": [], "val": []}, 0.0
     if resume and ckpt_path.is_file():
-        saved = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        saved = torch.load(ckpt_path, map_location="cpu", weights_only=True)
         if saved["config"] != dataclasses.asdict(config) | {"max_minutes": saved["config"]["max_minutes"],
                                                              "steps": saved["config"]["steps"]}:
             raise ValueError(f"checkpoint {ckpt_path} was made with another config: {saved['config']}")
