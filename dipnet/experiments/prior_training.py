@@ -32,9 +32,10 @@ class TrainConfig:
     Attributes:
         train_seeds: ``[first, stop)`` of the generated shapes trained on.
         val_seeds: ``[first, stop)`` of the held-out generated shapes for the validation loss.
-        n, dips, snr_db, fill: the pairs' grid, number of Fibonacci dips, noise (odd seeds), and
-            the shapes' size (farthest point / working-ball radius).
-        solver_iterations: voxel-solver steps of the cheap reconstructions.
+        n, dips, snr_db, fill: the pairs' grid, number of Fibonacci dips, the level-sensor SNR (dB)
+            of the noisy pair of each seed (each seed also gives a noise-free pair), and the
+            shapes' size (farthest point / working-ball radius).
+        solver_iterations: voxel-solver steps of the reconstructions (400: the solver's default).
         channels, steps, batch, crop, lr: network width, Adam steps, blocks per step, block side
             (voxels), learning rate (cosine decay to 5%).
         seed: the run's random seed.
@@ -48,20 +49,20 @@ class TrainConfig:
     dips: int = 41
     snr_db: float = 30.0
     fill: float = 0.9
-    solver_iterations: int = 100
-    channels: int = 8
-    steps: int = 3000
+    solver_iterations: int = 400
+    channels: int = 16
+    steps: int = 4000
     batch: int = 4
     crop: int = 32
     lr: float = 2e-3
     seed: int = 0
-    checkpoint_every: int = 100
+    checkpoint_every: int = 250
     max_minutes: float = 90.0
     extra: dict = field(default_factory=dict)
 
 
 def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool):
-    return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, snr_db=config.snr_db,
+    return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, noise_levels=(None, config.snr_db),
                        fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress)
 
 

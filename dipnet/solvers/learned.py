@@ -77,14 +77,15 @@ class LearnedPrior(nn.Module):
                 "or solve on the weights' grid")
 
     def denoise(self, occupancy: torch.Tensor) -> torch.Tensor:
-        """``D(o)`` on the weights' grid (resampled for a coarse stage), same shape as ``occupancy``."""
+        """``D(o)`` clipped to ``[0, 1]``, on the weights' grid (resampled for a coarse stage), same shape
+        as ``occupancy``."""
         x = occupancy.detach().float()[None, None]
         n = occupancy.shape[-1]
         with torch.no_grad():
             if n == self.n:
-                return self.denoiser(x)[0, 0].to(occupancy.dtype)
+                return self.denoiser(x)[0, 0].clamp(0, 1).to(occupancy.dtype)
             up = F.interpolate(x, size=(self.n,) * 3, mode="trilinear", align_corners=False)
-            return F.avg_pool3d(self.denoiser(up), 2)[0, 0].to(occupancy.dtype)
+            return F.avg_pool3d(self.denoiser(up).clamp(0, 1), 2)[0, 0].to(occupancy.dtype)
 
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
         """``0.5 <o, o - D(o)> / N^3`` with gradient ``(o - D(o)) / N^3`` (``red``), or

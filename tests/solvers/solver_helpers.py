@@ -53,3 +53,16 @@ def noise_free_problem(ndim: int, inside_2d):
         profiles = op(truth)
     k = op.n_orientations
     return truth, op, DipMeasurement(op.directions, profiles, op.slab_thickness, op.slab_edges()[:1].expand(k))
+
+
+def perturbed_denoiser(scale: float, seed: int = 0):
+    """A 2-channel :class:`~dipnet.solvers.denoiser.OccupancyDenoiser` whose weights are moved by
+    ``scale`` standard normals, so it is not the identity an untrained one is."""
+    from dipnet.solvers.denoiser import OccupancyDenoiser
+
+    torch.manual_seed(seed)
+    net = OccupancyDenoiser(channels=2)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(scale * torch.randn_like(p))
+    return net

@@ -13,6 +13,8 @@ from dipnet.solvers.denoiser import (
     save_weights,
 )
 
+from solver_helpers import perturbed_denoiser
+
 META = {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1}
 
 
@@ -26,11 +28,7 @@ def test_untrained_denoiser_is_the_identity_and_keeps_the_shape():
 
 
 def test_weights_round_trip(tmp_path):
-    torch.manual_seed(1)
-    net = OccupancyDenoiser(channels=2)
-    with torch.no_grad():
-        for p in net.parameters():
-            p.add_(0.1 * torch.randn_like(p))
+    net = perturbed_denoiser(0.1, seed=1)
     path = save_weights(net, tmp_path / "w.pt", {**META, "seed": 3})
     loaded, meta = load_weights(path)
     assert meta["seed"] == 3 and meta["channels"] == 2 and (tmp_path / "w.json").is_file()

@@ -9,25 +9,20 @@ import torch
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, PriorWeightsError, save_weights
+from dipnet.solvers.denoiser import PriorMismatchError, PriorWeightsError, save_weights
 from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_occupancy
 from dipnet.solvers.learned import LearnedPrior
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.voxel import VoxelSolver
 
-from solver_helpers import one_thread  # noqa: F401 (one_thread: autouse fixture)
+from solver_helpers import one_thread, perturbed_denoiser  # noqa: F401 (one_thread: autouse fixture)
 
 
 @pytest.fixture
 def weights16(tmp_path):
     """A randomly perturbed (not identity) denoiser for a 16^3 grid."""
-    torch.manual_seed(0)
-    net = OccupancyDenoiser(channels=2)
-    with torch.no_grad():
-        for p in net.parameters():
-            p.add_(0.2 * torch.randn_like(p))
-    return save_weights(net, tmp_path / "w16.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    return save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
 
 
 def test_value_and_gradient_are_red(weights16):
