@@ -9,7 +9,8 @@ import torch
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.solvers.denoiser import PriorMismatchError, PriorWeightsError, save_weights
+from dipnet.evaluation.consistency import DataConsistencyWarning, check_consistency
+from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, PriorWeightsError, save_weights
 from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_occupancy
 from dipnet.solvers.learned import LearnedPrior
@@ -86,6 +87,27 @@ def test_solver_refuses_mismatched_or_missing_weights(weights16, tmp_path):
     with pytest.raises(PriorWeightsError, match="not found"):
         build_priors({"learned": {"weight": 1.0, "weights": str(tmp_path / "none.pt")}})
     assert build_priors({"learned": {"weight": 0.0, "weights": str(tmp_path / "none.pt")}}) == []
+
+
+def test_a_hallucinating_prior_fails_the_consistency_check(tmp_path):
+    """A denoiser that empties every volume, anchored with a weight that overrules the data: the
+    result no longer explains its dips, and the consistency check says so."""
+    net = OccupancyDenoiser(channels=2)
+    with torch.no_grad():
+        net.out.bias.fill_(-1.0)  # D(x) = clip(x - 1) = 0: "there is no object"
+    weights = save_weights(net, tmp_path / "empty16.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    grid = Grid(16, 3)
+    op = make_operator(grid, fibonacci_hemisphere(12), 16)
+    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
+    m = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(12))
+    priors = {"tv": {"weight": 1e-3}}
+    honest = VoxelSolver(progress=False, iterations=150, priors=priors).solve(m, op)
+    assert check_consistency(m, op, honest, warn=False).verdict == "consistent"
+    pulled = VoxelSolver(progress=False, iterations=150, priors={
+        **priors, "learned": {"weight": 1e4, "weights": str(weights), "mode": "anchor"}}).solve(m, op)
+    with pytest.warns(DataConsistencyWarning):
+        check = check_consistency(m, op, pulled)
+    assert check.verdict == "inconsistent" and check.volume_ratio < 0.5
 
 
 @pytest.mark.slow
