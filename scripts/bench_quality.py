@@ -20,9 +20,10 @@ each mesh's ratio of voxel's Chamfer at the smallest budget to minnorm's at the 
     python scripts/bench_quality.py --headline --quick                  # bunny + 2 generated shapes (64^3)
     python scripts/bench_quality.py --headline --from-json a.json b.json  # summaries of earlier runs' rows
 
-``prior`` is the voxel solver and ``implicit_prior`` the implicit solver, each with the learned
-prior (:class:`dipnet.solvers.learned.LearnedPrior`, the shipped 64^3 weights) added to their
-default priors. ``--generated K`` adds K generated shapes (:mod:`dipnet.shapes.procedural`) of
+``prior`` is ``solver=voxel_learned`` and ``implicit_prior`` ``solver=implicit_learned``, read from
+``conf/solver/`` as a job would: a voxel solve whose result the learned prior's denoiser
+(:class:`dipnet.solvers.learned.LearnedPrior`, the shipped 64^3 weights) turns into the anchor of a
+refit under the data term. ``--generated K`` adds K generated shapes (:mod:`dipnet.shapes.procedural`) of
 seeds ``--generated-first`` .. + K - 1, which must not overlap the seeds the weights were trained
 or validated on (refused otherwise). ``--headline`` runs minnorm at the largest budget only and the
 optimisers at the smallest only (what the headline ratios need), and on the generated shapes only
@@ -47,6 +48,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.core.code_version import simulation_digest
@@ -63,29 +66,25 @@ from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.denoiser import load_weights
+from dipnet.jobs.tuning import compose_job
 from dipnet.solvers.voxel import VoxelSolver
 
-LEARNED = {"weight": 0.3, "weights": None, "refresh": 10, "mode": "red"}  # the learned prior's default options
 
 
-def _with_prior(cls):
-    """A solver factory: ``cls`` with the learned prior added to its default priors. Options
-    ``learned`` (a dict) override :data:`LEARNED`; in ``anchor`` mode the solver starts from the
-    voxel solver's result (``warm_start``; the voxel solver then refines it on the full grid)."""
-    def make(**options):
-        learned = {**LEARNED, **options.pop("learned", {})}
-        priors = {"tv": {"weight": 1e-3}, "learned": learned, **options.pop("priors", {})}
-        if learned["mode"] == "anchor":
-            options.setdefault("warm_start", VoxelSolver(progress=False))
-            if cls is VoxelSolver:
-                options.setdefault("coarse_to_fine", False)
-                options.setdefault("iterations", 200)
-        return cls(priors=priors, **options)
+def configured(name: str):
+    """A solver factory for ``conf/solver/<name>.yaml``, the recipe ``solver=<name>`` runs in a job;
+    ``--options`` entries are merged into that config (e.g. ``{"priors": {"learned": {"weight": 3}}}``)."""
+    def make(progress: bool = False, **options):
+        cfg = compose_job([f"solver={name}", "seed=0"]).solver
+        cfg = OmegaConf.merge(cfg, {"progress": progress, **options})
+        if "warm_start" in cfg and cfg.warm_start is not None:
+            cfg.warm_start.progress = progress
+        return instantiate(cfg)
     return make
 
 
 SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver,
-           "prior": _with_prior(VoxelSolver), "implicit_prior": _with_prior(ImplicitSolver)}
+           "prior": configured("voxel_learned"), "implicit_prior": configured("implicit_learned")}
 OPTIMISERS = ("voxel", "implicit", "dip", "prior", "implicit_prior")
 DEFAULT_MESHES = MESHES_DIR
 

@@ -105,3 +105,17 @@ def test_the_quality_bench_runs_each_solver_at_its_own_budgets():
             {"noise": "clean", "mesh": "a", "dips": 410, "solver": "minnorm", "chamfer": 0.002},
             {"noise": "clean", "mesh": "b", "dips": 41, "solver": "voxel", "chamfer": 0.001}]
     assert bench.mesh_ratios(rows) == {"clean": {"a": pytest.approx(1.5)}}  # b has no minnorm row
+
+
+def test_the_quality_bench_runs_the_learned_prior_as_a_job_would():
+    """``prior`` is ``conf/solver/voxel_learned.yaml`` (voxel solve, then a refit anchored to D of
+    it), not a second recipe written in the script; ``--options`` merge into that config."""
+    from dipnet.solvers.voxel import VoxelSolver
+
+    bench = load_script("bench_quality")
+    prior = bench.SOLVERS["prior"]()
+    assert isinstance(prior, VoxelSolver) and isinstance(prior.warm_start, VoxelSolver)
+    assert not prior.coarse_to_fine and prior.temperature_start == prior.temperature_end
+    assert prior.priors["learned"]["mode"] == "anchor" and prior.priors["learned"]["weight"] > 0
+    assert bench.SOLVERS["prior"](priors={"learned": {"weight": 3.0}}).priors["learned"]["weight"] == 3.0
+    assert bench.SOLVERS["implicit_prior"]().warm_start is not None
