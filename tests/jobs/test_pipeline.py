@@ -107,8 +107,10 @@ def test_prior_weights_and_warm_start_override_from_the_command_line():
 
 @pytest.mark.parametrize("progress", [True, False])
 def test_one_switch_sets_every_progress_bar(progress):
-    for solver in ("minnorm", "lsqr", "lsmr", "voxel", "implicit"):
-        assert instantiate(_cfg(f"solver={solver}", f"output.progress={progress}").solver).progress is progress
+    for solver in ("minnorm", "lsqr", "lsmr", "voxel", "implicit", "voxel_learned", "implicit_learned"):
+        built = instantiate(_cfg(f"solver={solver}", f"output.progress={progress}").solver)
+        assert built.progress is progress
+        assert getattr(getattr(built, "warm_start", None), "progress", progress) is progress
 
 
 def test_thread_count_defaults_never_oversubscribe(monkeypatch):
