@@ -44,14 +44,14 @@ class TrainConfig:
     """
 
     train_seeds: tuple[int, int] = (1000, 1064)
-    val_seeds: tuple[int, int] = (2000, 2004)
+    val_seeds: tuple[int, int] = (2000, 2008)
     n: int = 64
     dips: int = 41
     snr_db: float = 30.0
     fill: float = 0.9
     solver_iterations: int = 400
     channels: int = 16
-    steps: int = 4000
+    steps: int = 3500
     batch: int = 4
     crop: int = 32
     lr: float = 2e-3
@@ -61,9 +61,10 @@ class TrainConfig:
     extra: dict = field(default_factory=dict)
 
 
-def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool):
+def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool, workers: int):
     return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, noise_levels=(None, config.snr_db),
-                       fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress)
+                       fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress,
+                       workers=workers)
 
 
 def random_batch(inputs: torch.Tensor, targets: torch.Tensor, batch: int, crop: int, generator: torch.Generator
@@ -91,14 +92,16 @@ def validation_loss(model: OccupancyDenoiser, inputs: torch.Tensor, targets: tor
     return float(F.mse_loss(out, targets)), float(F.mse_loss(inputs, targets))
 
 
-def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, progress: bool = True) -> dict:
+def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, progress: bool = True,
+          workers: int = 1) -> dict:
     """Train (or continue) and write the weights to ``out`` (``.pt`` + ``.json``); the checkpoint
-    is ``out.with_suffix(".ckpt")``. Returns the weights' meta (losses, steps, seconds)."""
+    is ``out.with_suffix(".ckpt")``; missing training pairs are made by ``workers`` processes.
+    Returns the weights' meta (losses, steps, seconds)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")
-    x_np, y_np = _pairs(config, config.train_seeds, cache, progress)
-    xv_np, yv_np = _pairs(config, config.val_seeds, cache, progress)
+    x_np, y_np = _pairs(config, config.train_seeds, cache, progress, workers)
+    xv_np, yv_np = _pairs(config, config.val_seeds, cache, progress, workers)
     inputs, targets = torch.from_numpy(x_np), torch.from_numpy(y_np)
     val_in, val_target = torch.from_numpy(xv_np), torch.from_numpy(yv_np)
     torch.manual_seed(config.seed)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from dipnet.core.grid import Grid
 from dipnet.experiments.prior_pairs import build_pairs
@@ -27,3 +28,10 @@ def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path):
     volume = float(y.sum()) * grid.voxel_volume
     assert abs(volume / abs(shape.mesh.volume) - 1) < 0.05
     assert ((y > 0) & (y < 1)).any()  # soft at the surface, not a binary mask
+
+
+@pytest.mark.slow
+def test_worker_processes_make_the_same_pairs(tmp_path):
+    one = build_pairs([5003, 5004], cache=tmp_path / "one", noise_levels=(None,), **SMALL)
+    two = build_pairs([5003, 5004], cache=tmp_path / "two", noise_levels=(None,), workers=2, **SMALL)
+    assert all(np.array_equal(a, b) for a, b in zip(one, two))
