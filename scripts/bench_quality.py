@@ -41,6 +41,7 @@ runs only pay for the solvers and a run after a change to the simulator simulate
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import statistics
 import time
@@ -62,24 +63,24 @@ from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.jobs.tuning import compose_job
 from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.denoiser import load_weights
-from dipnet.jobs.tuning import compose_job
 from dipnet.solvers.voxel import VoxelSolver
 
 
-
 def configured(name: str):
-    """A solver factory for ``conf/solver/<name>.yaml``, the recipe ``solver=<name>`` runs in a job;
+    """A solver factory for ``conf/solver/<name>.yaml``, the recipe ``solver=<name>`` runs in a job
+    (composed once per progress setting, which ``output.progress`` passes on to a warm start too);
     ``--options`` entries are merged into that config (e.g. ``{"priors": {"learned": {"weight": 3}}}``)."""
+    @functools.cache
+    def config(progress: bool):
+        return compose_job([f"solver={name}", "seed=0", f"output.progress={progress}"]).solver
+
     def make(progress: bool = False, **options):
-        cfg = compose_job([f"solver={name}", "seed=0"]).solver
-        cfg = OmegaConf.merge(cfg, {"progress": progress, **options})
-        if "warm_start" in cfg and cfg.warm_start is not None:
-            cfg.warm_start.progress = progress
-        return instantiate(cfg)
+        return instantiate(OmegaConf.merge(config(bool(progress)), options))
     return make
 
 
@@ -148,8 +149,6 @@ def check_test_seeds(first: int, count: int) -> None:
     if overlap:
         raise SystemExit(f"generated test seeds {first}..{first + count - 1} overlap the prior's training / "
                          f"validation seeds ({min(overlap)}..{max(overlap)}): choose another --generated-first")
-
-
 
 
 def solver_budgets(specs: list[str]) -> dict[str, list[int]]:

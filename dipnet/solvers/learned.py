@@ -33,6 +33,9 @@ from torch import nn
 
 from dipnet.solvers.denoiser import PriorMismatchError, load_weights
 
+#: The spatial dims of a ``(B, C, N, N, N)`` volume to flip for each of its 8 axis reflections.
+_REFLECTIONS = [dims for k in range(4) for dims in itertools.combinations((2, 3, 4), k)]
+
 
 class LearnedPrior(nn.Module):
     """RED prior with a trained occupancy denoiser (see the module docstring).
@@ -99,9 +102,8 @@ class LearnedPrior(nn.Module):
         when ``flips``."""
         if not self.flips:
             return self.denoiser(x).clamp(0, 1)
-        axes = [dims for k in range(4) for dims in itertools.combinations((2, 3, 4), k)]
-        total = sum(self.denoiser(x.flip(dims)).flip(dims) for dims in axes)
-        return (total / len(axes)).clamp(0, 1)
+        total = sum(self.denoiser(x.flip(dims)).flip(dims) for dims in _REFLECTIONS)
+        return (total / len(_REFLECTIONS)).clamp(0, 1)
 
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
         """``0.5 <o, o - D(o)> / N^3`` with gradient ``(o - D(o)) / N^3`` (``red``), or
