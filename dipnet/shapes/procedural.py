@@ -11,7 +11,10 @@ dimensionless), built from a seed by one of the :data:`FAMILIES`:
   (through-holes; Euler characteristic ``1 - genus``);
 * ``cavity``: a box or ellipsoid holding 1-2 spherical cavities (radius 0.17-0.25), each reached
   from outside by a channel (radius 0.07-0.09) so water fills it (the complement stays connected);
-* ``blob``: a metaball field of 4-9 anisotropic Gaussians (organic, smooth).
+* ``blob``: a metaball field of 4-9 anisotropic Gaussians (organic, smooth);
+* ``organic``: an animal- or toy-like body: an ellipsoid trunk with a head, 0-4 tapered limbs and
+  sometimes a ring handle (a torus, genus 1), blended by a smooth minimum of their signed distances
+  (smooth saddles where parts meet, no creases).
 
 Every solid is centred on its centroid and scaled so that its farthest point is at radius 1
 (measured on a 48^3 sampling), so ``solid.occupancy(n, fill)`` fills a grid like the benchmark's
@@ -32,8 +35,9 @@ from dipnet.core.grid import Grid
 from dipnet.shapes.base import ShapeError
 from dipnet.shapes.mesh import MeshShape
 
-FAMILIES = ("limbs", "polyhedron", "holes", "cavity", "blob")
+FAMILIES = ("limbs", "polyhedron", "holes", "cavity", "blob", "organic")
 Inside = Callable[[np.ndarray], np.ndarray]  # (P, 3) float64 -> (P,) bool
+Distance = Callable[[np.ndarray], np.ndarray]  # (P, 3) float64 -> (P,) signed distance (< 0 inside)
 _NORMALISE_N = 48  # sampling that finds the centroid and the farthest point
 
 
@@ -168,8 +172,72 @@ def _blob(rng: np.random.Generator, info: dict) -> Inside:
     return inside
 
 
+def _ellipsoid_distance(centre, axes, rot) -> Distance:
+    """A signed distance bound of an ellipsoid (exact on spheres)."""
+    centre, axes, rot = np.asarray(centre, float), np.asarray(axes, float), np.asarray(rot, float)
+    return lambda p: (np.linalg.norm((p - centre) @ rot / axes, axis=1) - 1.0) * axes.min()
+
+
+def _cone_capsule_distance(a, b, radius_a: float, radius_b: float) -> Distance:
+    """Distance to the segment ``a``-``b`` minus a radius tapering linearly from ``radius_a`` to ``radius_b``."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ab = b - a
+
+    def distance(p: np.ndarray) -> np.ndarray:
+        t = np.clip((p - a) @ ab / float(ab @ ab), 0.0, 1.0)
+        return np.linalg.norm(p - a - t[:, None] * ab, axis=1) - (radius_a + (radius_b - radius_a) * t)
+    return distance
+
+
+def _torus_distance(centre, major: float, minor: float, rot) -> Distance:
+    """Signed distance of a torus around the local z axis (rotated by ``rot``)."""
+    centre, rot = np.asarray(centre, float), np.asarray(rot, float)
+
+    def distance(p: np.ndarray) -> np.ndarray:
+        q = (p - centre) @ rot
+        return np.hypot(np.hypot(q[:, 0], q[:, 1]) - major, q[:, 2]) - minor
+    return distance
+
+
+def _smooth_union(parts: list[Distance], k: float) -> Inside:
+    """Inside the polynomial smooth minimum (blend width ``k``) of signed distances."""
+    def inside(p: np.ndarray) -> np.ndarray:
+        d = parts[0](p)
+        for part in parts[1:]:
+            e = part(p)
+            h = np.clip(0.5 + 0.5 * (e - d) / k, 0.0, 1.0)
+            d = e + (d - e) * h - k * h * (1.0 - h)
+        return d <= 0.0
+    return inside
+
+
+def _organic(rng: np.random.Generator, info: dict) -> Inside:
+    rot = _rotation(rng)
+    trunk = np.array([rng.uniform(0.4, 0.6), rng.uniform(0.25, 0.4), rng.uniform(0.2, 0.35)])
+    parts = [_ellipsoid_distance(np.zeros(3), trunk, rot)]
+    has_head = bool(rng.random() < 0.8)
+    if has_head:
+        neck = rot @ np.array([trunk[0] * rng.uniform(0.8, 1.1), 0.0, trunk[2] * rng.uniform(0.0, 0.9)])
+        parts.append(_ellipsoid_distance(neck, rng.uniform(0.14, 0.26, 3), _rotation(rng)))
+    n_limbs = int(rng.integers(0, 5))
+    for i in range(n_limbs):  # legs from the underside, fins or arms: tapered, reaching outwards
+        side = 1.0 if i % 2 else -1.0
+        root = rot @ np.array([trunk[0] * rng.uniform(-0.6, 0.6), side * trunk[1] * 0.5, -trunk[2] * 0.5])
+        reach = rot @ np.array([rng.uniform(-0.2, 0.2), side * rng.uniform(0.0, 0.35), -rng.uniform(0.3, 0.55)])
+        radius = rng.uniform(0.07, 0.13)
+        parts.append(_cone_capsule_distance(root, root + reach, radius, radius * rng.uniform(0.5, 1.0)))
+    has_ring = bool(rng.random() < 0.3)
+    if has_ring:  # a handle or tail loop: a genus-1 smooth part
+        parts.append(_torus_distance(rot @ np.array([-trunk[0], 0.0, 0.0]), rng.uniform(0.2, 0.35),
+                                     rng.uniform(0.06, 0.12), _rotation(rng)))
+    blend = rng.uniform(0.05, 0.15)
+    info.update(head=has_head, limbs=n_limbs, ring=has_ring, blend=float(blend))
+    return _smooth_union(parts, blend)
+
+
 _BUILDERS: dict[str, Callable[[np.random.Generator, dict], Inside]] = {
-    "limbs": _limbs, "polyhedron": _polyhedron, "holes": _holes, "cavity": _cavity, "blob": _blob}
+    "limbs": _limbs, "polyhedron": _polyhedron, "holes": _holes, "cavity": _cavity, "blob": _blob,
+    "organic": _organic}
 
 
 def _lattice(n: int, supersample: int) -> list[np.ndarray]:
