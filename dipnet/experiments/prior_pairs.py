@@ -8,6 +8,10 @@ and the voxel solver (its defaults, so the data-chosen TV weight; ``solver_optio
 reconstructs the soft occupancy on the ``n^3`` grid. The target is the solid's partial-volume
 occupancy (3^3 supersamples per voxel). The inputs are therefore what the solver really returns
 on the benchmark's data, noise-free and noisy, not a cheaper stand-in.
+
+The cache key of a pair holds its options and :func:`pairs_code` (the source digest of the shapes,
+simulator, operators and solvers that made it), so a change to any of them (a new shape family that
+redraws the seeds, a solver fix) makes the pairs afresh instead of reusing stale ones.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from dipnet.core.code_version import SIMULATION_PACKAGES, source_digest
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators import make_operator
@@ -54,6 +59,12 @@ def pairs_key(seeds: Sequence[int], **options) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
+def pairs_code() -> str:
+    """The code version of a pair: :func:`~dipnet.core.code_version.source_digest` of the packages
+    that simulate the dips and of the operators and solvers that reconstruct them."""
+    return source_digest(*SIMULATION_PACKAGES, "dipnet.operators", "dipnet.solvers")
+
+
 def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict) -> None:
     """One pair, written to ``file``."""
     x, y = make_pair(seed, snr_db=snr_db, **options)
@@ -70,7 +81,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
     ``cache/pair_<seed>_<digest>.npz``, so an interrupted build resumes; the missing pairs are made
     by ``workers`` processes (one per core: a pair costs 20-30 s of one core at 64^3, 41 dips)."""
     options = {"n": n, "dips": dips, "fill": fill, "solver_options": dict(solver_options or {})}
-    key_options = {**options, "recipe": "simulated-2"}
+    key_options = {**options, "code": pairs_code()}
     files = {(int(seed), snr): Path(cache) / f"pair_{seed}_{pairs_key([seed], snr_db=snr, **key_options)}.npz"
              for seed in seeds for snr in noise_levels}
     missing = [(file, seed, snr) for (seed, snr), file in files.items() if not file.is_file()]

@@ -21,6 +21,15 @@ def test_one_pair_per_seed_and_noise_level_cached_and_bounded(tmp_path):
     assert np.array_equal(x, x2)
 
 
+def test_a_code_change_makes_the_pairs_afresh(tmp_path, monkeypatch):
+    import dipnet.experiments.prior_pairs as prior_pairs
+
+    build_pairs([5000], cache=tmp_path, noise_levels=(None,), **SMALL)
+    monkeypatch.setattr(prior_pairs, "pairs_code", lambda: "another-version")
+    build_pairs([5000], cache=tmp_path, noise_levels=(None,), **SMALL)
+    assert len(list(tmp_path.glob("pair_*.npz"))) == 2  # the old pair is not handed back
+
+
 def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path):
     _, y = build_pairs([5002], cache=tmp_path, noise_levels=(None,), **SMALL)
     grid = Grid(16, 3)
