@@ -95,6 +95,28 @@ def test_polyhedra_have_flat_faces_at_many_angles():
     assert clustering(b) > clustering(smooth) + 0.1
 
 
+def test_organic_solids_are_one_smooth_body_and_a_ring_adds_a_handle():
+    for seed in range(8):
+        solid = make_solid(seed, "organic")
+        b = np.pad(_binary("organic", seed), 1)
+        assert ndimage.label(b)[1] == 1, seed
+        assert euler_number(b, connectivity=1) == (0 if solid.info["ring"] else 1), (seed, solid.info)
+    assert any(make_solid(s, "organic").info["ring"] for s in range(8))
+
+
+def test_smooth_union_holds_its_parts_and_fills_the_crease_between_them():
+    from dipnet.shapes.procedural import _ellipsoid_distance, _smooth_union
+
+    a = _ellipsoid_distance([-0.3, 0, 0], [0.3, 0.3, 0.3], np.eye(3))
+    b = _ellipsoid_distance([0.3, 0, 0], [0.3, 0.3, 0.3], np.eye(3))
+    inside = _smooth_union([a, b], k=0.1)
+    pts = np.random.default_rng(0).uniform(-0.7, 0.7, (20000, 3))
+    in_parts = (a(pts) <= 0) | (b(pts) <= 0)
+    assert np.all(inside(pts)[in_parts])  # the blend only adds material
+    crease = np.array([[0.0, 0.06, 0.0]])  # beside the spheres' touching point, outside both
+    assert not ((a(crease) <= 0) | (b(crease) <= 0))[0] and inside(crease)[0]
+
+
 def test_generated_shape_matches_its_occupancy_and_gives_exact_dips():
     shape = generated_shape(seed=4, family="holes", radius=40.0, mesh_resolution=96)
     grid = Grid(32, 3, extent=100.0)
