@@ -36,6 +36,9 @@ from dipnet.shapes.base import ShapeError
 from dipnet.shapes.mesh import MeshShape
 
 FAMILIES = ("limbs", "polyhedron", "holes", "cavity", "blob", "organic")
+#: The families a seed draws from when none is named: ``organic`` came later and is made only when
+#: named, so every seed keeps the solid it made before (the shipped prior's training seeds included).
+SEED_FAMILIES = FAMILIES[:5]
 Inside = Callable[[np.ndarray], np.ndarray]  # (P, 3) float64 -> (P,) bool
 Distance = Callable[[np.ndarray], np.ndarray]  # (P, 3) float64 -> (P,) signed distance (< 0 inside)
 _NORMALISE_N = 48  # sampling that finds the centroid and the farthest point
@@ -300,7 +303,8 @@ class ProceduralSolid:
 
 
 def make_solid(seed: int, family: str | None = None) -> ProceduralSolid:
-    """The solid of ``seed`` (family drawn from the seed when ``None``), normalised to the unit ball.
+    """The solid of ``seed`` (family drawn from :data:`SEED_FAMILIES` by the seed when ``None``),
+    normalised to the unit ball.
 
     Raises:
         ValueError: unknown family.
@@ -308,7 +312,7 @@ def make_solid(seed: int, family: str | None = None) -> ProceduralSolid:
     """
     rng = np.random.default_rng([int(seed), 0x5EED])
     if family is None:
-        family = FAMILIES[int(rng.integers(len(FAMILIES)))]
+        family = SEED_FAMILIES[int(rng.integers(len(SEED_FAMILIES)))]
     if family not in _BUILDERS:
         raise ValueError(f"unknown shape family {family!r}; choose one of {FAMILIES}")
     info: dict = {}
@@ -390,5 +394,5 @@ def generated_occupancy(seed: int, grid: Grid, fill: float = 0.9, family: str | 
     return make_solid(seed, family).occupancy(grid.n, fill * grid.radius / (grid.extent / 2), supersample)
 
 
-__all__ = ["FAMILIES", "GeneratedShape", "ProceduralSolid", "family_of", "generated_occupancy", "generated_shape",
+__all__ = ["FAMILIES", "SEED_FAMILIES", "GeneratedShape", "ProceduralSolid", "family_of", "generated_occupancy", "generated_shape",
            "make_solid"]
