@@ -118,4 +118,7 @@ def test_the_quality_bench_runs_the_learned_prior_as_a_job_would():
     assert not prior.coarse_to_fine and prior.temperature_start == prior.temperature_end
     assert prior.priors["learned"]["mode"] == "anchor" and prior.priors["learned"]["weight"] > 0
     assert bench.SOLVERS["prior"](priors={"learned": {"weight": 3.0}}).priors["learned"]["weight"] == 3.0
-    assert bench.SOLVERS["implicit_prior"]().warm_start is not None
+    implicit = bench.SOLVERS["implicit_prior"]()  # the field starts from voxel_learned's whole recipe
+    start = implicit.warm_start
+    assert isinstance(start, VoxelSolver) and start.priors["learned"] == prior.priors["learned"]
+    assert isinstance(start.warm_start, VoxelSolver) and implicit.priors["learned"]["mode"] == "anchor"
