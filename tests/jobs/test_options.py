@@ -87,7 +87,12 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
         if "checkpointing the solve" in line:
             break
     proc.send_signal(signal.SIGINT)
-    _, stderr = proc.communicate(timeout=120)
+    try:
+        _, stderr = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:  # show why (e.g. an interrupt swallowed as "Exception ignored in ...")
+        proc.kill()
+        _, stderr = proc.communicate()
+        pytest.fail(f"Ctrl-C did not end the job within 120 s; its stderr ends:\n{stderr[-3000:]}")
     line = _one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, "", stderr), code=130,
                            prefix="interrupted: ")
     assert f"rerun the same command with hydra.run.dir={tmp_path} to resume" in line, line
