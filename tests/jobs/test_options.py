@@ -82,7 +82,10 @@ def test_unwritable_run_directory_is_named(tmp_path):
 def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     proc = subprocess.Popen([sys.executable, str(SCRIPT), f"hydra.run.dir={tmp_path}", *SMALL, "n_dips=12",
                              "solver=voxel", "solver.iterations=100000", "solver.tol=0", "output.checkpoint=true"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # the job runs as in a terminal's foreground: a shell starts `cmd &` with SIGINT ignored, the
+    # job inherits that and Python then never raises KeyboardInterrupt (CI launched that way hung here)
     for line in proc.stdout:  # Hydra logs to stdout: wait until the solve has started
         if "checkpointing the solve" in line:
             break
