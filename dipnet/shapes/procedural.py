@@ -62,16 +62,17 @@ def _ellipsoid(centre, axes, rot) -> Inside:
     return lambda p: (((p - centre) @ rot / axes) ** 2).sum(axis=1) <= 1.0
 
 
+def _segment_projection(p: np.ndarray, a: np.ndarray, ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(t, squared distance)`` of points ``p`` (P, 3) to the segment from ``a`` to ``a + ab``:
+    ``t`` in ``[0, 1]`` is where along it the nearest point lies."""
+    t = np.clip((p - a) @ ab / float(ab @ ab), 0.0, 1.0)
+    return t, ((p - a - t[:, None] * ab) ** 2).sum(axis=1)
+
+
 def _capsule(a, b, radius: float) -> Inside:
     """Points within ``radius`` of the segment ``a``-``b``."""
     a, b = np.asarray(a, float), np.asarray(b, float)
-    ab = b - a
-    length2 = float(ab @ ab)
-
-    def inside(p: np.ndarray) -> np.ndarray:
-        t = np.clip((p - a) @ ab / length2, 0.0, 1.0)
-        return ((p - a - t[:, None] * ab) ** 2).sum(axis=1) <= radius**2
-    return inside
+    return lambda p: _segment_projection(p, a, b - a)[1] <= radius**2
 
 
 def _cylinder(centre, axis, radius: float) -> Inside:
@@ -184,11 +185,10 @@ def _ellipsoid_distance(centre, axes, rot) -> Distance:
 def _cone_capsule_distance(a, b, radius_a: float, radius_b: float) -> Distance:
     """Distance to the segment ``a``-``b`` minus a radius tapering linearly from ``radius_a`` to ``radius_b``."""
     a, b = np.asarray(a, float), np.asarray(b, float)
-    ab = b - a
 
     def distance(p: np.ndarray) -> np.ndarray:
-        t = np.clip((p - a) @ ab / float(ab @ ab), 0.0, 1.0)
-        return np.linalg.norm(p - a - t[:, None] * ab, axis=1) - (radius_a + (radius_b - radius_a) * t)
+        t, squared = _segment_projection(p, a, b - a)
+        return np.sqrt(squared) - (radius_a + (radius_b - radius_a) * t)
     return distance
 
 

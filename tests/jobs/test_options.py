@@ -92,7 +92,7 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     proc.send_signal(signal.SIGINT)
     try:
         _, stderr = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:  # show why (e.g. an interrupt swallowed as "Exception ignored in ...")
+    except subprocess.TimeoutExpired:  # fail with what the job said, not a bare timeout
         proc.kill()
         _, stderr = proc.communicate()
         pytest.fail(f"Ctrl-C did not end the job within 120 s; its stderr ends:\n{stderr[-3000:]}")
