@@ -142,3 +142,24 @@ def test_the_learned_solver_config_beats_voxel_on_a_noisy_test_shape():
     chamfer = [evaluate(r, truth, grid, truth_mesh=shape.mesh)["chamfer"] for r in (plain, learned)]
     assert chamfer[1] < 0.95 * chamfer[0]
     assert check_consistency(m, op, learned, warn=False).verdict == "consistent"
+
+
+def test_each_round_anchors_to_the_denoised_last_round(weights16, monkeypatch):
+    """With ``rounds``, the anchored prior is rebuilt per round, so D is applied to each round's start."""
+    grid = Grid(16, 3)
+    op = make_operator(grid, fibonacci_hemisphere(12), 16)
+    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
+    m = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(12))
+    seen = []
+    denoise = LearnedPrior.denoise
+    monkeypatch.setattr(LearnedPrior, "denoise", lambda self, o: seen.append(o.clone()) or denoise(self, o))
+    priors = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}}
+    opts = dict(iterations=30, coarse_to_fine=False, progress=False, priors=priors)
+    first = VoxelSolver(**opts).solve(m, op)
+    VoxelSolver(warm_start=first.occupancy, **opts).solve(m, op)
+    restarted = seen[1]  # the second solve's start, as its prior saw it
+    seen.clear()
+    VoxelSolver(rounds=2, **opts).solve(m, op)
+    assert len(seen) == 2  # one anchor per round
+    assert torch.allclose(seen[1], restarted, atol=1e-6)
+    assert not torch.allclose(seen[0], seen[1], atol=1e-3)

@@ -194,3 +194,17 @@ def test_data_term_gain_scales_the_prediction():
     assert float(data(occ).detach()) < 1e-10 and data.gain == pytest.approx(1.25)
     assert [name for name, _ in data.named_parameters()] == ["log_gain"]
     assert DataTerm(op, target).log_gain is None and DataTerm(op, target).gain == 1.0
+
+
+def test_rounds_chain_solves_each_warm_started_from_the_last():
+    """``rounds=2`` is the solve, then the same solve warm-started from its result."""
+    _, op, meas = problem(2)
+    opts = dict(iterations=40, coarse_to_fine=False, progress=False, priors=FIXED_TV, seed=2)
+    first = VoxelSolver(**opts).solve(meas, op)
+    second = VoxelSolver(warm_start=first.occupancy, **opts).solve(meas, op)
+    chained = VoxelSolver(rounds=2, **opts).solve(meas, op)
+    assert torch.allclose(chained.occupancy, second.occupancy, atol=1e-6)
+    assert [s["round"] for s in chained.info["stages"]] == [1, 2]
+    assert len(chained.history["loss"]) == len(first.history["loss"]) + len(second.history["loss"])
+    with pytest.raises(ValueError, match="rounds"):
+        VoxelSolver(rounds=0)
