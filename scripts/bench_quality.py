@@ -25,9 +25,11 @@ each mesh's ratio of voxel's Chamfer at the smallest budget to minnorm's at the 
 (:class:`dipnet.solvers.learned.LearnedPrior`, the shipped 64^3 weights) turns into the anchor of a
 refit under the data term. ``--generated K`` adds K generated shapes (:mod:`dipnet.shapes.procedural`) of
 seeds ``--generated-first`` .. + K - 1, which must not overlap the seeds the weights were trained
-or validated on (refused otherwise). ``--headline`` runs minnorm at the largest budget only and the
-optimisers at the smallest only (what the headline ratios need), and on the generated shapes only
-the optimisers. The last line is then
+or validated on (refused otherwise). ``--solvers truth`` adds a row with no solve: the truth's own
+partial-volume occupancy, what a perfect occupancy estimate on the grid scores (its iso-surface at
+0.5 can lose walls thinner than a voxel, which a lower threshold keeps). ``--headline`` runs minnorm
+at the largest budget only and the optimisers at the smallest only (what the headline ratios need),
+and on the generated shapes only the optimisers. The last line is then
 ``RESULT prior41_over_minnorm410_median=.. prior41_over_minnorm410_worst=.. snr_worst=.. beats_voxel_generated=..``
 (per bundled mesh: prior Chamfer at the smallest budget / minnorm's at the largest, noise-free;
 ``snr_worst``: the same ratio at ``--snr`` dB, worst mesh; ``beats_voxel_generated``: share of the
@@ -56,6 +58,7 @@ from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.core.code_version import simulation_digest
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
+from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator
 from dipnet.core.orientations import fibonacci_hemisphere
@@ -85,7 +88,10 @@ def configured(name: str):
 
 
 SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver,
-           "prior": configured("voxel_learned"), "implicit_prior": configured("implicit_learned")}
+           "prior": configured("voxel_learned"), "implicit_prior": configured("implicit_learned"), "truth": None}
+#: ``--solvers truth``: no solve, the truth's own partial-volume occupancy (3^3 samples per voxel),
+#: what a perfect occupancy estimate on the grid scores.
+TRUTH_SUPERSAMPLE = 3
 OPTIMISERS = ("voxel", "implicit", "dip", "prior", "implicit_prior")
 DEFAULT_MESHES = MESHES_DIR
 
@@ -245,9 +251,11 @@ def main(argv=None) -> list[dict]:
                 measurement, truth, shape = make_case(k, noise)
                 operator = make_operator(grid, measurement.directions, grid.n)
                 for name in names:
-                    solver = SOLVERS[name](progress=False, **options.get(name, {}))
                     t0 = time.perf_counter()
-                    recon = solver.solve(measurement, operator)
+                    if name == "truth":
+                        recon = Reconstruction(shape.occupancy(grid, supersample=TRUTH_SUPERSAMPLE).float(), grid)
+                    else:
+                        recon = SOLVERS[name](progress=False, **options.get(name, {})).solve(measurement, operator)
                     seconds = time.perf_counter() - t0
                     scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
                     rule = recon.info.get("weight_rule") or {}
@@ -337,7 +345,7 @@ def print_prior_summary(rows: list[dict], small: int, large: int) -> None:
     nan = float("nan")
     clean, snr = prior_ratios(rows, small, large, "clean"), prior_ratios(rows, small, large, "snr")
     for label, ratios in (("noise-free", clean), ("noisy", snr)):
-        for solver in ("voxel", "prior", "implicit_prior"):
+        for solver in ("truth", "voxel", "prior", "implicit_prior"):
             r = prior_ratios(rows, small, large, "clean" if label == "noise-free" else "snr", solver)
             if r:
                 print(f"{label}: {solver} {small} / minnorm {large} per mesh: "
