@@ -17,7 +17,11 @@ loses the partial-volume sub-voxel surface that the Chamfer distance rewards.
 ``rounds`` repeats the whole solve, each round warm-started from the last one's occupancy, with its
 priors built afresh. With the learned prior in ``anchor`` mode this is plug-and-play half-quadratic
 splitting: each round fits the data under a pull toward ``D`` of the previous round's result
-(``solver=voxel_learned``, docs/guide/solvers.md, "Learned prior").
+(``solver=voxel_learned``, docs/guide/solvers.md, "Learned prior"). Every round pulls the result
+further toward the prior, so with ``rounds_tau`` a round after the first runs only while the last
+result's data term is at most ``rounds_tau^2 delta^2`` (``delta^2``: the noise's own data term,
+:func:`~dipnet.solvers.weights.noise_level`): Morozov's discrepancy principle, the most
+regularised result that still explains the data to within their noise.
 """
 
 from __future__ import annotations
@@ -57,6 +61,8 @@ class VoxelSolver(OptimisationSolver):
         coarse_to_fine: start on a half-resolution grid (when ``N // 2 >= 8``).
         coarse_fraction: share of ``iterations`` spent on the coarse grid.
         rounds: solves in a row, each warm-started from the last (see the module docstring).
+        rounds_tau: stop the rounds after the first whose data term exceeds ``rounds_tau^2`` times the
+            noise's (see the module docstring); ``None``: every round runs.
         **options: :class:`~dipnet.solvers.optimize.OptimisationSolver` options
             (iterations, lr, optimizer, schedule, tol, window, priors, warm_start, seed,
             threshold, progress).
@@ -66,7 +72,8 @@ class VoxelSolver(OptimisationSolver):
 
     @forwards_to(OptimisationSolver)
     def __init__(self, temperature_start: float = 1.0, temperature_end: float = 0.25, coarse_to_fine: bool = True,
-                 coarse_fraction: float = 0.3, rounds: int = 1, **options) -> None:
+                 coarse_fraction: float = 0.3, rounds: int = 1, rounds_tau: float | None = None,
+                 **options) -> None:
         options.setdefault("iterations", 400)
         options.setdefault("lr", 0.1)
         options.setdefault("priors", {"tv": {"weight": "auto"}, "binary": {"weight": 0.0},
@@ -80,7 +87,9 @@ class VoxelSolver(OptimisationSolver):
         if int(rounds) < 1:
             raise ValueError(f"rounds must be a positive integer, got {rounds!r}")
         self.coarse_to_fine, self.coarse_fraction = bool(coarse_to_fine), float(coarse_fraction)
-        self.rounds = int(rounds)
+        if rounds_tau is not None and not rounds_tau > 0:
+            raise ValueError(f"rounds_tau must be positive or None, got {rounds_tau!r}")
+        self.rounds, self.rounds_tau = int(rounds), None if rounds_tau is None else float(rounds_tau)
 
     def temperature(self, fraction: float) -> float:
         """Temperature after ``fraction`` (0..1) of the whole run."""
@@ -102,14 +111,34 @@ class VoxelSolver(OptimisationSolver):
         round in order, ``info`` the stages' rounds, resolutions and steps and the final temperature."""
         started = time.perf_counter()
         start = self._initial_occupancy(measurement, operator)
-        histories, stage_info = [], []
+        histories, stage_info, rounds = [], [], {}
         for k in range(1, self.rounds + 1):
             label = "" if self.rounds == 1 else f" round {k}/{self.rounds}"
             occ, history, stages, last = self._round(measurement, operator, start, label)
             histories.append(history)
-            stage_info += [{"round": k, **stage} for stage in stages] if self.rounds > 1 else stages
+            noise = last.pop("noise")
+            if self.rounds > 1:  # each round's stages with its final data term
+                stages = [{"round": k, **stage, "data": history["data"][-1]} for stage in stages]
+                rounds = self._rounds_record(k, history["data"][-1], noise)
+            stage_info += stages
             start = occ
-        return self._result(occ, operator, merge_histories(*histories), started, stages=stage_info, **last)
+            if rounds.get("stopped"):
+                break
+        return self._result(occ, operator, merge_histories(*histories), started, stages=stage_info, **last,
+                            **({"rounds": rounds} if rounds else {}))
+
+    def _rounds_record(self, done: int, residual: float, noise: tuple[float, str]) -> dict:
+        """``info["rounds"]`` after round ``done`` with data term ``residual``: rounds run and allowed,
+        the discrepancy test (see ``rounds_tau``) and whether it stops the rounds here."""
+        record = {"done": done, "max": self.rounds, "rule": "fixed" if self.rounds_tau is None else "discrepancy",
+                  "residual": residual ** 0.5, "noise_residual": max(noise[0], 0.0) ** 0.5, "noise_source": noise[1]}
+        if self.rounds_tau is None:
+            return record
+        goal = self.rounds_tau**2 * max(noise[0], 0.0)
+        stopped = done < self.rounds and residual > goal
+        reason = ("the data term exceeds rounds_tau^2 x the noise's: further rounds would pull the result away "
+                  "from its data" if residual > goal else "the data term stays within rounds_tau^2 x the noise's")
+        return {**record, "tau": self.rounds_tau, "target_residual": goal**0.5, "stopped": stopped, "reason": reason}
 
     def _round(self, measurement: DipMeasurement, operator: DipOperator, init: torch.Tensor | None,
                label: str) -> tuple[torch.Tensor, dict, list[dict], dict]:
@@ -149,5 +178,5 @@ class VoxelSolver(OptimisationSolver):
                 logits = z.detach() / temp["T"]
         occ = torch.sigmoid(logits) * mask
         info = {"data": data, "priors": priors, "weights": weights, "final_temperature": temp["T"],
-                "support_voxels": int(mask.sum())}
+                "support_voxels": int(mask.sum()), "noise": problem.noise}
         return occ, merge_histories(*histories), stage_info, info
