@@ -36,6 +36,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "prior_weight_target_residual": ("run", "weight rule: residual aimed at (tau x the noise's)"),
     "prior_weight_residual_reached": ("run", "weight rule: residual of the result"),
     "prior_weight_noise_source": ("run", "weight rule: noise from the measurement's sigma or estimated"),
+    "prior_rounds": ("run", "plug-and-play rounds run, of the most allowed"),
+    "prior_rounds_reason": ("run", "why the rounds ended there"),
     "iou": ("how close to the truth", "intersection over union (1 = identical)"),
     "chamfer": ("how close to the truth", "Chamfer distance (fraction of the truth's diagonal)"),
     "hausdorff": ("how close to the truth", "Hausdorff distance (fraction of the truth's diagonal)"),
@@ -148,8 +150,9 @@ def headline(metrics: dict[str, Any]) -> str:
 
 def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     """The prior weights a solver used and why, from its ``Reconstruction.info``
-    (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`), as flat
-    ``metrics.json`` entries; ``{}`` for solvers without priors."""
+    (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`; ``rounds``, see
+    :class:`~dipnet.solvers.voxel.VoxelSolver`), as flat ``metrics.json`` entries; ``{}`` for
+    solvers without priors."""
     out: dict[str, Any] = {}
     if "prior_weights" in info:
         out["prior_weights"] = dict(info["prior_weights"])
@@ -159,6 +162,11 @@ def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     for key in ("reason", "noise_residual", "target_residual", "residual_reached", "noise_source"):
         if key in rule:
             out[f"prior_weight_{key}"] = rule[key]
+    rounds = info.get("rounds") or {}
+    if rounds:
+        out["prior_rounds"] = f"{rounds['done']} of {rounds['max']}"
+    if "reason" in rounds:
+        out["prior_rounds_reason"] = rounds["reason"]
     return out
 
 

@@ -48,3 +48,12 @@ def test_prior_weights_and_their_reason_go_into_the_metrics():
                                          "weight_rule": {"rule": "fixed"}}) == {
         "prior_weights": {"tv": 1e-3}, "prior_weight_rule": "fixed"}
     assert summary.prior_weight_metrics({"solver": "minnorm"}) == {}
+
+
+def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():
+    info = {"solver": "voxel", "rounds": {"done": 1, "max": 4, "rule": "discrepancy", "stopped": True,
+                                          "reason": "the data term exceeds rounds_tau^2 x the noise's"}}
+    flat = summary.prior_weight_metrics(info)
+    assert flat == {"prior_rounds": "1 of 4", "prior_rounds_reason": info["rounds"]["reason"]}
+    assert list(summary.grouped(flat)) == ["run"]
+    assert summary.prior_weight_metrics({"rounds": {"done": 3, "max": 3, "rule": "fixed"}}) == {"prior_rounds": "3 of 3"}

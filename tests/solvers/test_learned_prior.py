@@ -122,7 +122,7 @@ def test_a_hallucinating_prior_fails_the_consistency_check(tmp_path):
 def test_the_learned_solver_config_beats_voxel_on_a_noisy_test_shape():
     """``solver=voxel_learned`` with the shipped weights, 64^3, 41 dips of generated test seed 7
     (never trained on) at 30 dB: closer to the truth than its own voxel start, and still
-    consistent with the dips."""
+    consistent with the dips; its rounds all ran (the data term stays within the noise's)."""
     from hydra.utils import instantiate
 
     from dipnet.evaluation.metrics import evaluate
@@ -142,6 +142,8 @@ def test_the_learned_solver_config_beats_voxel_on_a_noisy_test_shape():
     chamfer = [evaluate(r, truth, grid, truth_mesh=shape.mesh)["chamfer"] for r in (plain, learned)]
     assert chamfer[1] < 0.95 * chamfer[0]
     assert check_consistency(m, op, learned, warn=False).verdict == "consistent"
+    rounds = learned.info["rounds"]
+    assert rounds["done"] == rounds["max"] > 1 and rounds["residual"] <= rounds["target_residual"]
 
 
 def test_each_round_anchors_to_the_denoised_last_round(weights16, monkeypatch):
