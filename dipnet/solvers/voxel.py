@@ -19,9 +19,11 @@ priors built afresh. With the learned prior in ``anchor`` mode this is plug-and-
 splitting: each round fits the data under a pull toward ``D`` of the previous round's result
 (``solver=voxel_learned``, docs/guide/solvers.md, "Learned prior"). Every round pulls the result
 further toward the prior, so with ``rounds_tau`` a round after the first runs only while the last
-result's data term is at most ``rounds_tau^2 delta^2`` (``delta^2``: the noise's own data term,
-:func:`~dipnet.solvers.weights.noise_level`): Morozov's discrepancy principle, the most
-regularised result that still explains the data to within their noise.
+result's data term is at most ``rounds_tau^2 delta^2`` (``delta^2``: the noise's own data term from
+the measurement's sigma, :func:`~dipnet.solvers.weights.noise_level`): Morozov's discrepancy
+principle, the most regularised result that still explains the data to within their noise. A noise
+*estimated* from the profiles (no sigma given) includes the profiles' own curvature, so, as with the
+TV weight rule (:mod:`dipnet.solvers.weights`), it never licenses a stronger prior: one round.
 """
 
 from __future__ import annotations
@@ -135,9 +137,14 @@ class VoxelSolver(OptimisationSolver):
         if self.rounds_tau is None:
             return record
         goal = self.rounds_tau**2 * max(noise[0], 0.0)
-        stopped = done < self.rounds and residual > goal
-        reason = ("the data term exceeds rounds_tau^2 x the noise's: further rounds would pull the result away "
-                  "from its data" if residual > goal else "the data term stays within rounds_tau^2 x the noise's")
+        if noise[1] != "sigma":
+            reason = ("the noise is estimated from the profiles (an upper bound that includes their own curvature), "
+                      "which never licenses a stronger prior: one round")
+        elif residual > goal:
+            reason = "the data term exceeds rounds_tau^2 x the noise's: a further round would pull the result off its data"
+        else:
+            reason = "the data term stays within rounds_tau^2 x the noise's"
+        stopped = done < self.rounds and (noise[1] != "sigma" or residual > goal)
         return {**record, "tau": self.rounds_tau, "target_residual": goal**0.5, "stopped": stopped, "reason": reason}
 
     def _round(self, measurement: DipMeasurement, operator: DipOperator, init: torch.Tensor | None,

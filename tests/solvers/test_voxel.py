@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -211,18 +212,23 @@ def test_rounds_chain_solves_each_warm_started_from_the_last():
 
 
 def test_rounds_stop_when_the_data_term_exceeds_the_noise_target():
-    """``rounds_tau``: the discrepancy principle ends the rounds after the first whose data term is
-    above ``rounds_tau^2`` x the noise's; a loose target lets every round run."""
+    """``rounds_tau``: with the measurement's sigma, the discrepancy principle ends the rounds after the
+    first whose data term is above ``rounds_tau^2`` x the noise's, and a loose target lets every round
+    run; a noise only estimated from the profiles never licenses a second round."""
     _, op, meas = problem(2)
+    noisy = dataclasses.replace(meas, sigma=torch.full_like(meas.profiles, 0.01 * float(meas.profiles.max())))
     opts = dict(iterations=30, coarse_to_fine=False, progress=False, priors=FIXED_TV, seed=2, rounds=3)
-    one = VoxelSolver(**{**opts, "rounds": 1}).solve(meas, op)
-    strict = VoxelSolver(rounds_tau=1e-6, **opts).solve(meas, op)
-    loose = VoxelSolver(rounds_tau=1e6, **opts).solve(meas, op)
+    one = VoxelSolver(**{**opts, "rounds": 1}).solve(noisy, op)
+    strict = VoxelSolver(rounds_tau=1e-6, **opts).solve(noisy, op)
+    loose = VoxelSolver(rounds_tau=1e6, **opts).solve(noisy, op)
+    estimated = VoxelSolver(rounds_tau=1e6, **opts).solve(meas, op)
     assert strict.info["rounds"]["done"] == 1 and strict.info["rounds"]["stopped"]
     assert torch.allclose(strict.occupancy, one.occupancy)
     assert loose.info["rounds"]["done"] == 3 and not loose.info["rounds"]["stopped"]
     record = loose.info["rounds"]
-    assert record["rule"] == "discrepancy" and record["residual"] == pytest.approx(loose.history["data"][-1] ** 0.5)
+    assert record["rule"] == "discrepancy" and record["noise_source"] == "sigma"
+    assert record["residual"] == pytest.approx(loose.history["data"][-1] ** 0.5)
     assert record["target_residual"] == pytest.approx(1e6 * record["noise_residual"])
+    assert estimated.info["rounds"]["done"] == 1 and "estimated" in estimated.info["rounds"]["reason"]
     with pytest.raises(ValueError, match="rounds_tau"):
         VoxelSolver(rounds_tau=0.0)
