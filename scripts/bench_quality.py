@@ -89,8 +89,8 @@ def configured(name: str):
 
 SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver,
            "prior": configured("voxel_learned"), "implicit_prior": configured("implicit_learned"), "truth": None}
-#: ``--solvers truth``: no solve, the truth's own partial-volume occupancy (3^3 samples per voxel),
-#: what a perfect occupancy estimate on the grid scores.
+#: Samples per voxel axis of the truth's partial-volume occupancy: the binary truth of every case, and
+#: the ``--solvers truth`` row (no solve: what a perfect occupancy estimate on the grid scores).
 TRUTH_SUPERSAMPLE = 3
 OPTIMISERS = ("voxel", "implicit", "dip", "prior", "implicit_prior")
 DEFAULT_MESHES = MESHES_DIR
@@ -213,7 +213,7 @@ def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
     if truth_file.is_file():
         truth = np.load(truth_file)
     else:
-        truth = shape.occupancy(grid, supersample=3).numpy() >= 0.5
+        truth = shape.occupancy(grid, supersample=TRUTH_SUPERSAMPLE).numpy() >= 0.5
         np.save(truth_file, truth)
     return measurement, truth, shape
 

@@ -85,12 +85,12 @@ class VoxelSolver(OptimisationSolver):
             raise ValueError("need 0 < temperature_end <= temperature_start")
         if not 0 <= coarse_fraction < 1:
             raise ValueError(f"coarse_fraction must be in [0, 1), got {coarse_fraction}")
-        self.temperature_start, self.temperature_end = float(temperature_start), float(temperature_end)
         if int(rounds) < 1:
             raise ValueError(f"rounds must be a positive integer, got {rounds!r}")
-        self.coarse_to_fine, self.coarse_fraction = bool(coarse_to_fine), float(coarse_fraction)
         if rounds_tau is not None and not rounds_tau > 0:
             raise ValueError(f"rounds_tau must be positive or None, got {rounds_tau!r}")
+        self.temperature_start, self.temperature_end = float(temperature_start), float(temperature_end)
+        self.coarse_to_fine, self.coarse_fraction = bool(coarse_to_fine), float(coarse_fraction)
         self.rounds, self.rounds_tau = int(rounds), None if rounds_tau is None else float(rounds_tau)
 
     def temperature(self, fraction: float) -> float:
@@ -120,8 +120,9 @@ class VoxelSolver(OptimisationSolver):
             histories.append(history)
             noise = last.pop("noise")
             if self.rounds > 1:  # each round's stages with its final data term
-                stages = [{"round": k, **stage, "data": history["data"][-1]} for stage in stages]
-                rounds = self._rounds_record(k, history["data"][-1], noise)
+                residual = history["data"][-1]
+                stages = [{"round": k, **stage, "data": residual} for stage in stages]
+                rounds = self._rounds_record(k, residual, noise)
             stage_info += stages
             start = occ
             if rounds.get("stopped"):
@@ -137,14 +138,15 @@ class VoxelSolver(OptimisationSolver):
         if self.rounds_tau is None:
             return record
         goal = self.rounds_tau**2 * max(noise[0], 0.0)
-        if noise[1] != "sigma":
+        known, within = noise[1] == "sigma", residual <= goal
+        if not known:
             reason = ("the noise is estimated from the profiles (an upper bound that includes their own curvature), "
                       "which never licenses a stronger prior: one round")
-        elif residual > goal:
+        elif not within:
             reason = "the data term exceeds rounds_tau^2 x the noise's: a further round would pull the result off its data"
         else:
             reason = "the data term stays within rounds_tau^2 x the noise's"
-        stopped = done < self.rounds and (noise[1] != "sigma" or residual > goal)
+        stopped = done < self.rounds and not (known and within)
         return {**record, "tau": self.rounds_tau, "target_residual": goal**0.5, "stopped": stopped, "reason": reason}
 
     def _round(self, measurement: DipMeasurement, operator: DipOperator, init: torch.Tensor | None,
