@@ -146,6 +146,29 @@ def test_the_learned_solver_config_beats_voxel_on_a_noisy_test_shape():
     assert rounds["done"] == rounds["max"] > 1 and rounds["residual"] <= rounds["target_residual"]
 
 
+def test_the_anchor_weight_follows_the_noise_by_the_discrepancy_rule(weights16):
+    """``learned: {weight: auto}`` with the solver's weight rule (as in ``solver=voxel_learned``): with the
+    sensor's sigma known and the first solve fitting closer than tau^2 x the noise, the weight is raised
+    and refitted at; with the same profiles and no sigma (an estimated noise) it stays at the start."""
+    grid = Grid(16, 3)
+    op = make_operator(grid, fibonacci_hemisphere(12), 16)
+    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
+    clean = op(truth)
+    sigma = 0.15 * float(clean.abs().max())
+    noisy = clean + sigma * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    edges = op.slab_edges()[:1].expand(12)
+    rule = {"start": 1.0, "floor": 1.0, "largest": 16.0, "tau": 1.5, "slope": 0.15}
+    priors = {"tv": {"weight": 0.0}, "learned": {"weight": "auto", "weights": str(weights16), "mode": "anchor"}}
+    opts = dict(iterations=100, coarse_to_fine=False, progress=False, priors=priors, weight_rule=rule)
+    known = VoxelSolver(**opts).solve(DipMeasurement(op.directions, noisy, op.slab_thickness, edges, sigma=sigma), op)
+    record = known.info["weight_rule"]
+    assert record["noise_source"] == "sigma" and record["first_residual"] < record["target_residual"]
+    assert 1.0 < known.info["prior_weights"]["learned"] <= 16.0 and record["refit_steps"] > 0
+    estimated = VoxelSolver(**opts).solve(DipMeasurement(op.directions, noisy, op.slab_thickness, edges), op)
+    assert estimated.info["weight_rule"]["noise_source"] == "estimated"
+    assert estimated.info["prior_weights"]["learned"] == 1.0 and estimated.info["weight_rule"]["refit_steps"] == 0
+
+
 def test_each_round_anchors_to_the_denoised_last_round(weights16, monkeypatch):
     """With ``rounds``, the anchored prior is rebuilt per round, so D is applied to each round's start."""
     grid = Grid(16, 3)
