@@ -9,7 +9,13 @@ config (``.pt`` + ``.json``). The bundled meshes are never used. A checkpoint (`
 the weights) is written every ``--checkpoint-every`` steps; ``--resume`` continues from it (also
 to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint.
 
+``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
+goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights),
+about 25 more minutes on 2 cores, and the first-stage weights are fine-tuned on those
+(``--init-weights denoiser64``, 2000 steps at lr 5e-4 unless given).
+
     python scripts/train_prior.py                                   # the shipped weights' recipe
+    python scripts/train_prior.py --stage 2 --out outputs/prior/denoiser64_stage2.pt   # the shipped second stage
     python scripts/train_prior.py --out outputs/prior/denoiser64.pt --resume --steps 6000   # train longer
     python scripts/train_prior.py --steps 20 --train-seeds 1000 1004 --val-seeds 2000 2001  # a smoke run
 """
@@ -23,14 +29,30 @@ from pathlib import Path
 
 import torch
 
+from omegaconf import OmegaConf
+
+from dipnet.experiments.prior_training import STAGE2, TrainConfig, train
+from dipnet.jobs.tuning import compose_job
 from dipnet.solvers.denoiser import SHIPPED_WEIGHTS
-from dipnet.experiments.prior_training import TrainConfig, train
+
+
+def learned_round() -> dict:
+    """The options of one round of ``solver=voxel_learned`` with the first-stage weights (no warm
+    start: it starts from each pair's input), the second stage's ``refine``."""
+    options = OmegaConf.to_container(compose_job(["solver=voxel_learned"]).solver, resolve=True)
+    for key in ("_target_", "warm_start", "later_priors", "progress", "seed"):
+        options.pop(key, None)
+    return {**options, "rounds": 1, "min_rounds": 1}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    defaults = TrainConfig()
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=Path("outputs/prior/denoiser64.pt"),
+    stage = argparse.ArgumentParser(add_help=False)
+    stage.add_argument("--stage", type=int, choices=(1, 2), default=1,
+                       help="1: train on voxel results; 2: fine-tune on their first learned round")
+    known, _ = stage.parse_known_args(argv)
+    defaults = TrainConfig(**(STAGE2 if known.stage == 2 else {}))
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], parents=[stage])
+    p.add_argument("--out", type=Path, default=Path("outputs/prior") / f"denoiser64{'_stage2' if known.stage == 2 else ''}.pt",
                    help=f"weights file (the shipped ones are {SHIPPED_WEIGHTS.name} in dipnet/data/priors)")
     p.add_argument("--cache", type=Path, default=Path("outputs/prior_pairs"), help="folder caching training pairs")
     p.add_argument("--train-seeds", type=int, nargs=2, default=list(defaults.train_seeds), metavar=("FIRST", "STOP"))
@@ -40,6 +62,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(defaults, name))
     for name in ("snr_db", "fill", "lr", "max_minutes"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(defaults, name))
+    p.add_argument("--init-weights", default=defaults.init_weights,
+                   help="weights to start from (file or shipped name); default: a new network (stage 1)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint next to --out")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the training")
     p.add_argument("--workers", type=int, default=2, help="processes making the missing training pairs")
@@ -52,7 +76,8 @@ def main(argv=None) -> dict:
     torch.set_num_threads(args.threads)
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in vars(args).items() if k in fields}
-    config = TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds)})
+    config = TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
+                            "refine": learned_round() if args.stage == 2 else None})
     meta = train(config, args.out, args.cache, resume=args.resume, progress=not args.no_progress,
                  workers=args.workers)
     print(json.dumps({k: meta[k] for k in ("steps_done", "seconds", "validation")}))

@@ -37,20 +37,36 @@ from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.voxel import VoxelSolver
 
 
-def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = None, fill: float = 0.9,
-              solver_options: Mapping | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``(reconstruction, truth)``, each ``(n, n, n)`` float32 in ``[0, 1]``, for one generated shape
-    dipped ``dips`` times, noise-free (``snr_db=None``) or with level-sensor noise at ``snr_db`` dB."""
+def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float):
+    """``(shape, measurement, operator)`` of one generated shape dipped ``dips`` times (see the module)."""
     grid = Grid(n, 3)
     shape = generated_shape(int(seed), radius=fill * grid.radius)
     sensor = LevelSensor(snr_db=snr_db, quantum_mm=0.0, seed=int(seed))
     _, measurement = simulate_measurement(shape, fibonacci_hemisphere(dips), grid=grid, sensor=sensor,
                                           seed=int(seed), progress=False)
-    operator = make_operator(grid, measurement.directions, n)
+    return shape, measurement, make_operator(grid, measurement.directions, n)
+
+
+def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = None, fill: float = 0.9,
+              solver_options: Mapping | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(reconstruction, truth)``, each ``(n, n, n)`` float32 in ``[0, 1]``, for one generated shape
+    dipped ``dips`` times, noise-free (``snr_db=None``) or with level-sensor noise at ``snr_db`` dB."""
+    shape, measurement, operator = _measurement(seed, n, dips, snr_db, fill)
     options = {"progress": False, "seed": int(seed), **dict(solver_options or {})}
     recon = VoxelSolver(**options).solve(measurement, operator)
-    truth = shape.occupancy(grid, supersample=3)
+    truth = shape.occupancy(operator.grid, supersample=3)
     return recon.occupancy.numpy().astype(np.float32), np.asarray(truth, dtype=np.float32)
+
+
+def refine_input(seed: int, start: np.ndarray, refine: Mapping, n: int = 64, dips: int = 41,
+                 snr_db: float | None = None, fill: float = 0.9, solver_options: Mapping | None = None
+                 ) -> np.ndarray:
+    """A second-stage input ``(n, n, n)`` float32: :class:`VoxelSolver` with options ``refine`` (e.g.
+    one round of ``solver=voxel_learned``) warm-started from ``start``, a pair's first-stage input,
+    on the same measurement (``solver_options`` made ``start`` and are unused here)."""
+    _, measurement, operator = _measurement(seed, n, dips, snr_db, fill)
+    options = {"progress": False, "seed": int(seed), **dict(refine), "warm_start": torch.from_numpy(start)}
+    return VoxelSolver(**options).solve(measurement, operator).occupancy.numpy().astype(np.float32)
 
 
 def pairs_key(seeds: Sequence[int], **options) -> str:
@@ -65,38 +81,61 @@ def pairs_code() -> str:
     return source_digest(*SIMULATION_PACKAGES, "dipnet.operators", "dipnet.solvers")
 
 
-def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict) -> None:
-    """One pair, written to ``file``."""
-    x, y = make_pair(seed, snr_db=snr_db, **options)
+def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, refine: Mapping | None = None,
+                   first: Path | None = None) -> None:
+    """One pair, written to ``file``: made afresh, or with ``refine`` from the first-stage pair ``first``."""
+    if refine is None:
+        x, y = make_pair(seed, snr_db=snr_db, **options)
+    else:
+        with np.load(first) as saved:
+            start, y = saved["input"], saved["target"]
+        x = refine_input(seed, start, refine, snr_db=snr_db, **options)
     file.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(file, input=x, target=y)
 
 
+def _make_missing(jobs: list[tuple], desc: str, total: int, progress: bool, workers: int) -> None:
+    """Run :func:`_make_and_save` on ``jobs`` (its arguments) with ``workers`` processes."""
+    with tqdm(total=total, initial=total - len(jobs), desc=desc, disable=not progress) as bar:
+        if workers > 1 and len(jobs) > 1:
+            context = multiprocessing.get_context("spawn")  # no fork of a process with torch threads
+            with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=torch.set_num_threads,
+                                     initargs=(1,)) as pool:
+                for done in as_completed([pool.submit(_make_and_save, *job) for job in jobs]):
+                    done.result()
+                    bar.update()
+        else:
+            for job in jobs:
+                _make_and_save(*job)
+                bar.update()
+
+
 def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
                 noise_levels: Sequence[float | None] = (None, 30.0), fill: float = 0.9,
-                solver_options: Mapping | None = None, progress: bool = True, workers: int = 1
-                ) -> tuple[np.ndarray, np.ndarray]:
+                solver_options: Mapping | None = None, progress: bool = True, workers: int = 1,
+                refine: Mapping | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One pair per seed and noise level (``None`` = noise-free, else SNR in dB), stacked as
     ``(S * len(noise_levels), n, n, n)`` inputs and targets (seed-major). Each pair is cached as
     ``cache/pair_<seed>_<digest>.npz``, so an interrupted build resumes; the missing pairs are made
-    by ``workers`` processes (one per core: a pair costs 20-30 s of one core at 64^3, 41 dips)."""
+    by ``workers`` processes (one per core: a pair costs 20-30 s of one core at 64^3, 41 dips).
+
+    With ``refine`` (:class:`VoxelSolver` options) the pairs are second-stage ones: each first-stage
+    input is refined by :func:`refine_input` (cached as ``cache/stage2_<seed>_<digest>.npz``, the
+    digest holding ``refine`` too), the targets unchanged."""
     options = {"n": n, "dips": dips, "fill": fill, "solver_options": dict(solver_options or {})}
     key_options = {**options, "code": pairs_code()}
     files = {(int(seed), snr): Path(cache) / f"pair_{seed}_{pairs_key([seed], snr_db=snr, **key_options)}.npz"
              for seed in seeds for snr in noise_levels}
-    missing = [(file, seed, snr) for (seed, snr), file in files.items() if not file.is_file()]
-    with tqdm(total=len(files), initial=len(files) - len(missing), desc="training pairs", disable=not progress) as bar:
-        if workers > 1 and len(missing) > 1:
-            context = multiprocessing.get_context("spawn")  # no fork of a process with torch threads
-            with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=torch.set_num_threads,
-                                     initargs=(1,)) as pool:
-                for done in as_completed([pool.submit(_make_and_save, *job, options) for job in missing]):
-                    done.result()
-                    bar.update()
-        else:
-            for job in missing:
-                _make_and_save(*job, options)
-                bar.update()
+    missing = [(file, seed, snr, options) for (seed, snr), file in files.items() if not file.is_file()]
+    _make_missing(missing, "training pairs", len(files), progress, workers)
+    if refine is not None:
+        refine = dict(refine)
+        firsts = files
+        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, refine=refine, **key_options)}"
+                 ".npz" for seed, snr in firsts}
+        missing = [(file, seed, snr, options, refine, firsts[seed, snr]) for (seed, snr), file in files.items()
+                   if not file.is_file()]
+        _make_missing(missing, "second-stage inputs", len(files), progress, workers)
     inputs, targets = [], []
     for file in files.values():
         with np.load(file) as saved:

@@ -6,6 +6,11 @@ by Adam on the mean squared error over random ``crop^3`` blocks, with random fli
 permutations (the dip directions cover the sphere evenly, so the artifacts have no preferred axis).
 Every random draw comes from one generator seeded by ``seed``; its state is saved in each
 checkpoint, so a run resumed with ``resume=True`` continues the same sequence of batches.
+
+A second stage (``init_weights`` and ``refine`` set) fine-tunes trained weights on second-stage
+pairs: the first-stage inputs after one round of the learned prior (``refine``, the options of that
+round), so the network learns the artifacts the later plug-and-play rounds meet
+(``solver=voxel_learned``'s ``later_priors``).
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
-from dipnet.solvers.denoiser import OccupancyDenoiser, save_weights
+from dipnet.solvers.denoiser import OccupancyDenoiser, load_weights, save_weights
 from dipnet.experiments.prior_pairs import build_pairs
 
 
@@ -41,6 +46,10 @@ class TrainConfig:
         seed: the run's random seed.
         checkpoint_every: steps between checkpoints.
         max_minutes: stop (with a checkpoint) after this wall time; resume continues.
+        init_weights: weights to start from (a file or shipped name, see
+            :func:`~dipnet.solvers.denoiser.weights_path`); ``None``: a new network (its output the input).
+        refine: :class:`~dipnet.solvers.voxel.VoxelSolver` options that turn each pair's input into a
+            second-stage one (:func:`~dipnet.experiments.prior_pairs.build_pairs`); ``None``: first stage.
     """
 
     train_seeds: tuple[int, int] = (1000, 1064)
@@ -58,13 +67,19 @@ class TrainConfig:
     seed: int = 0
     checkpoint_every: int = 250
     max_minutes: float = 90.0
+    init_weights: str | None = None
+    refine: dict | None = None
     extra: dict = field(default_factory=dict)
+
+
+#: What ``--stage 2`` changes (the shipped ``denoiser64_stage2``): fine-tune the first stage, gently.
+STAGE2 = {"init_weights": "denoiser64", "steps": 2000, "lr": 5e-4}
 
 
 def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool, workers: int):
     return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, noise_levels=(None, config.snr_db),
                        fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress,
-                       workers=workers)
+                       workers=workers, refine=config.refine)
 
 
 def random_batch(inputs: torch.Tensor, targets: torch.Tensor, batch: int, crop: int, generator: torch.Generator
@@ -92,6 +107,19 @@ def validation_loss(model: OccupancyDenoiser, inputs: torch.Tensor, targets: tor
     return float(F.mse_loss(out, targets)), float(F.mse_loss(inputs, targets))
 
 
+def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
+    """A new network of ``config.channels``, or the weights ``config.init_weights`` (same width)."""
+    if config.init_weights is None:
+        return OccupancyDenoiser(config.channels)
+    model, meta = load_weights(config.init_weights)
+    if int(meta["channels"]) != config.channels or int(meta["n"]) != config.n:
+        raise ValueError(f"init_weights {config.init_weights!r} have {meta['channels']} channels for a {meta['n']}^3 "
+                         f"grid, the config {config.channels} channels and n={config.n}")
+    for parameter in model.parameters():
+        parameter.requires_grad_(True)
+    return model
+
+
 def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, progress: bool = True,
           workers: int = 1) -> dict:
     """Train (or continue) and write the weights to ``out`` (``.pt`` + ``.json``); the checkpoint
@@ -105,7 +133,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     inputs, targets = torch.from_numpy(x_np), torch.from_numpy(y_np)
     val_in, val_target = torch.from_numpy(xv_np), torch.from_numpy(yv_np)
     torch.manual_seed(config.seed)
-    model = OccupancyDenoiser(config.channels)
+    model = _initial_model(config)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda i: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(i / config.steps, 1.0))))
@@ -155,7 +183,8 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     seconds = time.perf_counter() - started
     meta = {"n": config.n, "ndim": 3, "n_slabs_per_voxel": 1, "config": dataclasses.asdict(config),
             "steps_done": step, "seconds": round(seconds, 1), "validation": history["val"][-1] if history["val"] else None,
-            "trained_on": "generated shapes (dipnet.shapes.procedural), seeds " f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"}
+            "trained_on": "generated shapes (dipnet.shapes.procedural), seeds " f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"
+            + ("" if config.refine is None else ", inputs after one round of the learned prior (second stage)")}
     model.eval()
     save_weights(model, out, meta)
     return meta

@@ -20,8 +20,10 @@ import torch.nn.functional as F
 from torch import nn
 
 WEIGHTS_FORMAT = "dipnet-occupancy-denoiser-1"
-#: The weights shipped in the package (see docs/guide/solvers.md, "Learned prior").
-SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "data" / "priors" / "denoiser64.pt"
+#: The folder of the weights shipped in the package (see docs/guide/solvers.md, "Learned prior").
+SHIPPED_DIR = Path(__file__).resolve().parents[1] / "data" / "priors"
+#: The first-stage weights (``weights: null``): D of a plain voxel reconstruction.
+SHIPPED_WEIGHTS = SHIPPED_DIR / "denoiser64.pt"
 
 
 class PriorWeightsError(ValueError):
@@ -83,16 +85,32 @@ def save_weights(model: OccupancyDenoiser, path: str | Path, meta: dict) -> Path
     return path
 
 
+def shipped_names() -> list[str]:
+    """The names of the weights shipped in :data:`SHIPPED_DIR` (file stems)."""
+    return sorted(p.stem for p in SHIPPED_DIR.glob("*.pt"))
+
+
+def weights_path(weights: str | Path | None) -> Path:
+    """The file of ``weights``: ``None`` is :data:`SHIPPED_WEIGHTS`, a bare name (no folder, no
+    suffix, e.g. ``"denoiser64_stage2"``) a file shipped in :data:`SHIPPED_DIR`, anything else a path."""
+    if weights is None:
+        return SHIPPED_WEIGHTS
+    path = Path(weights)
+    if path.name == str(weights) and not path.suffix:
+        return SHIPPED_DIR / f"{path.name}.pt"
+    return path
+
+
 def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dict]:
-    """``(model in eval mode, meta)`` from a weights file (``None``: the shipped weights).
+    """``(model in eval mode, meta)`` from a weights file or shipped name (see :func:`weights_path`).
 
     Raises:
         PriorWeightsError: the file is missing, unreadable, or not a dipnet denoiser.
     """
-    path = SHIPPED_WEIGHTS if path is None else Path(path)
+    path = weights_path(path)
     if not path.is_file():
         raise PriorWeightsError(f"learned-prior weights not found: {path} (train them with scripts/train_prior.py, "
-                                "or pass weights: null for the shipped ones)")
+                                f"pass weights: null for the shipped first stage, or a shipped name: {shipped_names()})")
     try:
         saved = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a damaged file

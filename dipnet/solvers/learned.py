@@ -41,7 +41,9 @@ class LearnedPrior(nn.Module):
     """RED prior with a trained occupancy denoiser (see the module docstring).
 
     Args:
-        weights: path of a weights file (``None``: the weights shipped in ``dipnet/data/priors``).
+        weights: a weights file, or the name of weights shipped in ``dipnet/data/priors``
+            (``None``: the first stage, ``denoiser64``; ``"denoiser64_stage2"``: the second, trained on
+            the first round's results; see :func:`~dipnet.solvers.denoiser.weights_path`).
         refresh: evaluate the denoiser every ``refresh`` calls (>= 1; ``red`` mode).
         mode: ``"red"`` or ``"anchor"`` (see the module docstring).
         flips: average ``D`` over the 8 axis reflections (see the module docstring).

@@ -57,6 +57,7 @@ class Problem(NamedTuple):
     volume_fraction: float  # measured object volume / grid cube volume
     support: torch.Tensor  # bool, grid.shape: voxels that may be occupied
     noise: tuple[float, str]  # the data term of the noise alone and where it comes from (weights.noise_level)
+    spec: Mapping[str, Mapping]  # the priors' options ("auto" weights unresolved) that ``priors`` was built from
 
 
 class DataTerm(nn.Module):
@@ -438,7 +439,7 @@ class OptimisationSolver(Solver):
         state. Returns the refit's history (``{}`` without one), the priors of the result and the
         record of the choice (``{"rule": "fixed"}`` when no weight is ``"auto"``).
         """
-        if not auto_names(self.priors):
+        if not auto_names(problem.spec):
             return {}, problem.priors, {"rule": "fixed"}
         rule, data = self.weight_rule, problem.data
 
@@ -450,7 +451,7 @@ class OptimisationSolver(Solver):
         weight = rule.next_weight(rule.start, first, problem.noise[0], may_raise=problem.noise[1] == "sigma")
         priors, history = problem.priors, {}
         if weight != rule.start:
-            priors = build_priors(with_weight(self.priors, weight), problem.volume_fraction)
+            priors = build_priors(with_weight(problem.spec, weight), problem.volume_fraction)
             history = self._loop(parameters, occupancy, data, priors, max(1, round(rule.refit * steps)),
                                  f"{desc} refit", lr_scale=rule.refit_lr)
         record = {**rule.record(weight, first, residual(), problem.noise), "refit_steps": len(history.get("loss", []))}
@@ -459,19 +460,21 @@ class OptimisationSolver(Solver):
                  record["noise_source"])
         return history, priors, record
 
-    def _problem(self, measurement: DipMeasurement, operator: DipOperator, fit_gain: bool | None = None) -> Problem:
-        """Data term (fitting a gain with ``fit_gain``, default :attr:`fit_gain`), priors, measured
-        volume fraction and support mask for ``operator``."""
+    def _problem(self, measurement: DipMeasurement, operator: DipOperator, fit_gain: bool | None = None,
+                 priors: Mapping[str, Mapping] | None = None) -> Problem:
+        """Data term (fitting a gain with ``fit_gain``, default :attr:`fit_gain`), priors (those of
+        ``priors``, default :attr:`priors`), measured volume fraction and support mask for ``operator``."""
+        spec = self.priors if priors is None else priors
         target, sigma = target_and_sigma(measurement, operator)
         fraction = volume_fraction(measurement, operator)
         support = self.support(target, operator, operator.grid)
         data = DataTerm(operator, target, sigma, fit_gain=self.fit_gain if fit_gain is None else fit_gain)
         noise = noise_level(target, sigma, data.weight, self.hull_tol if self.hull_tol is not None else 0.005)
-        priors = build_priors(with_weight(self.priors, self.weight_rule.start), fraction)
-        for _, _, module in priors:  # priors made for one grid / operator (the learned prior) refuse others
+        built = build_priors(with_weight(spec, self.weight_rule.start), fraction)
+        for _, _, module in built:  # priors made for one grid / operator (the learned prior) refuse others
             if hasattr(module, "check_operator"):
                 module.check_operator(operator)
-        return Problem(data, priors, fraction, support, noise)
+        return Problem(data, built, fraction, support, noise, spec)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),

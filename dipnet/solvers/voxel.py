@@ -24,11 +24,18 @@ the measurement's sigma, :func:`~dipnet.solvers.weights.noise_level`): Morozov's
 principle, the most regularised result that still explains the data to within their noise. A noise
 *estimated* from the profiles (no sigma given) includes the profiles' own curvature, so, as with the
 TV weight rule (:mod:`dipnet.solvers.weights`), it never licenses a stronger prior: one round.
+
+``later_priors`` changes the priors of the rounds after the first (merged over ``priors``, prior by
+prior), and ``min_rounds`` rounds run whatever the rule says. ``solver=voxel_learned`` uses both for
+its cascade: round 1 anchors to ``D1`` (trained on plain voxel results), round 2 always runs and
+anchors to ``D2`` (trained on round-1 results, the artifacts it meets there), and rounds 3-6 keep
+``D2`` while the discrepancy rule allows.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
@@ -39,7 +46,9 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.solvers.optimize import OptimisationSolver, merge_histories, seeded
+from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
+from dipnet.solvers.priors import build_priors
+from dipnet.solvers.weights import with_weight
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP] before taking logits
 MIN_COARSE_N = 8
@@ -65,6 +74,9 @@ class VoxelSolver(OptimisationSolver):
         rounds: solves in a row, each warm-started from the last (see the module docstring).
         rounds_tau: stop the rounds after the first whose data term exceeds ``rounds_tau^2`` times the
             noise's (see the module docstring); ``None``: every round runs.
+        min_rounds: rounds that run whatever ``rounds_tau`` says (at most ``rounds``).
+        later_priors: ``{name: options}`` merged over ``priors`` (per prior) for rounds 2 and on,
+            e.g. ``{"learned": {"weights": "denoiser64_stage2"}}``; ``None``: every round the same.
         **options: :class:`~dipnet.solvers.optimize.OptimisationSolver` options
             (iterations, lr, optimizer, schedule, tol, window, priors, warm_start, seed,
             threshold, progress).
@@ -75,7 +87,7 @@ class VoxelSolver(OptimisationSolver):
     @forwards_to(OptimisationSolver)
     def __init__(self, temperature_start: float = 1.0, temperature_end: float = 0.25, coarse_to_fine: bool = True,
                  coarse_fraction: float = 0.3, rounds: int = 1, rounds_tau: float | None = None,
-                 **options) -> None:
+                 min_rounds: int = 1, later_priors: Mapping[str, Mapping] | None = None, **options) -> None:
         options.setdefault("iterations", 400)
         options.setdefault("lr", 0.1)
         options.setdefault("priors", {"tv": {"weight": "auto"}, "binary": {"weight": 0.0},
@@ -89,9 +101,24 @@ class VoxelSolver(OptimisationSolver):
             raise ValueError(f"rounds must be a positive integer, got {rounds!r}")
         if rounds_tau is not None and not rounds_tau > 0:
             raise ValueError(f"rounds_tau must be positive or None, got {rounds_tau!r}")
+        if not 1 <= int(min_rounds) <= int(rounds):
+            raise ValueError(f"min_rounds must be in [1, rounds={rounds}], got {min_rounds!r}")
+        self.min_rounds = int(min_rounds)
+        self.later_priors = None if later_priors is None else self._merged(plain(later_priors))
+        if self.later_priors is not None:
+            build_priors(with_weight(self.later_priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.temperature_start, self.temperature_end = float(temperature_start), float(temperature_end)
         self.coarse_to_fine, self.coarse_fraction = bool(coarse_to_fine), float(coarse_fraction)
         self.rounds, self.rounds_tau = int(rounds), None if rounds_tau is None else float(rounds_tau)
+
+    def _merged(self, later: Mapping[str, Mapping]) -> dict[str, dict]:
+        """:attr:`priors` with each prior's options updated by ``later``'s (a bare number is a weight)."""
+        def options(value) -> dict:
+            return {"weight": value} if isinstance(value, (int, float)) else dict(value)
+        merged = {name: options(value) for name, value in self.priors.items()}
+        for name, value in later.items():
+            merged[name] = {**merged.get(name, {}), **options(value)}
+        return merged
 
     def temperature(self, fraction: float) -> float:
         """Temperature after ``fraction`` (0..1) of the whole run."""
@@ -116,7 +143,8 @@ class VoxelSolver(OptimisationSolver):
         histories, stage_info, rounds = [], [], {}
         for k in range(1, self.rounds + 1):
             label = "" if self.rounds == 1 else f" round {k}/{self.rounds}"
-            occ, history, stages, last = self._round(measurement, operator, start, label)
+            priors = self.later_priors if k > 1 and self.later_priors is not None else self.priors
+            occ, history, stages, last = self._round(measurement, operator, start, label, priors)
             histories.append(history)
             noise = last.pop("noise")
             if self.rounds > 1:  # each round's stages with its final data term
@@ -139,26 +167,29 @@ class VoxelSolver(OptimisationSolver):
             return record
         goal = self.rounds_tau**2 * max(noise[0], 0.0)
         known, within = noise[1] == "sigma", residual <= goal
-        if not known:
+        if done < self.min_rounds:
+            reason = f"the first min_rounds={self.min_rounds} rounds always run"
+        elif not known:
             reason = ("the noise is estimated from the profiles (an upper bound that includes their own curvature), "
                       "which never licenses a stronger prior: one round")
         elif not within:
             reason = "the data term exceeds rounds_tau^2 x the noise's: a further round would pull the result off its data"
         else:
             reason = "the data term stays within rounds_tau^2 x the noise's"
-        stopped = done < self.rounds and not (known and within)
+        stopped = self.min_rounds <= done < self.rounds and not (known and within)
         return {**record, "tau": self.rounds_tau, "target_residual": goal**0.5, "stopped": stopped, "reason": reason}
 
     def _round(self, measurement: DipMeasurement, operator: DipOperator, init: torch.Tensor | None,
-               label: str) -> tuple[torch.Tensor, dict, list[dict], dict]:
-        """One solve from ``init`` (``None``: uniform): ``(occupancy, history, stages, info)``, ``info``
-        holding the data term, priors, weight record, final temperature and support size."""
+               label: str, priors: Mapping[str, Mapping]) -> tuple[torch.Tensor, dict, list[dict], dict]:
+        """One solve from ``init`` (``None``: uniform) under the priors ``priors`` (options, as
+        :attr:`priors`): ``(occupancy, history, stages, info)``, ``info`` holding the data term,
+        priors, weight record, final temperature and support size."""
         logits: torch.Tensor | None = None  # u = z / T, carried between stages
         histories, stage_info = [], []
         with seeded(self.seed):
             for op, steps, f0, f1 in self._stages(operator):  # a gain is fitted on the full grid only (see fit_gain)
-                problem = self._problem(measurement, op, self.fit_gain and op is operator)
-                data, priors, fraction, support = problem.data, problem.priors, problem.volume_fraction, problem.support
+                problem = self._problem(measurement, op, self.fit_gain and op is operator, priors)
+                data, built, fraction, support = problem.data, problem.priors, problem.volume_fraction, problem.support
                 mask = support.to(torch.float32)
                 if logits is None:
                     room = float(mask.mean())  # share of the cube that may be filled
@@ -177,15 +208,15 @@ class VoxelSolver(OptimisationSolver):
                     return torch.sigmoid(z / temp["T"]) * mask
 
                 desc = f"voxel {op.grid.n}^{op.grid.ndim}{label}"
-                histories.append(self._loop([z], occupancy, data, priors, steps, desc, before_step=anneal))
+                histories.append(self._loop([z], occupancy, data, built, steps, desc, before_step=anneal))
                 logits = (z.detach() / temp["T"])
                 stage_info.append({"n": op.grid.n, "steps": len(histories[-1]["loss"])})
             # "auto" weights: chosen from the full grid's residual, then refitted at the final temperature
-            refit, priors, weights = self.choose_weights(problem, [z], occupancy, steps, desc)
+            refit, used, weights = self.choose_weights(problem, [z], occupancy, steps, desc)
             if refit:
                 histories.append(refit)
                 logits = z.detach() / temp["T"]
         occ = torch.sigmoid(logits) * mask
-        info = {"data": data, "priors": priors, "weights": weights, "final_temperature": temp["T"],
+        info = {"data": data, "priors": used, "weights": weights, "final_temperature": temp["T"],
                 "support_voxels": int(mask.sum()), "noise": problem.noise}
         return occ, merge_histories(*histories), stage_info, info

@@ -117,6 +117,7 @@ def test_the_quality_bench_runs_the_learned_prior_as_a_job_would():
     assert isinstance(prior, VoxelSolver) and isinstance(prior.warm_start, VoxelSolver)
     assert not prior.coarse_to_fine and prior.temperature_start == prior.temperature_end and prior.rounds > 1
     assert prior.priors["learned"]["mode"] == "anchor" and prior.priors["learned"]["weight"] == "auto"
+    assert prior.later_priors["learned"]["weights"] == "denoiser64_stage2" and prior.min_rounds == 2  # the cascade
     assert prior.weight_rule.tau == 0.8 and prior.weight_rule.largest == 16.0  # the anchor's weight follows the noise
     assert bench.SOLVERS["prior"](priors={"learned": {"weight": 3.0}}).priors["learned"]["weight"] == 3.0
     implicit = bench.SOLVERS["implicit_prior"]()  # the field starts from voxel_learned's whole recipe

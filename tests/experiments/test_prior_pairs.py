@@ -39,6 +39,21 @@ def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path):
     assert ((y > 0) & (y < 1)).any()  # soft at the surface, not a binary mask
 
 
+def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path):
+    """With ``refine`` each input is the first-stage one after a solve warm-started from it (so closer
+    to its data), the truth is the same, and the refined inputs are cached by their options."""
+    refine = {"iterations": 8, "coarse_to_fine": False, "lr": 0.05, "priors": {"tv": {"weight": 1e-3}}}
+    x1, y1 = build_pairs([5000], cache=tmp_path, noise_levels=(None,), **SMALL)
+    x2, y2 = build_pairs([5000], cache=tmp_path, noise_levels=(None,), refine=refine, **SMALL)
+    assert np.array_equal(y1, y2) and not np.allclose(x1, x2) and 0 <= x2.min() and x2.max() <= 1
+    assert 0 < np.abs(x2 - x1).mean() < 0.1  # a refinement of the first stage, not a new solve
+    assert len(list(tmp_path.glob("pair_*.npz"))) == 1 and len(list(tmp_path.glob("stage2_*.npz"))) == 1
+    again, _ = build_pairs([5000], cache=tmp_path, noise_levels=(None,), refine=refine, **SMALL)
+    assert np.array_equal(again, x2)
+    build_pairs([5000], cache=tmp_path, noise_levels=(None,), refine={**refine, "iterations": 9}, **SMALL)
+    assert len(list(tmp_path.glob("stage2_*.npz"))) == 2  # other options: made afresh
+
+
 @pytest.mark.slow
 def test_worker_processes_make_the_same_pairs(tmp_path):
     one = build_pairs([5003, 5004], cache=tmp_path / "one", noise_levels=(None,), **SMALL)

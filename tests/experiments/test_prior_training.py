@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import pytest
 import torch
 
-from dipnet.experiments.prior_training import TrainConfig, random_batch, train
+from dipnet.experiments.prior_training import STAGE2, TrainConfig, random_batch, train
 from dipnet.solvers.denoiser import load_weights
+
+from script_modules import load_script
 
 TINY = TrainConfig(train_seeds=(5000, 5002), val_seeds=(5002, 5003), n=16, dips=8, solver_iterations=10, channels=2,
                    steps=6, batch=2, crop=8, checkpoint_every=3)
@@ -31,3 +34,31 @@ def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path):
     b, _ = load_weights(tmp_path / "b.pt")
     for (name, p), q in zip(a.state_dict().items(), b.state_dict().values()):
         assert torch.equal(p, q), name
+
+
+def test_a_second_stage_starts_from_the_given_weights_on_refined_inputs(tmp_path):
+    """``init_weights`` + ``refine``: the run continues the given network (at a vanishing learning rate
+    it stays the same) on second-stage inputs, and its meta says so; a network of another width is refused."""
+    cache = tmp_path / "pairs"
+    train(TINY, tmp_path / "first.pt", cache, progress=False)
+    refine = {"iterations": 5, "coarse_to_fine": False, "priors": {"tv": {"weight": 1e-3}}}
+    second = dataclasses.replace(TINY, init_weights=str(tmp_path / "first.pt"), refine=refine, lr=1e-12, steps=3)
+    meta = train(second, tmp_path / "second.pt", cache, progress=False)
+    assert meta["config"]["init_weights"] == str(tmp_path / "first.pt") and "second stage" in meta["trained_on"]
+    assert len(list(cache.glob("stage2_*.npz"))) == 6  # three seeds (two to train on, one to validate), two noise levels
+    a, _ = load_weights(tmp_path / "first.pt")
+    b, _ = load_weights(tmp_path / "second.pt")
+    for (name, p), q in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.allclose(p, q, atol=1e-8), name
+    with pytest.raises(ValueError, match="channels"):
+        train(dataclasses.replace(second, channels=4), tmp_path / "wide.pt", cache, progress=False)
+
+
+def test_the_script_makes_the_second_stage_from_one_round_of_voxel_learned():
+    script = load_script("train_prior")
+    args = script.parse_args(["--stage", "2"])
+    assert (args.init_weights, args.steps, args.lr) == (STAGE2["init_weights"], STAGE2["steps"], STAGE2["lr"])
+    assert args.out.name == "denoiser64_stage2.pt" and script.parse_args([]).init_weights is None
+    refine = script.learned_round()
+    assert refine["rounds"] == refine["min_rounds"] == 1 and "warm_start" not in refine and "later_priors" not in refine
+    assert refine["priors"]["learned"]["mode"] == "anchor" and refine["priors"]["learned"]["weights"] is None

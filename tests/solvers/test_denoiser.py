@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import torch
 
 from dipnet.solvers.denoiser import (
+    SHIPPED_DIR,
     SHIPPED_WEIGHTS,
     OccupancyDenoiser,
     PriorWeightsError,
     load_weights,
     save_weights,
+    shipped_names,
+    weights_path,
 )
 
 from solver_helpers import perturbed_denoiser
@@ -62,3 +67,27 @@ def test_shipped_weights_load_without_network():
     assert SHIPPED_WEIGHTS.is_file() and SHIPPED_WEIGHTS.stat().st_size < 20e6
     assert meta["n"] == 64 and meta["ndim"] == 3 and "config" in meta and "seed" in meta["config"]
     assert SHIPPED_WEIGHTS.with_suffix(".json").is_file()
+
+
+def test_weights_are_a_path_or_the_name_of_shipped_ones(tmp_path):
+    assert weights_path(None) == SHIPPED_WEIGHTS == weights_path("denoiser64")
+    assert weights_path("denoiser64_stage2") == SHIPPED_DIR / "denoiser64_stage2.pt"
+    assert weights_path(tmp_path / "w.pt") == tmp_path / "w.pt" and weights_path("w.pt").name == "w.pt"
+    assert weights_path("sub/name") == Path("sub/name")  # a folder makes it a path
+    with pytest.raises(PriorWeightsError, match="denoiser64_stage2"):  # the error lists the shipped names
+        load_weights("no_such_weights")
+
+
+def test_the_shipped_second_stage_is_the_first_fine_tuned_on_its_rounds():
+    assert shipped_names() == ["denoiser64", "denoiser64_stage2"]
+    first, _ = load_weights(None)
+    second, meta = load_weights("denoiser64_stage2")
+    assert (SHIPPED_DIR / "denoiser64_stage2.pt").stat().st_size < 20e6
+    assert (SHIPPED_DIR / "denoiser64_stage2.json").is_file()
+    config = meta["config"]
+    assert config["init_weights"] == "denoiser64" and config["refine"]["rounds"] == 1
+    assert config["refine"]["priors"]["learned"]["weights"] is None  # its inputs: a round anchored to the first
+    assert meta["n"] == 64 and meta["validation"][1] < meta["validation"][2]  # it improves its own inputs
+    x = torch.rand(1, 1, 64, 64, 64)
+    with torch.no_grad():
+        assert not torch.allclose(first(x), second(x), atol=1e-4)

@@ -188,3 +188,30 @@ def test_each_round_anchors_to_the_denoised_last_round(weights16, monkeypatch):
     assert len(seen) == 2  # one anchor per round
     assert torch.allclose(seen[1], restarted, atol=1e-6)
     assert not torch.allclose(seen[0], seen[1], atol=1e-3)
+
+
+def test_later_rounds_anchor_to_the_later_weights(weights16, tmp_path, monkeypatch):
+    """``later_priors``: round 1 anchors to D1, round 2 (run by ``min_rounds`` although the noise is only
+    estimated) to D2, and the chain equals the two solves made by hand."""
+    d2 = save_weights(perturbed_denoiser(0.2, seed=5), tmp_path / "d2.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1,
+                                                                          "stage": 2})
+    grid = Grid(16, 3)
+    op = make_operator(grid, fibonacci_hemisphere(12), 16)
+    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
+    m = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(12))
+    stages = []
+    denoise = LearnedPrior.denoise
+    monkeypatch.setattr(LearnedPrior, "denoise", lambda self, o: stages.append(self.meta.get("stage", 1))
+                        or denoise(self, o))
+    learned = {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}
+    opts = dict(iterations=30, coarse_to_fine=False, progress=False, priors={"tv": {"weight": 0.0}, "learned": learned})
+    chained = VoxelSolver(rounds=3, rounds_tau=1.0, min_rounds=2, later_priors={"learned": {"weights": str(d2)}},
+                          **opts).solve(m, op)
+    assert stages == [1, 2] and chained.info["rounds"]["done"] == 2  # the estimated noise stops it after round 2
+    assert "estimated" in chained.info["rounds"]["reason"]
+    first = VoxelSolver(**opts).solve(m, op)
+    second = VoxelSolver(warm_start=first.occupancy, **{**opts, "priors": {"tv": {"weight": 0.0},
+                                                                         "learned": {**learned, "weights": str(d2)}}})
+    assert torch.allclose(chained.occupancy, second.solve(m, op).occupancy, atol=1e-6)
+    with pytest.raises(PriorWeightsError):  # later weights are checked when the solver is made
+        VoxelSolver(later_priors={"learned": {"weights": str(tmp_path / "missing.pt")}}, **opts)

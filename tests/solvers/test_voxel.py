@@ -232,3 +232,23 @@ def test_rounds_stop_when_the_data_term_exceeds_the_noise_target():
     assert estimated.info["rounds"]["done"] == 1 and "estimated" in estimated.info["rounds"]["reason"]
     with pytest.raises(ValueError, match="rounds_tau"):
         VoxelSolver(rounds_tau=0.0)
+
+
+def test_min_rounds_run_whatever_the_rule_says_and_later_priors_change_them():
+    """The first ``min_rounds`` rounds run even when the rule would stop them; ``later_priors`` are
+    merged over ``priors`` for rounds 2 and on (here a heavier TV), and the result reports them."""
+    _, op, meas = problem(2)
+    opts = dict(iterations=30, coarse_to_fine=False, progress=False, priors=FIXED_TV, seed=2, rounds=3,
+                rounds_tau=1e-6)
+    forced = VoxelSolver(min_rounds=2, later_priors={"tv": {"weight": 0.05}}, **opts).solve(meas, op)
+    assert forced.info["rounds"]["done"] == 2 and forced.info["rounds"]["stopped"]
+    assert forced.info["prior_weights"]["tv"] == 0.05
+    one = VoxelSolver(**opts).solve(meas, op)
+    assert one.info["rounds"]["done"] == 1 and one.info["prior_weights"]["tv"] == 1e-3
+    merged = VoxelSolver(**{**opts, "priors": {"tv": {"weight": 1e-3, "isotropic": False}}},
+                         later_priors={"tv": 0.05}).later_priors  # a bare number is the weight; other options stay
+    assert merged == {"tv": {"weight": 0.05, "isotropic": False}}
+    with pytest.raises(ValueError, match="min_rounds"):
+        VoxelSolver(rounds=2, min_rounds=3)
+    with pytest.raises(ValueError, match="unknown prior"):
+        VoxelSolver(later_priors={"nonsense": {"weight": 1.0}})
