@@ -20,6 +20,14 @@ from dipnet.solvers.voxel import VoxelSolver
 from solver_helpers import one_thread, perturbed_denoiser  # noqa: F401 (one_thread: autouse fixture)
 
 
+def small_problem() -> tuple:
+    """``(operator, noise-free measurement)``: generated shape 4 on a 16^3 grid, 12 dips."""
+    grid = Grid(16, 3)
+    op = make_operator(grid, fibonacci_hemisphere(12), 16)
+    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
+    return op, DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(12))
+
+
 @pytest.fixture
 def weights16(tmp_path):
     """A randomly perturbed (not identity) denoiser for a 16^3 grid."""
@@ -104,10 +112,7 @@ def test_a_hallucinating_prior_fails_the_consistency_check(tmp_path):
     with torch.no_grad():
         net.out.bias.fill_(-1.0)  # D(x) = clip(x - 1) = 0: "there is no object"
     weights = save_weights(net, tmp_path / "empty16.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
-    grid = Grid(16, 3)
-    op = make_operator(grid, fibonacci_hemisphere(12), 16)
-    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
-    m = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(12))
+    op, m = small_problem()
     priors = {"tv": {"weight": 1e-3}}
     honest = VoxelSolver(progress=False, iterations=150, priors=priors).solve(m, op)
     assert check_consistency(m, op, honest, warn=False).verdict == "consistent"
@@ -171,10 +176,7 @@ def test_the_anchor_weight_follows_the_noise_by_the_discrepancy_rule(weights16):
 
 def test_each_round_anchors_to_the_denoised_last_round(weights16, monkeypatch):
     """With ``rounds``, the anchored prior is rebuilt per round, so D is applied to each round's start."""
-    grid = Grid(16, 3)
-    op = make_operator(grid, fibonacci_hemisphere(12), 16)
-    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
-    m = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(12))
+    op, m = small_problem()
     seen = []
     denoise = LearnedPrior.denoise
     monkeypatch.setattr(LearnedPrior, "denoise", lambda self, o: seen.append(o.clone()) or denoise(self, o))
@@ -195,10 +197,7 @@ def test_later_rounds_anchor_to_the_later_weights(weights16, tmp_path, monkeypat
     estimated) to D2, and the chain equals the two solves made by hand."""
     d2 = save_weights(perturbed_denoiser(0.2, seed=5), tmp_path / "d2.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1,
                                                                           "stage": 2})
-    grid = Grid(16, 3)
-    op = make_operator(grid, fibonacci_hemisphere(12), 16)
-    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
-    m = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(12))
+    op, m = small_problem()
     stages = []
     denoise = LearnedPrior.denoise
     monkeypatch.setattr(LearnedPrior, "denoise", lambda self, o: stages.append(self.meta.get("stage", 1))
