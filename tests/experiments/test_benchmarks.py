@@ -124,6 +124,7 @@ def test_the_quality_bench_runs_the_learned_prior_as_a_job_would():
     start = implicit.warm_start
     assert isinstance(start, VoxelSolver) and start.priors["learned"] == prior.priors["learned"]
     assert isinstance(start.warm_start, VoxelSolver) and implicit.priors["learned"]["mode"] == "anchor"
+    assert implicit.priors["learned"]["weights"] == "denoiser64_stage2"  # its start is a cascade result
 
 
 def test_the_truth_row_scores_the_truths_own_occupancy(tmp_path, capsys):
