@@ -23,7 +23,7 @@ result's data term is at most ``rounds_tau^2 delta^2`` (``delta^2``: the noise's
 the measurement's sigma, :func:`~dipnet.solvers.weights.noise_level`): Morozov's discrepancy
 principle, the most regularised result that still explains the data to within their noise. A noise
 *estimated* from the profiles (no sigma given) includes the profiles' own curvature, so, as with the
-TV weight rule (:mod:`dipnet.solvers.weights`), it never licenses a stronger prior: one round.
+TV weight rule (:mod:`dipnet.solvers.weights`), it never licenses a stronger prior: no round beyond ``min_rounds``.
 
 ``later_priors`` changes the priors of the rounds after the first (merged over ``priors``, prior by
 prior), and ``min_rounds`` rounds run whatever the rule says. ``solver=voxel_learned`` uses both for
@@ -171,7 +171,7 @@ class VoxelSolver(OptimisationSolver):
             reason = f"the first min_rounds={self.min_rounds} rounds always run"
         elif not known:
             reason = ("the noise is estimated from the profiles (an upper bound that includes their own curvature), "
-                      "which never licenses a stronger prior: one round")
+                      "which never licenses a stronger prior: no further round")
         elif not within:
             reason = "the data term exceeds rounds_tau^2 x the noise's: a further round would pull the result off its data"
         else:
