@@ -59,11 +59,10 @@ def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = Non
 
 
 def refine_input(seed: int, start: np.ndarray, refine: Mapping, n: int = 64, dips: int = 41,
-                 snr_db: float | None = None, fill: float = 0.9, solver_options: Mapping | None = None
-                 ) -> np.ndarray:
+                 snr_db: float | None = None, fill: float = 0.9) -> np.ndarray:
     """A second-stage input ``(n, n, n)`` float32: :class:`VoxelSolver` with options ``refine`` (e.g.
     one round of ``solver=voxel_learned``) warm-started from ``start``, a pair's first-stage input,
-    on the same measurement (``solver_options`` made ``start`` and are unused here)."""
+    on the same measurement."""
     _, measurement, operator = _measurement(seed, n, dips, snr_db, fill)
     options = {"progress": False, "seed": int(seed), **dict(refine), "warm_start": torch.from_numpy(start)}
     return VoxelSolver(**options).solve(measurement, operator).occupancy.numpy().astype(np.float32)
@@ -89,7 +88,7 @@ def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, r
     else:
         with np.load(first) as saved:
             start, y = saved["input"], saved["target"]
-        x = refine_input(seed, start, refine, snr_db=snr_db, **options)
+        x = refine_input(seed, start, refine, options["n"], options["dips"], snr_db, options["fill"])
     file.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(file, input=x, target=y)
 

@@ -115,8 +115,6 @@ def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
     if int(meta["channels"]) != config.channels or int(meta["n"]) != config.n:
         raise ValueError(f"init_weights {config.init_weights!r} have {meta['channels']} channels for a {meta['n']}^3 "
                          f"grid, the config {config.channels} channels and n={config.n}")
-    for parameter in model.parameters():
-        parameter.requires_grad_(True)
     return model
 
 

@@ -48,7 +48,7 @@ from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 from dipnet.solvers.priors import build_priors
-from dipnet.solvers.weights import with_weight
+from dipnet.solvers.weights import prior_options, with_weight
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP] before taking logits
 MIN_COARSE_N = 8
@@ -113,11 +113,9 @@ class VoxelSolver(OptimisationSolver):
 
     def _merged(self, later: Mapping[str, Mapping]) -> dict[str, dict]:
         """:attr:`priors` with each prior's options updated by ``later``'s (a bare number is a weight)."""
-        def options(value) -> dict:
-            return {"weight": value} if isinstance(value, (int, float)) else dict(value)
-        merged = {name: options(value) for name, value in self.priors.items()}
+        merged = {name: prior_options(value) for name, value in self.priors.items()}
         for name, value in later.items():
-            merged[name] = {**merged.get(name, {}), **options(value)}
+            merged[name] = {**merged.get(name, {}), **prior_options(value)}
         return merged
 
     def temperature(self, fraction: float) -> float:

@@ -136,12 +136,17 @@ def auto_names(spec: Mapping[str, Mapping]) -> list[str]:
     return [name for name, options in spec.items() if _weight(name, options) == AUTO]
 
 
+def prior_options(value) -> dict:
+    """One prior's options as a dict: a bare number or ``"auto"`` is its weight."""
+    return {"weight": value} if isinstance(value, (int, float, str)) else dict(value)
+
+
 def with_weight(spec: Mapping[str, Mapping], weight: float) -> dict[str, dict]:
     """``spec`` with every ``"auto"`` weight replaced by ``weight``."""
     out = {}
     for name, options in spec.items():
         auto = _weight(name, options) == AUTO
-        options = {"weight": options} if isinstance(options, (int, float, str)) else dict(options)
+        options = prior_options(options)
         out[name] = {**options, "weight": weight} if auto else options
     return out
 
