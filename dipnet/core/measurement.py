@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import warnings
 import zipfile
 from dataclasses import dataclass, field, replace
@@ -23,10 +24,25 @@ log = logging.getLogger(__name__)
 
 FORMAT_NAME = "dipnet.measurement"
 FORMAT_VERSION = 1
+_MAD = 1.4826  # MAD -> standard deviation for Gaussian data
 
 
 class MeasurementFileError(ValueError):
     """A measurement file is missing, unreadable or inconsistent."""
+
+
+def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
+    """``(volume, spread)``: a robust mean of the profiles' totals (the mean of those within
+    3 MAD-sigmas of the median) and its standard error (robust sigma / sqrt(K)), mm^3.
+
+    Args:
+        profiles: slab volumes ``(K, M)``, mm^3.
+    """
+    totals = profiles.sum(1).double().numpy()
+    median = float(np.median(totals))
+    sigma = _MAD * float(np.median(np.abs(totals - median)))
+    keep = np.abs(totals - median) <= 3 * sigma if sigma > 0 else np.ones_like(totals, dtype=bool)
+    return float(totals[keep].mean()), sigma / math.sqrt(int(keep.sum()))
 
 
 @dataclass

@@ -10,7 +10,7 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   from a per-slab sigma estimated from the profiles
   (:func:`~dipnet.preprocessing.validation.estimate_slab_sigma`);
 * ``volume_ratio`` = reconstructed (binary) volume / measured volume, the measured volume
-  being a robust mean (:func:`robust_volume`) of every profile's total, with
+  being a robust mean (:func:`~dipnet.core.measurement.robust_volume`) of every profile's total, with
   ``volume_ratio_noise`` the relative spread of that mean.
 
 * ``height_trend_pivot_mm``, ``height_trend_offset_mm``: what a wrong rig geometry leaves in
@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from dipnet.core.measurement import DipMeasurement
+from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.preprocessing.validation import estimate_slab_sigma
@@ -48,7 +48,6 @@ log = logging.getLogger(__name__)
 RESIDUAL_FACTOR = 3.0  # residual allowed above the noise's own share
 RESIDUAL_FLOOR = 0.05  # relative residual below which no result is flagged (voxel discretisation)
 VOLUME_TOL = 0.05  # |volume ratio - 1| allowed at the least
-_MAD = 1.4826  # MAD -> standard deviation for Gaussian data
 
 
 class DataConsistencyWarning(UserWarning):
@@ -87,20 +86,6 @@ class Consistency:
         out["consistency_warnings"] = out.pop("warnings")
         out["consistency"] = out.pop("verdict")
         return out
-
-
-def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
-    """``(volume, spread)``: a robust mean of the profiles' totals (the mean of those within
-    3 MAD-sigmas of the median) and its standard error (robust sigma / sqrt(K)), mm^3.
-
-    Args:
-        profiles: slab volumes ``(K, M)``, mm^3.
-    """
-    totals = profiles.sum(1).double().numpy()
-    median = float(np.median(totals))
-    sigma = _MAD * float(np.median(np.abs(totals - median)))
-    keep = np.abs(totals - median) <= 3 * sigma if sigma > 0 else np.ones_like(totals, dtype=bool)
-    return float(totals[keep].mean()), sigma / math.sqrt(int(keep.sum()))
 
 
 def height_trend(measurement: DipMeasurement) -> tuple[float, float, float]:

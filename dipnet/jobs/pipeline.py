@@ -122,7 +122,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
                               "operator": recon.info.get("operator", backend_name(operator)),
                               "seconds": seconds, "n_dips": measurement.n_orientations,
-                              "resolution": grid.n, "ndim": grid.ndim, **prior_weight_metrics(recon.info)}
+                              "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
+                              **prior_weight_metrics(recon.info)}
     stage = OutputStages(bool(cfg.output.progress))
     stage("consistency")
     scores.update(consistency.check_consistency(measurement, operator, recon).metrics())

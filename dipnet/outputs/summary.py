@@ -38,6 +38,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "prior_weight_noise_source": ("run", "weight rule: noise from the measurement's sigma or estimated"),
     "prior_rounds": ("run", "plug-and-play rounds run, of the most allowed"),
     "prior_rounds_reason": ("run", "why the rounds ended there"),
+    "threshold": ("run", "occupancy level of the binary shape and its surface"),
+    "threshold_rule": ("run", "how that level was set (volume: its surface encloses the measured volume)"),
     "iou": ("how close to the truth", "intersection over union (1 = identical)"),
     "chamfer": ("how close to the truth", "Chamfer distance (fraction of the truth's diagonal)"),
     "hausdorff": ("how close to the truth", "Hausdorff distance (fraction of the truth's diagonal)"),
@@ -151,7 +153,8 @@ def headline(metrics: dict[str, Any]) -> str:
 def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     """The prior weights a solver used and why, from its ``Reconstruction.info``
     (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`; ``rounds``, see
-    :class:`~dipnet.solvers.voxel.VoxelSolver`), as flat ``metrics.json`` entries; ``{}`` for
+    :class:`~dipnet.solvers.voxel.VoxelSolver`; ``threshold_rule``, see
+    :class:`~dipnet.solvers.optimize.OptimisationSolver`), as flat ``metrics.json`` entries; ``{}`` for
     solvers without priors."""
     out: dict[str, Any] = {}
     if "prior_weights" in info:
@@ -167,6 +170,8 @@ def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
         out["prior_rounds"] = f"{rounds['done']} of {rounds['max']}"
     if "reason" in rounds:
         out["prior_rounds_reason"] = rounds["reason"]
+    if "threshold_rule" in info:
+        out["threshold_rule"] = info["threshold_rule"]["rule"]
     return out
 
 

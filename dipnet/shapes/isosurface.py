@@ -1,4 +1,5 @@
-"""Surfaces of a voxel volume: marching-cubes meshes (3D) and contours (2D), in mm.
+"""Surfaces of a voxel volume: marching-cubes meshes (3D) and contours (2D), in mm, the volume
+they enclose, and the level at which they enclose a given volume.
 
 Coordinates follow :mod:`dipnet.core.grid`: a volume indexed ``[z, y, x]`` (``[y, x]`` in 2D)
 becomes vertices ``(x, y, z)`` (points ``(x, y)``) in mm, voxel ``i`` at
@@ -19,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 import trimesh
+from scipy import optimize
 from skimage import measure
 
 from dipnet.core.grid import Grid
@@ -75,3 +77,49 @@ def volume_to_contours(image: np.ndarray | torch.Tensor, grid: Grid, level: floa
         return []
     h = grid.voxel_size
     return [(c[:, ::-1] - 0.5) * h - grid.extent / 2 for c in measure.find_contours(_padded(img, level), level)]
+
+
+def enclosed_volume(volume: np.ndarray | torch.Tensor, grid: Grid, level: float = 0.5) -> float:
+    """Volume (mm^3; area in mm^2 in 2D) inside the iso-surface ``volume == level``
+    (:func:`volume_to_mesh`'s mesh, :func:`volume_to_contours`' polygons, holes subtracted).
+
+    Unlike a count of the voxels above ``level``, this moves continuously with ``level``.
+    """
+    if grid.ndim == 3:
+        return float(volume_to_mesh(volume, grid, level).volume)
+    # find_contours keeps the higher values on one side of every contour, so the shoelace areas
+    # of outer boundaries and of holes have opposite signs
+    area = sum(0.5 * float(np.sum(c[:-1, 0] * c[1:, 1] - c[1:, 0] * c[:-1, 1]))
+               for c in volume_to_contours(volume, grid, level))
+    return abs(area)
+
+
+def level_for_volume(volume: np.ndarray | torch.Tensor, grid: Grid, target: float,
+                     bounds: tuple[float, float] = (0.25, 0.75), xtol: float = 1e-3) -> float:
+    """The iso-level in ``bounds`` whose surface encloses ``target`` (mm^3; mm^2 in 2D).
+
+    The enclosed volume falls as the level rises, so the level is found by bisection (Brent's
+    method, to ``xtol``); when even ``bounds[0]`` encloses less than ``target`` the result is
+    ``bounds[0]``, when even ``bounds[1]`` encloses more, ``bounds[1]``.
+
+    Args:
+        volume: ``grid.shape``, values larger inside (an occupancy in ``[0, 1]``).
+        grid: its grid.
+        target: the volume the surface should enclose, > 0.
+        bounds: the levels searched, ``0 < low < high < 1`` for an occupancy.
+    """
+    low, high = bounds
+    if not low < high:
+        raise ValueError(f"bounds must be increasing, got {bounds}")
+    if not target > 0:
+        raise ValueError(f"target volume must be positive, got {target}")
+    vol = _as_array(volume, grid)
+
+    def excess(level: float) -> float:  # decreasing in the level
+        return enclosed_volume(vol, grid, level) - target
+
+    if excess(low) <= 0:
+        return float(low)
+    if excess(high) >= 0:
+        return float(high)
+    return float(optimize.brentq(excess, low, high, xtol=xtol))

@@ -125,7 +125,8 @@ class ImplicitSolver(OptimisationSolver):
             fine = Grid(grid.n * self.output_upsample, grid.ndim, grid.extent)
             mask = self.support(data.target.double(), operator, fine)
             mask &= fine.centers().norm(dim=-1) <= grid.radius
-            recon.fine = Reconstruction(occupancy=self.sample(fine) * mask, grid=fine, threshold=self.threshold,
+            fine_occupancy = self.sample(fine) * mask
+            recon.fine = Reconstruction(occupancy=fine_occupancy, grid=fine, threshold=self.level(fine_occupancy, fine, data),
                                         info={"solver": self.name, "source_n": grid.n})
         return recon
 

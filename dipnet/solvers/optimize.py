@@ -29,9 +29,10 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from dipnet.core.grid import Grid
-from dipnet.core.measurement import DipMeasurement
+from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
 from dipnet.solvers.base import Solver, measured_profiles
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
@@ -44,6 +45,7 @@ SCHEDULES = ("cosine", "step", "constant")
 _HULL_ENTRIES = 1 << 25  # column x orientation bounds held at once by support_hull
 _FLAT = 1e-12  # |theta_z| below this: a slab parallel to the hull's columns
 _SIGMA_FLOOR = 1e-3  # sigma below this fraction of its median is clamped (no infinite weights)
+VOLUME_LEVELS = (0.25, 0.75)  # the levels threshold='volume' searches
 GAIN_LR = 0.01  # Adam step of the log-gain (fit_gain): a few steps per percent, no overshoot
 
 Priors = list[tuple[str, float, nn.Module]]
@@ -383,7 +385,11 @@ class OptimisationSolver(Solver):
         hull_margin: the hull's slack in voxels; raise it when the profiles' start heights
             are uncertain by more than about a voxel (real rigs before calibration).
         seed: seed of every random choice (initial weights, features).
-        threshold: occupancy level of the final binary shape.
+        threshold: occupancy level of the final binary shape, or ``"volume"``: the level (in
+            :data:`VOLUME_LEVELS`) whose iso-surface encloses the measured volume (the robust mean
+            of the profiles' totals, over the fitted gain), recorded in ``info["threshold_rule"]``.
+            A soft occupancy's 0.5 surface lies inside a convex part's true surface, so it can
+            enclose a few percent too little; the measured volume is known far better than that.
         progress: show progress bars.
         checkpoint: a :class:`~dipnet.solvers.checkpoint.Checkpoint` to save every stage to and resume from.
         fit_gain: also fit one gain on every predicted volume (:class:`DataTerm`); the result's
@@ -395,7 +401,7 @@ class OptimisationSolver(Solver):
 
     def __init__(self, iterations: int = 500, lr: float = 0.05, optimizer: str = "adam", schedule: str = "cosine",
                  tol: float = 1e-3, window: int = 25, priors: Mapping[str, Mapping] | None = None,
-                 warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float = 0.5,
+                 warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float | str = 0.5,
                  progress: bool = True, hull_margin: float = 1.5, checkpoint=None, fit_gain: bool = False,
                  weight_rule: Mapping | None = None) -> None:
         if optimizer not in OPTIMIZERS:
@@ -412,7 +418,10 @@ class OptimisationSolver(Solver):
         self.priors = priors
         if hull_tol is not None and not 0 <= hull_tol < 1:
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
-        self.warm_start, self.seed, self.threshold, self.progress = warm_start, int(seed), float(threshold), progress
+        if isinstance(threshold, str) and threshold != "volume":
+            raise ValueError(f"threshold must be a number or 'volume', got {threshold!r}")
+        self.threshold = threshold if threshold == "volume" else float(threshold)
+        self.warm_start, self.seed, self.progress = warm_start, int(seed), progress
         self.hull_tol = None if hull_tol is None else float(hull_tol)
         if not hull_margin >= 0:
             raise ValueError(f"hull_margin must be >= 0 voxels, got {hull_margin}")
@@ -517,5 +526,23 @@ class OptimisationSolver(Solver):
         info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,
                 "final": {k: v[-1] for k, v in history.items() if v}, "optimizer": self.optimizer,
                 "seed": self.seed, **info}
-        return Reconstruction(occupancy=occupancy.detach().float() * operator.mask, grid=operator.grid,
-                              threshold=self.threshold, history=history, info=info)
+        occupancy = occupancy.detach().float() * operator.mask
+        level = self.level(occupancy, operator.grid, data)
+        if self.threshold == "volume":
+            info["threshold_rule"] = {"rule": "volume", "level": level, "measured_volume_mm3": self._volume(data),
+                                      "enclosed_volume_mm3": enclosed_volume(occupancy, operator.grid, level)}
+        return Reconstruction(occupancy=occupancy, grid=operator.grid, threshold=level, history=history, info=info)
+
+    def level(self, occupancy: torch.Tensor, grid: Grid, data: DataTerm | None) -> float:
+        """The level of the binary shape of ``occupancy`` (``grid.shape``): :attr:`threshold`, or with
+        ``"volume"`` the level that encloses the volume measured by ``data``."""
+        if self.threshold != "volume":
+            return self.threshold
+        if data is None:
+            raise ValueError("threshold='volume' needs the data term (the measured volume)")
+        return level_for_volume(occupancy, grid, self._volume(data), VOLUME_LEVELS)
+
+    @staticmethod
+    def _volume(data: DataTerm) -> float:
+        """The volume (mm^3) the data measure: the robust mean of the profiles' totals over the gain."""
+        return robust_volume(data.target.detach().cpu())[0] / data.gain

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dipnet.core.grid import Grid
-from dipnet.core.measurement import DipMeasurement, MeasurementFileError
+from dipnet.core.measurement import DipMeasurement, MeasurementFileError, robust_volume
 from dipnet.core.orientations import fibonacci_hemisphere
 
 
@@ -85,3 +85,11 @@ def test_recorded_source_reconstructs_a_saved_measurement_at_another_resolution(
     r = read_recorded(str(path), Grid(16, 3, extent=30.0))
     assert r.profiles.shape == (4, 16)
     torch.testing.assert_close(r.profiles.sum(1), m.profiles.sum(1))
+
+
+def test_robust_volume_ignores_outlying_totals():
+    profiles = torch.full((20, 10), 10.0, dtype=torch.float64)
+    profiles[:2] *= 0.3  # two truncated dips
+    profiles[2:] += torch.linspace(-0.1, 0.1, 18, dtype=torch.float64)[:, None]
+    volume, spread = robust_volume(profiles)
+    assert volume == pytest.approx(100.0, rel=1e-3) and 0 < spread < 0.5

@@ -5,7 +5,7 @@ import warnings
 import pytest
 import torch
 
-from dipnet.evaluation.consistency import DataConsistencyWarning, check_consistency, estimate_slab_sigma, robust_volume
+from dipnet.evaluation.consistency import DataConsistencyWarning, check_consistency, estimate_slab_sigma
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import make_operator
@@ -83,14 +83,6 @@ def test_noise_estimate_recovers_white_noise_on_smooth_profiles():
     noise = 5.0 * torch.randn(smooth.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     assert estimate_slab_sigma(smooth + noise) == pytest.approx(5.0, rel=0.15)
     assert estimate_slab_sigma(smooth) < 0.1
-
-
-def test_robust_volume_ignores_outlying_totals():
-    profiles = torch.full((20, 10), 10.0, dtype=torch.float64)
-    profiles[:2] *= 0.3  # two truncated dips
-    profiles[2:] += torch.linspace(-0.1, 0.1, 18, dtype=torch.float64)[:, None]
-    volume, spread = robust_volume(profiles)
-    assert volume == pytest.approx(100.0, rel=1e-3) and 0 < spread < 0.5
 
 
 def test_a_reconstruction_on_another_grid_is_refused(problem):

@@ -48,6 +48,8 @@ def test_prior_weights_and_their_reason_go_into_the_metrics():
                                          "weight_rule": {"rule": "fixed"}}) == {
         "prior_weights": {"tv": 1e-3}, "prior_weight_rule": "fixed"}
     assert summary.prior_weight_metrics({"solver": "minnorm"}) == {}
+    assert summary.prior_weight_metrics({"threshold_rule": {"rule": "volume", "level": 0.46}}) == {
+        "threshold_rule": "volume"}
 
 
 def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():

@@ -127,7 +127,8 @@ def test_a_hallucinating_prior_fails_the_consistency_check(tmp_path):
 def test_the_learned_solver_config_beats_voxel_on_a_noisy_test_shape():
     """``solver=voxel_learned`` with the shipped weights, 64^3, 41 dips of generated test seed 7
     (never trained on) at 30 dB: closer to the truth than its own voxel start, and still
-    consistent with the dips; its rounds all ran (the data term stays within the noise's)."""
+    consistent with the dips; its rounds all ran (the data term stays within the noise's), and its
+    surface encloses the volume the dips measure."""
     from hydra.utils import instantiate
 
     from dipnet.evaluation.metrics import evaluate
@@ -149,6 +150,9 @@ def test_the_learned_solver_config_beats_voxel_on_a_noisy_test_shape():
     assert check_consistency(m, op, learned, warn=False).verdict == "consistent"
     rounds = learned.info["rounds"]
     assert rounds["done"] == rounds["max"] > 1 and rounds["residual"] <= rounds["target_residual"]
+    level = learned.info["threshold_rule"]  # its surface encloses the measured volume
+    assert level["rule"] == "volume" and level["enclosed_volume_mm3"] == pytest.approx(level["measured_volume_mm3"], rel=2e-3)
+    assert level["measured_volume_mm3"] == pytest.approx(shape.volume, rel=0.01)
 
 
 def test_the_anchor_weight_follows_the_noise_by_the_discrepancy_rule(weights16):

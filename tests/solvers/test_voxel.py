@@ -183,6 +183,25 @@ def test_fit_gain_recovers_a_common_volume_factor(shape):
     assert "gain" not in plain.info and plain.binary.sum() * voxel > 1.05 * shape.volume
 
 
+def test_volume_threshold_encloses_the_measured_volume_over_the_gain():
+    """``threshold="volume"``: the result's surface encloses what the dips measure, divided by the
+    fitted gain (every volume x 1.1 here), so the ball's true volume; the level is recorded."""
+    grid = Grid(32, extent=80.0)
+    ball = Ball(25.0)
+    _, m = simulate_measurement(ball, fibonacci_hemisphere(24), grid=grid, progress=False)
+    m.profiles = m.profiles * 1.1
+    op = make_operator(grid, m.directions, grid.n)
+    rec = VoxelSolver(iterations=150, progress=False, fit_gain=True, threshold="volume").solve(m, op)
+    rule = rec.info["threshold_rule"]
+    assert rule["rule"] == "volume" and rule["level"] == rec.threshold and 0.25 < rec.threshold < 0.75
+    assert rule["measured_volume_mm3"] == pytest.approx(1.1 * ball.volume / rec.info["gain"], rel=1e-6)
+    assert rule["enclosed_volume_mm3"] == pytest.approx(rule["measured_volume_mm3"], rel=2e-3)
+    assert rule["enclosed_volume_mm3"] == pytest.approx(ball.volume, rel=0.03)
+    assert "threshold_rule" not in VoxelSolver(iterations=5, progress=False).solve(m, op).info
+    with pytest.raises(ValueError, match="threshold"):
+        VoxelSolver(threshold="otsu")
+
+
 def test_data_term_gain_scales_the_prediction():
     """``a A o`` with ``a = exp(log_gain)``: the data term vanishes at the right gain, and the gain
     is a parameter only with ``fit_gain``."""
