@@ -38,9 +38,10 @@ from dipnet.solvers.denoiser import SHIPPED_WEIGHTS
 
 def learned_round() -> dict:
     """The options of one round of ``solver=voxel_learned`` with the first-stage weights (no warm
-    start: it starts from each pair's input), the second stage's ``refine``."""
+    start: it starts from each pair's input; no threshold: the input is the occupancy), the second
+    stage's ``refine``."""
     options = OmegaConf.to_container(compose_job(["solver=voxel_learned"]).solver, resolve=True)
-    for key in ("_target_", "warm_start", "later_priors", "progress", "seed"):
+    for key in ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold"):
         options.pop(key, None)
     return {**options, "rounds": 1, "min_rounds": 1}
 

@@ -117,14 +117,16 @@ def test_the_quality_bench_runs_the_learned_prior_as_a_job_would():
     assert isinstance(prior, VoxelSolver) and isinstance(prior.warm_start, VoxelSolver)
     assert not prior.coarse_to_fine and prior.temperature_start == prior.temperature_end and prior.rounds > 1
     assert prior.priors["learned"]["mode"] == "anchor" and prior.priors["learned"]["weight"] == "auto"
-    assert prior.later_priors["learned"]["weights"] == "denoiser64_stage2" and prior.min_rounds == 2  # the cascade
+    assert prior.later_priors["learned"]["weights"] == "denoiser64_stage2" and prior.min_rounds == 3  # the cascade
     assert prior.weight_rule.tau == 0.8 and prior.weight_rule.largest == 16.0  # the anchor's weight follows the noise
+    assert prior.threshold == "volume" and prior.warm_start.threshold == 0.5  # the measured volume sets the level
     assert bench.SOLVERS["prior"](priors={"learned": {"weight": 3.0}}).priors["learned"]["weight"] == 3.0
     implicit = bench.SOLVERS["implicit_prior"]()  # the field starts from voxel_learned's whole recipe
     start = implicit.warm_start
     assert isinstance(start, VoxelSolver) and start.priors["learned"] == prior.priors["learned"]
     assert isinstance(start.warm_start, VoxelSolver) and implicit.priors["learned"]["mode"] == "anchor"
     assert implicit.priors["learned"]["weights"] == "denoiser64_stage2"  # its start is a cascade result
+    assert implicit.threshold == "volume" and start.threshold == 0.5  # pre-fitted to the start's occupancy as it is
 
 
 def test_the_truth_row_scores_the_truths_own_occupancy(tmp_path, capsys):
