@@ -10,8 +10,9 @@ the weights) is written every ``--checkpoint-every`` steps; ``--resume`` continu
 to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint.
 
 ``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
-goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights),
-about 25 more minutes on 2 cores, and the first-stage weights are fine-tuned on those
+goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights,
+at the temperature ``--refine-temperature``: 0.25 made the shipped weights; the solver's refits now
+run at 0.125, chosen afterwards on held-out shapes), about 25 more minutes on 2 cores, and the first-stage weights are fine-tuned on those
 (``--init-weights denoiser64``, 2000 steps at lr 5e-4 unless given).
 
     python scripts/train_prior.py                                   # the shipped weights' recipe
@@ -36,14 +37,18 @@ from dipnet.jobs.tuning import compose_job
 from dipnet.solvers.denoiser import SHIPPED_WEIGHTS
 
 
-def learned_round() -> dict:
+SHIPPED_REFINE_TEMPERATURE = 0.25
+"""The fixed temperature of the round that made the shipped second stage's inputs."""
+
+
+def learned_round(temperature: float = SHIPPED_REFINE_TEMPERATURE) -> dict:
     """The options of one round of ``solver=voxel_learned`` with the first-stage weights (no warm
-    start: it starts from each pair's input; no threshold: the input is the occupancy), the second
-    stage's ``refine``."""
+    start: it starts from each pair's input; no threshold: the input is the occupancy), at the fixed
+    sigmoid ``temperature``: the second stage's ``refine``."""
     options = OmegaConf.to_container(compose_job(["solver=voxel_learned"]).solver, resolve=True)
     for key in ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold"):
         options.pop(key, None)
-    return {**options, "rounds": 1, "min_rounds": 1}
+    return {**options, "rounds": 1, "min_rounds": 1, "temperature_start": temperature, "temperature_end": temperature}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -63,6 +68,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(defaults, name))
     for name in ("snr_db", "fill", "lr", "max_minutes"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(defaults, name))
+    p.add_argument("--refine-temperature", type=float, default=SHIPPED_REFINE_TEMPERATURE,
+                   help="stage 2: the sigmoid temperature of the round that makes the inputs (0.25 made the shipped weights)")
     p.add_argument("--init-weights", default=defaults.init_weights,
                    help="weights to start from (file or shipped name); default: a new network (stage 1)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint next to --out")
@@ -78,7 +85,7 @@ def main(argv=None) -> dict:
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in vars(args).items() if k in fields}
     config = TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
-                            "refine": learned_round() if args.stage == 2 else None})
+                            "refine": learned_round(args.refine_temperature) if args.stage == 2 else None})
     meta = train(config, args.out, args.cache, resume=args.resume, progress=not args.no_progress,
                  workers=args.workers)
     print(json.dumps({k: meta[k] for k in ("steps_done", "seconds", "validation")}))

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import pytest
 import torch
 
 from dipnet.experiments.prior_training import STAGE2, TrainConfig, random_batch, train
-from dipnet.solvers.denoiser import load_weights
+from dipnet.solvers.denoiser import SHIPPED_DIR, load_weights
 
 from script_modules import load_script
 
@@ -63,3 +64,11 @@ def test_the_script_makes_the_second_stage_from_one_round_of_voxel_learned():
     assert refine["rounds"] == refine["min_rounds"] == 1 and "warm_start" not in refine and "later_priors" not in refine
     assert "threshold" not in refine  # the binary level leaves the occupancy, and the pairs' cache key, alone
     assert refine["priors"]["learned"]["mode"] == "anchor" and refine["priors"]["learned"]["weights"] is None
+
+
+def test_the_second_stage_round_is_the_one_that_made_the_shipped_weights():
+    script = load_script("train_prior")
+    shipped = json.loads((SHIPPED_DIR / "denoiser64_stage2.json").read_text())["config"]["refine"]
+    assert script.learned_round() == shipped  # the default round is the one recorded with the weights
+    assert script.parse_args(["--stage", "2", "--refine-temperature", "0.125"]).refine_temperature == 0.125
+    assert script.learned_round(0.125)["temperature_end"] == 0.125
