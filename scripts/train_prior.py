@@ -10,7 +10,7 @@ the weights) is written every ``--checkpoint-every`` steps; ``--resume`` continu
 to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint.
 
 ``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
-goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights,
+goes through one round of ``solver=voxel_learned`` (its config, one round, independent slabs, the first-stage weights,
 at the temperature ``--refine-temperature``: 0.25 made the shipped weights; the solver's refits now
 run at 0.125, chosen afterwards on held-out shapes), about 25 more minutes on 2 cores, and the first-stage weights are fine-tuned on those
 (``--init-weights denoiser64``, 2000 steps at lr 5e-4 unless given).
@@ -44,9 +44,10 @@ SHIPPED_REFINE_TEMPERATURE = 0.25
 def learned_round(temperature: float = SHIPPED_REFINE_TEMPERATURE) -> dict:
     """The options of one round of ``solver=voxel_learned`` with the first-stage weights (no warm
     start: it starts from each pair's input; no threshold: the input is the occupancy), at the fixed
-    sigmoid ``temperature``: the second stage's ``refine``."""
+    sigmoid ``temperature`` and with independent slabs (the solver's default noise model, with which
+    the shipped second stage's inputs were made): the second stage's ``refine``."""
     options = OmegaConf.to_container(compose_job(["solver=voxel_learned"]).solver, resolve=True)
-    for key in ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold"):
+    for key in ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold", "noise_model", "white_share"):
         options.pop(key, None)
     return {**options, "rounds": 1, "min_rounds": 1, "temperature_start": temperature, "temperature_end": temperature}
 

@@ -1,4 +1,5 @@
-"""support_hull by column intervals: the same mask as testing every voxel against every slab."""
+"""support_hull by column intervals (the same mask as testing every voxel against every slab), and the
+data term under the correlated noise of cumulative readings."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ import pytest
 import torch
 
 from dipnet.core.grid import Grid
-from dipnet.solvers.optimize import slab_support, support_hull
+from dipnet.operators import make_operator
+from dipnet.solvers import optimize
+from dipnet.solvers.optimize import DataTerm, filled_span, slab_support, support_hull
 from dipnet.solvers.voxel import VoxelSolver
+from dipnet.solvers.weights import noise_level
 
 
 def brute_force_hull(target, grid, directions, edges, rel_tol, margin):
@@ -84,3 +88,104 @@ def test_a_solver_given_dips_that_share_no_voxel_says_so():
                        slab_thickness=grid.voxel_size, offsets=np.full(2, -30.0))
     with pytest.raises(EmptySupportError, match="calibrate the rig geometry"):
         VoxelSolver(iterations=5, progress=False).solve(m, make_operator(grid, m.directions, grid.n))
+
+
+def correlated_problem(seed: int = 0):
+    """A 2D operator, a disc's occupancy and profiles ``g`` (empty slabs at both ends), slab sigmas."""
+    grid = Grid(16, 2)
+    gen = torch.Generator().manual_seed(seed)
+    dirs = torch.randn(5, 2, generator=gen, dtype=torch.float64)
+    op = make_operator(grid, dirs / dirs.norm(dim=1, keepdim=True), 24)
+    occ = (grid.centers(torch.float64).norm(dim=-1) < 0.3 * grid.extent).double()
+    target = op(occ)
+    sigma = (0.02 + 0.01 * torch.rand(target.shape, generator=gen, dtype=torch.float64)) * target.max()
+    return op, occ, target, sigma
+
+
+def reference_covariance(sigma: torch.Tensor, span: torch.Tensor, white_share: float) -> torch.Tensor:
+    """One profile's covariance built slab by slab: inside the span, slab ``j`` is ``e_j - e_(j-1)``
+    with independent edge errors ``e`` of variance ``sigma_j^2 / 2`` (none below the span's first
+    slab) plus white noise ``white_share sigma_j^2 / 2``; outside it, independent ``sigma_j^2``."""
+    m = len(sigma)
+    cov = torch.zeros(m, m, dtype=torch.float64)
+    for i in range(m):
+        for j in range(m):
+            if not (span[i] and span[j]):
+                cov[i, j] = sigma[i] ** 2 if i == j else 0.0
+                continue
+            edge = lambda n: sigma[n] ** 2 / 2 if n >= 0 and span[n] else 0.0  # noqa: E731
+            if i == j:
+                cov[i, j] = edge(i) + edge(i - 1) + white_share * sigma[i] ** 2 / 2
+            elif abs(i - j) == 1:
+                cov[i, j] = -edge(min(i, j))
+    return cov
+
+
+@pytest.mark.parametrize("white_share", [1e-6, 0.25, 1.0])
+def test_correlated_term_is_generalised_least_squares(white_share):
+    op, occ, target, sigma = correlated_problem()
+    data = DataTerm(op, target, sigma, dtype=torch.float64, noise_model="correlated", white_share=white_share)
+    guess = occ * (0.7 + 0.5 * torch.rand(occ.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64))
+    r = op(guess) - target
+    span = filled_span(target)
+    expected = sum(float(r[k] @ torch.linalg.solve(reference_covariance(sigma[k], span[k], white_share), r[k]))
+                   for k in range(len(r)))
+    norm = float((sigma ** -2 * target ** 2).sum())
+    assert float(data(guess)) == pytest.approx(expected / norm, rel=1e-8)
+    assert float(data(occ)) == pytest.approx(0.0, abs=1e-20)
+    if white_share < 1e-3:  # no white part: the GLS term is the cumulative residual's, edge by edge
+        cumulative = torch.cumsum(r, -1)
+        assert float(data(guess)) == pytest.approx(float((2 / sigma ** 2 * cumulative ** 2)[span].sum()) / norm, rel=1e-3)
+
+
+def test_correlated_term_expects_what_the_differenced_noise_scores():
+    """Measured with the noise the model describes (differences of independent cumulative
+    errors), the true occupancy scores :attr:`DataTerm.expected_noise` on average; the
+    independent term's noise level is what it expects of independent noise."""
+    op, occ, target, sigma = correlated_problem(1)
+    span = filled_span(target)
+    gen = torch.Generator().manual_seed(2)
+    expected = DataTerm(op, target, sigma, dtype=torch.float64, noise_model="correlated").expected_noise
+    scores = []
+    for _ in range(300):
+        edge = torch.randn(target.shape, generator=gen, dtype=torch.float64) * sigma / math.sqrt(2) * span
+        noisy = target + torch.diff(edge, dim=-1, prepend=torch.zeros_like(edge[:, :1]))
+        scores.append(float(DataTerm(op, noisy, sigma, dtype=torch.float64, noise_model="correlated")(occ)))
+    assert np.mean(scores) == pytest.approx(expected, rel=0.07)
+    level = noise_level(target, sigma, DataTerm(op, target, sigma).weight)[0]
+    assert expected < level  # the white part takes a share of the noise's variance
+
+
+def test_correlated_model_needs_sigma_and_a_bounded_problem(monkeypatch):
+    op, occ, target, sigma = correlated_problem()
+    guess = 0.8 * occ
+    plain = DataTerm(op, target, dtype=torch.float64)
+    without_sigma = DataTerm(op, target, dtype=torch.float64, noise_model="correlated")
+    assert without_sigma.precision is None and float(without_sigma(guess)) == float(plain(guess))
+    zeros = torch.zeros_like(sigma)
+    assert DataTerm(op, target, zeros, noise_model="correlated").precision is None  # no sigma at all: independent
+    partly = sigma.clone()
+    partly[0, 8:12] = 0.0  # zeros among known sigmas are floored, as the independent weights are
+    assert math.isfinite(float(DataTerm(op, target, partly, dtype=torch.float64, noise_model="correlated")(guess)))
+    with pytest.raises(ValueError, match="noise_model"):
+        DataTerm(op, target, noise_model="white")
+    with pytest.raises(ValueError, match="white_share"):
+        DataTerm(op, target, sigma, noise_model="correlated", white_share=0.0)
+    with pytest.raises(ValueError, match="noise_model"):
+        VoxelSolver(noise_model="cumulative")
+    monkeypatch.setattr(optimize, "_PRECISION_ENTRIES", 100)
+    with pytest.raises(ValueError, match=r"\(5, 24, 24\) precision.*noise_model='independent'"):
+        DataTerm(op, target, sigma, noise_model="correlated")
+
+
+def test_solver_compares_its_residual_with_the_correlated_noise_expectation():
+    op, occ, target, sigma = correlated_problem()
+    from dipnet.core.measurement import DipMeasurement
+
+    meas = DipMeasurement(profiles=target, directions=op.directions, slab_thickness=op.slab_thickness,
+                          offsets=op.slab_edges()[:1].expand(len(target)), sigma=sigma)
+    solver = VoxelSolver(iterations=5, coarse_to_fine=False, progress=False, noise_model="correlated", white_share=0.5)
+    recon = solver.solve(meas, op)
+    expected = DataTerm(op, target, sigma, noise_model="correlated", white_share=0.5).expected_noise
+    record = recon.info["weight_rule"]  # the TV weight's rule compared the residual with this noise
+    assert record["noise_source"] == "sigma" and record["noise_residual"] == pytest.approx(expected ** 0.5, rel=1e-6)
