@@ -9,6 +9,9 @@ Objective (every term dimensionless, so weights mean the same at any resolution 
 gives its noise ``sigma`` (else 1), and ``R_p`` the priors of :mod:`dipnet.solvers.priors`.
 The data term is the (weighted) squared relative residual: 1 for an empty volume, about
 ``10^(-SNR/10)`` at the noise floor.
+With ``noise_model="correlated"`` (and ``sigma``) the slabs of a profile are weighed by the inverse
+of their covariance instead (:class:`DataTerm`): a slab volume is the difference of two cumulative
+readings, so neighbouring slabs' errors are anti-correlated.
 
 :class:`OptimisationSolver` holds the options shared by both solvers; :func:`optimise` runs
 Adam (with a cosine, step or constant learning-rate schedule) or L-BFGS, stops early when
@@ -58,7 +61,7 @@ class Problem(NamedTuple):
     priors: Priors  # "auto" weights at the weight rule's start (see OptimisationSolver.choose_weights)
     volume_fraction: float  # measured object volume / grid cube volume
     support: torch.Tensor  # bool, grid.shape: voxels that may be occupied
-    noise: tuple[float, str]  # the data term of the noise alone and where it comes from (weights.noise_level)
+    noise: tuple[float, str]  # the data term of the noise alone (weights.noise_level, or DataTerm.expected_noise) and its source
     spec: Mapping[str, Mapping]  # the priors' options ("auto" weights unresolved) that ``priors`` was built from
 
 
