@@ -10,10 +10,11 @@ the weights) is written every ``--checkpoint-every`` steps; ``--resume`` continu
 to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint.
 
 ``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
-goes through one round of ``solver=voxel_learned`` (its config, one round, independent slabs, the first-stage weights,
-at the temperature ``--refine-temperature``: 0.25 made the shipped weights; the solver's refits now
-run at 0.125, chosen afterwards on held-out shapes), about 25 more minutes on 2 cores, and the first-stage weights are fine-tuned on those
-(``--init-weights denoiser64``, 2000 steps at lr 5e-4 unless given).
+goes through one round of ``solver=voxel_learned`` (its config, one round, independent slabs, the
+first-stage weights, at the temperature ``--refine-temperature``: 0.25 made the shipped weights; the
+solver's refits now run at 0.125, chosen afterwards on held-out shapes), about 25 more minutes on 2
+cores, and the first-stage weights are fine-tuned on those (``--init-weights denoiser64``, 2000 steps
+at lr 5e-4 unless given).
 
     python scripts/train_prior.py                                   # the shipped weights' recipe
     python scripts/train_prior.py --stage 2 --out outputs/prior/denoiser64_stage2.pt   # the shipped second stage

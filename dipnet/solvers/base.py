@@ -42,3 +42,9 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
             and abs(measurement.slab_thickness - operator.slab_thickness) < 1e-9 * operator.slab_thickness
             and torch.allclose(measurement.offsets.double(), edges[:1].expand_as(measurement.offsets), atol=1e-9))
     return measurement.profiles.clone() if same else measurement.resampled(edges)
+
+
+def filled_slabs(target: torch.Tensor, rel_tol: float = 0.005) -> torch.Tensor:
+    """Boolean ``(K, M)``: the slabs of each profile ``target`` (``(K, M)``, mm^3) holding more than
+    ``rel_tol`` x the profile's largest volume."""
+    return target > rel_tol * target.abs().amax(dim=-1, keepdim=True)

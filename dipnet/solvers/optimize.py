@@ -36,7 +36,7 @@ from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers.base import Solver, filled_slabs, measured_profiles
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
@@ -147,7 +147,7 @@ class DataTerm(nn.Module):
 def filled_span(target: torch.Tensor, rel_tol: float = 0.005) -> torch.Tensor:
     """Boolean ``(K, M)``: the slabs from each profile's first to its last filled one (volume above
     ``rel_tol`` x the profile's largest), ends included."""
-    filled = target > rel_tol * target.abs().amax(dim=-1, keepdim=True)
+    filled = filled_slabs(target, rel_tol)
     return (torch.cumsum(filled.int(), dim=-1) > 0) & (torch.cumsum(filled.flip(-1).int(), dim=-1).flip(-1) > 0)
 
 
@@ -272,7 +272,7 @@ def slab_support(target: torch.Tensor, edges: torch.Tensor, rel_tol: float, slac
     """Per orientation, the heights ``(lo, hi)`` (each ``(K,)``, mm) between which the object
     lies: the lower edge of the first and the upper edge of the last slab holding more than
     ``rel_tol`` of the profile's largest volume, widened by ``slack`` mm (all slabs when none does)."""
-    full = target > rel_tol * target.abs().amax(dim=1, keepdim=True)  # (K, M) non-empty slabs
+    full = filled_slabs(target, rel_tol)  # (K, M) non-empty slabs
     edges = edges.to(target.dtype)
     m = full.shape[1]
     first = torch.argmax(full.to(torch.int8), dim=1)

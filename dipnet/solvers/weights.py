@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import torch
 
 from dipnet.preprocessing.validation import estimate_slab_sigma
+from dipnet.solvers.base import filled_slabs
 
 AUTO = "auto"
 RULES = ("discrepancy",)
@@ -168,5 +169,5 @@ def noise_level(target: torch.Tensor, sigma: torch.Tensor | None, weight: torch.
         sigma, source = torch.full_like(target, estimate_slab_sigma(target)), "estimated"
     else:
         source = "sigma"
-    filled = target > rel_tol * target.abs().amax(dim=1, keepdim=True)
+    filled = filled_slabs(target, rel_tol)
     return float((weight.double() * sigma.double().pow(2))[filled].sum()), source

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import make_operator
 from dipnet.solvers import optimize
 from dipnet.solvers.optimize import DataTerm, filled_span, slab_support, support_hull
@@ -77,8 +78,6 @@ def test_a_flat_direction_that_misses_a_column_empties_it():
 def test_a_solver_given_dips_that_share_no_voxel_says_so():
     """Profiles that put the object in two places at once (up: 20-25 mm above the centre; down: 20-25 mm
     below it, as far-off start heights do): the support hull is empty; one named error, no ZeroDivisionError."""
-    from dipnet.core.measurement import DipMeasurement
-    from dipnet.operators import make_operator
     from dipnet.solvers.optimize import EmptySupportError
 
     grid = Grid(16, extent=60.0)
@@ -180,8 +179,6 @@ def test_correlated_model_needs_sigma_and_a_bounded_problem(monkeypatch):
 
 def test_solver_compares_its_residual_with_the_correlated_noise_expectation():
     op, occ, target, sigma = correlated_problem()
-    from dipnet.core.measurement import DipMeasurement
-
     meas = DipMeasurement(profiles=target, directions=op.directions, slab_thickness=op.slab_thickness,
                           offsets=op.slab_edges()[:1].expand(len(target)), sigma=sigma)
     solver = VoxelSolver(iterations=5, coarse_to_fine=False, progress=False, noise_model="correlated", white_share=0.5)
