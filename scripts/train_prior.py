@@ -9,12 +9,17 @@ config (``.pt`` + ``.json``). The bundled meshes are never used. A checkpoint (`
 the weights) is written every ``--checkpoint-every`` steps; ``--resume`` continues from it (also
 to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint.
 
+``--noise-model correlated`` solves the noisy pairs as ``solver=voxel_learned``'s voxel start does
+(the slabs' errors as differences of cumulative readings; the shipped weights were trained with
+``independent``, the default).
+
 ``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
-goes through one round of ``solver=voxel_learned`` (its config, one round, independent slabs, the
-first-stage weights, at the temperature ``--refine-temperature``: 0.25 made the shipped weights; the
-solver's refits now run at 0.125, chosen afterwards on held-out shapes), about 25 more minutes on 2
-cores, and the first-stage weights are fine-tuned on those (``--init-weights denoiser64``, 2000 steps
-at lr 5e-4 unless given).
+goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights
+``--init-weights``, the noise model ``--noise-model``, at the temperature ``--refine-temperature``:
+0.25 and independent slabs made the shipped weights; the solver's refits now run at 0.125 with
+correlated slabs, chosen afterwards on held-out shapes), about 25 more minutes on 2 cores, and the
+first-stage weights are fine-tuned on those (``--init-weights denoiser64``, 2000 steps at lr 5e-4
+unless given).
 
     python scripts/train_prior.py                                   # the shipped weights' recipe
     python scripts/train_prior.py --stage 2 --out outputs/prior/denoiser64_stage2.pt   # the shipped second stage
@@ -42,14 +47,19 @@ SHIPPED_REFINE_TEMPERATURE = 0.25
 """The fixed temperature of the round that made the shipped second stage's inputs."""
 
 
-def learned_round(temperature: float = SHIPPED_REFINE_TEMPERATURE) -> dict:
-    """The options of one round of ``solver=voxel_learned`` with the first-stage weights (no warm
-    start: it starts from each pair's input; no threshold: the input is the occupancy), at the fixed
-    sigmoid ``temperature`` and with independent slabs (the solver's default noise model, with which
-    the shipped second stage's inputs were made): the second stage's ``refine``."""
+def learned_round(temperature: float = SHIPPED_REFINE_TEMPERATURE, noise_model: str = "independent",
+                  weights: str | None = None) -> dict:
+    """The options of one round of ``solver=voxel_learned`` with the first-stage weights (``weights``;
+    ``None``: the shipped ``denoiser64``), no warm start (it starts from each pair's input) and no
+    threshold (the input is the occupancy), at the fixed sigmoid ``temperature``: the second stage's
+    ``refine``. ``noise_model="independent"`` (with which the shipped second stage's inputs were made)
+    drops the solver's noise model; ``"correlated"`` keeps it, as the solver's refits use it."""
     options = OmegaConf.to_container(compose_job(["solver=voxel_learned"]).solver, resolve=True)
-    for key in ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold", "noise_model", "white_share"):
+    dropped = ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold")
+    for key in dropped + (("noise_model", "white_share") if noise_model == "independent" else ()):
         options.pop(key, None)
+    if weights is not None:
+        options["priors"]["learned"]["weights"] = weights
     return {**options, "rounds": 1, "min_rounds": 1, "temperature_start": temperature, "temperature_end": temperature}
 
 
@@ -70,6 +80,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(defaults, name))
     for name in ("snr_db", "fill", "lr", "max_minutes"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(defaults, name))
+    p.add_argument("--noise-model", choices=("independent", "correlated"), default=defaults.noise_model,
+                   help="the noise model of the noisy pairs' voxel solve and of stage 2's round "
+                        "(correlated: as solver=voxel_learned uses it)")
     p.add_argument("--refine-temperature", type=float, default=SHIPPED_REFINE_TEMPERATURE,
                    help="stage 2: the sigmoid temperature of the round that makes the inputs (0.25 made the shipped weights)")
     p.add_argument("--init-weights", default=defaults.init_weights,
@@ -81,13 +94,22 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def refine_of(args: argparse.Namespace) -> dict | None:
+    """Stage 2: the round that makes the inputs (with the first-stage weights trained on, the noise
+    model of the noisy pairs); stage 1: ``None``."""
+    if args.stage != 2:
+        return None
+    weights = None if args.init_weights == STAGE2["init_weights"] else str(args.init_weights)
+    return learned_round(args.refine_temperature, args.noise_model, weights)
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in vars(args).items() if k in fields}
     config = TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
-                            "refine": learned_round(args.refine_temperature) if args.stage == 2 else None})
+                            "refine": refine_of(args)})
     meta = train(config, args.out, args.cache, resume=args.resume, progress=not args.no_progress,
                  workers=args.workers)
     print(json.dumps({k: meta[k] for k in ("steps_done", "seconds", "validation")}))

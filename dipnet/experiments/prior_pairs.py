@@ -112,27 +112,34 @@ def _make_missing(jobs: list[tuple], desc: str, total: int, progress: bool, work
 def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
                 noise_levels: Sequence[float | None] = (None, 30.0), fill: float = 0.9,
                 solver_options: Mapping | None = None, progress: bool = True, workers: int = 1,
-                refine: Mapping | None = None) -> tuple[np.ndarray, np.ndarray]:
+                refine: Mapping | None = None, noisy_options: Mapping | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One pair per seed and noise level (``None`` = noise-free, else SNR in dB), stacked as
     ``(S * len(noise_levels), n, n, n)`` inputs and targets (seed-major). Each pair is cached as
     ``cache/pair_<seed>_<digest>.npz``, so an interrupted build resumes; the missing pairs are made
     by ``workers`` processes (one per core: a pair costs 20-30 s of one core at 64^3, 41 dips).
 
+    ``noisy_options`` are solver options for the noisy pairs only (e.g. ``{"noise_model": "correlated"}``,
+    which acts only where the sensor's sigma is known); the noise-free pairs keep their digest.
+
     With ``refine`` (:class:`VoxelSolver` options) the pairs are second-stage ones: each first-stage
     input is refined by :func:`refine_input` (cached as ``cache/stage2_<seed>_<digest>.npz``, the
     digest holding ``refine`` too), the targets unchanged."""
-    options = {"n": n, "dips": dips, "fill": fill, "solver_options": dict(solver_options or {})}
-    key_options = {**options, "code": pairs_code()}
-    files = {(int(seed), snr): Path(cache) / f"pair_{seed}_{pairs_key([seed], snr_db=snr, **key_options)}.npz"
+    code = pairs_code()
+
+    def options_at(snr: float | None) -> dict:
+        solver = {**dict(solver_options or {}), **(dict(noisy_options or {}) if snr is not None else {})}
+        return {"n": n, "dips": dips, "fill": fill, "solver_options": solver}
+
+    files = {(int(seed), snr): Path(cache) / f"pair_{seed}_{pairs_key([seed], snr_db=snr, **options_at(snr), code=code)}.npz"
              for seed in seeds for snr in noise_levels}
-    missing = [(file, seed, snr, options) for (seed, snr), file in files.items() if not file.is_file()]
+    missing = [(file, seed, snr, options_at(snr)) for (seed, snr), file in files.items() if not file.is_file()]
     _make_missing(missing, "training pairs", len(files), progress, workers)
     if refine is not None:
         refine = dict(refine)
         firsts = files
-        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, refine=refine, **key_options)}"
+        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, refine=refine, **options_at(snr), code=code)}"
                  ".npz" for seed, snr in firsts}
-        missing = [(file, seed, snr, options, refine, firsts[seed, snr]) for (seed, snr), file in files.items()
+        missing = [(file, seed, snr, options_at(snr), refine, firsts[seed, snr]) for (seed, snr), file in files.items()
                    if not file.is_file()]
         _make_missing(missing, "second-stage inputs", len(files), progress, workers)
     inputs, targets = [], []

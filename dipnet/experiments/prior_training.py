@@ -41,6 +41,8 @@ class TrainConfig:
             of the noisy pair of each seed (each seed also gives a noise-free pair), and the
             shapes' size (farthest point / working-ball radius).
         solver_iterations: voxel-solver steps of the reconstructions (400: the solver's default).
+        noise_model: the voxel solver's noise model for the noisy pairs (``"correlated"``: as the start
+            of ``solver=voxel_learned`` with the sensor's sigma; noise-free pairs are the same either way).
         channels, steps, batch, crop, lr: network width, Adam steps, blocks per step, block side
             (voxels), learning rate (cosine decay to 5%).
         seed: the run's random seed.
@@ -59,6 +61,7 @@ class TrainConfig:
     snr_db: float = 30.0
     fill: float = 0.9
     solver_iterations: int = 400
+    noise_model: str = "independent"
     channels: int = 16
     steps: int = 3500
     batch: int = 4
@@ -79,7 +82,8 @@ STAGE2 = {"init_weights": "denoiser64", "steps": 2000, "lr": 5e-4}
 def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool, workers: int):
     return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, noise_levels=(None, config.snr_db),
                        fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress,
-                       workers=workers, refine=config.refine)
+                       workers=workers, refine=config.refine,
+                       noisy_options={} if config.noise_model == "independent" else {"noise_model": config.noise_model})
 
 
 def random_batch(inputs: torch.Tensor, targets: torch.Tensor, batch: int, crop: int, generator: torch.Generator

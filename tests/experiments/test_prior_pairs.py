@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dipnet.core.grid import Grid
-from dipnet.experiments.prior_pairs import build_pairs
+from dipnet.experiments.prior_pairs import build_pairs, make_pair
 from dipnet.shapes.procedural import generated_shape
 
 SMALL = {"n": 16, "dips": 8, "solver_options": {"iterations": 10}, "progress": False}
@@ -52,6 +52,18 @@ def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path
     assert np.array_equal(again, x2)
     build_pairs([5000], cache=tmp_path, noise_levels=(None,), refine={**refine, "iterations": 9}, **SMALL)
     assert len(list(tmp_path.glob("stage2_*.npz"))) == 2  # other options: made afresh
+
+
+def test_noisy_options_change_only_the_noisy_pairs(tmp_path):
+    """``noisy_options`` reach the solver of the noisy pairs only: the noise-free pair is reused (its
+    digest unchanged) and the noisy one is the solve with those options."""
+    plain = build_pairs([5000], cache=tmp_path, noise_levels=(None, 30.0), **SMALL)
+    options = {"noise_model": "correlated"}
+    mixed = build_pairs([5000], cache=tmp_path, noise_levels=(None, 30.0), noisy_options=options, **SMALL)
+    assert len(list(tmp_path.glob("pair_*.npz"))) == 3  # one new pair: the noisy one
+    assert np.array_equal(plain[0][0], mixed[0][0]) and not np.array_equal(plain[0][1], mixed[0][1])
+    x, _ = make_pair(5000, n=16, dips=8, snr_db=30.0, solver_options={**SMALL["solver_options"], **options})
+    assert np.array_equal(mixed[0][1], x)
 
 
 @pytest.mark.slow

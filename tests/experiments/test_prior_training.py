@@ -37,6 +37,17 @@ def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path):
         assert torch.equal(p, q), name
 
 
+def test_the_noise_model_of_the_noisy_pairs_is_part_of_the_config(tmp_path):
+    """``noise_model="correlated"`` makes the noisy pairs afresh with it and reuses the noise-free ones."""
+    cache = tmp_path / "pairs"
+    train(dataclasses.replace(TINY, steps=1), tmp_path / "a.pt", cache, progress=False)
+    assert len(list(cache.glob("pair_*.npz"))) == 6  # three seeds, two noise levels
+    meta = train(dataclasses.replace(TINY, steps=1, noise_model="correlated"), tmp_path / "b.pt", cache, progress=False)
+    assert len(list(cache.glob("pair_*.npz"))) == 9 and meta["config"]["noise_model"] == "correlated"
+    args = load_script("train_prior").parse_args(["--noise-model", "correlated"])
+    assert args.noise_model == "correlated"
+
+
 def test_a_second_stage_starts_from_the_given_weights_on_refined_inputs(tmp_path):
     """``init_weights`` + ``refine``: the run continues the given network (at a vanishing learning rate
     it stays the same) on second-stage inputs, and its meta says so; a network of another width is refused."""
@@ -72,3 +83,13 @@ def test_the_second_stage_round_is_the_one_that_made_the_shipped_weights():
     assert script.learned_round() == shipped  # the default round is the one recorded with the weights
     assert script.parse_args(["--stage", "2", "--refine-temperature", "0.125"]).refine_temperature == 0.125
     assert script.learned_round(0.125)["temperature_end"] == 0.125
+    assert script.refine_of(script.parse_args(["--stage", "2"])) == shipped and script.refine_of(script.parse_args([])) is None
+
+
+def test_a_new_cascade_refines_with_its_own_first_stage_and_noise_model():
+    script = load_script("train_prior")
+    args = script.parse_args(["--stage", "2", "--init-weights", "d1.pt", "--noise-model", "correlated"])
+    refine = script.refine_of(args)
+    assert refine["priors"]["learned"]["weights"] == "d1.pt"
+    assert refine["noise_model"] == "correlated" and refine["white_share"] > 0
+    assert "noise_model" not in script.learned_round()  # the shipped round: independent slabs
