@@ -111,6 +111,14 @@ def validation_loss(model: OccupancyDenoiser, inputs: torch.Tensor, targets: tor
     return float(F.mse_loss(out, targets)), float(F.mse_loss(inputs, targets))
 
 
+def same_run(saved: dict, config: TrainConfig) -> bool:
+    """Whether a checkpoint's config ``saved`` is ``config``'s run, up to ``steps`` and ``max_minutes``
+    (a resumed run may go on longer). A field ``saved`` lacks (a checkpoint older than the field)
+    takes its default, the behaviour before the field existed."""
+    old = dataclasses.asdict(TrainConfig()) | saved
+    return old | {"steps": config.steps, "max_minutes": config.max_minutes} == dataclasses.asdict(config)
+
+
 def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
     """A new network of ``config.channels``, or the weights ``config.init_weights`` (same width)."""
     if config.init_weights is None:
@@ -143,8 +151,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     step, history, seconds = 0, {"train": [], "val": []}, 0.0
     if resume and ckpt_path.is_file():
         saved = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-        if saved["config"] != dataclasses.asdict(config) | {"max_minutes": saved["config"]["max_minutes"],
-                                                             "steps": saved["config"]["steps"]}:
+        if not same_run(saved["config"], config):
             raise ValueError(f"checkpoint {ckpt_path} was made with another config: {saved['config']}")
         model.load_state_dict(saved["model"])
         opt.load_state_dict(saved["optimizer"])

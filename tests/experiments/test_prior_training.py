@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from dipnet.experiments.prior_training import STAGE2, TrainConfig, random_batch, train
+from dipnet.experiments.prior_training import STAGE2, TrainConfig, random_batch, same_run, train
 from dipnet.solvers.denoiser import SHIPPED_DIR, load_weights
 
 from script_modules import load_script
@@ -35,6 +35,16 @@ def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path):
     b, _ = load_weights(tmp_path / "b.pt")
     for (name, p), q in zip(a.state_dict().items(), b.state_dict().values()):
         assert torch.equal(p, q), name
+
+
+def test_a_checkpoint_older_than_a_config_field_resumes_with_its_default():
+    """A checkpoint written before ``noise_model`` existed was an ``independent`` run."""
+    saved = dataclasses.asdict(TINY)
+    del saved["noise_model"]
+    assert same_run(saved, TINY)
+    assert same_run(saved | {"steps": 3, "max_minutes": 1.0}, TINY)  # a resumed run may go on longer
+    assert not same_run(saved, dataclasses.replace(TINY, noise_model="correlated"))
+    assert not same_run(saved | {"seed": 1}, TINY)
 
 
 def test_the_noise_model_of_the_noisy_pairs_is_part_of_the_config(tmp_path):
