@@ -11,7 +11,9 @@ on the benchmark's data, noise-free and noisy, not a cheaper stand-in.
 
 The cache key of a pair holds its options and :func:`pairs_code` (the source digest of the shapes,
 simulator, operators and solvers that made it), so a change to any of them (a new shape family that
-redraws the seeds, a solver fix) makes the pairs afresh instead of reusing stale ones.
+redraws the seeds, a solver fix) makes the pairs afresh instead of reusing stale ones. A
+second-stage pair's key also holds the digest of the learned-prior weights its round ran with
+(:func:`refine_weights_digest`), so new first-stage weights under the same name make new inputs.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.solvers.denoiser import weights_path
 from dipnet.solvers.voxel import VoxelSolver
 
 
@@ -80,6 +83,16 @@ def pairs_code() -> str:
     return source_digest(*SIMULATION_PACKAGES, "dipnet.operators", "dipnet.solvers")
 
 
+def refine_weights_digest(refine: Mapping) -> str | None:
+    """The sha256 (12 hex characters) of the weights file of ``refine``'s learned prior (its
+    ``priors.learned.weights``: a path, a shipped name, or ``None`` for the shipped first stage);
+    ``None`` when ``refine`` has no learned prior."""
+    learned = (refine.get("priors") or {}).get("learned")
+    if learned is None:
+        return None
+    return hashlib.sha256(weights_path(learned.get("weights")).read_bytes()).hexdigest()[:12]
+
+
 def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, refine: Mapping | None = None,
                    first: Path | None = None) -> None:
     """One pair, written to ``file``: made afresh, or with ``refine`` from the first-stage pair ``first``."""
@@ -123,7 +136,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
 
     With ``refine`` (:class:`VoxelSolver` options) the pairs are second-stage ones: each first-stage
     input is refined by :func:`refine_input` (cached as ``cache/stage2_<seed>_<digest>.npz``, the
-    digest holding ``refine`` too), the targets unchanged."""
+    digest holding ``refine`` and its learned weights' bytes too), the targets unchanged."""
     code = pairs_code()
 
     def options_at(snr: float | None) -> dict:
@@ -137,7 +150,9 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
     if refine is not None:
         refine = dict(refine)
         firsts = files
-        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, refine=refine, **options_at(snr), code=code)}"
+        weights = refine_weights_digest(refine)
+        stamp = {"refine": refine, **({"weights": weights} if weights else {})}
+        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, **stamp, **options_at(snr), code=code)}"
                  ".npz" for seed, snr in firsts}
         missing = [(file, seed, snr, options_at(snr), refine, firsts[seed, snr]) for (seed, snr), file in files.items()
                    if not file.is_file()]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dipnet.core.grid import Grid
-from dipnet.experiments.prior_pairs import build_pairs, make_pair
+from dipnet.experiments.prior_pairs import build_pairs, make_pair, refine_weights_digest
 from dipnet.shapes.procedural import generated_shape
 
 SMALL = {"n": 16, "dips": 8, "solver_options": {"iterations": 10}, "progress": False}
@@ -52,6 +52,28 @@ def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path
     assert np.array_equal(again, x2)
     build_pairs([5000], cache=tmp_path, noise_levels=(None,), refine={**refine, "iterations": 9}, **SMALL)
     assert len(list(tmp_path.glob("stage2_*.npz"))) == 2  # other options: made afresh
+
+
+def test_new_first_stage_weights_under_the_same_name_make_new_second_stage_inputs(tmp_path, monkeypatch):
+    """The second stage's round runs the learned prior, so its cache key holds the weights' bytes:
+    a retrained first stage written over the same file is not handed the old round's inputs."""
+    import dipnet.experiments.prior_pairs as prior_pairs
+
+    rounds = []
+    monkeypatch.setattr(prior_pairs, "refine_input", lambda seed, start, *_: rounds.append(seed) or start)
+    weights = tmp_path / "first.pt"
+    weights.write_bytes(b"first-stage weights, version 1")
+    refine = {"iterations": 8, "priors": {"learned": {"weight": "auto", "weights": str(weights)}}}
+    cache = tmp_path / "cache"
+    for _ in range(2):
+        build_pairs([5000], cache=cache, noise_levels=(None,), refine=refine, **SMALL)
+    assert rounds == [5000]  # the second build reused the cached input
+    weights.write_bytes(b"first-stage weights, version 2")
+    build_pairs([5000], cache=cache, noise_levels=(None,), refine=refine, **SMALL)
+    assert rounds == [5000, 5000] and len(list(cache.glob("stage2_*.npz"))) == 2
+    assert refine_weights_digest({"iterations": 8}) is None  # no learned prior: no weights in the key
+    assert refine_weights_digest({"priors": {"learned": {"weights": None}}}) == refine_weights_digest(
+        {"priors": {"learned": {"weights": "denoiser64"}}})  # None is the shipped first stage
 
 
 def test_noisy_options_change_only_the_noisy_pairs(tmp_path):
