@@ -21,7 +21,7 @@ correlated slabs, chosen afterwards on held-out shapes), about 25 more minutes o
 first-stage weights are fine-tuned on those (``--init-weights denoiser64``, 2000 steps at lr 5e-4
 unless given).
 
-    python scripts/train_prior.py                                   # the shipped weights' recipe
+    python scripts/train_prior.py --seed 1                          # the shipped weights (the better of seeds 0 and 1)
     python scripts/train_prior.py --stage 2 --out outputs/prior/denoiser64_stage2.pt   # the shipped second stage
     python scripts/train_prior.py --out outputs/prior/denoiser64.pt --resume --steps 6000   # train longer
     python scripts/train_prior.py --steps 20 --train-seeds 1000 1004 --val-seeds 2000 2001  # a smoke run
@@ -103,13 +103,18 @@ def refine_of(args: argparse.Namespace) -> dict | None:
     return learned_round(args.refine_temperature, args.noise_model, weights)
 
 
+def config_of(args: argparse.Namespace) -> TrainConfig:
+    """The :class:`TrainConfig` of the parsed command line."""
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    values = {k: v for k, v in vars(args).items() if k in fields}
+    return TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
+                          "refine": refine_of(args)})
+
+
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
-    values = {k: v for k, v in vars(args).items() if k in fields}
-    config = TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
-                            "refine": refine_of(args)})
+    config = config_of(args)
     meta = train(config, args.out, args.cache, resume=args.resume, progress=not args.no_progress,
                  workers=args.workers)
     print(json.dumps({k: meta[k] for k in ("steps_done", "seconds", "validation")}))

@@ -66,7 +66,7 @@ class TrainConfig:
     steps: int = 3500
     batch: int = 4
     crop: int = 32
-    lr: float = 2e-3
+    lr: float = 1e-3
     seed: int = 0
     checkpoint_every: int = 250
     max_minutes: float = 90.0

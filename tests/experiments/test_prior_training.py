@@ -96,6 +96,17 @@ def test_the_second_stage_round_is_the_one_that_made_the_shipped_weights():
     assert script.refine_of(script.parse_args(["--stage", "2"])) == shipped and script.refine_of(script.parse_args([])) is None
 
 
+@pytest.mark.parametrize("stage", [1, 2])
+def test_the_shipped_weights_are_the_scripts_recipe_with_their_seed(stage):
+    """The defaults of ``train_prior.py`` (``--stage 2``: fine-tuning the shipped first stage) with the
+    recorded ``--seed`` are the run that made each shipped file (up to its ``max_minutes``)."""
+    script = load_script("train_prior")
+    name = "denoiser64" if stage == 1 else "denoiser64_stage2"
+    saved = json.loads((SHIPPED_DIR / f"{name}.json").read_text())["config"]
+    saved |= {"train_seeds": tuple(saved["train_seeds"]), "val_seeds": tuple(saved["val_seeds"])}
+    assert same_run(saved, script.config_of(script.parse_args(["--stage", str(stage), "--seed", str(saved["seed"])])))
+
+
 def test_a_new_cascade_refines_with_its_own_first_stage_and_noise_model():
     script = load_script("train_prior")
     args = script.parse_args(["--stage", "2", "--init-weights", "d1.pt", "--noise-model", "correlated"])
