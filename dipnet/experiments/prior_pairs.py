@@ -36,7 +36,7 @@ from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
-from dipnet.solvers.denoiser import weights_path
+from dipnet.solvers.denoiser import PriorWeightsError, weights_path
 from dipnet.solvers.voxel import VoxelSolver
 
 
@@ -86,11 +86,19 @@ def pairs_code() -> str:
 def refine_weights_digest(refine: Mapping) -> str | None:
     """The sha256 (12 hex characters) of the weights file of ``refine``'s learned prior (its
     ``priors.learned.weights``: a path, a shipped name, or ``None`` for the shipped first stage);
-    ``None`` when ``refine`` has no learned prior."""
+    ``None`` when ``refine`` has no learned prior.
+
+    Raises:
+        PriorWeightsError: the weights file is missing.
+    """
     learned = (refine.get("priors") or {}).get("learned")
     if learned is None:
         return None
-    return hashlib.sha256(weights_path(learned.get("weights")).read_bytes()).hexdigest()[:12]
+    path = weights_path(learned.get("weights"))
+    if not path.is_file():
+        raise PriorWeightsError(f"learned-prior weights not found: {path} (the second stage's round needs the "
+                                "first-stage weights it refines with)")
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:12]
 
 
 def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, refine: Mapping | None = None,

@@ -8,6 +8,7 @@ import pytest
 from dipnet.core.grid import Grid
 from dipnet.experiments.prior_pairs import build_pairs, make_pair, refine_weights_digest
 from dipnet.shapes.procedural import generated_shape
+from dipnet.solvers.denoiser import PriorWeightsError
 
 SMALL = {"n": 16, "dips": 8, "solver_options": {"iterations": 10}, "progress": False}
 
@@ -74,6 +75,9 @@ def test_new_first_stage_weights_under_the_same_name_make_new_second_stage_input
     assert refine_weights_digest({"iterations": 8}) is None  # no learned prior: no weights in the key
     assert refine_weights_digest({"priors": {"learned": {"weights": None}}}) == refine_weights_digest(
         {"priors": {"learned": {"weights": "denoiser64"}}})  # None is the shipped first stage
+    with pytest.raises(PriorWeightsError, match="not found"):
+        build_pairs([5000], cache=cache, noise_levels=(None,), refine={"priors": {"learned": {"weights": str(tmp_path / "x.pt")}}},
+                    **SMALL)
 
 
 def test_noisy_options_change_only_the_noisy_pairs(tmp_path):
