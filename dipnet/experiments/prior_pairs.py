@@ -36,7 +36,7 @@ from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
-from dipnet.solvers.denoiser import PriorWeightsError, weights_path
+from dipnet.solvers.denoiser import existing_weights_path
 from dipnet.solvers.voxel import VoxelSolver
 
 
@@ -94,11 +94,7 @@ def refine_weights_digest(refine: Mapping) -> str | None:
     learned = (refine.get("priors") or {}).get("learned")
     if learned is None:
         return None
-    path = weights_path(learned.get("weights"))
-    if not path.is_file():
-        raise PriorWeightsError(f"learned-prior weights not found: {path} (the second stage's round needs the "
-                                "first-stage weights it refines with)")
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+    return hashlib.sha256(existing_weights_path(learned.get("weights")).read_bytes()).hexdigest()[:12]
 
 
 def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, refine: Mapping | None = None,
@@ -159,8 +155,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
         refine = dict(refine)
         firsts = files
         weights = refine_weights_digest(refine)
-        stamp = {"refine": refine, **({"weights": weights} if weights else {})}
-        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, **stamp, **options_at(snr), code=code)}"
+        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, refine=refine, weights=weights, **options_at(snr), code=code)}"
                  ".npz" for seed, snr in firsts}
         missing = [(file, seed, snr, options_at(snr), refine, firsts[seed, snr]) for (seed, snr), file in files.items()
                    if not file.is_file()]

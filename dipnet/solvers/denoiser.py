@@ -101,16 +101,26 @@ def weights_path(weights: str | Path | None) -> Path:
     return path
 
 
+def existing_weights_path(weights: str | Path | None) -> Path:
+    """:func:`weights_path` of ``weights``, checked to exist.
+
+    Raises:
+        PriorWeightsError: the file is missing.
+    """
+    path = weights_path(weights)
+    if not path.is_file():
+        raise PriorWeightsError(f"learned-prior weights not found: {path} (train them with scripts/train_prior.py, "
+                                f"pass weights: null for the shipped first stage, or a shipped name: {shipped_names()})")
+    return path
+
+
 def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dict]:
     """``(model in eval mode, meta)`` from a weights file or shipped name (see :func:`weights_path`).
 
     Raises:
         PriorWeightsError: the file is missing, unreadable, or not a dipnet denoiser.
     """
-    path = weights_path(path)
-    if not path.is_file():
-        raise PriorWeightsError(f"learned-prior weights not found: {path} (train them with scripts/train_prior.py, "
-                                f"pass weights: null for the shipped first stage, or a shipped name: {shipped_names()})")
+    path = existing_weights_path(path)
     try:
         saved = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for a damaged file
