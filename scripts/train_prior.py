@@ -13,6 +13,9 @@ to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpo
 (the slabs' errors as differences of cumulative readings; the shipped weights were trained with
 ``independent``, the default).
 
+``--family-seeds FAMILY FIRST STOP`` adds training shapes of one named family (e.g. ``organic``, which
+no seed draws by itself) to those of ``--train-seeds``; their pairs are cached under their own names.
+
 ``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
 goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights
 ``--init-weights``, the noise model ``--noise-model``, at the temperature ``--refine-temperature``:
@@ -24,6 +27,7 @@ unless given).
     python scripts/train_prior.py --seed 1                          # the shipped weights (the better of seeds 0 and 1)
     python scripts/train_prior.py --stage 2 --out outputs/prior/denoiser64_stage2.pt   # the shipped second stage
     python scripts/train_prior.py --out outputs/prior/denoiser64.pt --resume --steps 6000   # train longer
+    python scripts/train_prior.py --family-seeds organic 3000 3032 --out outputs/prior/mixed.pt   # 64 + 32 shapes
     python scripts/train_prior.py --steps 20 --train-seeds 1000 1004 --val-seeds 2000 2001  # a smoke run
 """
 
@@ -40,6 +44,7 @@ from omegaconf import OmegaConf
 
 from dipnet.experiments.prior_training import STAGE2, TrainConfig, train
 from dipnet.jobs.tuning import compose_job
+from dipnet.shapes.procedural import FAMILIES
 from dipnet.solvers.denoiser import SHIPPED_WEIGHTS
 
 
@@ -85,6 +90,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "(correlated: as solver=voxel_learned uses it)")
     p.add_argument("--refine-temperature", type=float, default=SHIPPED_REFINE_TEMPERATURE,
                    help="stage 2: the sigmoid temperature of the round that makes the inputs (0.25 made the shipped weights)")
+    p.add_argument("--family-seeds", nargs=3, action="append", default=[], metavar=("FAMILY", "FIRST", "STOP"),
+                   help="more training shapes of one named family (repeatable), e.g. organic 3000 3032")
     p.add_argument("--init-weights", default=defaults.init_weights,
                    help="weights to start from (file or shipped name); default: a new network (stage 1)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint next to --out")
@@ -108,7 +115,27 @@ def config_of(args: argparse.Namespace) -> TrainConfig:
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in vars(args).items() if k in fields}
     return TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
-                          "refine": refine_of(args)})
+                          "refine": refine_of(args), "family_seeds": family_seeds(args.family_seeds)})
+
+
+def family_seeds(specs: list[list[str]]) -> dict[str, tuple[int, int]]:
+    """``{family: (first, stop)}`` of ``--family-seeds`` entries ``FAMILY FIRST STOP``.
+
+    Raises:
+        SystemExit: an unknown family, a repeated one, or an empty or unreadable seed range.
+    """
+    out: dict[str, tuple[int, int]] = {}
+    for family, first, stop in specs:
+        if family not in FAMILIES or family in out:
+            raise SystemExit(f"--family-seeds: {family!r} is unknown or repeated; families: {', '.join(FAMILIES)}")
+        try:
+            seeds = (int(first), int(stop))
+        except ValueError:
+            seeds = (0, 0)
+        if seeds[1] <= seeds[0]:
+            raise SystemExit(f"--family-seeds {family} {first} {stop}: FIRST and STOP must be whole numbers, FIRST < STOP")
+        out[family] = seeds
+    return out
 
 
 def main(argv=None) -> dict:

@@ -40,10 +40,11 @@ from dipnet.solvers.denoiser import existing_weights_path
 from dipnet.solvers.voxel import VoxelSolver
 
 
-def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float):
-    """``(shape, measurement, operator)`` of one generated shape dipped ``dips`` times (see the module)."""
+def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float, family: str | None = None):
+    """``(shape, measurement, operator)`` of one generated shape dipped ``dips`` times (see the module);
+    ``family``: the shape's family (``None``: drawn by the seed, :func:`~dipnet.shapes.procedural.make_solid`)."""
     grid = Grid(n, 3)
-    shape = generated_shape(int(seed), radius=fill * grid.radius)
+    shape = generated_shape(int(seed), family=family, radius=fill * grid.radius)
     sensor = LevelSensor(snr_db=snr_db, quantum_mm=0.0, seed=int(seed))
     _, measurement = simulate_measurement(shape, fibonacci_hemisphere(dips), grid=grid, sensor=sensor,
                                           seed=int(seed), progress=False)
@@ -51,10 +52,11 @@ def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float
 
 
 def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = None, fill: float = 0.9,
-              solver_options: Mapping | None = None) -> tuple[np.ndarray, np.ndarray]:
+              solver_options: Mapping | None = None, family: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(reconstruction, truth)``, each ``(n, n, n)`` float32 in ``[0, 1]``, for one generated shape
-    dipped ``dips`` times, noise-free (``snr_db=None``) or with level-sensor noise at ``snr_db`` dB."""
-    shape, measurement, operator = _measurement(seed, n, dips, snr_db, fill)
+    (of ``family``, or the seed's own when ``None``) dipped ``dips`` times, noise-free (``snr_db=None``)
+    or with level-sensor noise at ``snr_db`` dB."""
+    shape, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family)
     options = {"progress": False, "seed": int(seed), **dict(solver_options or {})}
     recon = VoxelSolver(**options).solve(measurement, operator)
     truth = shape.occupancy(operator.grid, supersample=3)
@@ -62,11 +64,11 @@ def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = Non
 
 
 def refine_input(seed: int, start: np.ndarray, refine: Mapping, n: int = 64, dips: int = 41,
-                 snr_db: float | None = None, fill: float = 0.9) -> np.ndarray:
+                 snr_db: float | None = None, fill: float = 0.9, family: str | None = None) -> np.ndarray:
     """A second-stage input ``(n, n, n)`` float32: :class:`VoxelSolver` with options ``refine`` (e.g.
     one round of ``solver=voxel_learned``) warm-started from ``start``, a pair's first-stage input,
     on the same measurement."""
-    _, measurement, operator = _measurement(seed, n, dips, snr_db, fill)
+    _, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family)
     options = {"progress": False, "seed": int(seed), **dict(refine), "warm_start": torch.from_numpy(start)}
     return VoxelSolver(**options).solve(measurement, operator).occupancy.numpy().astype(np.float32)
 
@@ -105,7 +107,8 @@ def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, r
     else:
         with np.load(first) as saved:
             start, y = saved["input"], saved["target"]
-        x = refine_input(seed, start, refine, options["n"], options["dips"], snr_db, options["fill"])
+        x = refine_input(seed, start, refine, options["n"], options["dips"], snr_db, options["fill"],
+                         options.get("family"))
     file.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(file, input=x, target=y)
 
@@ -129,7 +132,8 @@ def _make_missing(jobs: list[tuple], desc: str, total: int, progress: bool, work
 def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
                 noise_levels: Sequence[float | None] = (None, 30.0), fill: float = 0.9,
                 solver_options: Mapping | None = None, progress: bool = True, workers: int = 1,
-                refine: Mapping | None = None, noisy_options: Mapping | None = None) -> tuple[np.ndarray, np.ndarray]:
+                refine: Mapping | None = None, noisy_options: Mapping | None = None,
+                family: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One pair per seed and noise level (``None`` = noise-free, else SNR in dB), stacked as
     ``(S * len(noise_levels), n, n, n)`` inputs and targets (seed-major). Each pair is cached as
     ``cache/pair_<seed>_<digest>.npz``, so an interrupted build resumes; the missing pairs are made
@@ -137,6 +141,8 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
 
     ``noisy_options`` are solver options for the noisy pairs only (e.g. ``{"noise_model": "correlated"}``,
     which acts only where the sensor's sigma is known); the noise-free pairs keep their digest.
+    ``family`` makes every shape of that family (:data:`~dipnet.shapes.procedural.FAMILIES`) instead of
+    the one its seed draws; it enters the digest only when given, so the seeds' own pairs keep theirs.
 
     With ``refine`` (:class:`VoxelSolver` options) the pairs are second-stage ones: each first-stage
     input is refined by :func:`refine_input` (cached as ``cache/stage2_<seed>_<digest>.npz``, the
@@ -145,7 +151,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
 
     def options_at(snr: float | None) -> dict:
         solver = {**dict(solver_options or {}), **(dict(noisy_options or {}) if snr is not None else {})}
-        return {"n": n, "dips": dips, "fill": fill, "solver_options": solver}
+        return {"n": n, "dips": dips, "fill": fill, "solver_options": solver, **({"family": family} if family else {})}
 
     files = {(int(seed), snr): Path(cache) / f"pair_{seed}_{pairs_key([seed], snr_db=snr, **options_at(snr), code=code)}.npz"
              for seed in seeds for snr in noise_levels}

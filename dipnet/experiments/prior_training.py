@@ -52,6 +52,10 @@ class TrainConfig:
             :func:`~dipnet.solvers.denoiser.weights_path`); ``None``: a new network (its output the input).
         refine: :class:`~dipnet.solvers.voxel.VoxelSolver` options that turn each pair's input into a
             second-stage one (:func:`~dipnet.experiments.prior_pairs.build_pairs`); ``None``: first stage.
+        family_seeds: more training shapes, each of one named family
+            (:data:`~dipnet.shapes.procedural.FAMILIES`): ``{family: [first, stop)}``, e.g.
+            ``{"organic": (3000, 3032)}`` (the family only made when named); empty: the ``train_seeds``
+            alone, each of the family its seed draws.
     """
 
     train_seeds: tuple[int, int] = (1000, 1064)
@@ -72,6 +76,7 @@ class TrainConfig:
     max_minutes: float = 90.0
     init_weights: str | None = None
     refine: dict | None = None
+    family_seeds: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
 
 
@@ -79,11 +84,23 @@ class TrainConfig:
 STAGE2 = {"init_weights": "denoiser64", "steps": 2000, "lr": 5e-4}
 
 
-def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool, workers: int):
+def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool, workers: int,
+           family: str | None = None):
     return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, noise_levels=(None, config.snr_db),
                        fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress,
                        workers=workers, refine=config.refine,
-                       noisy_options={} if config.noise_model == "independent" else {"noise_model": config.noise_model})
+                       noisy_options={} if config.noise_model == "independent" else {"noise_model": config.noise_model},
+                       family=family)
+
+
+def training_pairs(config: TrainConfig, cache: Path, progress: bool = True, workers: int = 1
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The training pairs of ``config``: those of ``train_seeds``, then those of each of ``family_seeds``
+    (stacked as :func:`~dipnet.experiments.prior_pairs.build_pairs` stacks them)."""
+    parts = [_pairs(config, config.train_seeds, cache, progress, workers)]
+    parts += [_pairs(config, tuple(seeds), cache, progress, workers, family)
+              for family, seeds in sorted(config.family_seeds.items())]
+    return np.concatenate([x for x, _ in parts]), np.concatenate([y for _, y in parts])
 
 
 def random_batch(inputs: torch.Tensor, targets: torch.Tensor, batch: int, crop: int, generator: torch.Generator
@@ -138,7 +155,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")
-    x_np, y_np = _pairs(config, config.train_seeds, cache, progress, workers)
+    x_np, y_np = training_pairs(config, cache, progress, workers)
     xv_np, yv_np = _pairs(config, config.val_seeds, cache, progress, workers)
     inputs, targets = torch.from_numpy(x_np), torch.from_numpy(y_np)
     val_in, val_target = torch.from_numpy(xv_np), torch.from_numpy(yv_np)
@@ -193,6 +210,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     meta = {"n": config.n, "ndim": 3, "n_slabs_per_voxel": 1, "config": dataclasses.asdict(config),
             "steps_done": step, "seconds": round(seconds, 1), "validation": history["val"][-1] if history["val"] else None,
             "trained_on": "generated shapes (dipnet.shapes.procedural), seeds " f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"
+            + "".join(f", {family} seeds {a}..{b - 1}" for family, (a, b) in sorted(config.family_seeds.items()))
             + ("" if config.refine is None else ", inputs after one round of the learned prior (second stage)")}
     model.eval()
     save_weights(model, out, meta)

@@ -40,6 +40,17 @@ def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path):
     assert ((y > 0) & (y < 1)).any()  # soft at the surface, not a binary mask
 
 
+def test_a_named_family_makes_that_familys_solid_and_its_own_pairs(tmp_path):
+    """``family`` replaces the family the seed draws; the seed's own pair keeps its cache file."""
+    _, own = build_pairs([5002], cache=tmp_path, noise_levels=(None,), **SMALL)
+    _, organic = build_pairs([5002], cache=tmp_path, noise_levels=(None,), family="organic", **SMALL)
+    grid = Grid(16, 3)
+    shape = generated_shape(5002, family="organic", radius=0.9 * grid.radius)
+    assert generated_shape(5002).solid.family != "organic" and not np.array_equal(own, organic)
+    assert abs(float(organic.sum()) * grid.voxel_volume / abs(shape.mesh.volume) - 1) < 0.05
+    assert len(list(tmp_path.glob("pair_*.npz"))) == 2
+
+
 def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path):
     """With ``refine`` each input is the first-stage one after a solve warm-started from it (so closer
     to its data), the truth is the same, and the refined inputs are cached by their options."""

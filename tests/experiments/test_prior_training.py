@@ -114,3 +114,17 @@ def test_a_new_cascade_refines_with_its_own_first_stage_and_noise_model():
     assert refine["priors"]["learned"]["weights"] == "d1.pt"
     assert refine["noise_model"] == "correlated" and refine["white_share"] > 0
     assert "noise_model" not in script.learned_round()  # the shipped round: independent slabs
+
+
+def test_family_seeds_add_training_shapes_of_a_named_family(tmp_path):
+    """``--family-seeds organic A B`` trains on the seeds' own pairs plus organic ones, and says so."""
+    script = load_script("train_prior")
+    config = script.config_of(script.parse_args(["--family-seeds", "organic", "5003", "5004"]))
+    assert config.family_seeds == {"organic": (5003, 5004)}
+    for bad in (["blobby", "1", "2"], ["organic", "5", "5"], ["organic", "a", "2"]):
+        with pytest.raises(SystemExit):
+            script.config_of(script.parse_args(["--family-seeds", *bad]))
+    meta = train(dataclasses.replace(TINY, steps=1, family_seeds={"organic": (5003, 5004)}), tmp_path / "a.pt",
+                 tmp_path / "pairs", progress=False)
+    assert len(list((tmp_path / "pairs").glob("pair_*.npz"))) == 8  # 3 seeds' own + 1 organic, 2 noise levels
+    assert meta["trained_on"].endswith("organic seeds 5003..5003")
