@@ -15,10 +15,12 @@ to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpo
 
 ``--family-seeds FAMILY FIRST STOP`` adds training shapes of one named family (e.g. ``organic``, which
 no seed draws by itself) to those of ``--train-seeds``; their pairs are cached under their own names.
+``--meshes FILE ...`` adds mesh files (never the bundled test meshes), each turned by the random
+rotations of ``--mesh-seeds FIRST STOP`` (default 0 4: four rotations, each noise-free and noisy).
 
 ``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
 goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights
-``--init-weights``, the noise model ``--noise-model``, at the temperature ``--refine-temperature``:
+``--refine-weights``, by default ``--init-weights``, the noise model ``--noise-model``, at the temperature ``--refine-temperature``:
 0.25 and independent slabs made the shipped weights; the solver's refits now run at 0.125 with
 correlated slabs, chosen afterwards on held-out shapes), about 25 more minutes on 2 cores, and the
 first-stage weights are fine-tuned on those (``--init-weights denoiser64``, 2000 steps at lr 5e-4
@@ -28,6 +30,7 @@ unless given).
     python scripts/train_prior.py --stage 2 --out outputs/prior/denoiser64_stage2.pt   # the shipped second stage
     python scripts/train_prior.py --out outputs/prior/denoiser64.pt --resume --steps 6000   # train longer
     python scripts/train_prior.py --family-seeds organic 3000 3032 --out outputs/prior/mixed.pt   # 64 + 32 shapes
+    python scripts/train_prior.py --stage 2 --meshes more/*.obj --out outputs/prior/stage2_meshes.pt   # + real meshes
     python scripts/train_prior.py --steps 20 --train-seeds 1000 1004 --val-seeds 2000 2001  # a smoke run
 """
 
@@ -92,8 +95,15 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="stage 2: the sigmoid temperature of the round that makes the inputs (0.25 made the shipped weights)")
     p.add_argument("--family-seeds", nargs=3, action="append", default=[], metavar=("FAMILY", "FIRST", "STOP"),
                    help="more training shapes of one named family (repeatable), e.g. organic 3000 3032")
+    p.add_argument("--meshes", type=Path, nargs="+", default=[], metavar="FILE",
+                   help="more training shapes from mesh files, each under the rotations of --mesh-seeds")
+    p.add_argument("--mesh-seeds", type=int, nargs=2, default=list(defaults.mesh_seeds), metavar=("FIRST", "STOP"),
+                   help="the random rotations of each of --meshes")
     p.add_argument("--init-weights", default=defaults.init_weights,
                    help="weights to start from (file or shipped name); default: a new network (stage 1)")
+    p.add_argument("--refine-weights", default=None,
+                   help="stage 2: the first-stage weights of the round that makes the inputs (default: --init-weights; "
+                        "set it to fine-tune the second stage itself, e.g. --init-weights denoiser64_stage2 --refine-weights denoiser64)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint next to --out")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the training")
     p.add_argument("--workers", type=int, default=2, help="processes making the missing training pairs")
@@ -106,7 +116,8 @@ def refine_of(args: argparse.Namespace) -> dict | None:
     model of the noisy pairs); stage 1: ``None``."""
     if args.stage != 2:
         return None
-    weights = None if args.init_weights == STAGE2["init_weights"] else str(args.init_weights)
+    first = args.refine_weights or args.init_weights
+    weights = None if first == STAGE2["init_weights"] else str(first)
     return learned_round(args.refine_temperature, args.noise_model, weights)
 
 
@@ -115,7 +126,25 @@ def config_of(args: argparse.Namespace) -> TrainConfig:
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in vars(args).items() if k in fields}
     return TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
-                          "refine": refine_of(args), "family_seeds": family_seeds(args.family_seeds)})
+                          "refine": refine_of(args), "family_seeds": family_seeds(args.family_seeds),
+                          "meshes": mesh_files(args.meshes, args.mesh_seeds), "mesh_seeds": tuple(args.mesh_seeds)})
+
+
+def mesh_files(paths: list[Path], seeds: list[int]) -> tuple[str, ...]:
+    """``--meshes`` as strings, checked: each an existing file, none repeated, and ``--mesh-seeds``
+    FIRST < STOP when there are any.
+
+    Raises:
+        SystemExit: a missing or repeated file, or an empty rotation range.
+    """
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise SystemExit(f"--meshes: no such file: {', '.join(missing)}")
+    if len({p.resolve() for p in paths}) != len(paths):
+        raise SystemExit("--meshes: a file is named twice")
+    if paths and seeds[1] <= seeds[0]:
+        raise SystemExit(f"--mesh-seeds {seeds[0]} {seeds[1]}: FIRST must be below STOP")
+    return tuple(str(p) for p in paths)
 
 
 def family_seeds(specs: list[list[str]]) -> dict[str, tuple[int, int]]:

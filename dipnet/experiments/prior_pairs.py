@@ -1,7 +1,9 @@
-"""Training pairs for the learned prior: (voxel reconstruction, true occupancy) of generated shapes.
+"""Training pairs for the learned prior: (voxel reconstruction, true occupancy) of generated shapes
+or of mesh files.
 
-For each seed and each noise level, the procedural solid (:mod:`dipnet.shapes.procedural`, its
-farthest point at ``fill`` of the working ball) is dipped along ``dips`` Fibonacci directions by
+For each seed and each noise level, the procedural solid (:mod:`dipnet.shapes.procedural`), or a
+mesh file turned by the seed's random rotation (:func:`rotated_mesh`), its farthest point at ``fill``
+of the working ball, is dipped along ``dips`` Fibonacci directions by
 the simulator with the benchmark's level sensor (:func:`dipnet.simulator.simulate.simulate_measurement`,
 exact readings when noise-free, white noise at ``snr_db`` otherwise, both with ``quantum_mm=0``),
 and the voxel solver (its defaults, so the data-chosen TV weight; ``solver_options`` override)
@@ -13,7 +15,8 @@ The cache key of a pair holds its options and :func:`pairs_code` (the source dig
 simulator, operators and solvers that made it), so a change to any of them (a new shape family that
 redraws the seeds, a solver fix) makes the pairs afresh instead of reusing stale ones. A
 second-stage pair's key also holds the digest of the learned-prior weights its round ran with
-(:func:`refine_weights_digest`), so new first-stage weights under the same name make new inputs.
+(:func:`refine_weights_digest`), so new first-stage weights under the same name make new inputs, and a
+mesh pair's key the digest of the mesh file's bytes.
 """
 
 from __future__ import annotations
@@ -27,12 +30,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 from tqdm.auto import tqdm
 
 from dipnet.core.code_version import SIMULATION_PACKAGES, source_digest
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators import make_operator
+from dipnet.shapes.mesh import MeshShape, from_trimesh, load_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
@@ -40,11 +45,31 @@ from dipnet.solvers.denoiser import existing_weights_path
 from dipnet.solvers.voxel import VoxelSolver
 
 
-def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float, family: str | None = None):
-    """``(shape, measurement, operator)`` of one generated shape dipped ``dips`` times (see the module);
-    ``family``: the shape's family (``None``: drawn by the seed, :func:`~dipnet.shapes.procedural.make_solid`)."""
+def rotated_mesh(path: str | Path, seed: int, radius: float) -> MeshShape:
+    """The mesh file ``path`` (:func:`~dipnet.shapes.mesh.load_mesh`: repaired and centred) turned by
+    the uniformly random rotation of ``seed`` (``scipy.spatial.transform.Rotation.random``), scaled
+    so that its farthest vertex is ``radius`` mm from the centre.
+
+    Raises:
+        ShapeError: the file is missing, unreadable or encloses no volume.
+    """
+    mesh = load_mesh(path).mesh.copy()
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.random(random_state=int(seed)).as_matrix()
+    mesh.apply_transform(turn)
+    return from_trimesh(mesh, radius=radius, name=f"{Path(path).stem}-{seed}", source=str(path))
+
+
+def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float, family: str | None = None,
+                 mesh: str | None = None):
+    """``(shape, measurement, operator)`` of one shape dipped ``dips`` times (see the module): the
+    generated shape of ``seed`` and ``family`` (``None``: drawn by the seed,
+    :func:`~dipnet.shapes.procedural.make_solid`), or the mesh file ``mesh`` turned by ``seed``'s rotation."""
     grid = Grid(n, 3)
-    shape = generated_shape(int(seed), family=family, radius=fill * grid.radius)
+    if mesh is not None:
+        shape = rotated_mesh(mesh, seed, fill * grid.radius)
+    else:
+        shape = generated_shape(int(seed), family=family, radius=fill * grid.radius)
     sensor = LevelSensor(snr_db=snr_db, quantum_mm=0.0, seed=int(seed))
     _, measurement = simulate_measurement(shape, fibonacci_hemisphere(dips), grid=grid, sensor=sensor,
                                           seed=int(seed), progress=False)
@@ -52,11 +77,12 @@ def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float
 
 
 def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = None, fill: float = 0.9,
-              solver_options: Mapping | None = None, family: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+              solver_options: Mapping | None = None, family: str | None = None, mesh: str | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """``(reconstruction, truth)``, each ``(n, n, n)`` float32 in ``[0, 1]``, for one generated shape
-    (of ``family``, or the seed's own when ``None``) dipped ``dips`` times, noise-free (``snr_db=None``)
-    or with level-sensor noise at ``snr_db`` dB."""
-    shape, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family)
+    (of ``family``, or the seed's own when ``None``), or the mesh file ``mesh`` turned by the seed's
+    rotation, dipped ``dips`` times, noise-free (``snr_db=None``) or with level-sensor noise at ``snr_db`` dB."""
+    shape, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family, mesh)
     options = {"progress": False, "seed": int(seed), **dict(solver_options or {})}
     recon = VoxelSolver(**options).solve(measurement, operator)
     truth = shape.occupancy(operator.grid, supersample=3)
@@ -64,11 +90,12 @@ def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = Non
 
 
 def refine_input(seed: int, start: np.ndarray, refine: Mapping, n: int = 64, dips: int = 41,
-                 snr_db: float | None = None, fill: float = 0.9, family: str | None = None) -> np.ndarray:
+                 snr_db: float | None = None, fill: float = 0.9, family: str | None = None,
+                 mesh: str | None = None) -> np.ndarray:
     """A second-stage input ``(n, n, n)`` float32: :class:`VoxelSolver` with options ``refine`` (e.g.
     one round of ``solver=voxel_learned``) warm-started from ``start``, a pair's first-stage input,
     on the same measurement."""
-    _, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family)
+    _, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family, mesh)
     options = {"progress": False, "seed": int(seed), **dict(refine), "warm_start": torch.from_numpy(start)}
     return VoxelSolver(**options).solve(measurement, operator).occupancy.numpy().astype(np.float32)
 
@@ -108,7 +135,7 @@ def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, r
         with np.load(first) as saved:
             start, y = saved["input"], saved["target"]
         x = refine_input(seed, start, refine, options["n"], options["dips"], snr_db, options["fill"],
-                         options.get("family"))
+                         options.get("family"), options.get("mesh"))
     file.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(file, input=x, target=y)
 
@@ -133,7 +160,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
                 noise_levels: Sequence[float | None] = (None, 30.0), fill: float = 0.9,
                 solver_options: Mapping | None = None, progress: bool = True, workers: int = 1,
                 refine: Mapping | None = None, noisy_options: Mapping | None = None,
-                family: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+                family: str | None = None, mesh: str | Path | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One pair per seed and noise level (``None`` = noise-free, else SNR in dB), stacked as
     ``(S * len(noise_levels), n, n, n)`` inputs and targets (seed-major). Each pair is cached as
     ``cache/pair_<seed>_<digest>.npz``, so an interrupted build resumes; the missing pairs are made
@@ -143,17 +170,29 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
     which acts only where the sensor's sigma is known); the noise-free pairs keep their digest.
     ``family`` makes every shape of that family (:data:`~dipnet.shapes.procedural.FAMILIES`) instead of
     the one its seed draws; it enters the digest only when given, so the seeds' own pairs keep theirs.
+    ``mesh`` (a mesh file) makes each seed that mesh turned by the seed's random rotation
+    (:func:`rotated_mesh`); its pairs are cached as ``cache/pair_<stem>-<seed>_<digest>.npz``, the digest
+    holding the file's bytes.
 
     With ``refine`` (:class:`VoxelSolver` options) the pairs are second-stage ones: each first-stage
     input is refined by :func:`refine_input` (cached as ``cache/stage2_<seed>_<digest>.npz``, the
     digest holding ``refine`` and its learned weights' bytes too), the targets unchanged."""
+    if family is not None and mesh is not None:
+        raise ValueError("build_pairs takes a shape family or a mesh file, not both")
     code = pairs_code()
+    digest = {} if mesh is None else {"mesh_bytes": hashlib.sha256(Path(mesh).read_bytes()).hexdigest()[:12]}
+    name = "" if mesh is None else f"{Path(mesh).stem}-"
 
     def options_at(snr: float | None) -> dict:
         solver = {**dict(solver_options or {}), **(dict(noisy_options or {}) if snr is not None else {})}
-        return {"n": n, "dips": dips, "fill": fill, "solver_options": solver, **({"family": family} if family else {})}
+        return {"n": n, "dips": dips, "fill": fill, "solver_options": solver, **({"family": family} if family else {}),
+                **({"mesh": str(mesh)} if mesh is not None else {})}
 
-    files = {(int(seed), snr): Path(cache) / f"pair_{seed}_{pairs_key([seed], snr_db=snr, **options_at(snr), code=code)}.npz"
+    def key(seed: int, snr: float | None, **more) -> str:
+        options = {k: v for k, v in options_at(snr).items() if k != "mesh"}  # the file by its bytes, not its path
+        return pairs_key([seed], snr_db=snr, **options, **digest, **more, code=code)
+
+    files = {(int(seed), snr): Path(cache) / f"pair_{name}{seed}_{key(seed, snr)}.npz"
              for seed in seeds for snr in noise_levels}
     missing = [(file, seed, snr, options_at(snr)) for (seed, snr), file in files.items() if not file.is_file()]
     _make_missing(missing, "training pairs", len(files), progress, workers)
@@ -161,8 +200,8 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
         refine = dict(refine)
         firsts = files
         weights = refine_weights_digest(refine)
-        files = {(seed, snr): Path(cache) / f"stage2_{seed}_{pairs_key([seed], snr_db=snr, refine=refine, weights=weights, **options_at(snr), code=code)}"
-                 ".npz" for seed, snr in firsts}
+        files = {(seed, snr): Path(cache) / f"stage2_{name}{seed}_{key(seed, snr, refine=refine, weights=weights)}.npz"
+                 for seed, snr in firsts}
         missing = [(file, seed, snr, options_at(snr), refine, firsts[seed, snr]) for (seed, snr), file in files.items()
                    if not file.is_file()]
         _make_missing(missing, "second-stage inputs", len(files), progress, workers)

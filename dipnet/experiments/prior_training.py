@@ -16,6 +16,7 @@ round), so the network learns the artifacts the later plug-and-play rounds meet
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -56,6 +57,9 @@ class TrainConfig:
             (:data:`~dipnet.shapes.procedural.FAMILIES`): ``{family: [first, stop)}``, e.g.
             ``{"organic": (3000, 3032)}`` (the family only made when named); empty: the ``train_seeds``
             alone, each of the family its seed draws.
+        meshes: more training shapes from mesh files (paths), each turned by the random rotations of
+            ``mesh_seeds`` (:func:`~dipnet.experiments.prior_pairs.rotated_mesh`); empty: none.
+        mesh_seeds: ``[first, stop)`` of the rotations of each of ``meshes``.
     """
 
     train_seeds: tuple[int, int] = (1000, 1064)
@@ -77,6 +81,8 @@ class TrainConfig:
     init_weights: str | None = None
     refine: dict | None = None
     family_seeds: dict = field(default_factory=dict)
+    meshes: tuple[str, ...] = ()
+    mesh_seeds: tuple[int, int] = (0, 4)
     extra: dict = field(default_factory=dict)
 
 
@@ -85,22 +91,33 @@ STAGE2 = {"init_weights": "denoiser64", "steps": 2000, "lr": 5e-4}
 
 
 def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: bool, workers: int,
-           family: str | None = None):
+           family: str | None = None, mesh: str | None = None):
     return build_pairs(range(*seeds), cache=cache, n=config.n, dips=config.dips, noise_levels=(None, config.snr_db),
                        fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress,
                        workers=workers, refine=config.refine,
                        noisy_options={} if config.noise_model == "independent" else {"noise_model": config.noise_model},
-                       family=family)
+                       family=family, mesh=mesh)
 
 
 def training_pairs(config: TrainConfig, cache: Path, progress: bool = True, workers: int = 1
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """The training pairs of ``config``: those of ``train_seeds``, then those of each of ``family_seeds``
-    (stacked as :func:`~dipnet.experiments.prior_pairs.build_pairs` stacks them)."""
+    """The training pairs of ``config``: those of ``train_seeds``, then those of each of ``family_seeds``,
+    then those of each of ``meshes`` (stacked as :func:`~dipnet.experiments.prior_pairs.build_pairs` stacks them)."""
     parts = [_pairs(config, config.train_seeds, cache, progress, workers)]
     parts += [_pairs(config, tuple(seeds), cache, progress, workers, family)
               for family, seeds in sorted(config.family_seeds.items())]
+    parts += [_pairs(config, tuple(config.mesh_seeds), cache, progress, workers, mesh=mesh) for mesh in config.meshes]
     return np.concatenate([x for x, _ in parts]), np.concatenate([y for _, y in parts])
+
+
+def mesh_note(config: TrainConfig) -> str:
+    """What ``config.meshes`` adds to the weights' ``trained_on``: each file's name and the sha256 of its
+    bytes (12 hex characters), and the rotations; empty without meshes."""
+    if not config.meshes:
+        return ""
+    files = ", ".join(f"{Path(m).name} ({hashlib.sha256(Path(m).read_bytes()).hexdigest()[:12]})" for m in config.meshes)
+    first, stop = config.mesh_seeds
+    return f"; mesh files {files}, each under the random rotations of seeds {first}..{stop - 1}"
 
 
 def random_batch(inputs: torch.Tensor, targets: torch.Tensor, batch: int, crop: int, generator: torch.Generator
@@ -211,6 +228,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
             "steps_done": step, "seconds": round(seconds, 1), "validation": history["val"][-1] if history["val"] else None,
             "trained_on": "generated shapes (dipnet.shapes.procedural), seeds " f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"
             + "".join(f", {family} seeds {a}..{b - 1}" for family, (a, b) in sorted(config.family_seeds.items()))
+            + mesh_note(config)
             + ("" if config.refine is None else ", inputs after one round of the learned prior (second stage)")}
     model.eval()
     save_weights(model, out, meta)

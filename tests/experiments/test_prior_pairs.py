@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.experiments.prior_pairs import build_pairs, make_pair, refine_weights_digest
+from dipnet.experiments.prior_pairs import build_pairs, make_pair, refine_weights_digest, rotated_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.solvers.denoiser import PriorWeightsError
 
@@ -49,6 +50,50 @@ def test_a_named_family_makes_that_familys_solid_and_its_own_pairs(tmp_path):
     assert generated_shape(5002).solid.family != "organic" and not np.array_equal(own, organic)
     assert abs(float(organic.sum()) * grid.voxel_volume / abs(shape.mesh.volume) - 1) < 0.05
     assert len(list(tmp_path.glob("pair_*.npz"))) == 2
+
+
+@pytest.fixture
+def box_file(tmp_path):
+    """A 2 x 1 x 0.5 box (volume 1) as a PLY file."""
+    path = tmp_path / "box.ply"
+    trimesh.creation.box(extents=(2.0, 1.0, 0.5)).export(path)
+    return path
+
+
+def test_a_rotated_mesh_is_turned_by_its_seed_and_scaled_to_the_radius(box_file):
+    """The box's farthest corner is at ``radius``, so its volume is known; the seed fixes the turn."""
+    radius = 10.0
+    scale = radius / np.sqrt(1.0**2 + 0.5**2 + 0.25**2)  # the half-diagonal of the box -> radius
+    shapes = [rotated_mesh(box_file, seed, radius) for seed in (0, 0, 1)]
+    for shape in shapes:
+        assert np.linalg.norm(shape.mesh.vertices, axis=1).max() == pytest.approx(radius)
+        assert shape.volume == pytest.approx(scale**3, rel=1e-9)
+    assert np.allclose(shapes[0].mesh.vertices, shapes[1].mesh.vertices)
+    assert not np.allclose(shapes[0].mesh.vertices, shapes[2].mesh.vertices)
+
+
+def test_mesh_pairs_have_its_volume_and_their_own_cache_files_keyed_by_its_bytes(tmp_path, box_file):
+    """A mesh pair's target is the turned mesh's partial volume; its cache file is named after the
+    mesh and keyed by the file's bytes (not its path), beside the generated seeds' own files."""
+    cache = tmp_path / "cache"
+    build_pairs([5000], cache=cache, noise_levels=(None,), **SMALL)
+    x, y = build_pairs([0, 1], cache=cache, noise_levels=(None,), mesh=box_file, **SMALL)
+    grid = Grid(16, 3)
+    for seed, target in zip((0, 1), y):
+        volume = rotated_mesh(box_file, seed, 0.9 * grid.radius).volume
+        assert abs(float(target.sum()) * grid.voxel_volume / volume - 1) < 0.05
+    assert not np.array_equal(y[0], y[1]) and 0 <= x.min() and x.max() <= 1
+    assert sorted(f.name.split("_")[1] for f in cache.glob("pair_*.npz")) == ["5000", "box-0", "box-1"]
+    moved = tmp_path / "elsewhere" / "box.ply"
+    moved.parent.mkdir()
+    moved.write_bytes(box_file.read_bytes())
+    build_pairs([0], cache=cache, noise_levels=(None,), mesh=moved, **SMALL)
+    assert len(list(cache.glob("pair_*.npz"))) == 3  # the same bytes elsewhere: cached
+    trimesh.creation.box(extents=(2.0, 1.0, 0.6)).export(moved)
+    build_pairs([0], cache=cache, noise_levels=(None,), mesh=moved, **SMALL)
+    assert len(list(cache.glob("pair_*.npz"))) == 4  # other bytes: made afresh
+    with pytest.raises(ValueError, match="not both"):
+        build_pairs([0], cache=cache, noise_levels=(None,), mesh=box_file, family="organic", **SMALL)
 
 
 def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path):

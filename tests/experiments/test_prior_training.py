@@ -128,3 +128,31 @@ def test_family_seeds_add_training_shapes_of_a_named_family(tmp_path):
                  tmp_path / "pairs", progress=False)
     assert len(list((tmp_path / "pairs").glob("pair_*.npz"))) == 8  # 3 seeds' own + 1 organic, 2 noise levels
     assert meta["trained_on"].endswith("organic seeds 5003..5003")
+
+
+def test_meshes_add_training_shapes_under_random_rotations(tmp_path):
+    """``--meshes FILE --mesh-seeds A B`` trains on the seeds' pairs plus the mesh's turned copies, names
+    the file and its digest in ``trained_on``, and refuses a missing or repeated file or an empty range."""
+    import trimesh
+
+    mesh = tmp_path / "box.ply"
+    trimesh.creation.box(extents=(2.0, 1.0, 0.5)).export(mesh)
+    script = load_script("train_prior")
+    config = script.config_of(script.parse_args(["--meshes", str(mesh), "--mesh-seeds", "3", "5"]))
+    assert config.meshes == (str(mesh),) and config.mesh_seeds == (3, 5)
+    for bad in (["--meshes", str(tmp_path / "none.ply")], ["--meshes", str(mesh), str(mesh)],
+                ["--meshes", str(mesh), "--mesh-seeds", "2", "2"]):
+        with pytest.raises(SystemExit):
+            script.config_of(script.parse_args(bad))
+    meta = train(dataclasses.replace(TINY, steps=1, meshes=(str(mesh),), mesh_seeds=(3, 4)), tmp_path / "a.pt",
+                 tmp_path / "pairs", progress=False)
+    assert len(list((tmp_path / "pairs").glob("pair_box-3_*.npz"))) == 2  # noise-free and noisy
+    assert "box.ply (" in meta["trained_on"] and meta["trained_on"].endswith("seeds 3..3")
+
+
+def test_the_second_stage_can_be_fine_tuned_from_itself_with_the_first_stage_round():
+    """``--refine-weights`` names the round's first stage apart from the weights trained on."""
+    script = load_script("train_prior")
+    args = script.parse_args(["--stage", "2", "--init-weights", "denoiser64_stage2", "--refine-weights", "denoiser64"])
+    assert script.config_of(args).init_weights == "denoiser64_stage2"
+    assert script.refine_of(args) == script.learned_round()  # the shipped first stage's round
