@@ -112,6 +112,11 @@ def pairs_code() -> str:
     return source_digest(*SIMULATION_PACKAGES, "dipnet.operators", "dipnet.solvers")
 
 
+def file_digest(path: str | Path) -> str:
+    """The sha256 of a file's bytes, 12 hex characters (a cache key's or a record's short name for them)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+
+
 def refine_weights_digest(refine: Mapping) -> str | None:
     """The sha256 (12 hex characters) of the weights file of ``refine``'s learned prior (its
     ``priors.learned.weights``: a path, a shipped name, or ``None`` for the shipped first stage);
@@ -123,7 +128,7 @@ def refine_weights_digest(refine: Mapping) -> str | None:
     learned = (refine.get("priors") or {}).get("learned")
     if learned is None:
         return None
-    return hashlib.sha256(existing_weights_path(learned.get("weights")).read_bytes()).hexdigest()[:12]
+    return file_digest(existing_weights_path(learned.get("weights")))
 
 
 def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, refine: Mapping | None = None,
@@ -180,7 +185,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
     if family is not None and mesh is not None:
         raise ValueError("build_pairs takes a shape family or a mesh file, not both")
     code = pairs_code()
-    digest = {} if mesh is None else {"mesh_bytes": hashlib.sha256(Path(mesh).read_bytes()).hexdigest()[:12]}
+    digest = {} if mesh is None else {"mesh_bytes": file_digest(mesh)}
     name = "" if mesh is None else f"{Path(mesh).stem}-"
 
     def options_at(snr: float | None) -> dict:

@@ -16,7 +16,6 @@ round), so the network learns the artifacts the later plug-and-play rounds meet
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -28,7 +27,7 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from dipnet.solvers.denoiser import OccupancyDenoiser, load_weights, save_weights
-from dipnet.experiments.prior_pairs import build_pairs
+from dipnet.experiments.prior_pairs import build_pairs, file_digest
 
 
 @dataclass
@@ -115,7 +114,7 @@ def mesh_note(config: TrainConfig) -> str:
     bytes (12 hex characters), and the rotations; empty without meshes."""
     if not config.meshes:
         return ""
-    files = ", ".join(f"{Path(m).name} ({hashlib.sha256(Path(m).read_bytes()).hexdigest()[:12]})" for m in config.meshes)
+    files = ", ".join(f"{Path(m).name} ({file_digest(m)})" for m in config.meshes)
     first, stop = config.mesh_seeds
     return f"; mesh files {files}, each under the random rotations of seeds {first}..{stop - 1}"
 
