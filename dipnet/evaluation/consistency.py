@@ -187,9 +187,14 @@ def _findings(c: Consistency) -> list[str]:
                    f"noise explains {c.profile_residual_expected:.3f} ({c.noise_source}): the rig model "
                    "(start heights, geometry, cross-section) or the priors disagree with the data")
     if c.profile_residual > c.residual_limit:
+        hint = ""
+        if c.profile_residual_continuous <= c.residual_limit:
+            hint = (": the occupancy explains the data and its thresholded shape does not, so the threshold loses "
+                    "or adds the material (as it does for parts thinner than about a voxel): raise resolution, "
+                    "or use the occupancy in reconstruction.npz")
         out.append(f"the binary shape misses its data: relative profile residual {c.profile_residual:.3f} "
                    f"(occupancy: {c.profile_residual_continuous:.3f}), noise explains "
-                   f"{c.profile_residual_expected:.3f} ({c.noise_source})")
+                   f"{c.profile_residual_expected:.3f} ({c.noise_source}){hint}")
     trend = max(abs(c.height_trend_pivot_mm), abs(c.height_trend_offset_mm))
     if trend > c.height_trend_limit_mm:  # NaN compares False
         out.append(f"the dips' heights trend with their tilt as a wrong rig geometry leaves them: the pivot looks "

@@ -62,6 +62,27 @@ def test_missing_30_percent_of_the_volume_warns(problem):
     assert result.metrics()["consistency_warnings"] == result.warnings
 
 
+def test_a_plate_thinner_than_a_voxel_is_blamed_on_the_threshold(problem):
+    """A plate of 0.4 voxel thickness: its partial-volume occupancy explains the dips exactly, its
+    0.5-thresholded shape is empty; the message says the threshold, not the data, lost it."""
+    operator, _, _ = problem
+    plate = torch.zeros(GRID.shape, dtype=torch.float64)
+    plate[4:16, 4:16, 10] = 0.4
+    with torch.no_grad():
+        profiles = operator(plate)
+    edges = operator.slab_edges()
+    measurement = DipMeasurement(operator.directions, profiles, operator.slab_thickness,
+                                 torch.full((30,), float(edges[0])))
+    result, caught = _check(measurement, operator, plate)
+    assert result.profile_residual_continuous < 1e-6
+    assert result.profile_residual == pytest.approx(1.0) and result.verdict == "inconsistent"
+    binary = [str(w.message) for w in caught if "binary shape misses" in str(w.message)]
+    assert len(binary) == 1 and "thinner than about a voxel" in binary[0]
+    shifted, caught = _check(measurement, operator, torch.roll(plate, shifts=3, dims=0) * 2.5)
+    assert shifted.profile_residual_continuous > shifted.residual_limit  # the occupancy misses too: no such hint
+    assert not any("thinner than" in str(w.message) for w in caught)
+
+
 @pytest.mark.parametrize("give_sigma", [True, False])
 def test_noisy_measurement_with_the_true_answer_does_not_warn(problem, give_sigma):
     operator, ball, measurement = problem
