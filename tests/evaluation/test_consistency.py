@@ -15,17 +15,20 @@ from dipnet.core.reconstruction import Reconstruction
 GRID = Grid(20, 3, 100.0)
 
 
+def _exact_measurement(operator, volume: torch.Tensor) -> DipMeasurement:
+    """The operator's own noise-free profiles of ``volume``."""
+    with torch.no_grad():
+        profiles = operator(volume)
+    start = torch.full((operator.n_orientations,), float(operator.slab_edges()[0]))
+    return DipMeasurement(operator.directions, profiles, operator.slab_thickness, start)
+
+
 @pytest.fixture(scope="module")
 def problem():
     """A voxelised ball (exactly 0/1), its operator and its exact profiles."""
     operator = make_operator(GRID, fibonacci_hemisphere(30))
     ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
-    with torch.no_grad():
-        profiles = operator(ball)
-    edges = operator.slab_edges()
-    measurement = DipMeasurement(operator.directions, profiles, operator.slab_thickness,
-                                 torch.full((30,), float(edges[0])))
-    return operator, ball, measurement
+    return operator, ball, _exact_measurement(operator, ball)
 
 
 def _check(measurement, operator, volume, **options):
@@ -68,11 +71,7 @@ def test_a_plate_thinner_than_a_voxel_is_blamed_on_the_threshold(problem):
     operator, _, _ = problem
     plate = torch.zeros(GRID.shape, dtype=torch.float64)
     plate[4:16, 4:16, 10] = 0.4
-    with torch.no_grad():
-        profiles = operator(plate)
-    edges = operator.slab_edges()
-    measurement = DipMeasurement(operator.directions, profiles, operator.slab_thickness,
-                                 torch.full((30,), float(edges[0])))
+    measurement = _exact_measurement(operator, plate)
     result, caught = _check(measurement, operator, plate)
     assert result.profile_residual_continuous < 1e-6
     assert result.profile_residual == pytest.approx(1.0) and result.verdict == "inconsistent"
