@@ -63,8 +63,9 @@ def self_section_bias(partial: float) -> float:
 DEFAULT_SELF = ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg", "step_scale",
                 "cross_section_mm2", "level_drift_mm_per_s")
 DEFAULT_REFERENCE = DEFAULT_SELF
-NOT_ESTIMATED = {"sensor_lag_s": "not estimated: at these settle times a lag shifts every profile alike, which "
-                                 "the pivot absorbs; the configured value is used"}
+NOT_ESTIMATED = {"sensor_lag_s": "not estimated: at these settle times a lag shifts every profile alike (self-"
+                                 "calibration's pivot absorbs it; a reference ball's intervals carry it as a start "
+                                 "height error); the configured value is used"}
 GAUGES: dict[str, str] = {
     "shift_x_mm": "the object's position along x", "shift_y_mm": "the object's position along y",
     "shift_z_mm": "the object's position along the spin axis", "rot_x_deg": "the object's rotation about x",
@@ -134,7 +135,8 @@ class CalibrationReport:
         for name, value in self.estimates.items():
             low, high = self.intervals.get(name, (float("nan"), float("nan")))
             why = self.undetermined.get(name)
-            status = f"no, kept at the configured value: {why}" if why else "yes"
+            status = f"no, kept at the configured value: {why}" if why else \
+                f"yes, loosely: {self.caveats[name]}" if name in self.caveats else "yes"
             lines.append(f"{name:<22} {value:12.6g} {f'[{low:.6g}, {high:.6g}]':>25}  {status}")
         lines += [f"{name:<22} {'':>12} {'':>25}  {why}" for name, why in self.not_estimated.items()]
         return "\n".join(lines)

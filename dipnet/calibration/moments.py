@@ -70,7 +70,8 @@ GAUGE_REASONS = {
     ("reference", "spin_zero_deg"): "a reference object symmetric about the spin axis (a centred ball) looks the "
                                     "same at every spin (its symmetry)",
     ("reference", "tilt_zero_deg"): "a centred ball's dips depend on the tilt only through the start heights, which "
-                                    "the pivot and offset move too little here to show the tilt zero",
+                                    "the pivot and offset move too little here, or the start height's tolerance too "
+                                    "much, to show the tilt zero",
 }
 BOOTSTRAP = 200
 
@@ -255,12 +256,21 @@ class MomentFit:
     correlations: dict[str, dict[str, float]] = field(default_factory=dict)
     start: dict[str, float] = field(default_factory=dict)
 
+    def at_search_edge(self, name: str) -> bool:
+        """Whether the nonlinear parameter ``name``'s estimate reached the edge of its search range."""
+        return name in SEARCH and abs(self.values[name] - self.start[name]) >= 2 * SEARCH[name][0] - 1e-6
+
+    def excludes(self, name: str, value: float) -> bool:
+        """Whether ``value`` lies outside ``name``'s 90% interval (the data rule it out)."""
+        low, high = self.intervals.get(name, (self.values[name], self.values[name]))
+        return not low <= value <= high
+
     def undetermined(self, kind: str) -> dict[str, str]:
         """Free parameter -> why the dips do not determine it to its :data:`TOLERANCE` (``kind``:
         ``"self"`` or ``"reference"``, for the named degeneracies of :data:`GAUGE_REASONS`)."""
         out = {}
         for name in self.free:
-            if name in SEARCH and abs(self.values[name] - self.start[name]) >= 2 * SEARCH[name][0] - 1e-6:
+            if self.at_search_edge(name):
                 out[name] = (f"the estimate reached the edge of the search range ({self.start[name]:g} "
                              f"+- {2 * SEARCH[name][0]:g}): the rig is outside the calibrated range, or the dips are "
                              "not of one rigid object")
@@ -338,13 +348,16 @@ class MomentModel:
 
 
 def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObject | None = None,
-                fixed: dict[str, float] | None = None, bootstrap: int = BOOTSTRAP, seed: int = 0) -> MomentFit:
+                fixed: dict[str, float] | None = None, bootstrap: int = BOOTSTRAP, seed: int = 0,
+                t0_sd_mm: float = 0.0) -> MomentFit:
     """Fit the free parameters (:data:`MOMENT_PARAMETERS`) to the dips' moments.
 
     The nonlinear ones (tilt zero, spin zero, step scale) are searched on the :data:`SEARCH`
     grid around their fixed value, then refined with ``scipy.optimize.least_squares`` inside
     that range; the linear ones are solved in closed form at every trial. ``bootstrap`` refits
-    over dips drawn with replacement give the 90% intervals (0: none).
+    over dips drawn with replacement give the 90% intervals (0: none). ``t0_sd_mm``: when the
+    common start height ``t0_mm`` is fixed, how well it is known (standard deviation, mm); every
+    bootstrap refit draws it from that normal law, so the intervals carry its uncertainty.
     """
     fixed = {"pivot_mm": 0.0, "tilt_axis_offset_mm": 0.0, "tilt_zero_deg": 0.0, "spin_zero_deg": 0.0,
              "step_scale": 1.0, "t0_mm": 0.0, **(fixed or {})}
@@ -376,9 +389,12 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
         rng = np.random.default_rng(seed)
         draws = {p: [] for p in free}
         for _ in range(int(bootstrap)):
-            sub = MomentModel(moments.take(rng.integers(0, len(moments.k), len(moments.k))), known, fixed, linear)
+            drawn = dict(fixed)
+            if t0_sd_mm > 0 and "t0_mm" not in free:
+                drawn["t0_mm"] = fixed["t0_mm"] + rng.normal(0.0, t0_sd_mm)
+            sub = MomentModel(moments.take(rng.integers(0, len(moments.k), len(moments.k))), known, drawn, linear)
             sub.weights = model.weights
-            b = _refine(sub, nonlinear, best, fixed)
+            b = _refine(sub, nonlinear, best, drawn)
             values = {**b, **sub.solve(b)[2]}
             for p in free:
                 draws[p].append(values[p])

@@ -16,6 +16,7 @@ from dipnet.calibration.moments import (GAUGE_REASONS, TOLERANCE, DipMoments, Kn
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
+from dipnet.preprocessing.validation import estimate_slab_sigma
 
 # ---------------------------------------------------------------------------- moment stage
 SHAPE_MOTION = {
@@ -32,11 +33,14 @@ SHAPE_MOTION = {
 
 
 def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: KnownObject | None,
-                  seed: int = 0) -> tuple[State, CalibrationReport, DipMoments]:
+                  seed: int = 0, t0_sd_mm: float = 0.0) -> tuple[State, CalibrationReport, DipMoments]:
     """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
-    ``"reference"`` (``known`` moments). Undetermined parameters are refitted at their configured value.
+    ``"reference"`` (``known`` moments; ``t0_sd_mm``: how well its height at the stage's zero is known,
+    see :func:`fit_moments`). A parameter the dips do not pin to its tolerance is held at its configured
+    value when its 90% interval holds that value (the others are refitted, their intervals widened to the
+    joint fit's), else its estimate is used with a caveat: the data rule the configured value out.
     Returns the state, the report and the dips' moments (drift removed: their rises give a reference
     object's cross-section).
     """
@@ -71,24 +75,31 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
                                             "step_scale") and p not in gauges)
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
                                                      "spin_zero_deg", "step_scale")}
-    fit = fit_moments(moments, free, known=known, fixed=fixed, seed=seed) if free else None
-    undetermined = dict(gauges)
-    if fit is not None:
-        undetermined.update(fit.undetermined(kind))
+    joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm) if free else None
+    undetermined, loose = dict(gauges), {}
+    fit = joint
+    if joint is not None:
+        for p, why in joint.undetermined(kind).items():
+            if p not in gauges and not joint.at_search_edge(p) and joint.excludes(p, fixed[p]):
+                loose[p] = (f"is not pinned to its tolerance {TOLERANCE[p]:g} ({why}), but its 90% interval excludes "
+                            f"the configured value {fixed[p]:g}: the estimate is used")
+            else:
+                undetermined[p] = why
         kept = tuple(p for p in free if p not in undetermined)
         if kept != free:
-            fit = fit_moments(moments, kept, known=known, fixed=fixed, seed=seed) if kept else None
+            fit = fit_moments(moments, kept, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm) if kept else None
         if fit is not None:
             geometry = geometry.with_values(**{p: fit.values[p] for p in fit.free})
             report.moment_rms = fit.residual_rms
-            floors = dict(MODEL_FLOOR[kind])
-            if known is not None:  # the midpoint rule misses h^2 / 12 of every dip's variance (h: the stage step)
-                step = float(np.median(np.concatenate([np.diff(o.stage_mm) for o in raw.orientations])))
-                floors["step_scale"] = math.hypot(floors["step_scale"],
-                                                  step**2 / 12.0 / np.trace(known.covariance) * 3.0)
+            floors = _moment_floors(kind, fit, known, raw)
             for p in fit.free:
-                _record(report, p, fit.values[p], fit.intervals[p], fit.bootstrap_sd[p], floors[p])
+                interval, sd = fit.intervals[p], fit.bootstrap_sd[p]
+                if fit is not joint:  # refitted with parameters held at configured values the data allow:
+                    interval = (min(interval[0], joint.intervals[p][0]), max(interval[1], joint.intervals[p][1]))
+                    sd = max(sd, joint.bootstrap_sd[p])  # the joint fit's spread covers what they may be
+                _record(report, p, fit.values[p], interval, sd, floors[p])
             report.correlations.update(fit.correlations)
+            report.caveats.update(loose)
     radius = _object_radius(fit, known)
     undetermined.update(report.undetermined)
     for p, why in undetermined.items():
@@ -96,6 +107,26 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         report.undetermined[p] = why
         report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
     return State(geometry), report, moments
+
+
+def _moment_floors(kind: str, fit, known: KnownObject | None, raw: RawScan) -> dict[str, float]:
+    """The model-error half-widths (:data:`MODEL_FLOOR`) of the moment stage's parameters at ``fit``.
+
+    Lengths scale with the step scale, so the pivot's floor grows with ``|pivot|`` times the step
+    scale's; a tilt-zero error turns the pivot's arm into an offset error, so the offset's grows with
+    ``|pivot|`` times the tilt zero's (in radians).
+    """
+    floors = dict(MODEL_FLOOR[kind])
+    if known is not None:  # the midpoint rule misses h^2 / 12 of every dip's variance (h: the stage step)
+        step = float(np.median(np.concatenate([np.diff(o.stage_mm) for o in raw.orientations])))
+        floors["step_scale"] = math.hypot(floors["step_scale"], step**2 / 12.0 / np.trace(known.covariance) * 3.0)
+    pivot = abs(fit.values.get("pivot_mm", 0.0))
+    if "step_scale" in fit.free:
+        floors["pivot_mm"] = math.hypot(floors["pivot_mm"], pivot * floors["step_scale"])
+    if "tilt_zero_deg" in fit.free and "tilt_zero_deg" in floors:
+        floors["tilt_axis_offset_mm"] = math.hypot(floors["tilt_axis_offset_mm"],
+                                                   pivot * math.radians(floors["tilt_zero_deg"]))
+    return floors
 
 
 def _record(report: CalibrationReport, name: str, value: float, interval: tuple[float, float], sd: float,
@@ -139,7 +170,8 @@ def known_object(shape, supersample: int = 2) -> KnownObject:
 # ---------------------------------------------------------------------------- reference object
 def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
                         n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
-                        max_relative_residual: float = 0.05, seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
+                        max_relative_residual: float = 0.05, start_height_tolerance_mm: float = 0.5,
+                        seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
     """The rig geometry from dips of a reference object of known geometry and pose.
 
     The moment stage (module docstring) estimates the drift, pivot, offset, tilt zero, spin zero
@@ -157,13 +189,20 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
         initial: the configured geometry (default the ideal rig).
         max_relative_residual: refuse when ``|A f - m| / |m|`` stays above this at the estimate (the
             object does not fit: wrong size, wrong pose, or the data are not of this object).
+        start_height_tolerance_mm: how well the object's height at the stage's zero is known (90%
+            half-width, mm: its mounting, and the shift a sensor lag gives every dip). A centred ball
+            shows the tilt zero only through the start heights, so a height error of ``c`` mm moves it
+            by about ``c / offset`` radians: the intervals carry this (:func:`fit_moments`'s ``t0_sd_mm``).
 
     Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
     """
     params = _check_params(params)
     initial = initial or RigGeometry()
     known = known_object(shape)
-    state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed)
+    if not start_height_tolerance_mm >= 0:
+        raise CalibrationError(f"start_height_tolerance_mm must be >= 0 (mm), got {start_height_tolerance_mm!r}")
+    state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed,
+                                           t0_sd_mm=start_height_tolerance_mm / 1.645)
     if "cross_section_mm2" in params:
         rng = np.random.default_rng(seed)
         rises = np.asarray(moments.rise)  # mm of level per dip, drift removed
@@ -175,12 +214,19 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
                     float(np.std(draws)), MODEL_FLOOR["reference"]["cross_section_mm2"] * section)
     model = ProfileModel(raw, grid, n_slabs, operator_factory)
     occupancy = shape.occupancy(grid, supersample=supersample).to(torch.float64)
-    measured = model.measurement(state).profiles.numpy().reshape(-1)
+    profiles = model.measurement(state).profiles
+    measured = profiles.numpy().reshape(-1)
     fit = float(np.linalg.norm(model.residual(state, occupancy, 1.0)) / max(np.linalg.norm(measured), 1e-300))
     if fit > max_relative_residual:
-        raise CalibrationError(f"the reference object does not fit the dips: relative profile residual {fit:.3f} "
-                               f"> {max_relative_residual} at the calibrated geometry; check its size, pose and "
-                               "the recording")
+        noise = estimate_slab_sigma(profiles) * \
+            math.sqrt(np.count_nonzero(measured)) / max(np.linalg.norm(measured), 1e-300)
+        found = [f"{p} {why}" for p, why in {**report.undetermined, **report.caveats}.items()]
+        raise CalibrationError(
+            f"the reference object does not fit the dips: relative profile residual {fit:.3f} > {max_relative_residual} "
+            f"at the calibrated geometry (the slabs' own noise, estimated from the profiles, explains about "
+            f"{noise:.3f} of it)" + (f"; the moment stage found: {'; '.join(found)}" if found else "") +
+            ". Check the object's size and pose, the recording, and that the rig is inside the calibrated range; "
+            "with noisy data, a larger max_relative_residual (calibrate.py --max-residual) accepts it")
     report.residual_rms = fit
     _warn_undetermined(report, "reference calibration")
     return state.geometry, report

@@ -29,10 +29,12 @@ def ball_scan(tmp_path_factory):
 
 def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
     """scripts/calibrate.py end to end: the file it writes holds the fake rig's true geometry, and a
-    reader using that file places the ball's profiles where an ideal rig would have."""
+    reader using that file places the ball's profiles where an ideal rig would have. The fake rig holds
+    the ball exactly at the configured height (``--height-tolerance 0``)."""
     calibrate = load_script("calibrate")
     out = tmp_path / "rig_calibration.yaml"
-    assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out)]) == 0
+    assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out),
+                           "--height-tolerance", "0"]) == 0
     cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
     g = cal.geometry
     assert g.pivot_mm == pytest.approx(20.0, abs=1.0) and g.tilt_axis_offset_mm == pytest.approx(10.0, abs=0.5)
@@ -52,10 +54,50 @@ def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
             assert np.abs(centroids).max() > 3.0
 
 
+def test_an_uncertain_ball_height_leaves_the_tilt_zero_undetermined_not_wrong(ball_scan, tmp_path):
+    """The audit's case: a centred ball shows the tilt zero only through its start heights, so a 1 mm error
+    in its height moved the tilt zero by 5 deg while the file called it determined. With the default height
+    tolerance (0.5 mm) the fake rig's tilt zero (offset 10 mm: about +-3 deg) is named undetermined and kept
+    at the configured 0; the pivot and offset are refitted around it, their intervals still hold the truth,
+    and a reader with the file still centres every profile."""
+    calibrate = load_script("calibrate")
+    out = tmp_path / "rig_calibration.yaml"
+    with pytest.warns(UserWarning, match="tilt_zero_deg is not determined"):
+        assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out)]) == 0
+    cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
+    assert "tilt_zero_deg" in cal.not_estimated and cal.geometry.tilt_zero_deg == 0.0
+    for name in ("pivot_mm", "tilt_axis_offset_mm", "step_scale"):
+        low, high = cal.intervals[name]
+        assert low <= getattr(FAKE_TRUTH, name) <= high, name
+    grid = Grid(32, extent=80.0)
+    m = read_raw_recording(ball_scan, grid, smooth=False, calibration=out)
+    centroids = (m.profiles.numpy() @ (np.arange(32) + 0.5 - 16) * grid.voxel_size) / m.profiles.sum(1).numpy()
+    assert np.abs(centroids).max() < 0.3
+
+
+def test_a_loose_parameter_that_excludes_the_configured_value_keeps_its_estimate():
+    """The audit's case: an undetermined parameter was reset to its configured value even when its own
+    interval excluded that value, and the others refitted around the wrong value were reported as
+    determined. A tilt zero of 5 deg on a rig with a 30 mm offset (height tolerance 0.5 mm: about +-0.8 deg,
+    wider than its 0.5 deg tolerance) keeps its estimate, named under caveats, its interval holding the truth."""
+    true = RigGeometry(pivot_mm=60.0, tilt_axis_offset_mm=30.0, tilt_zero_deg=5.0)
+    raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(60), tank=Tank(60000.0), geometry=true,
+                        sensor=LevelSensor(snr_db=30.0, seed=2), progress=False)
+    with pytest.warns(UserWarning, match="tilt_zero_deg is not pinned to its tolerance"):
+        geometry, report = calibrate_reference(raw, Ball(30.0), Grid(32, extent=80.0))
+    assert "tilt_zero_deg" in report.caveats and "tilt_zero_deg" not in report.undetermined
+    low, high = report.intervals["tilt_zero_deg"]
+    assert high - low > 1.0 and low <= 5.0 <= high and geometry.tilt_zero_deg == pytest.approx(5.0, abs=0.5)
+    for name in ("pivot_mm", "tilt_axis_offset_mm"):
+        low, high = report.intervals[name]
+        assert low <= getattr(true, name) <= high, name
+    assert "loosely" in report.table()
+
+
 def test_reference_calibration_refuses_the_wrong_object(ball_scan):
     from dipnet.core.rawscan import read_rawscan
 
-    with pytest.raises(CalibrationError, match="does not fit the dips"):
+    with pytest.raises(CalibrationError, match=r"does not fit the dips.*own noise.*explains about 0\.0"):
         calibrate_reference(read_rawscan(ball_scan), Ball(0.8 * RADIUS), Grid(32, extent=80.0),
                             ("pivot_mm", "tilt_axis_offset_mm"))
 

@@ -89,6 +89,20 @@ def test_the_calibrated_section_is_the_gain_corrected_for_the_field_deficit():
     step = result.history[-1]
     assert step["section_bias"] == self_section_bias(step["partial_volume"]) > 0
     assert step["cross_section_mm2"] == pytest.approx(60000.0 / step["gain"] / (1 - step["section_bias"]), rel=1e-12)
+    # the max_section_change guard judges that corrected section, not the raw gain (the audit's case: a
+    # section 19 % small refused because the raw gain said 21 %)
+    raw_change, corrected = abs(1 / step["gain"] - 1), abs(step["cross_section_mm2"] / 60000.0 - 1)
+    assert abs(raw_change - corrected) > 0.01
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        guarded = self_calibrate(raw, Grid(16, extent=80.0), VoxelSolver(iterations=40, progress=False),
+                                 ("cross_section_mm2",), max_section_change=0.5 * (raw_change + corrected))
+    kept = "cross_section_mm2" in guarded.report.undetermined
+    assert kept == (corrected > raw_change)  # between the two: the corrected one decides
+    if kept:  # the configured section: the tank's (None)
+        assert guarded.geometry.cross_section_mm2 is None
+    else:
+        assert guarded.geometry.cross_section_mm2 == pytest.approx(step["cross_section_mm2"], rel=1e-9)
 
 
 def test_self_calibration_recovers_pivot_offset_and_tilt_zero():
@@ -181,3 +195,44 @@ def test_the_gain_step_fixes_auto_prior_weights_at_the_rules_start():
     assert gained.fit_gain and gained.priors["tv"]["weight"] == solver.weight_rule.start == 1e-3
     fixed = _with_gain(VoxelSolver(priors={"tv": {"weight": 3e-3}}, progress=False))
     assert fixed.priors["tv"]["weight"] == 3e-3  # a weight the user fixed stays
+
+
+def test_the_missing_cone_of_a_scan():
+    """90 deg less the largest tilt: about 0 for a full hemisphere, 55 deg for tilts up to 35 deg (the
+    authors' rig); a direction and its opposite give the same planes."""
+    from dipnet.calibration.self_calibration import missing_cone_deg
+    from dipnet.core.orientations import fibonacci_hemisphere, rig_to_direction
+
+    assert missing_cone_deg(fibonacci_hemisphere(123)) < 5.0
+    tilts = torch.tensor([0.0, 10.0, 20.0, 35.0, 35.0])
+    cap = rig_to_direction(tilts, torch.tensor([0.0, 90.0, 180.0, 270.0, 45.0]))
+    assert missing_cone_deg(cap) == pytest.approx(55.0, abs=1e-6)
+    assert missing_cone_deg(-cap) == pytest.approx(55.0, abs=1e-6)
+
+
+def test_a_missing_cone_keeps_the_uncorrected_section_in_the_interval():
+    """The audit's case: with tilts up to 35 deg the partly filled voxels are the missing cone's blur, not
+    thin parts, and the bias correction put the section 6-9 % high with an interval that missed the truth.
+    With a missing cone the interval reaches down to the section without the correction (here a ball dipped
+    at tilts up to 50 deg), and the caveat says so."""
+    import warnings
+
+    from dipnet.calibration.model import self_section_bias
+    from dipnet.calibration.self_calibration import self_calibrate
+    from dipnet.core.orientations import rig_to_direction
+    from dipnet.shapes import Ball
+    from dipnet.simulator.physics import Tank, simulate_scan
+    from dipnet.solvers.voxel import VoxelSolver
+
+    tilts = torch.tensor([0.0] + [25.0] * 6 + [50.0] * 9)  # a 40 deg missing cone
+    spins = torch.cat([torch.zeros(1), torch.arange(6) * 60.0, torch.arange(9) * 40.0])
+    raw = simulate_scan(Ball(25.0), rig_to_direction(tilts, spins), tank=Tank(60000.0), progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        result = self_calibrate(raw, Grid(32, extent=80.0), VoxelSolver(iterations=80, progress=False),
+                                ("cross_section_mm2",), max_section_change=0.5)
+    step, report = result.history[-1], result.report
+    section, (low, high) = report.estimates["cross_section_mm2"], report.intervals["cross_section_mm2"]
+    assert step["section_bias"] > 0.01
+    assert low <= section * (1 - self_section_bias(step["partial_volume"])) and low <= 60000.0 <= high
+    assert "missing cone of 40 deg" in report.caveats["cross_section_mm2"]
