@@ -41,8 +41,9 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     see :func:`fit_moments`). A parameter the dips do not pin to its tolerance is held at its configured
     value when its 90% interval holds that value (the others are refitted, their intervals widened to the
     joint fit's), else its estimate is used with a caveat: the data rule the configured value out.
-    Returns the state, the report and the dips' moments (drift removed: their rises give a reference
-    object's cross-section).
+    Returns the state (its ``t0_mm`` the reference object's fitted height error, when fitted: for its
+    profile check only, never part of the geometry), the report and the dips' moments (drift removed:
+    their rises give a reference object's cross-section).
     """
     geometry = initial
     report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
@@ -76,37 +77,66 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
                                                      "spin_zero_deg", "step_scale")}
     joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm) if free else None
-    undetermined, loose = dict(gauges), {}
-    fit = joint
-    if joint is not None:
-        for p, why in joint.undetermined(kind).items():
-            if p not in gauges and not joint.at_search_edge(p) and joint.excludes(p, fixed[p]):
-                loose[p] = (f"is not pinned to its tolerance {TOLERANCE[p]:g} ({why}), but its 90% interval excludes "
-                            f"the configured value {fixed[p]:g}: the estimate is used")
-            else:
-                undetermined[p] = why
-        kept = tuple(p for p in free if p not in undetermined)
-        if kept != free:
-            fit = fit_moments(moments, kept, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm) if kept else None
-        if fit is not None:
-            geometry = geometry.with_values(**{p: fit.values[p] for p in fit.free})
-            report.moment_rms = fit.residual_rms
-            floors = _moment_floors(kind, fit, known, raw)
-            for p in fit.free:
-                interval, sd = fit.intervals[p], fit.bootstrap_sd[p]
-                if fit is not joint:  # refitted with parameters held at configured values the data allow:
-                    interval = (min(interval[0], joint.intervals[p][0]), max(interval[1], joint.intervals[p][1]))
-                    sd = max(sd, joint.bootstrap_sd[p])  # the joint fit's spread covers what they may be
-                _record(report, p, fit.values[p], interval, sd, floors[p])
-            report.correlations.update(fit.correlations)
-            report.caveats.update(loose)
+    fit, undetermined, loose = _hold_undetermined(joint, moments, known, fixed, kind, seed, t0_sd_mm)
+    undetermined.update(gauges)
+    if fit is not None:
+        estimated = tuple(p for p in fit.free if p != "t0_mm")  # the reference's start height: a nuisance
+        geometry = geometry.with_values(**{p: fit.values[p] for p in estimated})
+        report.moment_rms = fit.residual_rms
+        floors = _moment_floors(kind, fit, known, raw)
+        for p in estimated:
+            interval, sd = fit.intervals[p], fit.bootstrap_sd[p]
+            if fit is not joint:  # refitted with parameters held at configured values the data allow:
+                interval = (min(interval[0], joint.intervals[p][0]), max(interval[1], joint.intervals[p][1]))
+                sd = max(sd, joint.bootstrap_sd[p])  # the joint fit's spread covers what they may be
+                if 0.5 * (interval[1] - interval[0]) > TOLERANCE[p] and p not in loose:
+                    loose[p] = (f"its interval is wider than its tolerance {TOLERANCE[p]:g}: it covers what "
+                                f"{', '.join(sorted(undetermined))} (held at configured values) may be")
+            _record(report, p, fit.values[p], interval, sd, floors[p])
+        report.correlations.update({p: {q: c for q, c in row.items() if q in estimated}
+                                    for p, row in fit.correlations.items() if p in estimated})
+        report.caveats.update(loose)
     radius = _object_radius(fit, known)
     undetermined.update(report.undetermined)
     for p, why in undetermined.items():
         report.estimates[p] = float(getattr(initial, p))
         report.undetermined[p] = why
         report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
-    return State(geometry), report, moments
+    held_height = float(fit.values["t0_mm"]) if fit is not None and "t0_mm" in fit.free else 0.0
+    return State(geometry, t0_mm=held_height), report, moments
+
+
+def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fixed: dict[str, float], kind: str,
+                       seed: int, t0_sd_mm: float) -> tuple[object, dict[str, str], dict[str, str]]:
+    """``(fit, undetermined, loose)``: the joint fit with the parameters the dips do not determine held
+    at their configured values, one at a time (the widest against its tolerance first, then a refit: the
+    others may be determined once it is held, as the offset once the tilt zero is). A parameter whose
+    estimate lies more than twice its 90% half-width from the configured value is not held: the data
+    rule that value out, its estimate is used and named in ``loose``.
+
+    With an uncertain start height (``t0_sd_mm > 0``) the refits fit it (``t0_mm``, a nuisance never
+    applied): a held tilt zero can no longer absorb a height error, which would otherwise bias the step
+    scale through the dips' first moments; the pivot and offset come out as the equivalent of the held value.
+    """
+    fit, undetermined, loose = joint, {}, {}
+    nuisance = ("t0_mm",) if t0_sd_mm > 0 else ()
+    while fit is not None:
+        why = {p: w for p, w in fit.undetermined(kind).items() if p not in nuisance}
+        holdable = {p: w for p, w in why.items() if fit.at_search_edge(p) or not fit.excludes(p, fixed[p])}
+        if not holdable:
+            loose = {p: f"is not pinned to its tolerance {TOLERANCE[p]:g} ({w}), but lies more than twice its 90% "
+                        f"half-width from the configured value {fixed[p]:g}: the estimate is used" for p, w in why.items()}
+            break
+        held = max(holdable, key=lambda p: (fit.at_search_edge(p), _half_width(fit, p) / TOLERANCE[p]))
+        undetermined[held] = holdable[held]
+        kept = tuple(p for p in fit.free if p != held and p not in nuisance)
+        fit = fit_moments(moments, kept + nuisance, known=known, fixed=fixed, seed=seed) if kept else None
+    return fit, undetermined, loose
+
+
+def _half_width(fit, name: str) -> float:
+    low, high = fit.intervals.get(name, (fit.values[name], fit.values[name]))
+    return 0.5 * (high - low)
 
 
 def _moment_floors(kind: str, fit, known: KnownObject | None, raw: RawScan) -> dict[str, float]:
