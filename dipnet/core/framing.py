@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
+
 from dipnet.core.measurement import DipMeasurement
 
 
@@ -34,5 +36,42 @@ def measurement_extent(path: str | Path) -> float | None:
     if path.suffix != ".npz":
         return None
     m = DipMeasurement.load(path)  # a clear error when missing or malformed
+    misplaced = misplaced_dips(m)
+    if misplaced:
+        raise ValueError(f"{path}: the slabs of dip(s) {misplaced} lie far from where one rigid object puts them "
+                         "(their volume's centre is off the other dips' plane c . theta by more than half the "
+                         "object's size): a wrong offset? Fix or drop those dips")
     top = m.offsets + m.n_slabs * m.slab_thickness
     return 2.0 * float(max(m.offsets.abs().max(), top.abs().max()))
+
+
+def misplaced_dips(m: DipMeasurement, min_dips: int = 6) -> list[int]:
+    """The dips whose volume's centre height (mm) is off the rigid object's ``c . theta + t0`` by more
+    than half the object's size (the median half-width of the dips' occupied slabs): a wrong offset.
+
+    ``c`` and ``t0`` are fitted by least squares, the worst dip left out while it is off, at most a
+    quarter of the dips; fewer than ``min_dips`` dips are not judged.
+    """
+    k = m.n_orientations
+    if k < max(min_dips, m.ndim + 2):
+        return []
+    p = m.profiles.double().clamp(min=0.0)
+    totals = p.sum(1)
+    heights = (torch.arange(m.n_slabs, dtype=torch.float64) + 0.5) * m.slab_thickness
+    centres = m.offsets.double() + (p @ heights) / totals.clamp(min=1e-300)
+    occupied = p > 0.01 * p.max(1, keepdim=True).values
+    first = occupied.double().argmax(1)
+    last = m.n_slabs - 1 - occupied.flip(1).double().argmax(1)
+    half = float(((last - first + 1).double() * m.slab_thickness / 2).median())
+    design = torch.cat([m.directions.double(), torch.ones(k, 1, dtype=torch.float64)], dim=1)
+    keep = totals > 0
+    out: list[int] = []
+    while len(out) < k // 4:
+        solution = torch.linalg.lstsq(design[keep], centres[keep, None]).solution
+        off = (centres - (design @ solution)[:, 0]).abs().masked_fill(~keep, 0.0)
+        worst = int(off.argmax())
+        if float(off[worst]) <= half:
+            break
+        out.append(worst)
+        keep[worst] = False
+    return sorted(out)

@@ -85,6 +85,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "azimuthal_signal_ratio": ("what the plan resolves", "azimuthal signal ratio"),
     "readings_repaired": ("data checks", "readings repaired"),
     "dips_rejected": ("data checks", "dips rejected"),
+    "dips_truncated_dropped": ("data checks", "truncated dips dropped"),
     "validation_warnings": ("data checks", "validation warnings"),
     "validation": ("data checks", "validation details"),
 }

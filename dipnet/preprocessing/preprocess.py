@@ -32,6 +32,8 @@ correlations when slabs are thinner than a stage step).
 
 from __future__ import annotations
 
+import logging
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +45,8 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
+
+log = logging.getLogger(__name__)
 
 T_START_METHODS = ("auto", "metadata", "centroid", "onset")
 
@@ -110,6 +114,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         raw, report = repair_readings(raw, max_cross_section=None if grid is None else max_object_section(grid))
     header = raw.header
     edges = _resolve_edges(edges, grid, n_slabs)
+    _check_step(_stage_step(raw), float(edges[1] - edges[0]))
     area = cross_section_mm2 if cross_section_mm2 is not None else header.tank_cross_section_mm2
     if area is None or not area > 0:
         raise ValueError("the tank cross-section is unknown: pass cross_section_mm2 (mm^2; mm in 2D)")
@@ -163,6 +168,31 @@ def preprocess_file(path: str | Path, **options) -> DipMeasurement:
 
 
 # --------------------------------------------------------------------------- helpers
+#: A stage step more than this many slabs thick is refused: the readings cannot resolve the profiles.
+MAX_STEP_IN_SLABS = 4.0
+
+
+def _stage_step(raw: RawScan) -> float | None:
+    """The median stage step (mm) over the dips' readings, or ``None`` without two readings."""
+    steps = [np.diff(np.unique(o.stage_mm)) for o in raw.orientations if len(o.stage_mm) > 1]
+    steps = np.concatenate(steps) if steps else np.zeros(0)
+    return float(np.median(steps)) if steps.size else None
+
+
+def _check_step(step_mm: float | None, slab_mm: float) -> None:
+    """Refuse a stage step over :data:`MAX_STEP_IN_SLABS` slabs; warn over one (profiles interpolated)."""
+    if step_mm is None or not step_mm > slab_mm:
+        return
+    found = f"the stage step ({step_mm:.4g} mm) is {step_mm / slab_mm:.3g} slabs thick (slab {slab_mm:.4g} mm)"
+    if step_mm > MAX_STEP_IN_SLABS * slab_mm:
+        raise ValueError(f"{found}: the readings cannot resolve the profiles (an object far smaller than the "
+                         "step: a mesh in metres needs shape.scale=1000; else a smaller protocol.step_mm or a "
+                         "lower resolution)")
+    message = f"{found}: the profiles between readings are interpolated"
+    log.warning("%s", message)
+    warnings.warn(message, stacklevel=3)
+
+
 def _resolve_edges(edges, grid: Grid | None, n_slabs: int | None) -> np.ndarray:
     if edges is None:
         if grid is None:

@@ -9,7 +9,8 @@ when the measurement carries ``sigma``, else 0):
 * **finite**: NaN or infinite values: error.
 * **magnitude**: an object inside the working ball displaces at most ``V_ball``; any
   ``|V_k|`` or slab above ``V_ball (1 + size_tol)``: error (wrong units, a scaled file, a grid
-  too small for the object).
+  too small for the object). A largest ``V_k`` below one voxel's volume: error too (an object the grid
+  cannot hold a voxel of: litres or m^2 where mm^3 or mm^2 are meant, or an extent far too large).
 * **sign**: slab volumes are non-negative. A profile whose total is not positive: error.
   Negative slabs below ``-max(4 sigma_kj, neg_tol max_j |p_kj|)`` are beyond noise: error when
   their magnitude exceeds ``neg_tol`` of the positive volume, else a warning.
@@ -79,6 +80,7 @@ class ValidationReport:
         readings = self.stats.get("readings", {})
         return {"readings_repaired": int(readings.get("readings_repaired", 0)),
                 "dips_rejected": int(readings.get("dips_rejected", 0)),
+                "dips_truncated_dropped": int(self.stats.get("truncated_dropped", 0)),
                 "validation_warnings": len(self.warnings),
                 "validation": {**self.stats, "warnings": self.warnings}}
 
@@ -109,11 +111,14 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     if not np.isfinite(prof).all() or not np.isfinite(measurement.directions.numpy()).all():
         raise MeasurementValidationError(f"{source}: the profiles or directions hold NaN or infinite values")
     sigma = None if measurement.sigma is None else measurement.sigma.numpy()
-    report = ValidationReport(stats={"readings": measurement.metadata.get("readings", {})})
+    recorded = measurement.metadata.get("recorded") or {}
+    dropped = len(recorded.get("truncated", [])) if recorded.get("truncated_policy") == "drop" else 0
+    report = ValidationReport(stats={"readings": measurement.metadata.get("readings", {}), "truncated_dropped": dropped})
     _check_magnitude(prof, grid, size_tol, source)
     totals = prof.sum(axis=1)
     noise = np.zeros(len(prof)) if sigma is None else np.sqrt((sigma**2).sum(axis=1))
     _check_signs(prof, totals, sigma, neg_tol, source, report)
+    _check_not_tiny(totals, grid, source)
     _check_totals(totals, noise, total_tol, source, report)
     _check_duplicates(measurement.directions.numpy(), totals, noise, total_tol, dup_deg, source, report)
     for message in report.warnings:
@@ -129,6 +134,15 @@ def _check_magnitude(prof: np.ndarray, grid: Grid, size_tol: float, source: str)
         raise MeasurementValidationError(
             f"{source}: a profile holds {largest:.4g} mm^3, more than the working ball's {ball:.4g} mm^3 "
             f"(extent_mm={grid.extent:g}): wrong units or scale, or increase extent_mm")
+
+
+def _check_not_tiny(totals: np.ndarray, grid: Grid, source: str) -> None:
+    total = float(totals.max())
+    if total < grid.voxel_volume:
+        raise MeasurementValidationError(
+            f"{source}: the largest profile holds {total:.4g} mm^3, less than one voxel's {grid.voxel_volume:.4g} mm^3 "
+            f"(extent_mm={grid.extent:g}, resolution {grid.n}): wrong units or scale (litres for mm^3, a cross-section "
+            "in m^2), or an extent far too large for the object")
 
 
 def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: ValidationReport) -> None:

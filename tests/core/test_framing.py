@@ -27,3 +27,19 @@ def test_a_saved_measurement_knows_its_extent_and_other_files_do_not(tmp_path):
     DipMeasurement(fibonacci_hemisphere(k), np.ones((k, m)), 7.0, offsets).save(tmp_path / "m.npz")
     assert measurement_extent(tmp_path / "m.npz") == pytest.approx(2 * max(40.0, -30.0 + 70.0))
     assert measurement_extent(tmp_path / "scan.jsonl") is None
+
+
+def test_a_dip_with_a_wrong_offset_is_named_not_framed(tmp_path):
+    """The audit's case: one dip's offset 1000 mm off made a grid 60 times too large and a shape of
+    2e7 mm^3 from 3e4 measured, with exit 0. A dip whose volume sits off the rigid object's c . theta is named."""
+    from dipnet.shapes import Ball
+    from dipnet.simulator.simulate import simulate_measurement
+
+    grid = Grid(24, 3, 80.0)
+    _, m = simulate_measurement(Ball(20.0, center=(5.0, -3.0, 2.0)), fibonacci_hemisphere(40), grid=grid)
+    m.save(tmp_path / "good.npz")
+    assert measurement_extent(tmp_path / "good.npz") < 100.0  # an off-centre ball is one rigid object
+    m.offsets[5] += 1000.0
+    m.save(tmp_path / "bad.npz")
+    with pytest.raises(ValueError, match=r"dip\(s\) \[5\] lie far from"):
+        measurement_extent(tmp_path / "bad.npz")

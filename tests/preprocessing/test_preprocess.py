@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -156,3 +158,25 @@ def test_preprocess_file(tmp_path):
     m = preprocess_file(path, edges=EDGES, smooth=True)
     np.testing.assert_allclose(m.profiles.numpy(), preprocess(raw, edges=EDGES, smooth=True).profiles.numpy())
     assert m.metadata["rawscan"] == str(path) and m.metadata["orientation_k"] == [0, 1]
+
+
+def test_a_stage_step_coarser_than_the_slabs_is_refused_or_warned():
+    """The audit's cases: a 50 mm step on 6 mm slabs, and a mesh in metres (0.04 mm across, 1 mm steps),
+    gave IoU 0 with exit 0. A step over 4 slabs is refused, naming the metres mistake; over 1 slab, warned."""
+    from dipnet.core.orientations import fibonacci_hemisphere
+    from dipnet.shapes import Ball
+    from dipnet.simulator.physics import DipProtocol, simulate_scan
+
+    grid = Grid(16, 3, 100.0)  # slabs of 6.25 mm
+    for step, outcome in ((50.0, "refused"), (10.0, "warned"), (2.0, "fine")):
+        raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(6), protocol=DipProtocol(step_mm=step), progress=False)
+        if outcome == "refused":
+            with pytest.raises(ValueError, match=r"step \(50 mm\) is 8 slabs thick.*shape.scale=1000"):
+                preprocess(raw, grid=grid)
+        elif outcome == "warned":
+            with pytest.warns(UserWarning, match=r"step \(10 mm\) is 1.6 slabs thick"):
+                preprocess(raw, grid=grid)
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                assert preprocess(raw, grid=grid).n_orientations == 6

@@ -37,6 +37,7 @@ def test_consistent_dips_pass_without_warnings():
 
 @pytest.mark.parametrize("change,message", [
     (lambda p: p * 1e3, "working ball"),         # wrong units: a thousand times the ball
+    (lambda p: p * 1e-6, "less than one voxel"),  # litres for mm^3: the audit's case, which passed with exit 0
     (lambda p: -p, "sums to"),
 ])
 def test_impossible_dips_are_refused(change, message):
