@@ -46,6 +46,7 @@ import torch
 from omegaconf import OmegaConf
 
 from dipnet.experiments.prior_training import STAGE2, TrainConfig, train
+from dipnet.jobs.cli import user_errors
 from dipnet.jobs.tuning import compose_job
 from dipnet.shapes.procedural import FAMILIES
 from dipnet.solvers.denoiser import SHIPPED_WEIGHTS
@@ -135,15 +136,15 @@ def mesh_files(paths: list[Path], seeds: list[int]) -> tuple[str, ...]:
     FIRST < STOP when there are any.
 
     Raises:
-        SystemExit: a missing or repeated file, or an empty rotation range.
+        ValueError: a missing or repeated file, or an empty rotation range.
     """
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
-        raise SystemExit(f"--meshes: no such file: {', '.join(missing)}")
+        raise ValueError(f"--meshes: no such file: {', '.join(missing)}")
     if len({p.resolve() for p in paths}) != len(paths):
-        raise SystemExit("--meshes: a file is named twice")
+        raise ValueError("--meshes: a file is named twice")
     if paths and seeds[1] <= seeds[0]:
-        raise SystemExit(f"--mesh-seeds {seeds[0]} {seeds[1]}: FIRST must be below STOP")
+        raise ValueError(f"--mesh-seeds {seeds[0]} {seeds[1]}: FIRST must be below STOP")
     return tuple(str(p) for p in paths)
 
 
@@ -151,28 +152,32 @@ def family_seeds(specs: list[list[str]]) -> dict[str, tuple[int, int]]:
     """``{family: (first, stop)}`` of ``--family-seeds`` entries ``FAMILY FIRST STOP``.
 
     Raises:
-        SystemExit: an unknown family, a repeated one, or an empty or unreadable seed range.
+        ValueError: an unknown family, a repeated one, or an empty or unreadable seed range.
     """
     out: dict[str, tuple[int, int]] = {}
     for family, first, stop in specs:
         if family not in FAMILIES or family in out:
-            raise SystemExit(f"--family-seeds: {family!r} is unknown or repeated; families: {', '.join(FAMILIES)}")
+            raise ValueError(f"--family-seeds: {family!r} is unknown or repeated; families: {', '.join(FAMILIES)}")
         try:
             seeds = (int(first), int(stop))
         except ValueError:
             seeds = (0, 0)
         if seeds[1] <= seeds[0]:
-            raise SystemExit(f"--family-seeds {family} {first} {stop}: FIRST and STOP must be whole numbers, FIRST < STOP")
+            raise ValueError(f"--family-seeds {family} {first} {stop}: FIRST and STOP must be whole numbers, FIRST < STOP")
         out[family] = seeds
     return out
 
 
 def main(argv=None) -> dict:
+    """Train as the command line says; a bad option or weights file: one line ``error: ...`` and exit 2."""
     args = parse_args(argv)
-    torch.set_num_threads(args.threads)
-    config = config_of(args)
-    meta = train(config, args.out, args.cache, resume=args.resume, progress=not args.no_progress,
-                 workers=args.workers)
+    with user_errors():
+        if args.threads < 1 or args.workers < 1:
+            raise ValueError(f"--threads and --workers must be positive integers, got {args.threads} and {args.workers}")
+        torch.set_num_threads(args.threads)
+        config = config_of(args)
+        meta = train(config, args.out, args.cache, resume=args.resume, progress=not args.no_progress,
+                     workers=args.workers)
     print(json.dumps({k: meta[k] for k in ("steps_done", "seconds", "validation")}))
     val = meta["validation"] or [0, float("nan"), float("nan")]
     print(f"RESULT steps={meta['steps_done']} seconds={meta['seconds']} val_mse={val[1]:.5f} input_mse={val[2]:.5f}")

@@ -17,7 +17,8 @@ import logging
 import sys
 from pathlib import Path
 
-from dipnet.jobs.tuning import DEFAULT_PARAMS, Param, tune
+from dipnet.jobs.cli import user_errors
+from dipnet.jobs.tuning import DEFAULT_PARAMS, Param, check_study, tune
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -36,10 +37,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    params = args.param or DEFAULT_PARAMS
+    with user_errors():  # a bad option: one line (before logging repeats it) and exit 2, before any trial
+        check_study(args.trials, params, args.overrides)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     out = args.out or Path("tune") / args.study_name
-    study = tune(out, args.trials, args.param or DEFAULT_PARAMS, args.overrides, seed=args.seed,
-                 n_startup_trials=args.startup_trials, storage=args.storage, study_name=args.study_name)
+    with user_errors():
+        study = tune(out, args.trials, params, args.overrides, seed=args.seed,
+                     n_startup_trials=args.startup_trials, storage=args.storage, study_name=args.study_name)
     print(f"best chamfer {study.best_value:.5f} (trial {study.best_trial.number}): {study.best_params}; "
           f"written to {out / 'best.yaml'}")
     return 0

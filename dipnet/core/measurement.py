@@ -92,6 +92,8 @@ class DipMeasurement:
         d, p, o = self.directions, self.profiles, self.offsets
         if d.ndim != 2 or d.shape[1] not in (2, 3):
             raise MeasurementFileError(f"directions must have shape (K, 2) or (K, 3), got {tuple(d.shape)}")
+        if d.shape[0] < 1:
+            raise MeasurementFileError("a measurement needs at least 1 dip (orientation), got 0")
         if p.ndim != 2 or p.shape[0] != d.shape[0]:
             raise MeasurementFileError(
                 f"profiles must have shape (K, M) with K = {d.shape[0]} orientations, got {tuple(p.shape)}")

@@ -28,6 +28,7 @@ from tqdm.auto import tqdm
 
 from dipnet.solvers.denoiser import OccupancyDenoiser, load_weights, save_weights
 from dipnet.experiments.prior_pairs import build_pairs, file_digest
+from dipnet.simulator.physics import check_snr_db
 
 
 @dataclass
@@ -83,6 +84,59 @@ class TrainConfig:
     meshes: tuple[str, ...] = ()
     mesh_seeds: tuple[int, int] = (0, 4)
     extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """Raise :class:`TrainConfigError` for an option out of range, before any pair is made."""
+        _seed_range("train_seeds", self.train_seeds)
+        _seed_range("val_seeds", self.val_seeds)
+        for family, seeds in self.family_seeds.items():
+            _seed_range(f"family_seeds {family}", seeds)
+        if self.meshes:
+            _seed_range("mesh_seeds", self.mesh_seeds)
+        for name in ("dips", "solver_iterations", "channels", "steps", "batch", "checkpoint_every"):
+            _whole(name, getattr(self, name), 1)
+        _whole("seed", self.seed, 0)
+        _whole("n", self.n, 4)
+        _whole("crop", self.crop, 4)
+        if self.n % 4 or self.crop % 4 or self.crop > self.n:
+            raise TrainConfigError(f"n and crop must be multiples of 4 (the denoiser halves the grid twice) with "
+                                   f"crop <= n (voxels), got n={self.n}, crop={self.crop}")
+        try:
+            check_snr_db(self.snr_db)
+        except ValueError as exc:
+            raise TrainConfigError(str(exc)) from None
+        if not 0 < self.fill <= 1:
+            raise TrainConfigError(f"fill must be a number in (0, 1], got {self.fill!r}")
+        if not 0 < self.lr < math.inf:
+            raise TrainConfigError(f"lr must be a positive, finite learning rate, got {self.lr!r}")
+        if not self.max_minutes >= 0:
+            raise TrainConfigError(f"max_minutes must be a number >= 0 (0: stop at the first checkpoint; inf: no "
+                                   f"limit), got {self.max_minutes!r}")
+        if self.noise_model not in NOISE_MODELS:
+            raise TrainConfigError(f"noise_model must be one of {', '.join(NOISE_MODELS)}, got {self.noise_model!r}")
+
+
+#: The voxel solver's noise models of the noisy pairs (:attr:`TrainConfig.noise_model`).
+NOISE_MODELS = ("independent", "correlated")
+
+
+class TrainConfigError(ValueError):
+    """A training option is out of range (:class:`TrainConfig`), or the weights to start from do not fit."""
+
+
+def _seed_range(name: str, seeds) -> None:
+    """Raise :class:`TrainConfigError` unless ``seeds`` is ``(first, stop)``, whole numbers, ``first < stop``."""
+    if (len(seeds) != 2 or any(isinstance(s, bool) or not isinstance(s, int) for s in seeds)
+            or not seeds[0] < seeds[1]):
+        raise TrainConfigError(f"{name} must be FIRST STOP, whole numbers with FIRST < STOP (the seeds FIRST..STOP-1), "
+                               f"got {' '.join(map(str, seeds))}")
+
+
+def _whole(name: str, value, low: int) -> None:
+    """Raise :class:`TrainConfigError` unless ``value`` is an integer >= ``low``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise TrainConfigError(f"{name} must be {'a positive integer' if low == 1 else f'an integer >= {low}'}, "
+                               f"got {value!r}")
 
 
 #: What ``--stage 2`` changes (the shipped ``denoiser64_stage2``): fine-tune the first stage, gently.
@@ -158,7 +212,7 @@ def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
         return OccupancyDenoiser(config.channels)
     model, meta = load_weights(config.init_weights)
     if int(meta["channels"]) != config.channels or int(meta["n"]) != config.n:
-        raise ValueError(f"init_weights {config.init_weights!r} have {meta['channels']} channels for a {meta['n']}^3 "
+        raise TrainConfigError(f"init_weights {config.init_weights!r} have {meta['channels']} channels for a {meta['n']}^3 "
                          f"grid, the config {config.channels} channels and n={config.n}")
     return model
 
@@ -168,6 +222,8 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     """Train (or continue) and write the weights to ``out`` (``.pt`` + ``.json``); the checkpoint
     is ``out.with_suffix(".ckpt")``; missing training pairs are made by ``workers`` processes.
     Returns the weights' meta (losses, steps, seconds)."""
+    if config.init_weights is not None:
+        _initial_model(config)  # weights that are missing, damaged or of another size: an error before the pairs
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")

@@ -4,7 +4,7 @@
 one ``error: ...`` line (exit 2, see :mod:`dipnet.jobs.cli`) before anything is simulated, solved or
 written, and a sweep job with a bad option fails instead of counting as finished. It refuses:
 
-* values out of range (``resolution=abc``, ``seed=-1``, ``snr_db=abc``, an unknown mesh format,
+* values out of range (``resolution=abc``, ``seed=-1``, ``snr_db=abc``, ``source.simulator.smooth=maybe``, an unknown mesh format,
   ``output.report=true`` without the ``report`` extra), naming the option and the allowed values;
 * options no code reads: a key of a ``_target_`` node that its target does not take (following
   ``**options`` through :func:`~dipnet.core.keywords.forwards_to`), e.g. ``+operator.bogus_option=1``, and a key added
@@ -25,6 +25,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from dipnet.core.keywords import accepted_keywords
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.preprocessing.sources import RecordedSource
+from dipnet.simulator.physics import SNR_DB_RANGE
 
 #: Hydra's own keys of a ``_target_`` node (not arguments of the target).
 HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_convert_"})
@@ -159,14 +160,31 @@ def check_grid_options(cfg: DictConfig) -> None:
         raise ConfigError(f"extent_mm must be a positive number (mm) or null, got {extent!r}")
 
 
+def check_thresholds(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for a numeric ``threshold`` of the solver (or of a solver it nests, e.g.
+    ``solver.warm_start``) outside the occupancy levels (0, 1): its binary shape would be empty or full.
+    A named rule (``otsu``, ``volume``) is the solver's to check."""
+    solver = cfg.get("solver")
+    for path, node in _target_nodes(solver, "solver") if isinstance(solver, DictConfig) else ():
+        level = node.get("threshold")
+        if isinstance(level, bool) or (isinstance(level, (int, float)) and not 0 < level < 1):
+            raise ConfigError(f"{path}.threshold must be an occupancy level in (0, 1) or the solver's rule "
+                              f"(otsu, volume), got {level!r}")
+
+
 def check_values(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for an option of :file:`conf/config.yaml` out of its range."""
     check_grid_options(cfg)
+    check_thresholds(cfg)
     _integer(cfg, "seed", 0, 2.0 ** 32)
     _integer(cfg, "threads", 1, nullable=True)
-    snr = cfg.get("snr_db")
-    if snr is not None and (isinstance(snr, bool) or not isinstance(snr, (int, float)) or not math.isfinite(snr)):
-        raise ConfigError(f"snr_db must be a number (dB) or null (noise-free), got {snr!r}")
+    snr, (low, high) = cfg.get("snr_db"), SNR_DB_RANGE
+    if snr is not None and (isinstance(snr, bool) or not isinstance(snr, (int, float)) or not low <= snr <= high):
+        raise ConfigError(f"snr_db must be a number of dB in [{low:g}, {high:g}] or null (noise-free), got {snr!r}")
+    for key in ("source.simulator.smooth", "source.reader.smooth"):
+        smooth = OmegaConf.select(cfg, key, default=False)
+        if not isinstance(smooth, bool):
+            raise ConfigError(f"{key} must be true or false, got {smooth!r}")
     formats = cfg.output.get("mesh_formats")
     if not isinstance(formats, ListConfig) or any(f not in MESH_FORMATS for f in formats):
         raise ConfigError(f"output.mesh_formats must be a list of {', '.join(MESH_FORMATS)}, got "

@@ -21,6 +21,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet.core.optional import optional_import
+from dipnet.jobs.options import check_config
 from dipnet.jobs.pipeline import run
 
 log = logging.getLogger(__name__)
@@ -77,6 +78,16 @@ def run_trial(overrides: list[str], out: Path) -> float:
     return float(run(cfg, out).metrics.get("chamfer", math.nan))
 
 
+def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]) -> None:
+    """Raise ``ValueError`` (:class:`~dipnet.jobs.options.ConfigError`, a Hydra error) for a study that cannot
+    run: fewer than 1 trial, or a job option out of range or unknown (the overrides and every tuned option
+    at its ``low``), before any trial (else every trial would fail alike)."""
+    if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
+        raise ValueError(f"the number of trials (--trials) must be a positive integer, got {n_trials!r}")
+    job = [*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.low!r}" for p in params)]
+    check_config(compose_job(job))
+
+
 def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_PARAMS,
          overrides: Sequence[str] = (), seed: int = 0, n_startup_trials: int = 8,
          storage: str | None = None, study_name: str = "dipnet_prior_weights") -> Any:
@@ -92,9 +103,11 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
     Returns:
         The ``optuna.Study``.
     Raises:
+        ValueError: ``n_trials`` < 1, or an option out of range (:func:`check_study`), before any trial.
         RuntimeError: every trial failed.
     """
     optuna = optional_import("optuna", extra="sweeps", purpose="tuning (scripts/tune.py)")
+    check_study(n_trials, params, overrides)
     out = Path(out)
     sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=n_startup_trials)
     study = optuna.create_study(direction="minimize", sampler=sampler, storage=storage, study_name=study_name,

@@ -5,13 +5,14 @@
     python scripts/monitor.py scans/demo --host 0.0.0.0        # reachable from the network: token printed
 
 It prints the page's address and serves until Ctrl-C. Exit code 2 with ``error: ...`` when there is no
-scan to show or the port is taken.
+scan to show, the port is taken or an option is out of range.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import sys
 import tempfile
@@ -58,6 +59,21 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """Raise :class:`~dipnet.monitor.server.MonitorError` for an option out of range, before anything starts
+    (the running reconstruction would otherwise fail later, in the background)."""
+    from dipnet.monitor.server import MonitorError
+
+    if not args.every >= 1:
+        raise MonitorError(f"--every must be a positive number of dips, got {args.every}")
+    if not args.resolution >= 4:
+        raise MonitorError(f"--resolution must be an integer >= 4 (voxels per axis), got {args.resolution}")
+    if args.extent_mm is not None and not 0 < args.extent_mm < math.inf:
+        raise MonitorError(f"--extent-mm must be a positive number (mm), got {args.extent_mm}")
+    if not args.speed > 0:
+        raise MonitorError(f"--speed must be positive (inf: at once), got {args.speed}")
+
+
 def run(args: argparse.Namespace) -> int:
     from dipnet.monitor.replay import Replay
     from dipnet.monitor.server import Monitor, MonitorError, access_token, check_port, find_scan, page_url, serve
@@ -65,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
     if (args.run is None) == (args.replay is None):
         raise MonitorError("give either a run directory (RUN) or --replay FILE")
+    check_args(args)
     check_port(args.host, args.port)  # before anything starts: one clear message
     if args.nice and hasattr(os, "nice"):
         os.nice(args.nice)

@@ -184,7 +184,10 @@ def access_token(host: str, token: str | None = None) -> str | None:
 
 
 def check_port(host: str, port: int) -> None:
-    """Raise :class:`MonitorError` when ``host:port`` cannot be bound (in use, or not this machine's)."""
+    """Raise :class:`MonitorError` when ``host:port`` cannot be bound (not a port 1-65535, in use, or not
+    this machine's)."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise MonitorError(f"the monitor's port must be 1-65535, got {port!r} (--port / monitor_port=)")
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as sock:
         try:

@@ -145,7 +145,7 @@ class ScanPlan:
         max_lower_source: where ``max_lower_mm`` comes from (for the message).
 
     Raises:
-        ValueError: a plan that cannot be run: steps, a stop below the tank bottom, or more than
+        ValueError: a plan that cannot be run: steps, a negative ``retries`` or ``settle_s``, a stop below the tank bottom, or more than
             :data:`~dipnet.core.memory.MAX_READINGS_PER_DIP` readings per orientation (the message names
             the ``protocol`` option and the limit; nothing has moved).
     """
@@ -175,6 +175,12 @@ class ScanPlan:
                              f"start {self.start_mm}, stop {self.stop_mm}")
         if self.safe_mm > self.start_mm:
             raise ValueError(f"safe_mm ({self.safe_mm}) must not be lower than start_mm ({self.start_mm})")
+        if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
+            raise ValueError(f"protocol.retries must be an integer >= 0 (extra readings when one is not stable), "
+                             f"got {self.retries!r}; nothing moved")
+        if (isinstance(self.settle_s, bool) or not isinstance(self.settle_s, (int, float))
+                or not 0 <= self.settle_s < math.inf):
+            raise ValueError(f"protocol.settle_s must be a number of seconds >= 0, got {self.settle_s!r}; nothing moved")
         if self.max_lower_mm is not None and self.stop_mm > self.max_lower_mm:
             raise ValueError(f"protocol.stop_mm={self.stop_mm:g} lowers the object onto the tank bottom: at most "
                              f"{self.max_lower_mm:.4g} mm ({self.max_lower_source}); nothing moved")

@@ -18,6 +18,10 @@ from dipnet.core.grid import Grid
 from dipnet.shapes.base import Shape, ShapeError, check_dips
 from dipnet.shapes.divergence import boundary_volume_below
 
+#: Radii (mm) a :class:`Ball` accepts: its volume and dips stay finite and non-zero in float64 (a size in
+#: the wrong unit is for the simulation's size check, :func:`~dipnet.simulator.size.check_simulation`).
+BALL_RADIUS_MM = (1e-12, 1e12)
+
 
 def _vector(values: float | Sequence[float], ndim: int | None, what: str) -> np.ndarray:
     """A float64 vector; a scalar is broadcast to ``ndim`` entries."""
@@ -33,8 +37,10 @@ class Ball(Shape):
     """A ball (3D) or disk (2D) of ``radius`` mm at ``center`` (its length sets the dimension)."""
 
     def __init__(self, radius: float, center: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
-        if not radius > 0:
-            raise ShapeError(f"ball radius must be positive (mm), got {radius!r}")
+        low, high = BALL_RADIUS_MM
+        if not low <= radius <= high:  # NaN fails too
+            raise ShapeError(f"ball radius must be a finite, positive number of mm in [{low:g}, {high:g}], "
+                             f"got {radius!r}")
         self.r = float(radius)
         self.center = _vector(center, None, "center")
         self.ndim = self.center.size

@@ -33,6 +33,8 @@ and quantisation, in that order.
 
 from __future__ import annotations
 
+import math
+import numbers
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, replace
 from typing import ClassVar
@@ -49,6 +51,17 @@ from dipnet.simulator.volume_curve import dip_volume_curve
 
 _NEWTON_STEPS = 60  # most dips converge in 3-5 steps; the rest bisect inside the bracket
 _RELATIVE_TOL = 1e-12  # stop when max |A delta - V| <= this x the object's volume
+#: Signal-to-noise ratios (dB) a sensor accepts: from noise 10x the signal to none measurable.
+SNR_DB_RANGE = (-20.0, 200.0)
+
+
+def check_snr_db(snr_db: float | None) -> None:
+    """Raise ``ValueError`` unless ``snr_db`` (dB) is null or a number in :data:`SNR_DB_RANGE`."""
+    low, high = SNR_DB_RANGE
+    if snr_db is not None and (isinstance(snr_db, bool) or not isinstance(snr_db, numbers.Real)
+                               or not low <= snr_db <= high):
+        raise ValueError(f"snr_db must be a number of dB in [{low:g}, {high:g}] or null (noise-free), "
+                         f"got {snr_db!r}")
 
 
 @dataclass
@@ -89,6 +102,19 @@ class SensorModel(ABC):
     @abstractmethod
     def _params(self) -> tuple[float, float | None, float, float]:
         """``(sigma, snr_db, quantum, drift_per_s)`` in reading units."""
+
+    def __post_init__(self) -> None:
+        """Raise ``ValueError`` for a negative or non-finite noise, quantum or drift, or an SNR out of range."""
+        unit = self.quantity.rsplit("_", 1)[-1]  # mm or g
+        names = (f"sigma_{unit}", "snr_db", f"quantum_{unit}", f"drift_{unit}_per_s")
+        for name, value in zip(names, self._params()):
+            if name == "snr_db":
+                check_snr_db(value)
+                continue
+            low = -math.inf if name.startswith("drift") else 0.0
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not low <= value < math.inf:
+                kind = "a finite number" if low < 0 else "a number >= 0 (0: none)"
+                raise ValueError(f"sensor {name} must be {kind}, got {value!r}")
 
     @property
     def quantum(self) -> float:
@@ -288,6 +314,15 @@ def _bracket(curve, base: np.ndarray, area: float, below: np.ndarray) -> tuple[n
     return lo, hi
 
 
+def _expect(name: str, value: object, cls: type) -> object:
+    """``value`` if it is ``None`` or a ``cls``; else ``ValueError`` (e.g. a config node without its ``_target_``)."""
+    if value is None or isinstance(value, cls):
+        return value
+    raise ValueError(f"the simulator's {name} must be a {cls.__name__}, got {type(value).__name__} {value!r}: in "
+                     f"a config give its class, e.g. source.simulator.{name}={{_target_: "
+                     f"{cls.__module__}.{cls.__name__ if cls is not SensorModel else 'LevelSensor'}, ...}}")
+
+
 def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: SensorModel | None = None,
                   protocol: DipProtocol | None = None, geometry: RigGeometry | None = None,
                   seed: int | None = None, progress: bool = True) -> RawScan:
@@ -317,9 +352,9 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
     if dirs.ndim != 2 or dirs.shape[1] != shape.ndim or len(dirs) < 1:
         raise ValueError(f"directions must have shape (K, {shape.ndim}) with K >= 1, got {dirs.shape}")
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    tank = tank or Tank.default(shape.ndim)
-    sensor = sensor or LevelSensor()
-    protocol = protocol or DipProtocol()
+    tank = _expect("tank", tank, Tank) or Tank.default(shape.ndim)
+    sensor = _expect("sensor", sensor, SensorModel) or LevelSensor()
+    protocol = _expect("protocol", protocol, DipProtocol) or DipProtocol()
     geometry = geometry or RigGeometry()
     seed = getattr(sensor, "seed", 0) if seed is None else seed
     radius = float(shape.radius())

@@ -25,6 +25,9 @@ SHIPPED_DIR = Path(__file__).resolve().parents[1] / "data" / "priors"
 #: The first-stage weights (``weights: null``): D of a plain voxel reconstruction.
 SHIPPED_WEIGHTS = SHIPPED_DIR / "denoiser64.pt"
 
+#: What a weights file's meta must hold: the grid and operator the weights were trained for, and the width.
+META_KEYS = ("n", "ndim", "n_slabs_per_voxel", "channels")
+
 
 class PriorWeightsError(ValueError):
     """The learned prior's weights file is missing, unreadable or not a dipnet denoiser."""
@@ -73,7 +76,7 @@ class OccupancyDenoiser(nn.Module):
 def save_weights(model: OccupancyDenoiser, path: str | Path, meta: dict) -> Path:
     """Write ``model``'s weights with ``meta`` (must hold ``n``, ``ndim``, ``n_slabs_per_voxel``) to
     ``path`` and ``meta`` as JSON to ``path.with_suffix(".json")``."""
-    missing = {"n", "ndim", "n_slabs_per_voxel"} - set(meta)
+    missing = set(META_KEYS) - {"channels"} - set(meta)
     if missing:
         raise ValueError(f"weights meta lacks {sorted(missing)}")
     path = Path(path)
@@ -128,6 +131,10 @@ def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dic
     if not isinstance(saved, dict) or saved.get("format") != WEIGHTS_FORMAT:
         raise PriorWeightsError(f"{path} is not a dipnet denoiser weights file (format {WEIGHTS_FORMAT})")
     meta = dict(saved.get("meta") or {})
+    missing = sorted(set(META_KEYS) - set(meta))
+    if missing:
+        raise PriorWeightsError(f"learned-prior weights {path}: their meta lacks {', '.join(missing)} (the grid, "
+                                "operator and network they were trained for): not a complete dipnet denoiser file")
     try:
         model = OccupancyDenoiser(int(meta["channels"]))
         model.load_state_dict(saved["state_dict"])

@@ -82,10 +82,15 @@ class LearnedPrior(nn.Module):
                 "(scripts/train_prior.py) or drop the learned prior")
 
     def _check_grid(self, ndim: int, n: int) -> None:
-        if ndim != int(self.meta.get("ndim", 3)) or n not in (self.n, self.n // 2):
+        trained = int(self.meta.get("ndim", 3))
+        if ndim != trained:
             raise PriorMismatchError(
-                f"the learned prior's weights were trained for a {self.n}^3 grid (or its {self.n // 2}^3 coarse "
-                f"stage), not {n}^{ndim}: train weights for this grid with scripts/train_prior.py --n {n}, "
+                f"the learned prior's weights were trained for a {self.n}^{trained} grid ({trained}D), not a "
+                f"{ndim}D one ({n}^{ndim}): use {ndim}D weights, or drop the learned prior")
+        if n not in (self.n, self.n // 2):
+            raise PriorMismatchError(
+                f"the learned prior's weights were trained for a {self.n}^{ndim} grid (or its {self.n // 2}^{ndim} "
+                f"coarse stage), not {n}^{ndim}: train weights for this grid with scripts/train_prior.py --n {n}, "
                 "or solve on the weights' grid")
 
     def denoise(self, occupancy: torch.Tensor) -> torch.Tensor:

@@ -93,3 +93,15 @@ def test_robust_volume_ignores_outlying_totals():
     profiles[2:] += torch.linspace(-0.1, 0.1, 18, dtype=torch.float64)[:, None]
     volume, spread = robust_volume(profiles)
     assert volume == pytest.approx(100.0, rel=1e-3) and 0 < spread < 0.5
+
+
+def test_a_measurement_without_dips_is_refused(tmp_path):
+    m = _measurement()
+    path = m.save(tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    for name in ("directions", "profiles", "offsets", "sigma"):
+        arrays[name] = arrays[name][:0]
+    np.savez(path, **arrays)
+    with pytest.raises(MeasurementFileError, match=r"m.npz.*at least 1 dip.*got 0"):
+        DipMeasurement.load(path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import pytest
 import torch
@@ -122,7 +123,7 @@ def test_family_seeds_add_training_shapes_of_a_named_family(tmp_path):
     config = script.config_of(script.parse_args(["--family-seeds", "organic", "5003", "5004"]))
     assert config.family_seeds == {"organic": (5003, 5004)}
     for bad in (["blobby", "1", "2"], ["organic", "5", "5"], ["organic", "a", "2"]):
-        with pytest.raises(SystemExit):
+        with pytest.raises(ValueError, match="--family-seeds"):
             script.config_of(script.parse_args(["--family-seeds", *bad]))
     meta = train(dataclasses.replace(TINY, steps=1, family_seeds={"organic": (5003, 5004)}), tmp_path / "a.pt",
                  tmp_path / "pairs", progress=False)
@@ -142,7 +143,7 @@ def test_meshes_add_training_shapes_under_random_rotations(tmp_path):
     assert config.meshes == (str(mesh),) and config.mesh_seeds == (3, 5)
     for bad in (["--meshes", str(tmp_path / "none.ply")], ["--meshes", str(mesh), str(mesh)],
                 ["--meshes", str(mesh), "--mesh-seeds", "2", "2"]):
-        with pytest.raises(SystemExit):
+        with pytest.raises(ValueError, match="--mesh"):
             script.config_of(script.parse_args(bad))
     meta = train(dataclasses.replace(TINY, steps=1, meshes=(str(mesh),), mesh_seeds=(3, 4)), tmp_path / "a.pt",
                  tmp_path / "pairs", progress=False)
@@ -156,3 +157,26 @@ def test_the_second_stage_can_be_fine_tuned_from_itself_with_the_first_stage_rou
     args = script.parse_args(["--stage", "2", "--init-weights", "denoiser64_stage2", "--refine-weights", "denoiser64"])
     assert script.config_of(args).init_weights == "denoiser64_stage2"
     assert script.refine_of(args) == script.learned_round()  # the shipped first stage's round
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--n", "0"], "n must be an integer >= 4, got 0"),
+    (["--train-seeds", "1005", "1000"], "train_seeds must be FIRST STOP, whole numbers with FIRST < STOP"),
+    (["--crop", "64", "--n", "16"], "n and crop must be multiples of 4 .* with crop <= n .*got n=16, crop=64"),
+    (["--lr", "nan"], "lr must be a positive, finite learning rate, got nan"),
+    (["--steps", "-1"], "steps must be a positive integer, got -1"),
+    (["--snr-db", "1e308"], r"snr_db must be a number of dB in \[-20, 200\]"),
+    (["--family-seeds", "organic", "5", "5"], "--family-seeds organic 5 5: FIRST and STOP must be whole numbers"),
+    (["--meshes", "none.ply"], "--meshes: no such file: none.ply"),
+    (["--init-weights", "{tmp}/bad.pt"], "learned-prior weights .*bad.pt are unreadable"),
+])
+def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
+    """Every bad option or weights file: ``error: ...`` in one line, exit code 2, before any pair or weights file."""
+    (tmp_path / "bad.pt").write_bytes(b"not weights")
+    script = load_script("train_prior")
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    with pytest.raises(SystemExit) as exit_:
+        script.main(["--out", str(tmp_path / "w.pt"), "--cache", str(tmp_path / "pairs"), "--no-progress", *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
+    assert not (tmp_path / "w.pt").exists() and not (tmp_path / "pairs").exists()

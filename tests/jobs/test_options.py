@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
 from dipnet.preprocessing.datasets import CATS_CSV
-from dipnet.jobs.options import check_config
+from dipnet.jobs.options import ConfigError, check_config
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reconstruct.py"
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -36,7 +36,7 @@ def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: st
 
 
 @pytest.mark.parametrize("overrides,message", [
-    (["snr_db=abc"], "error: snr_db must be a number (dB) or null (noise-free), got 'abc'"),
+    (["snr_db=abc"], "error: snr_db must be a number of dB in [-20, 200] or null (noise-free), got 'abc'"),
     (["resolution=abc"], "error: resolution must be an integer >= 4 (voxels per axis), got 'abc'"),
     (["seed=-1"], "error: seed must be an integer >= 0 and below 4294967296, got -1"),
     (["+n_dip=40"], "error: unknown option n_dip: no code reads it; did you mean n_dips?"),
@@ -99,6 +99,28 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     line = _one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, "", stderr), code=130,
                            prefix="interrupted: ")
     assert f"rerun the same command with hydra.run.dir={tmp_path} to resume" in line, line
+
+
+@pytest.mark.parametrize("override,message", [
+    ("snr_db=1e308", r"snr_db must be a number of dB in \[-20, 200\] or null \(noise-free\), got 1e\+308"),
+    ("snr_db=-300", r"snr_db must be a number of dB in \[-20, 200\].*got -300"),
+    ("source.simulator.smooth=maybe", "source.simulator.smooth must be true or false, got 'maybe'"),
+    ("solver.threshold=2.0", r"solver.threshold must be an occupancy level in \(0, 1\) or the solver's rule "
+                             r"\(otsu, volume\), got 2.0"),
+    ("solver.threshold=0", r"solver.threshold must be an occupancy level in \(0, 1\).*got 0"),
+    ("solver=implicit_learned solver.warm_start.threshold=-1", r"solver.warm_start.threshold must be .*got -1"),
+])
+def test_out_of_range_values_are_refused_by_check_config(override, message):
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=override.split())
+    with pytest.raises(ConfigError, match=message):
+        check_config(cfg)
+
+
+@pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"]])
+def test_occupancy_levels_and_named_threshold_rules_are_accepted(overrides):
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        check_config(compose(config_name="config", overrides=overrides))
 
 
 # ----------------------------------------------------------------------------- presets x solvers

@@ -63,3 +63,17 @@ def test_a_tuned_option_parses(text, param):
 def test_a_bad_tuned_option_is_refused(text):
     with pytest.raises(ValueError, match="LOW"):
         Param.parse(text)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--trials", "0"], "error: the number of trials (--trials) must be a positive integer, got 0"),
+    (["--trials", "2", "resolution=-3"], "error: resolution must be an integer >= 4 (voxels per axis), got -3"),
+])
+def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, tune_script, argv, message):
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--out", str(tmp_path / "study"), *argv])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == f"{message}\n"
+    assert not (tmp_path / "study").exists()
+    with pytest.raises(ValueError, match="must be"):
+        tuning.tune(tmp_path / "study", n_trials=int(argv[1]), overrides=argv[2:])

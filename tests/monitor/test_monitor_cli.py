@@ -35,3 +35,24 @@ def test_a_run_directory_without_a_scan_is_one_message(tmp_path, capsys):
     assert "does not exist: give the run directory of a scan" in capsys.readouterr().err
     assert cli.main(["--port", str(free_port())]) == 2
     assert "give either a run directory (RUN) or --replay FILE" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("port", [99999, 0, -1])
+def test_a_port_out_of_range_is_one_message(tmp_path, capsys, port):
+    with pytest.raises(MonitorError, match=f"the monitor's port must be 1-65535, got {port}"):
+        check_port("127.0.0.1", port)
+    assert cli.main([str(tmp_path), "--port", str(port), "--no-recon"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: the monitor's port must be 1-65535, got {port} (--port / monitor_port=)\n"
+
+
+@pytest.mark.parametrize("option, message", [
+    (["--resolution", "0"], "--resolution must be an integer >= 4 (voxels per axis), got 0"),
+    (["--extent-mm", "-5"], "--extent-mm must be a positive number (mm), got -5.0"),
+    (["--extent-mm", "inf"], "--extent-mm must be a positive number (mm), got inf"),
+    (["--every", "0"], "--every must be a positive number of dips, got 0"),
+    (["--speed", "0"], "--speed must be positive (inf: at once), got 0.0"),
+])
+def test_options_out_of_range_are_refused_up_front(tmp_path, capsys, option, message):
+    assert cli.main([str(tmp_path), "--port", str(free_port()), *option]) == 2
+    assert capsys.readouterr().err == f"error: {message}\n"

@@ -12,7 +12,7 @@ from dipnet.core.rawscan import read_rawscan
 from dipnet.evaluation.metrics import iou
 from dipnet.operators import make_operator
 from dipnet.preprocessing.preprocess import preprocess
-from dipnet.rig.runner import ScanAborted
+from dipnet.rig.runner import ScanAborted, ScanPlan
 from dipnet.solvers.minnorm import MinNormSolver
 
 from rig_helpers import plan_for, scan
@@ -91,3 +91,13 @@ def test_kill_and_resume_equals_uninterrupted(world, tmp_path):
     # a finished scan run again does nothing
     again = scan(world, "grbl", "modbus", plan, tmp_path / "resumed.jsonl")
     assert sum(o.n_readings for o in again.orientations) == sum(o.n_readings for o in clean.orientations)
+
+
+@pytest.mark.parametrize("protocol, message", [
+    ({"retries": -1}, r"protocol.retries must be an integer >= 0 .*got -1; nothing moved"),
+    ({"settle_s": -1.0}, r"protocol.settle_s must be a number of seconds >= 0, got -1.0; nothing moved"),
+    ({"settle_s": float("nan")}, r"protocol.settle_s must be a number of seconds >= 0, got nan"),
+])
+def test_a_negative_retries_or_settle_time_is_refused_before_anything_moves(protocol, message):
+    with pytest.raises(ValueError, match=message):
+        ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0, **protocol)

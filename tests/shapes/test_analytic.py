@@ -6,7 +6,7 @@ import torch
 import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.shapes import DEFAULT_SHAPE, ChamberBox, ShapeError, Torus, builtin_names, builtin_shape, from_trimesh
+from dipnet.shapes import DEFAULT_SHAPE, Ball, ChamberBox, ShapeError, Torus, builtin_names, builtin_shape, from_trimesh
 
 ALL_BUILTINS = [(3, n) for n in builtin_names(3)] + [(2, n) for n in builtin_names(2)]
 
@@ -130,3 +130,9 @@ def test_bad_chamber_geometry():
         ChamberBox([10.0] * 3, chamber_half_sizes=10.0, channel_half_width=1.0)
     with pytest.raises(ShapeError, match="narrower"):
         ChamberBox([10.0] * 3, chamber_half_sizes=5.0, channel_half_width=6.0)
+
+
+@pytest.mark.parametrize("radius", [float("inf"), 1e300, 1e-300, float("nan"), 0.0, -1.0])
+def test_ball_radius_must_be_finite_and_positive(radius):
+    with pytest.raises(ShapeError, match=r"ball radius must be a finite, positive number of mm in \[1e-12, 1e\+12\]"):
+        Ball(radius)

@@ -111,3 +111,26 @@ def test_balance_reads_displaced_mass():
         t = scan.header.t_start_mm + o.stage_mm + volume / area
         np.testing.assert_allclose(volume, _exact_volume(BALL, o.unit_direction, t), atol=1e-9 * BALL.volume)
         assert o.values[-1] == pytest.approx(1e-3 * BALL.volume)
+
+
+@pytest.mark.parametrize("sensor, message", [
+    (dict(sigma_mm=-0.5), r"sensor sigma_mm must be a number >= 0 \(0: none\), got -0.5"),
+    (dict(quantum_mm=-0.04), r"sensor quantum_mm must be a number >= 0 \(0: none\), got -0.04"),
+    (dict(sigma_mm=float("inf")), "sensor sigma_mm must be a number >= 0"),
+    (dict(drift_mm_per_s=float("nan")), "sensor drift_mm_per_s must be a finite number"),
+    (dict(snr_db=1e308), r"snr_db must be a number of dB in \[-20, 200\] or null"),
+])
+def test_negative_or_non_finite_noise_is_refused(sensor, message):
+    with pytest.raises(ValueError, match=message):
+        LevelSensor(**sensor)
+
+
+def test_balance_checks_its_own_units():
+    with pytest.raises(ValueError, match="sensor quantum_g must be a number >= 0"):
+        Balance(quantum_g=-0.01)
+
+
+def test_a_tank_without_its_class_is_named():
+    with pytest.raises(ValueError, match=r"the simulator's tank must be a Tank, got dict .*_target_: "
+                                         r"dipnet.simulator.physics.Tank"):
+        simulate_scan(BALL, DIRS, tank={"cross_section_mm2": 100.0}, progress=False)

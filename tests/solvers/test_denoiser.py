@@ -91,3 +91,12 @@ def test_the_shipped_second_stage_is_the_first_fine_tuned_on_its_rounds():
     x = torch.rand(1, 1, 64, 64, 64)
     with torch.no_grad():
         assert not torch.allclose(first(x), second(x), atol=1e-4)
+
+
+def test_weights_meta_without_its_grid_names_the_file(tmp_path):
+    path = save_weights(OccupancyDenoiser(2), tmp_path / "no_n.pt", META)
+    saved = torch.load(path, weights_only=True)
+    del saved["meta"]["n"]
+    torch.save(saved, path)
+    with pytest.raises(PriorWeightsError, match=r"learned-prior weights .*no_n\.pt: their meta lacks n \("):
+        load_weights(path)

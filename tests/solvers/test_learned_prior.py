@@ -218,3 +218,10 @@ def test_later_rounds_anchor_to_the_later_weights(weights16, tmp_path, monkeypat
     assert torch.allclose(chained.occupancy, second.solve(m, op).occupancy, atol=1e-6)
     with pytest.raises(PriorWeightsError):  # later weights are checked when the solver is made
         VoxelSolver(later_priors={"learned": {"weights": str(tmp_path / "missing.pt")}}, **opts)
+
+
+def test_2d_weights_on_a_3d_grid_say_2d_vs_3d(tmp_path):
+    path = save_weights(perturbed_denoiser(0.2), tmp_path / "w2d.pt", {"n": 16, "ndim": 2, "n_slabs_per_voxel": 1})
+    prior = LearnedPrior(path)
+    with pytest.raises(PriorMismatchError, match=r"trained for a 16\^2 grid \(2D\), not a 3D one \(16\^3\)"):
+        prior(torch.rand(16, 16, 16))
