@@ -12,8 +12,11 @@ SIGTERM or SIGHUP the runner stops the motion and lifts the object only to a pos
 controller confirms (see :mod:`dipnet.rig.runner`); the script exits with code 3 and a one-line
 message saying what happened and what to do. A scan directory, scan file or port in use by another
 scan, or a rig config that does not fit the board, exits with code 2 (``error: ...``) before
-anything moves. ``monitor=true`` serves the live page (:mod:`dipnet.monitor`) while the scan runs, in a
-separate process; a port in use exits with code 2 before anything moves.
+anything moves; so does an option no code reads (``+n_dip=4``: "did you mean n_dips?", checked as
+``scripts/reconstruct.py`` checks its own), a grid tilt outside ``[0, max_tilt_deg]``, or a resume with
+settings that change what a dip records (:meth:`~dipnet.core.rawscan.ScanHeader.differences`).
+``monitor=true`` serves the live page (:mod:`dipnet.monitor`) while the scan runs, in a separate
+process; a port in use exits with code 2 before anything moves.
 """
 
 from __future__ import annotations
@@ -27,17 +30,27 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from dipnet.jobs.cli import run_hydra, user_errors
 from dipnet.core.locks import run_directory_lock
+from dipnet.core.orientations import check_grid_angles
+from dipnet.jobs.cli import run_hydra, user_errors
+from dipnet.jobs.deprecations import upgrade_scan_config
+from dipnet.jobs.options import check_overrides, hydra_overrides
 from dipnet.jobs.scan import scan_job
 from dipnet.rig.runner import ScanAborted
 
 log = logging.getLogger("dipnet")
 
+#: Keys the scan reads that no config file declares, so they are added with ``+``: the tank's name and the
+#: calibration file (``+rig.tank=lab-tank-1 +rig.calibration=rig_calibration.yaml``) and free-form metadata.
+ADDED_KEYS = ("rig.tank", "rig.calibration", "metadata")
+
 
 @hydra.main(version_base="1.3", config_path="pkg://dipnet.conf", config_name="scan")
 def main(cfg: DictConfig) -> None:
     path = Path(HydraConfig.get().runtime.output_dir) / "rawscan.jsonl"
+    with user_errors():
+        cfg = upgrade_scan_config(cfg)  # once, with its warnings; the scan job's own upgrade has nothing left to do
+        check_scan_options(cfg)
     with user_errors(), run_directory_lock(path.parent), monitoring(cfg, path) as journal:
         try:
             scan = scan_job(cfg, path, journal=journal)
@@ -50,6 +63,22 @@ def main(cfg: DictConfig) -> None:
     n = sum(o.n_readings for o in scan.orientations)
     log.info("scan complete: %d orientations, %d readings in %s", len(scan.completed()), n, path)
 
+
+def check_scan_options(cfg: DictConfig) -> None:
+    """Refuse, before anything moves, a command-line option no scan code reads (``+n_dip=4`` for
+    ``n_dips=4``; the check of ``scripts/reconstruct.py``: :func:`~dipnet.jobs.options.check_overrides`,
+    with :data:`ADDED_KEYS` allowed) and a grid of tilts the rig cannot reach
+    (:func:`~dipnet.core.orientations.check_grid_angles`); raises ``ValueError`` naming the option."""
+    overrides, groups = hydra_overrides()
+    check_overrides(cfg, [o for o in overrides if not _adds_a_read_key(o)], groups)
+    if cfg.get("orientations") == "grid":
+        check_grid_angles(cfg.get("tilts"), cfg.get("spins"), float(cfg.max_tilt_deg))
+
+
+def _adds_a_read_key(override: str) -> bool:
+    """Whether ``override`` (as typed) sets one of :data:`ADDED_KEYS` or a key below one."""
+    key = override.lstrip("+~").split("=", 1)[0]
+    return any(key == k or key.startswith(k + ".") for k in ADDED_KEYS)
 
 
 def monitoring(cfg: DictConfig, path: Path):

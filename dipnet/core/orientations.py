@@ -89,6 +89,33 @@ def direction_to_rig(directions) -> tuple[np.ndarray, np.ndarray]:
     spin = np.where(lateral > 1e-12, np.degrees(np.arctan2(-d[:, 1], d[:, 0])), 0.0)
     return tilt, np.mod(spin, 360.0)
 
+
+def _angles(name: str, values) -> list[float]:
+    """``values`` (option ``name``, degrees) as finite floats; ``ValueError`` naming the option otherwise."""
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__iter__") or not list(values):
+        example = "[0,25,50,70]" if name == "tilts" else "[0,180]"
+        raise ValueError(f"{name} must be a non-empty list of angles (degrees), e.g. {name}={example}, got {values!r}")
+    angles = []
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ValueError(f"{name}={list(values)!r}: {value!r} is not a finite angle (degrees)")
+        angles.append(float(value))
+    return angles
+
+
+def check_grid_angles(tilts, spins, max_tilt_deg: float = 90.0) -> None:
+    """Raise ``ValueError`` for a grid of rig angles (degrees) the rig cannot dip: ``tilts`` and
+    ``spins`` must be non-empty lists of finite angles, every tilt within ``[0, max_tilt_deg]`` (the
+    rig's mechanical limit; a tilt the other way is the same tilt at spin + 180). Spins are free."""
+    tilt_list = _angles("tilts", tilts)
+    _angles("spins", spins)
+    outside = [t for t in tilt_list if not -1e-9 <= t <= max_tilt_deg + 1e-9]
+    if outside:
+        hint = "; a negative tilt is the positive one at spin + 180" if min(outside) < 0 else ""
+        raise ValueError(f"tilts=[{','.join(f'{t:g}' for t in tilt_list)}]: {', '.join(f'{t:g}' for t in outside)} "
+                         f"deg outside the rig's tilt range [0, {max_tilt_deg:g}] deg (max_tilt_deg){hint}")
+
+
 def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor:
     """Named orientation set: ``fibonacci`` | ``random`` | ``uniform`` (2D angles); ``(k, ndim)``."""
     if ndim == 2:

@@ -200,10 +200,75 @@ class ScanHeader:
 
     def differences(self, other: "ScanHeader") -> list[str]:
         """The fields that forbid appending a scan with header ``other`` to one with this header,
-        as ``"field <this value> -> <other value>"`` (empty: compatible)."""
+        as ``"field <this value> -> <other value>"`` (empty: compatible): the header fields, then the
+        recorded settings of :data:`RESUME_SETTINGS` that both headers record (a rig's run records
+        them in ``config``), named by their scan option."""
         keys = ("quantity", "ndim", "tank_cross_section_mm2", "step_mm", "density_g_per_mm3", "t_start_mm")
-        return [f"{k} {getattr(self, k)!r} -> {getattr(other, k)!r}" for k in keys
-                if getattr(self, k) != getattr(other, k)]
+        fields_ = [f"{k} {getattr(self, k)!r} -> {getattr(other, k)!r}" for k in keys
+                   if getattr(self, k) != getattr(other, k)]
+        return fields_ + setting_differences(self.config, other.config)
+
+
+#: Settings in a header's ``config`` that change what a dip records, so a resumed scan must keep
+#: them: ``(dotted key in config, the scan option that sets it)``. A dict-valued key is compared
+#: leaf by leaf (``rig_geometry.pivot_mm``). Timing, retries, ports and the sensor's line pattern
+#: may change between runs.
+RESUME_SETTINGS: tuple[tuple[str, str], ...] = (
+    ("plan.start_mm", "protocol.start_mm"),
+    ("plan.stop_mm", "protocol.stop_mm"),
+    ("plan.origin_height_mm", "rig.origin_height_mm"),
+    ("rig_geometry", "rig.geometry"),  # GEOMETRY_CONFIG_KEY: rig.geometry or rig.calibration's geometry
+    ("controller.axes.lower.scale", "rig.controller.axes.lower.scale"),
+    ("controller.axes.lower.sign", "rig.controller.axes.lower.sign"),
+    ("controller.axes.lower.offset", "rig.controller.axes.lower.offset"),
+    ("controller.axes.tilt.scale", "rig.controller.axes.tilt.scale"),
+    ("controller.axes.tilt.sign", "rig.controller.axes.tilt.sign"),
+    ("controller.axes.tilt.offset", "rig.controller.axes.tilt.offset"),
+    ("controller.axes.spin.scale", "rig.controller.axes.spin.scale"),
+    ("controller.axes.spin.sign", "rig.controller.axes.spin.sign"),
+    ("controller.axes.spin.offset", "rig.controller.axes.spin.offset"),
+    ("sensor.kind", "sensor"),
+    ("sensor.unit", "sensor.device.unit"),
+    ("sensor.scale", "sensor.device.scale"),
+    ("sensor.offset", "sensor.device.offset"),
+    ("sensor.data_type", "sensor.device.data_type"),
+    ("sensor.word_order", "sensor.device.word_order"),
+)
+_UNRECORDED = object()
+
+
+def _recorded(config: Any, key: str) -> Any:
+    """The value at dotted ``key`` of a header's ``config``, or ``_UNRECORDED``."""
+    node = config
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return _UNRECORDED
+        node = node[part]
+    return node
+
+
+def _leaves(value: Any, key: str) -> dict[str, Any]:
+    """``{dotted key: value}`` of every leaf of ``value`` (itself if it is not a dict)."""
+    if not isinstance(value, dict):
+        return {key: value}
+    return {k: v for name, child in value.items() for k, v in _leaves(child, f"{key}.{name}").items()}
+
+
+def setting_differences(recorded: dict, new: dict) -> list[str]:
+    """The settings of :data:`RESUME_SETTINGS` that differ between two headers' ``config``, as
+    ``"option (config.key) <recorded> -> <new>"``; a setting one of them does not record is not compared."""
+    found = []
+    for key, option in RESUME_SETTINGS:
+        old_value, new_value = _recorded(recorded, key), _recorded(new, key)
+        if old_value is _UNRECORDED or new_value is _UNRECORDED:
+            continue
+        old_leaves, new_leaves = _leaves(old_value, key), _leaves(new_value, key)
+        for leaf in sorted(set(old_leaves) | set(new_leaves)):
+            before, after = old_leaves.get(leaf), new_leaves.get(leaf)
+            if before != after:
+                name = option + leaf[len(key):]
+                found.append(f"{name} (config.{leaf}) {before!r} -> {after!r}")
+    return found
 
 
 @dataclass

@@ -1,8 +1,9 @@
 """Sensors of a dipping rig, one interface: ``read() -> Reading(value, unit, stable)``.
 
-* :class:`LineSensor`: a water-level sensor on an ASCII line stream (a regex with a named
-  group ``value`` and optionally ``unit``; a configurable terminator; streaming, or polled
-  with a query string).
+* :class:`LineSensor`: a water-level sensor on an ASCII line stream (a regex matching the whole
+  line, with a named group ``value`` and optionally ``unit``; a configurable terminator; streaming,
+  or polled with a query string). A line that is not a reading in the sensor's unit (an error
+  string such as ``ERR 42``, another unit, a decimal comma) is a failed reading, never a number.
 * :class:`ModbusLevelSensor`: a level transducer read over Modbus RTU (function 0x03, read
   holding registers), with register address, data type, word order, scale and offset; the
   frames, CRC and exception replies are ``minimalmodbus``'s, over the pyserial port opened here
@@ -51,21 +52,50 @@ class Reading(NamedTuple):
 
 
 GRAMS = {"g": 1.0, "kg": 1000.0, "mg": 1e-3}
+#: A decimal number, optionally signed and with an exponent (``151.2``, ``-.5``, ``1.5e2``): no decimal
+#: comma, no thousands separator.
+NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+#: The default level line: a number and its unit (any word, checked against the sensor's ``unit``),
+#: optionally after the label ``L=`` (the fake rig's format, ``L=151.234 mm``); the whole line must match.
+LEVEL_PATTERN = rf"(?:L=)?\s*(?P<value>{NUMBER})\s*(?P<unit>[a-zA-Z]+)?"
 
 
 # ----------------------------------------------------------------------------- parsers
-def parse_line(line: str, pattern: str | re.Pattern, unit: str = "mm") -> Reading | None:
-    """Match ``pattern`` (named group ``value``, optional ``unit`` and ``flag``: a non-empty
-    ``flag`` group marks the reading unstable) against ``line``; ``None`` if it does not match."""
-    m = re.search(pattern, line)
+def parse_line(line: str, pattern: str | re.Pattern, unit: str = "mm", unit_optional: bool = False) -> Reading:
+    """The reading of a level line (pure).
+
+    ``pattern`` must match the whole line (surrounding whitespace ignored); its named group ``value``
+    holds the number, an optional group ``unit`` its unit and a non-empty group ``flag`` marks the
+    reading unstable. A line in another unit than ``unit``, or without a unit when the pattern has a
+    ``unit`` group that did not match and ``unit_optional`` is false, is not a reading.
+
+    Raises:
+        SensorError: the line is not a reading in ``unit`` (an error string, another unit, a decimal
+            comma, ...); the message quotes the line.
+    """
+    regex = re.compile(pattern) if isinstance(pattern, str) else pattern
+    m = regex.fullmatch(line.strip())
     if m is None:
-        return None
+        raise SensorError(f"not a level reading: {line.strip()!r} does not match {regex.pattern!r}")
     groups = m.groupdict()
-    return Reading(float(groups["value"]), groups.get("unit") or unit, not groups.get("flag"))
+    found = groups.get("unit")
+    if found is None and "unit" in regex.groupindex and not unit_optional:
+        raise SensorError(f"level line {line.strip()!r} has no unit: the sensor is set to read {unit} "
+                          f"(unit_optional=true reads a bare number in {unit})")
+    if found is not None and found != unit:
+        raise SensorError(f"level line {line.strip()!r} is in {found!r}, the sensor is set to read {unit!r}")
+    try:
+        value = float(groups["value"])
+    except (TypeError, ValueError):
+        raise SensorError(f"level line {line.strip()!r}: {groups['value']!r} is not a number") from None
+    return Reading(value, unit, not groups.get("flag"))
 
 
-def _grams(value: str, unit: str, line: str) -> float:
-    unit = unit.strip()
+def _grams(value: str, unit: str | None, line: str) -> float:
+    """``value`` in ``unit`` as g; :class:`SensorError` quoting ``line`` for a missing or unknown unit."""
+    unit = (unit or "").strip()
+    if not unit:
+        raise SensorError(f"balance line {line.strip()!r} has no unit")
     if unit not in GRAMS:
         raise SensorError(f"balance reports unknown unit {unit!r} in {line!r}")
     return float(value) * GRAMS[unit]
@@ -74,14 +104,14 @@ def _grams(value: str, unit: str, line: str) -> float:
 def parse_ad(line: str) -> Reading:
     """An A&D balance line ``ST,+00123.45  g`` (``ST`` stable, ``US`` unstable, ``QT`` count,
     ``OL`` overload); value in g (pure)."""
-    m = re.match(r"^\s*(?P<head>ST|US|QT|OL)\s*,\s*(?P<value>[-+]?[\d.E+]+)\s*(?P<unit>[a-zA-Z]*)\s*$", line)
+    m = re.fullmatch(rf"\s*(?P<head>ST|US|QT|OL)\s*,\s*(?P<value>{NUMBER})\s*(?P<unit>[a-zA-Z]*)\s*", line)
     if m is None:
         raise SensorError(f"not an A&D balance line: {line!r}")
     if m["head"] == "OL":
         raise SensorError(f"balance overload: {line.strip()!r}")
     if m["head"] == "QT":
         raise SensorError(f"balance is in counting mode (QT), expected weighing: {line.strip()!r}")
-    return Reading(_grams(m["value"], m["unit"] or "g", line), "g", m["head"] == "ST")
+    return Reading(_grams(m["value"], m["unit"], line), "g", m["head"] == "ST")
 
 
 def parse_sics(line: str) -> Reading:
@@ -91,7 +121,7 @@ def parse_sics(line: str) -> Reading:
     if text in ("ES", "ET", "EL"):
         raise SensorError(f"balance rejected the command ({text}: "
                           f"{ {'ES': 'syntax error', 'ET': 'transmission error', 'EL': 'logical error'}[text]})")
-    m = re.match(r"^S\s+(?P<status>[SDI+\-])(?:\s+(?P<value>[-+]?[\d.]+)\s*(?P<unit>[a-zA-Z]+))?\s*$", text)
+    m = re.fullmatch(rf"S\s+(?P<status>[SDI+\-])(?:\s+(?P<value>{NUMBER})\s*(?P<unit>[a-zA-Z]+))?", text)
     if m is None:
         raise SensorError(f"not an MT-SICS weight reply: {line!r}")
     status = m["status"]
@@ -164,29 +194,35 @@ class LineSensor(Sensor):
 
     Args:
         url: pyserial URL.
-        pattern: regex with a named group ``value`` (and optionally ``unit``, ``flag``).
+        pattern: regex matching a whole line (surrounding whitespace ignored), with a named group
+            ``value`` (and optionally ``unit``, ``flag``): see :func:`parse_line`.
         terminator: line terminator (``"\\n"``, ``"\\r"``, ``"\\r\\n"``; escapes accepted).
         query: string sent before each reading (polled sensors); ``None`` for a stream, whose
             stale input is discarded first so the reading is fresh.
-        unit: the unit when the pattern captures none.
-        max_lines: lines to try before giving up on a match.
+        unit: the unit of the readings (``"mm"``); a line in another unit is not a reading.
+        unit_optional: read a line without a unit (the pattern's ``unit`` group empty) in ``unit``.
+        max_lines: lines to try before giving up (each line that is not a reading counts).
     """
 
-    def __init__(self, url: str, pattern: str = r"(?P<value>[-+]?\d+(?:\.\d+)?)\s*(?P<unit>mm)?",
-                 terminator: str = "\n", query: str | None = None, unit: str = "mm", max_lines: int = 5,
-                 **options) -> None:
+    def __init__(self, url: str, pattern: str = LEVEL_PATTERN, terminator: str = "\n", query: str | None = None,
+                 unit: str = "mm", unit_optional: bool = False, max_lines: int = 5, **options) -> None:
         super().__init__(url, **options)
         self.pattern = re.compile(pattern)
+        if "value" not in self.pattern.groupindex:
+            raise ValueError(f"sensor pattern {pattern!r} has no named group 'value' (the number): write it "
+                             r"as (?P<value>...)")
+        if int(max_lines) < 1:
+            raise ValueError(f"sensor max_lines must be >= 1, got {max_lines!r}")
         self.terminator = terminator.encode("ascii").decode("unicode_escape")
         self.query = None if query is None else query.encode("ascii").decode("unicode_escape")
-        self.unit = unit
+        self.unit, self.unit_optional = unit, bool(unit_optional)
         self.max_lines = int(max_lines)
 
     def terminator_bytes(self) -> bytes:
         return self.terminator.encode("ascii")
 
     def identity(self) -> dict:
-        return {**super().identity(), "pattern": self.pattern.pattern, "query": self.query}
+        return {**super().identity(), "pattern": self.pattern.pattern, "query": self.query, "unit": self.unit}
 
     def read(self) -> Reading:
         link = self._link()
@@ -194,11 +230,20 @@ class LineSensor(Sensor):
             link.discard_input()
         else:
             link.write(self.query.encode("ascii"))
-        for _ in range(self.max_lines):
-            reading = parse_line(link.read_line(self.timeout), self.pattern, self.unit)
-            if reading is not None:
-                return reading
-        raise SensorError(f"sensor {self.url}: no line matched {self.pattern.pattern!r} in {self.max_lines} lines")
+        failure, tried = None, 0
+        while tried < self.max_lines:
+            try:
+                line = link.read_line(self.timeout)
+            except RigTimeout:
+                if failure is None:
+                    raise
+                break  # a polled sensor answered with something else, and then nothing more
+            tried += 1
+            try:
+                return parse_line(line, self.pattern, self.unit, self.unit_optional)
+            except SensorError as exc:  # not a reading (an error string, another unit): try the next line
+                failure = exc
+        raise SensorError(f"sensor {self.url} gave no reading in {tried} line(s); the last: {failure}")
 
 
 class BalanceSensor(Sensor):

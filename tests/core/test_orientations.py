@@ -7,6 +7,7 @@ import torch
 from dipnet.core import orientations as o
 from dipnet.core.orientations import (
     Reach,
+    check_grid_angles,
     direction_to_rig,
     fibonacci_hemisphere,
     reachable_candidates,
@@ -100,3 +101,19 @@ def test_direction_rig_round_trip():
     tilt, spin = np.array([0.0, 10.0, 35.0, 80.0]), np.array([0.0, 20.0, 300.0, 123.0])
     t2, s2 = direction_to_rig(rig_to_direction(tilt, spin))
     assert np.allclose(t2, tilt) and np.allclose(s2[1:], spin[1:])
+
+
+def test_grid_angles_outside_the_rigs_tilt_range_are_refused():
+    """Before: ``tilts=[0,400]`` planned one dip, the 400 deg tilt dropped without a word."""
+    check_grid_angles([0, 25, 50, 70], [0, 180], max_tilt_deg=90.0)
+    check_grid_angles([0.0, 90.0], [-90, 400], max_tilt_deg=90.0)  # spins turn freely
+    for tilts, spins, message in (
+            ([0, 400], [0], r"tilts=\[0,400\]: 400 deg outside the rig's tilt range \[0, 90\] deg \(max_tilt_deg\)$"),
+            ([0, 60], [0], r"60 deg outside the rig's tilt range \[0, 45\]"),
+            ([-20], [0], r"-20 deg outside .*at spin \+ 180"),
+            ([0, float("nan")], [0], r"nan is not a finite angle"),
+            ([], [0], r"tilts must be a non-empty list"),
+            ([0], None, r"spins must be a non-empty list"),
+            ([0], ["abc"], r"spins=\['abc'\]: 'abc' is not a finite angle")):
+        with pytest.raises(ValueError, match=message):
+            check_grid_angles(tilts, spins, max_tilt_deg=45.0 if 60 in tilts else 90.0)

@@ -1,5 +1,7 @@
 """The raw scan writer: what it writes reads back, a resumed file goes on, a second writer is refused."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -51,3 +53,61 @@ def test_a_second_writer_and_other_settings_are_refused(tmp_path):
     other = ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=5e4, step_mm=1.0)
     with pytest.raises(RawScanFileError, match="cannot resume"):
         RawScanWriter(path, other, fsync=False)
+
+
+def _rig_header(**plan) -> ScanHeader:
+    """A header as a rig run writes it: the plan, the geometry and the controller in ``config``."""
+    settings = {"start_mm": 0.0, "stop_mm": 110.0, "step_mm": 1.0, "settle_s": 0.0, "origin_height_mm": 50.0, **plan}
+    geometry = {"pivot_mm": plan.pop("pivot_mm", 0.0), "tilt_zero_deg": 0.0, "cross_section_mm2": None}
+    axes = {"lower": {"letter": "Z", "scale": 1.0, "sign": -1, "offset": 0.0}}
+    config = {"plan": {k: v for k, v in settings.items() if k != "pivot_mm"}, "rig_geometry": geometry,
+              "controller": {"dialect": "grbl", "url": "/dev/ttyUSB0", "axes": axes},
+              "sensor": {"kind": "LineSensor", "quantity": "level_mm", "pattern": "old"}}
+    return ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=6e4, step_mm=1.0, config=config)
+
+
+def test_a_resume_with_other_dip_settings_is_refused_naming_them(tmp_path):
+    """Before: another stop, origin height or rig geometry was appended to the recorded dips."""
+    path = tmp_path / "scan.jsonl"
+    with RawScanWriter(path, _rig_header(), fsync=False) as w:
+        _dip(w, 0)
+    with pytest.raises(RawScanFileError) as refused:
+        RawScanWriter(path, _rig_header(stop_mm=60.0, origin_height_mm=40.0, pivot_mm=5.0), fsync=False)
+    message = str(refused.value)
+    assert "cannot resume" in message and "(recorded -> new)" in message
+    for named in ("protocol.stop_mm (config.plan.stop_mm) 110.0 -> 60.0",
+                  "rig.origin_height_mm (config.plan.origin_height_mm) 50.0 -> 40.0",
+                  "rig.geometry.pivot_mm (config.rig_geometry.pivot_mm) 0.0 -> 5.0"):
+        assert named in message
+    assert "settle" not in message and "pattern" not in message
+
+
+@pytest.mark.parametrize("key,value,named", [
+    ("start_mm", 5.0, "protocol.start_mm"),
+    ("axes", {"lower": {"letter": "Z", "scale": 2.0, "sign": -1, "offset": 0.0}}, "rig.controller.axes.lower.scale"),
+    ("kind", "ModbusLevelSensor", "sensor (config.sensor.kind)"),
+])
+def test_each_dip_setting_is_compared(tmp_path, key, value, named):
+    path = tmp_path / "scan.jsonl"
+    with RawScanWriter(path, _rig_header(), fsync=False) as w:
+        _dip(w, 0)
+    changed = _rig_header()
+    node = {"start_mm": "plan", "axes": "controller", "kind": "sensor"}[key]
+    changed.config[node][key] = value
+    with pytest.raises(RawScanFileError, match=re.escape(named)):
+        RawScanWriter(path, changed, fsync=False)
+
+
+def test_a_resume_with_the_same_dip_settings_goes_on(tmp_path):
+    """Timing, the port and the sensor's line pattern may change; a header without the settings is not compared."""
+    path = tmp_path / "scan.jsonl"
+    with RawScanWriter(path, _rig_header(), fsync=False) as w:
+        _dip(w, 0)
+    again = _rig_header(settle_s=0.5)
+    again.config["controller"]["url"] = "/dev/ttyUSB1"
+    again.config["sensor"]["pattern"] = "new"
+    with RawScanWriter(path, again, fsync=False) as w:
+        _dip(w, 1)
+    with RawScanWriter(path, HEADER, fsync=False) as w:  # records no plan: nothing to compare
+        assert w.scan.next_orientation() == 2
+    assert [o.k for o in read_rawscan(path).completed()] == [0, 1]

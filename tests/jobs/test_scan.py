@@ -1,5 +1,9 @@
 """The scan job's plan settings: one rig geometry (values or a calibration file), the deepest lowering."""
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 from hydra import compose, initialize_config_module
 
@@ -70,3 +74,66 @@ def test_stock_3axis_preset_works_out_of_the_box(meshes_dir, tmp_path):
     raw = scan_from_config(cfg, tmp_path / "rawscan.jsonl")
     assert len(raw.completed()) == 3 and world.position().lower_mm == 0.0
     assert raw.header.config["controller"]["status_axes"] == "XYZ"
+
+
+# ----------------------------------------------------------------------------- scripts/scan.py: bad options
+SCAN_SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "scan.py"
+QUICK_SCAN = ("n_dips=2", "protocol.step_mm=20", "fsync=false", "progress=false")
+
+
+def _scan_script(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCAN_SCRIPT), f"hydra.run.dir={run_dir}", *overrides],
+                          capture_output=True, text=True, timeout=300)
+
+
+def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert done.returncode == code and lines and lines[-1].startswith("error: "), done.stderr[-2000:]
+    return lines[-1]
+
+
+@pytest.mark.parametrize("overrides,message", [
+    # before: +n_dip=4 ran the full 40-dip default scan, exit 0
+    (["+n_dip=4"], "error: unknown option n_dip: no code reads it; did you mean n_dips?"),
+    # before: the 400 deg tilt was dropped without a word and one orientation scanned
+    (["orientations=grid", "tilts=[0,400]", "spins=[0]"],
+     "error: tilts=[0,400]: 400 deg outside the rig's tilt range [0, 90] deg (max_tilt_deg)"),
+    (["orientations=grid", "tilts=[0,50]", "spins=[0]", "max_tilt_deg=45"],
+     "error: tilts=[0,50]: 50 deg outside the rig's tilt range [0, 45] deg (max_tilt_deg)"),
+])
+def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, overrides, message):
+    assert _error_line(_scan_script(tmp_path, *QUICK_SCAN, *overrides)) == message
+    assert not (tmp_path / "rawscan.jsonl").exists()
+
+
+def test_scan_script_options_the_scan_reads_without_a_default_are_accepted():
+    """``+rig.tank``, ``+rig.calibration`` and ``+metadata.*`` are added keys the scan reads (docs/guide/real-data.md)."""
+    from script_modules import load_script
+
+    added = load_script("scan")._adds_a_read_key
+    assert added("+rig.tank=lab-tank-1") and added("+rig.calibration=c.yaml") and added("+metadata.operator=bob")
+    assert not added("+n_dip=4") and not added("+rig.tanks=x") and not added("+metadatas=1")
+
+
+@pytest.mark.slow
+def test_scan_script_refuses_to_resume_with_other_dip_settings(tmp_path):
+    """Before: a resume with another stop, origin height or pivot appended its dips to the recorded ones."""
+    grid = ("orientations=grid", "spins=[0]")
+    first = _scan_script(tmp_path, *QUICK_SCAN, *grid, "tilts=[0]")
+    assert first.returncode == 0, first.stderr[-2000:]
+    line = _error_line(_scan_script(tmp_path, *QUICK_SCAN, *grid, "tilts=[0,30]", "protocol.stop_mm=60",
+                                    "rig.origin_height_mm=40", "rig.geometry.pivot_mm=5"))
+    assert "cannot resume" in line and "protocol.stop_mm (config.plan.stop_mm) 110.0 -> 60" in line
+    assert "rig.origin_height_mm (config.plan.origin_height_mm) 50.0 -> 40" in line
+    assert "rig.geometry.pivot_mm (config.rig_geometry.pivot_mm) 0.0 -> 5.0" in line
+    assert len(read_rawscan(tmp_path / "rawscan.jsonl").completed()) == 1  # nothing appended
+    again = _scan_script(tmp_path, *QUICK_SCAN, *grid, "tilts=[0,30]")  # the recorded settings: resumes
+    assert again.returncode == 0 and len(read_rawscan(tmp_path / "rawscan.jsonl").completed()) == 2
+
+
+@pytest.mark.slow
+def test_scan_script_stops_on_a_sensor_sending_error_lines(tmp_path):
+    """Before: the default pattern read 'ERR 42' as a stable 42 mm."""
+    line = _error_line(_scan_script(tmp_path, *QUICK_SCAN, "+rig.fake.sensor_format={level_format: 'ERR 42'}"),
+                       code=3)
+    assert "no reading in 5 line(s); the last: not a level reading: 'ERR 42'" in line and "object lifted" in line

@@ -3,6 +3,9 @@ level sensor against the fake rig's slave."""
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import pytest
 
 from dipnet.rig import sensors
@@ -32,7 +35,76 @@ def test_level_line_pattern():
     pattern = r"LVL\s*(?P<value>[-+]?\d+\.\d+)\s*(?P<unit>mm)(?P<flag>\?)?"
     assert sensors.parse_line("LVL 151.234 mm", pattern) == (151.234, "mm", True)
     assert sensors.parse_line("LVL 151.234 mm?", pattern) == (151.234, "mm", False)
-    assert sensors.parse_line("garbage", pattern) is None
+    with pytest.raises(SensorError, match="'garbage'"):
+        sensors.parse_line("garbage", pattern)
+
+
+@pytest.mark.parametrize("line,value", [
+    ("151.234 mm", 151.234), ("  151.234 mm\r", 151.234), ("L=151.234 mm", 151.234), ("1.5e2 mm", 150.0),
+    ("-1.5E-1mm", -0.15), (".5 mm", 0.5), ("+42 mm", 42.0),
+])
+def test_the_default_level_pattern_reads_whole_lines_in_mm(line, value):
+    pattern = _level_config()["pattern"]
+    assert sensors.parse_line(line, pattern) == (pytest.approx(value), "mm", True)
+
+
+@pytest.mark.parametrize("line,why", [
+    ("15.02 cm", "is in 'cm', the sensor is set to read 'mm'"),  # before: 15.02 mm
+    ("ERR 42", "not a level reading: 'ERR 42'"),  # before: 42 mm, stable
+    ("150,2 mm", "not a level reading: '150,2 mm'"),  # before: 150 mm
+    ("OVERRANGE 9999.9", "not a level reading: 'OVERRANGE 9999.9'"),  # before: 9999.9 mm, stable
+    ("9999.9 OVERRANGE", "is in 'OVERRANGE'"),
+    ("1.2.3 mm", "not a level reading"),
+    ("151.2", "'151.2' has no unit"),
+])
+def test_the_default_level_pattern_refuses_other_lines_naming_them(line, why):
+    with pytest.raises(SensorError, match=re.escape(why)):
+        sensors.parse_line(line, _level_config()["pattern"])
+
+
+def test_a_bare_number_is_read_only_when_the_config_allows_it():
+    pattern = _level_config()["pattern"]
+    assert sensors.parse_line("151.2", pattern, unit_optional=True) == (151.2, "mm", True)
+    with pytest.raises(SensorError, match="in 'cm'"):
+        sensors.parse_line("151.2 cm", pattern, unit_optional=True)
+    with pytest.raises(ValueError, match="no named group 'value'"):
+        sensors.LineSensor("loop://", pattern=r"\d+")
+
+
+def _level_config() -> dict:
+    """``conf/sensor/level.yaml``'s ``device`` node."""
+    import yaml
+
+    return yaml.safe_load((Path(__file__).resolve().parents[2] / "conf" / "sensor" / "level.yaml").read_text())["device"]
+
+
+def test_a_sensor_sending_error_lines_fails_the_reading_naming_the_line(world):
+    sensor = sensors.LineSensor(world.url("level"), timeout=0.5, max_lines=3)
+    sensor.connect()
+    try:
+        assert sensor.read().value == pytest.approx(world.tank.rest_level_mm, abs=1e-3)  # the fake's 'L=... mm'
+        world.sensor_format.level_format = "ERR 42"
+        with pytest.raises(SensorError, match=r"gave no reading in 3 line\(s\); the last: not a level reading: "
+                                              r"'ERR 42'"):
+            sensor.read()
+        world.sensor_format.level_format = "{value:.3f} cm"
+        with pytest.raises(SensorError, match="is in 'cm'"):
+            sensor.read()
+    finally:
+        world.sensor_format.level_format = "L={value:.3f} mm"
+        sensor.close()
+
+
+def test_balance_lines_that_are_not_readings_are_refused():
+    for bad, word in (("ST,1.2.3 g", "not an A&D"), ("ST,+00123,45 g", "not an A&D"), ("ST,+00123.45", "no unit"),
+                      ("ST,+00123.45 lb", "unknown unit 'lb'"), ("EC,E11", "not an A&D")):
+        with pytest.raises(SensorError, match=re.escape(word)):
+            sensors.parse_ad(bad)
+    assert sensors.parse_ad("ST,+1.2345E+02  g") == (pytest.approx(123.45), "g", True)
+    for bad, word in (("S S 1.2.3 g", "not an MT-SICS"), ("S S   100,00 g", "not an MT-SICS"),
+                      ("S S   100.00", "not an MT-SICS"), ("S S   100.00 lb", "unknown unit 'lb'")):
+        with pytest.raises(SensorError, match=re.escape(word)):
+            sensors.parse_sics(bad)
 
 
 def test_modbus_frames_and_registers():

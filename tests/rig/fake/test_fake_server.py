@@ -20,7 +20,7 @@ def test_socket_server_mode(world, tmp_path):
     with serve(world, ["grbl", "level"]) as server:
         assert server.urls["grbl"].startswith("socket://127.0.0.1:")
         ctl = GrblController(server.urls["grbl"], timeout=1.0)
-        sensor = LineSensor(server.urls["level"], pattern=r"L=(?P<value>[-+\d.]+)")
+        sensor = LineSensor(server.urls["level"], pattern=r"L=(?P<value>[-+\d.]+) mm")
         plan = plan_for(2, step=10.0)
         header = ScanHeader(quantity="level_mm", tank_cross_section_mm2=AREA, step_mm=10.0)
         raw = ScanRunner(ctl, sensor, plan, tmp_path / "remote.jsonl", header, progress=False, fsync=False).run()
