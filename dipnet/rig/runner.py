@@ -38,7 +38,7 @@ import numpy as np
 import serial
 from tqdm.auto import tqdm
 
-from dipnet.core.orientations import direction_to_rig, make_directions
+from dipnet.core.orientations import check_grid_angles, direction_to_rig, make_directions
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
 from dipnet.core.rawscan_writer import RawScanWriter
 from dipnet.core.memory import MAX_READINGS_PER_DIP
@@ -105,11 +105,11 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
         kind: ``"grid"`` (every ``tilts`` x ``spins`` pair, tilt-major, as the authors' robot),
             or an orientation set of :func:`~dipnet.core.orientations.make_directions`
             (``fibonacci`` | ``random``) with ``n`` directions, converted to rig angles.
-        max_tilt_deg: drop directions tilted further than this (a rig's mechanical limit).
+        max_tilt_deg: drop directions of a set tilted further than this (a rig's mechanical limit); a
+            grid tilt beyond it is refused (:func:`~dipnet.core.orientations.check_grid_angles`).
     """
     if kind == "grid":
-        if not tilts or not spins:
-            raise ValueError("a grid plan needs non-empty lists 'tilts' and 'spins' (degrees)")
+        check_grid_angles(tilts, spins, max_tilt_deg)  # a tilt the rig cannot reach is an error, not dropped
         pairs = [(float(t), float(s)) for t in tilts for s in spins]
     else:
         tilt, spin = direction_to_rig(make_directions(kind, int(n), 3, seed))

@@ -117,3 +117,13 @@ def test_grid_angles_outside_the_rigs_tilt_range_are_refused():
             ([0], ["abc"], r"spins=\['abc'\]: 'abc' is not a finite angle")):
         with pytest.raises(ValueError, match=message):
             check_grid_angles(tilts, spins, max_tilt_deg=45.0 if 60 in tilts else 90.0)
+
+
+def test_a_grid_plan_refuses_a_tilt_the_rig_cannot_reach_instead_of_dropping_it():
+    """plan_orientations (every caller, not only scan.py) refuses a grid tilt beyond max_tilt_deg."""
+    from dipnet.rig.runner import plan_orientations
+
+    assert plan_orientations("grid", tilts=[0, 30], spins=[0, 90], max_tilt_deg=60.0) == \
+        [(0.0, 0.0), (0.0, 90.0), (30.0, 0.0), (30.0, 90.0)]
+    with pytest.raises(ValueError, match="400 deg outside the rig's tilt range"):
+        plan_orientations("grid", tilts=[0, 400], spins=[0])
