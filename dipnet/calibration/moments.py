@@ -260,12 +260,6 @@ class MomentFit:
         """Whether the nonlinear parameter ``name``'s estimate reached the edge of its search range."""
         return name in SEARCH and abs(self.values[name] - self.start[name]) >= 2 * SEARCH[name][0] - 1e-6
 
-    def excludes(self, name: str, value: float, margin: float = 2.0) -> bool:
-        """Whether ``value`` lies more than ``margin`` x the half-width of ``name``'s 90% interval from its
-        estimate (the data rule it out)."""
-        low, high = self.intervals.get(name, (self.values[name], self.values[name]))
-        return abs(value - self.values[name]) > margin * 0.5 * (high - low)
-
     def undetermined(self, kind: str) -> dict[str, str]:
         """Free parameter -> why the dips do not determine it to its :data:`TOLERANCE` (``kind``:
         ``"self"`` or ``"reference"``, for the named degeneracies of :data:`GAUGE_REASONS`)."""

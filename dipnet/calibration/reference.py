@@ -77,26 +77,31 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
                                                      "spin_zero_deg", "step_scale")}
     joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm) if free else None
-    fit, undetermined, loose = _hold_undetermined(joint, moments, known, fixed, kind, seed, t0_sd_mm)
+    fit, undetermined, caveats, held = _hold_undetermined(joint, moments, known, fixed, kind, seed, t0_sd_mm)
     undetermined.update(gauges)
+    if joint is not None:
+        floors = _moment_floors(kind, joint, known, raw)
+        geometry = geometry.with_values(**{p: v for p, (v, _, _) in held.items()})
+        for p, (value, interval, sd) in held.items():
+            _record(report, p, value, interval, sd, floors[p])
+        report.caveats.update(caveats)
     if fit is not None:
         estimated = tuple(p for p in fit.free if p != "t0_mm")  # the reference's start height: a nuisance
         geometry = geometry.with_values(**{p: fit.values[p] for p in estimated})
         report.moment_rms = fit.residual_rms
-        floors = _moment_floors(kind, fit, known, raw)
         for p in estimated:
             interval, sd = fit.intervals[p], fit.bootstrap_sd[p]
-            if fit is not joint:  # refitted with parameters held at configured values the data allow:
+            if fit is not joint:  # refitted with parameters held: their spread in the joint fit moves these too
                 interval = (min(interval[0], joint.intervals[p][0]), max(interval[1], joint.intervals[p][1]))
-                sd = max(sd, joint.bootstrap_sd[p])  # the joint fit's spread covers what they may be
-                if 0.5 * (interval[1] - interval[0]) > TOLERANCE[p] and p not in loose:
-                    loose[p] = (f"its interval is wider than its tolerance {TOLERANCE[p]:g}: it covers what "
-                                f"{', '.join(sorted(undetermined))} (held at configured values) may be")
+                sd = max(sd, joint.bootstrap_sd[p])
+                if 0.5 * (interval[1] - interval[0]) > TOLERANCE[p] and p not in caveats:
+                    caveats[p] = (f"its interval is wider than its tolerance {TOLERANCE[p]:g}: it covers what "
+                                  f"{', '.join(sorted({*undetermined, *held}))} (held) may be")
             _record(report, p, fit.values[p], interval, sd, floors[p])
         report.correlations.update({p: {q: c for q, c in row.items() if q in estimated}
                                     for p, row in fit.correlations.items() if p in estimated})
-        report.caveats.update(loose)
-    radius = _object_radius(fit, known)
+        report.caveats.update(caveats)
+    radius = _object_radius(fit if fit is not None else joint, known)
     undetermined.update(report.undetermined)
     for p, why in undetermined.items():
         report.estimates[p] = float(getattr(initial, p))
@@ -106,32 +111,53 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     return State(geometry, t0_mm=held_height), report, moments
 
 
+#: How far a configured value may be from the truth (standard deviation): that of a uniform draw over the
+#: calibrated range (pivot +-60 mm, offset +-40 mm, tilt and spin zeros +-5 deg; the step scale's search
+#: range +-5 %). An estimate the dips know less well is shrunk toward the configured value by this prior
+#: (:func:`_hold_undetermined`).
+CONFIGURED_SD = {"pivot_mm": 60 / math.sqrt(3), "tilt_axis_offset_mm": 40 / math.sqrt(3),
+                 "tilt_zero_deg": 5 / math.sqrt(3), "spin_zero_deg": 5 / math.sqrt(3), "step_scale": 0.05 / math.sqrt(3)}
+
+
 def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fixed: dict[str, float], kind: str,
-                       seed: int, t0_sd_mm: float) -> tuple[object, dict[str, str], dict[str, str]]:
-    """``(fit, undetermined, loose)``: the joint fit with the parameters the dips do not determine held
-    at their configured values, one at a time (the widest against its tolerance first, then a refit: the
-    others may be determined once it is held, as the offset once the tilt zero is). A parameter whose
-    estimate lies more than twice its 90% half-width from the configured value is not held: the data
-    rule that value out, its estimate is used and named in ``loose``.
+                       seed: int, t0_sd_mm: float) -> tuple[object, dict[str, str], dict[str, str], dict[str, tuple]]:
+    """``(fit, undetermined, caveats, held)``: the joint fit with the parameters the dips do not pin to their
+    tolerance settled one at a time, the widest against its tolerance first, then the rest refitted (the
+    offset may be pinned once the tilt zero is):
+
+    it is held at the precision-weighted mean of its estimate and its configured value (prior sd
+    :data:`CONFIGURED_SD`; the data's sd the larger of the bootstrap's and, for the nonlinear ones,
+    ``tolerance / sqrt(profile rise)``). When the data carry less than half the weight, or the estimate
+    reached the edge of its search range, it is held at the configured value and named ``undetermined``;
+    else it is estimated: ``held[name] = (value, 90% interval, sd)``, named in ``caveats``.
 
     With an uncertain start height (``t0_sd_mm > 0``) the refits fit it (``t0_mm``, a nuisance never
     applied): a held tilt zero can no longer absorb a height error, which would otherwise bias the step
-    scale through the dips' first moments; the pivot and offset come out as the equivalent of the held value.
+    scale through the dips' first moments.
     """
-    fit, undetermined, loose = joint, {}, {}
+    fit, undetermined, caveats, held = joint, {}, {}, {}
+    values = dict(fixed)
     nuisance = ("t0_mm",) if t0_sd_mm > 0 else ()
     while fit is not None:
-        why = {p: w for p, w in fit.undetermined(kind).items() if p not in nuisance}
-        holdable = {p: w for p, w in why.items() if fit.at_search_edge(p) or not fit.excludes(p, fixed[p])}
-        if not holdable:
-            loose = {p: f"is not pinned to its tolerance {TOLERANCE[p]:g} ({w}), but lies more than twice its 90% "
-                        f"half-width from the configured value {fixed[p]:g}: the estimate is used" for p, w in why.items()}
+        why = {p: w for p, w in fit.undetermined(kind).items() if p not in nuisance and p not in caveats}
+        if not why:
             break
-        held = max(holdable, key=lambda p: (fit.at_search_edge(p), _half_width(fit, p) / TOLERANCE[p]))
-        undetermined[held] = holdable[held]
-        kept = tuple(p for p in fit.free if p != held and p not in nuisance)
-        fit = fit_moments(moments, kept + nuisance, known=known, fixed=fixed, seed=seed) if kept else None
-    return fit, undetermined, loose
+        name = max(why, key=lambda p: (fit.at_search_edge(p), _half_width(fit, p) / TOLERANCE[p]))
+        rise = fit.profile_rise.get(name, np.inf)
+        data_sd = max(_half_width(fit, name) / 1.645, TOLERANCE[name] / math.sqrt(max(rise, 1e-12)))
+        weight = CONFIGURED_SD[name]**2 / (CONFIGURED_SD[name]**2 + data_sd**2)
+        if fit.at_search_edge(name) or weight < 0.5:
+            undetermined[name] = why[name]
+        else:
+            values[name] = fixed[name] + weight * (fit.values[name] - fixed[name])
+            half = 1.645 * math.sqrt(weight) * data_sd  # the posterior's
+            held[name] = (values[name], (values[name] - half, values[name] + half), half / 1.645)
+            caveats[name] = (f"is not pinned to its tolerance {TOLERANCE[name]:g} ({why[name]}): its estimate "
+                             f"{fit.values[name]:.4g} is shrunk toward the configured {fixed[name]:g} by the "
+                             f"configuration's own uncertainty (sd {CONFIGURED_SD[name]:g}) to {values[name]:.4g}")
+        kept = tuple(p for p in fit.free if p != name and p not in nuisance)
+        fit = fit_moments(moments, kept + nuisance, known=known, fixed=values, seed=seed) if kept else None
+    return fit, undetermined, caveats, held
 
 
 def _half_width(fit, name: str) -> float:
