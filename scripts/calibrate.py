@@ -25,14 +25,14 @@ from dipnet.calibration.reference import calibrate_reference
 from dipnet.jobs.cli import user_errors
 from dipnet.jobs.warnings_once import log_warnings_once
 from dipnet.core.grid import Grid
-from dipnet.core.rawscan import read_rawscan
+from dipnet.preprocessing.recorded import read_scan
 from dipnet.core.calibration_file import TANK_CONFIG_KEY, save_calibration
 from dipnet.shapes import Ball
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("scan", type=Path, help="raw scan (.jsonl) of the reference ball")
+    p.add_argument("scan", type=Path, help="raw scan (.jsonl, or the authors' .csv) of the reference ball")
     p.add_argument("--ball-radius", type=float, required=True, help="the ball's radius (mm)")
     p.add_argument("--centre", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
                    help="the ball's centre in the object frame (mm)")
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     log_warnings_once()  # a warning both logged and warned shows once
     with user_errors():
-        raw = read_rawscan(args.scan)
+        raw = read_scan(args.scan)  # a dipnet raw scan (.jsonl) or the authors' CSV
         tank = args.tank or raw.header.config.get(TANK_CONFIG_KEY)
         if not tank:
             raise ValueError(f"{args.scan} does not name its tank: pass --tank")

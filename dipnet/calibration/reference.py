@@ -254,6 +254,9 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
     """
     params = _check_params(params)
     initial = initial or RigGeometry()
+    if any(o.meta.get("t_start_mm", raw.header.t_start_mm) is None for o in raw.orientations):
+        raise CalibrationError("the scan does not record its dips' start heights (the authors' CSV does not), which "
+                               "a reference calibration measures the rig by: record the ball with scripts/scan.py")
     known = known_object(shape)
     if not start_height_tolerance_mm >= 0:
         raise CalibrationError(f"start_height_tolerance_mm must be >= 0 (mm), got {start_height_tolerance_mm!r}")

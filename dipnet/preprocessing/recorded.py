@@ -92,8 +92,14 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
         raise RawScanFileError(f"{path}:1: expected the header {','.join(AUTHORS_COLUMNS)}, "
                                f"got {','.join(rows[0]) if rows else 'an empty file'}")
     data, linenos = [], []
+    last = max((i for i, row in enumerate(rows) if row and "".join(row).strip()), default=0) + 1
     for lineno, row in enumerate(rows[1:], start=2):
         if not row or not "".join(row).strip():
+            continue
+        if len(row) < 5 and lineno == last:  # cut off while it was written, as a .jsonl's last line
+            message = f"{path}:{lineno}: the last row is cut off ({len(row)} of 5 fields): dropped"
+            log.warning("%s", message)
+            warnings.warn(message, stacklevel=2)
             continue
         if len(row) != 5:
             raise RawScanFileError(f"{path}:{lineno}: expected 5 fields, got {len(row)}")
@@ -117,7 +123,8 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
         if up.size:
             i = idx[up[0] + 1]
             raise RawScanFileError(f"{path}:{linenos[i]}: Height_mm {a[i, 3]:g} after {a[i - 1, 3]:g}: the stage "
-                                   "moved backwards within a dip (rows out of order?)")
+                                   "moved backwards within a dip (rows out of order? or the same R1, R2 dipped twice "
+                                   "in a row: dips are told apart by their angles)")
     steps = np.diff(-a[:, 3])[np.diff(-a[:, 3]) > 0]
     header = ScanHeader(
         quantity="level_mm", ndim=3, tank_cross_section_mm2=float(tank_cross_section_mm2),

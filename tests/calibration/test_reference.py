@@ -154,3 +154,16 @@ def test_calibrate_script_on_a_rig_far_from_nominal(tmp_path):
         assert low <= getattr(true, name) <= high, name
     assert cal.geometry.cross_section_mm2 == pytest.approx(0.85 * 60000.0, rel=0.002)  # from the ball's volume
     assert "spin_zero_deg" in cal.not_estimated  # the ball's symmetry, never an optimiser's trial value
+
+
+def test_calibrate_reads_the_authors_csv_and_says_why_it_cannot_use_it(capsys):
+    """The audit's case: the authors' CSV gave 'not valid JSON'. calibrate.py reads it as every reader does,
+    and says in one line (exit 2) why it cannot calibrate from it: the CSV has no start heights."""
+    from dipnet.preprocessing.datasets import CATS_CSV
+
+    calibrate = load_script("calibrate")
+    with warnings.catch_warnings(), pytest.raises(SystemExit) as stop:
+        warnings.simplefilter("ignore", UserWarning)
+        calibrate.main([str(CATS_CSV), "--ball-radius", "30", "--tank", "authors", "--n", "24"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "does not record its dips' start heights" in err and "JSON" not in err

@@ -79,6 +79,16 @@ def test_authors_csv_errors(tmp_path):
         read_authors_csv(bad)
     with pytest.raises(RawScanFileError, match="not found"):
         read_authors_csv(tmp_path / "missing.csv")
+    head = "SN,R1_deg,R2_deg,Height_mm,WaterLevel_mm\n"
+    bad.write_text(head + "1,0,0,-25,188\n2,0,0,-28,188.5\n3,0,0\n")  # the audit's case: a cut-off last row
+    with pytest.warns(UserWarning, match=r"bad.csv:4: the last row is cut off \(3 of 5 fields\): dropped"):
+        assert read_authors_csv(bad).orientations[0].n_readings == 2
+    bad.write_text(head + "1,0,0,-25,188\n2,0,0\n3,0,0,-31,189\n")  # not the last: an error
+    with pytest.raises(RawScanFileError, match="bad.csv:3: expected 5 fields, got 3"):
+        read_authors_csv(bad)
+    bad.write_text(head + "1,0,0,-25,188\n2,0,0,-28,188.5\n3,0,0,-25,188\n4,0,0,-28,188.5\n")  # one angle twice
+    with pytest.raises(RawScanFileError, match="bad.csv:4: .* the same R1, R2 dipped twice in a row"):
+        read_authors_csv(bad)
 
 
 def test_cats_preprocessing(cats_csv):
