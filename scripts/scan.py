@@ -73,6 +73,9 @@ def check_scan_options(cfg: DictConfig) -> None:
     check_overrides(cfg, [o for o in overrides if not _adds_a_read_key(o)], groups)
     if cfg.get("orientations") == "grid":
         check_grid_angles(cfg.get("tilts"), cfg.get("spins"), float(cfg.max_tilt_deg))
+    elif cfg.get("tilts") is not None or cfg.get("spins") is not None:
+        raise ValueError(f"tilts and spins set a grid plan, but orientations={cfg.get('orientations')}: "
+                         "add orientations=grid, or drop them")
 
 
 def _adds_a_read_key(override: str) -> bool:

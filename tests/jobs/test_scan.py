@@ -100,6 +100,9 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
      "error: tilts=[0,400]: 400 deg outside the rig's tilt range [0, 90] deg (max_tilt_deg)"),
     (["orientations=grid", "tilts=[0,50]", "spins=[0]", "max_tilt_deg=45"],
      "error: tilts=[0,50]: 50 deg outside the rig's tilt range [0, 45] deg (max_tilt_deg)"),
+    # before: the tilts were ignored and the 40-dip Fibonacci scan ran
+    (["tilts=[0,30]", "spins=[0]"],
+     "error: tilts and spins set a grid plan, but orientations=fibonacci: add orientations=grid, or drop them"),
 ])
 def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, overrides, message):
     assert _error_line(_scan_script(tmp_path, *QUICK_SCAN, *overrides)) == message
