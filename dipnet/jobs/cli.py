@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import re
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -44,6 +45,11 @@ def error_message(exc: BaseException) -> str:
     cause = exc.__cause__
     if isinstance(exc, InstantiationException) and isinstance(cause, USER_ERRORS):
         return error_message(cause)
+    if isinstance(exc, InstantiationException) and isinstance(cause, TypeError):  # e.g. shape.radius=abc
+        found = re.search(r"full_key: (\S+)", str(exc))  # Hydra names the node only in its message
+        node = found.group(1) if found else "a config node"
+        return (f"{node}: an option of the wrong type ({cause}): check the values given to {node}.* "
+                "(a number written as text, a list where one value is expected, ...)")
     if isinstance(exc, KeyError) and exc.args:
         return f"missing key {exc.args[0]!r}"
     if isinstance(cause, OSError) and cause.filename and str(exc).startswith("Unable to configure handler"):

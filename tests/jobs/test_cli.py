@@ -20,6 +20,19 @@ def test_the_message_is_the_user_error_behind_an_instantiation():
     assert error_message(ValueError("a\n  b   c")) == "a b c"
 
 
+def test_a_wrong_type_behind_an_instantiation_names_the_config_node():
+    """The audit's case: shape.radius=abc gave Hydra's 'Error in call to target ...: TypeError(...)'."""
+    try:
+        try:
+            raise TypeError("'>' not supported between instances of 'str' and 'int'")
+        except TypeError as cause:
+            raise InstantiationException("Error in call to target 'f':\nTypeError(...)\nfull_key: shape") from cause
+    except InstantiationException as exc:
+        message = error_message(exc)
+    assert message.startswith("shape: an option of the wrong type ('>' not supported")
+    assert "check the values given to shape.*" in message
+
+
 def test_user_errors_exit_2_with_one_line(capsys):
     with pytest.raises(SystemExit) as exit_info, user_errors():
         raise ValueError("bad option")
