@@ -38,10 +38,9 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
     ``"reference"`` (``known`` moments; ``t0_sd_mm``: how well its height at the stage's zero is known,
-    see :func:`fit_moments`). A parameter the dips do not pin to its tolerance is held at its configured
-    value when its 90% interval holds that value (the others are refitted, their intervals widened to the
-    joint fit's), else its estimate is used with a caveat: the data rule the configured value out.
-    Returns the state (its ``t0_mm`` the reference object's fitted height error, when fitted: for its
+    see :func:`fit_moments`). The parameters the dips do not pin to their tolerance are settled by
+    :func:`_hold_undetermined`; the others are refitted around them, their intervals widened to the joint
+    fit's. Returns the state (its ``t0_mm`` the reference object's fitted height error, when fitted: for its
     profile check only, never part of the geometry), the report and the dips' moments (drift removed:
     their rises give a reference object's cross-section).
     """
@@ -123,9 +122,9 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
                        seed: int, t0_sd_mm: float) -> tuple[object, dict[str, str], dict[str, str], dict[str, tuple]]:
     """``(fit, undetermined, caveats, held)``: the joint fit with the parameters the dips do not pin to their
     tolerance settled one at a time, the widest against its tolerance first, then the rest refitted (the
-    offset may be pinned once the tilt zero is):
+    offset may be pinned once the tilt zero is).
 
-    it is held at the precision-weighted mean of its estimate and its configured value (prior sd
+    Each is held at the precision-weighted mean of its estimate and its configured value (prior sd
     :data:`CONFIGURED_SD`; the data's sd the larger of the bootstrap's and, for the nonlinear ones,
     ``tolerance / sqrt(profile rise)``). When the data carry less than half the weight, or the estimate
     reached the edge of its search range, it is held at the configured value and named ``undetermined``;
