@@ -21,7 +21,10 @@ What cannot be estimated is named with the reason and how far the shape could mo
 (:attr:`CalibrationReport.undetermined`, :attr:`CalibrationReport.shape_motion`) and kept at
 its configured value: for an unknown object the spin zero (the object's own rotation) and the
 step scale (the scale of the whole scene; only section / step_scale^3 is fixed); for a
-centred ball the spin zero (its symmetry) and, with pivot and offset near 0, the tilt zero.
+centred ball the spin zero (its symmetry) and, when its height is not known well enough for
+the rig's offset, the tilt zero. A parameter known only loosely is shrunk toward its configured
+value and named under :attr:`CalibrationReport.caveats` (``reference._hold_undetermined``).
 The sensor lag is never estimated: at the simulator's 2 s settle time a lag shifts every
-profile alike, which the pivot absorbs.
+profile alike, which self-calibration's pivot absorbs (a reference ball's intervals carry it
+as a height error).
 """
