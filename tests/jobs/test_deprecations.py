@@ -63,7 +63,11 @@ def test_orientations_mean_the_same_in_the_scan_and_the_reconstruct_config(recwa
     scan, reconstruct = _compose("scan", "n_dips=12"), _compose("config", "n_dips=12")
     assert scan.orientations == reconstruct.orientations == "fibonacci"
     assert len(orientations_from_config(upgrade_scan_config(scan))) == 12
-    grid = upgrade_scan_config(_compose("scan", "orientations=grid", "tilts=[0,25,50]", "spins=[0,180]",
+    grid = upgrade_scan_config(_compose("scan", "orientations=grid", "tilts=[0,25]", "spins=[0,180]",
                                         "max_tilt_deg=30"))
     assert orientations_from_config(grid) == [(0.0, 0.0), (0.0, 180.0), (25.0, 0.0), (25.0, 180.0)]
+    beyond = upgrade_scan_config(_compose("scan", "orientations=grid", "tilts=[0,25,50]", "spins=[0,180]",
+                                          "max_tilt_deg=30"))
+    with pytest.raises(ValueError, match="50 deg outside the rig's tilt range"):  # refused, no longer dropped
+        orientations_from_config(beyond)
     assert not [w for w in recwarn if issubclass(w.category, ConfigDeprecation)]
