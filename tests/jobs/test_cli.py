@@ -7,14 +7,16 @@ from omegaconf import OmegaConf
 from dipnet.jobs.cli import MissingOptionError, error_message, interrupted, require_options, user_errors
 
 
+def _instantiation_error(cause: Exception, message: str = "Error in call to target 'x'") -> InstantiationException:
+    """Hydra's error for a target that raised ``cause``."""
+    exc = InstantiationException(message)
+    exc.__cause__ = cause
+    return exc
+
+
 def test_the_message_is_the_user_error_behind_an_instantiation():
-    try:
-        try:
-            raise ValueError("resolution must be an integer")
-        except ValueError as cause:
-            raise InstantiationException("Error in call to target 'x'") from cause
-    except InstantiationException as exc:
-        assert error_message(exc) == "resolution must be an integer"
+    assert error_message(_instantiation_error(ValueError("resolution must be an integer"))) == \
+        "resolution must be an integer"
     assert error_message(KeyError("solver")) == "missing key 'solver'"
     assert error_message(FileNotFoundError(2, "No such file or directory", "/x.npz")) == "/x.npz: No such file or directory"
     assert error_message(ValueError("a\n  b   c")) == "a b c"
@@ -22,13 +24,8 @@ def test_the_message_is_the_user_error_behind_an_instantiation():
 
 def test_a_wrong_type_behind_an_instantiation_names_the_config_node():
     """The audit's case: shape.radius=abc gave Hydra's 'Error in call to target ...: TypeError(...)'."""
-    try:
-        try:
-            raise TypeError("'>' not supported between instances of 'str' and 'int'")
-        except TypeError as cause:
-            raise InstantiationException("Error in call to target 'f':\nTypeError(...)\nfull_key: shape") from cause
-    except InstantiationException as exc:
-        message = error_message(exc)
+    message = error_message(_instantiation_error(TypeError("'>' not supported between instances of 'str' and 'int'"),
+                                                 "Error in call to target 'f':\nTypeError(...)\nfull_key: shape"))
     assert message.startswith("shape: an option of the wrong type ('>' not supported")
     assert "check the values given to shape.*" in message
 
