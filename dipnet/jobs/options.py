@@ -25,7 +25,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from dipnet.core.keywords import accepted_keywords
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.preprocessing.sources import RecordedSource
-from dipnet.simulator.physics import SNR_DB_RANGE
+from dipnet.simulator.physics import check_snr_db
 
 #: Hydra's own keys of a ``_target_`` node (not arguments of the target).
 HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_convert_"})
@@ -178,9 +178,10 @@ def check_values(cfg: DictConfig) -> None:
     check_thresholds(cfg)
     _integer(cfg, "seed", 0, 2.0 ** 32)
     _integer(cfg, "threads", 1, nullable=True)
-    snr, (low, high) = cfg.get("snr_db"), SNR_DB_RANGE
-    if snr is not None and (isinstance(snr, bool) or not isinstance(snr, (int, float)) or not low <= snr <= high):
-        raise ConfigError(f"snr_db must be a number of dB in [{low:g}, {high:g}] or null (noise-free), got {snr!r}")
+    try:
+        check_snr_db(cfg.get("snr_db"))
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     for key in ("source.simulator.smooth", "source.reader.smooth"):
         smooth = OmegaConf.select(cfg, key, default=False)
         if not isinstance(smooth, bool):
