@@ -43,8 +43,8 @@ class SelfCalibration:
 def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_slabs: int | None = None,
                    operator_factory: Callable | None = None, smooth: bool = False, finish=None,
                    initial: RigGeometry | None = None, iterations: int = 1, dip_offset_sigma_mm: float | None = None,
-                   shape: str = "binary", max_nfev: int = 20, gain_solver=None, max_section_change: float = 0.2,
-                   seed: int = 0) -> SelfCalibration:
+                   shape: str = "binary", max_nfev: int = 20, gain_solver=None,
+                   max_section_change: float | None = None, seed: int = 0) -> SelfCalibration:
     """Estimate the rig geometry jointly with the shape.
 
     1. The moment stage (module docstring): drift, pivot, offset and tilt zero from the dips'
@@ -58,6 +58,11 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
        only scales it; a nearly binary interior cannot exceed 1). Its interval is widened by the
        shape prior's bias (:data:`SELF_SECTION_FLOOR`). With ``dip_offset_sigma_mm`` a geometry
        step then fits per-dip height offsets to that shape. ``iterations`` such rounds.
+       A section configured too small has a second explanation that the first does not: volumes too
+       small for the shape, which the field can fit by thinning its whole interior below 1 instead of
+       fitting a gain below 1. A round whose shape is so diluted (:func:`interior_density` below
+       :data:`DILUTION_LIMIT`) rescales the section past the dilution and is followed by one more
+       round, which then sees volumes too large for a solid shape (identifiable: no density exceeds 1).
     3. A final shape step (no gain) with the calibrated geometry.
 
     Args:
@@ -70,8 +75,11 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
         initial: the configured geometry (default: the ideal rig); undetermined parameters keep it.
         shape: what the report's profile stage fits: ``"binary"`` or ``"occupancy"``.
         max_section_change: a cross-section further than this (relative) from the assumed one is
-            not trusted: named undetermined and kept (the three cats, with a 56 deg missing cone:
-            the gain came out 1.46, a section 31 % below the tank's).
+            not trusted: named undetermined and kept. Default (``None``): :data:`MAX_SECTION_CHANGE`,
+            20 % for a scan with a missing cone wider than :data:`MISSING_CONE_DEG` (the three cats, with
+            a 56 deg missing cone: the gain came out 1.46, a section 31 % below the tank's), else 50 %
+            (a full hemisphere of dips determines the section; the calibration benchmark's rigs reach
+            +-31 % of the configured section at the configured step scale).
         gain_solver: the solver of step 2 (default ``solver``); the final shape is ``solver``'s.
         seed: the bootstrap's.
 
@@ -80,7 +88,7 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     """
     if shape not in ("occupancy", "binary"):
         raise CalibrationError(f"shape must be 'occupancy' or 'binary', got {shape!r}")
-    if not max_section_change > 0:
+    if max_section_change is not None and not max_section_change > 0:
         raise CalibrationError(f"max_section_change must be positive (relative), got {max_section_change!r}")
     params = _check_params(params)
     initial = initial or RigGeometry()
@@ -90,26 +98,44 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     model = ProfileModel(raw, grid, n_slabs, operator_factory, smooth, finish)
     history: list[dict] = [{"stage": "moments", **{p: _get(state, p, model.nominal_area) for p in params}}]
     sigma, implausible, occupancy, partial = None, None, None, 0.0
-    for it in range(iterations if volume_params or dip_offset_sigma_mm is not None else 0):
+    limit = section_change_limit(model.measurement(state).directions, max_section_change)
+    configured = _get(state, "cross_section_mm2", model.nominal_area)
+    rounds = iterations if volume_params or dip_offset_sigma_mm is not None else 0
+    it, diluted = 0, False
+    while it < rounds:
         measurement = model.measurement(state)
         recon = shape_solver.solve(measurement, model.operator(measurement.directions))
         occupancy = _shape_volume(recon, shape)
-        partial = partial_volume(recon)
+        partial, density = partial_volume(recon), interior_density(recon)
         gain = float(recon.info.get("gain", 1.0))
-        change = 1.0 / gain / (1.0 - self_section_bias(partial)) - 1.0  # less the field's known volume deficit
-        if volume_params and abs(change) > max_section_change:
-            implausible = (f"the joint shape step moved it by {change:+.1%} (more than max_section_change "
-                           f"{max_section_change:.0%}): the shape prior, not the data, decided the volume (e.g. a "
-                           "missing cone leaves the object's density free)")
-        elif volume_params:
-            section = _get(state, "cross_section_mm2", model.nominal_area) * (1.0 + change)
+        diluted = volume_params and density < DILUTION_LIMIT
+        if diluted:  # rescaled past the dilution; the next round fits the gain from above
+            factor = 1.0 / (gain * density * (1.0 - DILUTION_MARGIN))
+            if it + 1 == rounds == iterations:  # one round more, once
+                rounds += 1
+        else:  # less the field's known volume deficit
+            factor = 1.0 / gain / (1.0 - self_section_bias(partial))
+        if volume_params:
+            section = _get(state, "cross_section_mm2", model.nominal_area) * factor
+            change = section / configured - 1.0
+            if abs(change) > limit:
+                implausible = (f"the joint shape step moved it by {change:+.1%} (more than max_section_change "
+                               f"{limit:.0%}): the shape prior, not the data, decided the volume (e.g. a "
+                               "missing cone leaves the object's density free)")
+                section = configured
+            else:
+                implausible = None
             state = _with(state, {"cross_section_mm2": section})
         if dip_offset_sigma_mm is not None:
             state, sigma = fit_geometry(model, occupancy, state, ("t0_mm",), dip_offset_sigma_mm=dip_offset_sigma_mm,
                                         sigma=sigma, max_nfev=max_nfev)
         history.append({"stage": f"shape {it}", "gain": gain, "partial_volume": partial,
-                        "section_bias": self_section_bias(partial),
+                        "interior_density": density, "section_bias": 0.0 if diluted else self_section_bias(partial),
                         **{p: _get(state, p, model.nominal_area) for p in params}})
+        it += 1
+    if volume_params and diluted and implausible is None:
+        implausible = (f"the last joint shape step still thinned the shape's interior to {density:.2f} (below "
+                       f"{DILUTION_LIMIT:g}): the volumes are too small for any solid shape at this section")
     for row in history:
         log.info("self-calibration %s", ", ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items()))
@@ -133,10 +159,12 @@ class SelfCalibrator:
         tank: the tank's identity for the written calibration file (``None``: the scan's).
     """
 
-    def __init__(self, params=DEFAULT_SELF, iterations: int = 1, gain_solver=None, max_section_change: float = 0.2,
+    def __init__(self, params=DEFAULT_SELF, iterations: int = 1, gain_solver=None,
+                 max_section_change: float | None = None,
                  shape: str = "binary", dip_offset_sigma_mm: float | None = None, tank: str | None = None) -> None:
         self.params, self.iterations, self.gain_solver = tuple(params), int(iterations), gain_solver
-        self.max_section_change, self.shape = float(max_section_change), str(shape)
+        self.max_section_change = None if max_section_change is None else float(max_section_change)
+        self.shape = str(shape)
         self.dip_offset_sigma_mm = None if dip_offset_sigma_mm is None else float(dip_offset_sigma_mm)
         self.tank = tank
 
@@ -155,6 +183,14 @@ def partial_volume(recon: Reconstruction) -> float:
     occ = recon.occupancy.detach().to(torch.float64)
     total = float(occ.sum())
     return float(occ[(occ > 0.1) & (occ < 0.9)].sum()) / total if total > 0 else 1.0
+
+
+def interior_density(recon: Reconstruction) -> float:
+    """The occupancy a reconstruction's interior settles at: the 90th percentile over voxels above 0.5
+    (1 for a solid shape; 1 if no voxel is above 0.5)."""
+    occ = recon.occupancy.detach().to(torch.float64).flatten()
+    inside = occ[occ > 0.5]
+    return float(torch.quantile(inside, 0.9)) if inside.numel() else 1.0
 
 
 def _section_report(report: CalibrationReport, model: ProfileModel, state: State, occupancy: torch.Tensor,
@@ -199,11 +235,28 @@ def _section_report(report: CalibrationReport, model: ProfileModel, state: State
     return state
 
 
+#: The default ``max_section_change`` (relative) for a scan with (True) and without (False) a missing cone wider
+#: than :data:`MISSING_CONE_DEG` (:func:`self_calibrate`).
+MAX_SECTION_CHANGE = {True: 0.2, False: 0.5}
+#: An :func:`interior_density` below this: the joint step's shape is diluted (a section configured too small).
+DILUTION_LIMIT = 0.95
+#: How far (relative) past the dilution a diluted round rescales the section, so that the next round sees
+#: volumes too large for a solid shape.
+DILUTION_MARGIN = 0.1
 #: A scan whose directions leave a cone wider than this (deg) unmeasured: its partly filled voxels are not all
 #: thin parts, so the section's bias correction (:func:`~dipnet.calibration.model.self_section_bias`) may
 #: overshoot (the audit: the authors' 0-35 deg tilts, sections 6-9 % high) and the interval keeps the
 #: uncorrected section.
 MISSING_CONE_DEG = 10.0
+
+
+def section_change_limit(directions: torch.Tensor, max_section_change: float | None = None) -> float:
+    """The relative change of the cross-section beyond which self-calibration keeps the configured one:
+    ``max_section_change`` if given, else :data:`MAX_SECTION_CHANGE` for the missing cone of ``directions``
+    ``(K, 3)`` (:func:`missing_cone_deg`)."""
+    if max_section_change is not None:
+        return float(max_section_change)
+    return MAX_SECTION_CHANGE[missing_cone_deg(directions) > MISSING_CONE_DEG]
 
 
 def missing_cone_deg(directions: torch.Tensor) -> float:

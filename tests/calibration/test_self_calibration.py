@@ -252,3 +252,38 @@ def test_a_missing_cone_keeps_the_uncorrected_section_in_the_interval():
     assert step["section_bias"] > 0.01
     assert low <= section * (1 - self_section_bias(step["partial_volume"])) and low <= 60000.0 <= high
     assert "missing cone of 40 deg" in report.caveats["cross_section_mm2"]
+
+
+def test_the_section_guard_is_wider_for_a_full_hemisphere_of_dips():
+    """The default guard: 50 % when the dips cover the hemisphere (the data determine the section), 20 %
+    with a missing cone over 10 deg (the cats' 56 deg cone: the prior decided the volume)."""
+    from dipnet.calibration.self_calibration import MAX_SECTION_CHANGE, missing_cone_deg, section_change_limit
+
+    full = fibonacci_hemisphere(40)
+    tilted = full[full[:, 2] >= np.cos(np.radians(35.0))]  # tilts up to 35 deg: a 55 deg missing cone
+    assert missing_cone_deg(full) < 10.0 < missing_cone_deg(tilted)
+    assert section_change_limit(full) == MAX_SECTION_CHANGE[False] == 0.5
+    assert section_change_limit(tilted) == MAX_SECTION_CHANGE[True] == 0.2
+    assert section_change_limit(full, 0.1) == section_change_limit(tilted, 0.1) == 0.1
+
+
+def test_a_section_configured_too_small_is_found_through_the_shapes_dilution():
+    """A tank 25 % larger than configured: the volumes are too small for the ball, and the joint step
+    first thins the ball's interior instead of fitting a gain below 1. That round is read as diluted,
+    the section rescaled past it, and one more round fits the gain from above: the section comes back
+    within 3 %, determined, its interval holding the truth."""
+    from dipnet.calibration.self_calibration import DILUTION_LIMIT
+
+    true = 1.25 * 60000.0
+    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
+                        geometry=RigGeometry(cross_section_mm2=true), protocol=DipProtocol(step_mm=1.0), progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        result = self_calibrate(raw, Grid(24, extent=80.0), VoxelSolver(iterations=300, progress=False, seed=0),
+                                ("cross_section_mm2",))
+    first, last = result.history[1], result.history[-1]
+    assert len(result.history) == 3 and first["interior_density"] < DILUTION_LIMIT < last["interior_density"]
+    assert last["gain"] > 1.0  # the extra round fits the gain from above
+    assert result.geometry.cross_section_mm2 == pytest.approx(true, rel=0.03)
+    low, high = result.report.intervals["cross_section_mm2"]
+    assert "cross_section_mm2" in result.report.determined and low <= true <= high
