@@ -5,14 +5,16 @@ pivot +-60 mm, tilt-axis offset +-40 mm, tilt and spin zeros +-5 deg, cross-sect
 step scale +-3 %, a level drift of up to +-0.5 mm over the session and a sensor lag of
 0-0.5 s. Rig ``i`` dips bundled mesh ``MESHES[i % 4]`` (scaled to ``--fill`` of the working ball
 on an ``--n``^3 grid) along ``--dips`` Fibonacci directions with ``--snr`` dB of level noise,
-and a 30 mm reference ball along the same directions, held with its centre off the assumed
-height by a normal error of standard deviation 0.3 mm (90 % within the calibration's default
-0.5 mm tolerance). The voxel solver then reconstructs the mesh (i) with the nominal geometry,
+and a 30 mm reference ball along the same directions, twice: centred on the spin axis, and
+``BALL_OFFSET_MM`` off it; each held with its centre off the assumed position by a normal error of
+standard deviation 0.3 mm along every axis (90 % within the calibration's default 0.5 mm
+tolerances). The voxel solver then reconstructs the mesh (i) with the nominal geometry,
 (ii) self-calibrated (:func:`dipnet.calibration.self_calibration.self_calibrate`, the
 cross-section fitted with the implicit field's shape, the final shape by the voxel solver),
-(iii) with the true geometry, (iv) with the ball's reference calibration
-(:func:`dipnet.calibration.reference.calibrate_reference`), compared with the truth turned by
-the spin zero (a centred ball's symmetry: never estimated).
+(iii) with the true geometry, (iv) with each ball's reference calibration
+(:func:`dipnet.calibration.reference.calibrate_reference`): ``ball`` (centred) compared with the
+truth turned by the spin zero (a centred ball's symmetry: never estimated), ``offball`` with the
+truth itself (a ball off the axis shows the spin zero).
 
 Self-calibration cannot see two gauges of an unknown object, the spin zero (its own rotation)
 and the step scale (the scale of the whole scene); they stay at the configured 0 and 1 and the
@@ -26,8 +28,8 @@ interval holds the true value.
 
 Prints a table per rig and last ``RESULT median_calibrated_over_true=<> worst_calibrated_over_true=<>
 coverage90=<> refused=<> ball_coverage90=<> median_gauged_over_true=<> worst_gauged_over_true=<>
-median_ball_over_true=<> worst_ball_over_true=<>`` (Chamfer ratios; ``refused`` the fraction of rigs where
-any stage raised).
+median_ball_over_true=<> worst_ball_over_true=<> offball_coverage90=<> median_offball_over_true=<>
+worst_offball_over_true=<>`` (Chamfer ratios; ``refused`` the fraction of rigs where any stage raised).
 
     python scripts/bench_calibration.py            # 20 rigs at 48^3, 123 dips, 30 dB
     python scripts/bench_calibration.py --quick    # 3 rigs at 32^3
@@ -63,7 +65,8 @@ from dipnet.solvers.voxel import VoxelSolver
 
 MESHES = ("bunny", "hammer", "part_B13", "spot")
 BALL_RADIUS = 30.0
-BALL_HEIGHT_SD_MM = 0.3  # how far off its assumed height the ball is held (normal standard deviation)
+BALL_POSITION_SD_MM = 0.3  # how far off its assumed position the ball is held (normal standard deviation per axis)
+BALL_OFFSET_MM = 25.0  # the second ball's centre off the spin axis (along x)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -90,6 +93,14 @@ def draw_rig(rng: np.random.Generator, area: float, session_s: float) -> RigGeom
                        tilt_zero_deg=rng.uniform(-5, 5), spin_zero_deg=rng.uniform(-5, 5),
                        step_scale=1 + rng.uniform(-0.03, 0.03), cross_section_mm2=area * (1 + rng.uniform(-0.2, 0.2)),
                        level_drift_mm_per_s=rng.uniform(-0.5, 0.5) / session_s, sensor_lag_s=rng.uniform(0.0, 0.5))
+
+
+def reference_ball(offset_mm: float, held_at: tuple[float, float, float], raw_kwargs: dict, seed: int):
+    """``(geometry, report)``: the reference calibration from a ball assumed at ``(offset_mm, 0, 0)`` and
+    dipped at ``held_at`` (mm, object frame) with :func:`simulate_scan`'s ``raw_kwargs``."""
+    raw = simulate_scan(Ball(BALL_RADIUS, center=held_at), progress=False, **raw_kwargs)
+    grid = Grid(48, 3, extent=2.0 * (BALL_RADIUS + offset_mm) + 20.0)
+    return calibrate_reference(raw, Ball(BALL_RADIUS, center=(offset_mm, 0.0, 0.0)), grid, seed=seed)
 
 
 def gauged_truth(shape: MeshShape, true: RigGeometry, t0: float) -> MeshShape:
@@ -130,11 +141,10 @@ def main(argv=None) -> list[dict]:
     tank, protocol = Tank.default(3), DipProtocol()
     rng = np.random.default_rng(args.seed)
     directions = fibonacci_hemisphere(args.dips)
-    rows, cover, ball_cover, refused = [], [], [], 0
+    rows, cover, ball_cover, offball_cover, refused = [], [], [], [], 0
     print(f"{'rig':>3} {'mesh':<9} {'pivot':>6} {'offset':>6} {'tilt0':>5} {'spin0':>5} {'step':>6} {'section':>7}"
-          f" | {'nominal':>7} {'calib.':>7} {'gauged':>7} {'ball':>7} {'true':>7} {'c/t':>5} {'g/t':>5} {'b/t':>5}"
-          f" | {'self cov':>8}"
-          f" {'ball cov':>8} {'s':>5}", flush=True)
+          f" | {'nominal':>7} {'calib.':>7} {'gauged':>7} {'ball':>7} {'offball':>7} {'true':>7} {'c/t':>5} {'g/t':>5}"
+          f" {'b/t':>5} {'o/t':>5} | {'self cov':>8} {'ball cov':>8} {'off cov':>8} {'s':>5}", flush=True)
     for i in range(args.rigs):
         name = MESHES[i % len(MESHES)]
         shape = load_mesh(mesh_path(name), radius=args.fill * grid.radius)
@@ -160,12 +170,12 @@ def main(argv=None) -> list[dict]:
                 warnings.simplefilter("ignore", UserWarning)
                 result = self_calibrate(raw, grid, solver, seed=i,
                                         gain_solver=ImplicitSolver(seed=args.seed, progress=False))
-                held = np.random.default_rng(args.seed + 1000 + i).normal(0.0, BALL_HEIGHT_SD_MM)
-                ball_raw = simulate_scan(Ball(BALL_RADIUS, center=(0.0, 0.0, held)), directions, tank=tank,
-                                         protocol=protocol, geometry=true,
-                                         sensor=LevelSensor(snr_db=args.snr, seed=1000 + i), progress=False)
-                ball_geometry, ball_report = calibrate_reference(ball_raw, Ball(BALL_RADIUS),
-                                                                 Grid(48, 3, extent=2.0 * BALL_RADIUS + 20.0), seed=i)
+                held = np.random.default_rng(args.seed + 1000 + i).normal(0.0, BALL_POSITION_SD_MM)
+                shifted = np.random.default_rng(args.seed + 5000 + i).normal(0.0, BALL_POSITION_SD_MM, 2)
+                balls = {key: reference_ball(offset, (offset + shifted[0], shifted[1], held), raw_kwargs=dict(
+                    directions=directions, tank=tank, protocol=protocol, geometry=true,
+                    sensor=LevelSensor(snr_db=args.snr, seed=1000 + i)), seed=i)
+                    for key, offset in (("ball", 0.0), ("offball", BALL_OFFSET_MM))}
         except ValueError as exc:
             refused += 1
             print(f"{i:>3} {name:<9} refused: {exc}", flush=True)
@@ -176,20 +186,25 @@ def main(argv=None) -> list[dict]:
         gauged = gauged_truth(shape, true, t0)
         scores["gauged"] = evaluate(result.reconstruction, gauged.occupancy(grid, supersample=3).numpy() >= 0.5, grid,
                                     truth_mesh=gauged.mesh)["chamfer"]
-        m = preprocess(invert_scan(raw, ball_geometry), grid=grid, t_start="metadata")
-        turned = gauged_truth(shape, replace(true, step_scale=1.0), t0)  # the spin zero only
-        scores["ball"] = evaluate(solver.solve(m, make_operator(grid, m.directions, grid.n)),
-                                  turned.occupancy(grid, supersample=3).numpy() >= 0.5, grid,
-                                  truth_mesh=turned.mesh)["chamfer"]
+        for key, (ball_geometry, ball_report) in balls.items():
+            m = preprocess(invert_scan(raw, ball_geometry), grid=grid, t_start="metadata")
+            turned = gauged_truth(shape, replace(true, step_scale=1.0), t0) \
+                if "spin_zero_deg" in ball_report.undetermined else shape  # a centred ball: the spin zero's gauge
+            scores[key] = evaluate(solver.solve(m, make_operator(grid, m.directions, grid.n)),
+                                   turned.occupancy(grid, supersample=3).numpy() >= 0.5, grid,
+                                   truth_mesh=turned.mesh)["chamfer"]
         self_cov = covered(result.report, self_truth(true, t0))
-        ball_cov = covered(ball_report, {**true.to_dict()})
+        ball_cov = covered(balls["ball"][1], true.to_dict())
+        offball_cov = covered(balls["offball"][1], true.to_dict())
         cover += [c for _, c in self_cov]
         ball_cover += [c for _, c in ball_cov]
-        row.update(ball_height_error_mm=held, scores=scores, self_covered=self_cov, ball_covered=ball_cov,
-                   self_estimates=result.report.estimates, ball_estimates=ball_report.estimates,
+        offball_cover += [c for _, c in offball_cov]
+        row.update(ball_position_error_mm=[*shifted, held], scores=scores, self_covered=self_cov,
+                   ball_covered=ball_cov, offball_covered=offball_cov, self_estimates=result.report.estimates,
                    self_truth=self_truth(true, t0), self_intervals=result.report.intervals,
-                   ball_intervals=ball_report.intervals, self_history=result.history,
-                   seconds=time.perf_counter() - t_start)
+                   self_history=result.history, seconds=time.perf_counter() - t_start,
+                   **{f"{key}_{part}": getattr(report, part) for key, (_, report) in balls.items()
+                      for part in ("estimates", "intervals")})
         rows.append(row)
         if args.json:  # after every rig, so an interrupted run keeps what it measured
             with open(args.json, "w") as f:
@@ -197,17 +212,20 @@ def main(argv=None) -> list[dict]:
         print(f"{i:>3} {name:<9} {true.pivot_mm:6.1f} {true.tilt_axis_offset_mm:6.1f} {true.tilt_zero_deg:5.1f} "
               f"{true.spin_zero_deg:5.1f} {true.step_scale:6.3f} {true.cross_section_mm2 / tank.cross_section_mm2:7.3f}"
               f" | {scores['nominal']:7.4f} {scores['calibrated']:7.4f} {scores['gauged']:7.4f} {scores['ball']:7.4f}"
-              f" {scores['true']:7.4f} {scores['calibrated'] / scores['true']:5.2f}"
-              f" {scores['gauged'] / scores['true']:5.2f} {scores['ball'] / scores['true']:5.2f} | "
+              f" {scores['offball']:7.4f} {scores['true']:7.4f} {scores['calibrated'] / scores['true']:5.2f}"
+              f" {scores['gauged'] / scores['true']:5.2f} {scores['ball'] / scores['true']:5.2f}"
+              f" {scores['offball'] / scores['true']:5.2f} | "
               f"{sum(c for _, c in self_cov)}/{len(self_cov):<6} {sum(c for _, c in ball_cov)}/{len(ball_cov):<6}"
-              f" {row['seconds']:5.0f}", flush=True)
-        missed = [n for n, c in self_cov if not c] + [f"ball:{n}" for n, c in ball_cov if not c]
+              f" {sum(c for _, c in offball_cov)}/{len(offball_cov):<6} {row['seconds']:5.0f}", flush=True)
+        missed = [n for n, c in self_cov if not c] + [f"ball:{n}" for n, c in ball_cov if not c] + \
+            [f"offball:{n}" for n, c in offball_cov if not c]
         if missed:
             print(f"    outside their 90% interval: {', '.join(missed)}", flush=True)
     done = [r for r in rows if "scores" in r]
     ratios = [r["scores"]["calibrated"] / r["scores"]["true"] for r in done]
     gauged = [r["scores"]["gauged"] / r["scores"]["true"] for r in done]
     ball = [r["scores"]["ball"] / r["scores"]["true"] for r in done]
+    offball = [r["scores"]["offball"] / r["scores"]["true"] for r in done]
     nominal = [r["scores"]["nominal"] / r["scores"]["true"] for r in done if np.isfinite(r["scores"]["nominal"])]
     print(f"\n{len(done)} of {args.rigs} rigs at {args.n}^3, {args.dips} dips, {args.snr:g} dB; Chamfer over true: "
           f"nominal median {statistics.median(nominal) if nominal else float('nan'):.2f} "
@@ -216,7 +234,9 @@ def main(argv=None) -> list[dict]:
           f"worst_calibrated_over_true={max(ratios):.3f} coverage90={np.mean(cover):.3f} "
           f"refused={refused / args.rigs:.3f} ball_coverage90={np.mean(ball_cover):.3f} "
           f"median_gauged_over_true={statistics.median(gauged):.3f} worst_gauged_over_true={max(gauged):.3f} "
-          f"median_ball_over_true={statistics.median(ball):.3f} worst_ball_over_true={max(ball):.3f}")
+          f"median_ball_over_true={statistics.median(ball):.3f} worst_ball_over_true={max(ball):.3f} "
+          f"offball_coverage90={np.mean(offball_cover):.3f} median_offball_over_true={statistics.median(offball):.3f} "
+          f"worst_offball_over_true={max(offball):.3f}")
     return rows
 
 

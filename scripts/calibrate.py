@@ -42,6 +42,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--n", type=int, default=48, help="grid resolution of the final fit check")
     p.add_argument("--height-tolerance", type=float, default=0.5, metavar="MM",
                    help="how well the ball's centre height at the stage's zero is known (90%% half-width, mm)")
+    p.add_argument("--position-tolerance", type=float, default=0.5, metavar="MM",
+                   help="how well the ball's centre x and y are known (90%% half-width, mm); a ball off the spin "
+                        "axis shows the tilt and spin zeros through them")
     p.add_argument("--max-residual", type=float, default=0.05,
                    help="refuse when the ball's relative profile residual exceeds this")
     p.add_argument("--output", type=Path, default=Path("rig_calibration.yaml"), help="calibration file (.yaml/.json)")
@@ -60,7 +63,8 @@ def main(argv=None) -> int:
         reach = args.ball_radius + max(abs(c) for c in args.centre)
         grid = Grid(args.n, 3, extent=2.0 * (reach + 10.0))  # the check runs at the calibrated heights
         geometry, report = calibrate_reference(raw, ball, grid, args.params, max_relative_residual=args.max_residual,
-                                               start_height_tolerance_mm=args.height_tolerance)
+                                               start_height_tolerance_mm=args.height_tolerance,
+                                               position_tolerance_mm=args.position_tolerance)
         calibration = to_calibration(geometry, report, raw.header.rig, str(tank),
                                      notes=f"ball r={args.ball_radius:g} mm at {list(args.centre)} from {args.scan}")
         path = save_calibration(calibration, args.output)

@@ -40,7 +40,7 @@ white noise; a parameter is *determined* when its interval is narrower than its 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.optimize
@@ -344,7 +344,7 @@ class MomentModel:
 
 def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObject | None = None,
                 fixed: dict[str, float] | None = None, bootstrap: int = BOOTSTRAP, seed: int = 0,
-                t0_sd_mm: float = 0.0) -> MomentFit:
+                t0_sd_mm: float = 0.0, position_sd_mm: float = 0.0) -> MomentFit:
     """Fit the free parameters (:data:`MOMENT_PARAMETERS`) to the dips' moments.
 
     The nonlinear ones (tilt zero, spin zero, step scale) are searched on the :data:`SEARCH`
@@ -353,6 +353,8 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
     over dips drawn with replacement give the 90% intervals (0: none). ``t0_sd_mm``: when the
     common start height ``t0_mm`` is fixed, how well it is known (standard deviation, mm); every
     bootstrap refit draws it from that normal law, so the intervals carry its uncertainty.
+    ``position_sd_mm``: likewise for a reference object's horizontal position (its centroid's x and y,
+    standard deviation, mm), which an object off the spin axis shows the tilt and spin zeros by.
     """
     fixed = {"pivot_mm": 0.0, "tilt_axis_offset_mm": 0.0, "tilt_zero_deg": 0.0, "spin_zero_deg": 0.0,
              "step_scale": 1.0, "t0_mm": 0.0, **(fixed or {})}
@@ -387,7 +389,10 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
             drawn = dict(fixed)
             if t0_sd_mm > 0 and "t0_mm" not in free:
                 drawn["t0_mm"] = fixed["t0_mm"] + rng.normal(0.0, t0_sd_mm)
-            sub = MomentModel(moments.take(rng.integers(0, len(moments.k), len(moments.k))), known, drawn, linear)
+            placed = known
+            if known is not None and position_sd_mm > 0:
+                placed = replace(known, centroid=known.centroid + np.r_[rng.normal(0.0, position_sd_mm, 2), 0.0])
+            sub = MomentModel(moments.take(rng.integers(0, len(moments.k), len(moments.k))), placed, drawn, linear)
             sub.weights = model.weights
             b = _refine(sub, nonlinear, best, drawn)
             values = {**b, **sub.solve(b)[2]}

@@ -33,12 +33,13 @@ SHAPE_MOTION = {
 
 
 def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: KnownObject | None,
-                  seed: int = 0, t0_sd_mm: float = 0.0) -> tuple[State, CalibrationReport, DipMoments]:
+                  seed: int = 0, t0_sd_mm: float = 0.0,
+                  position_sd_mm: float = 0.0) -> tuple[State, CalibrationReport, DipMoments]:
     """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
-    ``"reference"`` (``known`` moments; ``t0_sd_mm``: how well its height at the stage's zero is known,
-    see :func:`fit_moments`). The parameters the dips do not pin to their tolerance are settled by
+    ``"reference"`` (``known`` moments; ``t0_sd_mm`` and ``position_sd_mm``: how well its height at the stage's
+    zero and its horizontal position are known, see :func:`fit_moments`). The parameters the dips do not pin to their tolerance are settled by
     :func:`_hold_undetermined`; the others are refitted around them, their intervals widened to the joint
     fit's. Returns the state (its ``t0_mm`` the reference object's fitted height error, when fitted: for its
     profile check only, never part of the geometry), the report and the dips' moments (drift removed:
@@ -75,8 +76,10 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
                                             "step_scale") and p not in gauges)
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
                                                      "spin_zero_deg", "step_scale")}
-    joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm) if free else None
-    fit, undetermined, caveats, held = _hold_undetermined(joint, moments, known, fixed, kind, seed, t0_sd_mm)
+    joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm,
+                        position_sd_mm=position_sd_mm) if free else None
+    fit, undetermined, caveats, held = _hold_undetermined(joint, moments, known, fixed, kind, seed, t0_sd_mm,
+                                                          position_sd_mm)
     undetermined.update(gauges)
     if joint is not None:
         floors = _moment_floors(kind, joint, known, raw)
@@ -119,7 +122,8 @@ CONFIGURED_SD = {"pivot_mm": 60 / math.sqrt(3), "tilt_axis_offset_mm": 40 / math
 
 
 def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fixed: dict[str, float], kind: str,
-                       seed: int, t0_sd_mm: float) -> tuple[object, dict[str, str], dict[str, str], dict[str, tuple]]:
+                       seed: int, t0_sd_mm: float,
+                       position_sd_mm: float = 0.0) -> tuple[object, dict[str, str], dict[str, str], dict[str, tuple]]:
     """``(fit, undetermined, caveats, held)``: the joint fit with the parameters the dips do not pin to their
     tolerance settled one at a time, the widest against its tolerance first, then the rest refitted (the
     offset may be pinned once the tilt zero is).
@@ -132,7 +136,8 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
 
     With an uncertain start height (``t0_sd_mm > 0``) the refits fit it (``t0_mm``, a nuisance never
     applied): a held tilt zero can no longer absorb a height error, which would otherwise bias the step
-    scale through the dips' first moments.
+    scale through the dips' first moments. The refits draw the object's horizontal position as the joint fit
+    does (``position_sd_mm``).
     """
     fit, undetermined, caveats, held = joint, {}, {}, {}
     values = dict(fixed)
@@ -155,7 +160,8 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
                              f"{fit.values[name]:.4g} is shrunk toward the configured {fixed[name]:g} by the "
                              f"configuration's own uncertainty (sd {CONFIGURED_SD[name]:g}) to {values[name]:.4g}")
         kept = tuple(p for p in fit.free if p != name and p not in nuisance)
-        fit = fit_moments(moments, kept + nuisance, known=known, fixed=values, seed=seed) if kept else None
+        fit = fit_moments(moments, kept + nuisance, known=known, fixed=values, seed=seed,
+                          position_sd_mm=position_sd_mm) if kept else None
     return fit, undetermined, caveats, held
 
 
@@ -226,7 +232,7 @@ def known_object(shape, supersample: int = 2) -> KnownObject:
 def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
                         n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
                         max_relative_residual: float = 0.05, start_height_tolerance_mm: float = 0.5,
-                        seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
+                        position_tolerance_mm: float = 0.5, seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
     """The rig geometry from dips of a reference object of known geometry and pose.
 
     The moment stage (module docstring) estimates the drift, pivot, offset, tilt zero, spin zero
@@ -248,6 +254,9 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
             half-width, mm: its mounting, and the shift a sensor lag gives every dip). A centred ball
             shows the tilt zero only through the start heights, so a height error of ``c`` mm moves it
             by about ``c / offset`` radians: the intervals carry this (:func:`fit_moments`'s ``t0_sd_mm``).
+        position_tolerance_mm: how well the object's horizontal position (its centre's x and y in the
+            object frame) is known (90% half-width, mm). An object off the spin axis, at a distance ``d`` mm,
+            shows the tilt and spin zeros to about ``tolerance / d`` radians: the intervals carry this.
 
     Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
     """
@@ -257,10 +266,13 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
         raise CalibrationError("the scan does not record its dips' start heights (the authors' CSV does not), which "
                                "a reference calibration measures the rig by: record the ball with scripts/scan.py")
     known = known_object(shape)
-    if not start_height_tolerance_mm >= 0:
-        raise CalibrationError(f"start_height_tolerance_mm must be >= 0 (mm), got {start_height_tolerance_mm!r}")
+    for name, tolerance in (("start_height_tolerance_mm", start_height_tolerance_mm),
+                            ("position_tolerance_mm", position_tolerance_mm)):
+        if not tolerance >= 0:
+            raise CalibrationError(f"{name} must be >= 0 (mm), got {tolerance!r}")
     state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed,
-                                           t0_sd_mm=start_height_tolerance_mm / 1.645)
+                                           t0_sd_mm=start_height_tolerance_mm / 1.645,
+                                           position_sd_mm=position_tolerance_mm / 1.645)
     if "cross_section_mm2" in params:
         rng = np.random.default_rng(seed)
         rises = np.asarray(moments.rise)  # mm of level per dip, drift removed

@@ -30,11 +30,11 @@ def ball_scan(tmp_path_factory):
 def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
     """scripts/calibrate.py end to end: the file it writes holds the fake rig's true geometry, and a
     reader using that file places the ball's profiles where an ideal rig would have. The fake rig holds
-    the ball exactly at the configured height (``--height-tolerance 0``)."""
+    the ball exactly at the configured position (``--height-tolerance 0 --position-tolerance 0``)."""
     calibrate = load_script("calibrate")
     out = tmp_path / "rig_calibration.yaml"
     assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out),
-                           "--height-tolerance", "0"]) == 0
+                           "--height-tolerance", "0", "--position-tolerance", "0"]) == 0
     cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
     g = cal.geometry
     assert g.pivot_mm == pytest.approx(20.0, abs=1.0) and g.tilt_axis_offset_mm == pytest.approx(10.0, abs=0.5)
@@ -57,24 +57,30 @@ def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
 def test_an_uncertain_ball_height_widens_the_tilt_zero_instead_of_making_it_wrong(ball_scan, tmp_path):
     """The audit's case: a centred ball shows the tilt zero only through its start heights, so a 1 mm error
     in its height moved the tilt zero by 5 deg while the file called it determined. With the default height
-    tolerance (0.5 mm) the fake rig's tilt zero (offset 10 mm: about +-2.4 deg) is wider than its tolerance:
-    shrunk toward the configured 0 by the configuration's own uncertainty and named, its interval holding the
-    truth; pivot and offset hold theirs, and a reader with the file still centres every profile."""
+    tolerance (0.5 mm; the horizontal position taken as exact) the fake rig's tilt zero (offset 10 mm: about
+    +-2.4 deg) is wider than its tolerance: shrunk toward the configured 0 by the configuration's own
+    uncertainty and named, its interval holding the truth; pivot and offset hold theirs, and a reader with the
+    file still centres every profile. With the default position tolerance too (0.5 mm, which a centred ball's
+    tilt zero trades against as well) the dips carry less than half its weight: named undetermined and kept."""
     calibrate = load_script("calibrate")
-    out = tmp_path / "rig_calibration.yaml"
-    with warnings.catch_warnings():  # the script routes warnings to its log (log_warnings_once): see the file
-        warnings.simplefilter("ignore", UserWarning)
-        assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out)]) == 0
-    cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
+    for position, out in (("0", tmp_path / "height.yaml"), ("0.5", tmp_path / "both.yaml")):
+        with warnings.catch_warnings():  # the script routes warnings to its log (log_warnings_once): see the file
+            warnings.simplefilter("ignore", UserWarning)
+            assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out),
+                                   "--position-tolerance", position]) == 0
+        cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
+        for name in ("pivot_mm", "tilt_axis_offset_mm"):
+            low, high = cal.intervals[name]
+            assert low <= getattr(FAKE_TRUTH, name) <= high, name
+    cal = load_calibration(tmp_path / "height.yaml", rig="fake-grbl", tank="tank-1")
     low, high = cal.intervals["tilt_zero_deg"]
     assert low <= FAKE_TRUTH.tilt_zero_deg <= high and high - low > 2 * 1.5
-    for name in ("pivot_mm", "tilt_axis_offset_mm"):
-        low, high = cal.intervals[name]
-        assert low <= getattr(FAKE_TRUTH, name) <= high, name
     grid = Grid(32, extent=80.0)
-    m = read_raw_recording(ball_scan, grid, smooth=False, calibration=out)
+    m = read_raw_recording(ball_scan, grid, smooth=False, calibration=tmp_path / "height.yaml")
     centroids = (m.profiles.numpy() @ (np.arange(32) + 0.5 - 16) * grid.voxel_size) / m.profiles.sum(1).numpy()
     assert np.abs(centroids).max() < 0.3
+    both = load_calibration(tmp_path / "both.yaml", rig="fake-grbl", tank="tank-1")
+    assert "tilt_zero_deg" in both.not_estimated and "tilt_zero_deg" not in both.intervals
 
 
 def test_a_loose_parameter_keeps_its_estimate_not_the_configured_value():
@@ -95,6 +101,30 @@ def test_a_loose_parameter_keeps_its_estimate_not_the_configured_value():
         low, high = report.intervals[name]
         assert low <= getattr(true, name) <= high, name
     assert "loosely" in report.table()
+
+
+def test_a_ball_off_the_spin_axis_shows_both_zeros_within_its_position_tolerance():
+    """A ball 25 mm off the spin axis shows the spin zero and the tilt zero, which a centred ball cannot. Its
+    centre is known only to the position tolerance (here held 0.3 mm off in x and y): with the default 0.5 mm
+    the intervals hold the true zeros; assuming the position exact (tolerance 0), they miss them."""
+    true = RigGeometry(pivot_mm=-50.0, tilt_axis_offset_mm=-8.0, tilt_zero_deg=-2.5, spin_zero_deg=3.5)
+    raw = simulate_scan(Ball(30.0, center=(25.3, -0.3, 0.0)), fibonacci_hemisphere(60), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=30.0, seed=3), progress=False)
+    found = {}
+    for tolerance in (0.5, 0.0):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            found[tolerance] = calibrate_reference(raw, Ball(30.0, center=(25.0, 0.0, 0.0)), Grid(32, extent=130.0),
+                                                   position_tolerance_mm=tolerance)
+    geometry, report = found[0.5]
+    assert geometry.spin_zero_deg == pytest.approx(3.5, abs=1.5) and geometry.tilt_zero_deg == pytest.approx(-2.5, abs=1.5)
+    for name in ("tilt_zero_deg", "spin_zero_deg"):
+        low, high = report.intervals[name]
+        assert low <= getattr(true, name) <= high, name
+    exact = found[0.0][1].intervals
+    assert any(not exact[n][0] <= getattr(true, n) <= exact[n][1] for n in ("tilt_zero_deg", "spin_zero_deg"))
+    with pytest.raises(CalibrationError, match="position_tolerance_mm must be >= 0"):
+        calibrate_reference(raw, Ball(30.0, center=(25.0, 0.0, 0.0)), Grid(16, extent=130.0), position_tolerance_mm=-1)
 
 
 def test_reference_calibration_refuses_the_wrong_object(ball_scan):
