@@ -62,6 +62,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "volume_ratio_noise": ("how consistent with the data", "volume ratio that noise explains (±)"),
     "volume_limit": ("how consistent with the data", "volume-ratio limit of the check"),
     "grid_volume_fraction": ("how consistent with the data", "share of the measured volume on the grid"),
+    "hull_fill": ("how consistent with the data", "measured volume / region the dips bound"),
+    "hull_fill_min": ("how consistent with the data", "hull-fill limit of the check (a unit mistake below)"),
     "height_trend_pivot_mm": ("how consistent with the data", "height trend: pivot offset (mm)"),
     "height_trend_offset_mm": ("how consistent with the data", "height trend: level offset (mm)"),
     "height_trend_limit_mm": ("how consistent with the data", "height trend limit (mm)"),

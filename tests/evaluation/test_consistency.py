@@ -179,3 +179,27 @@ def test_a_wrong_rig_geometry_is_seen_in_the_dips_heights():
     assert result.verdict == "inconsistent"
     pivot, offset, limit = height_trend(preprocess(invert_scan(raw, true), grid=grid, t_start="metadata"))
     assert max(abs(pivot), abs(offset)) < limit
+
+
+def test_a_volume_ten_times_too_small_for_the_region_its_dips_bound_is_named():
+    """An L of two bars (its dips bound a triangular prism it fills 24 % of) measured in a unit ten times
+    too small (levels in cm under a column that says mm): its fill of 2.4 % is below ``HULL_FILL_MIN`` and
+    named with the unit as the likely cause, even for an occupancy that explains the data. A ball (a
+    compact object: 62 % of its hull) in the right unit is far above it."""
+    from dipnet.evaluation.consistency import HULL_FILL_MIN
+
+    operator = make_operator(GRID, fibonacci_hemisphere(30))
+    x, y, z = GRID.centers().unbind(-1)
+    bars = ((x.abs() <= 30) & ((y + 25).abs() <= 5)) | (((x + 25).abs() <= 5) & (y.abs() <= 30))
+    ell = (bars & (z.abs() <= 5)).double()
+    right = _exact_measurement(operator, ell)
+    result, caught = _check(right, operator, ell)
+    assert result.hull_fill == pytest.approx(0.2366, abs=0.001) and result.verdict == "consistent" and not caught
+    tenth = DipMeasurement(right.directions, 0.1 * right.profiles, right.slab_thickness, right.offsets)
+    result, caught = _check(tenth, operator, 0.1 * ell)
+    assert result.hull_fill == pytest.approx(0.02366, abs=0.0001) and result.hull_fill < HULL_FILL_MIN
+    assert result.profile_residual_continuous < 1e-6  # the occupancy explains the data: only the fill shows it
+    assert any("ten times too small" in str(w.message) and "levels in cm" in str(w.message) for w in caught)
+    ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
+    result, _ = _check(_exact_measurement(operator, ball), operator, ball)
+    assert 0.5 < result.hull_fill < 1.0
