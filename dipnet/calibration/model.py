@@ -100,6 +100,9 @@ class CalibrationReport:
         dip_offsets_mm: the per-dip height offsets (mm), if estimated.
         caveats: parameter -> what its interval does not cover.
         method: ``"reference"`` or ``"self"``.
+        reference_centroid_mm: a reference object's centroid ``[x, y, z]`` (object frame, mm) as the moment
+            stage placed it: its distance from the spin axis is fitted (:meth:`~dipnet.calibration.moments.
+            KnownObject.radial`); ``None`` for self-calibration and objects on the axis.
     """
 
     estimates: dict[str, float]
@@ -115,6 +118,7 @@ class CalibrationReport:
     not_estimated: dict[str, str] = field(default_factory=lambda: dict(NOT_ESTIMATED))
     moment_rms: tuple[float, float] = (float("nan"), float("nan"))
     method: str = "self"
+    reference_centroid_mm: list[float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {"method": self.method, "estimates": self.estimates, "standard_errors": self.standard_errors,
@@ -122,7 +126,7 @@ class CalibrationReport:
                 "correlations": self.correlations, "undetermined": self.undetermined,
                 "shape_motion": self.shape_motion, "not_estimated": self.not_estimated, "caveats": self.caveats,
                 "residual_rms": self.residual_rms, "sigma_mm3": self.sigma_mm3, "moment_rms": list(self.moment_rms),
-                "dip_offsets_mm": self.dip_offsets_mm}
+                "dip_offsets_mm": self.dip_offsets_mm, "reference_centroid_mm": self.reference_centroid_mm}
 
     @property
     def determined(self) -> list[str]:

@@ -214,6 +214,10 @@ def _rise(values: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------ the model
+#: A reference object's centroid closer than this (mm) to the spin axis is taken as on it (:meth:`KnownObject.radial`).
+ON_AXIS_MM = 5.0
+
+
 @dataclass
 class KnownObject:
     """A reference object's moments: centroid ``(3,)`` mm, covariance ``(3, 3)`` mm^2, volume mm^3."""
@@ -221,6 +225,18 @@ class KnownObject:
     centroid: np.ndarray
     covariance: np.ndarray
     volume: float
+
+    def radial(self) -> np.ndarray | None:
+        """The unit horizontal direction ``(3,)`` from the spin axis to the centroid, or ``None`` within
+        :data:`ON_AXIS_MM` of the axis.
+
+        The moment stage fits the centroid's distance along it (a nuisance): a tilt-zero error moves the dips'
+        heights by ``delta (c . d theta / d tilt)``, which varies with the tilt as ``cos r``, a distance error as
+        ``sin r``, so the tilt zero of a reference off the axis does not depend on how well its distance is
+        known. Its direction stays fixed: a turn about the spin axis is the spin zero."""
+        horizontal = np.array([self.centroid[0], self.centroid[1], 0.0])
+        distance = float(np.linalg.norm(horizontal))
+        return horizontal / distance if distance > ON_AXIS_MM else None
 
     @classmethod
     def ball(cls, radius_mm: float, centre=(0.0, 0.0, 0.0)) -> "KnownObject":
@@ -326,6 +342,9 @@ class MomentModel:
             cov = np.array([[s6[0], s6[3], s6[4]], [s6[3], s6[1], s6[5]], [s6[4], s6[5], s6[2]]])
         else:
             target = target - theta @ self.known.centroid
+            radial = self.known.radial()  # its distance from the spin axis: a nuisance, fitted
+            if radial is not None:
+                lin = lin + [-theta @ radial]
             if lin:
                 design = np.column_stack(lin)
                 x = np.linalg.lstsq(design, -target, rcond=None)[0]
@@ -334,6 +353,8 @@ class MomentModel:
                 x, r1 = np.zeros(0), target
             values = dict(zip(self.linear_free, x))
             centroid, cov = self.known.centroid, self.known.covariance
+            if radial is not None:
+                centroid = centroid + x[-1] * radial
             r2 = var - np.einsum("ki,ij,kj->k", theta, cov, theta)
         return r1, r2, values, centroid, cov
 

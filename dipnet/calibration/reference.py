@@ -7,6 +7,7 @@ from dataclasses import replace
 from typing import Callable
 
 import numpy as np
+import scipy.ndimage
 import torch
 
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
@@ -109,6 +110,9 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         report.estimates[p] = float(getattr(initial, p))
         report.undetermined[p] = why
         report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
+    placed = fit if fit is not None else joint
+    if known is not None and known.radial() is not None and placed is not None:
+        report.reference_centroid_mm = [float(v) for v in placed.centroid]
     held_height = float(fit.values["t0_mm"]) if fit is not None and "t0_mm" in fit.free else 0.0
     return State(geometry, t0_mm=held_height), report, moments
 
@@ -211,6 +215,17 @@ def _object_radius(fit, known: KnownObject | None) -> float:
     return float(np.sqrt(5.0 * max(np.linalg.eigvalsh(cov).max(), 0.0)))
 
 
+def _placed_occupancy(shape, known: KnownObject, centroid_mm: list[float] | None, grid: Grid,
+                      supersample: int) -> torch.Tensor:
+    """The reference's occupancy on ``grid`` moved from its assumed centroid to ``centroid_mm`` (the moment
+    stage's, which fits its distance from the spin axis), by a linear interpolation of the voxels."""
+    occupancy = shape.occupancy(grid, supersample=supersample).to(torch.float64)
+    if centroid_mm is None:
+        return occupancy
+    shift = (np.asarray(centroid_mm) - known.centroid)[::-1] / grid.voxel_size  # array axes: z, y, x
+    return torch.from_numpy(scipy.ndimage.shift(occupancy.numpy(), shift, order=1, mode="constant"))
+
+
 def known_object(shape, supersample: int = 2) -> KnownObject:
     """The centroid, covariance and volume of a reference :class:`~dipnet.shapes.Shape` (a
     ball's in closed form, any other's from its occupancy on a 64^3 grid around it)."""
@@ -283,7 +298,7 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
             _record(report, "cross_section_mm2", float(section), tuple(np.percentile(draws, [5, 95])),
                     float(np.std(draws)), MODEL_FLOOR["reference"]["cross_section_mm2"] * section)
     model = ProfileModel(raw, grid, n_slabs, operator_factory)
-    occupancy = shape.occupancy(grid, supersample=supersample).to(torch.float64)
+    occupancy = _placed_occupancy(shape, known, report.reference_centroid_mm, grid, supersample)
     profiles = model.measurement(state).profiles
     measured = profiles.numpy().reshape(-1)
     fit = float(np.linalg.norm(model.residual(state, occupancy, 1.0)) / max(np.linalg.norm(measured), 1e-300))
