@@ -374,8 +374,10 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
     over dips drawn with replacement give the 90% intervals (0: none). ``t0_sd_mm``: when the
     common start height ``t0_mm`` is fixed, how well it is known (standard deviation, mm); every
     bootstrap refit draws it from that normal law, so the intervals carry its uncertainty.
-    ``position_sd_mm``: likewise for a reference object's horizontal position (its centroid's x and y,
-    standard deviation, mm), which an object off the spin axis shows the tilt and spin zeros by.
+    A reference object's centre height in its own frame is drawn from the same law (mounted higher, it
+    moves every dip's height as ``cos r``: a pivot that much longer, which no start height explains).
+    ``position_sd_mm``: likewise for its horizontal position (its centroid's x and y, standard deviation,
+    mm), which an object off the spin axis shows the spin zero by.
     """
     fixed = {"pivot_mm": 0.0, "tilt_axis_offset_mm": 0.0, "tilt_zero_deg": 0.0, "spin_zero_deg": 0.0,
              "step_scale": 1.0, "t0_mm": 0.0, **(fixed or {})}
@@ -411,8 +413,9 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
             if t0_sd_mm > 0 and "t0_mm" not in free:
                 drawn["t0_mm"] = fixed["t0_mm"] + rng.normal(0.0, t0_sd_mm)
             placed = known
-            if known is not None and position_sd_mm > 0:
-                placed = replace(known, centroid=known.centroid + np.r_[rng.normal(0.0, position_sd_mm, 2), 0.0])
+            if known is not None and (position_sd_mm > 0 or t0_sd_mm > 0):
+                placed = replace(known, centroid=known.centroid + np.r_[rng.normal(0.0, position_sd_mm, 2),
+                                                                        rng.normal(0.0, t0_sd_mm)])
             sub = MomentModel(moments.take(rng.integers(0, len(moments.k), len(moments.k))), placed, drawn, linear)
             sub.weights = model.weights
             b = _refine(sub, nonlinear, best, drawn)

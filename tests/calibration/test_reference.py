@@ -130,13 +130,15 @@ def test_a_ball_off_the_spin_axis_shows_both_zeros_within_its_position_tolerance
 def test_a_ball_off_the_axis_needs_no_exact_distance_from_it():
     """The distance of a ball off the spin axis is fitted with the geometry (a tilt-zero error moves the dips'
     heights as cos r, a distance error as sin r): held 2 mm further out than assumed (four times the
-    position tolerance), its tilt zero and spin zero still come back within 0.2 deg, inside their intervals."""
+    position tolerance), its tilt zero and spin zero still come back within 0.2 deg, inside their intervals.
+    Held 0.4 mm high too, which is a pivot 0.4 mm longer to the dips: the pivot's interval holds the truth
+    (the height tolerance is drawn as the ball's height, not only as a common start height)."""
     from dipnet.calibration.moments import KnownObject
 
     assert KnownObject.ball(30.0).radial() is None  # a centred ball: nothing to fit
     assert np.allclose(KnownObject.ball(30.0, (0.0, -25.0, 3.0)).radial(), (0.0, -1.0, 0.0))
     true = RigGeometry(pivot_mm=30.0, tilt_axis_offset_mm=20.0, tilt_zero_deg=-2.5, spin_zero_deg=3.5)
-    raw = simulate_scan(Ball(30.0, center=(27.0, 0.0, 0.0)), fibonacci_hemisphere(60), tank=Tank(60000.0),
+    raw = simulate_scan(Ball(30.0, center=(27.0, 0.0, 0.4)), fibonacci_hemisphere(60), tank=Tank(60000.0),
                         geometry=true, sensor=LevelSensor(snr_db=30.0, seed=4), progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
@@ -144,6 +146,8 @@ def test_a_ball_off_the_axis_needs_no_exact_distance_from_it():
     for name, value in (("tilt_zero_deg", -2.5), ("spin_zero_deg", 3.5)):
         low, high = report.intervals[name]
         assert getattr(geometry, name) == pytest.approx(value, abs=0.2) and low <= value <= high, name
+    low, high = report.intervals["pivot_mm"]
+    assert low <= 30.0 <= high and report.reference_centroid_mm[0] == pytest.approx(27.0, abs=0.3)
 
 
 def test_reference_calibration_refuses_the_wrong_object(ball_scan):
