@@ -271,7 +271,9 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
             by about ``c / offset`` radians: the intervals carry this (:func:`fit_moments`'s ``t0_sd_mm``).
         position_tolerance_mm: how well the object's horizontal position (its centre's x and y in the
             object frame) is known (90% half-width, mm). An object off the spin axis, at a distance ``d`` mm,
-            shows the tilt and spin zeros to about ``tolerance / d`` radians: the intervals carry this.
+            shows the spin zero to about ``tolerance / d`` radians (its distance from the axis is fitted, so
+            its tilt zero does not depend on it); a centred object's tilt zero trades against its position as
+            against its height. The intervals carry this.
 
     Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
     """
