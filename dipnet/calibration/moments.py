@@ -317,6 +317,7 @@ class MomentModel:
     def __init__(self, moments: DipMoments, known: KnownObject | None, fixed: dict[str, float],
                  linear_free: tuple[str, ...]) -> None:
         self.m, self.known, self.fixed, self.linear_free = moments, known, dict(fixed), linear_free
+        self.radial = None if known is None else known.radial()  # its distance from the spin axis: fitted
         self.weights = (1.0, 1.0)
 
     def solve(self, nonlinear: dict[str, float]) -> tuple[np.ndarray, np.ndarray, dict[str, float], np.ndarray,
@@ -342,9 +343,8 @@ class MomentModel:
             cov = np.array([[s6[0], s6[3], s6[4]], [s6[3], s6[1], s6[5]], [s6[4], s6[5], s6[2]]])
         else:
             target = target - theta @ self.known.centroid
-            radial = self.known.radial()  # its distance from the spin axis: a nuisance, fitted
-            if radial is not None:
-                lin = lin + [-theta @ radial]
+            if self.radial is not None:  # a nuisance column: the distance from the spin axis
+                lin = lin + [-theta @ self.radial]
             if lin:
                 design = np.column_stack(lin)
                 x = np.linalg.lstsq(design, -target, rcond=None)[0]
@@ -353,8 +353,8 @@ class MomentModel:
                 x, r1 = np.zeros(0), target
             values = dict(zip(self.linear_free, x))
             centroid, cov = self.known.centroid, self.known.covariance
-            if radial is not None:
-                centroid = centroid + x[-1] * radial
+            if self.radial is not None:
+                centroid = centroid + x[-1] * self.radial
             r2 = var - np.einsum("ki,ij,kj->k", theta, cov, theta)
         return r1, r2, values, centroid, cov
 

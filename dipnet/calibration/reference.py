@@ -104,13 +104,13 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         report.correlations.update({p: {q: c for q, c in row.items() if q in estimated}
                                     for p, row in fit.correlations.items() if p in estimated})
         report.caveats.update(caveats)
-    radius = _object_radius(fit if fit is not None else joint, known)
+    placed = fit if fit is not None else joint
+    radius = _object_radius(placed, known)
     undetermined.update(report.undetermined)
     for p, why in undetermined.items():
         report.estimates[p] = float(getattr(initial, p))
         report.undetermined[p] = why
         report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
-    placed = fit if fit is not None else joint
     if known is not None and known.radial() is not None and placed is not None:
         report.reference_centroid_mm = [float(v) for v in placed.centroid]
     held_height = float(fit.values["t0_mm"]) if fit is not None and "t0_mm" in fit.free else 0.0
