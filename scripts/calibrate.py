@@ -41,10 +41,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="geometry parameters to estimate")
     p.add_argument("--n", type=int, default=48, help="grid resolution of the final fit check")
     p.add_argument("--height-tolerance", type=float, default=0.5, metavar="MM",
-                   help="how well the ball's centre height at the stage's zero is known (90%% half-width, mm)")
+                   help="how well the water line at the stage's zero is known (90%% half-width, mm: the stage's "
+                        "zero, a sensor lag's shift)")
     p.add_argument("--position-tolerance", type=float, default=0.5, metavar="MM",
-                   help="how well the ball's centre x and y are known (90%% half-width, mm); a ball off the spin "
-                        "axis shows the tilt and spin zeros through them")
+                   help="how well the ball's centre is known along each axis of the object frame (90%% half-width, "
+                        "mm: its mounting); a ball mounted higher is a longer pivot, a ball off the spin axis shows "
+                        "the spin zero to about this over its distance from the axis")
     p.add_argument("--max-residual", type=float, default=0.05,
                    help="refuse when the ball's relative profile residual exceeds this")
     p.add_argument("--output", type=Path, default=Path("rig_calibration.yaml"), help="calibration file (.yaml/.json)")

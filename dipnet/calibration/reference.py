@@ -39,11 +39,11 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
-    ``"reference"`` (``known`` moments; ``t0_sd_mm`` and ``position_sd_mm``: how well its height at the stage's
-    zero and its horizontal position are known, see :func:`fit_moments`). The parameters the dips do not pin to their tolerance are settled by
+    ``"reference"`` (``known`` moments; ``t0_sd_mm`` and ``position_sd_mm``: how well the start height and the
+    object's mounting are known, see :func:`fit_moments`). The parameters the dips do not pin to their tolerance are settled by
     :func:`_hold_undetermined`; the others are refitted around them, their intervals widened to the joint
-    fit's. Returns the state (its ``t0_mm`` the reference object's fitted height error, when fitted: for its
-    profile check only, never part of the geometry), the report and the dips' moments (drift removed:
+    fit's. Returns the state (its ``t0_mm`` the reference object's fitted start height: for its profile check
+    only, never part of the geometry), the report and the dips' moments (drift removed:
     their rises give a reference object's cross-section).
     """
     geometry = initial
@@ -89,7 +89,7 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
             _record(report, p, value, interval, sd, floors[p])
         report.caveats.update(caveats)
     if fit is not None:
-        estimated = tuple(p for p in fit.free if p != "t0_mm")  # the reference's start height: a nuisance
+        estimated = fit.free
         geometry = geometry.with_values(**{p: fit.values[p] for p in estimated})
         report.moment_rms = fit.residual_rms
         for p in estimated:
@@ -113,8 +113,8 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
     if known is not None and known.radial() is not None and placed is not None:
         report.reference_centroid_mm = [float(v) for v in placed.centroid]
-    held_height = float(fit.values["t0_mm"]) if fit is not None and "t0_mm" in fit.free else 0.0
-    return State(geometry, t0_mm=held_height), report, moments
+    height = float(placed.values["t0_mm"]) if placed is not None else 0.0  # a reference's fitted start height
+    return State(geometry, t0_mm=height), report, moments
 
 
 #: How far a configured value may be from the truth (standard deviation): that of a uniform draw over the
@@ -138,16 +138,14 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
     reached the edge of its search range, it is held at the configured value and named ``undetermined``;
     else it is estimated: ``held[name] = (value, 90% interval, sd)``, named in ``caveats``.
 
-    With an uncertain start height (``t0_sd_mm > 0``) the refits fit it (``t0_mm``, a nuisance never
-    applied): a held tilt zero can no longer absorb a height error, which would otherwise bias the step
-    scale through the dips' first moments. The refits draw the object's horizontal position as the joint fit
-    does (``position_sd_mm``).
+    The refits fit the reference's start height and mounting with their priors as the joint fit does
+    (``t0_sd_mm``, ``position_sd_mm``): a held tilt zero cannot absorb a height error, which would otherwise
+    bias the step scale through the dips' first moments.
     """
     fit, undetermined, caveats, held = joint, {}, {}, {}
     values = dict(fixed)
-    nuisance = ("t0_mm",) if t0_sd_mm > 0 else ()
     while fit is not None:
-        why = {p: w for p, w in fit.undetermined(kind).items() if p not in nuisance and p not in caveats}
+        why = {p: w for p, w in fit.undetermined(kind).items() if p not in caveats}
         if not why:
             break
         name = max(why, key=lambda p: (fit.at_search_edge(p), _half_width(fit, p) / TOLERANCE[p]))
@@ -163,8 +161,8 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
             caveats[name] = (f"is not pinned to its tolerance {TOLERANCE[name]:g} ({why[name]}): its estimate "
                              f"{fit.values[name]:.4g} is shrunk toward the configured {fixed[name]:g} by the "
                              f"configuration's own uncertainty (sd {CONFIGURED_SD[name]:g}) to {values[name]:.4g}")
-        kept = tuple(p for p in fit.free if p != name and p not in nuisance)
-        fit = fit_moments(moments, kept + nuisance, known=known, fixed=values, seed=seed,
+        kept = tuple(p for p in fit.free if p != name)
+        fit = fit_moments(moments, kept, known=known, fixed=values, seed=seed, t0_sd_mm=t0_sd_mm,
                           position_sd_mm=position_sd_mm) if kept else None
     return fit, undetermined, caveats, held
 
@@ -182,7 +180,7 @@ def _moment_floors(kind: str, fit, known: KnownObject | None, raw: RawScan) -> d
     ``|pivot|`` times the tilt zero's (in radians).
     """
     floors = dict(MODEL_FLOOR[kind])
-    if known is not None:  # the midpoint rule misses h^2 / 12 of every dip's variance (h: the stage step)
+    if known is not None:  # the stage's steps leave up to h^2 / 12 of every dip's variance (h: the step) uncertain
         step = float(np.median(np.concatenate([np.diff(o.stage_mm) for o in raw.orientations])))
         floors["step_scale"] = math.hypot(floors["step_scale"], step**2 / 12.0 / np.trace(known.covariance) * 3.0)
     pivot = abs(fit.values.get("pivot_mm", 0.0))
@@ -265,15 +263,19 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
         initial: the configured geometry (default the ideal rig).
         max_relative_residual: refuse when ``|A f - m| / |m|`` stays above this at the estimate (the
             object does not fit: wrong size, wrong pose, or the data are not of this object).
-        start_height_tolerance_mm: how well the object's height at the stage's zero is known (90%
-            half-width, mm: its mounting, and the shift a sensor lag gives every dip). A centred ball
-            shows the tilt zero only through the start heights, so a height error of ``c`` mm moves it
-            by about ``c / offset`` radians: the intervals carry this (:func:`fit_moments`'s ``t0_sd_mm``).
-        position_tolerance_mm: how well the object's horizontal position (its centre's x and y in the
-            object frame) is known (90% half-width, mm). An object off the spin axis, at a distance ``d`` mm,
-            shows the spin zero to about ``tolerance / d`` radians (its distance from the axis is fitted, so
-            its tilt zero does not depend on it); a centred object's tilt zero trades against its position as
-            against its height. The intervals carry this.
+        start_height_tolerance_mm: how well the water line's height at the stage's zero is known (90%
+            half-width, mm: the stage's zero against the water, and the shift a sensor lag gives every dip). A
+            centred ball shows the tilt zero only through the start heights, so a height error of ``c`` mm
+            moves it by about ``c / offset`` radians; a ball off the spin axis shows its start height itself.
+        position_tolerance_mm: how well the object's centre is known in the object frame, along each axis
+            (90% half-width, mm: its mounting). Mounted higher, it moves every dip's height as ``cos r``: the
+            pivot is known only to this. An object off the spin axis, at a distance ``d`` mm, shows the spin
+            zero to about ``tolerance / d`` radians (its distance from the axis is fitted, so its tilt zero
+            does not depend on it); a centred object's tilt zero trades against its position.
+
+        Both enter the moment fit as Gaussian priors on the start height and the object's position
+        (:func:`~dipnet.calibration.moments.fit_moments`), so the intervals carry them and the dips decide
+        what they determine.
 
     Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
     """

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import pytest
 
-from dipnet.calibration.moments import KnownObject, fit_drift, fit_moments
+from dipnet.calibration.moments import KnownObject, dip_moments, fit_drift, fit_moments
 from dipnet.core.geometry import RigGeometry
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.shapes import Ball
+from dipnet.simulator.physics import DipProtocol, Tank, simulate_scan
 
 from calibration_helpers import ideal_ball_moments
 
@@ -24,6 +27,19 @@ def test_ball_moments_give_the_exact_geometry():
     assert fit.values["tilt_zero_deg"] == pytest.approx(-3.0, abs=0.1)
     assert fit.values["step_scale"] == pytest.approx(1.025, abs=3e-4)
     assert KnownObject.ball(30.0).volume / moments.rise.mean() == pytest.approx(52000.0, rel=1e-3)
+
+
+def test_coarse_stage_steps_leave_the_step_scale_unbiased():
+    """Sheppard's correction: a dip's volumes grouped in stage steps of h overstate its variance by about
+    h^2 / 12, which would read as a step scale 0.2 % low for a 30 mm ball in 3 mm steps. Corrected, noise-free
+    dips in 3 mm steps give it within 0.03 %."""
+    true = RigGeometry(pivot_mm=-45.0, tilt_axis_offset_mm=30.0, tilt_zero_deg=-3.0, step_scale=1.025)
+    raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(40), tank=Tank(60000.0), geometry=true,
+                        protocol=DipProtocol(step_mm=3.0), progress=False)
+    fit = fit_moments(dip_moments(raw, RigGeometry()), ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
+                                                        "step_scale"), known=KnownObject.ball(30.0), bootstrap=0)
+    assert fit.values["step_scale"] == pytest.approx(1.025, abs=3e-4)
+    assert fit.values["tilt_axis_offset_mm"] == pytest.approx(30.0, abs=0.1)
 
 
 def test_drift_is_read_from_the_rest_level():

@@ -56,31 +56,29 @@ def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
 
 def test_an_uncertain_ball_height_widens_the_tilt_zero_instead_of_making_it_wrong(ball_scan, tmp_path):
     """The audit's case: a centred ball shows the tilt zero only through its start heights, so a 1 mm error
-    in its height moved the tilt zero by 5 deg while the file called it determined. With the default height
-    tolerance (0.5 mm; the horizontal position taken as exact) the fake rig's tilt zero (offset 10 mm: about
+    in its height moved the tilt zero by 5 deg while the file called it determined. With the default
+    start-height tolerance (0.5 mm; the mounting taken as exact) the fake rig's tilt zero (offset 10 mm: about
     +-2.4 deg) is wider than its tolerance: shrunk toward the configured 0 by the configuration's own
-    uncertainty and named, its interval holding the truth; pivot and offset hold theirs, and a reader with the
-    file still centres every profile. With the default position tolerance too (0.5 mm, which a centred ball's
-    tilt zero trades against as well) the dips carry less than half its weight: named undetermined and kept."""
+    uncertainty, its interval holding the truth; pivot and offset hold theirs, and a reader with the file still
+    centres every profile. The default mounting tolerance too (0.5 mm along each axis: a ball mounted higher
+    moves the start heights as well) widens the tilt zero's interval further, still holding the truth."""
     calibrate = load_script("calibrate")
+    widths = {}
     for position, out in (("0", tmp_path / "height.yaml"), ("0.5", tmp_path / "both.yaml")):
         with warnings.catch_warnings():  # the script routes warnings to its log (log_warnings_once): see the file
             warnings.simplefilter("ignore", UserWarning)
             assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out),
                                    "--position-tolerance", position]) == 0
         cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
-        for name in ("pivot_mm", "tilt_axis_offset_mm"):
+        for name in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg"):
             low, high = cal.intervals[name]
             assert low <= getattr(FAKE_TRUTH, name) <= high, name
-    cal = load_calibration(tmp_path / "height.yaml", rig="fake-grbl", tank="tank-1")
-    low, high = cal.intervals["tilt_zero_deg"]
-    assert low <= FAKE_TRUTH.tilt_zero_deg <= high and high - low > 2 * 1.5
+        widths[position] = np.subtract(*cal.intervals["tilt_zero_deg"][::-1])
+    assert 2 * 1.5 < widths["0"] < widths["0.5"]
     grid = Grid(32, extent=80.0)
     m = read_raw_recording(ball_scan, grid, smooth=False, calibration=tmp_path / "height.yaml")
     centroids = (m.profiles.numpy() @ (np.arange(32) + 0.5 - 16) * grid.voxel_size) / m.profiles.sum(1).numpy()
     assert np.abs(centroids).max() < 0.3
-    both = load_calibration(tmp_path / "both.yaml", rig="fake-grbl", tank="tank-1")
-    assert "tilt_zero_deg" in both.not_estimated and "tilt_zero_deg" not in both.intervals
 
 
 def test_a_loose_parameter_keeps_its_estimate_not_the_configured_value():
@@ -133,7 +131,7 @@ def test_a_ball_off_the_axis_needs_no_exact_distance_from_it():
     heights as cos r, a distance error as sin r): held 2 mm further out than assumed (four times the
     position tolerance), its tilt zero and spin zero still come back within 0.2 deg, inside their intervals.
     Held 0.4 mm high too, which is a pivot 0.4 mm longer to the dips: the pivot's interval holds the truth
-    (the height tolerance is drawn as the ball's height, not only as a common start height)."""
+    (the position tolerance is a prior on the ball's height too, not only on x and y)."""
     from dipnet.calibration.moments import KnownObject
 
     assert KnownObject.ball(30.0).radial() is None  # a centred ball: nothing to fit
@@ -149,6 +147,34 @@ def test_a_ball_off_the_axis_needs_no_exact_distance_from_it():
         assert getattr(geometry, name) == pytest.approx(value, abs=0.2) and low <= value <= high, name
     low, high = report.intervals["pivot_mm"]
     assert low <= 30.0 <= high and report.reference_centroid_mm[0] == pytest.approx(27.0, abs=0.3)
+
+
+def test_a_ball_off_the_axis_shows_its_start_height():
+    """The stage's zero 0.4 mm off the water line and the ball mounted 0.3 mm high: with the start height and
+    the mounting as priors (the default tolerances) the dips of a ball off the spin axis show the start
+    height, so the offset and tilt zero come back within 0.1 mm and 0.05 deg, and every interval holds the
+    truth. Taking both as exact (tolerances 0) puts the height error into the geometry: offset and pivot
+    more than 0.5 mm off, outside their intervals."""
+    true = RigGeometry(pivot_mm=30.0, tilt_axis_offset_mm=20.0, tilt_zero_deg=-2.5, spin_zero_deg=3.5)
+    raw = simulate_scan(Ball(30.0, center=(25.0, 0.0, 0.3)), fibonacci_hemisphere(60), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=30.0, seed=5), progress=False)
+    raw.header.t_start_mm += 0.4
+    found = {}
+    for tolerance in (0.5, 0.0):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            found[tolerance] = calibrate_reference(raw, Ball(30.0, center=(25.0, 0.0, 0.0)), Grid(32, extent=130.0),
+                                                   start_height_tolerance_mm=tolerance, position_tolerance_mm=tolerance)
+    geometry, report = found[0.5]
+    assert geometry.tilt_axis_offset_mm == pytest.approx(20.0, abs=0.1)
+    assert geometry.tilt_zero_deg == pytest.approx(-2.5, abs=0.05)
+    for name in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg"):
+        low, high = report.intervals[name]
+        assert low <= getattr(true, name) <= high, name
+    geometry, report = found[0.0]
+    for name in ("pivot_mm", "tilt_axis_offset_mm"):
+        low, high = report.intervals[name]
+        assert abs(getattr(geometry, name) - getattr(true, name)) > 0.5 and not low <= getattr(true, name) <= high
 
 
 def test_reference_calibration_refuses_the_wrong_object(ball_scan):
