@@ -6,10 +6,10 @@ step scale +-3 %, a level drift of up to +-0.5 mm over the session and a sensor 
 0-0.5 s. Rig ``i`` dips bundled mesh ``MESHES[i % 4]`` (scaled to ``--fill`` of the working ball
 on an ``--n``^3 grid) along ``--dips`` Fibonacci directions with ``--snr`` dB of level noise,
 and a 30 mm reference ball along the same directions, twice: centred on the spin axis, and
-``BALL_OFFSET_MM`` off it; each held with its centre off the assumed position by a normal error of
-standard deviation 0.3 mm along every axis (90 % within the calibration's default 0.5 mm
-tolerances). The voxel solver then reconstructs the mesh (i) with the nominal geometry,
-(ii) self-calibrated (:func:`dipnet.calibration.self_calibration.self_calibrate`, the
+``--ball-offset`` mm (default 25) off it; each held with its centre off the assumed position by a normal
+error of standard deviation 0.3 mm along every axis, its recorded start height off the water line by
+another (90 % of each within the calibration's default 0.5 mm tolerances). The voxel solver then
+reconstructs the mesh (i) with the nominal geometry, (ii) self-calibrated (:func:`dipnet.calibration.self_calibration.self_calibrate`, the
 cross-section fitted with the implicit field's shape, the final shape by the voxel solver),
 (iii) with the true geometry, (iv) with each ball's reference calibration
 (:func:`dipnet.calibration.reference.calibrate_reference`): ``ball`` (centred) compared with the
@@ -66,7 +66,7 @@ from dipnet.solvers.voxel import VoxelSolver
 MESHES = ("bunny", "hammer", "part_B13", "spot")
 BALL_RADIUS = 30.0
 BALL_POSITION_SD_MM = 0.3  # how far off its assumed position the ball is held (normal standard deviation per axis)
-BALL_OFFSET_MM = 25.0  # the second ball's centre off the spin axis (along x)
+START_HEIGHT_SD_MM = 0.3  # how far off the water line the ball's recorded stage zero is (normal standard deviation)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -80,6 +80,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="3 rigs at 32^3, 80 solver iterations")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--seed", type=int, default=2026)
+    p.add_argument("--ball-offset", type=float, default=25.0, metavar="MM",
+                   help="the second ball's centre off the spin axis (along x, mm)")
     p.add_argument("--json", metavar="PATH", help="also write every rig's truth, estimates and intervals here")
     args = p.parse_args(argv)
     if args.quick:
@@ -95,10 +97,13 @@ def draw_rig(rng: np.random.Generator, area: float, session_s: float) -> RigGeom
                        level_drift_mm_per_s=rng.uniform(-0.5, 0.5) / session_s, sensor_lag_s=rng.uniform(0.0, 0.5))
 
 
-def reference_ball(offset_mm: float, held_at: tuple[float, float, float], raw_kwargs: dict, seed: int):
+def reference_ball(offset_mm: float, held_at: tuple[float, float, float], raw_kwargs: dict, seed: int,
+                   start_error_mm: float = 0.0):
     """``(geometry, report)``: the reference calibration from a ball assumed at ``(offset_mm, 0, 0)`` and
-    dipped at ``held_at`` (mm, object frame) with :func:`simulate_scan`'s ``raw_kwargs``."""
+    dipped at ``held_at`` (mm, object frame) with :func:`simulate_scan`'s ``raw_kwargs``, its recorded start
+    height ``start_error_mm`` off the true one."""
     raw = simulate_scan(Ball(BALL_RADIUS, center=held_at), progress=False, **raw_kwargs)
+    raw.header.t_start_mm += start_error_mm
     grid = Grid(48, 3, extent=2.0 * (BALL_RADIUS + offset_mm) + 20.0)
     return calibrate_reference(raw, Ball(BALL_RADIUS, center=(offset_mm, 0.0, 0.0)), grid, seed=seed)
 
@@ -172,10 +177,11 @@ def main(argv=None) -> list[dict]:
                                         gain_solver=ImplicitSolver(seed=args.seed, progress=False))
                 held = np.random.default_rng(args.seed + 1000 + i).normal(0.0, BALL_POSITION_SD_MM)
                 shifted = np.random.default_rng(args.seed + 5000 + i).normal(0.0, BALL_POSITION_SD_MM, 2)
+                start_error = np.random.default_rng(args.seed + 9000 + i).normal(0.0, START_HEIGHT_SD_MM)
                 balls = {key: reference_ball(offset, (offset + shifted[0], shifted[1], held), raw_kwargs=dict(
                     directions=directions, tank=tank, protocol=protocol, geometry=true,
-                    sensor=LevelSensor(snr_db=args.snr, seed=1000 + i)), seed=i)
-                    for key, offset in (("ball", 0.0), ("offball", BALL_OFFSET_MM))}
+                    sensor=LevelSensor(snr_db=args.snr, seed=1000 + i)), seed=i, start_error_mm=start_error)
+                    for key, offset in (("ball", 0.0), ("offball", args.ball_offset))}
         except ValueError as exc:
             refused += 1
             print(f"{i:>3} {name:<9} refused: {exc}", flush=True)
@@ -199,7 +205,7 @@ def main(argv=None) -> list[dict]:
         cover += [c for _, c in self_cov]
         ball_cover += [c for _, c in ball_cov]
         offball_cover += [c for _, c in offball_cov]
-        row.update(ball_position_error_mm=[*shifted, held], scores=scores, self_covered=self_cov,
+        row.update(ball_position_error_mm=[*shifted, held], ball_start_height_error_mm=start_error, scores=scores, self_covered=self_cov,
                    ball_covered=ball_cov, offball_covered=offball_cov, self_estimates=result.report.estimates,
                    self_truth=self_truth(true, t0), self_intervals=result.report.intervals,
                    self_history=result.history, seconds=time.perf_counter() - t_start,
@@ -227,7 +233,8 @@ def main(argv=None) -> list[dict]:
     ball = [r["scores"]["ball"] / r["scores"]["true"] for r in done]
     offball = [r["scores"]["offball"] / r["scores"]["true"] for r in done]
     nominal = [r["scores"]["nominal"] / r["scores"]["true"] for r in done if np.isfinite(r["scores"]["nominal"])]
-    print(f"\n{len(done)} of {args.rigs} rigs at {args.n}^3, {args.dips} dips, {args.snr:g} dB; Chamfer over true: "
+    print(f"\n{len(done)} of {args.rigs} rigs at {args.n}^3, {args.dips} dips, {args.snr:g} dB, the second ball "
+          f"{args.ball_offset:g} mm off the spin axis; Chamfer over true: "
           f"nominal median {statistics.median(nominal) if nominal else float('nan'):.2f} "
           f"({args.rigs - len(done) + sum(1 for r in done if not np.isfinite(r['scores']['nominal']))} unusable)")
     print(f"RESULT median_calibrated_over_true={statistics.median(ratios):.3f} "
