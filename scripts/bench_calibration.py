@@ -9,8 +9,9 @@ and a 30 mm reference ball along the same directions, twice: centred on the spin
 ``--ball-offset`` mm (default 25) off it; each held with its centre off the assumed position by a normal
 error of standard deviation 0.3 mm along every axis, its recorded start height off the water line by
 another (90 % of each within the calibration's default 0.5 mm tolerances). The voxel solver then
-reconstructs the mesh (i) with the nominal geometry, (ii) self-calibrated (:func:`dipnet.calibration.self_calibration.self_calibrate`, the
-cross-section fitted with the implicit field's shape, the final shape by the voxel solver),
+reconstructs the mesh (i) with the nominal geometry, (ii) self-calibrated
+(:func:`dipnet.calibration.self_calibration.self_calibrate`, the cross-section fitted with the
+implicit field's shape, the final shape by the voxel solver),
 (iii) with the true geometry, (iv) with each ball's reference calibration
 (:func:`dipnet.calibration.reference.calibrate_reference`): ``ball`` (centred) compared with the
 truth turned by the spin zero (a centred ball's symmetry: never estimated), ``offball`` with the
@@ -205,9 +206,10 @@ def main(argv=None) -> list[dict]:
         cover += [c for _, c in self_cov]
         ball_cover += [c for _, c in ball_cov]
         offball_cover += [c for _, c in offball_cov]
-        row.update(ball_position_error_mm=[*shifted, held], ball_start_height_error_mm=start_error, scores=scores, self_covered=self_cov,
-                   ball_covered=ball_cov, offball_covered=offball_cov, self_estimates=result.report.estimates,
-                   self_truth=self_truth(true, t0), self_intervals=result.report.intervals,
+        row.update(ball_position_error_mm=[*shifted, held], ball_start_height_error_mm=start_error, scores=scores,
+                   self_covered=self_cov, ball_covered=ball_cov, offball_covered=offball_cov,
+                   self_estimates=result.report.estimates, self_truth=self_truth(true, t0),
+                   self_intervals=result.report.intervals,
                    self_history=result.history, seconds=time.perf_counter() - t_start,
                    **{f"{key}_{part}": getattr(report, part) for key, (_, report) in balls.items()
                       for part in ("estimates", "intervals")})

@@ -40,8 +40,8 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
     ``"reference"`` (``known`` moments; ``t0_sd_mm`` and ``position_sd_mm``: how well the start height and the
-    object's mounting are known, see :func:`fit_moments`). The parameters the dips do not pin to their tolerance are settled by
-    :func:`_hold_undetermined`; the others are refitted around them, their intervals widened to the joint
+    object's mounting are known, see :func:`fit_moments`). The parameters the dips do not pin to their
+    tolerance are settled by :func:`_hold_undetermined`; the others are refitted around them, their intervals widened to the joint
     fit's. Returns the state (its ``t0_mm`` the reference object's fitted start height: for its profile check
     only, never part of the geometry), the report and the dips' moments (drift removed:
     their rises give a reference object's cross-section).
@@ -271,11 +271,10 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
             (90% half-width, mm: its mounting). Mounted higher, it moves every dip's height as ``cos r``: the
             pivot is known only to this. An object off the spin axis, at a distance ``d`` mm, shows the spin
             zero to about ``tolerance / d`` radians (its distance from the axis is fitted, so its tilt zero
-            does not depend on it); a centred object's tilt zero trades against its position.
-
-        Both enter the moment fit as Gaussian priors on the start height and the object's position
-        (:func:`~dipnet.calibration.moments.fit_moments`), so the intervals carry them and the dips decide
-        what they determine.
+            does not depend on it); a centred object's tilt zero trades against its position. Both
+            tolerances enter the moment fit as Gaussian priors on the start height and the object's position
+            (:func:`~dipnet.calibration.moments.fit_moments`), so the intervals carry them and the dips
+            decide what they determine.
 
     Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
     """
