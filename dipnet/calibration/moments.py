@@ -230,6 +230,14 @@ def _rise(values: np.ndarray) -> np.ndarray:
 ON_AXIS_MM = 5.0
 
 
+def radial_direction(centroid: np.ndarray) -> np.ndarray | None:
+    """The unit horizontal direction ``(3,)`` from the spin axis to ``centroid`` ``(3,)`` mm, or ``None``
+    within :data:`ON_AXIS_MM` of the axis."""
+    horizontal = np.array([centroid[0], centroid[1], 0.0])
+    distance = float(np.linalg.norm(horizontal))
+    return horizontal / distance if distance > ON_AXIS_MM else None
+
+
 @dataclass
 class KnownObject:
     """A reference object's moments: centroid ``(3,)`` mm, covariance ``(3, 3)`` mm^2, volume mm^3."""
@@ -246,9 +254,7 @@ class KnownObject:
         heights by ``delta (c . d theta / d tilt)``, which varies with the tilt as ``cos r``, a distance error as
         ``sin r``, so the tilt zero of a reference off the axis does not depend on how well its distance is
         known. Its direction stays fixed: a turn about the spin axis is the spin zero."""
-        horizontal = np.array([self.centroid[0], self.centroid[1], 0.0])
-        distance = float(np.linalg.norm(horizontal))
-        return horizontal / distance if distance > ON_AXIS_MM else None
+        return radial_direction(self.centroid)
 
     @classmethod
     def ball(cls, radius_mm: float, centre=(0.0, 0.0, 0.0)) -> "KnownObject":
@@ -302,7 +308,7 @@ class MomentFit:
             low, high = self.intervals.get(name, (self.values[name], self.values[name]))
             half = 0.5 * (high - low)
             if rise is not None and rise < 2.71:
-                off_axis = kind == "reference" and float(np.hypot(*self.centroid[:2])) > ON_AXIS_MM
+                off_axis = kind == "reference" and radial_direction(self.centroid) is not None
                 reason = GAUGE_REASONS.get(("off_axis", name)) if off_axis else None
                 out[name] = (reason or GAUGE_REASONS.get((kind, name), "the dips barely depend on it")) + \
                     f" (moving it by {TOLERANCE[name]:g} raises the misfit by {rise:.2g}, less than 2.71)"

@@ -89,10 +89,9 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
             _record(report, p, value, interval, sd, floors[p])
         report.caveats.update(caveats)
     if fit is not None:
-        estimated = fit.free
-        geometry = geometry.with_values(**{p: fit.values[p] for p in estimated})
+        geometry = geometry.with_values(**{p: fit.values[p] for p in fit.free})
         report.moment_rms = fit.residual_rms
-        for p in estimated:
+        for p in fit.free:
             interval, sd = fit.intervals[p], fit.bootstrap_sd[p]
             if fit is not joint:  # refitted with parameters held: their spread in the joint fit moves these too
                 interval = (min(interval[0], joint.intervals[p][0]), max(interval[1], joint.intervals[p][1]))
@@ -101,8 +100,8 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
                     caveats[p] = (f"its interval is wider than its tolerance {TOLERANCE[p]:g}: it covers what "
                                   f"{', '.join(sorted({*undetermined, *held}))} (held) may be")
             _record(report, p, fit.values[p], interval, sd, floors[p])
-        report.correlations.update({p: {q: c for q, c in row.items() if q in estimated}
-                                    for p, row in fit.correlations.items() if p in estimated})
+        report.correlations.update({p: {q: c for q, c in row.items() if q in fit.free}
+                                    for p, row in fit.correlations.items() if p in fit.free})
         report.caveats.update(caveats)
     placed = fit if fit is not None else joint
     radius = _object_radius(placed, known)
