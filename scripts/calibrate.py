@@ -7,7 +7,8 @@ Dip a ball of known radius (held with its centre at the object origin the rig as
     python scripts/calibrate.py scans/ball/rawscan.jsonl --ball-radius 30 --tank lab-tank-1 \\
         --output rig_calibration.yaml
 
-The file (:mod:`dipnet.core.calibration_file`) names the scan's rig and the given tank; scans
+The file (:mod:`dipnet.core.calibration_file`) names the scan's rig and its tank (``--tank``, or the
+tank the scan recorded with ``scan.py +rig.tank=lab-tank-1``; a different ``--tank`` is refused); scans
 use it with ``rig.calibration=rig_calibration.yaml`` (and ``+rig.tank=lab-tank-1``), readers with
 ``source.reader.calibration=rig_calibration.yaml``. Every parameter is estimated by default;
 those the dips cannot determine (a centred ball's spin zero, by its symmetry) are named with
@@ -26,7 +27,7 @@ from dipnet.jobs.cli import user_errors
 from dipnet.jobs.warnings_once import log_warnings_once
 from dipnet.core.grid import Grid
 from dipnet.preprocessing.recorded import read_scan
-from dipnet.core.calibration_file import TANK_CONFIG_KEY, save_calibration
+from dipnet.core.calibration_file import save_calibration, scan_tank
 from dipnet.shapes import Ball
 
 
@@ -36,7 +37,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--ball-radius", type=float, required=True, help="the ball's radius (mm)")
     p.add_argument("--centre", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
                    help="the ball's centre in the object frame (mm)")
-    p.add_argument("--tank", help="the tank's identity (default: the scan's header.config['tank_id'])")
+    p.add_argument("--tank", help="the tank's identity (default: the tank the scan records, scan.py's +rig.tank)")
     p.add_argument("--params", nargs="+", default=list(DEFAULT_REFERENCE), choices=list(PARAMETERS),
                    help="geometry parameters to estimate")
     p.add_argument("--n", type=int, default=48, help="grid resolution of the final fit check")
@@ -58,7 +59,10 @@ def main(argv=None) -> int:
     log_warnings_once()  # a warning both logged and warned shows once
     with user_errors():
         raw = read_scan(args.scan)  # a dipnet raw scan (.jsonl) or the authors' CSV
-        tank = args.tank or raw.header.config.get(TANK_CONFIG_KEY)
+        recorded = scan_tank(raw.header)
+        if args.tank and recorded and args.tank != recorded:
+            raise ValueError(f"--tank {args.tank!r}: {args.scan} was recorded in tank {recorded!r}")
+        tank = args.tank or recorded
         if not tank:
             raise ValueError(f"{args.scan} does not name its tank: pass --tank")
         ball = Ball(args.ball_radius, center=tuple(args.centre))

@@ -9,16 +9,25 @@ Format (YAML or JSON by suffix, version 2; version 1 files, without ``intervals_
     tank: lab-tank-1          # the tank's identity (scans record it as header.config["tank_id"])
     method: reference         # reference | self | manual
     created: 2026-11-23T11:00:00+0000
-    geometry:                 # RigGeometry fields; omitted ones are ideal
+    geometry:                 # every RigGeometry field; cross_section_mm2 omitted = the scan's nominal
       pivot_mm: 20.1
       tilt_axis_offset_mm: 14.8
       tilt_zero_deg: 1.02
+      spin_zero_deg: 0.0
+      step_scale: 1.0
       cross_section_mm2: 55210.0
-    uncertainty: {pivot_mm: 0.3}   # optional: standard errors of the estimated fields, same units
-    intervals_90: {pivot_mm: [19.6, 20.6]}   # optional: 90% intervals of the estimated fields
-    not_estimated:                 # optional: fields holding configured values, with the reason
+      level_drift_mm_per_s: 0.0
+      sensor_lag_s: 0.0
+    uncertainty: {pivot_mm: 0.3}   # standard errors of the estimated fields, same units ({} if none)
+    intervals_90: {pivot_mm: [19.6, 20.6]}   # 90% intervals of the estimated fields ({} if none)
+    not_estimated:                 # fields holding configured values, with the reason ({} if none)
       spin_zero_deg: "a ball centred on the spin axis looks the same at every spin"
     notes: ball d=60 mm at 7 orientations
+
+A version 2 file names every section and every geometry field but ``cross_section_mm2`` (as
+:func:`save_calibration` writes it): one without them (a truncated file) is refused, naming the
+missing keys, rather than read with ideal values in their place. Version 1 files may omit
+geometry fields (ideal) and the optional sections.
 
 A field of ``geometry`` that is listed under ``not_estimated`` is the configured value, not an
 estimate; with ``method: reference`` or ``self`` every other field given was estimated.
@@ -33,7 +42,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +57,7 @@ READ_VERSIONS = (1, 2)
 METHODS = ("reference", "self", "manual")
 _KEYS = {"format", "version", "rig", "tank", "method", "created", "geometry", "uncertainty", "intervals_90",
          "not_estimated", "notes"}
+_OPTIONAL_GEOMETRY = {"cross_section_mm2"}  # omitted when the scan's nominal section is meant
 TANK_CONFIG_KEY = "tank_id"  # ScanHeader.config key holding the tank's identity
 
 
@@ -133,12 +143,24 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         not_estimated = {str(k): str(v) for k, v in (data.get("not_estimated") or {}).items()}
     except (GeometryError, TypeError, ValueError, IndexError, KeyError, AttributeError) as exc:
         raise CalibrationFileError(f"{path}: {exc}") from exc
+    missing = _missing_keys(data)
+    if missing:
+        raise CalibrationFileError(f"{path}: missing key(s) {missing}: a version {data['version']} calibration file "
+                                   "names every one (is it truncated?)")
     calibration = Calibration(geometry=geometry, rig=data["rig"], tank=data["tank"],
                               method=data.get("method", "manual"), uncertainty=uncertainty,
                               intervals=intervals, not_estimated=not_estimated,
                               notes=str(data.get("notes") or ""), created=str(data.get("created") or ""))
     check_identity(calibration, rig, tank, source=str(path))
     return calibration
+
+
+def _missing_keys(data: dict[str, Any]) -> list[str]:
+    """The sections and ``geometry.<field>`` keys a version 2 file lacks (none for version 1)."""
+    if data["version"] == 1:
+        return []
+    required = {f.name for f in fields(RigGeometry)} - _OPTIONAL_GEOMETRY
+    return sorted(_KEYS - set(data)) + [f"geometry.{name}" for name in sorted(required - set(data["geometry"]))]
 
 
 def check_identity(calibration: Calibration, rig: str | None, tank: str | None, source: str = "calibration") -> None:
@@ -149,7 +171,18 @@ def check_identity(calibration: Calibration, rig: str | None, tank: str | None, 
         raise CalibrationFileError(f"{source}: calibrated on tank {calibration.tank!r}, not on {tank!r}")
 
 
+def scan_tank(header: ScanHeader) -> str | None:
+    """The tank a scan records: ``header.config["tank_id"]``, or for scans recorded before ``scan.py``
+    wrote it there, the scan config's ``rig.tank``; ``None`` when it names none."""
+    tank = header.config.get(TANK_CONFIG_KEY)
+    if tank is None:
+        scan = header.config.get("scan")
+        rig = scan.get("rig") if isinstance(scan, dict) else None
+        tank = rig.get("tank") if isinstance(rig, dict) else None
+    return None if tank is None else str(tank)
+
+
 def scan_calibration(path: str | Path, header: ScanHeader) -> Calibration:
     """Load the calibration at ``path`` for a scan: its rig must be the scan's, and its tank the
-    scan's when the scan records one (``header.config["tank_id"]``)."""
-    return load_calibration(path, rig=header.rig, tank=header.config.get(TANK_CONFIG_KEY))
+    scan's when the scan records one (:func:`scan_tank`)."""
+    return load_calibration(path, rig=header.rig, tank=scan_tank(header))

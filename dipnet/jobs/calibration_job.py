@@ -15,7 +15,7 @@ from typing import Callable
 
 from dipnet.calibration.model import to_calibration
 from dipnet.calibration.self_calibration import SelfCalibrator
-from dipnet.core.calibration_file import TANK_CONFIG_KEY, save_calibration
+from dipnet.core.calibration_file import save_calibration, scan_tank
 from dipnet.core.grid import Grid
 from dipnet.preprocessing.sources import Recording
 
@@ -29,7 +29,7 @@ def self_calibration_job(calibration: SelfCalibrator, recording: Recording, grid
     file, the report and the calibrated measurement into ``out``."""
     result = calibration.run(recording, grid, solver, n_slabs, operator_factory)
     raw, report = recording.raw, result.report
-    tank = calibration.tank or raw.header.config.get(TANK_CONFIG_KEY) or "unknown"
+    tank = calibration.tank or scan_tank(raw.header) or "unknown"
     save_calibration(to_calibration(result.geometry, report, raw.header.rig, str(tank),
                                     notes=f"self-calibration of {raw.path or 'a simulated scan'}"),
                      out / "rig_calibration.yaml")

@@ -20,13 +20,15 @@ from dipnet.rig.sensors import AveragingSensor
 
 
 def build_header(cfg: dict[str, Any], controller: Controller, sensor, plan: ScanPlan) -> ScanHeader:
-    """The raw scan header from the scan config (the runner adds the rig identity)."""
+    """The raw scan header from the scan config (the runner adds the rig identity); ``rig.tank``, when
+    given, is recorded as the scan's tank (``config["tank_id"]``), which calibration files are checked against."""
     rig = cfg.get("rig", {})
+    tank = {TANK_CONFIG_KEY: str(rig["tank"])} if rig.get("tank") is not None else {}
     return ScanHeader(
         quantity=sensor.quantity, ndim=3, tank_cross_section_mm2=rig.get("tank_cross_section_mm2"),
         step_mm=float(plan.step_mm), resolution=rig.get("resolution"),
         rig=str(rig.get("name", controller.dialect)),
-        config={"scan": cfg},
+        config={"scan": cfg, **tank},
         metadata=dict(cfg.get("metadata") or {}))
 
 

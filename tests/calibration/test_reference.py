@@ -247,3 +247,26 @@ def test_calibrate_reads_the_authors_csv_and_says_why_it_cannot_use_it(capsys):
         calibrate.main([str(CATS_CSV), "--ball-radius", "30", "--tank", "authors", "--n", "24"])
     err = capsys.readouterr().err
     assert stop.value.code == 2 and "does not record its dips' start heights" in err and "JSON" not in err
+
+
+def test_calibrate_takes_the_tank_scan_py_recorded(tmp_path, capsys):
+    """The audit's case: ``scan.py +rig.tank=lab-tank-1`` then ``calibrate.py`` without ``--tank`` said the scan
+    did not name its tank. The scan records it in its header; calibrate.py writes it and refuses another."""
+    from hydra import compose, initialize_config_module
+
+    from dipnet.jobs.scan import scan_from_config
+
+    overrides = ["rig.fake.shape._target_=dipnet.shapes.Ball", f"rig.fake.shape.radius={RADIUS}",
+                 "~rig.fake.shape.name", "~rig.fake.shape.ndim", "orientations=grid", "tilts=[0,35,70]",
+                 "spins=[0,180]", "protocol.stop_mm=100", "protocol.step_mm=2", "+rig.tank=lab-tank-1",
+                 "progress=false", "fsync=false"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        scan = tmp_path / "ball.jsonl"
+        scan_from_config(compose(config_name="scan", overrides=overrides), scan)
+    calibrate = load_script("calibrate")
+    with pytest.raises(SystemExit) as stop:
+        calibrate.main([str(scan), "--ball-radius", str(RADIUS), "--tank", "tank-9", "--output", str(tmp_path / "x")])
+    assert stop.value.code == 2 and "--tank 'tank-9'" in capsys.readouterr().err
+    out = tmp_path / "rig_calibration.yaml"
+    assert calibrate.main([str(scan), "--ball-radius", str(RADIUS), "--n", "24", "--output", str(out)]) == 0
+    assert load_calibration(out).tank == "lab-tank-1"

@@ -1,9 +1,11 @@
 """Rig calibration files: round trips in YAML and JSON, and one clear refusal per bad file."""
 
+import math
+
 import pytest
 
 from dipnet.core.calibration_file import (TANK_CONFIG_KEY, Calibration, CalibrationFileError, load_calibration,
-                                          save_calibration, scan_calibration)
+                                          save_calibration, scan_calibration, scan_tank)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.rawscan import ScanHeader
 
@@ -47,3 +49,44 @@ def test_an_unphysical_geometry_names_the_field(tmp_path):
         load_calibration(path)
     with pytest.raises(CalibrationFileError, match="not found"):
         load_calibration(tmp_path / "none.yaml")
+
+
+def test_a_truncated_file_is_refused_naming_the_missing_keys(tmp_path):
+    """The audit's case: a file cut after ``pivot_mm`` was read with ideal values for the rest (exit 0, a
+    volume 5 % off). A version 2 file names every section and geometry field, so the cut one is refused."""
+    path = save_calibration(CAL, tmp_path / "cal.yaml")
+    text = path.read_text()
+    path.write_text(text[:text.index("pivot_mm:") + len("pivot_mm: 20")])
+    with pytest.raises(CalibrationFileError, match=r"cal.yaml: missing key\(s\) \['intervals_90', 'not_estimated', "
+                                                   r"'notes', 'uncertainty', 'geometry.level_drift_mm_per_s'.*truncated"):
+        load_calibration(path)
+    path.write_text(text.replace("  sensor_lag_s: 0.0\n", ""))
+    with pytest.raises(CalibrationFileError, match=r"missing key\(s\) \['geometry.sensor_lag_s'\]"):
+        load_calibration(path)
+
+
+def test_a_nominal_section_and_version_1_omissions_are_read(tmp_path):
+    nominal = Calibration(RigGeometry(pivot_mm=2.0), rig="grbl-rig", tank="tank-A")
+    assert load_calibration(save_calibration(nominal, tmp_path / "nominal.yaml")) == nominal
+    path = tmp_path / "v1.yaml"
+    path.write_text("format: dipnet.rig_calibration\nversion: 1\nrig: r\ntank: t\ngeometry: {pivot_mm: 2.0}\n")
+    assert load_calibration(path).geometry == RigGeometry(pivot_mm=2.0)
+
+
+def test_the_scans_tank_is_its_header_tank_or_its_scan_configs():
+    """Scans recorded before ``scan.py`` wrote ``tank_id`` keep ``+rig.tank`` in the scan config only."""
+    def header(**config):
+        return ScanHeader(quantity="level_mm", ndim=3, rig="r", config=config)
+
+    assert scan_tank(header(**{TANK_CONFIG_KEY: "tank-B"})) == "tank-B"
+    assert scan_tank(header(scan={"rig": {"tank": "tank-C"}})) == "tank-C"
+    assert scan_tank(header(scan={"rig": {}})) is None and scan_tank(header()) is None
+
+
+def test_an_unidentified_field_is_written_as_strict_json_and_read_as_unknown(tmp_path):
+    cal = Calibration(CAL.geometry, rig="grbl-rig", tank="tank-A", method="self",
+                      uncertainty={"pivot_mm": float("inf")}, intervals={"pivot_mm": (float("-inf"), float("inf"))})
+    path = save_calibration(cal, tmp_path / "cal.json")
+    assert "Infinity" not in path.read_text()
+    loaded = load_calibration(path)
+    assert math.isnan(loaded.uncertainty["pivot_mm"]) and all(math.isnan(v) for v in loaded.intervals["pivot_mm"])

@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_module
 
-from dipnet.core.calibration_file import Calibration, save_calibration
+from dipnet.core.calibration_file import TANK_CONFIG_KEY, Calibration, CalibrationFileError, save_calibration
 from dipnet.core.geometry import RigGeometry
+from dipnet.core.grid import Grid
 from dipnet.core.rawscan import read_rawscan
 from dipnet.jobs.deprecations import upgrade_scan_config
 from dipnet.jobs.scan import deepest_lowering, plan_settings, scan_geometry
@@ -55,6 +56,22 @@ def test_scan_config_runs_through_hydra(tmp_path):
     assert stored.header.quantity == "mass_g" and stored.header.rig == "fake-marlin"
     assert stored.orientations[0].meta["t_start_mm"] == -cfg.rig.origin_height_mm
     assert stored.header.config["scan"]["sensor"]["device"]["style"] == "sics"
+
+
+def test_the_scans_tank_is_recorded_and_another_tanks_calibration_refused(tmp_path):
+    """``+rig.tank`` was kept only in the scan config, so a reader took another tank's calibration file
+    silently. The header records it (``tank_id``), and the reader refuses that file naming both tanks."""
+    from dipnet.jobs.scan import scan_from_config
+    from dipnet.preprocessing.recorded import read_raw_recording
+
+    cfg = _scan_cfg("rig=fake_marlin", "n_dips=2", "protocol.step_mm=10", "fsync=false", "progress=false",
+                    "rig.fake.shape.radius=30", "+rig.tank=other-tank")
+    scan_from_config(cfg, tmp_path / "rawscan.jsonl")
+    raw = read_rawscan(tmp_path / "rawscan.jsonl")
+    assert raw.header.config[TANK_CONFIG_KEY] == "other-tank"
+    path = save_calibration(Calibration(RigGeometry(), rig=raw.header.rig, tank="lab-tank-1"), tmp_path / "c.yaml")
+    with pytest.raises(CalibrationFileError, match="calibrated on tank 'lab-tank-1', not on 'other-tank'"):
+        read_raw_recording(tmp_path / "rawscan.jsonl", Grid(8, extent=100.0), calibration=path)
 
 
 def test_stock_3axis_preset_works_out_of_the_box(meshes_dir, tmp_path):
