@@ -26,12 +26,19 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   ``c . theta`` for one object centroid ``c``; a trend of the centroids with the tilt ``r`` as
   ``a (cos r - 1) + b sin r`` is the signature of a pivot missing from the rig's geometry by
   ``-a`` and a tilt-axis offset missing by ``-b`` (mm), which the two fields hold.
+* ``profile_floor_mm3``, ``profile_floor_share``: what every dip holds where it should hold nothing
+  (:func:`profile_floor`): the median over the dips of each profile's second-smallest slab volume, and
+  that floor times the number of slabs over the measured volume. A dip's slabs before the object
+  touches the water and after it is under are empty; a level that drifts in time (a sensor's drift,
+  a leak, an inflow) adds the same volume to every slab, a floor the reconstruction then explains
+  as more object (a drift of 0.01 mm/s nearly doubled a shape's volume while its residual passed).
 
 The verdict is ``"consistent"`` unless the residual exceeds ``residual_factor`` times what
 the noise explains (and the discretisation floor ``residual_floor``), the volume ratio
 is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger), the hull
-fill is below ``hull_fill_min``, or the height trend exceeds half a slab and 3 of its
-standard errors. Each
+fill is below ``hull_fill_min`` or above ``HULL_FILL_MAX`` (or the dips bound no region at all), the
+height trend exceeds half a slab and 3 of its standard errors, or the profile floor exceeds
+``FLOOR_SIGMAS`` noise sigmas and carries more than ``volume_tol`` of the measured volume. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
 """
@@ -59,6 +66,8 @@ RESIDUAL_FACTOR = 3.0  # residual allowed above the noise's own share
 RESIDUAL_FLOOR = 0.05  # relative residual below which no result is flagged (voxel discretisation)
 VOLUME_TOL = 0.05  # |volume ratio - 1| allowed at the least
 HULL_FILL_MIN = 0.04  # measured volume / the dips' support hull below which the volume's unit is suspect
+HULL_FILL_MAX = 1.1  # above it the dips measure more than the region they bound can hold (a box fills ~1)
+FLOOR_SIGMAS = 3.0  # a profile floor within this many noise sigmas of 0 is noise
 
 
 class DataConsistencyWarning(UserWarning):
@@ -90,6 +99,9 @@ class Consistency:
     height_trend_pivot_mm: float = float("nan")
     height_trend_offset_mm: float = float("nan")
     height_trend_limit_mm: float = float("nan")
+    profile_floor_mm3: float = float("nan")
+    profile_floor_share: float = float("nan")
+    profile_floor_limit_mm3: float = float("nan")
     verdict: str = "consistent"
     warnings: list[str] = field(default_factory=list)
 
@@ -131,6 +143,21 @@ def height_trend(measurement: DipMeasurement) -> tuple[float, float, float]:
     s2 = float(residual @ residual) / max(1, len(d) - design.shape[1])
     se = np.sqrt(s2 * np.diag(np.linalg.inv(design.T @ design)))
     return float(-coef[3]), float(-coef[4]), float(max(0.5 * h, 3 * se[3], 3 * se[4]))
+
+
+def profile_floor(measurement: DipMeasurement, measured_volume: float) -> tuple[float, float]:
+    """``(floor, share)``: the median over the dips of each profile's second-smallest slab volume
+    (mm^3; mm^2 in 2D) and ``floor * M / measured_volume`` for ``M`` slabs per dip: the share of the
+    measured volume a constant floor under every slab would add. The first and last slab are left
+    out and the second-smallest taken, as a dip's first and last slabs in the water may be partial.
+    On the 16 bundled meshes scaled to fill the working ball (24 slabs, 30 dips, 30 dB) the share is
+    at most 0.8 %; a drift of 0.0005 mm/s gives 4-61 %. NaNs with fewer than 6 slabs per dip.
+    """
+    p = measurement.profiles.double().numpy()
+    if p.shape[1] < 6:
+        return float("nan"), float("nan")
+    floor = float(np.median(np.sort(p[:, 1:-1], axis=1)[:, 1]))
+    return floor, floor * p.shape[1] / measured_volume
 
 
 def _relative_residual(operator: DipOperator, volume: torch.Tensor, target: torch.Tensor) -> float:
@@ -183,6 +210,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         volume_limit=max(volume_tol, 3 * spread / measured), grid_volume_fraction=on_grid / measured,
         hull_fill=_hull_fill(measured, target, operator), hull_fill_min=hull_fill_min)
     result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
+    result.profile_floor_mm3, result.profile_floor_share = profile_floor(measurement, measured)
+    result.profile_floor_limit_mm3 = FLOOR_SIGMAS * _slab_sigma(measurement)
     result.warnings = _findings(result)
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
@@ -190,6 +219,14 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
             log.warning(message)
             warnings.warn(message, DataConsistencyWarning, stacklevel=2)
     return result
+
+
+def _slab_sigma(measurement: DipMeasurement) -> float:
+    """The measurement's typical per-slab noise sigma (mm^3): the median of its own ``sigma``, else
+    estimated from its profiles."""
+    if measurement.sigma is not None:
+        return float(measurement.sigma.double().median())
+    return estimate_slab_sigma(measurement.profiles)
 
 
 def _hull_fill(measured: float, target: torch.Tensor, operator: DipOperator) -> float:
@@ -226,6 +263,20 @@ def _findings(c: Consistency) -> list[str]:
                    f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by {c.height_trend_offset_mm:+.2f}"
                    f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
                    "scripts/calibrate.py)")
+    if abs(c.profile_floor_mm3) > c.profile_floor_limit_mm3 and abs(c.profile_floor_share) > c.volume_limit:
+        out.append(f"every dip holds {c.profile_floor_mm3:+.4g} mm^3 per slab where its slabs should be empty (before "
+                   f"the object touches the water and after it is under): {c.profile_floor_share:+.1%} of the "
+                   "measured volume, which the reconstruction takes for object. A level that drifts in time (the "
+                   "sensor's drift, a leak or an inflow) does this: calibrate it (calibration=self fits the "
+                   "drift), or check the tank; or the object fills the working range to its ends (raise extent_mm)")
+    if math.isnan(c.hull_fill):
+        out.append("the dips bound no region on the grid (each dip's non-empty slabs exclude the others'): the "
+                   "directions, start heights or slab thickness do not belong to these profiles")
+    elif c.hull_fill > HULL_FILL_MAX:
+        out.append(f"the dips measure {c.measured_volume_mm3:.4g} mm^3, {c.hull_fill:.0%} of the region they bound, "
+                   "which can hold at most all of it: the volumes are too large for their slabs (a level or "
+                   "cross-section unit too small, levels in cm read as mm), or the dips' heights or directions are "
+                   "not theirs (a wrong rig geometry or start heights)")
     if c.hull_fill < c.hull_fill_min:  # NaN compares False
         out.append(f"the dips measure {c.measured_volume_mm3:.4g} mm^3, {c.hull_fill:.2%} of the region they bound "
                    f"(real objects fill 4-76 %): a volume ten times too small, as levels in cm under a column that "

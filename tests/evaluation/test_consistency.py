@@ -203,3 +203,46 @@ def test_a_volume_ten_times_too_small_for_the_region_its_dips_bound_is_named():
     ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
     result, _ = _check(_exact_measurement(operator, ball), operator, ball)
     assert 0.5 < result.hull_fill < 1.0
+
+
+def test_a_level_that_drifts_in_time_is_named():
+    """A level rising 0.002 mm/s puts a floor under every slab, which a reconstruction explains as more object:
+    the floor is found where the dips' slabs should be empty and named with the drift as its cause. Without
+    the drift the floor is nil and nothing is named."""
+    from dipnet.core.geometry import RigGeometry  # noqa: F401  (the ideal rig: no height trend)
+    from dipnet.preprocessing.preprocess import preprocess
+    from dipnet.shapes import Box
+    from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    grid = Grid(24, extent=100.0)
+    results = {}
+    for drift in (0.0, 0.002):
+        raw = simulate_scan(Box((30.0, 20.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(30), tank=Tank(60000.0),
+                            sensor=LevelSensor(snr_db=40.0, drift_mm_per_s=drift, seed=0), progress=False)
+        measurement = preprocess(raw, grid=grid, t_start="metadata")
+        operator = make_operator(grid, measurement.directions, grid.n)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = check_consistency(measurement, operator, MinNormSolver(progress=False).solve(measurement, operator))
+        results[drift] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+    still, messages = results[0.0]
+    assert abs(still.profile_floor_share) < 0.01 and not any("drifts in time" in m for m in messages)
+    drifting, messages = results[0.002]
+    assert drifting.profile_floor_share > 0.1 and drifting.profile_floor_mm3 > drifting.profile_floor_limit_mm3
+    assert drifting.verdict == "inconsistent" and any("drifts in time" in m for m in messages)
+
+
+def test_more_volume_than_the_dips_bound_and_dips_that_bound_nothing_are_named(problem):
+    """Volumes ten times too large fill 6x the region their dips bound (a ball fills 62 % of it); dips moved
+    apart so that no voxel lies inside all of them bound no region at all. Both are named."""
+    operator, ball, measurement = problem
+    tenfold = DipMeasurement(measurement.directions, 10 * measurement.profiles, measurement.slab_thickness,
+                             measurement.offsets)
+    result, caught = _check(tenfold, operator, ball)
+    assert result.hull_fill == pytest.approx(10 * 0.62, rel=0.05)
+    assert any("which can hold at most all of it" in str(w.message) for w in caught)
+    apart = measurement.offsets + torch.where(torch.arange(len(measurement.offsets)) % 2 == 0, 40.0, -40.0)
+    moved = DipMeasurement(measurement.directions, measurement.profiles, measurement.slab_thickness, apart)
+    result, caught = _check(moved, operator, ball)
+    assert any("bound no region" in str(w.message) for w in caught) and result.verdict == "inconsistent"
