@@ -5,7 +5,9 @@ one ``error: ...`` line (exit 2, see :mod:`dipnet.jobs.cli`) before anything is 
 written, and a sweep job with a bad option fails instead of counting as finished. It refuses:
 
 * values out of range (``resolution=abc``, ``seed=-1``, ``snr_db=abc``, ``source.simulator.smooth=maybe``, an unknown mesh format,
-  ``output.report=true`` without the ``report`` extra), naming the option and the allowed values;
+  ``output.report=true`` without the ``report`` extra, ``symmetry={n_fold: 2.5}``, and the counts and sizes of a
+  ``_target_`` node by its target, :data:`TARGET_COUNTS`, e.g. ``solver.hidden_width=0``), naming the option and
+  the allowed values;
 * options no code reads: a key of a ``_target_`` node that its target does not take (following
   ``**options`` through :func:`~dipnet.core.keywords.forwards_to`), e.g. ``+operator.bogus_option=1``, and a key added
   with ``+`` anywhere else (``+n_dip=40`` for ``n_dips=40``);
@@ -18,17 +20,23 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from dipnet.calibration.self_calibration import SelfCalibrator
 from dipnet.core.keywords import accepted_keywords
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.preprocessing.sources import RecordedSource
+from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import check_snr_db
+from dipnet.solvers.implicit import ImplicitSolver
+from dipnet.solvers.optimize import OptimisationSolver
 
 #: Hydra's own keys of a ``_target_`` node (not arguments of the target).
 HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_convert_"})
+#: A key a config node does not set (``OmegaConf.select``'s default).
+_UNSET = object()
 #: Mesh formats of ``output.mesh_formats`` (:func:`dipnet.outputs.export.save_mesh`).
 MESH_FORMATS = ("ply", "stl", "obj")
 #: Options (or config groups) a source or planner does not read: ``(group, class it instantiates, its
@@ -38,6 +46,34 @@ IGNORED: tuple[tuple[str, type, str, tuple[str, ...], str], ...] = (
      "the recording fixes the dips, their directions, their noise and the object"),
     ("planner", AdaptivePlan, "planner=adaptive", ("n_dips", "orientations"),
      "the planner chooses the dips: set planner.budget"),
+)
+#: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
+SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")
+
+
+class Count(NamedTuple):
+    """An integer option: its lowest value, what it counts, and whether null (the target's choice) is allowed."""
+
+    low: int
+    meaning: str
+    nullable: bool = False
+
+
+#: Integer options of a ``_target_`` node, by its target (a class also covers its subclasses), wherever the
+#: node is (``solver``, ``solver.warm_start``, ``calibration.gain_solver``, ...), by their key below the node;
+#: a key the node does not set keeps the target's default.
+TARGET_COUNTS: tuple[tuple[Any, dict[str, Count]], ...] = (
+    (OptimisationSolver, {"iterations": Count(1, "optimisation steps"), "window": Count(1, "steps of the plateau test")}),
+    (ImplicitSolver, {"hidden_width": Count(1, "neurons per hidden layer"), "hidden_layers": Count(0, "hidden layers"),
+                      "output_upsample": Count(1, "fine samples per voxel and axis"),
+                      "warm_iterations": Count(0, "warm-start steps"), "encoding.levels": Count(1, "grid levels"),
+                      "encoding.features": Count(1, "features per level"),
+                      "encoding.base_resolution": Count(2, "coarsest cells per axis"),
+                      "encoding.max_resolution": Count(2, "finest cells per axis; null: the grid's", nullable=True),
+                      "encoding.n_features": Count(1, "random Fourier features"),
+                      "encoding.n_frequencies": Count(1, "frequencies per axis")}),
+    (SelfCalibrator, {"iterations": Count(1, "rounds of the joint shape + cross-section step")}),
+    (generated_shape, {"seed": Count(0, "which solid"), "mesh_resolution": Count(16, "marching-cubes cells per axis")}),
 )
 
 
@@ -78,10 +114,8 @@ def instantiates(cfg: DictConfig, group: str, cls: type) -> bool:
 
 def check_targets(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for a key of a ``_target_`` node that its target does not take."""
-    from hydra._internal.utils import _locate
-
     for path, node in _target_nodes(cfg):
-        target = _locate(str(node._get_node("_target_")._value()))
+        target = _located(node)
         accepted = accepted_keywords(target)
         if accepted is None:
             continue
@@ -143,6 +177,77 @@ def _integer(cfg: DictConfig, key: str, low: int, high: float = math.inf, *, nul
         raise ConfigError(f"{key} must be {kind}{upper}{' or null' if nullable else ''}{meaning}, got {value!r}")
 
 
+def _number(cfg: DictConfig, key: str, low: float = -math.inf, *, positive: bool = False, nullable: bool = False,
+            meaning: str = "") -> None:
+    """Raise :class:`ConfigError` unless option ``key`` is a finite number ``>= low`` (``> 0`` with ``positive``),
+    or null with ``nullable``."""
+    value = OmegaConf.select(cfg, key)
+    if value is None and nullable:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or value < low or (positive and not value > 0):
+        kind = "a positive number" if positive else "a finite number" if low == -math.inf else f"a number >= {low:g}"
+        raise ConfigError(f"{key} must be {kind}{' or null' if nullable else ''}{meaning}, got {value!r}")
+
+
+def _located(node: DictConfig) -> Any:
+    """The object a ``_target_`` node names."""
+    from hydra._internal.utils import _locate
+
+    return _locate(str(node._get_node("_target_")._value()))
+
+
+def _is_target(located: Any, target: Any) -> bool:
+    """Whether a located ``_target_`` is ``target`` (or a subclass of the class ``target``)."""
+    return located is target or (isinstance(located, type) and isinstance(target, type) and issubclass(located, target))
+
+
+def check_target_counts(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for an option of :data:`TARGET_COUNTS` below its lowest value or not an
+    integer (e.g. ``solver.hidden_width=0``, ``calibration.iterations=0``, ``shape.mesh_resolution=2``)."""
+    for path, node in _target_nodes(cfg):
+        located = _located(node)
+        for target, counts in TARGET_COUNTS:
+            if not _is_target(located, target):
+                continue
+            for key, count in counts.items():
+                if OmegaConf.select(node, key, default=_UNSET) is not _UNSET:
+                    _integer(cfg, f"{path}.{key}", count.low, nullable=count.nullable, meaning=f" ({count.meaning})")
+
+
+def check_self_calibration(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for a ``calibration=self`` option out of range (its counts:
+    :func:`check_target_counts`)."""
+    if not instantiates(cfg, "calibration", SelfCalibrator):
+        return
+    _number(cfg, "calibration.dip_offset_sigma_mm", positive=True, nullable=True,
+            meaning=" (mm, the prior of each dip's height offset; null: no offsets)")
+    _number(cfg, "calibration.max_section_change", positive=True, nullable=True,
+            meaning=" (relative change of the cross-section)")
+
+
+def check_symmetry(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for a ``symmetry`` that is not null or ``{n_fold, mirror, mirror_azimuth_deg,
+    tol_deg}`` with a positive integer, a boolean and numbers (:func:`~dipnet.preprocessing.symmetry.symmetry_group`)."""
+    spec = cfg.get("symmetry")
+    if spec is None:
+        return
+    if not isinstance(spec, DictConfig):
+        raise ConfigError(f"symmetry must be null or {{{', '.join(SYMMETRY_KEYS)}}}, e.g. "
+                          f"'{{n_fold: 3, mirror: true}}', got {spec!r}")
+    for key in spec.keys():
+        if key not in SYMMETRY_KEYS:
+            raise unknown_option(f"symmetry.{key}", SYMMETRY_KEYS, f"symmetry takes {', '.join(SYMMETRY_KEYS)}")
+    if "n_fold" in spec:
+        _integer(cfg, "symmetry.n_fold", 1, meaning=" (rotations about z)")
+    if "mirror" in spec and not isinstance(spec.mirror, bool):
+        raise ConfigError(f"symmetry.mirror must be true or false, got {spec.mirror!r}")
+    if "mirror_azimuth_deg" in spec:
+        _number(cfg, "symmetry.mirror_azimuth_deg", meaning=" (deg)")
+    if "tol_deg" in spec:
+        _number(cfg, "symmetry.tol_deg", 0, meaning=" (deg)")
+
+
 def check_grid_options(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for a bad ``ndim``, ``resolution``, ``n_dips``, ``n_slabs``,
     ``fill`` or ``extent_mm``."""
@@ -176,6 +281,9 @@ def check_values(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for an option of :file:`conf/config.yaml` out of its range."""
     check_grid_options(cfg)
     check_thresholds(cfg)
+    check_target_counts(cfg)
+    check_self_calibration(cfg)
+    check_symmetry(cfg)
     _integer(cfg, "seed", 0, 2.0 ** 32)
     _integer(cfg, "threads", 1, nullable=True)
     try:

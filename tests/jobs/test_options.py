@@ -51,6 +51,8 @@ def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: st
     (["planner=adaptive", "orientations=random"], "error: option orientations is ignored with planner=adaptive"),
     (["output.mesh_formats=[xyz]"], "error: output.mesh_formats must be a list of ply, stl, obj, got ['xyz']"),
     (["output.checkpoint_every=0"], "error: output.checkpoint_every must be a positive integer, got 0"),
+    (["calibration=self", "solver=voxel", "calibration.iterations=0"],
+     "error: calibration.iterations must be a positive integer (rounds of the joint shape + cross-section step), got 0"),
 ])
 @pytest.mark.slow
 def test_bad_options_are_refused_before_any_work(tmp_path, overrides, message):
@@ -109,6 +111,25 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
                              r"\(otsu, volume\), got 2.0"),
     ("solver.threshold=0", r"solver.threshold must be an occupancy level in \(0, 1\).*got 0"),
     ("solver=implicit_learned solver.warm_start.threshold=-1", r"solver.warm_start.threshold must be .*got -1"),
+    ("symmetry={n_fold:3,mirror:maybe}", "symmetry.mirror must be true or false, got 'maybe'"),
+    ("symmetry={n_fold:2.5}", r"symmetry.n_fold must be a positive integer \(rotations about z\), got 2.5"),
+    ("symmetry={n_fold:3,mirorr:true}", "unknown option symmetry.mirorr: .*did you mean symmetry.mirror"),
+    ("symmetry={tol_deg:-1}", r"symmetry.tol_deg must be a number >= 0 \(deg\), got -1"),
+    ("calibration=self calibration.dip_offset_sigma_mm=-1",
+     r"calibration.dip_offset_sigma_mm must be a positive number or null \(mm, .*got -1"),
+    ("calibration=self calibration.iterations=0", "calibration.iterations must be a positive integer .*got 0"),
+    ("calibration=self calibration.max_section_change=0", "calibration.max_section_change must be a positive number"),
+    ("solver=implicit solver.hidden_width=0",
+     r"solver.hidden_width must be a positive integer \(neurons per hidden layer\), got 0"),
+    ("solver=implicit solver.hidden_layers=-1", "solver.hidden_layers must be an integer >= 0 .*got -1"),
+    ("solver=implicit solver.encoding.levels=0", "solver.encoding.levels must be a positive integer .*got 0"),
+    ("solver=implicit ~solver.encoding +solver.encoding={type:positional,n_frequencies:0}",
+     "solver.encoding.n_frequencies must be a positive integer .*got 0"),
+    ("solver=voxel solver.iterations=2.5", "solver.iterations must be a positive integer .*got 2.5"),
+    ("solver=implicit_learned solver.warm_start.iterations=0", "solver.warm_start.iterations must be a positive"),
+    ("shape=generated shape.mesh_resolution=2",
+     r"shape.mesh_resolution must be an integer >= 16 \(marching-cubes cells per axis\), got 2"),
+    ("shape=generated shape.seed=-3", r"shape.seed must be an integer >= 0 \(which solid\), got -3"),
 ])
 def test_out_of_range_values_are_refused_by_check_config(override, message):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
@@ -117,7 +138,11 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
         check_config(cfg)
 
 
-@pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"]])
+@pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"],
+                                       ["symmetry={n_fold:3,mirror:true,mirror_azimuth_deg:-30,tol_deg:0}"],
+                                       ["calibration=self", "calibration.dip_offset_sigma_mm=0.5"],
+                                       ["solver=implicit", "solver.hidden_layers=0"],
+                                       ["shape=generated", "shape.seed=7", "shape.mesh_resolution=16"]])
 def test_occupancy_levels_and_named_threshold_rules_are_accepted(overrides):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
         check_config(compose(config_name="config", overrides=overrides))
