@@ -21,8 +21,10 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet.core.optional import optional_import
-from dipnet.jobs.options import check_config
+from dipnet.jobs.options import ConfigError, check_config, instantiates
 from dipnet.jobs.pipeline import run
+from dipnet.preprocessing.sources import RecordedSource
+from dipnet.preprocessing.truth import recorded_shape_spec
 
 log = logging.getLogger(__name__)
 
@@ -78,14 +80,29 @@ def run_trial(overrides: list[str], out: Path) -> float:
     return float(run(cfg, out).metrics.get("chamfer", math.nan))
 
 
+def check_ground_truth(cfg: DictConfig) -> None:
+    """Raise :class:`~dipnet.jobs.options.ConfigError` for a job with no ground truth to score: a recorded
+    source whose file names no shape (every file but a fake-rig scan, :mod:`dipnet.preprocessing.truth`)."""
+    if not instantiates(cfg, "source", RecordedSource):
+        return
+    path = cfg.source.reader.path
+    if recorded_shape_spec(path) is None:
+        raise ConfigError(f"source=recorded: {path} has no ground truth, and tuning scores each trial by its "
+                          "Chamfer distance to the truth: tune on a simulated source (source=simulated, the "
+                          "default) with a shape like the recorded object, e.g. shape=mesh shape.path=<its mesh>, "
+                          "then reconstruct the recording with the best options")
+
+
 def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]) -> None:
     """Raise ``ValueError`` (:class:`~dipnet.jobs.options.ConfigError`, a Hydra error) for a study that cannot
-    run: fewer than 1 trial, or a job option out of range or unknown (the overrides and every tuned option
-    at its ``low``), before any trial (else every trial would fail alike)."""
+    run: fewer than 1 trial, a job option out of range or unknown (the overrides and every tuned option
+    at its ``low``), or a job with no ground truth (:func:`check_ground_truth`), before any trial (else every
+    trial would fail alike)."""
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
         raise ValueError(f"the number of trials (--trials) must be a positive integer, got {n_trials!r}")
-    job = [*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.low!r}" for p in params)]
-    check_config(compose_job(job))
+    job = compose_job([*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.low!r}" for p in params)])
+    check_config(job)
+    check_ground_truth(job)
 
 
 def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_PARAMS,
@@ -125,7 +142,8 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
             log.warning("trial %d failed: %s: %s", trial.number, type(exc).__name__, exc)
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
-        if math.isnan(chamfer):
+        if math.isnan(chamfer):  # no ground truth to score against (see check_ground_truth)
+            (trial_dir / "error.txt").write_text("no Chamfer distance: the job has no ground truth\n")
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
         study.tell(trial, chamfer)

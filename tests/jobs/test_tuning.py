@@ -7,8 +7,12 @@ import json
 import pytest
 from omegaconf import OmegaConf
 
+from hydra import compose, initialize_config_module
+
 from dipnet.experiments import collect
 from dipnet.jobs import tuning
+from dipnet.jobs.scan import scan_from_config
+from dipnet.preprocessing.datasets import CATS_CSV
 from dipnet.jobs.tuning import Param
 from script_modules import load_script
 
@@ -77,3 +81,21 @@ def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, 
     assert not (tmp_path / "study").exists()
     with pytest.raises(ValueError, match="must be"):
         tuning.tune(tmp_path / "study", n_trials=int(argv[1]), overrides=argv[2:])
+
+
+def test_a_recorded_source_without_ground_truth_is_refused_before_any_trial(tmp_path, capsys, tune_script):
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "2", "--out", str(tmp_path / "study"), "source=recorded",
+                          f"source.reader.path={CATS_CSV}"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: source=recorded: {CATS_CSV} has no ground truth") and "source=simulated" in err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "study").exists()
+
+
+def test_a_fake_rig_scan_names_its_ground_truth_and_can_be_tuned_on(tmp_path):
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        scan_cfg = compose(config_name="scan", overrides=["n_dips=4", "protocol.step_mm=8", "fsync=false",
+                                                          "progress=false", "rig.fake.shape.name=ball"])
+    scan_from_config(scan_cfg, tmp_path / "rawscan.jsonl")
+    tuning.check_study(2, tuning.DEFAULT_PARAMS, ["source=recorded", f"source.reader.path={tmp_path / 'rawscan.jsonl'}"])
