@@ -18,8 +18,10 @@ when the measurement carries ``sigma``, else 0):
   (``(max - min) / median``) is reported; totals off the median by more than
   ``max(5 s_k, total_tol median)`` give a warning naming them (truncated dips do this too).
 * **duplicates**: directions within ``dup_deg`` of each other are reported. Such pairs measure
-  the same profile: when their totals differ by more than ``max(5 noise, total_tol V)`` a
-  warning gives the discrepancy. The profiles are kept (a least-squares solver averages them).
+  the same profile at the same heights: when their cumulative profiles (the volume below each
+  height, on the slabs' own heights) differ anywhere by more than ``max(5 noise, total_tol V)``, a
+  warning gives the discrepancy (a direction mislabelled, or repeated by mistake, measures another
+  profile with the same total). The profiles are kept (a least-squares solver averages them).
 
 Errors raise :class:`MeasurementValidationError` (one line, the first problem found);
 warnings go to the log and to :mod:`warnings`.
@@ -120,7 +122,7 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     _check_signs(prof, totals, sigma, neg_tol, source, report)
     _check_not_tiny(totals, grid, source)
     _check_totals(totals, noise, total_tol, source, report)
-    _check_duplicates(measurement.directions.numpy(), totals, noise, total_tol, dup_deg, source, report)
+    _check_duplicates(measurement, totals, noise, total_tol, dup_deg, source, report)
     for message in report.warnings:
         log.warning("%s", message)
         warnings.warn(message, stacklevel=2)
@@ -180,8 +182,20 @@ def _check_totals(totals, noise, total_tol: float, source: str, report: Validati
             f"{'...' if off.size > 8 else ''}): truncated dips, leaks or bad readings?")
 
 
-def _check_duplicates(directions, totals, noise, total_tol: float, dup_deg: float, source: str,
+def _cumulative_gap(measurement: DipMeasurement, i: int, j: int) -> float:
+    """The largest difference (mm^3) between the volumes below a height of dips ``i`` and ``j``, each
+    cumulative profile taken on its own slab heights (``offsets + h * m``) and linear in between."""
+    h = measurement.slab_thickness
+    edges = [float(measurement.offsets[k]) + h * np.arange(measurement.n_slabs + 1) for k in (i, j)]
+    heights = np.union1d(*edges)
+    below = [np.interp(heights, e, np.concatenate([[0.0], np.cumsum(measurement.profiles[k].double().numpy())]))
+             for e, k in zip(edges, (i, j))]
+    return float(np.abs(below[0] - below[1]).max())
+
+
+def _check_duplicates(measurement: DipMeasurement, totals, noise, total_tol: float, dup_deg: float, source: str,
                       report: ValidationReport) -> None:
+    directions = measurement.directions.double().numpy()
     unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     chord = 2.0 * math.sin(math.radians(dup_deg) / 2.0)
     pairs = np.array(sorted(cKDTree(unit).query_pairs(chord)), dtype=int).reshape(-1, 2)
@@ -190,13 +204,14 @@ def _check_duplicates(directions, totals, noise, total_tol: float, dup_deg: floa
         return
     i, j = pairs[:, 0], pairs[:, 1]
     scale = 0.5 * (totals[i] + totals[j])
-    gap = np.abs(totals[i] - totals[j])
+    gap = np.array([_cumulative_gap(measurement, a, b) for a, b in pairs])
     allowed = np.maximum(5.0 * np.hypot(noise[i], noise[j]), total_tol * scale)
     disagree = gap > allowed
     worst = int(np.argmax(gap / scale))
     report.stats["duplicate_max_discrepancy"] = float(gap[worst] / scale[worst])
     if disagree.any():
         report.warnings.append(
-            f"{source}: {int(disagree.sum())} pair(s) of directions within {dup_deg:g} deg measure different "
-            f"volumes (worst: dips {i[worst]} and {j[worst]}, {totals[i[worst]]:.4g} vs {totals[j[worst]]:.4g} "
-            f"mm^3, {gap[worst] / scale[worst]:.1%})")
+            f"{source}: {int(disagree.sum())} of {len(pairs)} pair(s) of directions within {dup_deg:g} deg measure "
+            f"different profiles (worst: dips {i[worst]} and {j[worst]}, whose volumes below a height differ by "
+            f"up to {gap[worst]:.4g} mm^3, {gap[worst] / scale[worst]:.1%} of {scale[worst]:.4g} mm^3): a direction "
+            "mislabelled, or the same direction recorded for different dips?")

@@ -229,7 +229,7 @@ def test_ten_identical_directions_with_different_profiles_warn(measurement):
     with pytest.warns(UserWarning) as record:
         report = validate_measurement(ten, GRID)
     messages = [str(w.message) for w in record]
-    assert any(re.search(r"45 pair\(s\) of directions within 0.5 deg measure different volumes", m) for m in messages)
+    assert any(re.search(r"45 of 45 pair\(s\) of directions within 0.5 deg measure different profiles", m) for m in messages)
     assert any(re.search(r"8 of 10 dip total\(s\) differ from the median", m) for m in messages)
     assert report.stats["duplicate_max_discrepancy"] == pytest.approx(0.6)
     assert report.stats["total_spread"] == pytest.approx(0.6, rel=1e-6)

@@ -51,3 +51,25 @@ def test_a_dip_measuring_less_is_named():
     with pytest.warns(UserWarning, match=r"dips \[3\]"):
         report = validate_measurement(_measurement(profiles), GRID)
     assert report.stats["totals_off"] == [3] and len(report.warnings) == 1
+
+
+def test_a_mislabelled_direction_is_named_by_its_profile_not_its_total():
+    """A ball 15 mm off the centre: every dip has the same total, so only the profiles tell directions apart.
+    Dip 0 given dip 5's direction (37 deg away) pairs with dip 5 and measures another profile: named. The
+    same dip recorded twice, once started a slab and a half lower (its profile on other heights), is not."""
+    directions = fibonacci_hemisphere(12)
+    centre = torch.tensor([15.0, 0.0, 0.0])
+    profiles = ball_profiles(directions, EDGES, centre, 20.0).numpy()
+    mislabelled = directions.clone()
+    mislabelled[0] = directions[5]
+    with pytest.warns(UserWarning, match=r"1 of 1 pair\(s\) of directions .* measure different profiles .* dips 0 and 5"):
+        report = validate_measurement(DipMeasurement(mislabelled, profiles, 100.0 / 16, np.full(12, -50.0)), GRID)
+    assert report.stats["duplicate_max_discrepancy"] > 0.2
+    h = 100.0 / 16
+    lower = torch.linspace(-50 - 1.5 * h, 50 - 1.5 * h, 17, dtype=torch.float64)
+    again = ball_profiles(directions[5:6], lower, centre, 20.0).numpy()
+    repeated = DipMeasurement(torch.cat([directions, directions[5:6]]), np.concatenate([profiles, again]), h,
+                              np.concatenate([np.full(12, -50.0), [-50.0 - 1.5 * h]]))
+    report = validate_measurement(repeated, GRID)
+    assert report.stats["duplicate_direction_pairs"] == 1 and report.warnings == []
+    assert report.stats["duplicate_max_discrepancy"] < 0.02
