@@ -41,6 +41,7 @@ silently: :func:`check_identity` compares it with the scan it is applied to.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -49,6 +50,7 @@ from typing import Any
 import yaml
 
 from dipnet.core.rawscan import ScanHeader
+from dipnet.core import strict_json
 from dipnet.core.geometry import GeometryError, RigGeometry
 
 FORMAT_NAME = "dipnet.rig_calibration"
@@ -105,7 +107,7 @@ def save_calibration(calibration: Calibration, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = calibration.to_dict()
-    text = json.dumps(data, indent=2) if path.suffix.lower() == ".json" else yaml.safe_dump(data, sort_keys=False)
+    text = strict_json.dumps(data, indent=2) if path.suffix.lower() == ".json" else yaml.safe_dump(data, sort_keys=False)
     path.write_text(text)
     return path
 
@@ -138,8 +140,8 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         raise CalibrationFileError(f"{path}: 'geometry' must be a mapping of rig geometry values")
     try:
         geometry = RigGeometry.from_dict(data["geometry"])
-        uncertainty = {str(k): float(v) for k, v in (data.get("uncertainty") or {}).items()}
-        intervals = {str(k): (float(v[0]), float(v[1])) for k, v in (data.get("intervals_90") or {}).items()}
+        uncertainty = {str(k): _number(v) for k, v in (data.get("uncertainty") or {}).items()}
+        intervals = {str(k): (_number(v[0]), _number(v[1])) for k, v in (data.get("intervals_90") or {}).items()}
         not_estimated = {str(k): str(v) for k, v in (data.get("not_estimated") or {}).items()}
     except (GeometryError, TypeError, ValueError, IndexError, KeyError, AttributeError) as exc:
         raise CalibrationFileError(f"{path}: {exc}") from exc
@@ -161,6 +163,11 @@ def _missing_keys(data: dict[str, Any]) -> list[str]:
         return []
     required = {f.name for f in fields(RigGeometry)} - _OPTIONAL_GEOMETRY
     return sorted(_KEYS - set(data)) + [f"geometry.{name}" for name in sorted(required - set(data["geometry"]))]
+
+
+def _number(value: Any) -> float:
+    """A number of the file; ``null`` (how strict JSON writes a non-finite one) reads as NaN: unknown."""
+    return math.nan if value is None else float(value)
 
 
 def check_identity(calibration: Calibration, rig: str | None, tank: str | None, source: str = "calibration") -> None:

@@ -8,7 +8,6 @@ job simulated, or a raw file prepared with the reader's options; its ``finish`` 
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Callable
@@ -17,6 +16,7 @@ from dipnet.calibration.model import to_calibration
 from dipnet.calibration.self_calibration import SelfCalibrator
 from dipnet.core.calibration_file import save_calibration, scan_tank
 from dipnet.core.grid import Grid
+from dipnet.core.strict_json import write_json
 from dipnet.preprocessing.sources import Recording
 
 log = logging.getLogger(__name__)
@@ -33,8 +33,8 @@ def self_calibration_job(calibration: SelfCalibrator, recording: Recording, grid
     save_calibration(to_calibration(result.geometry, report, raw.header.rig, str(tank),
                                     notes=f"self-calibration of {raw.path or 'a simulated scan'}"),
                      out / "rig_calibration.yaml")
-    (out / "self_calibration.json").write_text(json.dumps({**report.to_dict(), "history": result.history,
-                                                            "t0_mm": result.t0_mm}, indent=2))
+    write_json(out / "self_calibration.json", {**report.to_dict(), "history": result.history, "t0_mm": result.t0_mm},
+               indent=2)
     result.measurement.save(out / "measurement.npz")
     log.info("self-calibrated rig geometry:\n%s", report.table())
     return result.measurement, operator_factory(grid, result.measurement.directions, n_slabs), result.reconstruction

@@ -7,7 +7,6 @@ written into one output directory.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from dipnet.solvers.checkpoint import attach_checkpoint
 from dipnet.core.framing import extent_around
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
+from dipnet.core.strict_json import write_json
 from dipnet.core.rawscan import RawScan
 from dipnet.operators import backend_name
 from dipnet.jobs.options import ConfigError, check_config, check_grid_options, hydra_overrides
@@ -148,7 +148,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures), method,
                                         solver, int(cfg.output.get("uncertainty_samples") or 4), int(cfg.seed),
                                         float(cfg.output.get("uncertainty_iterations") or 1.0)))
-    (out / "metrics.json").write_text(json.dumps(scores, indent=2))
+    write_json(out / "metrics.json", scores, indent=2)
     stage("meshes and figures")
     write_outputs(cfg, out, measurement, operator, recon, truth, level, frame)
     if cfg.output.get("report"):
@@ -166,7 +166,7 @@ def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> N
     if raw is not None:
         raw.save(out / "rawscan.jsonl")
     if planning is not None:
-        (out / "planning.json").write_text(json.dumps(planning, indent=2))
+        write_json(out / "planning.json", planning, indent=2)
 
 
 def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:
@@ -209,7 +209,7 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
         plots.plot_slices(truth, recon.binary.astype(float), out / "slices.png", extent_mm=grid.extent,
                           truth_level=0.5 if level is None else level)
     if recon.history:
-        (out / "history.json").write_text(json.dumps(recon.history))
+        write_json(out / "history.json", recon.history)
         plots.plot_history(recon.history, out / "loss.png")
     if meshes:
         plots.plot_mesh([m for m, _ in meshes], out / "mesh.png", titles=[t for _, t in meshes])

@@ -16,7 +16,6 @@ status report the controller already parsed (``controller.last_status``); nothin
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import threading
@@ -24,6 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from dipnet.core.strict_json import dumps
 from dipnet.monitor.tail import journal_path
 
 #: Seconds between two status samples.
@@ -80,7 +80,7 @@ class MonitorJournal(logging.Handler):
         """Append one record (with the time) as one line."""
         if self._fd is None:
             return
-        line = json.dumps({**record, "time": time.time()}, default=str) + "\n"
+        line = dumps({**record, "time": time.time()}, default=str) + "\n"
         os.write(self._fd, line.encode("utf-8"))
 
     def emit(self, record: logging.LogRecord) -> None:

@@ -18,7 +18,6 @@ without it the answer is 403.
 # (no "from __future__ import annotations": FastAPI reads the endpoints' annotations, e.g. Request, at run time)
 import asyncio
 import hmac
-import json
 import secrets
 import socket
 import threading
@@ -28,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from dipnet.core.optional import optional_import
+from dipnet.core.strict_json import dumps
 from dipnet.monitor.state import snapshot, writer_alive
 from dipnet.monitor.tail import JournalTail, ScanTail
 
@@ -167,10 +167,10 @@ def make_app(monitor: Monitor, token: str | None = None):
             while not await request.is_disconnected():
                 if monitor.version != seen:
                     seen = monitor.version
-                    yield f"event: state\ndata: {json.dumps(monitor.state)}\n\n"
+                    yield f"event: state\ndata: {dumps(monitor.state)}\n\n"
                 if monitor.recon_version != seen_recon and monitor.recon_payload is not None:
                     seen_recon = monitor.recon_version
-                    yield f"event: recon\ndata: {json.dumps(monitor.recon_payload)}\n\n"
+                    yield f"event: recon\ndata: {dumps(monitor.recon_payload)}\n\n"
                 await asyncio.sleep(0.1)
 
         return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})

@@ -1,6 +1,7 @@
 """End-to-end: Hydra configs compose, the job runs, and bad input gets a one-line error."""
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -35,11 +36,16 @@ def test_config_groups_compose_and_instantiate(group, options):
         assert instantiate(cfg[group]) is not None
 
 
+def _not_json(word: str) -> None:
+    raise ValueError(f"metrics.json holds {word}, which is not JSON")
+
+
 def test_2d_end_to_end_reaches_the_iou_floor(tmp_path):
     result = run(_cfg("ndim=2", "resolution=128", "n_dips=20"), tmp_path)
     assert result.metrics["iou"] >= 0.95
-    saved = json.loads((tmp_path / "metrics.json").read_text())
+    saved = json.loads((tmp_path / "metrics.json").read_text(), parse_constant=_not_json)  # strict JSON
     assert saved["iou"] == pytest.approx(result.metrics["iou"])
+    assert all(saved[k] is None for k, v in result.metrics.items() if isinstance(v, float) and not math.isfinite(v))
     for name in ("reconstruction.npz", "measurement.npz", "rawscan.jsonl", "sinogram.png", "slices.png",
                  "profiles.png"):
         assert (tmp_path / name).stat().st_size > 0, name

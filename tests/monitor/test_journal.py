@@ -30,3 +30,16 @@ def test_the_journal_records_warnings_status_and_the_stop(tmp_path):
     tail.poll()
     assert tail.status["where"] == runner.where
     assert format_report(None) == ""
+
+
+def test_a_non_finite_number_is_journalled_as_strict_json_null(tmp_path):
+    scan = tmp_path / "rawscan.jsonl"
+    journal = MonitorJournal(scan)
+    journal.write({"type": "status", "stage_mm": float("nan")})
+    journal.close()
+
+    def refuse(word):
+        raise ValueError(f"not JSON: {word}")
+
+    (record,) = [json.loads(line, parse_constant=refuse) for line in journal_path(scan).read_text().splitlines()]
+    assert record["stage_mm"] is None
