@@ -12,12 +12,13 @@ weights were trained for, and how they were made); a JSON copy of ``meta`` sits 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from dipnet.core.strict_json import write_json
 
 WEIGHTS_FORMAT = "dipnet-occupancy-denoiser-1"
 #: The folder of the weights shipped in the package (see docs/guide/solvers.md, "Learned prior").
@@ -84,7 +85,7 @@ def save_weights(model: OccupancyDenoiser, path: str | Path, meta: dict) -> Path
     meta = {**meta, "channels": model.channels}
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     torch.save({"format": WEIGHTS_FORMAT, "state_dict": state, "meta": meta}, path)
-    path.with_suffix(".json").write_text(json.dumps(meta, indent=1, sort_keys=True) + "\n")
+    write_json(path.with_suffix(".json"), meta, indent=1, sort_keys=True)
     return path
 
 
