@@ -9,8 +9,10 @@ included), ``summary.csv`` and ``summary.md`` (mean ± std per solver x n_dips x
 failed/unfinished jobs), ``vs_dips.png`` (IoU and Chamfer vs dips, paper Fig. 13a),
 ``vs_snr.png`` (false positives / negatives vs SNR, Fig. 13b; only when a sweep has noise
 levels), ``montage.png`` (reconstructions vs dips, Figs. 10/11) and with ``--html``
-``report.html`` (plus each job's own ``report.html``). Exit status 2 when a directory holds
-no job, 1 when no job finished.
+``report.html`` (plus each job's own ``report.html``). Runs without a ground truth (recorded
+sources) have no IoU or Chamfer: they are compared on the profile residual, the reconstructed /
+measured volume ratio and the time (``vs_dips.png`` shows the first two). Exit status 2 when a
+directory holds no job, 1 when no job finished or none records a metric to compare.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or args.dirs[0] / "compare"
     out.mkdir(parents=True, exist_ok=True)
     rows = collect.run_rows(runs, root)
-    groups = collect.aggregate(rows, args.by)
+    metrics = collect.compared_metrics(rows)
+    groups = collect.aggregate(rows, args.by, metrics)
     tables.write_csv(rows, out / "runs.csv")
     problems = tables.markdown_problems(runs, root)
     n_ok = len(runs) - len(collect.problems(runs))
@@ -58,15 +61,26 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: no job in {', '.join(map(str, args.dirs))} finished (no metrics.json); "
               f"see {out / 'runs.csv'}", file=sys.stderr)
         return 1
+    if not any(f"{m}_mean" in g for g in groups for m in metrics):
+        print(f"error: the finished jobs record none of {', '.join(metrics)} in their metrics.json: "
+              f"nothing to compare; see {out / 'runs.csv'}", file=sys.stderr)
+        return 1
+    note = collect.truth_note(rows)
+    if note:
+        print(note)
     tables.write_csv(groups, out / "summary.csv")
-    table = tables.markdown_table(groups, args.by)
+    table = tables.markdown_table(groups, args.by, metrics)
     (out / "summary.md").write_text(table + ("\n" + problems if problems else ""))
     print(table, end="")
     written = [out / "runs.csv", out / "summary.csv", out / "summary.md"]
 
     labelled = collect.label_series(rows)
-    written.append(figures.plot_vs_dips(collect.aggregate(labelled, ("series", args.x)),
-                                            out / "vs_dips.png", line="series", x=args.x))
+    try:
+        written.append(figures.plot_vs_dips(collect.aggregate(labelled, ("series", args.x), metrics),
+                                            out / "vs_dips.png", metrics=collect.curve_metrics(metrics),
+                                            line="series", x=args.x))
+    except ValueError as exc:
+        print(f"skipping vs_dips.png: {exc}")
     if any(isinstance(r.get("snr_db"), float) for r in rows if r["status"] == "ok"):
         written.append(figures.plot_vs_snr(collect.aggregate(rows, ("solver", "snr_db")),
                                                out / "vs_snr.png"))

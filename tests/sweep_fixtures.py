@@ -31,15 +31,18 @@ def ball(grid: Grid, radius_mm: float) -> np.ndarray:
 
 
 def write_job(job: Path, *, solver: str, n_dips: int, snr_db: float | None, seed: int, metrics: dict | None,
-              ndim: int = 2, resolution: int = 16, error: str | None = None, shape: str = "disk") -> Path:
+              ndim: int = 2, resolution: int = 16, error: str | None = None, shape: str = "disk",
+              recording: str | None = None) -> Path:
     """One job directory: ``.hydra/{config,overrides,hydra}.yaml`` always; ``metrics.json``,
     ``reconstruction.npz``, ``measurement.npz`` (and ``truth.ply``/``reconstruction.ply`` in 3D)
-    when ``metrics`` is given; ``error.txt`` when ``error`` is given."""
+    when ``metrics`` is given; ``error.txt`` when ``error`` is given. ``recording``: the job read
+    that file (a recorded source: the configured ``shape`` is unused and not in the metrics)."""
     grid = Grid(resolution, ndim, 100.0)
     cfg = {"ndim": ndim, "resolution": resolution, "n_dips": n_dips, "n_slabs": None, "seed": seed,
            "snr_db": snr_db, "extent_mm": 100.0, "shape": {"_target_": "dipnet.shapes.builtin_shape", "name": shape},
            "solver": {"_target_": "dipnet.solvers.MinNormSolver", "method": solver},
-           "source": {"kind": "simulated", "simulator": {"sensor": {"snr_db": "${snr_db}"}}},
+           "source": {"kind": "simulated", "simulator": {"sensor": {"snr_db": "${snr_db}"}}} if recording is None
+           else {"_target_": "dipnet.preprocessing.sources.RecordedSource", "reader": {"path": recording}},
            "operator": {"_target_": "dipnet.operators.make_operator", "backend": "auto"}}
     overrides = [f"solver={solver}", f"n_dips={n_dips}", f"seed={seed}"]
     hydra = {"hydra": {"runtime": {"choices": {"solver": solver, "shape": "builtin"}}}}
@@ -58,8 +61,8 @@ def write_job(job: Path, *, solver: str, n_dips: int, snr_db: float | None, seed
             export.save_mesh(volume_to_mesh(truth.astype(np.float32), grid, 0.5), job / "truth.ply")
             export.save_mesh(volume_to_mesh(recon.astype(np.float32), grid, 0.5), job / "reconstruction.ply")
         full = {"solver": solver, "seconds": 0.1, "n_dips": n_dips, "resolution": resolution, "ndim": ndim,
-                "measured_volume_mm3": 1.0, "reconstructed_volume_mm3": 1.0, "shape": shape, "snr_db": snr_db,
-                **metrics}
+                "measured_volume_mm3": 1.0, "reconstructed_volume_mm3": 1.0, "snr_db": snr_db,
+                **({"shape": shape} if recording is None else {}), **metrics}
         (job / "metrics.json").write_text(json.dumps(full))
     if error is not None:
         (job / "error.txt").write_text(f"{error}\n\nTraceback (most recent call last): ...\n")

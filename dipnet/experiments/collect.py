@@ -16,15 +16,22 @@ log = logging.getLogger(__name__)
 
 ERROR_FILE = "error.txt"
 METRICS_FILE = "metrics.json"
+#: The stems of the recordings a run writes (``measurement.npz``, ``rawscan.jsonl``): a recorded
+#: source read from one is labelled with its run folder too (``base/measurement``).
+RUN_RECORDINGS = ("measurement", "rawscan")
 #: Default grouping of :func:`aggregate` (the paper's axes: method x budget x noise).
 GROUP_BY = ("solver", "n_dips", "snr_db")
 #: Metrics summarised by default, in table order (Chamfer/Hausdorff: truth bbox diagonals;
 #: false_positive/false_negative: fractions of voxels; seconds: solver wall time).
 METRICS = ("iou", "chamfer", "hausdorff", "volume_error", "false_positive", "false_negative", "seconds")
+#: Metrics of runs without a ground truth (recorded sources), in table order: the profile residual
+#: (relative), the reconstructed / measured volume and the solver wall time.
+DATA_METRICS = ("profile_residual", "volume_ratio", "seconds")
 LABELS = {"iou": "IoU", "chamfer": "Chamfer", "hausdorff": "Hausdorff", "volume_error": "volume error",
            "false_positive": "false positive", "false_negative": "false negative", "seconds": "seconds",
            "n_dips": "dips", "snr_db": "SNR (dB)", "solver": "solver", "shape": "shape",
-           "dips_percent": "% of dips", "series": "solver", "error_1_minus_iou": "1 - IoU"}
+           "dips_percent": "% of dips", "series": "solver", "error_1_minus_iou": "1 - IoU",
+           "profile_residual": "profile residual", "volume_ratio": "volume ratio"}
 
 
 
@@ -151,6 +158,12 @@ def _get(d: dict, dotted: str) -> Any:
 
 
 def _shape_label(config: dict) -> str | None:
+    """What a run reconstructs: a recorded source's file (its stem; the configured shape is not
+    used), else the configured shape's name or mesh file stem."""
+    recording = _get(config, "source.reader.path")
+    if recording is not None:
+        path = Path(str(recording))
+        return f"{path.parent.name}/{path.stem}" if path.stem in RUN_RECORDINGS else path.stem
     shape = config.get("shape") or {}
     if not isinstance(shape, dict):
         return str(shape)
@@ -277,6 +290,35 @@ def label_series(rows: Sequence[dict]) -> list[dict]:
         return f"{r.get('solver')} @ " + ("no noise" if snr is None else f"{snr:g} dB")
 
     return [{**r, "series": label(r)} for r in rows]
+
+
+def compared_metrics(rows: Sequence[dict]) -> tuple[str, ...]:
+    """The metrics to summarise the ok rows on: :data:`METRICS` when every one has a ground truth
+    (an ``iou`` entry), :data:`DATA_METRICS` when none has (recorded sources), both when some have."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    with_truth = sum("iou" in r for r in ok)
+    if with_truth == len(ok):
+        return METRICS
+    if not with_truth:
+        return DATA_METRICS
+    return tuple(m for m in METRICS if m not in DATA_METRICS) + DATA_METRICS
+
+
+def curve_metrics(metrics: Sequence[str]) -> tuple[str, str]:
+    """The two metrics of the error-vs-dips curves: IoU and Chamfer when ``metrics`` (from
+    :func:`compared_metrics`) has a truth's, else the profile residual and the volume ratio."""
+    return ("iou", "chamfer") if "iou" in metrics else ("profile_residual", "volume_ratio")
+
+
+def truth_note(rows: Sequence[dict]) -> str:
+    """One line on the ok rows without a ground truth (``""`` when every one has it)."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    without = sum("iou" not in r for r in ok)
+    if not without:
+        return ""
+    which = "these runs have" if without == len(ok) else f"{without} of {len(ok)} finished runs have"
+    return (f"{which} no ground truth (recorded sources), so no IoU or Chamfer: compared on the profile "
+            f"residual, the reconstructed / measured volume ratio and the time")
 
 
 def problems(runs: Sequence[Run]) -> list[Run]:

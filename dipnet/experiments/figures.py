@@ -56,7 +56,8 @@ def _errorbar_panels(groups: Sequence[dict], x: str, panels: Sequence[str], path
 
 def plot_vs_dips(groups: Sequence[dict], path: str | Path, *, metrics: Sequence[str] = ("iou", "chamfer"),
                  line: str = "solver", x: str = "n_dips") -> Path:
-    """IoU and Chamfer vs number of dips, one line per solver, mean ± std (paper Fig. 13a).
+    """IoU and Chamfer (or other ``metrics``) vs number of dips, one line per solver, mean ± std
+    (paper Fig. 13a).
 
     ``groups`` from :func:`aggregate` grouped by at least ``line`` and ``x`` (``x`` may be
     ``dips_percent``). Noisy and noise-free groups are separate points: filter the rows first
@@ -67,7 +68,7 @@ def plot_vs_dips(groups: Sequence[dict], path: str | Path, *, metrics: Sequence[
         raise ValueError(f"none of the metrics {list(metrics)} is in the aggregated groups")
     xlabel = "% of the dips a square system needs" if x == "dips_percent" else "number of dips"
     return _errorbar_panels(groups, x, panels, path, line=line, xlabel=xlabel, logx=True,
-                            title="reconstruction error vs number of dips")
+                            title=" and ".join(LABELS.get(m, m) for m in panels) + " vs number of dips")
 
 
 def plot_vs_snr(groups: Sequence[dict], path: str | Path, *,
@@ -184,7 +185,7 @@ def plot_montage(runs: Sequence[Run], path: str | Path, *, row_key: str | Sequen
     for run in order:
         with np.load(run.path / "reconstruction.npz") as data:
             volumes[run.path] = np.asarray(data["binary"], dtype=bool)
-    reference = max(order, key=lambda run: run.metrics.get("iou", -1.0))  # the first of the best
+    reference = max(order, key=lambda run: run.metrics.get("iou") or -1.0)  # the first of the best (null: none)
     ref = volumes[reference.path]
     images = {p: render_volume(v, cut=True) for p, v in volumes.items()}
     (r0, c0), (r1, c1) = _box(np.any([im > 0 for im in images.values()], axis=0))

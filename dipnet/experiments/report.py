@@ -377,19 +377,22 @@ def _relative(target: Path, start: Path) -> str:
 def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Path | None = None,
                        by: Sequence[str] = GROUP_BY, images: Sequence[str | Path] = ()) -> Path:
     """Write the comparison page of a sweep: summary table (mean ± std per ``by`` group),
-    interactive IoU / Chamfer vs dips and FP / FN vs SNR curves, the given PNG ``images``
+    interactive IoU / Chamfer vs dips (runs without a truth: profile residual / volume ratio,
+    :func:`~dipnet.experiments.collect.compared_metrics`) and FP / FN vs SNR curves, the given PNG ``images``
     (e.g. the montage), and every job with its status and a link to its own page."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     root = Path(root) if root is not None else path.parent
     rows = collect.run_rows(runs, root)
-    groups = collect.aggregate(rows, by)
+    metrics = collect.compared_metrics(rows)
+    groups = collect.aggregate(rows, by, metrics)
     n_ok = sum(r.status == "ok" for r in runs)
+    note = collect.truth_note(rows)
     sections = [("summary", f"<p>{n_ok} of {len(runs)} jobs finished.</p>"
-                 + _groups_table(groups, by))]
+                 + (f"<p class=note>{html.escape(note)}</p>" if note else "") + _groups_table(groups, by, metrics))]
     if any("n_dips" in g for g in groups) and "n_dips" in by:
         sections.append(("error vs number of dips",
-                         _figure_html(curves_figure(groups, "n_dips", ("iou", "chamfer")), "vs-dips")))
+                         _figure_html(curves_figure(groups, "n_dips", collect.curve_metrics(metrics)), "vs-dips")))
     if "snr_db" in by and any(isinstance(g.get("snr_db"), (int, float)) for g in groups):
         metrics = [m for m in ("false_positive", "false_negative") if any(f"{m}_mean" in g for g in groups)] or ["iou"]
         sections.append(("error vs SNR", _figure_html(curves_figure(groups, "snr_db", metrics, log_x=False), "vs-snr")))
@@ -404,8 +407,8 @@ def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Pat
     return path
 
 
-def _groups_table(groups: Sequence[dict], by: Sequence[str]) -> str:
-    present = [m for m in METRICS if any(f"{m}_mean" in g for g in groups)]
+def _groups_table(groups: Sequence[dict], by: Sequence[str], metrics: Sequence[str] = METRICS) -> str:
+    present = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
     head = "".join(f"<th class=l>{collect.LABELS.get(k, k)}</th>" for k in by) + "<th>runs</th>" + \
         "".join(f"<th>{collect.LABELS.get(m, m)}</th>" for m in present)
     body = []

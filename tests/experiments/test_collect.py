@@ -106,3 +106,39 @@ def test_label_series_adds_noise_only_when_it_varies():
     rows = [{"status": "ok", "solver": "a", "snr_db": None}, {"status": "ok", "solver": "a", "snr_db": 30.0}]
     assert [r["series"] for r in collect.label_series(rows)] == ["a @ no noise", "a @ 30 dB"]
     assert [r["series"] for r in collect.label_series(rows[:1])] == ["a"]
+
+
+def test_a_recorded_run_is_labelled_by_its_recording_not_the_unused_shape(tmp_path):
+    torus = write_job(tmp_path / "0", solver="lsqr", n_dips=4, snr_db=None, seed=0, shape="chamber_box",
+                      recording="/data/torus_scan.npz", metrics={"profile_residual": 0.1, "volume_ratio": 1.0})
+    cats = write_job(tmp_path / "1", solver="lsqr", n_dips=4, snr_db=None, seed=0, shape="chamber_box",
+                     recording="/data/real/3cats_fixture_3mm.csv", metrics={"profile_residual": 0.2})
+    rerun = write_job(tmp_path / "2", solver="lsqr", n_dips=4, snr_db=None, seed=0, shape="chamber_box",
+                      recording="/runs/base/measurement.npz", metrics={"profile_residual": 0.2})
+    assert [collect.run_row(collect.load_run(j))["shape"] for j in (torus, cats, rerun)] == \
+        ["torus_scan", "3cats_fixture_3mm", "base/measurement"]
+
+
+def test_runs_without_a_truth_are_compared_on_what_they_record():
+    truth = {"status": "ok", "iou": 0.9, "chamfer": 0.01, "profile_residual": 0.1}
+    recorded = {"status": "ok", "profile_residual": 0.1, "volume_ratio": 1.0}
+    assert collect.compared_metrics([truth, {"status": "failed"}]) == collect.METRICS
+    assert collect.truth_note([truth]) == ""
+    assert collect.compared_metrics([recorded]) == collect.DATA_METRICS == ("profile_residual", "volume_ratio",
+                                                                             "seconds")
+    assert collect.curve_metrics(collect.DATA_METRICS) == ("profile_residual", "volume_ratio")
+    assert collect.truth_note([recorded]).startswith("these runs have no ground truth")
+    mixed = collect.compared_metrics([truth, recorded])
+    assert mixed[:2] == ("iou", "chamfer") and mixed[-3:] == collect.DATA_METRICS
+    assert collect.truth_note([truth, recorded]).startswith("1 of 2 finished runs have no ground truth")
+
+
+def test_null_metrics_of_strict_json_are_read_as_no_value(tmp_path):
+    """metrics.json writes a non-finite number as null (dipnet.core.strict_json): rows and groups skip it."""
+    for i, iou in enumerate((0.5, None, 0.7)):
+        write_job(tmp_path / str(i), solver="lsmr", n_dips=4, snr_db=None, seed=i,
+                  metrics={"iou": iou, "chamfer": None, "hull_fill": None})
+    rows = collect.run_rows(collect.collect_runs(tmp_path))
+    assert [r["status"] for r in rows] == ["ok"] * 3 and rows[1]["iou"] is None
+    (g,) = collect.aggregate(rows, by=("solver",))
+    assert g["runs"] == 3 and g["iou_mean"] == pytest.approx(0.6) and "chamfer_mean" not in g

@@ -65,3 +65,34 @@ def test_compare_cli_errors_on_empty_and_unfinished_dirs(tmp_path):
     assert proc.returncode == 1
     assert "0 of 2 jobs finished" in proc.stdout and "no job in" in proc.stderr
     assert proc.stderr.count("\n") == 1                               # one line
+
+
+def test_a_sweep_of_recordings_is_compared_without_a_truth(tmp_path, capsys):
+    sweep = tmp_path / "sw"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text("hydra: {}\n")
+    for i, solver in enumerate(("minnorm", "lsqr")):
+        write_job(sweep / str(i), solver=solver, n_dips=8, snr_db=None, seed=0, ndim=3, shape="chamber_box",
+                  recording="/data/torus.npz", metrics={"profile_residual": 0.1 + i, "volume_ratio": 1.1})
+    out = tmp_path / "cmp"
+    assert _load_compare().main([str(sweep), "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "these runs have no ground truth (recorded sources), so no IoU or Chamfer" in printed
+    assert (out / "summary.md").read_text().startswith(
+        "| solver | dips | SNR (dB) | runs | profile residual | volume ratio | seconds |")
+    assert is_png(out / "vs_dips.png") and is_png(out / "montage.png")
+    with (out / "runs.csv").open() as f:
+        assert {row["shape"] for row in csv.DictReader(f)} == {"torus"}
+
+
+def test_a_sweep_with_nothing_to_compare_is_one_error_line(tmp_path):
+    sweep = tmp_path / "sw"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text("hydra: {}\n")
+    job = write_job(sweep / "0", solver="lsqr", n_dips=8, snr_db=None, seed=0, recording="/data/torus.npz",
+                    metrics={})
+    (job / "metrics.json").write_text('{"solver": "lsqr"}')
+    proc = _compare_cli(str(sweep))
+    assert proc.returncode == 1
+    assert proc.stderr.startswith("error: the finished jobs record none of profile_residual, volume_ratio, seconds")
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr

@@ -47,3 +47,13 @@ def test_the_montage_titles_and_marks_the_differences(tmp_path, monkeypatch):
     assert titles[0] == f"n_dips=4\nIoU 0.750 · {differ} voxels differ"
     assert titles[2] == "n_dips=16\nIoU 0.938 · reference"          # the best IoU is the reference
     assert len(figs[0].axes[0].images) == 2 and len(figs[0].axes[2].images) == 1   # differences drawn over cell 0
+
+
+def test_a_null_iou_of_strict_json_is_no_reference(tmp_path, monkeypatch):
+    for i, (n, iou) in enumerate(((4, None), (8, 0.8))):
+        write_job(tmp_path / str(i), solver="minnorm", n_dips=n, snr_db=None, seed=0, ndim=3, resolution=16,
+                  metrics={"iou": iou})
+    figs = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, path: figs.append(fig) or path)
+    figures.plot_montage(collect.collect_runs(tmp_path), tmp_path / "m.png")
+    assert figs[0].axes[1].get_title().endswith("\nIoU 0.800 · reference")

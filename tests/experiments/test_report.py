@@ -86,6 +86,15 @@ def test_sweep_page_links_the_runs_and_lists_failures(sweep, tmp_path):
     assert "2 of 3 jobs finished" in text and "ValueError: boom" in text and 'id="vs-dips"' in text
 
 
+def test_sweep_page_of_recordings_shows_what_they_record(tmp_path):
+    for i, solver in enumerate(("minnorm", "lsqr")):
+        write_job(tmp_path / "sw" / str(i), solver=solver, n_dips=8, snr_db=None, seed=0, recording="/data/torus.npz",
+                  metrics={"profile_residual": 0.1, "volume_ratio": 1.1})
+    text = report.write_sweep_report(collect.collect_runs(tmp_path / "sw"), tmp_path / "report.html").read_text()
+    assert "these runs have no ground truth (recorded sources)" in text
+    assert "<th>profile residual</th><th>volume ratio</th><th>seconds</th>" in text and 'id="vs-dips"' in text
+
+
 def _render(page: Path, tmp_path: Path) -> dict:
     """Load a probed copy of ``page`` in headless Chromium; the probe's JSON."""
     probed = page.parent / f"probed_{page.name}"                      # beside the page: its plotly.min.js loads
