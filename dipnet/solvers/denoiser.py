@@ -12,6 +12,7 @@ weights were trained for, and how they were made); a JSON copy of ``meta`` sits 
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import torch
@@ -122,11 +123,15 @@ def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dic
     """``(model in eval mode, meta)`` from a weights file or shipped name (see :func:`weights_path`).
 
     Raises:
-        PriorWeightsError: the file is missing, unreadable, or not a dipnet denoiser.
+        PriorWeightsError: the file is missing, unreadable, not a dipnet denoiser, or holds a NaN or
+            infinite value.
     """
     path = existing_weights_path(path)
     try:
         saved = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:  # torch's message advises weights_only=False: unsafe for a foreign file
+        raise PriorWeightsError(f"learned-prior weights {path} are not a dipnet denoiser weights file (format "
+                                f"{WEIGHTS_FORMAT}): torch cannot read it as saved tensors") from exc
     except Exception as exc:  # torch raises many types for a damaged file
         raise PriorWeightsError(f"learned-prior weights {path} are unreadable ({type(exc).__name__}: {exc})") from exc
     if not isinstance(saved, dict) or saved.get("format") != WEIGHTS_FORMAT:
@@ -141,4 +146,15 @@ def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dic
         model.load_state_dict(saved["state_dict"])
     except (KeyError, RuntimeError, TypeError, ValueError) as exc:
         raise PriorWeightsError(f"learned-prior weights {path} do not fit the denoiser: {exc}") from exc
+    bad = nonfinite_tensors(model)
+    if bad:
+        raise PriorWeightsError(f"learned-prior weights {path}: tensor {bad[0]} holds NaN or infinite values"
+                                f"{f' (and {len(bad) - 1} more)' if len(bad) > 1 else ''}: damaged, or saved from a "
+                                "diverged training; retrain them (scripts/train_prior.py, a lower --lr)")
     return model.eval(), meta
+
+
+def nonfinite_tensors(model: nn.Module) -> list[str]:
+    """The names of ``model``'s parameters and buffers holding a NaN or infinite value (state-dict order)."""
+    return [name for name, value in model.state_dict().items()
+            if value.is_floating_point() and not bool(torch.isfinite(value).all())]

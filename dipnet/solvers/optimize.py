@@ -256,6 +256,11 @@ class EmptySupportError(ValueError):
     """The data's support hull holds no voxel: the profiles are inconsistent with one object on the grid."""
 
 
+class DivergedError(FloatingPointError, ValueError):
+    """The loss of an optimisation became NaN or infinite (a learning rate too large for the problem);
+    a ``ValueError`` so that the command line reports it in one line."""
+
+
 def _envelope(columns: torch.Tensor, slope: torch.Tensor, offset: torch.Tensor, chunk: int, upper: bool
               ) -> torch.Tensor:
     """Upper (``max_k``) or lower (``min_k``) envelope of the planes ``offset_k + columns . slope_k``
@@ -331,6 +336,9 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
 
     Returns:
         History ``{"loss": total, "data": ..., <prior name>: unweighted value, ...}`` per step.
+
+    Raises:
+        DivergedError: the loss became NaN or infinite (naming ``desc``, the step and ``lr``).
     """
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
@@ -386,7 +394,8 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
                 bar.set_postfix({k: f"{v[-1]:.3g}" for k, v in history.items()}, refresh=False)
             bar.update()
             if not math.isfinite(history["loss"][-1]):
-                raise FloatingPointError(f"{desc}: the loss became {history['loss'][-1]} at step {i}")
+                raise DivergedError(f"{desc}: the loss became {history['loss'][-1]} at step {i + 1} of {iterations} "
+                                    f"(learning rate {lr:g}): the optimisation diverged; try a lower solver.lr")
             done = plateaued(history["loss"], tol, window) or i == iterations - 1
             if checkpoint is not None:
                 checkpoint.save(desc, fingerprint, i + 1, flat, opt, sched, history, done)

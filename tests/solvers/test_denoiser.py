@@ -48,8 +48,13 @@ def test_missing_corrupt_and_foreign_files_get_one_named_error(tmp_path):
         load_weights(tmp_path / "nothing.pt")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"\x00garbage" * 100)
-    with pytest.raises(PriorWeightsError, match="unreadable"):
+    with pytest.raises(PriorWeightsError, match=r"bad\.pt are not a dipnet denoiser weights file") as err:
         load_weights(bad)
+    assert "weights_only" not in str(err.value)  # torch's advice to load a foreign file unsafely is not passed on
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(save_weights(OccupancyDenoiser(2), tmp_path / "whole.pt", META).read_bytes()[:500])
+    with pytest.raises(PriorWeightsError, match="unreadable"):
+        load_weights(cut)
     foreign = tmp_path / "foreign.pt"
     torch.save({"weights": torch.zeros(3)}, foreign)
     with pytest.raises(PriorWeightsError, match="not a dipnet denoiser"):
@@ -60,6 +65,18 @@ def test_missing_corrupt_and_foreign_files_get_one_named_error(tmp_path):
     torch.save(saved, good)
     with pytest.raises(PriorWeightsError, match="do not fit"):
         load_weights(good)
+
+
+def test_weights_holding_nan_or_inf_are_refused_naming_the_file_and_tensor(tmp_path):
+    """Weights that load but hold a NaN (a diverged training) would make every solve's loss NaN: refused at load."""
+    net = OccupancyDenoiser(2)
+    with torch.no_grad():
+        net.up0[0].bias[1] = float("nan")
+        net.out.weight.fill_(float("inf"))
+    path = save_weights(net, tmp_path / "nan.pt", META)
+    with pytest.raises(PriorWeightsError, match=r"weights .*nan\.pt: tensor up0\.0\.bias holds NaN or infinite "
+                                                r"values \(and 1 more\).*lower --lr"):
+        load_weights(path)
 
 
 def test_shipped_weights_load_without_network():

@@ -89,6 +89,19 @@ def test_a_solver_given_dips_that_share_no_voxel_says_so():
         VoxelSolver(iterations=5, progress=False).solve(m, make_operator(grid, m.directions, grid.n))
 
 
+def test_a_diverging_optimisation_is_one_named_user_error():
+    """A loss that becomes infinite (here at the second step: the occupancy ``exp(1000 x)`` from ``x = -0.01``,
+    after Adam's first step of the learning rate 1 up where the disc is) raises ``DivergedError``, a
+    ``ValueError`` (one ``error:`` line on the command line) naming the stage, the step and the learning rate."""
+    op, occ, target, _ = correlated_problem()
+    x = torch.full_like(occ, -0.01, requires_grad=True)
+    with pytest.raises(ValueError, match=r"my stage: the loss became (inf|nan) at step 2 of 9 \(learning rate 1\)"
+                       r".*diverged; try a lower solver.lr") as err:
+        optimize.optimise([x], lambda: (1e3 * x).exp(), DataTerm(op, target), [], iterations=9, lr=1.0,
+                          progress=False, desc="my stage")
+    assert isinstance(err.value, optimize.DivergedError)
+
+
 def correlated_problem(seed: int = 0):
     """A 2D operator, a disc's occupancy and profiles ``g`` (empty slabs at both ends), slab sigmas."""
     grid = Grid(16, 2)
