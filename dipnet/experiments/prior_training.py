@@ -121,7 +121,8 @@ NOISE_MODELS = ("independent", "correlated")
 
 
 class TrainConfigError(ValueError):
-    """A training option is out of range (:class:`TrainConfig`), or the weights to start from do not fit."""
+    """A training option is out of range (:class:`TrainConfig`), the weights to start from do not fit, or
+    the training diverged (a learning rate too large)."""
 
 
 def _seed_range(name: str, seeds) -> None:
@@ -198,6 +199,14 @@ def validation_loss(model: OccupancyDenoiser, inputs: torch.Tensor, targets: tor
     return float(F.mse_loss(out, targets)), float(F.mse_loss(inputs, targets))
 
 
+def check_diverged(what: str, value: float, step: int, config: TrainConfig, largest: float = math.inf) -> None:
+    """Raise :class:`TrainConfigError` when ``value`` (the ``what`` loss at ``step``, a mean squared error of
+    occupancies) is NaN, infinite or above ``largest``: the training diverged, and nothing of it may be saved."""
+    if not (math.isfinite(value) and value <= largest):
+        raise TrainConfigError(f"training diverged: the {what} loss became {value:.3g} at step {step} of "
+                               f"{config.steps} (lr {config.lr:g}); no weights or checkpoint written: try a lower --lr")
+
+
 def same_run(saved: dict, config: TrainConfig) -> bool:
     """Whether a checkpoint's config ``saved`` is ``config``'s run, up to ``steps`` and ``max_minutes``
     (a resumed run may go on longer). A field ``saved`` lacks (a checkpoint older than the field)
@@ -221,7 +230,12 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
           workers: int = 1) -> dict:
     """Train (or continue) and write the weights to ``out`` (``.pt`` + ``.json``); the checkpoint
     is ``out.with_suffix(".ckpt")``; missing training pairs are made by ``workers`` processes.
-    Returns the weights' meta (losses, steps, seconds)."""
+    Returns the weights' meta (losses, steps, seconds).
+
+    Raises:
+        TrainConfigError: a bad option or starting weights, or a loss that became NaN or infinite, or a
+            validation loss above 1 (before any weights or checkpoint of the diverged network are written).
+    """
     if config.init_weights is not None:
         _initial_model(config)  # weights that are missing, damaged or of another size: an error before the pairs
     out = Path(out)
@@ -261,6 +275,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
             x, y = random_batch(inputs, targets, config.batch, config.crop, generator)
             opt.zero_grad(set_to_none=True)
             loss = F.mse_loss(model(x), y)
+            check_diverged("training", loss.item(), step + 1, config)
             loss.backward()
             opt.step()
             sched.step()
@@ -270,6 +285,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
             if step % config.checkpoint_every == 0 or step == config.steps:
                 model.eval()
                 val, baseline = validation_loss(model, val_in, val_target)
+                check_diverged("validation", val, step, config, largest=1.0)  # worse than any volume in [0, 1]
                 model.train()
                 history["val"].append([step, val, baseline])
                 seconds = time.perf_counter() - started

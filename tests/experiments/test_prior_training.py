@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dipnet.experiments.prior_training import STAGE2, TrainConfig, random_batch, same_run, train
-from dipnet.solvers.denoiser import SHIPPED_DIR, load_weights
+from dipnet.solvers.denoiser import SHIPPED_DIR, OccupancyDenoiser, load_weights, save_weights
 
 from script_modules import load_script
 
@@ -168,11 +168,15 @@ def test_the_second_stage_can_be_fine_tuned_from_itself_with_the_first_stage_rou
     (["--snr-db", "1e308"], r"snr_db must be a number of dB in \[-20, 200\]"),
     (["--family-seeds", "organic", "5", "5"], "--family-seeds organic 5 5: FIRST and STOP must be whole numbers"),
     (["--meshes", "none.ply"], "--meshes: no such file: none.ply"),
-    (["--init-weights", "{tmp}/bad.pt"], "learned-prior weights .*bad.pt are unreadable"),
+    (["--init-weights", "{tmp}/bad.pt"], r"learned-prior weights .*bad.pt are not a dipnet denoiser weights file"),
+    (["--init-weights", "{tmp}/nan.pt"], r"learned-prior weights .*nan.pt: tensor down0.0.weight holds NaN"),
 ])
 def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
     """Every bad option or weights file: ``error: ...`` in one line, exit code 2, before any pair or weights file."""
     (tmp_path / "bad.pt").write_bytes(b"not weights")
+    nan = OccupancyDenoiser(TINY.channels)
+    torch.nn.init.constant_(nan.down0[0].weight, float("nan"))
+    save_weights(nan, tmp_path / "nan.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
     script = load_script("train_prior")
     argv = [a.format(tmp=tmp_path) for a in argv]
     with pytest.raises(SystemExit) as exit_:
@@ -180,3 +184,22 @@ def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, arg
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
     assert not (tmp_path / "w.pt").exists() and not (tmp_path / "pairs").exists()
+
+
+def test_a_diverging_training_writes_nothing_and_says_to_lower_the_learning_rate(tmp_path, capsys):
+    """``--lr 1e12``: the validation loss becomes 2.6e+23 (a NaN or infinite one with more channels); one
+    ``error:`` line naming the step and ``--lr``, exit 2, and neither weights nor a checkpoint of the diverged
+    network: an earlier run's files stay as they were."""
+    cache, out = tmp_path / "pairs", tmp_path / "w.pt"
+    train(dataclasses.replace(TINY, steps=3), out, cache, progress=False)
+    before = {path: path.read_bytes() for path in (out, out.with_suffix(".ckpt"))}
+    argv = ["--out", str(out), "--cache", str(cache), "--no-progress", "--lr", "1e12", "--n", "16", "--dips", "8",
+            "--solver-iterations", "10", "--channels", "2", "--steps", "6", "--batch", "2", "--crop", "8",
+            "--checkpoint-every", "3", "--train-seeds", "5000", "5002", "--val-seeds", "5002", "5003"]
+    with pytest.raises(SystemExit) as exit_:
+        load_script("train_prior").main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1, err
+    assert re.match(r"error: training diverged: the (training|validation) loss became \S+ at step \d of 6 "
+                    r"\(lr 1e\+12\); no weights or checkpoint written: try a lower --lr", err), err
+    assert all(path.read_bytes() == data for path, data in before.items())
