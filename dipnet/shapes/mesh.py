@@ -172,7 +172,7 @@ def from_trimesh(
     if len(mesh.faces) == 0 or not np.isfinite(mesh.vertices).all():
         raise ShapeError(f"mesh {where} has no faces or non-finite vertices")
     problems: list[str] = []
-    mesh = _repair(mesh, problems)
+    mesh = _repair(mesh, problems, where)
     if len(mesh.faces) == 0:
         raise ShapeError(f"mesh {where} has only degenerate faces: no volume to fill")
     with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by zero volumes
@@ -203,6 +203,9 @@ def from_trimesh(
 
 #: A repaired mesh whose volume differs from its inside test's by more than this fraction is refused.
 REPAIR_VOLUME_TOL = 0.2
+#: A mesh whose holes' rims leave more than this fraction of its volume uncertain is refused (a truth that
+#: uncertain cannot judge a reconstruction, whose volume the consistency check holds to 5 %).
+HOLE_VOLUME_TOL = 0.05
 
 
 def _check_repair(shape: MeshShape, where: str) -> None:
@@ -217,8 +220,28 @@ def _check_repair(shape: MeshShape, where: str) -> None:
             "pieces, fix the normals) and load it again")
 
 
-def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> trimesh.Trimesh:
-    """Cheap repairs (in place where possible), appending what was wrong to ``problems``."""
+def _rim_hull_volume(mesh: trimesh.Trimesh) -> float:
+    """The summed volume (mm^3) of the convex hulls of the mesh's hole rims (its loops of boundary
+    edges): how far apart two fills of the holes can enclose, e.g. the two triangulations of a
+    square hole bent over an edge of a box (a planar rim has none)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    edges = mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
+    total = 0.0
+    for loop in trimesh.graph.connected_components(edges, min_len=4):
+        try:
+            total += float(ConvexHull(mesh.vertices[loop]).volume)
+        except QhullError:  # a flat rim: every fill encloses the same
+            pass
+    return total
+
+
+def _repair(mesh: trimesh.Trimesh, problems: list[str], where: str) -> trimesh.Trimesh:
+    """Cheap repairs (in place where possible), appending what was wrong to ``problems``.
+
+    Raises:
+        ShapeError: the holes' rims leave the volume uncertain by more than ``HOLE_VOLUME_TOL``.
+    """
     mesh.merge_vertices()  # STL files repeat every vertex: not a problem worth a warning
     n_f = len(mesh.faces)
     mesh.update_faces(mesh.nondegenerate_faces())
@@ -239,11 +262,19 @@ def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> trimesh.Trimesh:
         n_open = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
         n_f = len(mesh.faces)
         optional_import("networkx", extra="repair", purpose="filling the holes of a mesh that is not watertight")
+        ambiguous = _rim_hull_volume(mesh)
         trimesh.repair.fill_holes(mesh)
         filled = len(mesh.faces) - n_f
         msg = f"not watertight ({n_open} boundary edges)"
         if filled:
             msg += f", filled small holes with {filled} faces"
+        if ambiguous > 0:
+            share = ambiguous / abs(_enclosed_volume(mesh))
+            msg += (f"; the holes' rims leave {share:.1%} of its volume uncertain ({ambiguous:.4g} mm^3 in the file's "
+                    "units, the convex hulls of the rims: another fill of a hole bent over an edge encloses "
+                    "that much more or less)")
+            if share > HOLE_VOLUME_TOL:
+                raise ShapeError(f"mesh {where}: {msg}: close its holes in a mesh editor and load it again")
         if not mesh.is_watertight:
             left = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
             msg += f", {left} boundary edges remain (inside test by winding numbers)"

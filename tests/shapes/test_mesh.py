@@ -153,3 +153,22 @@ def test_file_errors_name_the_file(tmp_path):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ShapeWarning)
                 load_mesh(path)
+
+
+def test_a_hole_bent_over_an_edge_is_refused_and_a_flat_one_filled():
+    """A 40 x 30 x 20 box without the two triangles that meet at one of its 40 mm edges: its square hole is
+    bent over that edge, and the two ways to fill it enclose 24000 or 20000 mm^3; their difference, the
+    hull of the rim (40 x 30 x 20 / 6 = 4000 mm^3, 20 % of the filled box), is named and refused. Without
+    one triangle the rim is flat, every fill is the same, and the box keeps its 24000 mm^3."""
+    box = trimesh.creation.box(extents=[40.0, 30.0, 20.0])
+    edge = np.array(box.face_adjacency_edges)[~np.isclose(box.face_adjacency_angles, 0.0)]
+    long_edge = next(e for e in edge if abs(np.ptp(box.vertices[e][:, 0])) == 40.0)
+    pair = [i for i, f in enumerate(box.faces) if set(long_edge) <= set(f)]
+    bent = trimesh.Trimesh(box.vertices, np.delete(box.faces, pair, axis=0), process=False)
+    with pytest.raises(ShapeError, match=r"the holes' rims leave 20.0% of its volume uncertain \(4000 mm\^3"):
+        from_trimesh(bent, name="bent")
+    flat = trimesh.Trimesh(box.vertices, np.delete(box.faces, pair[:1], axis=0), process=False)
+    with pytest.warns(ShapeWarning, match="filled small holes") as record:
+        shape = from_trimesh(flat, name="flat")
+    assert "uncertain" not in str(record[0].message)
+    assert shape.volume == pytest.approx(24000.0, rel=1e-9)
