@@ -172,12 +172,17 @@ def from_trimesh(
     if len(mesh.faces) == 0 or not np.isfinite(mesh.vertices).all():
         raise ShapeError(f"mesh {where} has no faces or non-finite vertices")
     problems: list[str] = []
-    mesh = _repair(mesh, problems, where)
+    mesh, ambiguous = _repair(mesh, problems)
     if len(mesh.faces) == 0:
         raise ShapeError(f"mesh {where} has only degenerate faces: no volume to fill")
     with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by zero volumes
         mesh, notes = _orient_shells(mesh, fill_sealed_voids, problems)
         volume = abs(mesh.volume)
+    uncertain = ambiguous / volume if volume > 0 else 0.0
+    if ambiguous > 0:
+        problems.append(f"its holes' rims leave {uncertain:.1%} of its volume uncertain ({ambiguous:.4g} mm^3 in the "
+                        "file's units, the convex hulls of the rims: another fill of a hole bent over an edge "
+                        "encloses that much more or less)")
     size = float(np.ptp(mesh.vertices, axis=0).max())
     if not volume > 1e-9 * size**3:
         raise ShapeError(f"mesh {where} encloses no volume (flat, open or empty surface)")
@@ -194,6 +199,11 @@ def from_trimesh(
     shape.frame_offset = factor * shift
     if problems:
         _check_repair(shape, where)
+        if uncertain > HOLE_VOLUME_TOL:
+            raise ShapeError(f"mesh {where}: not watertight, and its holes' rims leave {uncertain:.1%} of its volume "
+                             f"uncertain (more than {HOLE_VOLUME_TOL:.0%}: the convex hulls of the rims, how much two "
+                             "fills of a hole bent over an edge can differ): close its holes in a mesh editor and load "
+                             "it again")
         tail = "" if mesh.is_watertight else "; volumes and dips are approximate"
         shape._warn(f"mesh {where}: " + "; ".join(problems) + tail)
     for note in notes:
@@ -223,25 +233,32 @@ def _check_repair(shape: MeshShape, where: str) -> None:
 def _rim_hull_volume(mesh: trimesh.Trimesh) -> float:
     """The summed volume (mm^3) of the convex hulls of the mesh's hole rims (its loops of boundary
     edges): how far apart two fills of the holes can enclose, e.g. the two triangulations of a
-    square hole bent over an edge of a box (a planar rim has none)."""
-    from scipy.spatial import ConvexHull, QhullError
+    square hole bent over an edge of a box (a planar rim has none). A loop whose every vertex lies
+    within 1 % of its size of another loop's is a crack between pieces, not a hole, and counts nothing."""
+    from scipy.spatial import ConvexHull, QhullError, cKDTree
 
     edges = mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
+    loops = [np.asarray(loop) for loop in trimesh.graph.connected_components(edges, min_len=4)]
     total = 0.0
-    for loop in trimesh.graph.connected_components(edges, min_len=4):
+    for k, loop in enumerate(loops):
+        others = np.concatenate([other for j, other in enumerate(loops) if j != k] or [np.zeros(0, dtype=int)])
+        points = mesh.vertices[loop]
+        if len(others):
+            gap, _ = cKDTree(mesh.vertices[others]).query(points)
+            if gap.max() <= 0.01 * np.ptp(points, axis=0).max():
+                continue
         try:
-            total += float(ConvexHull(mesh.vertices[loop]).volume)
+            total += float(ConvexHull(points).volume)
         except QhullError:  # a flat rim: every fill encloses the same
             pass
     return total
 
 
-def _repair(mesh: trimesh.Trimesh, problems: list[str], where: str) -> trimesh.Trimesh:
-    """Cheap repairs (in place where possible), appending what was wrong to ``problems``.
-
-    Raises:
-        ShapeError: the holes' rims leave the volume uncertain by more than ``HOLE_VOLUME_TOL``.
-    """
+def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> tuple[trimesh.Trimesh, float]:
+    """Cheap repairs (in place where possible), appending what was wrong to ``problems``; returns the
+    repaired mesh and the volume its holes' rims leave uncertain (:func:`_rim_hull_volume`; 0 for a
+    watertight mesh)."""
+    ambiguous = 0.0
     mesh.merge_vertices()  # STL files repeat every vertex: not a problem worth a warning
     n_f = len(mesh.faces)
     mesh.update_faces(mesh.nondegenerate_faces())
@@ -268,18 +285,11 @@ def _repair(mesh: trimesh.Trimesh, problems: list[str], where: str) -> trimesh.T
         msg = f"not watertight ({n_open} boundary edges)"
         if filled:
             msg += f", filled small holes with {filled} faces"
-        if ambiguous > 0:
-            share = ambiguous / abs(_enclosed_volume(mesh))
-            msg += (f"; the holes' rims leave {share:.1%} of its volume uncertain ({ambiguous:.4g} mm^3 in the file's "
-                    "units, the convex hulls of the rims: another fill of a hole bent over an edge encloses "
-                    "that much more or less)")
-            if share > HOLE_VOLUME_TOL:
-                raise ShapeError(f"mesh {where}: {msg}: close its holes in a mesh editor and load it again")
         if not mesh.is_watertight:
             left = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
             msg += f", {left} boundary edges remain (inside test by winding numbers)"
         problems.append(msg)
-    return mesh
+    return mesh, ambiguous
 
 
 def _orient_shells(

@@ -165,7 +165,7 @@ def test_a_hole_bent_over_an_edge_is_refused_and_a_flat_one_filled():
     long_edge = next(e for e in edge if abs(np.ptp(box.vertices[e][:, 0])) == 40.0)
     pair = [i for i, f in enumerate(box.faces) if set(long_edge) <= set(f)]
     bent = trimesh.Trimesh(box.vertices, np.delete(box.faces, pair, axis=0), process=False)
-    with pytest.raises(ShapeError, match=r"the holes' rims leave 20.0% of its volume uncertain \(4000 mm\^3"):
+    with pytest.raises(ShapeError, match=r"holes' rims leave 20.0% of its volume uncertain \(more than 5%"):
         from_trimesh(bent, name="bent")
     flat = trimesh.Trimesh(box.vertices, np.delete(box.faces, pair[:1], axis=0), process=False)
     with pytest.warns(ShapeWarning, match="filled small holes") as record:
