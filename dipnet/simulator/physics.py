@@ -323,6 +323,17 @@ def _expect(name: str, value: object, cls: type) -> object:
                      f"{cls.__module__}.{cls.__name__ if cls is not SensorModel else 'LevelSensor'}, ...}}")
 
 
+def _check_quantum(sensor: SensorModel, tank: Tank, volume: float) -> None:
+    """Refuse a sensor whose quantum is at least the object's whole reading change (``volume`` mm^3
+    over ``tank``): every reading of a dip would round to one or two levels."""
+    rise = float(np.ptp(sensor.ideal(tank, np.array([0.0, volume]))))
+    if sensor.quantum > 0 and sensor.quantum >= rise:
+        unit = sensor.quantity.rsplit("_", 1)[-1]
+        raise ValueError(f"the sensor's quantum ({sensor.quantum:g} {unit}) is at least the whole change the object "
+                         f"makes in its reading ({rise:.3g} {unit}, its volume over the tank's section): every dip "
+                         "would read one level; lower the sensor's quantum or use a smaller tank")
+
+
 def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: SensorModel | None = None,
                   protocol: DipProtocol | None = None, geometry: RigGeometry | None = None,
                   seed: int | None = None, progress: bool = True) -> RawScan:
@@ -362,6 +373,7 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
     t0 = -(radius + protocol.clearance_mm + max(0.0, float(shift.max())))
     t_start = t0 + shift
     true_tank = replace(tank, cross_section_mm2=geometry.area(tank.cross_section_mm2))
+    _check_quantum(sensor, true_tank, float(shape.volume))
     n = int(np.ceil((radius - t_start.min()) / (protocol.step_mm * geometry.step_scale) - 1e-9)) + 1 \
         + protocol.extra_steps
     check_simulation(shape, len(dirs), n, protocol.step_mm)

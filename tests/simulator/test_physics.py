@@ -134,3 +134,15 @@ def test_a_tank_without_its_class_is_named():
     with pytest.raises(ValueError, match=r"the simulator's tank must be a Tank, got dict .*_target_: "
                                          r"dipnet.simulator.physics.Tank"):
         simulate_scan(BALL, DIRS, tank={"cross_section_mm2": 100.0}, progress=False)
+
+
+def test_a_quantum_as_large_as_the_whole_rise_is_refused():
+    """The 40 mm ball (268,083 mm^3) raises the default tank's level by a few mm: a 5 mm quantum would round
+    every reading of a dip to one or two levels (the audit's 'profile 0 sums to 0'); it is refused, naming
+    the rise. A quantum of a tenth of the rise is only coarse."""
+    rise = float(np.ptp(LevelSensor().ideal(Tank(), np.array([0.0, BALL.volume]))))
+    assert 1.0 < rise < 10.0
+    with pytest.raises(ValueError, match=rf"quantum \({2 * rise:g} mm\) is at least the whole change .* \({rise:.3g} mm"):
+        simulate_scan(BALL, DIRS[:2], sensor=LevelSensor(quantum_mm=2 * rise), progress=False)
+    coarse = simulate_scan(BALL, DIRS[:2], sensor=LevelSensor(quantum_mm=0.1 * rise), progress=False)
+    assert np.ptp(coarse.orientations[0].values) > 0.5 * rise
