@@ -120,6 +120,10 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
     return pairs
 
 
+#: Fewer readings per dip than this give no profile worth the robot's time (one slab or none).
+MIN_READINGS_PER_DIP = 4
+
+
 @dataclass
 class ScanPlan:
     """Where and how to dip.
@@ -146,8 +150,8 @@ class ScanPlan:
 
     Raises:
         ValueError: a plan that cannot be run: steps, a negative ``retries`` or ``settle_s``, a stop below the tank bottom, or more than
-            :data:`~dipnet.core.memory.MAX_READINGS_PER_DIP` readings per orientation (the message names
-            the ``protocol`` option and the limit; nothing has moved).
+            :data:`~dipnet.core.memory.MAX_READINGS_PER_DIP` or fewer than :data:`MIN_READINGS_PER_DIP` readings per
+            orientation (the message names the ``protocol`` option and the limit; nothing has moved).
     """
 
     orientations: list[tuple[float, float]]
@@ -185,6 +189,10 @@ class ScanPlan:
             raise ValueError(f"protocol.stop_mm={self.stop_mm:g} lowers the object onto the tank bottom: at most "
                              f"{self.max_lower_mm:.4g} mm ({self.max_lower_source}); nothing moved")
         n = (self.stop_mm - self.start_mm) / self.step_mm + 1
+        if n < MIN_READINGS_PER_DIP:
+            raise ValueError(f"protocol.step_mm={self.step_mm:g} plans {math.floor(n + 1e-9):.0f} reading(s) per "
+                             f"orientation from start_mm {self.start_mm:g} to stop_mm {self.stop_mm:g}: a dip's "
+                             f"profile needs at least {MIN_READINGS_PER_DIP}; use a smaller step; nothing moved")
         if n > MAX_READINGS_PER_DIP:
             raise ValueError(f"protocol.stop_mm={self.stop_mm:g} (start_mm {self.start_mm:g}, step_mm "
                              f"{self.step_mm:g}) plans {n:,.0f} readings per orientation: at most "

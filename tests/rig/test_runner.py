@@ -101,3 +101,13 @@ def test_kill_and_resume_equals_uninterrupted(world, tmp_path):
 def test_a_negative_retries_or_settle_time_is_refused_before_anything_moves(protocol, message):
     with pytest.raises(ValueError, match=message):
         ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0, **protocol)
+
+
+def test_a_step_that_leaves_a_dip_fewer_than_four_readings_is_refused_before_anything_moves():
+    """The audit's protocol.step_mm=200 over a 30 mm dip read once per orientation and finished with exit 0;
+    a plan of fewer than MIN_READINGS_PER_DIP readings is refused, naming the option. Four are enough."""
+    from dipnet.rig.runner import MIN_READINGS_PER_DIP
+
+    with pytest.raises(ValueError, match=r"protocol.step_mm=200 plans 1 reading\(s\) per orientation .* at least 4"):
+        ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=200.0)
+    assert len(ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0).stages()) == MIN_READINGS_PER_DIP == 4

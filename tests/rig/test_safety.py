@@ -384,7 +384,7 @@ def test_soft_limit_check_sees_the_short_way_round(meshes_dir, tmp_path):
     axes = {"tilt": {"letter": "A", "sign": -1}, "spin": {"letter": "B", "sign": -1, "wrap": 360.0}}
     limited = make_world(meshes_dir, "softwrap", axes=axes, grbl_settings={20: 1})
     plan = ScanPlan(plan_orientations("grid", tilts=[30.0], spins=[10.0, 195.0]), start_mm=0.0, stop_mm=30.0,
-                    step_mm=15.0, origin_height_mm=50.0)
+                    step_mm=10.0, origin_height_mm=50.0)
     for wrap in (360.0, None):
         runner = make_runner(limited, "grbl", "level", plan, tmp_path / f"scan-{wrap}.jsonl")
         runner.controller = GrblController(limited.url("grbl"), {**axes, "spin": {**axes["spin"], "wrap": wrap}},
