@@ -11,15 +11,15 @@ written, and a sweep job with a bad option fails instead of counting as finished
 * options no code reads: a key of a ``_target_`` node that its target does not take (following
   ``**options`` through :func:`~dipnet.core.keywords.forwards_to`), e.g. ``+operator.bogus_option=1``, and a key added
   with ``+`` anywhere else (``+n_dip=40`` for ``n_dips=40``);
-* options the chosen source or planner ignores (:data:`IGNORED`, by the class the group instantiates),
-  e.g. ``n_dips`` or ``planner=adaptive`` with ``source=recorded``.
+* options the chosen source, planner or ``ndim`` ignores (:data:`IGNORED`), e.g. ``n_dips`` or
+  ``planner=adaptive`` with ``source=recorded``, and ``reach`` with ``ndim=2``.
 """
 
 from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NamedTuple
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -39,13 +39,16 @@ HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_conv
 _UNSET = object()
 #: Mesh formats of ``output.mesh_formats`` (:func:`dipnet.outputs.export.save_mesh`).
 MESH_FORMATS = ("ply", "stl", "obj")
-#: Options (or config groups) a source or planner does not read: ``(group, class it instantiates, its
-#: command-line choice, ignored options, why)``.
-IGNORED: tuple[tuple[str, type, str, tuple[str, ...], str], ...] = (
-    ("source", RecordedSource, "source=recorded", ("n_dips", "orientations", "snr_db", "shape", "reach"),
+#: Options (or config groups) a choice does not read: ``(the choice as typed, whether a config makes it,
+#: ignored options, why)``.
+IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], ...] = (
+    ("source=recorded", lambda cfg: instantiates(cfg, "source", RecordedSource),
+     ("n_dips", "orientations", "snr_db", "shape", "reach"),
      "the recording fixes the dips, their directions, their noise and the object"),
-    ("planner", AdaptivePlan, "planner=adaptive", ("n_dips", "orientations"),
+    ("planner=adaptive", lambda cfg: instantiates(cfg, "planner", AdaptivePlan), ("n_dips", "orientations"),
      "the planner chooses the dips: set planner.budget"),
+    ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("reach",),
+     "a reach is the 3D rig's tilt and spin range; 2D dips are angles in the plane, set by n_dips and orientations"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")
@@ -138,7 +141,7 @@ def _inside_target(cfg: DictConfig, key: str) -> bool:
 
 def check_overrides(cfg: DictConfig, overrides: Sequence[str], groups: Sequence[str] = ()) -> None:
     """Raise :class:`ConfigError` for a command-line override no code reads: a key added with ``+``
-    outside a ``_target_`` node, an option the chosen source or planner ignores (:data:`IGNORED`),
+    outside a ``_target_`` node, an option the chosen source, planner or ``ndim`` ignores (:data:`IGNORED`),
     or ``planner=adaptive`` with ``source=recorded``.
 
     Args:
@@ -158,8 +161,8 @@ def check_overrides(cfg: DictConfig, overrides: Sequence[str], groups: Sequence[
     if instantiates(cfg, "source", RecordedSource) and instantiates(cfg, "planner", AdaptivePlan):
         raise ConfigError("planner=adaptive is ignored with source=recorded: the recording's dips are fixed; plan "
                           "a scan dip by dip on the rig (scripts/scan.py +planner=adaptive) or with simulated dips")
-    for group, cls, choice, ignored, why in IGNORED:
-        if not instantiates(cfg, group, cls):
+    for choice, chosen, ignored, why in IGNORED:
+        if not chosen(cfg):
             continue
         for o in parsed:
             if o.key_or_group.split(".")[0] in ignored and not o.is_delete():

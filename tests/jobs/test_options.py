@@ -138,6 +138,16 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
         check_config(cfg)
 
 
+
+def test_reach_is_refused_in_2d():
+    """A reach is the 3D rig's tilt and spin: in 2D it was ignored (directions over 0-180 deg, exit 0)."""
+    overrides = ["ndim=2", "reach=authors_rig"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    with pytest.raises(ConfigError, match=r"option reach is ignored with ndim=2 \(a reach is the 3D rig's tilt"):
+        check_config(cfg, overrides, ["reach"])
+    check_config(cfg, ["ndim=2"], ["reach"])  # the default reach (not typed) is fine
+
 @pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"],
                                        ["symmetry={n_fold:3,mirror:true,mirror_azimuth_deg:-30,tol_deg:0}"],
                                        ["calibration=self", "calibration.dip_offset_sigma_mm=0.5"],
