@@ -67,6 +67,11 @@ NUISANCES = ("t0_mm", "shift_x_mm", "shift_y_mm", "shift_z_mm")
 START_MODEL_SD_MM = 0.06
 #: Search grid of the nonlinear parameters: half-width and step (the calibrated range).
 SEARCH = {"tilt_zero_deg": (6.0, 0.5), "spin_zero_deg": (6.0, 1.0), "step_scale": (0.05, 0.005)}
+#: The fewest spare conditions (the dips' moment conditions less the unknowns, :func:`spare_conditions`) the
+#: moment stage needs: with none the moments are fitted exactly at any grid point near the truth, and every
+#: bootstrap refit of the same few dips returns that point (6 dips of an unknown object: a tilt zero 4.5 deg
+#: off with an interval of +-0.02 deg).
+MIN_SPARE_CONDITIONS = 3
 #: A parameter is determined when the half-width of its 90% interval is below this.
 TOLERANCE = {"pivot_mm": 2.5, "tilt_axis_offset_mm": 1.5, "tilt_zero_deg": 0.5, "spin_zero_deg": 0.5,
              "step_scale": 0.005, "t0_mm": 1.0, "cross_section_mm2": 0.10, "level_drift_mm_per_s": 2e-5}
@@ -401,6 +406,14 @@ class MomentModel:
     def residual(self, nonlinear: dict[str, float]) -> np.ndarray:
         r1, r2, *_ = self.solve(nonlinear)
         return np.concatenate([r1 / self.weights[0], r2 / self.weights[1], self.prior_residual / self.weights[0]])
+
+
+def spare_conditions(n_dips: int, free: tuple[str, ...], known: KnownObject | None) -> int:
+    """The moment conditions of ``n_dips`` dips (two each: the volume's mean height and spread) less the
+    unknowns: the ``free`` parameters and, for an unknown object (``known`` ``None``), its centroid (3) and
+    covariance (6); for a reference object off the spin axis its distance from the axis (1)."""
+    unknowns = len(free) + (9 if known is None else int(known.radial() is not None))
+    return 2 * int(n_dips) - unknowns
 
 
 def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObject | None = None,

@@ -12,8 +12,8 @@ import torch
 
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
                                       State, _check_params, _warn_undetermined)
-from dipnet.calibration.moments import (GAUGE_REASONS, TOLERANCE, DipMoments, KnownObject, dip_moments, fit_drift,
-                                       fit_moments)
+from dipnet.calibration.moments import (GAUGE_REASONS, MIN_SPARE_CONDITIONS, TOLERANCE, DipMoments, KnownObject,
+                                       dip_moments, fit_drift, fit_moments, spare_conditions)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
@@ -75,6 +75,16 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
             else {}
     free = tuple(p for p in params if p in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "spin_zero_deg",
                                             "step_scale") and p not in gauges)
+    spare = spare_conditions(len(moments.k), free, known)
+    if free and spare < MIN_SPARE_CONDITIONS:  # fitted exactly: any estimate, every interval collapsed
+        unknowns = 2 * len(moments.k) - spare
+        needed = math.ceil((unknowns + MIN_SPARE_CONDITIONS) / 2)
+        why = (f"{len(moments.k)} complete dips give {2 * len(moments.k)} moment conditions for {unknowns} unknowns"
+               f"{' (the object' + chr(39) + 's centroid and spread among them)' if known is None else ''}, fewer "
+               f"than {MIN_SPARE_CONDITIONS} to spare to tell the rig from the noise: dip at least {needed} "
+               "orientations")
+        gauges.update({p: why for p in free})
+        free = ()
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
                                                      "spin_zero_deg", "step_scale")}
     joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm,
