@@ -14,9 +14,10 @@ disk) removes its temporary file and warns; the solve goes on without that check
 Reading never runs code from the file (``torch.load(..., weights_only=True)``: tensors, numbers,
 strings, lists and dicts only) and checks what it read: the record's keys, the parameters'
 shapes and dtypes, the step count, and the problem it was made for (the fingerprint: step count,
-optimiser, parameter shapes, measured data, grid and operator). A checkpoint that cannot be
-read (truncated, empty, foreign bytes) or does not fit is ignored with one warning naming the
-file, and that stage starts afresh: a damaged checkpoint never blocks a rerun.
+optimiser, parameter shapes, measured data, grid and operator, and the solver's options,
+:func:`solver_settings`). A checkpoint that cannot be read (truncated, empty, foreign bytes) or
+does not fit is ignored with one warning naming the file (and the options that differ, when
+those are what differs), and that stage starts afresh: a damaged checkpoint never blocks a rerun.
 
 Adam and the schedules are deterministic, so a resumed solve gives the same result as an
 uninterrupted one (to rounding).
@@ -24,20 +25,27 @@ uninterrupted one (to rounding).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import pickle
 import re
 import warnings
+from collections.abc import Mapping, Sequence
 from contextlib import suppress
 from pathlib import Path
+from typing import Any
 
 import torch
+
+from dipnet.solvers.base import Solver
 
 log = logging.getLogger(__name__)
 
 #: The fields of a checkpoint record.
 FIELDS = frozenset({"fingerprint", "step", "done", "params", "optimizer", "scheduler", "history"})
+#: Solver attributes that do not change the optimisation, so :func:`solver_settings` leaves them out.
+UNRECORDED = frozenset({"progress", "checkpoint", "threshold"})
 
 
 class Checkpoint:
@@ -125,8 +133,14 @@ def _check_state(state, fingerprint: dict, params: list[torch.Tensor]) -> str | 
     if not isinstance(state, dict) or set(state) != FIELDS:
         keys = sorted(map(str, state)) if isinstance(state, dict) else type(state).__name__
         return f"it is not a dipnet checkpoint (fields {keys})"
-    if state["fingerprint"] != fingerprint:
-        return "it was made for another problem (grid, operator, measured data or solver settings differ)"
+    recorded = state["fingerprint"]
+    if recorded != fingerprint:
+        same_problem = isinstance(recorded, dict) and set(recorded) == set(fingerprint) and all(
+            recorded[key] == value for key, value in fingerprint.items() if key != "options")
+        if not same_problem:
+            return "it was made for another problem (grid, operator, measured data or solver settings differ)"
+        differences = _differences(recorded["options"], fingerprint["options"])
+        return f"it was made with other solver options ({'; '.join(differences)} (recorded -> now))"
     saved, step, history = state["params"], state["step"], state["history"]
     if not (isinstance(saved, list) and len(saved) == len(params) and all(
             isinstance(s, torch.Tensor) and s.shape == p.shape and s.dtype == p.dtype
@@ -140,6 +154,48 @@ def _check_state(state, fingerprint: dict, params: list[torch.Tensor]) -> str | 
     if not isinstance(state["optimizer"], dict):
         return "it holds no optimiser state"
     return None
+
+
+def solver_settings(solver: Solver) -> dict[str, Any]:
+    """The options of ``solver`` that shape its optimisation, as what a checkpoint can hold
+    (numbers, strings, lists, dicts): ``{"class": class name, attribute: value, ...}``, a nested
+    solver (a warm start) as its own settings, a tensor as its shape and sum, another object as its
+    class name. Left out: fitted state (names ending in ``_``) and :data:`UNRECORDED`."""
+    return {"class": type(solver).__name__, **{name: _recordable(value) for name, value in vars(solver).items()
+                                               if name not in UNRECORDED and not name.startswith("_")
+                                               and not name.endswith("_")}}
+
+
+def _recordable(value: Any) -> Any:
+    """``value`` as plain numbers, strings, lists and dicts (see :func:`solver_settings`)."""
+    if isinstance(value, Solver):
+        return solver_settings(value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _recordable(dataclasses.asdict(value))
+    if isinstance(value, Mapping):
+        return {str(k): _recordable(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return [_recordable(v) for v in value]
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, torch.Tensor):
+        return f"tensor {list(value.shape)} sum {float(value.double().sum())!r}"
+    return type(value).__qualname__
+
+
+def _differences(recorded: Any, now: Any) -> list[str]:
+    """The options that differ between two :func:`solver_settings` records, as
+    ``"solver.<dotted name> <recorded> -> <now>"`` (``None``: not set)."""
+    before, after = _leaves(recorded, "solver"), _leaves(now, "solver")
+    return [f"{name} {before.get(name)!r} -> {after.get(name)!r}" for name in sorted(set(before) | set(after))
+            if before.get(name) != after.get(name)]
+
+
+def _leaves(value: Any, key: str) -> dict[str, Any]:
+    """``{dotted key: value}`` of every leaf of ``value`` (itself when it is not a non-empty dict)."""
+    if not isinstance(value, dict) or not value:
+        return {key: value}
+    return {k: v for name, child in value.items() for k, v in _leaves(child, f"{key}.{name}").items()}
 
 
 def _unreadable(file: Path, exc: Exception) -> str:

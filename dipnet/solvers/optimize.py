@@ -37,6 +37,7 @@ from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
 from dipnet.solvers.base import Solver, filled_slabs, measured_profiles
+from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
@@ -313,7 +314,8 @@ def plain(value):
 def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: DataTerm, priors: Priors, *,
              iterations: int, lr: float, optimizer: str = "adam", schedule: str = "cosine",
              tol: float = 1e-5, window: int = 25, progress: bool = True, desc: str = "optimise",
-             before_step: Callable[[float], None] | None = None, checkpoint=None) -> dict[str, list[float]]:
+             before_step: Callable[[float], None] | None = None, checkpoint=None,
+             options: Mapping | None = None) -> dict[str, list[float]]:
     """Minimise ``data(o) + sum weight * prior(o)`` over ``parameters``, with ``o = occupancy()``.
 
     Args:
@@ -333,6 +335,8 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
             (annealing hooks).
         checkpoint: a :class:`~dipnet.solvers.checkpoint.Checkpoint`: resume this stage (``desc``) from
             it and save to it as the steps go.
+        options: the settings that shaped this stage beyond the arguments here (the solver's,
+            :func:`~dipnet.solvers.checkpoint.solver_settings`); a checkpoint made with others is not resumed.
 
     Returns:
         History ``{"loss": total, "data": ..., <prior name>: unweighted value, ...}`` per step.
@@ -370,7 +374,7 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
     fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [list(p.shape) for p in flat],
                    "target": float(data.target.double().sum()), "terms": list(history),
                    "operator": [type(op).__name__, *op.grid.shape, float(op.grid.extent), int(op.n_slabs),
-                                float(op.directions.double().sum())]}
+                                float(op.directions.double().sum())], "options": plain(options or {})}
     first, ended = 0, False
     if checkpoint is not None:
         first, saved, ended = checkpoint.restore(desc, fingerprint, flat, opt, sched)
@@ -527,7 +531,8 @@ class OptimisationSolver(Solver):
             parameters = [{"params": list(parameters)}, {"params": [data.log_gain], "lr": GAIN_LR}]
         return optimise(parameters, occupancy, data, priors, iterations=iterations, lr=self.lr * lr_scale,
                         optimizer=self.optimizer, schedule=self.schedule, tol=self.tol, window=self.window,
-                        progress=self.progress, desc=desc, before_step=before_step, checkpoint=self.checkpoint)
+                        progress=self.progress, desc=desc, before_step=before_step, checkpoint=self.checkpoint,
+                        options=None if self.checkpoint is None else solver_settings(self))
 
     def choose_weights(self, problem: Problem, parameters: list, occupancy: Callable[[], torch.Tensor], steps: int,
                        desc: str) -> tuple[dict[str, list[float]], Priors, dict]:

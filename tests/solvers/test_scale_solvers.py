@@ -67,6 +67,26 @@ def test_interrupted_voxel_solve_resumes_to_the_uninterrupted_result(tmp_path):
         VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), **options).solve(other, op)
 
 
+def test_checkpoint_made_with_other_solver_options_is_not_resumed(tmp_path):
+    """Before: a changed prior weight or temperature resumed the old state (its finished coarse stage
+    reused), exit 0, a result that was neither the old options' nor the new ones'."""
+    truth, op, meas = noise_free_problem(3, None)
+    options = {"iterations": 40, "tol": 0.0, "progress": False}
+    VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), **options).solve(meas, op)
+    changed = {**options, "priors": {"tv": {"weight": 0.05}}, "temperature_end": 1.0}
+    clean = VoxelSolver(**changed).solve(meas, op)
+    with pytest.warns(UserWarning) as record:
+        rerun = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), **changed).solve(meas, op)
+    messages = [str(w.message) for w in record if "is not used" in str(w.message)]
+    assert len(messages) == 2  # the coarse and the fine stage, each started afresh
+    for message in messages:
+        assert "it was made with other solver options (" in message and "afresh" in message
+        assert "solver.temperature_end 0.25 -> 1.0" in message and "solver.priors.tv.weight 'auto' -> 0.05" in message
+    torch.testing.assert_close(rerun.occupancy, clean.occupancy, atol=1e-6, rtol=0)
+    again = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), **changed).solve(meas, op)  # same options
+    torch.testing.assert_close(again.occupancy, clean.occupancy, atol=0, rtol=0)
+
+
 def test_memory_estimate_of_the_paper_size_voxel_run_is_above_the_measured_peak_and_below_the_target():
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
         cfg = compose(config_name="config", overrides=["resolution=240", "n_dips=5760", "solver=voxel"])
