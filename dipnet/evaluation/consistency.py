@@ -212,7 +212,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
     result.profile_floor_mm3, result.profile_floor_share = profile_floor(measurement, measured)
     result.profile_floor_limit_mm3 = FLOOR_SIGMAS * _slab_sigma(measurement)
-    result.warnings = _findings(result)
+    result.warnings = _findings(result, (measurement.metadata or {}).get("symmetry_group_order", 1))
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
         for message in result.warnings:
@@ -238,16 +238,20 @@ def _hull_fill(measured: float, target: torch.Tensor, operator: DipOperator) -> 
     return measured / (float(hull.sum()) * operator.grid.voxel_volume)
 
 
-def _findings(c: Consistency) -> list[str]:
-    """One plain message per failed check."""
+def _findings(c: Consistency, symmetry_order: int = 1) -> list[str]:
+    """One plain message per failed check; ``symmetry_order``: the order of a declared symmetry group whose
+    images of the dips the data hold (:func:`~dipnet.preprocessing.symmetry.expand_symmetry`), named as a cause."""
     out = []
+    suspects = "the rig model (start heights, geometry, cross-section) or the priors disagree with the data"
+    if symmetry_order > 1:
+        suspects = (f"the declared symmetry (order {symmetry_order}: every dip copied to its images) may not be the "
+                    f"object's (run without symmetry to check), or {suspects}")
     if c.grid_volume_fraction < 1 - c.volume_limit:
         out.append(f"the grid's slabs hold only {c.grid_volume_fraction:.0%} of the measured volume: the object "
                    "reaches beyond the working range (increase extent_mm or check the start heights)")
     if c.profile_residual_continuous > c.residual_limit:
         out.append(f"the occupancy misses its data: relative profile residual {c.profile_residual_continuous:.3f}, "
-                   f"noise explains {c.profile_residual_expected:.3f} ({c.noise_source}): the rig model "
-                   "(start heights, geometry, cross-section) or the priors disagree with the data")
+                   f"noise explains {c.profile_residual_expected:.3f} ({c.noise_source}): {suspects}")
     if c.profile_residual > c.residual_limit:
         hint = ""
         if c.profile_residual_continuous <= c.residual_limit:

@@ -32,7 +32,9 @@ costs about 0.1 s at 40^3.
 
 from __future__ import annotations
 
+import logging
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +48,12 @@ from dipnet.core.orientations import fibonacci_hemisphere
 
 SPHERE_SAMPLES = 20_000  # directions on which the missing cone is evaluated (3D)
 BAND_DEG = 30.0  # polar / azimuthal frequency bands: within this angle of the axis / plane
+#: Half-angle (deg) of the band about the horizontal plane that no dip reaches above which a job warns
+#: (:func:`warn_unmeasured_band`): where self-calibration calls a scan's missing cone wide (its
+#: ``MISSING_CONE_DEG``, :mod:`dipnet.calibration.self_calibration`) and lets the shape prior decide the volume.
+UNMEASURED_BAND_DEG = 10.0
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -126,6 +134,30 @@ def angle_to_plan(points: np.ndarray, directions: np.ndarray, chunk: int = 8192)
         out[i:i + chunk] = np.arccos(np.clip(cos, 0.0, 1.0))
     return out
 
+
+def unmeasured_band_deg(directions) -> float:
+    """Half-angle (deg) of the band of directions about the horizontal plane that no dip of ``directions``
+    ``(K, d)`` comes within: 90 minus the largest tilt from the vertical (last) axis (``d`` and ``-d`` give the
+    same planes). 0 when some dip is horizontal."""
+    d = np.asarray(torch.as_tensor(directions, dtype=torch.float64).numpy())
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return float(np.degrees(np.arcsin(np.abs(d[:, -1]).min())))
+
+
+def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> str | None:
+    """Log and ``warnings.warn`` how wide the band no dip of ``directions`` ``(K, d)`` reaches is, when it is wider
+    than ``limit_deg`` (:func:`unmeasured_band_deg`); returns the message, or ``None``. A property of the plan,
+    not a failed check of the result: surfaces whose normals lie in the band are the priors' guess."""
+    band = unmeasured_band_deg(directions)
+    if not band > limit_deg:
+        return None
+    message = (f"no dip is tilted more than {90 - band:.0f} deg from the vertical: directions within {band:.0f} deg "
+               f"of the horizontal plane are unmeasured (a missing cone), so surfaces facing them (normals within "
+               f"{band:.0f} deg of horizontal: the sides) are guessed by the priors, not measured; dip at larger tilts "
+               f"to narrow it")
+    log.warning(message)
+    warnings.warn(message, stacklevel=2)
+    return message
 
 def object_diameter(measurement: DipMeasurement, rel_tol: float = 0.005) -> float:
     """The median over orientations of the extent (mm) between the first and last slab holding

@@ -19,6 +19,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet.evaluation import consistency, metrics
+from dipnet.evaluation.resolvability import warn_unmeasured_band
 from dipnet.outputs import export, plots
 from dipnet.outputs.progress import OutputStages
 from dipnet.outputs.summary import headline, prior_weight_metrics
@@ -122,11 +123,14 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
                               "operator": recon.info.get("operator", backend_name(operator)),
                               "seconds": seconds, "n_dips": measurement.n_orientations,
+                              "n_dips_measured": (measurement.metadata or {}).get("measured_orientations",
+                                                                                  measurement.n_orientations),
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
                               **prior_weight_metrics(recon.info)}
     stage = OutputStages(bool(cfg.output.progress))
     stage("consistency")
     scores.update(consistency.check_consistency(measurement, operator, recon).metrics())
+    warn_unmeasured_band(measurement.directions)  # a property of the plan: the verdict above stands
     if cfg.output.get("resolvability", True):
         stage("resolvability")
         scores.update(write_resolvability(measurement, grid, out, figure=cfg.output.figures))

@@ -24,6 +24,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "operator": ("run", "operator backend"),
     "seconds": ("run", "solve time (s)"),
     "n_dips": ("run", "number of dips"),
+    "n_dips_measured": ("run", "dips measured (n_dips less the images of a declared symmetry)"),
     "resolution": ("run", "voxels per axis"),
     "ndim": ("run", "dimensions"),
     "shape": ("run", "shape"),

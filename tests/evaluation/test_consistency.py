@@ -246,3 +246,20 @@ def test_more_volume_than_the_dips_bound_and_dips_that_bound_nothing_are_named(p
     moved = DipMeasurement(measurement.directions, measurement.profiles, measurement.slab_thickness, apart)
     result, caught = _check(moved, operator, ball)
     assert any("bound no region" in str(w.message) for w in caught) and result.verdict == "inconsistent"
+
+
+
+def test_a_declared_symmetry_the_object_lacks_is_named(problem):
+    """A ball off the z axis has no 4-fold symmetry: copying its dips to their images leaves a residual the truth
+    cannot explain, and the message names the declared symmetry (it blamed only the rig model and the priors)."""
+    from dipnet.preprocessing.symmetry import apply_symmetry
+
+    operator = make_operator(GRID, fibonacci_hemisphere(12))
+    ball = ((GRID.centers() - torch.tensor([25.0, 0.0, 0.0])).norm(dim=-1) <= 15.0).double()  # (x, y, z): off z
+    expanded = apply_symmetry(_exact_measurement(operator, ball), {"n_fold": 4})
+    result, caught = _check(expanded, make_operator(GRID, expanded.directions), ball)
+    assert result.verdict == "inconsistent"
+    assert any("the declared symmetry (order 4" in str(w.message) for w in caught), [str(w.message) for w in caught]
+    operator, ball, measurement = problem  # no symmetry declared: not named
+    _, plain = _check(measurement, operator, torch.roll(ball, shifts=2, dims=2))
+    assert plain and not any("declared symmetry" in str(w.message) for w in plain)

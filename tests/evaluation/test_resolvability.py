@@ -82,3 +82,17 @@ def test_spin_signal_is_noise_for_an_axisymmetric_object_and_large_otherwise():
     assert on_axis.azimuthal_signal_ratio < 2.0
     assert off_axis.azimuthal_signal_ratio > 3 * max(on_axis.azimuthal_signal_ratio, 1.0)
     assert resolvability(fibonacci_hemisphere(50), GRID).azimuthal_signal_ratio is None
+
+
+def test_a_wide_unmeasured_band_is_warned_with_its_width_and_a_full_plan_is_not(caplog):
+    """Tilts 0-20 deg leave the 70 deg about the horizontal plane unmeasured: one warning says so and how to
+    narrow it (it was only in metrics.json and a plot); a Fibonacci hemisphere plan and 2D angles are quiet."""
+    from dipnet.evaluation.resolvability import warn_unmeasured_band
+
+    grid = rig_to_direction(np.repeat([0.0, 10.0, 20.0], 4), np.tile([0.0, 90.0, 180.0, 270.0], 3))
+    with pytest.warns(UserWarning, match="no dip is tilted more than 20 deg .* within 70 deg of the horizontal "
+                                         "plane are unmeasured .*guessed by the priors.*larger tilts"):
+        assert warn_unmeasured_band(grid) is not None
+    assert "within 70 deg" in caplog.text
+    assert warn_unmeasured_band(fibonacci_hemisphere(30)) is None
+    assert warn_unmeasured_band(directions_2d([0.0, 45.0, 90.0, 135.0])) is None

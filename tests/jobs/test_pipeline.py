@@ -158,3 +158,11 @@ def test_fixed_plan_under_the_authors_rig_stays_in_the_cap(tmp_path):
                                  "output.uncertainty=false"), tmp_path)
     tilt, _ = tilt_spin(result.measurement.directions)
     assert result.measurement.n_orientations == 12 and tilt.max() <= 35 + 1e-9
+
+
+def test_metrics_count_the_measured_dips_apart_from_their_symmetry_images(tmp_path):
+    """``n_dips`` counts the directions solved for (a declared symmetry's images too), ``n_dips_measured`` the
+    dips actually measured (no field gave it)."""
+    result = run(_cfg("resolution=16", "n_dips=10", "symmetry={n_fold:4}", "output.figures=false",
+                      "output.uncertainty=false", "output.resolvability=false"), tmp_path)
+    assert result.metrics["n_dips_measured"] == 10 and result.metrics["n_dips"] > 10
