@@ -250,6 +250,31 @@ def known_object(shape, supersample: int = 2) -> KnownObject:
     return KnownObject(centroid, (centred * weights[:, None]).T @ centred, float(shape.volume))
 
 
+def _name_the_size_trade(report: CalibrationReport, configured: float, known: KnownObject, section: bool) -> None:
+    """A caveat on a step scale whose interval excludes the configured one (and on the section, if ``section``
+    is estimated): a reference's dips measure its size in stage steps, so a reference of another size than
+    given reads as a step scale (the audit's ball given as 31 mm for 30 mm: step scale 1.017, section 10 %
+    high, each with a tight interval)."""
+    if "step_scale" not in report.intervals or "step_scale" in report.undetermined:
+        return
+    low, high = report.intervals["step_scale"]
+    if low <= configured <= high:
+        return
+    scale = report.estimates["step_scale"]
+    size = math.sqrt(np.trace(known.covariance) * 5.0 / 3.0)  # a ball's radius from its covariance (mm)
+    ratio = configured / scale
+    trade = (f"its interval excludes the configured {configured:g}: the stage's steps are "
+             f"{100 * (scale / configured - 1):+.2g} % off what was commanded, or the reference is "
+             f"{100 * (ratio - 1):+.2g} % off the size given (its dips measure it in stage steps; for a ball, a radius "
+             f"of {size * ratio:.4g} mm instead of {size:.4g} mm gives the same dips, and the section follows about 3 "
+             "times as much): the interval does not cover an error in the reference's size; check its diameter")
+    report.caveats["step_scale"] = "; ".join(filter(None, (report.caveats.get("step_scale"), trade)))
+    if section:
+        report.caveats["cross_section_mm2"] = ("its interval does not cover an error in the reference's size (see "
+                                               "the step scale): a reference 1 % larger than given reads a section "
+                                               "about 3 % larger")
+
+
 # ---------------------------------------------------------------------------- reference object
 def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
                         n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
@@ -300,6 +325,7 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
     state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed,
                                            t0_sd_mm=start_height_tolerance_mm / 1.645,
                                            position_sd_mm=position_tolerance_mm / 1.645)
+    _name_the_size_trade(report, initial.step_scale, known, "cross_section_mm2" in params)
     if "cross_section_mm2" in params:
         rng = np.random.default_rng(seed)
         rises = np.asarray(moments.rise)  # mm of level per dip, drift removed

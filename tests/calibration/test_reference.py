@@ -270,3 +270,24 @@ def test_calibrate_takes_the_tank_scan_py_recorded(tmp_path, capsys):
     out = tmp_path / "rig_calibration.yaml"
     assert calibrate.main([str(scan), "--ball-radius", str(RADIUS), "--n", "24", "--output", str(out)]) == 0
     assert load_calibration(out).tank == "lab-tank-1"
+
+
+def test_a_reference_of_another_size_than_given_is_named_with_the_step_scale():
+    """The dips measure a ball's size in stage steps: a 30 mm ball given as 31 mm reads as a step scale about
+    3 % long and a section about 10 % large, each with an interval that excludes the truth. The report names
+    that trade on both; given the right radius the step scale holds 1 and nothing is named."""
+    true = RigGeometry(pivot_mm=30.0, tilt_axis_offset_mm=20.0, tilt_zero_deg=-2.5)
+    raw = simulate_scan(Ball(30.0, center=(25.0, 0.0, 0.0)), fibonacci_hemisphere(40), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=40.0, seed=6), progress=False)
+    reports = {}
+    for radius in (30.0, 31.0):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            reports[radius] = calibrate_reference(raw, Ball(radius, center=(25.0, 0.0, 0.0)), Grid(32, extent=130.0),
+                                                  max_relative_residual=0.2)[1]
+    right, wrong = reports[30.0], reports[31.0]
+    assert "the size given" not in right.caveats.get("step_scale", "") and "cross_section_mm2" not in right.caveats
+    low, high = wrong.intervals["step_scale"]
+    assert not low <= 1.0 <= high and wrong.estimates["cross_section_mm2"] > 1.05 * 60000.0
+    assert "the reference is -" in wrong.caveats["step_scale"] and "radius of 30" in wrong.caveats["step_scale"]
+    assert "error in the reference's size" in wrong.caveats["cross_section_mm2"]
