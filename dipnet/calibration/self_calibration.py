@@ -22,6 +22,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.evaluation.resolvability import UNMEASURED_BAND_DEG, unmeasured_band_deg
 from dipnet.solvers.weights import with_weight
 
 log = logging.getLogger(__name__)
@@ -204,7 +205,7 @@ def _section_report(report: CalibrationReport, model: ProfileModel, state: State
     section = profile.estimates["cross_section_mm2"]
     se = profile.standard_errors["cross_section_mm2"]
     model_error = math.hypot(SELF_SECTION_FLOOR, PARTIAL_VOLUME_GAIN * partial)
-    cone = missing_cone_deg(model.measurement(state).directions)
+    cone = unmeasured_band_deg(model.measurement(state).directions)
     low = section - 1.645 * se
     if cone > MISSING_CONE_DEG:  # there the partly filled voxels are the cone's blur as much as thin parts:
         low = min(low, section * (1.0 - self_section_bias(partial)))  # the uncorrected section stays in
@@ -247,25 +248,16 @@ DILUTION_MARGIN = 0.1
 #: thin parts, so the section's bias correction (:func:`~dipnet.calibration.model.self_section_bias`) may
 #: overshoot (the audit: the authors' 0-35 deg tilts, sections 6-9 % high) and the interval keeps the
 #: uncorrected section.
-MISSING_CONE_DEG = 10.0
+MISSING_CONE_DEG = UNMEASURED_BAND_DEG
 
 
 def section_change_limit(directions: torch.Tensor, max_section_change: float | None = None) -> float:
     """The relative change of the cross-section beyond which self-calibration keeps the configured one:
     ``max_section_change`` if given, else :data:`MAX_SECTION_CHANGE` for the missing cone of ``directions``
-    ``(K, 3)`` (:func:`missing_cone_deg`)."""
+    ``(K, 3)`` (:func:`~dipnet.evaluation.resolvability.unmeasured_band_deg`)."""
     if max_section_change is not None:
         return float(max_section_change)
-    return MAX_SECTION_CHANGE[missing_cone_deg(directions) > MISSING_CONE_DEG]
-
-
-def missing_cone_deg(directions: torch.Tensor) -> float:
-    """The half-angle (deg) of the cone of directions about the horizontal plane that no dip of
-    ``directions`` ``(K, 3)`` (unit, "up" vectors; ``d`` and ``-d`` give the same planes) comes within:
-    90 minus the largest tilt from the vertical. 0 for a full hemisphere."""
-    d = torch.as_tensor(directions, dtype=torch.float64)
-    tilt = torch.rad2deg(torch.arccos(d[:, 2].abs().clamp(max=1.0)))
-    return float(90.0 - tilt.max())
+    return MAX_SECTION_CHANGE[unmeasured_band_deg(directions) > MISSING_CONE_DEG]
 
 
 def _with_gain(solver):

@@ -216,14 +216,14 @@ def test_the_gain_step_fixes_auto_prior_weights_at_the_rules_start():
 def test_the_missing_cone_of_a_scan():
     """90 deg less the largest tilt: about 0 for a full hemisphere, 55 deg for tilts up to 35 deg (the
     authors' rig); a direction and its opposite give the same planes."""
-    from dipnet.calibration.self_calibration import missing_cone_deg
     from dipnet.core.orientations import fibonacci_hemisphere, rig_to_direction
+    from dipnet.evaluation.resolvability import unmeasured_band_deg
 
-    assert missing_cone_deg(fibonacci_hemisphere(123)) < 5.0
+    assert unmeasured_band_deg(fibonacci_hemisphere(123)) < 5.0
     tilts = torch.tensor([0.0, 10.0, 20.0, 35.0, 35.0])
     cap = rig_to_direction(tilts, torch.tensor([0.0, 90.0, 180.0, 270.0, 45.0]))
-    assert missing_cone_deg(cap) == pytest.approx(55.0, abs=1e-6)
-    assert missing_cone_deg(-cap) == pytest.approx(55.0, abs=1e-6)
+    assert unmeasured_band_deg(cap) == pytest.approx(55.0, abs=1e-6)
+    assert unmeasured_band_deg(-cap) == pytest.approx(55.0, abs=1e-6)
 
 
 def test_a_missing_cone_keeps_the_uncorrected_section_in_the_interval():
@@ -257,11 +257,12 @@ def test_a_missing_cone_keeps_the_uncorrected_section_in_the_interval():
 def test_the_section_guard_is_wider_for_a_full_hemisphere_of_dips():
     """The default guard: 50 % when the dips cover the hemisphere (the data determine the section), 20 %
     with a missing cone over 10 deg (the cats' 56 deg cone: the prior decided the volume)."""
-    from dipnet.calibration.self_calibration import MAX_SECTION_CHANGE, missing_cone_deg, section_change_limit
+    from dipnet.calibration.self_calibration import MAX_SECTION_CHANGE, section_change_limit
+    from dipnet.evaluation.resolvability import unmeasured_band_deg
 
     full = fibonacci_hemisphere(40)
     tilted = full[full[:, 2] >= np.cos(np.radians(35.0))]  # tilts up to 35 deg: a 55 deg missing cone
-    assert missing_cone_deg(full) < 10.0 < missing_cone_deg(tilted)
+    assert unmeasured_band_deg(full) < 10.0 < unmeasured_band_deg(tilted)
     assert section_change_limit(full) == MAX_SECTION_CHANGE[False] == 0.5
     assert section_change_limit(tilted) == MAX_SECTION_CHANGE[True] == 0.2
     assert section_change_limit(full, 0.1) == section_change_limit(tilted, 0.1) == 0.1
