@@ -140,7 +140,7 @@ def surface_points(volume: np.ndarray | torch.Tensor, grid: Grid, n_points: int 
 
 
 def chamfer_hausdorff(truth: Surface, other: Surface, n_points: int = DEFAULT_POINTS,
-                      seed: int = 0) -> dict[str, float | bool]:
+                      seed: int = 0) -> dict[str, float | bool | None]:
     """Symmetric surface distances between ``truth`` and ``other``, in truth bounding-box diagonals.
 
     METRO-style: ``n_points`` seeded samples on each surface, and each sample's distance to
@@ -151,10 +151,13 @@ def chamfer_hausdorff(truth: Surface, other: Surface, n_points: int = DEFAULT_PO
     Returns:
         ``{"chamfer": mean of the two mean distances, "hausdorff": the larger of the two
         maximum distances, "empty": whether either surface is empty}``. With an empty
-        surface both distances are :data:`EMPTY_DISTANCE` (finite, and as bad as one diagonal).
+        ``other`` both distances are :data:`EMPTY_DISTANCE` (finite, and as bad as one diagonal);
+        with an empty ``truth`` they are ``None`` (no truth to measure against).
     """
     pa, pb = sample_surface(truth, n_points, seed), sample_surface(other, n_points, seed + 1)
-    if len(pa) == 0 or len(pb) == 0:
+    if len(pa) == 0:
+        return {"chamfer": None, "hausdorff": None, "empty": True}
+    if len(pb) == 0:
         return {"chamfer": EMPTY_DISTANCE, "hausdorff": EMPTY_DISTANCE, "empty": True}
     diag = float(np.linalg.norm(pa.max(0) - pa.min(0)))
     if diag == 0:
@@ -166,7 +169,8 @@ def chamfer_hausdorff(truth: Surface, other: Surface, n_points: int = DEFAULT_PO
 
 def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch.Tensor, grid: Grid,
              truth_mesh: trimesh.Trimesh | None = None, n_points: int = DEFAULT_POINTS,
-             seed: int = 0, truth_volume: float | None = None, truth_level: float = 0.5) -> dict[str, float | bool]:
+             seed: int = 0, truth_volume: float | None = None, truth_level: float = 0.5
+             ) -> dict[str, float | bool | None]:
     """IoU, Chamfer, Hausdorff and volume error of a reconstruction against the truth.
 
     Args:
@@ -182,7 +186,8 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         truth_level: occupancy above which a truth voxel is inside, for IoU (see
             :func:`reference_level`).
     Returns:
-        JSON-friendly dict: ``iou``, ``chamfer``, ``hausdorff`` (truth diagonals),
+        JSON-friendly dict: ``iou``, ``chamfer``, ``hausdorff`` (truth diagonals; ``None``, with a
+        warning, when the truth has no surface on ``grid``: an object smaller than the grid resolves),
         ``volume_error`` (signed, relative), ``empty`` (the reconstruction has no voxel inside).
     """
     truth = _numpy(truth_occupancy).astype(np.float64)
@@ -196,6 +201,12 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         truth_volume = float(exact_volume)
     recon_surface = volume_surface(reconstruction.occupancy, grid, level=reconstruction.threshold)
     dist = chamfer_hausdorff(truth_surface, recon_surface, n_points, seed)
+    if dist["chamfer"] is None:
+        message = (f"the true shape has no surface on the grid ({grid.n} voxels per axis over {grid.extent:g} mm, "
+                   f"no voxel more than half inside): it is smaller than the grid resolves, so Chamfer and "
+                   "Hausdorff are null; use a smaller extent_mm or a higher resolution")
+        log.warning(message)
+        warnings.warn(message, stacklevel=2)
     return {"iou": iou(binary, truth > truth_level), "chamfer": dist["chamfer"], "hausdorff": dist["hausdorff"],
             "volume_error": volume_error(binary, truth_volume, grid), "empty": not bool(binary.any())}
 

@@ -201,6 +201,12 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
                 placed = mesh if offset is None else mesh.copy().apply_translation(offset)
                 for fmt in cfg.output.mesh_formats:
                     export.save_mesh(placed, out / f"{name}.{fmt}")
+            else:
+                why = ("the reconstruction is empty (no voxel of its occupancy reaches its threshold "
+                       f"{recon.threshold:.3g})" if name == "reconstruction" else
+                       "the true shape has no surface on this grid (no voxel more than half inside)")
+                log.warning("%s, so %s was not written", why,
+                            ", ".join(f"{name}.{fmt}" for fmt in cfg.output.mesh_formats))
     if not cfg.output.figures:
         return
     with torch.no_grad():

@@ -74,10 +74,12 @@ def _save_job_config(cfg: DictConfig, overrides: list[str], out: Path) -> None:
 
 
 def run_trial(overrides: list[str], out: Path) -> float:
-    """Run one job and return its Chamfer distance (``nan`` when it has none)."""
+    """Run one job and return its Chamfer distance (``nan`` when it has none: no truth, or a truth
+    too small for the grid)."""
     cfg = compose_job(overrides)
     _save_job_config(cfg, overrides, out)
-    return float(run(cfg, out).metrics.get("chamfer", math.nan))
+    chamfer = run(cfg, out).metrics.get("chamfer")
+    return math.nan if chamfer is None else float(chamfer)
 
 
 def check_ground_truth(cfg: DictConfig) -> None:

@@ -60,6 +60,8 @@ def test_chamfer_and_hausdorff_of_shifted_spheres():
 def test_empty_surface_gives_finite_bad_distance():
     out = chamfer_hausdorff(np.ones((10, 3)), np.zeros((0, 3)))
     assert out == {"chamfer": EMPTY_DISTANCE, "hausdorff": EMPTY_DISTANCE, "empty": True}
+    assert chamfer_hausdorff(np.zeros((0, 3)), np.ones((10, 3))) == {"chamfer": None, "hausdorff": None,
+                                                                       "empty": True}  # no truth to measure against
 
 
 def test_volume_error():
@@ -98,6 +100,20 @@ def test_evaluate_perfect_and_empty(ndim):
     assert bad["iou"] == 0.0 and bad["empty"] is True and bad["volume_error"] == -1.0
     assert bad["chamfer"] == EMPTY_DISTANCE and bad["hausdorff"] == EMPTY_DISTANCE
     assert json.loads(json.dumps(good)) == good and json.loads(json.dumps(bad)) == bad  # JSON-friendly
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_a_truth_smaller_than_the_grid_resolves_has_null_distances_and_a_warning(ndim):
+    """Before: Chamfer and Hausdorff 1.0 (the stand-in of an empty surface) against a truth with no surface."""
+    grid = Grid(24, ndim=ndim, extent=200.0)
+    truth = np.zeros(grid.shape)
+    truth[(12,) * ndim] = 0.3  # a 7 mm ball fills under half of an 8.3 mm voxel
+    recon = Reconstruction(torch.from_numpy(truth).float(), grid, 0.05)
+    with pytest.warns(UserWarning, match="smaller than the grid resolves, so Chamfer and Hausdorff are null; "
+                                         "use a smaller extent_mm or a higher resolution"):
+        out = evaluate(recon, truth, grid, n_points=500)
+    assert out["chamfer"] is None and out["hausdorff"] is None
+    assert json.loads(json.dumps(out)) == out
 
 
 def test_evaluate_against_a_truth_mesh():

@@ -7,13 +7,17 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
+from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
-from dipnet.jobs.pipeline import run
+from dipnet.core.reconstruction import Reconstruction
+from dipnet.jobs.pipeline import run, write_outputs
 
 from planning_fixtures import reconstruct_cfg, tilt_spin
 
@@ -166,3 +170,17 @@ def test_metrics_count_the_measured_dips_apart_from_their_symmetry_images(tmp_pa
     result = run(_cfg("resolution=16", "n_dips=10", "symmetry={n_fold:4}", "output.figures=false",
                       "output.uncertainty=false", "output.resolvability=false"), tmp_path)
     assert result.metrics["n_dips_measured"] == 10 and result.metrics["n_dips"] > 10
+
+
+def test_an_empty_reconstruction_or_truth_mesh_is_not_written_and_the_log_says_why(tmp_path, caplog):
+    """Before: reconstruction.ply / truth.ply were silently missing."""
+    grid = Grid(12, 3, 200.0)
+    cfg = OmegaConf.create({"output": {"mesh_formats": ["ply"], "figures": False}})
+    with caplog.at_level("WARNING", logger="dipnet.jobs.pipeline"):
+        write_outputs(cfg, tmp_path, None, None, Reconstruction(torch.zeros(grid.shape), grid, 0.5),
+                      np.full(grid.shape, 0.3))
+    assert not list(tmp_path.iterdir())
+    assert [r.getMessage() for r in caplog.records] == [
+        "the true shape has no surface on this grid (no voxel more than half inside), so truth.ply was not written",
+        "the reconstruction is empty (no voxel of its occupancy reaches its threshold 0.5), "
+        "so reconstruction.ply was not written"]
