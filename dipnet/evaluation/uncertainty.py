@@ -166,8 +166,9 @@ def support(binary: np.ndarray, dilation: int = 2) -> np.ndarray:
 
 def summarise(maps: dict[str, np.ndarray], binary: np.ndarray) -> dict[str, float]:
     """Metrics: ``uncertainty_mean`` (mean std over the support), ``uncertain_fraction`` (support
-    voxels with ``p_wrong > 0.2``) and ``expected_error_fraction`` (sum of ``p_wrong`` over the
-    reconstructed volume in voxels)."""
+    voxels with ``p_wrong > 0.2``) and ``expected_error_fraction`` (sum of ``p_wrong``, the expected
+    wrong voxels, over the reconstructed volume in voxels: a share of the object's volume, above 1
+    when more voxels are expected wrong than were reconstructed)."""
     where = support(binary)
     if not where.any():
         return {"uncertainty_mean": float("nan"), "uncertain_fraction": float("nan"),

@@ -11,6 +11,7 @@ import pytest
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators import make_operator
+from dipnet.evaluation.uncertainty import support, uncertainty
 from dipnet.outputs.uncertainty import write_uncertainty
 from dipnet.shapes import Ball
 from dipnet.simulator.physics import LevelSensor
@@ -55,9 +56,23 @@ def test_without_a_truth_no_deciles_and_without_figure_no_png(solved, tmp_path):
 
 
 def test_a_map_that_does_not_rank_the_errors_is_reported(solved, tmp_path):
-    """Judged against a 'truth' equal to the reconstruction, no decile has errors: the most uncertain decile is not
-    worse than the least, and the run says the uncertainty is not calibrated (a warning, the scores still written)."""
-    _, measurement, operator, recon, _ = solved
+    """Judged against a 'truth' that differs from the reconstruction only in its least uncertain support voxel,
+    the most uncertain decile is not worse than the least: the run says the uncertainty is not calibrated (a
+    warning, the scores still written)."""
+    grid, measurement, operator, recon, _ = solved
+    p_wrong = uncertainty(recon, measurement, operator)[0]["p_wrong"]
+    truth = recon.binary.copy()
+    candidates = np.flatnonzero(support(recon.binary))
+    truth.flat[candidates[np.argmin(p_wrong.flat[candidates])]] ^= True
     with pytest.warns(UserWarning, match="uncertainty is not calibrated on this run"):
+        scores = write_uncertainty(tmp_path, recon, measurement, operator, truth=truth, figure=False)
+    assert scores["error_rate_by_uncertainty_decile"][0] > 0 == scores["error_rate_by_uncertainty_decile"][-1]
+
+
+def test_a_reconstruction_without_a_wrong_voxel_has_nothing_to_calibrate(solved, tmp_path):
+    """Before: 'uncertainty is not calibrated on this run: error rate 0.000 ... vs 0.000' on a perfect run."""
+    _, measurement, operator, recon, _ = solved
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
         scores = write_uncertainty(tmp_path, recon, measurement, operator, truth=recon.binary, figure=False)
     assert scores["error_rate_by_uncertainty_decile"] == [0.0] * 10
