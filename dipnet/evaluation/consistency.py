@@ -78,7 +78,7 @@ class DataConsistencyWarning(UserWarning):
 class Consistency:
     """How well a reconstruction explains a measurement (see the module docstring).
 
-    Volumes in mm^3 (mm^2 in 2D); residuals relative to ``||g||``; ``noise_source`` is
+    Volumes in mm^3 (mm^2 in 2D: ``volume_unit`` names it); residuals relative to ``||g||``; ``noise_source`` is
     ``"sigma"`` (the measurement's own) or ``"estimated"`` (from the profiles).
     """
 
@@ -102,6 +102,7 @@ class Consistency:
     profile_floor_mm3: float = float("nan")
     profile_floor_share: float = float("nan")
     profile_floor_limit_mm3: float = float("nan")
+    volume_unit: str = "mm^3"
     verdict: str = "consistent"
     warnings: list[str] = field(default_factory=list)
 
@@ -208,7 +209,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         continuous_volume_mm3=float((occupancy.double() * mask).sum()) * voxel,
         volume_ratio=recon_volume / measured, volume_ratio_noise=spread / measured,
         volume_limit=max(volume_tol, 3 * spread / measured), grid_volume_fraction=on_grid / measured,
-        hull_fill=_hull_fill(measured, target, operator), hull_fill_min=hull_fill_min)
+        hull_fill=_hull_fill(measured, target, operator), hull_fill_min=hull_fill_min,
+        volume_unit="mm^2" if operator.grid.ndim == 2 else "mm^3")
     result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
     result.profile_floor_mm3, result.profile_floor_share = profile_floor(measurement, measured)
     result.profile_floor_limit_mm3 = FLOOR_SIGMAS * _slab_sigma(measurement)
@@ -268,7 +270,7 @@ def _findings(c: Consistency, symmetry_order: int = 1) -> list[str]:
                    f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
                    "scripts/calibrate.py)")
     if abs(c.profile_floor_mm3) > c.profile_floor_limit_mm3 and abs(c.profile_floor_share) > c.volume_limit:
-        out.append(f"every dip holds {c.profile_floor_mm3:+.4g} mm^3 per slab where its slabs should be empty (before "
+        out.append(f"every dip holds {c.profile_floor_mm3:+.4g} {c.volume_unit} per slab where its slabs should be empty (before "
                    f"the object touches the water and after it is under): {c.profile_floor_share:+.1%} of the "
                    "measured volume, which the reconstruction takes for object. A level that drifts in time (the "
                    "sensor's drift, a leak or an inflow) does this: calibrate it (calibration=self fits the "
@@ -277,17 +279,17 @@ def _findings(c: Consistency, symmetry_order: int = 1) -> list[str]:
         out.append("the dips bound no region on the grid (each dip's non-empty slabs exclude the others'): the "
                    "directions, start heights or slab thickness do not belong to these profiles")
     elif c.hull_fill > HULL_FILL_MAX:
-        out.append(f"the dips measure {c.measured_volume_mm3:.4g} mm^3, {c.hull_fill:.0%} of the region they bound, "
+        out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, {c.hull_fill:.0%} of the region they bound, "
                    "which can hold at most all of it: the volumes are too large for their slabs (a level or "
                    "cross-section unit too small, levels in cm read as mm), or the dips' heights or directions are "
                    "not theirs (a wrong rig geometry or start heights)")
     if c.hull_fill < c.hull_fill_min:  # NaN compares False
-        out.append(f"the dips measure {c.measured_volume_mm3:.4g} mm^3, {c.hull_fill:.2%} of the region they bound "
+        out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, {c.hull_fill:.2%} of the region they bound "
                    f"(real objects fill 4-76 %): a volume ten times too small, as levels in cm under a column that "
                    "says mm or a cross-section in cm^2 give, or an object much thinner than that region (a wire, a "
                    "sheet); check the level unit and the tank's cross-section")
     if abs(c.volume_ratio - 1) > c.volume_limit:
-        out.append(f"the reconstruction holds {c.reconstructed_volume_mm3:.4g} mm^3, the dips measure "
-                   f"{c.measured_volume_mm3:.4g} mm^3 (ratio {c.volume_ratio:.3f}, noise explains "
-                   f"+-{c.volume_ratio_noise:.3f}; continuous occupancy: {c.continuous_volume_mm3:.4g} mm^3)")
+        out.append(f"the reconstruction holds {c.reconstructed_volume_mm3:.4g} {c.volume_unit}, the dips measure "
+                   f"{c.measured_volume_mm3:.4g} {c.volume_unit} (ratio {c.volume_ratio:.3f}, noise explains "
+                   f"+-{c.volume_ratio_noise:.3f}; continuous occupancy: {c.continuous_volume_mm3:.4g} {c.volume_unit})")
     return out

@@ -63,6 +63,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "volume_ratio_noise": ("how consistent with the data", "volume ratio that noise explains (±)"),
     "volume_limit": ("how consistent with the data", "volume-ratio limit of the check"),
     "grid_volume_fraction": ("how consistent with the data", "share of the measured volume on the grid"),
+    "volume_unit": ("how consistent with the data", "unit of the volumes (mm^2 in 2D: areas)"),
     "hull_fill": ("how consistent with the data", "measured volume / region the dips bound"),
     "hull_fill_min": ("how consistent with the data", "hull-fill limit of the check (a unit mistake below)"),
     "height_trend_pivot_mm": ("how consistent with the data", "height trend: pivot offset (mm)"),
@@ -180,9 +181,12 @@ def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
 
 
 def grouped(metrics: dict[str, Any]) -> dict[str, list[tuple[str, str, Any]]]:
-    """``{group: [(label in words, key, value), ...]}`` in :data:`GROUPS` order, empty groups left out."""
+    """``{group: [(label in words, key, value), ...]}`` in :data:`GROUPS` order, empty groups left out; volumes
+    labelled mm² when the run's ``volume_unit`` is ``mm^2`` (2D: its "volumes" are areas)."""
     out: dict[str, list[tuple[str, str, Any]]] = {g: [] for g in GROUPS}
+    areas = metrics.get("volume_unit") == "mm^2"
     for key, value in metrics.items():
         group, label = METRIC_LABELS.get(key, ("other", key.replace("_", " ")))
+        label = label.replace("mm³", "mm²") if areas else label
         out[group].append((label, key, value))
     return {g: rows for g, rows in out.items() if rows}

@@ -263,3 +263,14 @@ def test_a_declared_symmetry_the_object_lacks_is_named(problem):
     operator, ball, measurement = problem  # no symmetry declared: not named
     _, plain = _check(measurement, operator, torch.roll(ball, shifts=2, dims=2))
     assert plain and not any("declared symmetry" in str(w.message) for w in plain)
+
+
+def test_a_2d_checks_messages_say_mm2():
+    """In 2D the profiles hold areas: the check's messages and its ``volume_unit`` say mm^2."""
+    grid = Grid(24, 2, 100.0)
+    operator = make_operator(grid, torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8], [-0.6, 0.8]]))
+    disk = (grid.centers().norm(dim=-1) <= 25.0).double()
+    measurement = _exact_measurement(operator, disk)
+    result = check_consistency(measurement, operator, Reconstruction(occupancy=(0.5 * disk).float(), grid=grid),
+                               warn=False)
+    assert result.volume_unit == "mm^2" and any("mm^2" in m and "mm^3" not in m for m in result.warnings)

@@ -59,3 +59,12 @@ def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():
     assert flat == {"prior_rounds": "1 of 4", "prior_rounds_reason": info["rounds"]["reason"]}
     assert list(summary.grouped(flat)) == ["run"]
     assert summary.prior_weight_metrics({"rounds": {"done": 3, "max": 3, "rule": "fixed"}}) == {"prior_rounds": "3 of 3"}
+
+
+def test_a_2d_runs_volumes_are_labelled_as_areas():
+    """2D "volumes" are areas: with ``volume_unit`` mm^2 (a 2D run's consistency check sets it) the labels say mm²."""
+    rows = {key: label for rows in summary.grouped({"measured_volume_mm3": 3156.0, "volume_unit": "mm^2"}).values()
+            for label, key, _ in rows}
+    assert rows["measured_volume_mm3"] == "volume the dips measure (mm²)"
+    rows = {key: label for rows in summary.grouped({"measured_volume_mm3": 3156.0}).values() for label, key, _ in rows}
+    assert rows["measured_volume_mm3"] == "volume the dips measure (mm³)"
