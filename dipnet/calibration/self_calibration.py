@@ -18,11 +18,11 @@ from dipnet.calibration.model import (DEFAULT_SELF, PARTIAL_VOLUME_GAIN, SELF_SE
 from dipnet.calibration.moments import TOLERANCE
 from dipnet.calibration.reference import SHAPE_MOTION, _moment_stage, _record
 from dipnet.core.geometry import RigGeometry
+from dipnet.core.orientations import unmeasured_band_deg
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.evaluation.resolvability import UNMEASURED_BAND_DEG, unmeasured_band_deg
 from dipnet.solvers.weights import with_weight
 
 log = logging.getLogger(__name__)
@@ -252,7 +252,7 @@ DILUTION_MARGIN = 0.1
 #: thin parts, so the section's bias correction (:func:`~dipnet.calibration.model.self_section_bias`) may
 #: overshoot (the audit: the authors' 0-35 deg tilts, sections 6-9 % high) and the interval keeps the
 #: uncorrected section.
-MISSING_CONE_DEG = UNMEASURED_BAND_DEG
+MISSING_CONE_DEG = 10.0
 #: The section's model error (relative, 90 % half-width) per degree of an unmeasured band wider than
 #: :data:`MISSING_CONE_DEG`: the shape prior decides how far the shape spreads into the band, and so its volume.
 #: A ball (``shape.name=ball``, 24^3, 20-30 dips, true section 60000 mm^2) came out 3.6, 6.4, 12.4 and 17.5 %
@@ -265,7 +265,7 @@ CONE_SECTION_ERROR_PER_DEG = 0.0033
 def section_change_limit(directions: torch.Tensor, max_section_change: float | None = None) -> float:
     """The relative change of the cross-section beyond which self-calibration keeps the configured one:
     ``max_section_change`` if given, else :data:`MAX_SECTION_CHANGE` for the missing cone of ``directions``
-    ``(K, 3)`` (:func:`~dipnet.evaluation.resolvability.unmeasured_band_deg`)."""
+    ``(K, 3)`` (:func:`~dipnet.core.orientations.unmeasured_band_deg`)."""
     if max_section_change is not None:
         return float(max_section_change)
     return MAX_SECTION_CHANGE[unmeasured_band_deg(directions) > MISSING_CONE_DEG]

@@ -116,6 +116,15 @@ def check_grid_angles(tilts, spins, max_tilt_deg: float = 90.0) -> None:
                          f"deg outside the rig's tilt range [0, {max_tilt_deg:g}] deg (max_tilt_deg){hint}")
 
 
+def unmeasured_band_deg(directions) -> float:
+    """Half-angle (deg) of the band of directions about the horizontal plane that no dip of ``directions``
+    ``(K, d)`` comes within: 90 minus the largest tilt from the vertical (last) axis (``d`` and ``-d`` give the
+    same planes). 0 when some dip is horizontal."""
+    d = np.asarray(torch.as_tensor(directions, dtype=torch.float64).numpy())
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return float(np.degrees(np.arcsin(np.abs(d[:, -1]).min())))
+
+
 def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor:
     """Named orientation set: ``fibonacci`` | ``random`` | ``uniform`` (2D angles); ``(k, ndim)``."""
     if ndim == 2:

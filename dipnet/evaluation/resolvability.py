@@ -44,7 +44,7 @@ import torch
 from dipnet.evaluation.consistency import estimate_slab_sigma
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
-from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.orientations import fibonacci_hemisphere, unmeasured_band_deg
 
 SPHERE_SAMPLES = 20_000  # directions on which the missing cone is evaluated (3D)
 BAND_DEG = 30.0  # polar / azimuthal frequency bands: within this angle of the axis / plane
@@ -135,18 +135,9 @@ def angle_to_plan(points: np.ndarray, directions: np.ndarray, chunk: int = 8192)
     return out
 
 
-def unmeasured_band_deg(directions) -> float:
-    """Half-angle (deg) of the band of directions about the horizontal plane that no dip of ``directions``
-    ``(K, d)`` comes within: 90 minus the largest tilt from the vertical (last) axis (``d`` and ``-d`` give the
-    same planes). 0 when some dip is horizontal."""
-    d = np.asarray(torch.as_tensor(directions, dtype=torch.float64).numpy())
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    return float(np.degrees(np.arcsin(np.abs(d[:, -1]).min())))
-
-
 def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> str | None:
     """Log and ``warnings.warn`` how wide the band no dip of ``directions`` ``(K, d)`` reaches is, when it is wider
-    than ``limit_deg`` (:func:`unmeasured_band_deg`); returns the message, or ``None``. A property of the plan,
+    than ``limit_deg`` (:func:`~dipnet.core.orientations.unmeasured_band_deg`); returns the message, or ``None``. A property of the plan,
     not a failed check of the result: surfaces whose normals lie in the band are the priors' guess."""
     band = unmeasured_band_deg(directions)
     if not band > limit_deg:

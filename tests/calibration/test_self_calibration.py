@@ -217,7 +217,7 @@ def test_the_missing_cone_of_a_scan():
     """90 deg less the largest tilt: about 0 for a full hemisphere, 55 deg for tilts up to 35 deg (the
     authors' rig); a direction and its opposite give the same planes."""
     from dipnet.core.orientations import fibonacci_hemisphere, rig_to_direction
-    from dipnet.evaluation.resolvability import unmeasured_band_deg
+    from dipnet.core.orientations import unmeasured_band_deg
 
     assert unmeasured_band_deg(fibonacci_hemisphere(123)) < 5.0
     tilts = torch.tensor([0.0, 10.0, 20.0, 35.0, 35.0])
@@ -259,7 +259,7 @@ def test_the_section_guard_is_wider_for_a_full_hemisphere_of_dips():
     """The default guard: 50 % when the dips cover the hemisphere (the data determine the section), 20 %
     with a missing cone over 10 deg (the cats' 56 deg cone: the prior decided the volume)."""
     from dipnet.calibration.self_calibration import MAX_SECTION_CHANGE, section_change_limit
-    from dipnet.evaluation.resolvability import unmeasured_band_deg
+    from dipnet.core.orientations import unmeasured_band_deg
 
     full = fibonacci_hemisphere(40)
     tilted = full[full[:, 2] >= np.cos(np.radians(35.0))]  # tilts up to 35 deg: a 55 deg missing cone
