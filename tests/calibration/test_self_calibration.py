@@ -226,28 +226,33 @@ def test_the_missing_cone_of_a_scan():
     assert unmeasured_band_deg(-cap) == pytest.approx(55.0, abs=1e-6)
 
 
-def test_a_missing_cone_keeps_the_uncorrected_section_in_the_interval():
-    """The audit's case: with tilts up to 35 deg the partly filled voxels are the missing cone's blur, not
-    thin parts, and the bias correction put the section 6-9 % high with an interval that missed the truth.
-    With a missing cone the interval reaches down to the section without the correction (here a ball dipped
-    at tilts up to 65 deg; from a cone of about 30 deg on the section is named undetermined, below), and the
-    caveat says so."""
-    import warnings
-
-    from dipnet.calibration.model import self_section_bias
+def _ball_section(max_tilt: float, n: int):
+    """Self-calibrate the section (true and configured: 60000 mm^2) from 16 dips of a 25 mm ball at tilts 0,
+    ``max_tilt / 2`` and ``max_tilt`` deg, on an ``n``^3 grid."""
     from dipnet.calibration.self_calibration import self_calibrate
     from dipnet.core.orientations import rig_to_direction
     from dipnet.shapes import Ball
     from dipnet.simulator.physics import Tank, simulate_scan
     from dipnet.solvers.voxel import VoxelSolver
 
-    tilts = torch.tensor([0.0] + [32.5] * 6 + [65.0] * 9)  # a 25 deg missing cone
+    tilts = torch.tensor([0.0] + [max_tilt / 2] * 6 + [max_tilt] * 9)
     spins = torch.cat([torch.zeros(1), torch.arange(6) * 60.0, torch.arange(9) * 40.0])
     raw = simulate_scan(Ball(25.0), rig_to_direction(tilts, spins), tank=Tank(60000.0), progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        result = self_calibrate(raw, Grid(32, extent=80.0), VoxelSolver(iterations=80, progress=False),
-                                ("cross_section_mm2",), max_section_change=0.5)
+        return self_calibrate(raw, Grid(n, extent=80.0), VoxelSolver(iterations=80, progress=False),
+                              ("cross_section_mm2",), max_section_change=0.5)
+
+
+def test_a_missing_cone_keeps_the_uncorrected_section_in_the_interval():
+    """The audit's case: with tilts up to 35 deg the partly filled voxels are the missing cone's blur, not
+    thin parts, and the bias correction put the section 6-9 % high with an interval that missed the truth.
+    With a missing cone the interval reaches down to the section without the correction (here a ball dipped
+    at tilts up to 65 deg; from a cone of about 30 deg on the section is named undetermined, below), and the
+    caveat says so."""
+    from dipnet.calibration.model import self_section_bias
+
+    result = _ball_section(65.0, 32)  # a 25 deg missing cone
     step, report = result.history[-1], result.report
     section, (low, high) = report.estimates["cross_section_mm2"], report.intervals["cross_section_mm2"]
     assert step["section_bias"] > 0.01
@@ -298,22 +303,9 @@ def test_the_shapes_spread_into_a_wide_cone_stays_in_the_sections_interval(max_t
     prior spreads the ball into the band; this ball comes out 4.7 % low at 25 deg). The interval now carries
     CONE_SECTION_ERROR_PER_DEG x band: at 55 deg it is wider than the tolerance and the section is kept (here the
     configured one is the truth), at 25 deg it holds the truth."""
-    import warnings
+    from dipnet.calibration.self_calibration import CONE_SECTION_ERROR_PER_DEG
 
-    from dipnet.calibration.self_calibration import CONE_SECTION_ERROR_PER_DEG, self_calibrate
-    from dipnet.core.orientations import rig_to_direction
-    from dipnet.shapes import Ball
-    from dipnet.simulator.physics import Tank, simulate_scan
-    from dipnet.solvers.voxel import VoxelSolver
-
-    tilts = torch.tensor([0.0] + [max_tilt / 2] * 6 + [max_tilt] * 9)
-    spins = torch.cat([torch.zeros(1), torch.arange(6) * 60.0, torch.arange(9) * 40.0])
-    raw = simulate_scan(Ball(25.0), rig_to_direction(tilts, spins), tank=Tank(60000.0), progress=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        result = self_calibrate(raw, Grid(24, extent=80.0), VoxelSolver(iterations=80, progress=False),
-                                ("cross_section_mm2",), max_section_change=0.5)
-    report = result.report
+    report = _ball_section(max_tilt, 24).report
     if max_tilt == 35.0:
         assert "no dip reaches the 55 deg about the horizontal plane" in report.undetermined["cross_section_mm2"]
         assert report.estimates["cross_section_mm2"] == 60000.0
