@@ -217,6 +217,7 @@ RESUME_SETTINGS: tuple[tuple[str, str], ...] = (
     ("plan.start_mm", "protocol.start_mm"),
     ("plan.stop_mm", "protocol.stop_mm"),
     ("plan.origin_height_mm", "rig.origin_height_mm"),
+    ("tank_id", "rig.tank"),  # TANK_CONFIG_KEY: the tank a calibration file is checked against
     ("rig_geometry", "rig.geometry"),  # GEOMETRY_CONFIG_KEY: rig.geometry or rig.calibration's geometry
     ("controller.axes.lower.scale", "rig.controller.axes.lower.scale"),
     ("controller.axes.lower.sign", "rig.controller.axes.lower.sign"),

@@ -162,3 +162,16 @@ def test_header_validation():
         ScanHeader(tank_cross_section_mm2=-1.0)
     assert ScanHeader(quantity="mass_g", ndim=2).units["value"] == "g"
     assert ScanHeader(ndim=2).units["tank_cross_section"] == "mm"
+
+
+def test_a_scan_resumed_in_another_tank_is_refused_naming_the_tanks(tmp_path):
+    """The tank a scan records (``+rig.tank``) is what its calibration file is checked against, so a resumed
+    scan cannot change it; a scan that records no tank can be resumed with one."""
+    path = tmp_path / "scan.jsonl"
+    header = ScanHeader(quantity="level_mm", step_mm=2.0, config={"tank_id": "lab-tank-1"})
+    RawScanWriter(path, header, fsync=False).close()
+    other = ScanHeader(quantity="level_mm", step_mm=2.0, config={"tank_id": "lab-tank-2"})
+    with pytest.raises(RawScanFileError, match=r"rig.tank \(config.tank_id\) 'lab-tank-1' -> 'lab-tank-2'"):
+        RawScanWriter(path, other, fsync=False)
+    untold = ScanHeader(quantity="level_mm", step_mm=2.0, config={})
+    assert header.differences(untold) == [] and untold.differences(header) == []
