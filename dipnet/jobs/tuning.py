@@ -144,8 +144,9 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
             log.warning("trial %d failed: %s: %s", trial.number, type(exc).__name__, exc)
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
-        if math.isnan(chamfer):  # no ground truth to score against (see check_ground_truth)
-            (trial_dir / "error.txt").write_text("no Chamfer distance: the job has no ground truth\n")
+        if math.isnan(chamfer):  # no ground truth to score against (see run_trial)
+            (trial_dir / "error.txt").write_text("no Chamfer distance: the job has no ground truth, or one smaller "
+                                                 "than its grid resolves (see its log)\n")
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
         study.tell(trial, chamfer)
