@@ -79,10 +79,10 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     if free and spare < MIN_SPARE_CONDITIONS:  # fitted exactly: any estimate, every interval collapsed
         unknowns = 2 * len(moments.k) - spare
         needed = math.ceil((unknowns + MIN_SPARE_CONDITIONS) / 2)
+        among = " (the object's centroid and spread among them)" if known is None else ""
         why = (f"{len(moments.k)} complete dips give {2 * len(moments.k)} moment conditions for {unknowns} unknowns"
-               f"{' (the object' + chr(39) + 's centroid and spread among them)' if known is None else ''}, fewer "
-               f"than {MIN_SPARE_CONDITIONS} to spare to tell the rig from the noise: dip at least {needed} "
-               "orientations")
+               f"{among}, fewer than {MIN_SPARE_CONDITIONS} to spare to tell the rig from the noise: dip at least "
+               f"{needed} orientations")
         gauges.update({p: why for p in free})
         free = ()
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",

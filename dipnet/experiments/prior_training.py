@@ -275,12 +275,13 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
             x, y = random_batch(inputs, targets, config.batch, config.crop, generator)
             opt.zero_grad(set_to_none=True)
             loss = F.mse_loss(model(x), y)
-            check_diverged("training", loss.item(), step + 1, config)
+            value = loss.item()
+            check_diverged("training", value, step + 1, config)
             loss.backward()
             opt.step()
             sched.step()
             step += 1
-            history["train"].append(loss.item())
+            history["train"].append(value)
             bar.update()
             if step % config.checkpoint_every == 0 or step == config.steps:
                 model.eval()

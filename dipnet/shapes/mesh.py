@@ -239,14 +239,17 @@ def _rim_hull_volume(mesh: trimesh.Trimesh) -> float:
 
     edges = mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
     loops = [np.asarray(loop) for loop in trimesh.graph.connected_components(edges, min_len=4)]
+    if not loops:
+        return 0.0
+    rims = np.concatenate(loops)
+    owner = np.repeat(np.arange(len(loops)), [len(loop) for loop in loops])
+    tree = cKDTree(mesh.vertices[rims])
     total = 0.0
     for k, loop in enumerate(loops):
-        others = np.concatenate([other for j, other in enumerate(loops) if j != k] or [np.zeros(0, dtype=int)])
         points = mesh.vertices[loop]
-        if len(others):
-            gap, _ = cKDTree(mesh.vertices[others]).query(points)
-            if gap.max() <= 0.01 * np.ptp(points, axis=0).max():
-                continue
+        near = tree.query_ball_point(points, 0.01 * np.ptp(points, axis=0).max())
+        if all((owner[hits] != k).any() for hits in near):  # a crack: every vertex has another loop's beside it
+            continue
         try:
             total += float(ConvexHull(points).volume)
         except QhullError:  # a flat rim: every fill encloses the same
