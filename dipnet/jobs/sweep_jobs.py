@@ -42,7 +42,7 @@ def guarded_job(task: Callable[[], T], out: str | Path) -> T | None:
 
 
 class JobLogCallback(Callback):
-    """Hydra callback: one log line per finished job, and the failures listed after a sweep.
+    """Hydra callback: one log line per finished job of a sweep, and the failures listed after it.
 
     Enable with ``hydra/callbacks: job_log`` (``conf/hydra/callbacks/job_log.yaml``). A job whose
     task raised (without :func:`guarded_job`) also gets its ``error.txt`` here.
@@ -62,7 +62,8 @@ class JobLogCallback(Callback):
             return
         run = load_run(out)
         if run.status == "ok":
-            log.info("%s done [%s]: %s", tag, overrides, headline(run.metrics))
+            if num is not None:  # a single run's own "done: ..." line already said it
+                log.info("%s done [%s]: %s", tag, overrides, headline(run.metrics))
         else:
             log.warning("%s %s [%s]: %s", tag, run.status, overrides, run.error or "no metrics.json written")
 

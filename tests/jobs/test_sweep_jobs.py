@@ -86,6 +86,11 @@ def test_callback_logs_one_line_per_job_and_the_failures(sweep, tmp_path, caplog
     assert line.startswith("job 0 done [solver=minnorm n_dips=4]: IoU ")
     assert f"Chamfer {chamfer_of(4, 0):.4f}" in line and len(line) < 200   # the headline numbers only
 
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="dipnet.jobs.sweep_jobs"):   # a single run: its own "done:" line
+        callback.on_job_end(_hydra_cfg(sweep / "0", None), ok)
+    assert "done [" not in caplog.text
+
     out = tmp_path / "crashed"
     out.mkdir()
     failed = JobReturn(overrides=["n_dips=-1"], status=JobStatus.FAILED)
