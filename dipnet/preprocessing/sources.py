@@ -108,10 +108,24 @@ def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) 
         measurement = DipMeasurement.load(p).rebinned(edges)
         measurement.metadata = {**measurement.metadata, "path": str(p)}  # validation messages name the file
         return measurement
-    if p.suffix in (".jsonl", ".csv"):
-        with naming_file(p):
-            return read_raw_recording(p, grid, n_slabs, **options)
-    raise MeasurementFileError(f"{p}: unknown measurement file type {p.suffix!r} (expected .npz, .jsonl or .csv)")
+    check_measurement_suffix(p)
+    with naming_file(p):
+        return read_raw_recording(p, grid, n_slabs, **options)
+
+
+#: The file types :func:`read_recorded` reads: a dipnet measurement, a raw scan, the authors' robot CSV.
+MEASUREMENT_SUFFIXES = (".npz", ".jsonl", ".csv")
+
+
+def check_measurement_suffix(path: Path) -> None:
+    """Refuse a file that is not one of :data:`MEASUREMENT_SUFFIXES` (by its suffix).
+
+    Raises:
+        MeasurementFileError: another file type (e.g. a mesh given as a recording).
+    """
+    if path.suffix not in MEASUREMENT_SUFFIXES:
+        raise MeasurementFileError(f"{path}: unknown measurement file type {path.suffix!r} (expected "
+                                   f"{', '.join(MEASUREMENT_SUFFIXES)}; a mesh is read with shape=mesh shape.path=...)")
 
 
 class RecordedSource:
@@ -127,6 +141,7 @@ class RecordedSource:
             raise TypeError("reader must be read_recorded with its path bound (a functools.partial)")
         self.reader = reader
         self.path = Path(reader.keywords["path"])
+        check_measurement_suffix(self.path)  # before anything reads it (the grid's extent, the truth it names)
 
     def truth(self, configured: Callable[[], Shape] | None = None,
               build: Callable[[dict], Shape] | None = None) -> Shape | None:

@@ -137,7 +137,8 @@ def load_mesh(
     """
     path = Path(path)
     if not path.is_file():
-        raise ShapeError(f"mesh file not found: {path}")
+        raise ShapeError(f"mesh path {path} is a directory, not a mesh file" if path.is_dir()
+                         else f"mesh file not found: {path}")
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
     except Exception as err:  # trimesh raises many types for bad files

@@ -58,6 +58,14 @@ def test_unknown_and_missing_files_are_named(tmp_path):
 def test_the_recorded_source_needs_a_reader_with_its_path():
     with pytest.raises(TypeError, match="path bound"):
         RecordedSource(read_recorded)
+
+
+def test_the_recorded_source_refuses_a_mesh_before_anything_reads_it(tmp_path):
+    # the job asks the source for the grid's extent first: a mesh must be named as the wrong file type there,
+    # not reach "extent_mm is needed"
+    (tmp_path / "bunny.ply").write_text("ply")
+    with pytest.raises(MeasurementFileError, match="unknown measurement file type '.ply'.*shape=mesh"):
+        RecordedSource(partial(read_recorded, path=str(tmp_path / "bunny.ply")))
     source = RecordedSource(partial(read_recorded, path=str(CATS_CSV)))
     assert source.path == CATS_CSV and source.truth() is None  # a real recording names no shape
     assert source.extent_mm() is None  # a raw recording has no slabs of its own

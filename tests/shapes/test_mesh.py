@@ -153,6 +153,8 @@ def test_file_errors_name_the_file(tmp_path):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ShapeWarning)
                 load_mesh(path)
+    with pytest.raises(ShapeError, match="is a directory, not a mesh file"):
+        load_mesh(tmp_path)
 
 
 def test_a_hole_bent_over_an_edge_is_refused_and_a_flat_one_filled():
