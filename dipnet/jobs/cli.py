@@ -7,7 +7,7 @@ Every bad input (a malformed file, an out-of-range option, an unknown config cho
 * :func:`run_hydra` runs a ``@hydra.main`` function so that Hydra's composition errors reach
   :func:`user_errors` instead of Hydra's multi-line report with exit code 1;
 * :func:`require_options` names the options still ``???`` in a composed config;
-* :func:`user_errors` turns the user-error exceptions into the one line;
+* :func:`user_errors` turns the user-error exceptions (a missing pip extra among them) into the one line;
 * :func:`interrupted` turns Ctrl-C into one line saying how to resume, and exit code 130.
 """
 
@@ -26,13 +26,15 @@ from hydra.errors import HydraException, InstantiationException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from dipnet.core.optional import MissingExtraError
 from dipnet.jobs.warnings_once import log_warnings_once
 
 log = logging.getLogger("dipnet")
 
-#: Exceptions that mean "the user's input is wrong", reported in one line, not a traceback.
+#: Exceptions that mean "the user's input is wrong" (or an optional package the chosen option needs is
+#: missing: the message names the pip extra), reported in one line, not a traceback.
 #: Set DIPNET_DEBUG=1 to get the full traceback instead.
-USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, KeyError, HydraException,
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, KeyError, MissingExtraError, HydraException,
                                                 OmegaConfBaseException)
 
 

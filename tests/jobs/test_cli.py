@@ -4,6 +4,7 @@ import pytest
 from hydra.errors import InstantiationException
 from omegaconf import OmegaConf
 
+from dipnet.core.optional import MissingExtraError
 from dipnet.jobs.cli import MissingOptionError, error_message, interrupted, require_options, user_errors
 
 
@@ -36,6 +37,15 @@ def test_user_errors_exit_2_with_one_line(capsys):
     assert exit_info.value.code == 2 and capsys.readouterr().err == "error: bad option\n"
     with pytest.raises(RuntimeError), user_errors():  # not a user error: the traceback stays
         raise RuntimeError("a bug")
+
+
+def test_a_missing_extra_is_one_line_naming_it_and_exit_2(capsys):
+    """tune.py without the `sweeps` extra printed a 27-line traceback and exited 1."""
+    with pytest.raises(SystemExit) as exit_info, user_errors():
+        raise MissingExtraError('tuning needs optuna, which the core install leaves out: pip install "dipnet[sweeps]"')
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err == 'error: tuning needs optuna, which the core install leaves out: ' \
+                                      'pip install "dipnet[sweeps]"\n'
 
 
 def test_ctrl_c_exits_130_saying_how_to_resume(capsys):

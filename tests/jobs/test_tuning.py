@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import pytest
 from omegaconf import OmegaConf
@@ -81,6 +82,16 @@ def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, 
     assert not (tmp_path / "study").exists()
     with pytest.raises(ValueError, match="must be"):
         tuning.tune(tmp_path / "study", n_trials=int(argv[1]), overrides=argv[2:])
+
+
+def test_without_the_sweeps_extra_one_line_names_it(tmp_path, capsys, monkeypatch, tune_script):
+    """Without optuna, tune.py printed a 27-line traceback and exited 1."""
+    monkeypatch.setitem(sys.modules, "optuna", None)  # as if the `sweeps` extra were not installed
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "1", "--out", str(tmp_path / "study")])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("error: tuning (scripts/tune.py) needs optuna") and 'pip install "dipnet[sweeps]"' in err
 
 
 def test_a_recorded_source_without_ground_truth_is_refused_before_any_trial(tmp_path, capsys, tune_script):
