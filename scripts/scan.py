@@ -32,7 +32,7 @@ from omegaconf import DictConfig
 
 from dipnet.core.locks import run_directory_lock
 from dipnet.core.orientations import check_grid_angles
-from dipnet.jobs.cli import run_hydra, user_errors
+from dipnet.jobs.cli import report, run_hydra, user_errors
 from dipnet.jobs.deprecations import upgrade_scan_config
 from dipnet.jobs.options import check_overrides, hydra_overrides
 from dipnet.jobs.scan import scan_job
@@ -55,10 +55,9 @@ def main(cfg: DictConfig) -> None:
         try:
             scan = scan_job(cfg, path, journal=journal)
         except ScanAborted as exc:
-            log.error("%s", exc)
+            report(f"error: {exc}")
             if journal is not None:
                 journal.stopped(str(exc))
-            print(f"error: {exc}", file=sys.stderr)
             raise SystemExit(3) from None
     n = sum(o.n_readings for o in scan.orientations)
     log.info("scan complete: %d orientations, %d readings in %s", len(scan.completed()), n, path)

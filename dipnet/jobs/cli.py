@@ -8,7 +8,8 @@ Every bad input (a malformed file, an out-of-range option, an unknown config cho
   :func:`user_errors` instead of Hydra's multi-line report with exit code 1;
 * :func:`require_options` names the options still ``???`` in a composed config;
 * :func:`user_errors` turns the user-error exceptions (a missing pip extra among them) into the one line;
-* :func:`interrupted` turns Ctrl-C into one line saying how to resume, and exit code 130.
+* :func:`interrupted` turns Ctrl-C into one line saying how to resume, and exit code 130;
+* :func:`report` shows that line once on the terminal and records it in the job's log file.
 """
 
 from __future__ import annotations
@@ -72,10 +73,7 @@ def user_errors(exit_code: int = 2) -> Iterator[None]:
     except USER_ERRORS as exc:
         if os.environ.get("DIPNET_DEBUG"):
             raise
-        message = error_message(exc)
-        if logging.getLogger().hasHandlers():  # before Hydra set up logging the line is printed once, below
-            log.error("error: %s", message)
-        print(f"error: {message}", file=sys.stderr)
+        report(f"error: {error_message(exc)}")
         raise SystemExit(exit_code) from None
 
 
@@ -86,11 +84,26 @@ def interrupted(hint: Callable[[], str], exit_code: int = 130) -> Iterator[None]
     try:
         yield
     except KeyboardInterrupt:
-        message = f"interrupted: {hint()}"
-        if logging.getLogger().hasHandlers():
-            log.error("%s", message)
-        print(message, file=sys.stderr)
+        report(f"interrupted: {hint()}")
         raise SystemExit(exit_code) from None
+
+
+def report(message: str) -> None:
+    """Print ``message`` once on stderr and log it as an error everywhere but the terminal: the log file
+    (Hydra's ``<job>.log``) and a scan's monitor journal keep it.
+
+    The console handlers (a ``StreamHandler`` that is not a ``FileHandler``: Hydra's on stdout,
+    ``logging.basicConfig``'s on stderr) are left out: they would show the line a second time.
+    """
+    record = log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None)
+    logger: logging.Logger | None = log
+    while logger is not None:
+        for handler in logger.handlers:
+            console = isinstance(handler, logging.StreamHandler) and not isinstance(handler, logging.FileHandler)
+            if not console and record.levelno >= handler.level:
+                handler.handle(record)
+        logger = logger.parent if logger.propagate else None
+    print(message, file=sys.stderr)
 
 
 def run_hydra(main: Callable[[], Any]) -> Any:

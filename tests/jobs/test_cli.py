@@ -1,5 +1,8 @@
 """One-line user errors: the message behind a failed instantiation, exit codes, missing options."""
 
+import io
+import logging
+
 import pytest
 from hydra.errors import InstantiationException
 from omegaconf import OmegaConf
@@ -46,6 +49,26 @@ def test_a_missing_extra_is_one_line_naming_it_and_exit_2(capsys):
     assert exit_info.value.code == 2
     assert capsys.readouterr().err == 'error: tuning needs optuna, which the core install leaves out: ' \
                                       'pip install "dipnet[sweeps]"\n'
+
+
+def test_the_error_is_shown_once_and_kept_in_the_log_file(tmp_path, capsys):
+    """Hydra's console handler repeated every ``error:`` line on stdout; its log file keeps it."""
+    console, logfile = logging.StreamHandler(io.StringIO()), logging.FileHandler(tmp_path / "job.log")
+    root = logging.getLogger()
+    for handler in (console, logfile):
+        root.addHandler(handler)
+    try:
+        with pytest.raises(SystemExit), user_errors():
+            raise ValueError("bad option")
+        with pytest.raises(SystemExit), interrupted(lambda: "rerun"):
+            raise KeyboardInterrupt
+    finally:
+        for handler in (console, logfile):
+            root.removeHandler(handler)
+        logfile.close()
+    assert console.stream.getvalue() == ""
+    assert (tmp_path / "job.log").read_text() == "error: bad option\ninterrupted: rerun\n"
+    assert capsys.readouterr().err == "error: bad option\ninterrupted: rerun\n"
 
 
 def test_ctrl_c_exits_130_saying_how_to_resume(capsys):

@@ -32,6 +32,7 @@ def _cli(run_dir: Path, *overrides: str, env: dict | None = None) -> subprocess.
 def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: str = "error: ") -> str:
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == code and len(lines) == 1 and lines[0].startswith(prefix), proc.stderr
+    assert lines[0] not in proc.stdout, proc.stdout  # once on the terminal: not repeated by Hydra's console log
     return lines[0]
 
 
