@@ -4,8 +4,10 @@
     python scripts/monitor.py --replay dipnet/data/real/3cats_fixture_3mm.csv --speed 20
     python scripts/monitor.py scans/demo --host 0.0.0.0        # reachable from the network: token printed
 
-It prints the page's address and serves until Ctrl-C. Exit code 2 with ``error: ...`` when there is no
-scan to show, the port is taken or an option is out of range.
+It prints the page's address and serves until Ctrl-C, which stops it with one line ``interrupted: ...``
+and exit code 130, as every entry point (:func:`dipnet.jobs.cli.interrupted`); a replay's scratch copy
+of the recording is removed then. Exit code 2 with ``error: ...`` when there is no scan to show, the port
+is taken or an option is out of range.
 """
 
 from __future__ import annotations
@@ -16,10 +18,12 @@ import math
 import os
 import sys
 import tempfile
+from contextlib import ExitStack
 from pathlib import Path
 
 from dipnet.core.optional import MissingExtraError, optional_import
 from dipnet.core.rawscan import RawScanFileError
+from dipnet.jobs.cli import interrupted
 
 DEFAULT_PORT = 8765
 
@@ -48,15 +52,19 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        optional_import("fastapi", "monitor", "the scan monitor")
-        optional_import("uvicorn", "monitor", "the scan monitor")
-        optional_import("plotly", "report", "the scan monitor's page")
-        return run(args)
+        with interrupted(lambda: f"monitor stopped; to show it again: python scripts/monitor.py {shown(args)}"):
+            optional_import("fastapi", "monitor", "the scan monitor")
+            optional_import("uvicorn", "monitor", "the scan monitor")
+            optional_import("plotly", "report", "the scan monitor's page")
+            return run(args)
     except (MissingExtraError, RawScanFileError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 0
+
+
+def shown(args: argparse.Namespace) -> str:
+    """What the monitor shows, as its command line gives it (the run directory, or ``--replay FILE``)."""
+    return args.run if args.replay is None else f"--replay {args.replay}"
 
 
 def check_args(args: argparse.Namespace) -> None:
@@ -85,28 +93,27 @@ def run(args: argparse.Namespace) -> int:
     check_port(args.host, args.port)  # before anything starts: one clear message
     if args.nice and hasattr(os, "nice"):
         os.nice(args.nice)
-    replay = None
-    if args.replay is not None:
-        if not Path(args.replay).is_file():
-            raise MonitorError(f"recording not found: {args.replay}")
-        path = Path(tempfile.mkdtemp(prefix="dipnet-replay-")) / "rawscan.jsonl"
-        replay = Replay(args.replay, path, args.speed)
-    else:
-        path = find_scan(args.run, wait=args.wait)
-    worker = None if args.no_recon else ReconWorker(path, every=args.every, resolution=args.resolution,
-                                                   extent_mm=args.extent_mm)
-    token = access_token(args.host, args.token)
-    monitor = Monitor(path, replay=replay is not None, worker=worker)
-    if replay is not None:
-        replay.start()
-    monitor.start()
-    print(f"monitor of {args.replay or path}: {page_url(args.host, args.port, token)}", flush=True)
-    if token:
-        print(f"access token: {token} (bound to {args.host}: requests without it are refused)", flush=True)
-    try:
-        serve(monitor, args.host, args.port, token)
-    finally:
+    with ExitStack() as cleanup:  # on the way out (Ctrl-C too): the monitor and replay stop, the scratch copy goes
+        replay = None
+        if args.replay is not None:
+            if not Path(args.replay).is_file():
+                raise MonitorError(f"recording not found: {args.replay}")
+            scratch = cleanup.enter_context(tempfile.TemporaryDirectory(prefix="dipnet-replay-", ignore_cleanup_errors=True))
+            path = Path(scratch) / "rawscan.jsonl"
+            replay = Replay(args.replay, path, args.speed)
+        else:
+            path = find_scan(args.run, wait=args.wait)
+        worker = None if args.no_recon else ReconWorker(path, every=args.every, resolution=args.resolution,
+                                                       extent_mm=args.extent_mm)
+        token = access_token(args.host, args.token)
+        monitor = Monitor(path, replay=replay is not None, worker=worker)
         if replay is not None:
-            replay.stop()
-        monitor.close()
+            replay.start()
+            cleanup.callback(replay.stop)
+        monitor.start()
+        cleanup.callback(monitor.close)
+        print(f"monitor of {args.replay or path}: {page_url(args.host, args.port, token)}", flush=True)
+        if token:
+            print(f"access token: {token} (bound to {args.host}: requests without it are refused)", flush=True)
+        serve(monitor, args.host, args.port, token)
     return 0

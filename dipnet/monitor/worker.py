@@ -19,9 +19,13 @@ import logging
 import multiprocessing as mp
 import os
 import queue
+import signal
+import threading
 import time
 import traceback
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -136,7 +140,9 @@ def worker_main(path: str, out: "mp.Queue", every: int, resolution: int, extent_
                 stop: "mp.Event", nice: int, parent: int, poll_s: float = 0.5) -> None:
     """The worker process: re-solve when ``every`` more dips are complete, or when dips were added and the
     file has not grown for :data:`QUIET_S` (the scan finished or stopped); it ends with ``stop`` or when
-    its ``parent`` process is gone (killed: nothing else would end it)."""
+    its ``parent`` process is gone (killed: nothing else would end it). Ctrl-C is ignored here (see
+    :func:`sigint_ignored`; again in case it was started off the main thread)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import torch
 
     out.cancel_join_thread()   # exit without waiting for the monitor to read the last result (it may be gone)
@@ -166,6 +172,22 @@ def quiet(path: Path) -> bool:
         return False
 
 
+@contextmanager
+def sigint_ignored() -> Iterator[None]:
+    """Ignore Ctrl-C (SIGINT) in this process for the block, so a process started in it ignores Ctrl-C from its
+    first instruction (it inherits that): a terminal sends Ctrl-C to the whole process group, and the monitor
+    stops its worker itself (:meth:`ReconWorker.close`), with no traceback from the worker. Only the main
+    thread can set signal handlers; elsewhere the block runs unchanged."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class ReconWorker:
     """The reconstruction process of one monitored scan (start, :meth:`latest`, :meth:`close`).
 
@@ -188,7 +210,8 @@ class ReconWorker:
         self.error: str | None = None
 
     def start(self) -> "ReconWorker":
-        self.process.start()
+        with sigint_ignored():
+            self.process.start()
         return self
 
     def latest(self) -> bool:

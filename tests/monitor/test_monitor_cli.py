@@ -1,14 +1,16 @@
 """scripts/monitor.py (dipnet.monitor.cli): 127.0.0.1 by default, one message per bad input (a port in use,
-no scan, no run directory) with exit code 2."""
+no scan, no run directory) with exit code 2; Ctrl-C stops it in one line, exit code 130."""
 
 from __future__ import annotations
 
 import socket
+import tempfile
 
 import pytest
 
-from dipnet.monitor import cli
+from dipnet.monitor import cli, server
 from dipnet.monitor.server import MonitorError, check_port, find_scan
+from dipnet.preprocessing.datasets import CATS_CSV
 from test_server import free_port
 
 
@@ -56,3 +58,18 @@ def test_a_port_out_of_range_is_one_message(tmp_path, capsys, port):
 def test_options_out_of_range_are_refused_up_front(tmp_path, capsys, option, message):
     assert cli.main([str(tmp_path), "--port", str(free_port()), *option]) == 2
     assert capsys.readouterr().err == f"error: {message}\n"
+
+
+def test_ctrl_c_stops_a_replay_in_one_line_exit_130_and_removes_its_scratch_copy(tmp_path, capsys, monkeypatch):
+    """Ctrl-C exited 0 and left the replay's /tmp/dipnet-replay-XXXX folder behind."""
+    def ctrl_c(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(server, "serve", ctrl_c)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where the replay's scratch copy goes
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["--replay", str(CATS_CSV), "--speed", "inf", "--no-recon", "--port", str(free_port())])
+    assert exit_.value.code == 130
+    assert capsys.readouterr().err == ("interrupted: monitor stopped; to show it again: python scripts/monitor.py "
+                                       f"--replay {CATS_CSV}\n")
+    assert list(tmp_path.iterdir()) == []

@@ -3,6 +3,8 @@ cumulative volumes reproduce the measured level traces, and the background proce
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 
 import numpy as np
@@ -10,7 +12,7 @@ import pytest
 
 from dipnet.monitor.state import predicted_trace
 from dipnet.monitor.tail import ScanTail
-from dipnet.monitor.worker import ReconWorker, grid_extent, reconstruct_scan
+from dipnet.monitor.worker import ReconWorker, grid_extent, reconstruct_scan, sigint_ignored
 
 
 def test_the_reconstruction_predicts_the_measured_traces(recorded_scan):
@@ -42,3 +44,22 @@ def test_the_worker_process_sends_a_reconstruction(recorded_scan):
     finally:
         worker.close()
     assert not worker.process.is_alive()
+
+
+def test_ctrl_c_is_ignored_while_the_worker_starts():
+    previous = signal.getsignal(signal.SIGINT)
+    with sigint_ignored():
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    assert signal.getsignal(signal.SIGINT) is previous
+
+
+@pytest.mark.slow   # a spawned process imports torch: ~10 s
+def test_ctrl_c_to_the_process_group_leaves_the_worker_to_the_monitor(recorded_scan):
+    """A terminal's Ctrl-C reached the worker too: it printed a KeyboardInterrupt traceback."""
+    worker = ReconWorker(recorded_scan, every=2, resolution=16, nice=0).start()
+    os.kill(worker.process.pid, signal.SIGINT)   # while it starts (imports torch), then while it waits
+    time.sleep(1.0)
+    assert worker.process.is_alive()
+    os.kill(worker.process.pid, signal.SIGINT)
+    worker.close(timeout=120)
+    assert worker.process.exitcode == 0   # ended by the monitor's stop, not by KeyboardInterrupt (1)
