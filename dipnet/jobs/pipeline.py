@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from dipnet.evaluation import consistency, metrics
 from dipnet.evaluation.resolvability import warn_unmeasured_band
 from dipnet.outputs import export, plots
-from dipnet.outputs.progress import OutputStages
+from dipnet.outputs.progress import OutputStages, planned_stages
 from dipnet.outputs.summary import headline, prior_weight_metrics
 from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.jobs.calibration_job import self_calibration_job
@@ -127,11 +127,12 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                                                                                   measurement.n_orientations),
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
                               **prior_weight_metrics(recon.info)}
-    stage = OutputStages(bool(cfg.output.progress))
+    stages = planned_stages(cfg.output, truth=shape is not None)
+    stage = OutputStages(bool(cfg.output.progress), stages)
     stage("consistency")
     scores.update(consistency.check_consistency(measurement, operator, recon).metrics())
     warn_unmeasured_band(measurement.directions)  # a property of the plan: the verdict above stands
-    if cfg.output.get("resolvability", True):
+    if "resolvability" in stages:
         stage("resolvability")
         scores.update(write_resolvability(measurement, grid, out, figure=cfg.output.figures))
     truth = level = None
@@ -146,7 +147,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         scores.update(metrics.false_rates(recon.binary, truth > level))
     frame = frame_offset(shape, grid, scores)
     scores.update(validation.metrics())
-    if cfg.output.get("uncertainty"):
+    if "uncertainty" in stages:
         stage("uncertainty")
         method = "linearised" if cfg.output.uncertainty is True else str(cfg.output.uncertainty)
         scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures), method,
@@ -155,7 +156,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     write_json(out / "metrics.json", scores, indent=2)
     stage("meshes and figures")
     write_outputs(cfg, out, measurement, operator, recon, truth, level, frame)
-    if cfg.output.get("report"):
+    if "report" in stages:
         from dipnet.experiments.report import write_run_report  # optional extra: plotly
 
         stage("report")

@@ -2,17 +2,27 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 from tqdm.auto import tqdm
 
-#: The stages a reconstruction job runs after its solve (the bar's total; skipped ones are left out at the end).
+#: The stages a reconstruction job runs after its solve, in order (:func:`planned_stages`: those of one job).
 STAGES = ("consistency", "resolvability", "truth and metrics", "uncertainty", "meshes and figures", "report")
+
+
+def planned_stages(output: Mapping[str, Any], truth: bool) -> tuple[str, ...]:
+    """The stages of :data:`STAGES` a job runs with these ``output`` options (``truth``: its shape is known)."""
+    runs = {"resolvability": output.get("resolvability", True), "truth and metrics": truth,
+            "uncertainty": output.get("uncertainty"), "report": output.get("report")}
+    return tuple(s for s in STAGES if runs.get(s, True))
 
 
 class OutputStages:
     """A bar that names the stage running: ``stage = OutputStages(); stage("figures"); ...; stage.close()``.
 
-    Each call marks the previous stage done and shows the new one's name; :meth:`close` sets
-    the total to the stages that ran, so the bar ends full whatever was skipped.
+    Each call marks the previous stage done and shows the new one's name; the total is the number of
+    ``stages`` the job runs (:func:`planned_stages`), so the bar counts to it and ends full.
     """
 
     def __init__(self, enabled: bool = True, stages: tuple[str, ...] = STAGES) -> None:
@@ -26,9 +36,7 @@ class OutputStages:
         self.bar.set_postfix_str(name)
 
     def close(self) -> None:
-        """Count the last stage done, end the bar at the stages that ran, and close it."""
+        """Count the last stage done and close the bar."""
         if self.started:
             self.bar.update()
-        self.bar.total = self.started
-        self.bar.refresh()
         self.bar.close()

@@ -184,3 +184,20 @@ def test_an_empty_reconstruction_or_truth_mesh_is_not_written_and_the_log_says_w
         "the true shape has no surface on this grid (no voxel more than half inside), so truth.ply was not written",
         "the reconstruction is empty (no voxel of its occupancy reaches its threshold 0.5), "
         "so reconstruction.ply was not written"]
+
+
+def test_the_outputs_bar_counts_to_the_stages_the_job_runs(tmp_path, monkeypatch):
+    """The bar went from 5/6 to "100% 5/5": its total was every stage until one was skipped."""
+    from dipnet.outputs import progress
+    from progress_bars import RecordingBar
+
+    class FirstTotal(RecordingBar):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.first_total = self.total
+
+    RecordingBar.made = []
+    monkeypatch.setattr(progress, "tqdm", FirstTotal)
+    run(_cfg("ndim=2", "resolution=32", "n_dips=10", "output.figures=false", "output.progress=true"), tmp_path)
+    (bar,) = RecordingBar.made
+    assert bar.first_total == bar.n == bar.total < len(progress.STAGES)
