@@ -31,4 +31,5 @@ result = run(cfg, out / "run")
 m = result.metrics
 print(f"ring of {ring.volume * 1000:,.0f} mm^3: IoU {m['iou']:.3f}, Chamfer {m['chamfer']:.4f} "
       f"(of the bounding-box diagonal), volume error {m['volume_error']:+.3f}")
-print("files:", ", ".join(sorted(p.name for p in (out / "run").iterdir())))
+# the outputs; not the hidden, empty .rawscan.jsonl.lock the scan writer locks (it stays by design: dipnet/core/locks.py)
+print("files:", ", ".join(sorted(p.name for p in (out / "run").iterdir() if not p.name.startswith("."))))

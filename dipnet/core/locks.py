@@ -21,7 +21,9 @@ from pathlib import Path
 
 from filelock import FileLock, Timeout
 
-#: The lock file a job keeps in its run directory while it runs.
+#: The lock file a job locks in its run directory while it runs. On Linux and macOS the empty file stays after
+#: the job (a rejected one too): it is harmless, the lock being the OS lock on it, and deleting it on release
+#: would let a process that opened it just before lock the deleted file while a third one locks a new one.
 RUN_LOCK_NAME = ".dipnet-run.lock"
 
 

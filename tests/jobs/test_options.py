@@ -1,5 +1,5 @@
 """Issue 22, options: every option of scripts/reconstruct.py is checked before any work (one line
-``error: ...`` naming the option, exit 2, nothing written), options no code reads are refused,
+``error: ...`` naming the option, exit 2, no result written), options no code reads are refused,
 every preset takes every solver, and Ctrl-C / an unwritable run directory end in one line."""
 
 from __future__ import annotations
@@ -60,6 +60,15 @@ def test_bad_options_are_refused_before_any_work(tmp_path, overrides, message):
     line = _one_line_error(_cli(tmp_path, *overrides))
     assert line.startswith(message), line
     assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "measurement.npz").exists()
+
+
+@pytest.mark.slow
+def test_a_rejected_run_leaves_what_the_guide_says(tmp_path):
+    """docs/guide/bad-data.md: Hydra's config and log (the error logged once) and the empty run-directory lock."""
+    _one_line_error(_cli(tmp_path, "n_dips=-5"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".dipnet-run.lock", ".hydra", "reconstruct.log"]
+    log = (tmp_path / "reconstruct.log").read_text()
+    assert log.count("error: n_dips must be a positive integer, got -5") == 1, log
 
 
 @pytest.mark.slow
