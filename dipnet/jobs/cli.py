@@ -62,7 +62,10 @@ def error_message(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.filename and exc.strerror:
         return f"{exc.filename}: {exc.strerror}"
     text = str(exc).split("Config search path:")[0]  # Hydra appends its search path to composition errors
-    return " ".join(text.split()) or type(exc).__name__
+    text = " ".join(text.split()) or type(exc).__name__
+    if "Could not find 'hydra/launcher/" in text:
+        text += ' (the joblib and submitit launchers come with pip install "dipnet[sweeps]")'
+    return text
 
 
 @contextlib.contextmanager

@@ -4,7 +4,7 @@ import io
 import logging
 
 import pytest
-from hydra.errors import InstantiationException
+from hydra.errors import InstantiationException, MissingConfigException
 from omegaconf import OmegaConf
 
 from dipnet.core.optional import MissingExtraError
@@ -49,6 +49,15 @@ def test_a_missing_extra_is_one_line_naming_it_and_exit_2(capsys):
     assert exit_info.value.code == 2
     assert capsys.readouterr().err == 'error: tuning needs optuna, which the core install leaves out: ' \
                                       'pip install "dipnet[sweeps]"\n'
+
+
+def test_a_launcher_of_the_sweeps_extra_names_the_extra():
+    """hydra/launcher=joblib without the extra gave Hydra's 'Could not find' with no hint of what installs it."""
+    exc = MissingConfigException("In 'hydra/config': Could not find 'hydra/launcher/joblib'\nAvailable options in "
+                                 "'hydra/launcher':\n\tbasic\nConfig search path:\n\tprovider=hydra")
+    assert error_message(exc) == ("In 'hydra/config': Could not find 'hydra/launcher/joblib' Available options in "
+                                  "'hydra/launcher': basic (the joblib and submitit launchers come with "
+                                  'pip install "dipnet[sweeps]")')
 
 
 def test_the_error_is_shown_once_and_kept_in_the_log_file(tmp_path, capsys):
