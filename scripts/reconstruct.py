@@ -19,7 +19,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from dipnet.jobs.cli import interrupted, require_options, run_hydra, user_errors
+from dipnet.core.console import interrupted
+from dipnet.jobs.cli import require_options, run_hydra, user_errors
 from dipnet.jobs.sweep_jobs import guarded_job
 from dipnet.core.locks import run_directory_lock
 from dipnet.jobs.pipeline import JobResult, run

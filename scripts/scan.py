@@ -32,7 +32,8 @@ from omegaconf import DictConfig
 
 from dipnet.core.locks import run_directory_lock
 from dipnet.core.orientations import check_grid_angles
-from dipnet.jobs.cli import report, run_hydra, user_errors
+from dipnet.core.console import report
+from dipnet.jobs.cli import run_hydra, user_errors
 from dipnet.jobs.deprecations import upgrade_scan_config
 from dipnet.jobs.options import check_overrides, hydra_overrides
 from dipnet.jobs.scan import scan_job

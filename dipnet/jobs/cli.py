@@ -8,8 +8,9 @@ Every bad input (a malformed file, an out-of-range option, an unknown config cho
   :func:`user_errors` instead of Hydra's multi-line report with exit code 1;
 * :func:`require_options` names the options still ``???`` in a composed config;
 * :func:`user_errors` turns the user-error exceptions (a missing pip extra among them) into the one line;
-* :func:`interrupted` turns Ctrl-C into one line saying how to resume, and exit code 130;
-* :func:`report` shows that line once on the terminal and records it in the job's log file.
+* :func:`~dipnet.core.console.interrupted` turns Ctrl-C into one line saying how to resume, and exit code
+  130, and :func:`~dipnet.core.console.report` shows such a line once on the terminal and records it in the
+  job's log file (in :mod:`dipnet.core.console`, as every room's entry points use them).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import contextlib
 import logging
 import os
 import re
-import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -27,6 +27,7 @@ from hydra.errors import HydraException, InstantiationException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from dipnet.core.console import report
 from dipnet.core.optional import MissingExtraError
 from dipnet.jobs.warnings_once import log_warnings_once
 
@@ -79,34 +80,6 @@ def user_errors(exit_code: int = 2) -> Iterator[None]:
         report(f"error: {error_message(exc)}")
         raise SystemExit(exit_code) from None
 
-
-@contextlib.contextmanager
-def interrupted(hint: Callable[[], str], exit_code: int = 130) -> Iterator[None]:
-    """Turn Ctrl-C (``KeyboardInterrupt``) into one line ``interrupted: <hint()>`` and exit
-    ``exit_code`` (130, the shell's code for SIGINT); ``hint`` says how to resume."""
-    try:
-        yield
-    except KeyboardInterrupt:
-        report(f"interrupted: {hint()}")
-        raise SystemExit(exit_code) from None
-
-
-def report(message: str) -> None:
-    """Print ``message`` once on stderr and log it as an error everywhere but the terminal: the log file
-    (Hydra's ``<job>.log``) and a scan's monitor journal keep it.
-
-    The console handlers (a ``StreamHandler`` that is not a ``FileHandler``: Hydra's on stdout,
-    ``logging.basicConfig``'s on stderr) are left out: they would show the line a second time.
-    """
-    record = log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None)
-    logger: logging.Logger | None = log
-    while logger is not None:
-        for handler in logger.handlers:
-            console = isinstance(handler, logging.StreamHandler) and not isinstance(handler, logging.FileHandler)
-            if not console and record.levelno >= handler.level:
-                handler.handle(record)
-        logger = logger.parent if logger.propagate else None
-    print(message, file=sys.stderr)
 
 
 def run_hydra(main: Callable[[], Any]) -> Any:

@@ -5,7 +5,8 @@
     python scripts/monitor.py scans/demo --host 0.0.0.0        # reachable from the network: token printed
 
 It prints the page's address and serves until Ctrl-C, which stops it with one line ``interrupted: ...``
-and exit code 130, as every entry point (:func:`dipnet.jobs.cli.interrupted`); a replay's scratch copy
+and exit code 130, as every entry point (:func:`dipnet.core.console.interrupted`); SIGTERM or SIGHUP (how
+``scan.py monitor=true`` ends it) with exit code 128 + the signal, its worker stopped; a replay's scratch copy
 of the recording is removed then. Exit code 2 with ``error: ...`` when there is no scan to show, the port
 is taken or an option is out of range.
 """
@@ -23,7 +24,8 @@ from pathlib import Path
 
 from dipnet.core.optional import MissingExtraError, optional_import
 from dipnet.core.rawscan import RawScanFileError
-from dipnet.jobs.cli import interrupted
+from dipnet.core.console import interrupted
+from dipnet.rig.runner import on_signals
 
 DEFAULT_PORT = 8765
 
@@ -48,11 +50,19 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def terminated(signum: int, frame) -> None:
+    """SIGTERM / SIGHUP handler: exit ``128 + signum`` through ``SystemExit``, so the ``finally`` blocks run (the
+    running reconstruction is stopped and its queue released; ``scan.py monitor=true`` ends the monitor so). The
+    default handler ended the process at once, leaving the worker's semaphores to the resource tracker's
+    "leaked semaphore objects" warning: uvicorn re-raises the signal after its graceful shutdown."""
+    raise SystemExit(128 + signum)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        with interrupted(lambda: f"monitor stopped; to show it again: python scripts/monitor.py {shown(args)}"):
+        with on_signals(terminated), interrupted(lambda: f"monitor stopped; to show it again: python scripts/monitor.py {shown(args)}"):
             optional_import("fastapi", "monitor", "the scan monitor")
             optional_import("uvicorn", "monitor", "the scan monitor")
             optional_import("plotly", "report", "the scan monitor's page")

@@ -8,7 +8,8 @@ from hydra.errors import InstantiationException, MissingConfigException
 from omegaconf import OmegaConf
 
 from dipnet.core.optional import MissingExtraError
-from dipnet.jobs.cli import MissingOptionError, error_message, interrupted, require_options, user_errors
+from dipnet.core.console import interrupted
+from dipnet.jobs.cli import MissingOptionError, error_message, require_options, user_errors
 
 
 def _instantiation_error(cause: Exception, message: str = "Error in call to target 'x'") -> InstantiationException:

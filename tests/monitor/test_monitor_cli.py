@@ -4,6 +4,7 @@ no scan, no run directory) with exit code 2; Ctrl-C stops it in one line, exit c
 from __future__ import annotations
 
 import socket
+import signal
 import tempfile
 
 import pytest
@@ -73,3 +74,19 @@ def test_ctrl_c_stops_a_replay_in_one_line_exit_130_and_removes_its_scratch_copy
     assert capsys.readouterr().err == ("interrupted: monitor stopped; to show it again: python scripts/monitor.py "
                                        f"--replay {CATS_CSV}\n")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_sigterm_ends_it_through_its_cleanup_with_exit_143(tmp_path, monkeypatch):
+    """scan.py monitor=true ends the monitor with SIGTERM, which uvicorn re-raises after its shutdown: the default
+    handler ended the process before its cleanup, so the reconstruction worker's semaphores leaked (the resource
+    tracker's warning) and a replay's scratch copy stayed."""
+    def terminate(*args, **kwargs):
+        signal.raise_signal(signal.SIGTERM)
+
+    monkeypatch.setattr(server, "serve", terminate)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["--replay", str(CATS_CSV), "--speed", "inf", "--no-recon", "--port", str(free_port())])
+    assert exit_.value.code == 128 + signal.SIGTERM
+    assert list(tmp_path.iterdir()) == []   # the ExitStack ran
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL   # the handler is the monitor's only while it runs
