@@ -81,7 +81,6 @@ def user_errors(exit_code: int = 2) -> Iterator[None]:
         raise SystemExit(exit_code) from None
 
 
-
 def run_hydra(main: Callable[[], Any]) -> Any:
     """Call the ``@hydra.main``-decorated ``main`` under :func:`user_errors`.
 
