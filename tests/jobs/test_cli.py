@@ -8,7 +8,6 @@ from hydra.errors import InstantiationException, MissingConfigException
 from omegaconf import OmegaConf
 
 from dipnet.core.optional import MissingExtraError
-from dipnet.core.console import interrupted
 from dipnet.jobs.cli import MissingOptionError, error_message, require_options, user_errors
 
 
@@ -62,7 +61,8 @@ def test_a_launcher_of_the_sweeps_extra_names_the_extra():
 
 
 def test_the_error_is_shown_once_and_kept_in_the_log_file(tmp_path, capsys):
-    """Hydra's console handler repeated every ``error:`` line on stdout; its log file keeps it."""
+    """Hydra's console handler repeated every ``error:`` line on stdout; its log file keeps it
+    (:func:`dipnet.core.console.report`, tested in tests/core/test_console.py)."""
     console, logfile = logging.StreamHandler(io.StringIO()), logging.FileHandler(tmp_path / "job.log")
     root = logging.getLogger()
     for handler in (console, logfile):
@@ -70,21 +70,13 @@ def test_the_error_is_shown_once_and_kept_in_the_log_file(tmp_path, capsys):
     try:
         with pytest.raises(SystemExit), user_errors():
             raise ValueError("bad option")
-        with pytest.raises(SystemExit), interrupted(lambda: "rerun"):
-            raise KeyboardInterrupt
     finally:
         for handler in (console, logfile):
             root.removeHandler(handler)
         logfile.close()
     assert console.stream.getvalue() == ""
-    assert (tmp_path / "job.log").read_text() == "error: bad option\ninterrupted: rerun\n"
-    assert capsys.readouterr().err == "error: bad option\ninterrupted: rerun\n"
-
-
-def test_ctrl_c_exits_130_saying_how_to_resume(capsys):
-    with pytest.raises(SystemExit) as exit_info, interrupted(lambda: "rerun the same command"):
-        raise KeyboardInterrupt
-    assert exit_info.value.code == 130 and capsys.readouterr().err == "interrupted: rerun the same command\n"
+    assert (tmp_path / "job.log").read_text() == "error: bad option\n"
+    assert capsys.readouterr().err == "error: bad option\n"
 
 
 def test_every_missing_option_is_named():
