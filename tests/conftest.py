@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import io
+import logging
 import os
 import sys
 from pathlib import Path
@@ -65,3 +67,17 @@ def pytest_make_collect_report(collector: pytest.Collector):
 def meshes_dir() -> Path:
     """The bundled example meshes (``dipnet/data/meshes``)."""
     return MESHES_DIR
+
+
+@pytest.fixture
+def console_and_log_file(tmp_path: Path):
+    """``(console handler, log file path)``: a console ``StreamHandler`` (its text in ``.stream``) and a
+    ``FileHandler`` on the root logger for the test, as Hydra's job logging has them."""
+    console, logfile = logging.StreamHandler(io.StringIO()), logging.FileHandler(tmp_path / "job.log")
+    root = logging.getLogger()
+    for handler in (console, logfile):
+        root.addHandler(handler)
+    yield console, tmp_path / "job.log"
+    for handler in (console, logfile):
+        root.removeHandler(handler)
+    logfile.close()

@@ -1,7 +1,5 @@
 """One-line user errors: the message behind a failed instantiation, exit codes, missing options."""
 
-import io
-import logging
 
 import pytest
 from hydra.errors import InstantiationException, MissingConfigException
@@ -60,22 +58,14 @@ def test_a_launcher_of_the_sweeps_extra_names_the_extra():
                                   'pip install "dipnet[sweeps]")')
 
 
-def test_the_error_is_shown_once_and_kept_in_the_log_file(tmp_path, capsys):
+def test_the_error_is_shown_once_and_kept_in_the_log_file(console_and_log_file, capsys):
     """Hydra's console handler repeated every ``error:`` line on stdout; its log file keeps it
     (:func:`dipnet.core.console.report`, tested in tests/core/test_console.py)."""
-    console, logfile = logging.StreamHandler(io.StringIO()), logging.FileHandler(tmp_path / "job.log")
-    root = logging.getLogger()
-    for handler in (console, logfile):
-        root.addHandler(handler)
-    try:
-        with pytest.raises(SystemExit), user_errors():
-            raise ValueError("bad option")
-    finally:
-        for handler in (console, logfile):
-            root.removeHandler(handler)
-        logfile.close()
+    console, log_file = console_and_log_file
+    with pytest.raises(SystemExit), user_errors():
+        raise ValueError("bad option")
     assert console.stream.getvalue() == ""
-    assert (tmp_path / "job.log").read_text() == "error: bad option\n"
+    assert log_file.read_text() == "error: bad option\n"
     assert capsys.readouterr().err == "error: bad option\n"
 
 
