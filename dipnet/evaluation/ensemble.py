@@ -188,8 +188,11 @@ def _scored(binary: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 def brier_score(probability: np.ndarray, binary: np.ndarray, truth: np.ndarray) -> float:
     """Mean squared error of the occupancy ``probability`` against ``truth`` (bool) over the support of
-    the calls ``binary`` and the true object (0: certain and right; a hard 0/1 call scores its error rate)."""
+    the calls ``binary`` and the true object (0: certain and right; a hard 0/1 call scores its error rate);
+    NaN when both are empty (no voxel to score)."""
     where = _scored(binary, truth)
+    if not where.any():
+        return float("nan")
     return float(np.mean((np.asarray(probability, float)[where] - np.asarray(truth, bool)[where]) ** 2))
 
 

@@ -35,12 +35,22 @@ def _numpy(volume: np.ndarray | torch.Tensor) -> np.ndarray:
 
 
 def iou(a: np.ndarray | torch.Tensor, b: np.ndarray | torch.Tensor) -> float:
-    """Intersection over union of two boolean volumes of one shape (1.0 when both are empty)."""
+    """Intersection over union of a boolean volume ``a`` with a reference ``b`` of one shape;
+    NaN (undefined, ``null`` in ``metrics.json``) when the reference is empty: there is nothing
+    to overlap, and an empty ``a`` must not score a perfect 1.0."""
     a, b = _numpy(a).astype(bool), _numpy(b).astype(bool)
     if a.shape != b.shape:
         raise ValueError(f"iou needs volumes of one shape, got {a.shape} and {b.shape}")
-    union = np.logical_or(a, b).sum()
-    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
+    if not b.any():
+        return float("nan")
+    return float(np.logical_and(a, b).sum() / np.logical_or(a, b).sum())
+
+
+def overlap_undefined_reason(grid: Grid) -> str:
+    """Why IoU and the false rates are undefined when the truth's voxelisation is empty (``grid``:
+    its voxels per axis and their size in mm)."""
+    return (f"the truth is thinner than a voxel at this resolution ({grid.n} voxels of {grid.voxel_size:.3g} mm "
+            "per axis) or off the grid: no voxel of it is inside")
 
 
 def volume_error(recon: np.ndarray | torch.Tensor, truth_volume: float, grid: Grid) -> float:
@@ -186,9 +196,11 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         truth_level: occupancy above which a truth voxel is inside, for IoU (see
             :func:`reference_level`).
     Returns:
-        JSON-friendly dict: ``iou``, ``chamfer``, ``hausdorff`` (truth diagonals; ``None``, with a
-        warning, when the truth has no surface on ``grid``: an object smaller than the grid resolves),
-        ``volume_error`` (signed, relative), ``empty`` (the reconstruction has no voxel inside).
+        JSON-friendly dict: ``iou`` (NaN, with a warning and the reason in ``overlap_undefined``,
+        when no truth voxel is inside: an object thinner than a voxel), ``chamfer``, ``hausdorff``
+        (truth diagonals; ``None``, with a warning, when the truth has no surface on ``grid``: an
+        object smaller than the grid resolves), ``volume_error`` (signed, relative), ``empty``
+        (the reconstruction has no voxel inside).
     """
     truth = _numpy(truth_occupancy).astype(np.float64)
     binary = reconstruction.binary
@@ -207,18 +219,28 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
                    "Hausdorff are null; use a smaller extent_mm or a higher resolution")
         log.warning(message)
         warnings.warn(message, stacklevel=2)
-    return {"iou": iou(binary, truth > truth_level), "chamfer": dist["chamfer"], "hausdorff": dist["hausdorff"],
-            "volume_error": volume_error(binary, truth_volume, grid), "empty": not bool(binary.any())}
+    scores = {"iou": iou(binary, truth > truth_level), "chamfer": dist["chamfer"], "hausdorff": dist["hausdorff"],
+              "volume_error": volume_error(binary, truth_volume, grid), "empty": not bool(binary.any())}
+    if np.isnan(scores["iou"]):
+        scores["overlap_undefined"] = overlap_undefined_reason(grid)
+        message = (f"{scores['overlap_undefined']}, so IoU and the false rates are undefined (null), not a score; "
+                   "use a higher resolution or a smaller extent_mm")
+        log.warning(message)
+        warnings.warn(message, stacklevel=2)
+    return scores
 
 
 def false_rates(recon: np.ndarray, truth: np.ndarray) -> dict[str, float]:
-    """False-positive and false-negative voxels as fractions of the true volume (paper Fig. 13b).
+    """False-positive and false-negative voxels as fractions of the true volume (paper Fig. 13b);
+    both NaN (undefined) when ``truth`` is empty, as :func:`iou`.
 
     Args:
         recon, truth: boolean volumes of one shape.
     """
     recon, truth = np.asarray(recon, dtype=bool), np.asarray(truth, dtype=bool)
-    n = max(int(truth.sum()), 1)
+    n = int(truth.sum())
+    if n == 0:
+        return {"false_positive": float("nan"), "false_negative": float("nan")}
     return {"false_positive": float((recon & ~truth).sum() / n), "false_negative": float((~recon & truth).sum() / n)}
 
 
@@ -245,11 +267,12 @@ def reference_check(truth_occupancy: np.ndarray | torch.Tensor, grid: Grid, exac
     """How far the voxel references are from the exact volume (mm^3), relative:
     ``truth_voxel_volume_error`` (the partial-volume sum) and ``truth_binary_volume_error``
     (the voxels above ``level``, the reference of IoU). Warns (logging and :mod:`warnings`)
-    when the binary reference is off by more than :data:`REFERENCE_VOLUME_TOL`."""
+    when the binary reference is off by more than :data:`REFERENCE_VOLUME_TOL` but not empty
+    (an empty one: :func:`evaluate` warns that IoU is undefined)."""
     truth = _numpy(truth_occupancy).astype(np.float64)
     partial = float(truth.sum() * grid.voxel_volume) / exact_volume - 1.0
     binary = float((truth > level).sum() * grid.voxel_volume) / exact_volume - 1.0
-    if abs(binary) > REFERENCE_VOLUME_TOL:
+    if REFERENCE_VOLUME_TOL < abs(binary) and binary > -1.0:  # -1 (empty): IoU is undefined, see evaluate
         message = (f"the IoU reference voxelisation is {100 * binary:+.1f}% off the exact volume at "
                    f"{grid.n} voxels per axis: IoU and false rates are approximate; volume_error uses the exact volume")
         log.warning(message)

@@ -12,6 +12,7 @@ The three answers (:func:`answers`):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,6 +49,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "false_positive": ("how close to the truth", "extra voxels (fraction of the truth's voxels)"),
     "false_negative": ("how close to the truth", "missed voxels (fraction of the truth's voxels)"),
     "empty": ("how close to the truth", "reconstruction empty"),
+    "overlap_undefined": ("how close to the truth", "why IoU and the false rates are undefined"),
     "truth_voxel_volume_error": ("how close to the truth", "truth voxelisation: partial-volume error"),
     "truth_binary_volume_error": ("how close to the truth", "truth voxelisation: binary volume error"),
     "truth_level": ("how close to the truth", "truth occupancy counted as inside"),
@@ -108,8 +110,10 @@ class Answer:
 
 
 def _num(metrics: dict[str, Any], key: str) -> float | None:
+    """``metrics[key]`` as a float; ``None`` when absent, not a number, or undefined (NaN, null)."""
     value = metrics.get(key)
-    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return float(value) if number and math.isfinite(value) else None
 
 
 def answers(metrics: dict[str, Any]) -> list[Answer]:
@@ -121,6 +125,8 @@ def answers(metrics: dict[str, Any]) -> list[Answer]:
         out.append(Answer("How close to the truth?", f"IoU {iou:.3f}",
                           f"Chamfer distance {100 * chamfer:.2f}% of the object's diagonal" if chamfer is not None
                           else "no surface distance"))
+    elif metrics.get("overlap_undefined"):
+        out.append(Answer("How close to the truth?", "IoU undefined", str(metrics["overlap_undefined"])))
     residual, expected = _num(metrics, "profile_residual"), _num(metrics, "profile_residual_expected")
     ratio = _num(metrics, "volume_ratio")
     if residual is not None:
@@ -150,6 +156,8 @@ def headline(metrics: dict[str, Any]) -> str:
         value = _num(metrics, key)
         if value is not None:
             parts.append(fmt.format(value))
+        elif key == "iou" and metrics.get("overlap_undefined"):
+            parts.append(f"IoU undefined ({metrics['overlap_undefined']})")
     if metrics.get("consistency"):
         parts.append(str(metrics["consistency"]))
     return ", ".join(parts)

@@ -54,7 +54,7 @@ def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: Di
         deciles = calibration_by_decile(maps["p_wrong"], reconstruction.binary, np.asarray(truth) > 0.5)
         scores["error_rate_by_uncertainty_decile"] = [round(float(v), 5) for v in deciles]
         scores["uncertainty_brier"] = brier_score(probability, reconstruction.binary, np.asarray(truth) > 0.5)
-        if np.any(deciles) and not deciles[-1] > deciles[0]:  # no wrong call at all: nothing to calibrate on
+        if np.any(deciles > 0) and not deciles[-1] > deciles[0]:  # no wrong call or voxel: nothing to calibrate
             message = (f"uncertainty is not calibrated on this run: error rate {deciles[-1]:.3f} in the most "
                        f"uncertain decile vs {deciles[0]:.3f} in the least")
             log.warning(message)

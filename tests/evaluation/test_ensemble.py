@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -100,6 +102,10 @@ def test_brier_score_and_reliability_on_known_answers():
     truth[4:8, 4:8] = True
     assert brier_score(truth.astype(float), truth, truth) == 0.0
     assert brier_score(np.full(truth.shape, 0.5), truth, truth) == pytest.approx(0.25)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # before: "Mean of empty slice" with an empty result and truth
+        nothing = np.zeros_like(truth)
+        assert np.isnan(brier_score(nothing.astype(float), nothing, nothing))
     predicted, observed, count, ece = reliability(truth.astype(float), truth, truth)
     assert ece == 0.0 and count.sum() == 52  # the 4x4 square dilated twice (4-connected): 16 + 16 + 20 voxels
     assert observed[0] == 0.0 and observed[-1] == 1.0 and np.isnan(predicted[5])

@@ -11,8 +11,9 @@ import torch
 import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.evaluation.metrics import (EMPTY_DISTANCE, chamfer_hausdorff, evaluate, iou, reference_check,
-                                     reference_level, surface_points, volume_error)
+from dipnet.core.strict_json import dumps, finite_or_none
+from dipnet.evaluation.metrics import (EMPTY_DISTANCE, chamfer_hausdorff, evaluate, false_rates, iou,
+                                     reference_check, reference_level, surface_points, volume_error)
 from dipnet.core.reconstruction import Reconstruction
 
 
@@ -110,10 +111,35 @@ def test_a_truth_smaller_than_the_grid_resolves_has_null_distances_and_a_warning
     truth[(12,) * ndim] = 0.3  # a 7 mm ball fills under half of an 8.3 mm voxel
     recon = Reconstruction(torch.from_numpy(truth).float(), grid, 0.05)
     with pytest.warns(UserWarning, match="smaller than the grid resolves, so Chamfer and Hausdorff are null; "
-                                         "use a smaller extent_mm or a higher resolution"):
+                                         "use a smaller extent_mm or a higher resolution"), \
+            pytest.warns(UserWarning, match="IoU and the false rates are undefined"):
         out = evaluate(recon, truth, grid, n_points=500)
-    assert out["chamfer"] is None and out["hausdorff"] is None
-    assert json.loads(json.dumps(out)) == out
+    assert out["chamfer"] is None and out["hausdorff"] is None and math.isnan(out["iou"])
+    assert json.loads(dumps(out)) == finite_or_none(out)
+
+
+def test_iou_and_false_rates_against_an_empty_reference_are_undefined():
+    """Before: iou(empty, empty) was 1.0 and the false rates 0.0, a perfect score for a run that lost everything."""
+    empty, some = np.zeros((6, 6, 6), bool), np.zeros((6, 6, 6), bool)
+    some[2:4, 2:4, 2:4] = True
+    assert math.isnan(iou(empty, empty)) and math.isnan(iou(some, empty))
+    assert iou(empty, some) == 0.0
+    rates = false_rates(empty, empty)
+    assert math.isnan(rates["false_positive"]) and math.isnan(rates["false_negative"])
+    assert false_rates(empty, some) == {"false_positive": 0.0, "false_negative": 1.0}
+
+
+def test_a_truth_thinner_than_a_voxel_gets_no_iou_but_a_reason():
+    """An 80 x 80 x 0.5 mm plate at 24 voxels of 5.7 mm: no voxel of the truth is inside, nor of the result."""
+    grid = Grid(24, extent=137.0)
+    plate = trimesh.creation.box(extents=[80.0, 80.0, 0.5])
+    recon = Reconstruction(torch.zeros(grid.shape), grid, 0.5)
+    with pytest.warns(UserWarning, match="the truth is thinner than a voxel at this resolution "
+                                         r"\(24 voxels of 5.71 mm per axis\).*IoU and the false rates are undefined"):
+        out = evaluate(recon, np.zeros(grid.shape), grid, truth_mesh=plate, n_points=500)
+    assert math.isnan(out["iou"]) and out["empty"] is True
+    assert out["overlap_undefined"].startswith("the truth is thinner than a voxel at this resolution")
+    assert json.loads(dumps(out))["iou"] is None
 
 
 def test_evaluate_against_a_truth_mesh():

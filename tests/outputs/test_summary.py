@@ -33,6 +33,16 @@ def test_the_job_line_keeps_the_headline_numbers_in_order():
     assert line == "IoU 0.912, 1.2 s, consistent"
 
 
+def test_an_undefined_iou_is_said_with_its_reason_not_printed_as_a_score():
+    """Before: a run whose truth had no voxel inside printed ``IoU 1.000`` (and ``uncertain nan``)."""
+    reason = "the truth is thinner than a voxel at this resolution (24 voxels of 5.71 mm per axis) or off the grid"
+    metrics = {"iou": float("nan"), "overlap_undefined": reason, "uncertain_fraction": float("nan"), "seconds": 1.3}
+    assert headline(metrics) == f"IoU undefined ({reason}), 1.3 s"
+    assert headline({**metrics, "iou": None}) == f"IoU undefined ({reason}), 1.3 s"  # as read from metrics.json
+    found = {a.question: a for a in summary.answers(metrics)}
+    assert found["How close to the truth?"].headline == "IoU undefined" and found["How close to the truth?"].detail == reason
+
+
 def test_prior_weights_and_their_reason_go_into_the_metrics():
     info = {"solver": "voxel", "prior_weights": {"tv": 2.4e-3},
             "weight_rule": {"rule": "discrepancy", "reason": "the weight expected to bring the residual to tau "
