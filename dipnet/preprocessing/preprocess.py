@@ -8,7 +8,10 @@ Per orientation:
 2. baseline: the mean of the readings before the level starts to rise (at least the first);
 3. reading -> submerged volume ``C_i``: level rise x tank cross-section ``A`` (or balance
    reading / density); the water rise is ``delta_i = C_i / A``;
-4. make ``C`` monotone (isotonic regression, the least-squares monotone fit);
+4. make ``C`` monotone (isotonic regression, the least-squares monotone fit); the slope of the
+   readings after the fit reached its final value (the object under, where the level must stay put)
+   goes into ``metadata["tail_slope"]`` (:func:`dipnet.preprocessing.level_trend.tail_slope`), since
+   the fit hides a falling level (a leak) from the profiles;
 5. water line height in the object frame ``t_i = t_start + s_i + delta_i`` (``s_i`` = stage
    position). ``t_start`` (the water line at stage 0) comes from the scan's metadata
    (simulated scans, calibrated rigs), or is estimated: ``"centroid"`` puts the profile's
@@ -44,6 +47,7 @@ from scipy.interpolate import PchipInterpolator
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
+from dipnet.preprocessing.level_trend import tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
 
 log = logging.getLogger(__name__)
@@ -107,7 +111,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     Returns:
         ``DipMeasurement`` with profiles ``(K, M)`` (mm^3; mm^2 in 2D), ``offsets = edges[0]``,
         per-slab ``sigma`` when the reading noise is known, and provenance metadata
-        (``orientation_k``, ``t_start_mm`` per orientation, ``readings``: the outlier report, ...).
+        (``orientation_k``, ``t_start_mm``, ``tail_slope`` (volume per reading) and ``readings_per_dip``
+        per orientation, ``readings``: the outlier report, ...).
     """
     report = ReadingsReport()
     if repair:
@@ -127,7 +132,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     scale = float(area) if header.quantity == "level_mm" else 1.0 / header.density_g_per_mm3
     centre = np.zeros(header.ndim) if object_centre is None else np.asarray(object_centre, dtype=np.float64)
 
-    profiles, starts, sigmas = [], [], []
+    profiles, starts, sigmas, slopes, counts = [], [], [], [], []
     for o in scans:
         stage, values = _clean_readings(o, drop_flags)
         noise = o.meta.get("noise_sigma", header.noise_sigma)
@@ -135,7 +140,10 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         tol = onset_tol if onset_tol is not None else _default_tol(values, noise, quantum)
         onset = onset_index(values, tol)
         baseline = values[: max(1, onset - 1)].mean()
-        volume = scipy.optimize.isotonic_regression(scale * (values - baseline)).x
+        rise = scale * (values - baseline)
+        volume = scipy.optimize.isotonic_regression(rise).x
+        slopes.append(tail_slope(rise, volume))
+        counts.append(len(values))
         u = stage + volume / float(area)  # t - t_start, strictly increasing
         t0 = _start_height(o, header, t_start, u, volume, onset, edges, centre)
         curve = PchipInterpolator(t0 + u, volume, extrapolate=False)
@@ -158,6 +166,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "t_start": t_start if isinstance(t_start, str) else "given",
                   "t_start_mm": [float(t) for t in starts], "smoothed": bool(smooth),
                   "orientation_k": [o.k for o in scans], "scan_metadata": header.metadata,
+                  "tail_slope": [float(v) for v in slopes], "readings_per_dip": counts,
                   "readings": report.to_json()})
 
 
