@@ -5,8 +5,9 @@
     python scripts/compare.py sweeps/a sweeps/b -o results --x dips_percent --html
 
 Writes into the output directory: ``runs.csv`` (one row per job, failed and unfinished ones
-included), ``summary.csv`` and ``summary.md`` (mean ± std per solver x n_dips x snr_db, then the
-failed/unfinished jobs), ``vs_dips.png`` (IoU and Chamfer vs dips, paper Fig. 13a),
+included), ``summary.csv`` and ``summary.md`` (mean ± std per solver x n_dips x snr_db, or ``--by``; a warning and a note
+under the table name any other config option, seeds aside, that differs within a row, such as
+``resolution``, with the ``--by`` that splits it; then the failed/unfinished jobs), ``vs_dips.png`` (IoU and Chamfer vs dips, paper Fig. 13a),
 ``vs_snr.png`` (false positives / negatives vs SNR, Fig. 13b; only when a sweep has noise
 levels), ``montage.png`` (reconstructions vs dips, Figs. 10/11) and with ``--html``
 ``report.html`` (plus each job's own ``report.html``). Runs without a ground truth (recorded
@@ -70,8 +71,11 @@ def main(argv: list[str] | None = None) -> int:
         print(note)
     tables.write_csv(groups, out / "summary.csv")
     table = tables.markdown_table(groups, args.by, metrics)
-    (out / "summary.md").write_text(table + ("\n" + problems if problems else ""))
+    pooled = tables.pooled_note(collect.pooled_options(runs, rows, args.by), args.by, {k for r in rows for k in r})
+    (out / "summary.md").write_text(table + ("\n" + pooled[:1].upper() + pooled[1:] if pooled else "") + ("\n" + problems if problems else ""))
     print(table, end="")
+    if pooled:
+        print(f"warning: {pooled}", end="", file=sys.stderr)
     written = [out / "runs.csv", out / "summary.csv", out / "summary.md"]
 
     labelled = collect.label_series(rows)

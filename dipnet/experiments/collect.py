@@ -278,6 +278,54 @@ def aggregate(rows: Sequence[dict], by: Sequence[str] = GROUP_BY,
     return out
 
 
+#: Last parts of the config options that do not make runs unlike: seeds (replicates of one setting;
+#: any option whose name contains ``seed``) and how a run shows or saves itself. The run directory is
+#: no config option (it is Hydra's).
+UNCHANGING_OPTIONS = ("progress", "figures", "report", "mesh_formats", "checkpoint", "checkpoint_every", "threads")
+
+
+def flat_config(config: dict, prefix: str = "") -> dict[str, Any]:
+    """The leaves of a nested config as ``{"a.b": value}`` (lists as tuples, so values compare and hash)."""
+    flat: dict[str, Any] = {}
+    for key, value in config.items():
+        if isinstance(value, dict) and value:
+            flat.update(flat_config(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+    return flat
+
+
+def _makes_unlike(option: str, top_level: set[str], by: Sequence[str]) -> bool:
+    """Whether runs differing in ``option`` are different settings: not a grouping column, a seed, a display
+    option, or a nested copy of a top-level option (``planner.n_dips: ${n_dips}``, reported under its own name)."""
+    last = option.rsplit(".", 1)[-1]
+    return not (option in by or "seed" in last or last in UNCHANGING_OPTIONS
+                or ("." in option and last in top_level))
+
+
+def pooled_options(runs: Sequence[Run], rows: Sequence[dict], by: Sequence[str] = GROUP_BY) -> dict[str, list]:
+    """The config options whose values differ between the ok runs pooled into one group of ``by``.
+
+    ``runs`` and their ``rows`` (:func:`run_rows`) in the same order; the solver is compared by its
+    config-group choice too. Seeds, display options and the grouping columns are not compared
+    (:func:`_makes_unlike`). Returns ``{option: its values in those groups, sorted}`` (``None`` = unset),
+    empty when every group holds one setting.
+    """
+    groups: dict[tuple, list[dict]] = {}
+    for run, row in zip(runs, rows):
+        if row.get("status") == "ok":
+            options = {**flat_config(run.config), "solver": row.get("solver")}
+            groups.setdefault(tuple(row.get(k) for k in by), []).append(options)
+    varying: dict[str, set] = {}
+    for members in groups.values():
+        top_level = {k for m in members for k in m if "." not in k}
+        for option in {k for m in members for k in m}:
+            values = {m.get(option) for m in members}
+            if len(values) > 1 and _makes_unlike(option, top_level, by):
+                varying.setdefault(option, set()).update(values)
+    return {k: sorted(v, key=_sort_key) for k, v in sorted(varying.items())}
+
+
 def label_series(rows: Sequence[dict]) -> list[dict]:
     """Copies of the rows with a ``series`` label for plotting: the solver, and the noise level
     too (``"lsmr @ 30 dB"``, ``"lsmr @ no noise"``) when the ok rows hold more than one."""

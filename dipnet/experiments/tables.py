@@ -52,6 +52,26 @@ def markdown_table(groups: Sequence[dict], by: Sequence[str] = GROUP_BY,
     return "\n".join(lines) + "\n"
 
 
+def pooled_note(options: dict[str, list], by: Sequence[str], columns: set[str]) -> str:
+    """One line on the summary's rows that pool unlike runs (``""`` when none do).
+
+    ``options``: :func:`~dipnet.experiments.collect.pooled_options`; ``by``: the grouping columns;
+    ``columns``: the runs' columns (those options among them can split the rows with ``--by``).
+    """
+    if not options:
+        return ""
+    named = "; ".join(f"{k} ({', '.join(format_cell(v) for v in values[:4])}{', ...' if len(values) > 4 else ''})"
+                      for k, values in options.items())
+    note = f"rows of this table pool runs that differ in {named}: their mean ± std mixes those settings"
+    split = [k for k in options if k in columns]
+    if split:
+        note += f"; split them with `--by {' '.join([*by, *split])}`"
+    others = [k for k in options if k not in columns]
+    if others:
+        note += f"; {', '.join(others)} {'is' if len(others) == 1 else 'are'} no runs.csv column: compare those runs separately"
+    return note + "\n"
+
+
 def markdown_problems(runs: Sequence[Run], root: str | Path | None = None) -> str:
     """A Markdown list of failed and unfinished jobs (empty string when there are none)."""
     bad = problems(runs)

@@ -96,3 +96,24 @@ def test_a_sweep_with_nothing_to_compare_is_one_error_line(tmp_path):
     assert proc.returncode == 1
     assert proc.stderr.startswith("error: the finished jobs record none of profile_residual, volume_ratio, seconds")
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("differ", ["resolution", "seed"])
+def test_a_row_pooling_runs_of_another_resolution_is_named(tmp_path, capsys, differ):
+    """Two runs of one solver x dips x SNR row at 12^3 and 24^3: a warning and a note under the table name
+    the resolution and the --by that splits them; two seeds of one setting are replicates: no note."""
+    sweep = tmp_path / "sw"
+    sweep.mkdir()
+    (sweep / "multirun.yaml").write_text("hydra: {}\n")
+    for i in range(2):
+        write_job(sweep / str(i), solver="minnorm", n_dips=20, snr_db=None, ndim=3, metrics={"iou": 0.8 + 0.1 * i},
+                  **({"resolution": 12 * (i + 1), "seed": 0} if differ == "resolution" else {"seed": i}))
+    out = tmp_path / "cmp"
+    assert _load_compare().main([str(sweep), "-o", str(out)]) == 0
+    err, md = capsys.readouterr().err, (out / "summary.md").read_text()
+    note = ("ows of this table pool runs that differ in resolution (12, 24): their mean ± std mixes those settings; "
+            "split them with `--by solver n_dips snr_db resolution`")
+    if differ == "resolution":
+        assert f"warning: r{note}" in err and f"\nR{note}" in md
+    else:
+        assert "pool runs" not in err + md
