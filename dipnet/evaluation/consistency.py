@@ -32,13 +32,19 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   touches the water and after it is under are empty; a level that drifts in time (a sensor's drift,
   a leak, an inflow) adds the same volume to every slab, a floor the reconstruction then explains
   as more object (a drift of 0.01 mm/s nearly doubled a shape's volume while its residual passed).
+* ``level_fall_share``, ``level_fall_sigmas``: a level that falls instead (a leak, evaporation, a
+  sensor drifting down) leaves no floor, since preprocessing's monotone fit flattens it, and every
+  profile loses volume alike; the readings after the object is under fall instead of staying put
+  (:mod:`dipnet.preprocessing.level_trend`, from the measurement's ``tail_slope`` metadata): the share
+  of the measured volume such a fall takes over a dip, and its standard errors (NaN without the metadata).
 
 The verdict is ``"consistent"`` unless the residual exceeds ``residual_factor`` times what
 the noise explains (and the discretisation floor ``residual_floor``), the volume ratio
 is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger), the hull
 fill is below ``hull_fill_min`` or above ``HULL_FILL_MAX`` (or the dips bound no region at all), the
-height trend exceeds half a slab and 3 of its standard errors, or the profile floor exceeds
-``FLOOR_SIGMAS`` noise sigmas and carries more than ``volume_tol`` of the measured volume. Each
+height trend exceeds half a slab and 3 of its standard errors, the profile floor exceeds
+``FLOOR_SIGMAS`` noise sigmas and carries more than ``volume_tol`` of the measured volume, or the level
+falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
 """
@@ -56,6 +62,7 @@ import torch
 from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.preprocessing.level_trend import level_fall
 from dipnet.preprocessing.validation import estimate_slab_sigma
 from dipnet.solvers.base import measured_profiles
 from dipnet.solvers.optimize import EmptySupportError, support_hull
@@ -102,6 +109,8 @@ class Consistency:
     profile_floor_mm3: float = float("nan")
     profile_floor_share: float = float("nan")
     profile_floor_limit_mm3: float = float("nan")
+    level_fall_share: float = float("nan")
+    level_fall_sigmas: float = float("nan")
     volume_unit: str = "mm^3"
     verdict: str = "consistent"
     warnings: list[str] = field(default_factory=list)
@@ -214,6 +223,10 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
     result.profile_floor_mm3, result.profile_floor_share = profile_floor(measurement, measured)
     result.profile_floor_limit_mm3 = FLOOR_SIGMAS * _slab_sigma(measurement)
+    metadata = measurement.metadata or {}
+    if "tail_slope" in metadata and "readings_per_dip" in metadata:
+        result.level_fall_share, result.level_fall_sigmas = level_fall(
+            metadata["tail_slope"], metadata["readings_per_dip"], measured)
     result.warnings = _findings(result, (measurement.metadata or {}).get("symmetry_group_order", 1))
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
@@ -275,6 +288,12 @@ def _findings(c: Consistency, symmetry_order: int = 1) -> list[str]:
                    "measured volume, which the reconstruction takes for object. A level that drifts in time (the "
                    "sensor's drift, a leak or an inflow) does this: calibrate it (calibration=self fits the "
                    "drift), or check the tank; or the object fills the working range to its ends (raise extent_mm)")
+    if c.level_fall_share > c.volume_limit and c.level_fall_sigmas > FLOOR_SIGMAS:  # NaN compares False
+        out.append(f"the water level falls after the object is under, where it must stay put: over a dip the fall "
+                   f"takes {c.level_fall_share:.1%} of the measured volume ({c.level_fall_sigmas:.0f} standard errors), "
+                   "and the monotone slabs hide it, so every profile, the measured volume and the shape are too small "
+                   "by about that much. A leak, evaporation or a level sensor drifting down does this: check the tank "
+                   "and the sensor, or fit the drift (calibration=self)")
     if math.isnan(c.hull_fill):
         out.append("the dips bound no region on the grid (each dip's non-empty slabs exclude the others'): the "
                    "directions, start heights or slab thickness do not belong to these profiles")

@@ -1,5 +1,6 @@
 """Data consistency: residual and volume ratio of a reconstruction against its own measurement."""
 
+import math
 import warnings
 
 import pytest
@@ -231,6 +232,38 @@ def test_a_level_that_drifts_in_time_is_named():
     drifting, messages = results[0.002]
     assert drifting.profile_floor_share > 0.1 and drifting.profile_floor_mm3 > drifting.profile_floor_limit_mm3
     assert drifting.verdict == "inconsistent" and any("drifts in time" in m for m in messages)
+
+
+def test_a_falling_level_is_named_though_the_monotone_slabs_hide_it():
+    """A level falling 0.002 mm/s (a leak) leaves no floor: preprocessing's monotone fit flattens it and
+    every profile loses volume alike, so residual, volume ratio and floor all pass. The readings after the
+    object is under fall instead of staying put: the share of the volume the fall takes is named with its
+    cause. A still level names nothing, and a measurement without the readings' metadata has no verdict on it."""
+    from dipnet.preprocessing.preprocess import preprocess
+    from dipnet.shapes import Box
+    from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    grid = Grid(24, extent=100.0)
+    results = {}
+    for drift in (0.0, -0.002):
+        raw = simulate_scan(Box((30.0, 20.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(30), tank=Tank(60000.0),
+                            sensor=LevelSensor(snr_db=40.0, drift_mm_per_s=drift, seed=0), progress=False)
+        measurement = preprocess(raw, grid=grid, t_start="metadata")
+        operator = make_operator(grid, measurement.directions, grid.n)
+        recon = MinNormSolver(progress=False).solve(measurement, operator)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = check_consistency(measurement, operator, recon)
+        results[drift] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+    still, messages = results[0.0]
+    assert still.level_fall_share < 0.01 and not any("level falls" in m for m in messages)
+    falling, messages = results[-0.002]
+    assert falling.measured_volume_mm3 < 0.9 * still.measured_volume_mm3  # what the fall took, hidden in the slabs
+    assert falling.level_fall_share > 0.1 and falling.level_fall_sigmas > 3
+    assert falling.verdict == "inconsistent" and any("level falls after the object is under" in m for m in messages)
+    bare = DipMeasurement(measurement.directions, measurement.profiles, measurement.slab_thickness, measurement.offsets)
+    assert math.isnan(check_consistency(bare, operator, recon, warn=False).level_fall_share)
 
 
 def test_more_volume_than_the_dips_bound_and_dips_that_bound_nothing_are_named(problem):
