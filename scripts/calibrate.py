@@ -12,7 +12,10 @@ tank the scan recorded with ``scan.py +rig.tank=lab-tank-1``; a different ``--ta
 use it with ``rig.calibration=rig_calibration.yaml`` (and ``+rig.tank=lab-tank-1``), readers with
 ``source.reader.calibration=rig_calibration.yaml``. Every parameter is estimated by default;
 those the dips cannot determine (a centred ball's spin zero, by its symmetry) are named with
-the reason and written under ``not_estimated`` with their configured values.
+the reason and written under ``not_estimated`` with their configured values. A ball off the spin
+axis has its distance from the axis fitted: its fitted centre is printed and written as
+``reference_centroid_mm``, with a warning when it is farther than ``--position-tolerance`` from
+``--centre`` (the ball is not mounted where stated).
 """
 
 from __future__ import annotations
@@ -71,8 +74,10 @@ def main(argv=None) -> int:
         geometry, report = calibrate_reference(raw, ball, grid, args.params, max_relative_residual=args.max_residual,
                                                start_height_tolerance_mm=args.height_tolerance,
                                                position_tolerance_mm=args.position_tolerance)
-        calibration = to_calibration(geometry, report, raw.header.rig, str(tank),
-                                     notes=f"ball r={args.ball_radius:g} mm at {list(args.centre)} from {args.scan}")
+        fitted = report.reference_centroid_mm
+        notes = f"ball r={args.ball_radius:g} mm, given centre {list(args.centre)} mm" + \
+            (f", fitted centre {[round(v, 3) for v in fitted]} mm" if fitted is not None else "") + f", from {args.scan}"
+        calibration = to_calibration(geometry, report, raw.header.rig, str(tank), notes=notes)
         path = save_calibration(calibration, args.output)
     print(report.table())
     print(f"wrote {path} (rig {raw.header.rig!r}, tank {tank!r})")

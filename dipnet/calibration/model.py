@@ -137,7 +137,7 @@ class CalibrationReport:
         return [n for n in self.estimates if n not in self.undetermined and n in self.intervals]
 
     def table(self) -> str:
-        """A plain-text table: parameter, estimate, 90% interval, determined?"""
+        """A plain-text table: parameter, estimate, 90% interval, determined?; then the fitted reference centre."""
         lines = [f"{'parameter':<22} {'estimate':>12} {'90% interval':>25}  determined"]
         for name, value in self.estimates.items():
             low, high = self.intervals.get(name, (float("nan"), float("nan")))
@@ -146,6 +146,9 @@ class CalibrationReport:
                 f"yes, loosely: {self.caveats[name]}" if name in self.caveats else "yes"
             lines.append(f"{name:<22} {value:12.6g} {f'[{low:.6g}, {high:.6g}]':>25}  {status}")
         lines += [f"{name:<22} {'':>12} {'':>25}  {why}" for name, why in self.not_estimated.items()]
+        if self.reference_centroid_mm is not None:
+            at = f"[{', '.join(f'{v:.2f}' for v in self.reference_centroid_mm)}]"
+            lines.append(f"{'reference_centroid_mm':<22} {at:>38}  fitted: the reference's centre (mm, object frame)")
         return "\n".join(lines)
 
 
@@ -400,4 +403,5 @@ def to_calibration(geometry: RigGeometry, report: CalibrationReport, rig: str, t
     return Calibration(geometry, rig=rig, tank=tank, method=report.method,
                        uncertainty={f: report.standard_errors[f] for f in determined},
                        intervals={f: report.intervals[f] for f in determined}, not_estimated=not_estimated,
-                       notes=notes)
+                       notes=notes, reference_centroid_mm=None if report.reference_centroid_mm is None
+                       else tuple(report.reference_centroid_mm))

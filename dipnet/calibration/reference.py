@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import math
+import warnings
 from dataclasses import replace
 from typing import Callable
 
@@ -18,6 +20,8 @@ from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
 from dipnet.preprocessing.validation import estimate_slab_sigma
+
+log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------- moment stage
 SHAPE_MOTION = {
@@ -276,6 +280,25 @@ def _name_the_size_trade(report: CalibrationReport, configured: float, known: Kn
 
 
 # ---------------------------------------------------------------------------- reference object
+def _warn_misplaced(given: np.ndarray, fitted: list[float] | None, tolerance_mm: float) -> None:
+    """Warn when a reference's fitted centre ``(3,)`` (mm, ``None``: on the spin axis, not fitted) is farther than
+    ``tolerance_mm`` from the ``given`` one ``(3,)``: it is not mounted where stated."""
+    if fitted is None:
+        return
+    distance = float(np.linalg.norm(np.asarray(fitted) - given))
+    if distance <= tolerance_mm:
+        return
+    at = ", ".join(f"{v:.2f}" for v in fitted)
+    message = (f"reference calibration: the reference's centre was fitted at [{at}] mm, {distance:.1f} mm from the "
+               f"given centre {[float(v) for v in given]} mm (more than the position tolerance {tolerance_mm:g} mm): "
+               f"it is not mounted where stated. The geometry is still estimated, because the dips fit its distance "
+               f"from the spin axis with it (a tilt-zero error moves their heights as cos r, a distance error as "
+               f"sin r); its height and its direction from the axis are not fitted that way (an error in them moves "
+               f"the pivot and the spin zero), so check the mounting and the given centre (calibrate.py --centre)")
+    log.warning(message)
+    warnings.warn(message, stacklevel=3)
+
+
 def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
                         n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
                         max_relative_residual: float = 0.05, start_height_tolerance_mm: float = 0.5,
@@ -325,6 +348,7 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
     state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed,
                                            t0_sd_mm=start_height_tolerance_mm / 1.645,
                                            position_sd_mm=position_tolerance_mm / 1.645)
+    _warn_misplaced(known.centroid, report.reference_centroid_mm, position_tolerance_mm)
     _name_the_size_trade(report, initial.step_scale, known, "cross_section_mm2" in params)
     if "cross_section_mm2" in params:
         rng = np.random.default_rng(seed)

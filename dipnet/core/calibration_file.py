@@ -23,10 +23,12 @@ Format (YAML or JSON by suffix, version 2; version 1 files, without ``intervals_
     not_estimated:                 # fields holding configured values, with the reason ({} if none)
       spin_zero_deg: "a ball centred on the spin axis looks the same at every spin"
     notes: ball d=60 mm at 7 orientations
+    reference_centroid_mm: [24.9, 0.0, 0.05]   # optional: where a reference calibration fitted its ball's centre
+                                               # (object frame, mm; its distance from the spin axis is fitted)
 
-A version 2 file names every section and every geometry field but ``cross_section_mm2`` (as
-:func:`save_calibration` writes it): one without them (a truncated file) is refused, naming the
-missing keys, rather than read with ideal values in their place. Version 1 files may omit
+A version 2 file names every section but ``reference_centroid_mm`` and every geometry field but
+``cross_section_mm2`` (as :func:`save_calibration` writes it): one without them (a truncated file)
+is refused, naming the missing keys, rather than read with ideal values in their place. Version 1 files may omit
 geometry fields (ideal) and the optional sections.
 
 A field of ``geometry`` that is listed under ``not_estimated`` is the configured value, not an
@@ -58,7 +60,8 @@ FORMAT_VERSION = 2
 READ_VERSIONS = (1, 2)
 METHODS = ("reference", "self", "manual")
 _KEYS = {"format", "version", "rig", "tank", "method", "created", "geometry", "uncertainty", "intervals_90",
-         "not_estimated", "notes"}
+         "not_estimated", "notes", "reference_centroid_mm"}
+_OPTIONAL_KEYS = {"reference_centroid_mm"}  # written by reference calibrations off the spin axis only
 _OPTIONAL_GEOMETRY = {"cross_section_mm2"}  # omitted when the scan's nominal section is meant
 TANK_CONFIG_KEY = "tank_id"  # ScanHeader.config key holding the tank's identity
 
@@ -80,6 +83,8 @@ class Calibration:
         intervals: 90% intervals ``(low, high)`` per estimated geometry field.
         not_estimated: geometry field -> why it holds the configured value, not an estimate.
         notes: free text.
+        reference_centroid_mm: where a reference calibration fitted its object's centre ``(x, y, z)``
+            (object frame, mm; its distance from the spin axis is fitted), ``None`` if not.
         created: ISO 8601 time.
     """
 
@@ -91,6 +96,7 @@ class Calibration:
     intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
     not_estimated: dict[str, str] = field(default_factory=dict)
     notes: str = ""
+    reference_centroid_mm: tuple[float, float, float] | None = None
     created: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%S%z"))
 
     def to_dict(self) -> dict[str, Any]:
@@ -99,7 +105,9 @@ class Calibration:
                 "geometry": {k: v for k, v in self.geometry.to_dict().items() if v is not None},
                 "uncertainty": {k: float(v) for k, v in self.uncertainty.items()},
                 "intervals_90": {k: [float(v[0]), float(v[1])] for k, v in self.intervals.items()},
-                "not_estimated": {k: str(v) for k, v in self.not_estimated.items()}, "notes": self.notes}
+                "not_estimated": {k: str(v) for k, v in self.not_estimated.items()}, "notes": self.notes,
+                **({} if self.reference_centroid_mm is None
+                   else {"reference_centroid_mm": [float(v) for v in self.reference_centroid_mm]})}
 
 
 def save_calibration(calibration: Calibration, path: str | Path) -> Path:
@@ -143,6 +151,10 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         uncertainty = {str(k): _number(v) for k, v in (data.get("uncertainty") or {}).items()}
         intervals = {str(k): (_number(v[0]), _number(v[1])) for k, v in (data.get("intervals_90") or {}).items()}
         not_estimated = {str(k): str(v) for k, v in (data.get("not_estimated") or {}).items()}
+        centroid = data.get("reference_centroid_mm")
+        if centroid is not None and len(centroid) != 3:
+            raise ValueError(f"reference_centroid_mm must be [x, y, z] (mm), got {centroid!r}")
+        centroid = None if centroid is None else tuple(_number(v) for v in centroid)
     except (GeometryError, TypeError, ValueError, IndexError, KeyError, AttributeError) as exc:
         raise CalibrationFileError(f"{path}: {exc}") from exc
     missing = _missing_keys(data)
@@ -152,7 +164,8 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
     calibration = Calibration(geometry=geometry, rig=data["rig"], tank=data["tank"],
                               method=data.get("method", "manual"), uncertainty=uncertainty,
                               intervals=intervals, not_estimated=not_estimated,
-                              notes=str(data.get("notes") or ""), created=str(data.get("created") or ""))
+                              notes=str(data.get("notes") or ""), reference_centroid_mm=centroid,
+                              created=str(data.get("created") or ""))
     check_identity(calibration, rig, tank, source=str(path))
     return calibration
 
@@ -162,7 +175,7 @@ def _missing_keys(data: dict[str, Any]) -> list[str]:
     if data["version"] == 1:
         return []
     required = {f.name for f in fields(RigGeometry)} - _OPTIONAL_GEOMETRY
-    return sorted(_KEYS - set(data)) + [f"geometry.{name}" for name in sorted(required - set(data["geometry"]))]
+    return sorted(_KEYS - _OPTIONAL_KEYS - set(data)) + [f"geometry.{name}" for name in sorted(required - set(data["geometry"]))]
 
 
 def _number(value: Any) -> float:

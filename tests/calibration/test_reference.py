@@ -149,6 +149,35 @@ def test_a_ball_off_the_axis_needs_no_exact_distance_from_it():
     assert low <= 30.0 <= high and report.reference_centroid_mm[0] == pytest.approx(27.0, abs=0.3)
 
 
+def test_calibrate_says_where_a_ball_off_the_axis_really_was(tmp_path, capsys, caplog):
+    """The audit's case: a ball at x = +25 mm calibrated with ``--centre 40 0 0`` gave the right geometry (its
+    distance from the axis is fitted) but the file's notes held the given centre and nothing said otherwise. The
+    fitted centre is now printed and written (``reference_centroid_mm``), with a warning naming both centres and
+    the distance; given where it was, it is written too and nothing is warned."""
+    true = RigGeometry(pivot_mm=20.0, tilt_axis_offset_mm=10.0, tilt_zero_deg=1.0)
+    raw = simulate_scan(Ball(30.0, center=(25.0, 0.0, 0.0)), fibonacci_hemisphere(40), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=40.0, seed=6), progress=False)
+    scan = raw.save(tmp_path / "ball.jsonl")
+    calibrate = load_script("calibrate")
+    for centre in ("40", "25"):
+        out = tmp_path / f"cal_{centre}.yaml"
+        caplog.clear()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            assert calibrate.main([str(scan), "--ball-radius", "30", "--centre", centre, "0", "0", "--tank", "t",
+                                   "--n", "24", "--output", str(out)]) == 0
+        cal = load_calibration(out)
+        assert cal.reference_centroid_mm == pytest.approx((25.0, 0.0, 0.0), abs=0.3)
+        assert cal.geometry.tilt_zero_deg == pytest.approx(1.0, abs=0.2)
+        assert "reference_centroid_mm" in capsys.readouterr().out
+        if centre == "40":
+            assert "the reference's centre was fitted at [25.0" in caplog.text
+            assert "mm, 15.0 mm from the given centre [40.0, 0.0, 0.0] mm" in caplog.text
+            assert "not mounted where stated" in caplog.text and "given centre [40.0, 0.0, 0.0] mm" in cal.notes
+        else:
+            assert "not mounted where stated" not in caplog.text
+
+
 def test_a_ball_off_the_axis_shows_its_start_height():
     """The stage's zero 0.4 mm off the water line and the ball mounted 0.3 mm high: with the start height and
     the mounting as priors (the default tolerances) the dips of a ball off the spin axis show the start

@@ -65,6 +65,21 @@ def test_a_truncated_file_is_refused_naming_the_missing_keys(tmp_path):
         load_calibration(path)
 
 
+@pytest.mark.parametrize("name", ["cal.yaml", "cal.json"])
+def test_a_reference_calibrations_fitted_ball_centre_round_trips(tmp_path, name):
+    """A reference ball off the spin axis records where it was fitted to be; a file without it (self-calibration,
+    a centred ball) is complete, one with a malformed centre is refused naming the key."""
+    fitted = Calibration(CAL.geometry, rig="grbl-rig", tank="tank-A", method="reference",
+                         reference_centroid_mm=(24.9, 0.0, 0.05))
+    path = save_calibration(fitted, tmp_path / name)
+    assert "reference_centroid_mm" in path.read_text() and load_calibration(path) == fitted
+    assert "reference_centroid_mm" not in save_calibration(CAL, tmp_path / name).read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(save_calibration(fitted, bad).read_text().replace("- 0.05\n", ""))
+    with pytest.raises(CalibrationFileError, match=r"reference_centroid_mm must be \[x, y, z\] \(mm\)"):
+        load_calibration(bad)
+
+
 def test_a_nominal_section_and_version_1_omissions_are_read(tmp_path):
     nominal = Calibration(RigGeometry(pivot_mm=2.0), rig="grbl-rig", tank="tank-A")
     assert load_calibration(save_calibration(nominal, tmp_path / "nominal.yaml")) == nominal
