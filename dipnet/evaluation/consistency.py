@@ -32,6 +32,11 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   touches the water and after it is under are empty; a level that drifts in time (a sensor's drift,
   a leak, an inflow) adds the same volume to every slab, a floor the reconstruction then explains
   as more object (a drift of 0.01 mm/s nearly doubled a shape's volume while its residual passed).
+* ``quantum_volume_mm3``, ``mean_slab_mm3``: the volume of one step of the sensor's reading, when the
+  measurement records it (:mod:`dipnet.evaluation.quantisation`), and the mean slab the object fills.
+  The rounding's error joins the noise of the residual (when ``sigma`` is estimated), of the
+  volume ratio and of the height trend; a quantum of half a mean slab or more is named as the cause,
+  and the height-trend and hull-fill checks, whose misfits it alone makes, are skipped.
 * ``level_fall_share``, ``level_fall_sigmas``: a level that falls instead (a leak, evaporation, a
   sensor drifting down) leaves no floor, since preprocessing's monotone fit flattens it, and every
   profile loses volume alike; the readings after the object is under fall instead of staying put
@@ -62,6 +67,8 @@ import torch
 from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allowance, coarse_quantum_message,
+                                            object_slabs, reading_quantum)
 from dipnet.preprocessing.level_trend import level_fall
 from dipnet.preprocessing.validation import estimate_slab_sigma
 from dipnet.solvers.base import measured_profiles
@@ -109,6 +116,8 @@ class Consistency:
     profile_floor_mm3: float = float("nan")
     profile_floor_share: float = float("nan")
     profile_floor_limit_mm3: float = float("nan")
+    quantum_volume_mm3: float = float("nan")
+    mean_slab_mm3: float = float("nan")
     level_fall_share: float = float("nan")
     level_fall_sigmas: float = float("nan")
     volume_unit: str = "mm^3"
@@ -203,11 +212,14 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     if not measured > 0:
         raise ValueError(f"the measurement's profiles hold no volume ({measured:g} mm^3): nothing to check against")
     on_grid, _ = robust_volume(target)
+    quantum = reading_quantum(measurement)
+    rounding = quantum.slab_sigma if quantum is not None else 0.0  # a sigma of preprocess holds it already
     sigma = measurement.sigma if measurement.sigma is not None and measurement.sigma.shape == target.shape else None
     if sigma is not None:
         noise_norm, source = float(sigma.double().pow(2).sum().sqrt()), "sigma"
     else:
-        noise_norm, source = estimate_slab_sigma(target) * math.sqrt(target.numel()), "estimated"
+        noise_norm = math.hypot(estimate_slab_sigma(target), rounding) * math.sqrt(target.numel())
+        source = "estimated"
     expected = noise_norm / float(target.norm().clamp(min=1e-300))
     recon_volume = float((binary & mask).sum()) * voxel
     result = Consistency(
@@ -216,18 +228,24 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         profile_residual_expected=expected, residual_limit=max(residual_factor * expected, residual_floor),
         noise_source=source, measured_volume_mm3=measured, reconstructed_volume_mm3=recon_volume,
         continuous_volume_mm3=float((occupancy.double() * mask).sum()) * voxel,
-        volume_ratio=recon_volume / measured, volume_ratio_noise=spread / measured,
-        volume_limit=max(volume_tol, 3 * spread / measured), grid_volume_fraction=on_grid / measured,
+        volume_ratio=recon_volume / measured, volume_ratio_noise=math.hypot(spread, rounding) / measured,
+        volume_limit=max(volume_tol, 3 * math.hypot(spread, rounding) / measured),
+        grid_volume_fraction=on_grid / measured,
         hull_fill=_hull_fill(measured, target, operator), hull_fill_min=hull_fill_min,
         volume_unit="mm^2" if operator.grid.ndim == 2 else "mm^3")
     result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
+    if quantum is not None:
+        spanned = object_slabs(measurement.profiles)
+        result.quantum_volume_mm3, result.mean_slab_mm3 = quantum.volume, measured / spanned
+        result.height_trend_limit_mm = max(result.height_trend_limit_mm, centroid_allowance(
+            quantum, measured, measurement.slab_thickness, spanned))  # NaN stays NaN
     result.profile_floor_mm3, result.profile_floor_share = profile_floor(measurement, measured)
     result.profile_floor_limit_mm3 = FLOOR_SIGMAS * _slab_sigma(measurement)
     metadata = measurement.metadata or {}
     if "tail_slope" in metadata and "readings_per_dip" in metadata:
         result.level_fall_share, result.level_fall_sigmas = level_fall(
             metadata["tail_slope"], metadata["readings_per_dip"], measured)
-    result.warnings = _findings(result, (measurement.metadata or {}).get("symmetry_group_order", 1))
+    result.warnings = _findings(result, (measurement.metadata or {}).get("symmetry_group_order", 1), quantum)
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
         for message in result.warnings:
@@ -253,10 +271,15 @@ def _hull_fill(measured: float, target: torch.Tensor, operator: DipOperator) -> 
     return measured / (float(hull.sum()) * operator.grid.voxel_volume)
 
 
-def _findings(c: Consistency, symmetry_order: int = 1) -> list[str]:
+def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None = None) -> list[str]:
     """One plain message per failed check; ``symmetry_order``: the order of a declared symmetry group whose
-    images of the dips the data hold (:func:`~dipnet.preprocessing.symmetry.expand_symmetry`), named as a cause."""
+    images of the dips the data hold (:func:`~dipnet.preprocessing.symmetry.expand_symmetry`), named as a cause;
+    ``quantum``: the sensor's reading quantum, named as the cause when it is coarse against a slab (and then the
+    rig-geometry and unit hints, which its rounding alone sets off, are left out)."""
     out = []
+    coarse = quantum is not None and c.quantum_volume_mm3 >= COARSE_SHARE * c.mean_slab_mm3
+    if coarse:
+        out.append(coarse_quantum_message(quantum, c.mean_slab_mm3, c.volume_unit))
     suspects = "the rig model (start heights, geometry, cross-section) or the priors disagree with the data"
     if symmetry_order > 1:
         suspects = (f"the declared symmetry (order {symmetry_order}: every dip copied to its images) may not be the "
@@ -277,7 +300,7 @@ def _findings(c: Consistency, symmetry_order: int = 1) -> list[str]:
                    f"(occupancy: {c.profile_residual_continuous:.3f}), noise explains "
                    f"{c.profile_residual_expected:.3f} ({c.noise_source}){hint}")
     trend = max(abs(c.height_trend_pivot_mm), abs(c.height_trend_offset_mm))
-    if trend > c.height_trend_limit_mm:  # NaN compares False
+    if trend > c.height_trend_limit_mm and not coarse:  # NaN compares False
         out.append(f"the dips' heights trend with their tilt as a wrong rig geometry leaves them: the pivot looks "
                    f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by {c.height_trend_offset_mm:+.2f}"
                    f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
@@ -294,15 +317,15 @@ def _findings(c: Consistency, symmetry_order: int = 1) -> list[str]:
                    "and the monotone slabs hide it, so every profile, the measured volume and the shape are too small "
                    "by about that much. A leak, evaporation or a level sensor drifting down does this: check the tank "
                    "and the sensor, or fit the drift (calibration=self)")
-    if math.isnan(c.hull_fill):
+    if math.isnan(c.hull_fill) and not coarse:
         out.append("the dips bound no region on the grid (each dip's non-empty slabs exclude the others'): the "
                    "directions, start heights or slab thickness do not belong to these profiles")
-    elif c.hull_fill > HULL_FILL_MAX:
+    elif c.hull_fill > HULL_FILL_MAX and not coarse:
         out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, {c.hull_fill:.0%} of the region they bound, "
                    "which can hold at most all of it: the volumes are too large for their slabs (a level or "
                    "cross-section unit too small, levels in cm read as mm), or the dips' heights or directions are "
                    "not theirs (a wrong rig geometry or start heights)")
-    if c.hull_fill < c.hull_fill_min:  # NaN compares False
+    if c.hull_fill < c.hull_fill_min and not coarse:  # NaN compares False
         out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, {c.hull_fill:.2%} of the region they bound "
                    f"(real objects fill 4-76 %): a volume ten times too small, as levels in cm under a column that "
                    "says mm or a cross-section in cm^2 give, or an object much thinner than that region (a wire, a "

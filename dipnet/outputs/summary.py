@@ -71,6 +71,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "height_trend_pivot_mm": ("how consistent with the data", "height trend: pivot offset (mm)"),
     "height_trend_offset_mm": ("how consistent with the data", "height trend: level offset (mm)"),
     "height_trend_limit_mm": ("how consistent with the data", "height trend limit (mm)"),
+    "quantum_volume_mm3": ("how consistent with the data", "volume of one step of the sensor's reading (mm³)"),
+    "mean_slab_mm3": ("how consistent with the data", "mean slab the object fills (mm³)"),
     "consistency": ("how consistent with the data", "verdict"),
     "consistency_warnings": ("how consistent with the data", "findings"),
     "uncertainty_mean": ("how sure", "mean posterior (or ensemble) std over the support"),

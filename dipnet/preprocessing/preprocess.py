@@ -112,7 +112,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         ``DipMeasurement`` with profiles ``(K, M)`` (mm^3; mm^2 in 2D), ``offsets = edges[0]``,
         per-slab ``sigma`` when the reading noise is known, and provenance metadata
         (``orientation_k``, ``t_start_mm``, ``tail_slope`` (volume per reading) and ``readings_per_dip``
-        per orientation, ``readings``: the outlier report, ...).
+        per orientation, ``reading_quantum`` (reading units) and ``reading_quantum_volume`` (mm^3) when
+        the scan records its resolution, ``readings``: the outlier report, ...).
     """
     report = ReadingsReport()
     if repair:
@@ -167,6 +168,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "t_start_mm": [float(t) for t in starts], "smoothed": bool(smooth),
                   "orientation_k": [o.k for o in scans], "scan_metadata": header.metadata,
                   "tail_slope": [float(v) for v in slopes], "readings_per_dip": counts,
+                  "reading_quantum": header.resolution, "reading_quantum_volume":
+                      None if header.resolution is None else scale * float(header.resolution),
                   "readings": report.to_json()})
 
 

@@ -307,3 +307,38 @@ def test_a_2d_checks_messages_say_mm2():
     result = check_consistency(measurement, operator, Reconstruction(occupancy=(0.5 * disk).float(), grid=grid),
                                warn=False)
     assert result.volume_unit == "mm^2" and any("mm^2" in m and "mm^3" not in m for m in result.warnings)
+
+
+def test_a_coarse_level_sensor_is_named_and_not_blamed_on_the_rig():
+    """The chamber box at 20^3 with 30 dips read by a 0.5 mm level sensor in a 60,000 mm^2 tank: each reading
+    step is 30,000 mm^3, two mean slabs. Before, the rounding was blamed on the rig ("the pivot looks off",
+    "levels in cm read as mm") and the volume ratio allowed no noise; now the sensor is named once, its
+    rounding joins the volume's noise, and those hints are left out. Unquantised data are checked as before."""
+    from dipnet.evaluation.consistency import _findings
+    from dipnet.preprocessing.preprocess import preprocess
+    from dipnet.shapes import builtin_shape
+    from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
+
+    shape = builtin_shape("chamber_box", ndim=3, radius=45.0)
+    grid = Grid(20, extent=1000.0 / 9)  # the job's grid: slabs of 5.56 mm
+    results = {}
+    for quantum in (0.0, 0.5):
+        raw = simulate_scan(shape, fibonacci_hemisphere(30), tank=Tank(60000.0), sensor=LevelSensor(quantum_mm=quantum),
+                            progress=False)
+        measurement = preprocess(raw, grid=grid, t_start="metadata")
+        operator = make_operator(grid, measurement.directions, grid.n)
+        truth = Reconstruction(occupancy=shape.occupancy(grid, supersample=3), grid=grid)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = check_consistency(measurement, operator, truth)
+        results[quantum] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+    plain, messages = results[0.0]
+    assert math.isnan(plain.quantum_volume_mm3) and not any("resolution" in m for m in messages)
+    coarse, messages = results[0.5]
+    assert coarse.quantum_volume_mm3 == pytest.approx(30000.0) and coarse.verdict == "inconsistent"
+    assert sum("the level sensor's resolution (0.5 mm = 3e+04 mm^3 per reading) is coarse against a mean slab"
+               in m and "use a finer sensor or thicker slabs" in m for m in messages) == 1
+    assert not any("pivot looks off" in m or "levels in cm" in m or "ten times too small" in m for m in messages)
+    assert coarse.volume_ratio_noise == pytest.approx(30000.0 / math.sqrt(6) / coarse.measured_volume_mm3, rel=0.01)
+    assert 0.5 * grid.voxel_size < coarse.height_trend_pivot_mm < coarse.height_trend_limit_mm  # within the rounding
+    assert "levels in cm" in " ".join(_findings(coarse))  # the same numbers without the quantum: the unit blamed
