@@ -159,17 +159,22 @@ def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[
 
 
 def _robust_slope(t: np.ndarray, y: np.ndarray) -> float:
-    """Least-squares slope, refitted without readings 4 MADs off the line (spikes)."""
-    t = t - t.mean()  # clock times (epoch seconds) would make the fit ill-conditioned
+    """Least-squares slope, refitted without readings 4 MADs off the line (spikes); the last slope that had
+    two distinct times to stand on (NaN if the first fit had none)."""
+    slope = float("nan")
     for _ in range(3):
-        slope, icept = np.polyfit(t, y, 1)
-        r = y - (slope * t + icept)
+        centred = t - t.mean()  # clock times (epoch seconds) would make the fit ill-conditioned
+        spread = float(np.dot(centred, centred))
+        if not spread > 0:
+            break
+        slope = float(np.dot(centred, y - y.mean()) / spread)
+        r = y - y.mean() - slope * centred
         mad = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-12
         keep = np.abs(r) <= 4 * mad
         if keep.all() or keep.sum() < 3:
             break
         t, y = t[keep], y[keep]
-    return float(slope)
+    return slope
 
 
 def dip_moments(raw: RawScan, geometry: RigGeometry) -> DipMoments:

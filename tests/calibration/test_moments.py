@@ -77,3 +77,23 @@ def test_too_few_dips_leave_the_rig_undetermined_instead_of_exact():
         else:
             assert not any("moment conditions" in r for r in reasons)
             assert report.estimates["pivot_mm"] != 0.0
+
+
+def test_the_drift_slope_drops_spikes_and_needs_two_distinct_times():
+    """The rest level's slope is refitted without spikes; readings that all share one time leave no slope
+    (NaN), and a refit left with one time keeps the last slope, without numpy's ill-conditioning warnings."""
+    import warnings
+
+    import numpy as np
+
+    from dipnet.calibration.moments import _robust_slope
+
+    t = np.arange(20.0) + 1.7e9  # clock times
+    y = 0.01 * (t - t[0])
+    y[7] += 50.0  # a spike
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _robust_slope(t, y) == pytest.approx(0.01, rel=1e-9)
+        assert np.isnan(_robust_slope(np.full(5, 3.0), np.arange(5.0)))
+        t2 = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 1.0])  # both readings at the other time are trimmed as spikes
+        assert _robust_slope(t2, np.array([0.0, 0.0, 0.0, 0.0, 100.0, -100.0])) == 0.0
