@@ -47,7 +47,8 @@ def tail_slope(volume: np.ndarray, fitted: np.ndarray, min_readings: int = MIN_T
     tail = volume[start:]
     if tail.size < max(2, int(min_readings)):
         return float("nan")
-    return float(np.polyfit(np.arange(tail.size, dtype=np.float64), tail, 1)[0])
+    index = np.arange(tail.size, dtype=np.float64) - (tail.size - 1) / 2
+    return float(np.dot(index, tail - tail.mean()) / np.dot(index, index))
 
 
 def level_fall(slopes: np.ndarray, readings: np.ndarray, measured_volume: float) -> tuple[float, float]:
