@@ -14,6 +14,13 @@ count, so every profile of a volume sums exactly to its (masked) occupancy volum
 Units: volumes hold occupancy fractions (dimensionless); profiles hold slab volumes in mm^3
 (mm^2 in 2D). Shapes: volumes ``(*grid.shape)`` or ``(B, *grid.shape)``; profiles ``(K, M)``
 or ``(B, K, M)``.
+
+Inputs: :meth:`DipOperator.forward` and :meth:`DipOperator.adjoint` take anything
+``torch.as_tensor`` takes (a tensor, a numpy array), as the constructor does for the directions,
+and return a tensor. A floating tensor is used as it is (its dtype, device and autograd graph
+kept); a bool or integer one (e.g. ``Reconstruction.binary``) is an occupancy (``True`` = 1) and
+is converted to the operator's float dtype (that of its ``directions`` buffer, float64 unless
+the module was cast). Complex inputs are refused with a ``TypeError``.
 """
 
 from __future__ import annotations
@@ -46,6 +53,9 @@ class DipOperator(nn.Module, ABC):
             raise ValueError(
                 f"directions must have shape (K, {grid.ndim}) with K >= 1, got {tuple(directions.shape)}"
             )
+        if not bool(torch.isfinite(directions).all()):
+            rows = torch.nonzero(~torch.isfinite(directions).all(dim=1)).squeeze(1).tolist()
+            raise ValueError(f"directions contain non-finite (NaN or inf) components in rows {rows}")
         norms = directions.norm(dim=1, keepdim=True)
         if bool((norms < 1e-12).any()):
             raise ValueError("directions contain a zero vector")
@@ -79,14 +89,20 @@ class DipOperator(nn.Module, ABC):
 
     # ----------------------------------------------------------------- application
     def forward(self, volume: torch.Tensor) -> torch.Tensor:
-        """Slab volumes (mm^3) of ``volume``: ``(*shape)`` -> ``(K, M)``, ``(B, *shape)`` -> ``(B, K, M)``."""
+        """Slab volumes (mm^3) of ``volume``: ``(*shape)`` -> ``(K, M)``, ``(B, *shape)`` -> ``(B, K, M)``.
+
+        ``volume`` holds occupancy fractions; bool, integer and numpy inputs are accepted (module docstring)."""
+        volume = self._as_real_tensor(volume, "volume")
         batched = self._check_volume(volume)
         v = volume if batched else volume.unsqueeze(0)
         out = self._forward(v * self.mask.to(v.dtype))
         return out if batched else out.squeeze(0)
 
     def adjoint(self, profiles: torch.Tensor) -> torch.Tensor:
-        """Exact transpose of :meth:`forward`: ``(K, M)`` -> ``(*shape)``, ``(B, K, M)`` -> ``(B, *shape)``."""
+        """Exact transpose of :meth:`forward`: ``(K, M)`` -> ``(*shape)``, ``(B, K, M)`` -> ``(B, *shape)``.
+
+        ``profiles`` holds slab volumes in mm^3; integer and numpy inputs are accepted (module docstring)."""
+        profiles = self._as_real_tensor(profiles, "profiles")
         if profiles.shape[-2:] != self.profile_shape or profiles.ndim not in (2, 3):
             raise ValueError(f"profiles must have shape (K, M) = {self.profile_shape} (optionally batched), "
                              f"got {tuple(profiles.shape)}")
@@ -123,6 +139,18 @@ class DipOperator(nn.Module, ABC):
                 return self.adjoint(prof).reshape(-1).numpy()
 
         return scipy.sparse.linalg.LinearOperator(shape, matvec=matvec, rmatvec=rmatvec, dtype=np.float64)
+
+    def _as_real_tensor(self, values: torch.Tensor | np.ndarray, name: str) -> torch.Tensor:
+        """``values`` as a real floating tensor: floating tensors unchanged (autograd kept), numpy
+        arrays via ``torch.as_tensor`` on the operator's device, bool / integer values converted
+        to the operator's float dtype."""
+        if not isinstance(values, torch.Tensor):
+            values = torch.as_tensor(values, device=self.directions.device)
+        if values.is_complex():
+            raise TypeError(f"{name} must be real (occupancies or slab volumes), got dtype {values.dtype}")
+        if not values.is_floating_point():
+            values = values.to(self.directions.dtype)
+        return values
 
     def _check_volume(self, volume: torch.Tensor) -> bool:
         shape = self.grid.shape

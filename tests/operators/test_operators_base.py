@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from dipnet.core.grid import Grid
+from dipnet.operators import BACKENDS, make_operator
 from dipnet.operators.base import DipOperator
 
 
@@ -41,6 +42,8 @@ def test_directions_are_normalised_and_the_slabs_cover_the_extent():
     (torch.ones(2, 2), None, r"directions must have shape \(K, 3\)"),
     (torch.ones(0, 3), None, "K >= 1"),
     (torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]), None, "zero vector"),
+    (torch.tensor([[0.0, 0.0, 1.0], [float("nan")] * 3]), None, r"non-finite \(NaN or inf\) components in rows \[1\]"),
+    (torch.tensor([[float("inf"), 0.0, 1.0]]), None, r"non-finite \(NaN or inf\) components in rows \[0\]"),
     (torch.ones(1, 3), 1, "n_slabs must be >= 2"),
 ])
 def test_bad_directions_and_slab_counts_are_named(directions, n_slabs, message):
@@ -95,3 +98,49 @@ def test_wrong_shapes_are_named():
         op.adjoint(torch.zeros(2, 8))
     with pytest.raises(TypeError, match="abstract"):
         DipOperator(GRID, torch.eye(3))
+
+
+BACKEND_NAMES = sorted(BACKENDS)
+
+
+@pytest.mark.parametrize("backend", BACKEND_NAMES)
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_every_backend_names_non_finite_directions(backend, bad):
+    directions = torch.tensor([[0.0, 0.0, 1.0], [bad, 0.0, 1.0]])
+    with pytest.raises(ValueError, match=r"non-finite \(NaN or inf\) components in rows \[1\]"):
+        make_operator(GRID, directions, backend=backend)
+
+
+@pytest.mark.parametrize("backend", BACKEND_NAMES)
+def test_bool_integer_and_numpy_occupancies_are_accepted_as_floats(backend):
+    """A binary reconstruction (bool), an integer occupancy and a numpy array give the profiles of the same
+    occupancy as float64, in the operator's float dtype; the adjoint takes integer and numpy profiles alike."""
+    op = make_operator(GRID, torch.eye(3, dtype=torch.float64), backend=backend)
+    occupied = torch.rand(GRID.shape, generator=torch.Generator().manual_seed(1)) > 0.5
+    expected = op(occupied.double())
+    for volume in (occupied, occupied.int(), occupied.long(), occupied.numpy(), occupied.double().numpy()):
+        prof = op(volume)
+        assert isinstance(prof, torch.Tensor) and prof.dtype == torch.float64
+        torch.testing.assert_close(prof, expected)
+    torch.testing.assert_close(op(torch.stack([occupied, occupied])), torch.stack([expected, expected]))
+    counts = torch.arange(3 * 8).reshape(3, 8)
+    back = op.adjoint(counts.double())
+    for profiles in (counts, counts.numpy()):
+        torch.testing.assert_close(op.adjoint(profiles), back)
+    with pytest.raises(TypeError, match=r"volume must be real .* got dtype torch.complex128"):
+        op(occupied.to(torch.complex128))
+    with pytest.raises(TypeError, match="profiles must be real"):
+        op.adjoint(counts.to(torch.complex64))
+
+
+@pytest.mark.parametrize("backend", BACKEND_NAMES)
+def test_float_inputs_keep_their_dtype_and_their_gradient(backend):
+    """A float32 volume that requires grad is used as it is: float32 profiles, and the gradient of
+    ``<A x, y>`` reaches ``x`` as ``A^T y``."""
+    op = make_operator(GRID, torch.eye(3, dtype=torch.float64), backend=backend)
+    x = torch.rand(GRID.shape, generator=torch.Generator().manual_seed(2)).requires_grad_()
+    y = torch.rand(3, 8, generator=torch.Generator().manual_seed(3))
+    prof = op(x)
+    assert prof.dtype == torch.float32 and prof.requires_grad
+    (prof * y).sum().backward()
+    torch.testing.assert_close(x.grad, op.adjoint(y), rtol=1e-4, atol=1e-4)
