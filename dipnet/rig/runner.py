@@ -36,9 +36,10 @@ from pathlib import Path
 
 import numpy as np
 import serial
+import torch
 from tqdm.auto import tqdm
 
-from dipnet.core.orientations import check_grid_angles, direction_to_rig, make_directions
+from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig, make_directions
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
 from dipnet.core.rawscan_writer import RawScanWriter
 from dipnet.core.memory import MAX_READINGS_PER_DIP
@@ -105,19 +106,42 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
         kind: ``"grid"`` (every ``tilts`` x ``spins`` pair, tilt-major, as the authors' robot),
             or an orientation set of :func:`~dipnet.core.orientations.make_directions`
             (``fibonacci`` | ``random``) with ``n`` directions, converted to rig angles.
-        max_tilt_deg: drop directions of a set tilted further than this (a rig's mechanical limit); a
-            grid tilt beyond it is refused (:func:`~dipnet.core.orientations.check_grid_angles`).
+        max_tilt_deg: the rig's mechanical tilt limit (degrees): a set beyond it is kept within it
+            (:func:`set_within_tilt`, all ``n`` dips); a grid tilt beyond it is refused
+            (:func:`~dipnet.core.orientations.check_grid_angles`).
     """
     if kind == "grid":
         check_grid_angles(tilts, spins, max_tilt_deg)  # a tilt the rig cannot reach is an error, not dropped
-        pairs = [(float(t), float(s)) for t in tilts for s in spins]
-    else:
-        tilt, spin = direction_to_rig(make_directions(kind, int(n), 3, seed))
-        pairs = [(float(t), float(s)) for t, s in zip(np.round(tilt, 6), np.round(spin, 6))]
-    pairs = [p for p in pairs if p[0] <= max_tilt_deg + 1e-9]
-    if not pairs:
-        raise ValueError(f"no orientation left within max_tilt_deg={max_tilt_deg}")
-    return pairs
+        return [(float(t), float(s)) for t in tilts for s in spins]
+    tilt, spin = direction_to_rig(set_within_tilt(kind, int(n), seed, max_tilt_deg))
+    return [(float(t), float(s)) for t, s in zip(np.round(tilt, 6), np.round(spin, 6))]
+
+
+def set_within_tilt(kind: str, n: int, seed: int, max_tilt_deg: float) -> torch.Tensor:
+    """``n`` directions ``(n, 3)`` of the set ``kind`` tilted at most ``max_tilt_deg`` (degrees) from the
+    object's z axis. A fibonacci (or uniform) set reaching beyond is spread over the reachable cap
+    instead (:meth:`~dipnet.core.orientations.Reach.uniform`, as ``scripts/reconstruct.py``'s fixed plan
+    keeps its dips within the reach), so no dip is dropped; a random set reaching beyond is refused.
+
+    Raises:
+        ValueError: ``max_tilt_deg`` not above 0, or a random set beyond it; the message names the option.
+    """
+    directions = make_directions(kind, n, 3, seed)
+    if not float(max_tilt_deg) > 0.0:
+        raise ValueError(f"max_tilt_deg={max_tilt_deg:g} leaves no tilt to spread n_dips={n} {kind} directions "
+                         "over: give max_tilt_deg in (0, 90], or dip vertically with orientations=grid "
+                         "'tilts=[0]' 'spins=[0]'")
+    reach = Reach(tilt_range_deg=(0.0, min(float(max_tilt_deg), 90.0)))
+    beyond = int((~reach.contains(directions)).sum())
+    if beyond == 0:
+        return directions
+    if kind == "random":
+        raise ValueError(f"orientations=random puts {beyond} of its n_dips={n} directions beyond max_tilt_deg="
+                         f"{max_tilt_deg:g}: use orientations=fibonacci (spread over the reachable tilts) or a "
+                         "larger max_tilt_deg")
+    log.info("%d of the n_dips=%d %s directions tilt beyond max_tilt_deg=%g: all %d spread over tilts 0-%g deg",
+             beyond, n, kind, max_tilt_deg, n, reach.tilt_range_deg[1])
+    return reach.uniform(n)
 
 
 #: Fewer readings per dip than this give no profile worth the robot's time (one slab or none).

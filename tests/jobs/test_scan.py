@@ -12,7 +12,7 @@ from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import read_rawscan
 from dipnet.jobs.deprecations import upgrade_scan_config
-from dipnet.jobs.scan import deepest_lowering, plan_settings, scan_geometry
+from dipnet.jobs.scan import deepest_lowering, orientations_from_config, plan_settings, scan_geometry
 
 from rig_helpers import make_world
 
@@ -39,6 +39,32 @@ def test_a_calibration_file_gives_the_geometry_but_not_beside_values(tmp_path):
 def test_the_deepest_lowering_is_the_configured_one():
     assert deepest_lowering(_scan_cfg("rig=grbl", "rig.max_lower_mm=80")) == {"max_lower_mm": 80.0,
                                                                                 "max_lower_source": "rig.max_lower_mm"}
+
+
+def test_a_fibonacci_plan_beyond_max_tilt_spreads_every_dip_within_it(caplog):
+    """Before: n_dips=8 max_tilt_deg=40 dropped 6 of the 8 directions without a word and scanned 2. Now all 8
+    are spread over tilts 0-40 deg (as reconstruct.py keeps its plan within the reach), and a log line says so."""
+    with caplog.at_level("INFO", logger="dipnet.rig.runner"):
+        pairs = orientations_from_config(_scan_cfg("n_dips=8", "max_tilt_deg=40"))
+    tilts = [tilt for tilt, _ in pairs]
+    assert len(set(pairs)) == 8 and max(tilts) <= 40.0 and max(tilts) > 35.0 and tilts == sorted(tilts)
+    assert "6 of the n_dips=8 fibonacci directions tilt beyond max_tilt_deg=40: all 8 spread over tilts 0-40 deg" \
+        in caplog.text
+    # within the limit the plan is the hemisphere's Fibonacci set, unchanged
+    assert orientations_from_config(_scan_cfg("n_dips=8", "max_tilt_deg=90")) == \
+        orientations_from_config(_scan_cfg("n_dips=8", "max_tilt_deg=120"))
+    assert len(orientations_from_config(_scan_cfg("n_dips=8", "max_tilt_deg=10"))) == 8  # before: "no orientation left"
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (["orientations=random", "n_dips=8", "max_tilt_deg=40"],
+     r"orientations=random puts \d of its n_dips=8 directions beyond max_tilt_deg=40: use orientations=fibonacci"),
+    (["n_dips=8", "max_tilt_deg=0"], r"max_tilt_deg=0 leaves no tilt to spread n_dips=8 fibonacci directions over"),
+    (["n_dips=8", "max_tilt_deg=-5"], r"max_tilt_deg=-5 leaves no tilt"),
+])
+def test_a_set_the_tilt_limit_cannot_hold_is_refused_by_name(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        orientations_from_config(_scan_cfg(*overrides))
 
 
 def test_scan_config_runs_through_hydra(tmp_path):
