@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 FORMAT_NAME = "dipnet.measurement"
 FORMAT_VERSION = 1
 _MAD = 1.4826  # MAD -> standard deviation for Gaussian data
+#: A share of a dip's volume beyond the reconstruction's slabs above this is named: the object does not fit the grid.
+BEYOND_SLABS_TOL = 0.01
 
 
 class MeasurementFileError(ValueError):
@@ -121,14 +123,28 @@ class DipMeasurement:
         """Object volume (mm^3): the median over orientations of each profile's sum."""
         return float(self.profiles.sum(1).median())
 
-    def resampled(self, edges: torch.Tensor) -> torch.Tensor:
+    def resampled(self, edges: torch.Tensor, rel_tol: float | None = None) -> torch.Tensor:
         """Slab volumes on other slab boundaries ``edges`` ``(M' + 1,)`` (mm, same for every
-        orientation), by linear interpolation of the cumulative volume; ``(K, M')``."""
+        orientation), by linear interpolation of the cumulative volume; ``(K, M')``.
+
+        Volume outside ``[edges[0], edges[-1]]`` is lost; with ``rel_tol`` given, a loss above that share
+        of a profile's volume is logged and warned about, naming both slab ranges (the grid is too small
+        for the object).
+        """
         k, m = self.profiles.shape
         cum = torch.cat([torch.zeros(k, 1, dtype=torch.float64), torch.cumsum(self.profiles, 1)], 1)
         src = self.offsets[:, None] + self.slab_thickness * torch.arange(m + 1, dtype=torch.float64)
-        out = np.stack([np.interp(edges.numpy(), src[i].numpy(), cum[i].numpy()) for i in range(k)])
-        return torch.from_numpy(np.diff(out, axis=1))
+        out = torch.from_numpy(np.diff(np.stack([np.interp(edges.numpy(), src[i].numpy(), cum[i].numpy())
+                                                 for i in range(k)]), axis=1))
+        total = self.profiles.sum(1)
+        lost = float(((total - out.sum(1)).abs() / total.abs().clamp(min=1e-300)).max())
+        if rel_tol is not None and lost > rel_tol:
+            message = (f"resampling the profiles from slabs [{float(src[:, 0].min()):.1f}, {float(src[:, -1].max()):.1f}]"
+                       f" mm onto [{float(edges[0]):.1f}, {float(edges[-1]):.1f}] mm drops up to {100 * lost:.2f}% "
+                       "of a profile's volume: the object does not fit the grid (raise extent_mm)")
+            log.warning(message)
+            warnings.warn(message, stacklevel=3)
+        return out
 
     def rebinned(self, edges: torch.Tensor, rel_tol: float = 1e-3) -> "DipMeasurement":
         """This measurement on other uniform slabs ``edges`` ``(M' + 1,)`` (mm, the same for every
@@ -144,14 +160,7 @@ class DipMeasurement:
             raise MeasurementFileError("re-binning needs increasing slab edges (at least 2 slabs)")
         if not torch.allclose(steps, steps.mean().expand_as(steps), rtol=1e-9):
             raise MeasurementFileError("re-binning needs uniform slab edges")
-        profiles = self.resampled(edges)
-        total, kept = self.profiles.sum(1), profiles.sum(1)
-        lost = float(((total - kept).abs() / total.abs().clamp(min=1e-300)).max())
-        if lost > rel_tol:
-            message = (f"re-binning onto slabs [{float(edges[0]):.1f}, {float(edges[-1]):.1f}] mm drops up to "
-                       f"{100 * lost:.2f}% of a profile's volume: the object does not fit the grid")
-            log.warning(message)
-            warnings.warn(message, stacklevel=2)
+        profiles = self.resampled(edges, rel_tol)
         sigma = None
         if self.sigma is not None:
             variance = replace(self, profiles=self.sigma.pow(2), sigma=None)

@@ -32,6 +32,12 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   touches the water and after it is under are empty; a level that drifts in time (a sensor's drift,
   a leak, an inflow) adds the same volume to every slab, a floor the reconstruction then explains
   as more object (a drift of 0.01 mm/s nearly doubled a shape's volume while its residual passed).
+* ``outside_share``: the largest share of a dip's volume that preprocessing found beyond the slabs (below
+  the first edge, above the last: the measurement's ``outside_share`` metadata), which the profiles leave
+  out (:func:`beyond_slabs`). An object reaching beyond the grid does this, and fills the dip's slabs to
+  their ends, a floor the drift check would read as a drift; a drift puts as much volume per mm of
+  readings outside the slabs as it puts under them, so a share that the floor explains so is set to 0.
+  It joins ``grid_volume_fraction`` (the share of the dips' volume the operator's slabs hold).
 * ``quantum_volume_mm3``, ``mean_slab_mm3``: the volume of one step of the sensor's reading, when the
   measurement records it (:mod:`dipnet.evaluation.quantisation`), and the mean slab the object fills.
   The rounding's error joins the noise of the residual (when ``sigma`` is estimated), of the
@@ -44,8 +50,10 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   of the measured volume such a fall takes over a dip, and its standard errors (NaN without the metadata).
 
 The verdict is ``"consistent"`` unless the residual exceeds ``residual_factor`` times what
-the noise explains (and the discretisation floor ``residual_floor``), the volume ratio
-is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger), the hull
+the noise explains (and the discretisation floor ``residual_floor``), the volume ratio or the grid's
+share of the volume is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger), a
+dip holds more than :data:`~dipnet.core.measurement.BEYOND_SLABS_TOL` of its volume (and 3 noise sigmas)
+beyond the slabs (and then the profile floor is not blamed on a drift), the hull
 fill is below ``hull_fill_min`` or above ``HULL_FILL_MAX`` (or the dips bound no region at all), the
 height trend exceeds half a slab and 3 of its standard errors, the profile floor exceeds
 ``FLOOR_SIGMAS`` noise sigmas and carries more than ``volume_tol`` of the measured volume, or the level
@@ -64,7 +72,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from dipnet.core.measurement import DipMeasurement, robust_volume
+from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement, robust_volume
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allowance, coarse_quantum_message,
@@ -116,6 +124,8 @@ class Consistency:
     profile_floor_mm3: float = float("nan")
     profile_floor_share: float = float("nan")
     profile_floor_limit_mm3: float = float("nan")
+    outside_share: float = float("nan")
+    outside_limit: float = float("nan")
     quantum_volume_mm3: float = float("nan")
     mean_slab_mm3: float = float("nan")
     level_fall_share: float = float("nan")
@@ -177,6 +187,26 @@ def profile_floor(measurement: DipMeasurement, measured_volume: float) -> tuple[
         return float("nan"), float("nan")
     floor = float(np.median(np.sort(p[:, 1:-1], axis=1)[:, 1]))
     return floor, floor * p.shape[1] / measured_volume
+
+
+def beyond_slabs(measurement: DipMeasurement, floor_mm3: float) -> float:
+    """The largest share of a dip's volume beyond its slabs (the measurement's ``outside_share`` metadata,
+    from preprocessing), or 0 when a level drift explains it: a drift that puts ``floor_mm3`` (mm^3; mm^2
+    in 2D) under every slab puts ``floor_mm3 / h`` per mm of readings outside the slabs (``outside_mm``)
+    too; the dips' volume there within a factor 2 of that is taken for the drift. NaN without the metadata.
+    """
+    meta = measurement.metadata or {}
+    shares = np.asarray(meta.get("outside_share", []), dtype=np.float64)
+    if shares.size == 0:
+        return float("nan")
+    spans = np.asarray(meta.get("outside_mm", []), dtype=np.float64)
+    if floor_mm3 > 0 and spans.size == shares.size:
+        totals = float(measurement.profiles.double().sum(1).mean())
+        beyond = float(np.mean(shares / np.clip(1.0 - shares, 1e-12, None))) * totals
+        drift = floor_mm3 / measurement.slab_thickness * float(spans.mean())
+        if 0.5 * drift <= beyond <= 2.0 * drift:
+            return 0.0
+    return float(shares.max())
 
 
 def _relative_residual(operator: DipOperator, volume: torch.Tensor, target: torch.Tensor) -> float:
@@ -241,6 +271,10 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
             quantum, measured, measurement.slab_thickness, spanned))  # NaN stays NaN
     result.profile_floor_mm3, result.profile_floor_share = profile_floor(measurement, measured)
     result.profile_floor_limit_mm3 = FLOOR_SIGMAS * _slab_sigma(measurement)
+    result.outside_share = beyond_slabs(measurement, result.profile_floor_mm3)
+    result.outside_limit = max(BEYOND_SLABS_TOL, FLOOR_SIGMAS * _slab_sigma(measurement) / measured)
+    if result.outside_share > 0:  # NaN compares False
+        result.grid_volume_fraction *= 1.0 - result.outside_share
     metadata = measurement.metadata or {}
     if "tail_slope" in metadata and "readings_per_dip" in metadata:
         result.level_fall_share, result.level_fall_sigmas = level_fall(
@@ -284,9 +318,12 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
     if symmetry_order > 1:
         suspects = (f"the declared symmetry (order {symmetry_order}: every dip copied to its images) may not be the "
                     f"object's (run without symmetry to check), or {suspects}")
-    if c.grid_volume_fraction < 1 - c.volume_limit:
-        out.append(f"the grid's slabs hold only {c.grid_volume_fraction:.0%} of the measured volume: the object "
-                   "reaches beyond the working range (increase extent_mm or check the start heights)")
+    beyond = c.outside_share > c.outside_limit  # NaN compares False
+    if c.grid_volume_fraction < 1 - c.volume_limit or beyond:
+        readings = (f" (a dip's readings hold up to {c.outside_share:.1%} of its volume beyond the slabs, which its "
+                    "profile leaves out, and fill its slabs to their ends)") if beyond else ""
+        out.append(f"the grid's slabs hold only {c.grid_volume_fraction:.1%} of the measured volume{readings}: the "
+                   "object reaches beyond the working range: raise extent_mm (or check the start heights)")
     if c.profile_residual_continuous > c.residual_limit:
         out.append(f"the occupancy misses its data: relative profile residual {c.profile_residual_continuous:.3f}, "
                    f"noise explains {c.profile_residual_expected:.3f} ({c.noise_source}): {suspects}")
@@ -305,7 +342,8 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by {c.height_trend_offset_mm:+.2f}"
                    f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
                    "scripts/calibrate.py)")
-    if abs(c.profile_floor_mm3) > c.profile_floor_limit_mm3 and abs(c.profile_floor_share) > c.volume_limit:
+    if abs(c.profile_floor_mm3) > c.profile_floor_limit_mm3 and abs(c.profile_floor_share) > c.volume_limit \
+            and not beyond:  # an object beyond the slabs fills them to their ends: no drift's floor
         out.append(f"every dip holds {c.profile_floor_mm3:+.4g} {c.volume_unit} per slab where its slabs should be empty (before "
                    f"the object touches the water and after it is under): {c.profile_floor_share:+.1%} of the "
                    "measured volume, which the reconstruction takes for object. A level that drifts in time (the "

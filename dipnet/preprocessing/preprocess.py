@@ -21,7 +21,10 @@ Per orientation:
 6. uniform slabs: the cumulative volume ``C(t)`` is interpolated monotonically
    (``scipy.interpolate.PchipInterpolator``, constant outside the scanned range) at the slab
    edges (default: the grid's ``[-L/2, L/2]`` in ``M`` slabs, the operator's slabs) and
-   differenced;
+   differenced; the share of each dip's volume below the first edge and above the last (cut off from
+   the profiles: the object reaches beyond the grid, or the level drifts) goes into
+   ``metadata["outside_share"]``, the height the readings span there (mm) into ``metadata["outside_mm"]``,
+   and a share above :data:`~dipnet.core.measurement.BEYOND_SLABS_TOL` (and the noise's) is warned about;
 7. optional smoothing with the paper's normalised 5-tap ``gausswin`` (alpha = 2.5), with
    half-sample symmetric reflection at the ends so no volume is lost.
 
@@ -45,7 +48,7 @@ import scipy.optimize
 from scipy.interpolate import PchipInterpolator
 
 from dipnet.core.grid import Grid
-from dipnet.core.measurement import DipMeasurement
+from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
 from dipnet.preprocessing.level_trend import tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
@@ -112,7 +115,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         ``DipMeasurement`` with profiles ``(K, M)`` (mm^3; mm^2 in 2D), ``offsets = edges[0]``,
         per-slab ``sigma`` when the reading noise is known, and provenance metadata
         (``orientation_k``, ``t_start_mm``, ``tail_slope`` (volume per reading) and ``readings_per_dip``
-        per orientation, ``reading_quantum`` (reading units) and ``reading_quantum_volume`` (mm^3) when
+        per orientation, ``outside_share`` and ``outside_mm`` per orientation (the share of its volume beyond
+        the slab edges and the height its readings span there), ``reading_quantum`` (reading units) and ``reading_quantum_volume`` (mm^3) when
         the scan records its resolution, ``readings``: the outlier report, ...).
     """
     report = ReadingsReport()
@@ -133,7 +137,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     scale = float(area) if header.quantity == "level_mm" else 1.0 / header.density_g_per_mm3
     centre = np.zeros(header.ndim) if object_centre is None else np.asarray(object_centre, dtype=np.float64)
 
-    profiles, starts, sigmas, slopes, counts = [], [], [], [], []
+    profiles, starts, sigmas, slopes, counts, outside, outside_mm = [], [], [], [], [], [], []
     for o in scans:
         stage, values = _clean_readings(o, drop_flags)
         noise = o.meta.get("noise_sigma", header.noise_sigma)
@@ -150,8 +154,11 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         curve = PchipInterpolator(t0 + u, volume, extrapolate=False)
         cum = curve(np.clip(edges, t0 + u[0], t0 + u[-1]))
         profiles.append(np.maximum(np.diff(cum), 0.0))
+        outside.append(_outside_share(cum, volume))
+        outside_mm.append(max(edges[0] - t0 - u[0], 0.0) + max(t0 + u[-1] - edges[-1], 0.0))
         starts.append(t0)
         sigmas.append(None if noise is None else scale * float(np.hypot(noise, quantum / np.sqrt(12.0))))
+    _warn_outside(outside, [o.k for o in scans], sigmas, [float(p.sum()) for p in profiles], edges)
 
     prof = np.stack(profiles)
     if smooth:
@@ -168,6 +175,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "t_start_mm": [float(t) for t in starts], "smoothed": bool(smooth),
                   "orientation_k": [o.k for o in scans], "scan_metadata": header.metadata,
                   "tail_slope": [float(v) for v in slopes], "readings_per_dip": counts,
+                  "outside_share": outside, "outside_mm": [float(v) for v in outside_mm],
                   "reading_quantum": header.resolution, "reading_quantum_volume":
                       None if header.resolution is None else scale * float(header.resolution),
                   "readings": report.to_json()})
@@ -201,6 +209,32 @@ def _check_step(step_mm: float | None, slab_mm: float) -> None:
                          "step: a mesh in metres needs shape.scale=1000; else a smaller protocol.step_mm or a "
                          "lower resolution)")
     message = f"{found}: the profiles between readings are interpolated"
+    log.warning("%s", message)
+    warnings.warn(message, stacklevel=3)
+
+
+def _outside_share(cum: np.ndarray, volume: np.ndarray) -> float:
+    """The share of a dip's volume (the monotone fit ``volume``, mm^3) outside the slab edges, where its
+    cumulative volume is ``cum`` ``(M + 1,)`` mm^3: below the first edge and above the last; 0 for no rise."""
+    total = float(volume[-1] - volume[0])
+    return max(0.0, 1.0 - float(cum[-1] - cum[0]) / total) if total > 0 else 0.0
+
+
+def _warn_outside(shares: list[float], ks: list[int], sigmas: list[float | None], inside: list[float],
+                  edges: np.ndarray) -> None:
+    """Warn once when a dip's share of volume beyond the slab edges (``shares``) exceeds
+    :data:`~dipnet.core.measurement.BEYOND_SLABS_TOL` and 3 times the noise of a cumulative volume
+    (``sigmas``, mm^3, ``None`` when unknown) over the dip's volume (``inside`` / (1 - share), mm^3)."""
+    limits = [max(BEYOND_SLABS_TOL, 0.0 if s is None else 3.0 * s * (1.0 - f) / max(v, 1e-300))
+              for f, s, v in zip(shares, sigmas, inside)]
+    over = [i for i, (f, limit) in enumerate(zip(shares, limits)) if f > limit]
+    if not over:
+        return
+    worst = max(over, key=lambda i: shares[i])
+    message = (f"{len(over)} of {len(shares)} dips hold more than {BEYOND_SLABS_TOL:.0%} of their volume outside the "
+               f"slabs [{edges[0]:.1f}, {edges[-1]:.1f}] mm (up to {shares[worst]:.1%}, orientation {ks[worst]}), "
+               "which the profiles leave out: the object reaches beyond the grid, and extent_mm must grow to hold "
+               "it (or a level drifting in time rises there)")
     log.warning("%s", message)
     warnings.warn(message, stacklevel=3)
 

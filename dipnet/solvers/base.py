@@ -9,7 +9,7 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from dipnet.core.measurement import DipMeasurement
+from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 
@@ -28,7 +28,8 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
     """The measured slab volumes on the operator's slabs, ``(K, M)`` float64, mm^3.
 
     The measurement's orientations must be the operator's (same order); its slabs are
-    resampled onto :meth:`DipOperator.slab_edges` when thickness or offsets differ.
+    resampled onto :meth:`DipOperator.slab_edges` when thickness or offsets differ, with a warning
+    when that drops more than :data:`~dipnet.core.measurement.BEYOND_SLABS_TOL` of a profile's volume.
     """
     if measurement.n_orientations != operator.n_orientations or measurement.ndim != operator.grid.ndim:
         raise ValueError(
@@ -41,7 +42,7 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
     same = (measurement.n_slabs == operator.n_slabs
             and abs(measurement.slab_thickness - operator.slab_thickness) < 1e-9 * operator.slab_thickness
             and torch.allclose(measurement.offsets.double(), edges[:1].expand_as(measurement.offsets), atol=1e-9))
-    return measurement.profiles.clone() if same else measurement.resampled(edges)
+    return measurement.profiles.clone() if same else measurement.resampled(edges, BEYOND_SLABS_TOL)
 
 
 def filled_slabs(target: torch.Tensor, rel_tol: float = 0.005) -> torch.Tensor:

@@ -234,6 +234,39 @@ def test_a_level_that_drifts_in_time_is_named():
     assert drifting.verdict == "inconsistent" and any("drifts in time" in m for m in messages)
 
 
+def test_an_object_beyond_the_slabs_is_named_and_not_blamed_on_a_drift():
+    """A box reaching 45 mm from the centre on a grid of half-width 35 mm: its dips' readings hold up to 1.7 % of
+    its volume beyond the slabs, which the profiles leave out and fill to their ends. That is named, with
+    extent_mm, and the full slabs are not read as a drifting level's floor. A level rising 0.002 mm/s puts as
+    much volume per mm beyond the slabs as under them: the drift is named, not the grid."""
+    from dipnet.preprocessing.preprocess import preprocess
+    from dipnet.shapes import Box
+    from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    grid = Grid(24, extent=70.0)
+    results = {}
+    for drift in (0.0, 0.002):
+        raw = simulate_scan(Box((30.0, 20.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(30), tank=Tank(60000.0),
+                            sensor=LevelSensor(snr_db=40.0, drift_mm_per_s=drift, seed=0), progress=False)
+        with warnings.catch_warnings(record=True):
+            warnings.simplefilter("always")  # preprocessing's own warning of the volume beyond the slabs
+            measurement = preprocess(raw, grid=grid, t_start="metadata")
+        operator = make_operator(grid, measurement.directions, grid.n)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            result = check_consistency(measurement, operator, MinNormSolver(progress=False).solve(measurement, operator))
+        results[drift] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+    beyond, messages = results[0.0]
+    assert beyond.outside_share == pytest.approx(0.017, abs=0.002) and beyond.grid_volume_fraction < 0.985
+    assert any("beyond the working range: raise extent_mm" in m and "up to 1.7% of its volume beyond the slabs" in m
+               for m in messages)
+    assert beyond.profile_floor_share > beyond.volume_limit and not any("drifts in time" in m for m in messages)
+    drifting, messages = results[0.002]
+    assert drifting.outside_share == 0.0 and drifting.grid_volume_fraction == pytest.approx(1.0)
+    assert any("drifts in time" in m for m in messages) and not any("beyond the working range" in m for m in messages)
+
+
 def test_a_falling_level_is_named_though_the_monotone_slabs_hide_it():
     """A level falling 0.002 mm/s (a leak) leaves no floor: preprocessing's monotone fit flattens it and
     every profile loses volume alike, so residual, volume ratio and floor all pass. The readings after the

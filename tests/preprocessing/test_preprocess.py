@@ -180,3 +180,20 @@ def test_a_stage_step_coarser_than_the_slabs_is_refused_or_warned():
             with warnings.catch_warnings():
                 warnings.simplefilter("error")
                 assert preprocess(raw, grid=grid).n_orientations == 6
+
+
+def test_volume_beyond_the_slab_edges_is_recorded_and_warned_about():
+    """The prism spans [-30, 30] mm; slabs over [-25, 25] mm leave out 5 mm at each end, a sixth of its volume:
+    recorded per dip as ``outside_share`` (with the 31 mm of readings there, ``outside_mm``) and warned about
+    once, naming the share, the slabs' range and extent_mm. Slabs over [-50, 50] mm hold it all and say nothing."""
+    with pytest.warns(UserWarning, match=r"2 of 2 dips hold more than 1% of their volume outside the slabs "
+                                         r"\[-25\.0, 25\.0\] mm \(up to 16\.7%.*extent_mm must grow") as caught:
+        m = preprocess(_scan(k=2), edges=np.linspace(-25.0, 25.0, 21))
+    assert sum("outside the slabs" in str(w.message) for w in caught) == 1
+    np.testing.assert_allclose(m.metadata["outside_share"], [1 / 6, 1 / 6], atol=1e-3)
+    np.testing.assert_allclose(m.metadata["outside_mm"], [31.0, 31.0], atol=1e-6)  # [-40, -25] and [25, 41] mm
+    assert float(m.profiles[0].sum()) == pytest.approx(VOLUME * 5 / 6, rel=1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        whole = preprocess(_scan(k=2), edges=EDGES)
+    assert whole.metadata["outside_share"] == [0.0, 0.0] and whole.metadata["outside_mm"] == [0.0, 0.0]

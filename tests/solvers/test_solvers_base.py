@@ -4,6 +4,8 @@ the operator's dips."""
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -44,6 +46,19 @@ def test_profiles_on_other_slabs_are_resampled_keeping_the_volume():
     assert float(on_op[:, :3].abs().max()) == 0.0 and float(on_op[:, 13:].abs().max()) == 0.0
     on_op[0, 5] = -1.0
     assert float(m.profiles[0, 2]) != -1.0  # a copy: the measurement is not changed through it
+
+
+def test_resampling_onto_narrower_slabs_warns_of_the_volume_it_drops():
+    """The measurement's slabs [-12.5, 12.5] mm onto an operator's [-10, 10] mm: the outer slab at each end (about
+    a fifth of a random profile) is dropped, which is warned about naming both slab ranges; onto [-20, 20] mm
+    nothing is dropped and nothing said."""
+    m = _measurement()
+    with pytest.warns(UserWarning, match=r"from slabs \[-12\.5, 12\.5\] mm onto \[-10\.0, 10\.0\] mm drops up to .*"
+                                         r"the object does not fit the grid \(raise extent_mm\)"):
+        measured_profiles(m, make_operator(Grid(8, 3, 20.0), fibonacci_hemisphere(4)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        measured_profiles(m, make_operator(Grid(16, 3, 40.0), fibonacci_hemisphere(4)))
 
 
 def test_other_dimensions_and_other_directions_are_refused():
