@@ -7,7 +7,8 @@
     python scripts/compare.py tune/dipnet_prior_weights       # tabulate the trials
 
 Trial ``i`` runs in ``<out>/<i>``; the best values go to ``<out>/best.yaml``
-(:mod:`dipnet.jobs.tuning`).
+(:mod:`dipnet.jobs.tuning`). An ``--out`` that already holds a study is refused (exit 2) unless
+``--storage`` continues that study.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import sys
 from pathlib import Path
 
 from dipnet.jobs.cli import user_errors
-from dipnet.jobs.tuning import DEFAULT_PARAMS, Param, check_study, tune
+from dipnet.core.console import report
+from dipnet.jobs.tuning import DEFAULT_PARAMS, NoBestTrialError, Param, best_trial, check_study, tune
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -42,11 +44,15 @@ def main(argv: list[str] | None = None) -> int:
         check_study(args.trials, params, args.overrides)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     out = args.out or Path("tune") / args.study_name
-    with user_errors():
-        study = tune(out, args.trials, params, args.overrides, seed=args.seed,
-                     n_startup_trials=args.startup_trials, storage=args.storage, study_name=args.study_name)
-    print(f"best chamfer {study.best_value:.5f} (trial {study.best_trial.number}): {study.best_params}; "
-          f"written to {out / 'best.yaml'}")
+    try:
+        with user_errors():  # a folder holding another study: one line, before any trial
+            study = tune(out, args.trials, params, args.overrides, seed=args.seed,
+                         n_startup_trials=args.startup_trials, storage=args.storage, study_name=args.study_name)
+    except NoBestTrialError as exc:  # the trials ran, but none has a result worth recommending
+        report(f"error: {exc}")
+        return 1
+    best = best_trial(study, out)
+    print(f"best chamfer {best.value:.5f} (trial {best.number}): {best.params}; written to {out / 'best.yaml'}")
     return 0
 
 

@@ -4,9 +4,11 @@ Optuna's ask-and-tell interface drives the ordinary pipeline: each trial compose
 config (``conf/config.yaml`` with the base overrides and the trial's values, Hydra's compose
 API), runs it (:func:`dipnet.jobs.pipeline.run`) into ``<out>/<trial number>``, and tells the
 study its Chamfer distance (truth bounding-box diagonals). A job that raises is a failed trial
-(its message in ``error.txt``) and the study goes on. Each trial directory holds
+(its message in ``error.txt``) and the study goes on; a job whose reconstruction is empty is scored
+(Chamfer 1, so the sampler avoids its values) but is never the best. Each trial directory holds
 ``.hydra/config.yaml`` and ``.hydra/overrides.yaml`` like a Hydra sweep job, so
-``scripts/compare.py <out>`` tabulates a study. Needs the ``sweeps`` extra (``optuna>=3``).
+``scripts/compare.py <out>`` tabulates a study. An ``<out>`` that already holds a study is refused
+unless this run continues it (:func:`check_out`). Needs the ``sweeps`` extra (``optuna>=3``).
 """
 
 from __future__ import annotations
@@ -73,13 +75,66 @@ def _save_job_config(cfg: DictConfig, overrides: list[str], out: Path) -> None:
     OmegaConf.save(OmegaConf.create(list(overrides)), out / ".hydra" / "overrides.yaml")
 
 
-def run_trial(overrides: list[str], out: Path) -> float:
+def run_trial(overrides: list[str], out: Path) -> tuple[float, bool]:
     """Run one job and return its Chamfer distance (``nan`` when it has none: no truth, or a truth
-    too small for the grid)."""
+    too small for the grid) and whether its reconstruction is empty (scored Chamfer 1)."""
     cfg = compose_job(overrides)
     _save_job_config(cfg, overrides, out)
-    chamfer = run(cfg, out).metrics.get("chamfer")
-    return math.nan if chamfer is None else float(chamfer)
+    metrics = run(cfg, out).metrics
+    chamfer = metrics.get("chamfer")
+    return (math.nan if chamfer is None else float(chamfer)), bool(metrics.get("empty"))
+
+
+class NoBestTrialError(RuntimeError):
+    """A study has no trial to recommend: every trial failed or reconstructed nothing."""
+
+
+def best_trial(study: Any, out: Path) -> Any:
+    """The finished trial of lowest Chamfer distance whose reconstruction is not empty (an ``optuna`` ``FrozenTrial``).
+
+    Raises:
+        NoBestTrialError: every trial failed (``error.txt`` in its folder) or reconstructed nothing.
+    """
+    complete = [t for t in study.trials if t.state.name == "COMPLETE"]
+    scored = [t for t in complete if not t.user_attrs.get("empty")]
+    if not complete:
+        raise NoBestTrialError(f"every trial failed (see the error.txt files in {out})")
+    if not scored:
+        raise NoBestTrialError(f"no best options: every trial's reconstruction is empty (Chamfer 1.0 by convention) "
+                               f"or failed; widen or move the tuned ranges (--param) and see the trials in {out}")
+    return min(scored, key=lambda t: t.value)
+
+
+def study_trial_numbers(out: Path) -> list[int]:
+    """The trial folders (``<out>/<number>``) a study directory holds."""
+    return sorted(int(p.name) for p in out.iterdir() if p.is_dir() and p.name.isdigit()) if out.is_dir() else []
+
+
+def check_out(out: Path, continued: int) -> None:
+    """Raise :class:`~dipnet.jobs.options.ConfigError` when ``out`` holds a study (trial folders or ``best.yaml``)
+    that this run does not continue: a run that starts at trial ``continued`` (the trials its ``--storage``
+    already holds; 0 for a new study) would overwrite trial folders and ``best.yaml`` of another study and
+    leave the rest beside them."""
+    trials = study_trial_numbers(out)
+    if not trials and not (out / "best.yaml").is_file():
+        return
+    if continued and max(trials, default=-1) < continued:
+        return
+    folders = f"{len(trials)} trial folder{'s' * (len(trials) != 1)}"
+    raise ConfigError(f"--out {out} already holds a study ({folders}): choose another --out, "
+                      "delete that folder, or, if it was made with --storage, continue it with the same --storage "
+                      "and --study-name")
+
+
+def stored_trials(storage: str | None, study_name: str) -> int:
+    """How many trials ``storage`` already holds for ``study_name`` (0 in memory or for a new study)."""
+    if storage is None:
+        return 0
+    optuna = optional_import("optuna", extra="sweeps", purpose="tuning (scripts/tune.py)")
+    try:
+        return len(optuna.load_study(study_name=study_name, storage=storage).trials)
+    except KeyError:  # no such study in the storage yet
+        return 0
 
 
 def check_ground_truth(cfg: DictConfig) -> None:
@@ -120,14 +175,16 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
         seed: the sampler's seed; n_startup_trials: random trials before TPE models the results.
         storage: an Optuna storage URL (e.g. ``sqlite:///optuna.db``) to resume or share a study.
     Returns:
-        The ``optuna.Study``.
+        The ``optuna.Study`` (its best trial: :func:`best_trial`).
     Raises:
-        ValueError: ``n_trials`` < 1, or an option out of range (:func:`check_study`), before any trial.
-        RuntimeError: every trial failed.
+        ValueError: ``n_trials`` < 1, an option out of range (:func:`check_study`), or an ``out`` holding
+            another study (:func:`check_out`), before any trial.
+        NoBestTrialError: every trial failed or reconstructed nothing.
     """
     optuna = optional_import("optuna", extra="sweeps", purpose="tuning (scripts/tune.py)")
     check_study(n_trials, params, overrides)
     out = Path(out)
+    check_out(out, stored_trials(storage, study_name))
     sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=n_startup_trials)
     study = optuna.create_study(direction="minimize", sampler=sampler, storage=storage, study_name=study_name,
                                 load_if_exists=storage is not None)
@@ -138,7 +195,7 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
         trial_dir = out / str(trial.number)
         trial_dir.mkdir(parents=True, exist_ok=True)
         try:
-            chamfer = run_trial(job, trial_dir)
+            chamfer, empty = run_trial(job, trial_dir)
         except Exception as exc:  # noqa: BLE001 - a failed job is a failed trial, not the end of the study
             (trial_dir / "error.txt").write_text(f"{type(exc).__name__}: {exc}\n")
             log.warning("trial %d failed: %s: %s", trial.number, type(exc).__name__, exc)
@@ -149,14 +206,13 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
                                                  "than its grid resolves (see its log)\n")
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
+        trial.set_user_attr("empty", empty)
         study.tell(trial, chamfer)
-        log.info("trial %d: chamfer %.5f with %s", trial.number, chamfer, values)
-    complete = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
-    if not complete:
-        raise RuntimeError(f"every trial failed (see the error.txt files in {out})")
-    best = study.best_trial
+        log.info("trial %d: chamfer %.5f%s with %s", trial.number, chamfer, " (empty reconstruction)" * empty, values)
+    best = best_trial(study, out)
+    failed = sum(t.state != optuna.trial.TrialState.COMPLETE for t in study.trials)
     OmegaConf.save(OmegaConf.create(
         {"chamfer": float(best.value), "trial": best.number, "params": dict(best.params),
-         "overrides": [*overrides], "trials": len(study.trials), "failed": len(study.trials) - len(complete)}),
+         "overrides": [*overrides], "trials": len(study.trials), "failed": failed}),
         out / "best.yaml")
     return study

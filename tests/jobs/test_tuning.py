@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from types import SimpleNamespace
 
 import pytest
 from omegaconf import OmegaConf
@@ -110,3 +111,60 @@ def test_a_fake_rig_scan_names_its_ground_truth_and_can_be_tuned_on(tmp_path):
                                                           "progress=false", "rig.fake.shape.name=ball"])
     scan_from_config(scan_cfg, tmp_path / "rawscan.jsonl")
     tuning.check_study(2, tuning.DEFAULT_PARAMS, ["source=recorded", f"source.reader.path={tmp_path / 'rawscan.jsonl'}"])
+
+
+@pytest.fixture
+def fake_jobs(monkeypatch):
+    """Trials without a reconstruction: each job "scores" the next of ``metrics`` (default: Chamfer 0.1)."""
+    metrics: list[dict] = []
+
+    def fake_run(cfg, out):
+        return SimpleNamespace(metrics=metrics.pop(0) if metrics else {"chamfer": 0.1, "empty": False})
+
+    monkeypatch.setattr(tuning, "run", fake_run)
+    return metrics
+
+
+def test_an_out_holding_another_study_is_refused_before_any_trial(tmp_path, capsys, fake_jobs, tune_script):
+    """Before: a second study into the same --out overwrote best.yaml and trial 0 and left trial 1 beside them."""
+    out = tmp_path / "study"
+    assert tune_script.main(["--trials", "2", "--out", str(out), *TINY]) == 0
+    best = (out / "best.yaml").read_text()
+    capsys.readouterr()
+    fake_jobs.append({"chamfer": 0.5, "empty": False})  # a trial that ran would take it
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "1", "--seed", "7", "--out", str(out),
+                          "--param", "solver.priors.tv.weight=0.5:0.9", *TINY])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith(f"error: --out {out} already holds a study (2 trial folders)")
+    assert "another --out" in err and "delete" in err and "--storage" in err
+    assert fake_jobs and (out / "best.yaml").read_text() == best
+
+
+def test_a_study_in_a_storage_goes_on_in_its_out(tmp_path, capsys, fake_jobs, tune_script):
+    out, storage = tmp_path / "study", f"sqlite:///{tmp_path / 'optuna.db'}"
+    assert tune_script.main(["--trials", "2", "--out", str(out), "--storage", storage, *TINY]) == 0
+    fake_jobs.append({"chamfer": 0.05, "empty": False})
+    assert tune_script.main(["--trials", "1", "--out", str(out), "--storage", storage, *TINY]) == 0
+    assert tuning.study_trial_numbers(out) == [0, 1, 2]
+    best = OmegaConf.load(out / "best.yaml")
+    assert (best.trials, best.trial, best.chamfer) == (3, 2, 0.05)
+    # the same folder with a new storage (its trials would start at 0 again) is another study
+    with pytest.raises(SystemExit):
+        tune_script.main(["--trials", "1", "--out", str(out), "--storage", f"sqlite:///{tmp_path / 'new.db'}", *TINY])
+    assert "already holds a study (3 trial folders)" in capsys.readouterr().err
+
+
+def test_an_empty_reconstruction_is_never_the_best(tmp_path, capsys, fake_jobs, tune_script):
+    """Before: a study whose only trial reconstructed nothing printed 'best chamfer 1.00000' and exit 0."""
+    fake_jobs.append({"chamfer": 1.0, "empty": True})
+    assert tune_script.main(["--trials", "1", "--out", str(tmp_path / "empty"), *TINY]) == 1
+    captured = capsys.readouterr()
+    assert "best chamfer" not in captured.out and len(captured.err.splitlines()) == 1, captured.err
+    assert captured.err.startswith("error: no best options: every trial's reconstruction is empty")
+    assert not (tmp_path / "empty" / "best.yaml").exists()
+
+    fake_jobs.extend([{"chamfer": 1.0, "empty": True}, {"chamfer": 1.0, "empty": False}])
+    assert tune_script.main(["--trials", "2", "--out", str(tmp_path / "mixed"), *TINY]) == 0
+    assert OmegaConf.load(tmp_path / "mixed" / "best.yaml").trial == 1
