@@ -1,4 +1,5 @@
-"""Sweep jobs under Hydra: a failing job does not stop the sweep, one log line per job, failures listed."""
+"""Sweep jobs under Hydra: a failing job does not stop the sweep, one log line per job, failures listed, and
+a sweep never writes into the folder of an earlier one."""
 
 from __future__ import annotations
 
@@ -12,8 +13,10 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from dipnet.experiments.collect import ERROR_FILE, NoRunsError, collect_runs, load_run, problems
+from dipnet.core.console import report
+from dipnet.experiments.collect import ERROR_FILE, NoRunsError, collect_runs, find_job_dirs, load_run, problems
 from dipnet.experiments.tables import markdown_problems
+from dipnet.jobs.options import ConfigError
 from dipnet.outputs.summary import headline
 
 log = logging.getLogger(__name__)
@@ -41,12 +44,32 @@ def guarded_job(task: Callable[[], T], out: str | Path) -> T | None:
         return None
 
 
+def check_sweep_dir(sweep_dir: Path) -> None:
+    """Raise :class:`~dipnet.jobs.options.ConfigError` when ``sweep_dir`` holds an earlier sweep (Hydra's
+    ``multirun.yaml`` or any job): the new jobs would replace its jobs of the same numbers and leave the others
+    beside them, and ``scripts/compare.py`` would table both sweeps as one."""
+    if not sweep_dir.is_dir():
+        return
+    jobs = find_job_dirs(sweep_dir)
+    if jobs or (sweep_dir / "multirun.yaml").is_file():
+        raise ConfigError(f"hydra.sweep.dir={sweep_dir} already holds a sweep ({len(jobs)} jobs): give this sweep "
+                          "another hydra.sweep.dir, or delete that folder to run it again")
+
+
 class JobLogCallback(Callback):
-    """Hydra callback: one log line per finished job of a sweep, and the failures listed after it.
+    """Hydra callback: a sweep into the folder of an earlier sweep is refused before any job
+    (:func:`check_sweep_dir`), one log line per finished job of a sweep, and the failures listed after it.
 
     Enable with ``hydra/callbacks: job_log`` (``conf/hydra/callbacks/job_log.yaml``). A job whose
     task raised (without :func:`guarded_job`) also gets its ``error.txt`` here.
     """
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        try:
+            check_sweep_dir(Path(config.hydra.sweep.dir))
+        except ConfigError as exc:  # Hydra turns a callback's exception into a warning and runs the sweep anyway
+            report(f"error: {exc}")
+            raise SystemExit(2) from None
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
         out = Path(config.hydra.runtime.output_dir)
@@ -68,7 +91,7 @@ class JobLogCallback(Callback):
             log.warning("%s %s [%s]: %s", tag, run.status, overrides, run.error or "no metrics.json written")
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        sweep_dir = Path(config.hydra.sweep.dir)
+        sweep_dir = Path(config.hydra.sweep.dir)  # this sweep's jobs only: on_multirun_start refused an earlier one
         try:
             runs = collect_runs(sweep_dir)
         except NoRunsError as exc:

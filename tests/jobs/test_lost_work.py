@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from dipnet.experiments.collect import collect_runs
 from dipnet.jobs.cli import run_hydra
 from script_modules import load_script
 
@@ -78,6 +79,19 @@ def test_second_job_into_a_busy_run_directory_is_refused(tmp_path, script, overr
     done = _script(script, f"hydra.run.dir={tmp_path}", *overrides)  # the lock went with its holder
     assert done.returncode == 0, done.stderr[-2000:]
     assert not (tmp_path / ".dipnet-run.lock.holder").exists()
+
+
+# ----------------------------------------------------------------------------- sweep directories
+def test_second_sweep_into_the_folder_of_a_first_is_refused(tmp_path):
+    """Before: both exited 0; job 0 of the first sweep was replaced by the second's, job 1 stayed, and the log
+    said 'sweep finished: 2 of 2 jobs ok' after one job ran."""
+    sweep = tmp_path / "sweep"
+    first = _script(RECONSTRUCT, "-m", *QUICK, "seed=0,1", f"hydra.sweep.dir={sweep}")
+    assert first.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in first.stdout, first.stderr[-2000:]
+    line = _one_line_error(_script(RECONSTRUCT, "-m", *QUICK, "seed=2", f"hydra.sweep.dir={sweep}"))
+    assert line == (f"error: hydra.sweep.dir={sweep} already holds a sweep (2 jobs): give this sweep another "
+                    "hydra.sweep.dir, or delete that folder to run it again")
+    assert [(r.status, r.config["seed"]) for r in collect_runs(sweep)] == [("ok", 0), ("ok", 1)]
 
 
 # ----------------------------------------------------------------------------- damaged checkpoints

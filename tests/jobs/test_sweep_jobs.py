@@ -106,3 +106,26 @@ def test_callback_logs_one_line_per_job_and_the_failures(sweep, tmp_path, caplog
     n = len(collect.collect_runs(sweep))
     assert f"sweep finished: {n - 3} of {n} jobs ok" in caplog.text
     assert "ValueError: n_dips too large" in caplog.text and "scripts/compare.py" in caplog.text
+
+
+def test_a_sweep_into_the_folder_of_an_earlier_sweep_is_refused(sweep, tmp_path, capsys):
+    """Before: the new jobs replaced the earlier ones of the same numbers, the others stayed beside them, and
+    'sweep finished' counted both sweeps' jobs."""
+    callback = sweep_jobs.JobLogCallback()
+    n = len(collect.collect_runs(sweep))
+    with pytest.raises(SystemExit) as exit_:  # not an exception: Hydra would only warn and run the sweep
+        callback.on_multirun_start(_hydra_cfg(sweep / "0", 0, sweep))
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith(f"error: hydra.sweep.dir={sweep} already holds a sweep ({n} jobs): ")
+    assert "another hydra.sweep.dir" in err and "delete" in err
+
+    started = tmp_path / "started"  # an earlier sweep that got no further than Hydra's multirun.yaml
+    started.mkdir()
+    (started / "multirun.yaml").write_text("hydra: {}\n")
+    with pytest.raises(SystemExit):
+        callback.on_multirun_start(_hydra_cfg(started / "0", 0, started))
+    for fresh in (tmp_path / "new", tmp_path / "empty"):  # a new folder, or an empty one, takes the sweep
+        if fresh.name == "empty":
+            fresh.mkdir()
+        callback.on_multirun_start(_hydra_cfg(fresh / "0", 0, fresh))
