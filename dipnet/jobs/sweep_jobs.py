@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import logging
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from dipnet.core.console import report
 from dipnet.experiments.collect import ERROR_FILE, NoRunsError, collect_runs, find_job_dirs, load_run, problems
@@ -44,16 +44,32 @@ def guarded_job(task: Callable[[], T], out: str | Path) -> T | None:
         return None
 
 
-def check_sweep_dir(sweep_dir: Path) -> None:
-    """Raise :class:`~dipnet.jobs.options.ConfigError` when ``sweep_dir`` holds an earlier sweep (Hydra's
+def check_sweep_dir(sweep_dir: Path, overrides: Sequence[str] = ()) -> None:
+    """Raise :class:`~dipnet.jobs.options.ConfigError` when ``sweep_dir`` holds another sweep (Hydra's
     ``multirun.yaml`` or any job): the new jobs would replace its jobs of the same numbers and leave the others
-    beside them, and ``scripts/compare.py`` would table both sweeps as one."""
+    beside them, and ``scripts/compare.py`` would table both sweeps as one. The same sweep run again (its
+    ``multirun.yaml`` holds the same task ``overrides``) is let through: its jobs take the same folders, and
+    those with ``output.checkpoint`` resume from their checkpoints."""
     if not sweep_dir.is_dir():
         return
     jobs = find_job_dirs(sweep_dir)
-    if jobs or (sweep_dir / "multirun.yaml").is_file():
-        raise ConfigError(f"hydra.sweep.dir={sweep_dir} already holds a sweep ({len(jobs)} jobs): give this sweep "
-                          "another hydra.sweep.dir, or delete that folder to run it again")
+    saved = sweep_dir / "multirun.yaml"
+    if not jobs and not saved.is_file():
+        return
+    if saved.is_file() and _sweep_overrides(saved) == list(overrides):
+        log.info("%s holds this sweep (the same overrides): running it again into the same job folders", sweep_dir)
+        return
+    raise ConfigError(f"hydra.sweep.dir={sweep_dir} already holds another sweep ({len(jobs)} jobs): give this "
+                      "sweep another hydra.sweep.dir, or delete that folder to run it again")
+
+
+def _sweep_overrides(multirun_yaml: Path) -> list[str] | None:
+    """The task overrides (``hydra.overrides.task``) a sweep's ``multirun.yaml`` records, ``None`` if unreadable."""
+    try:
+        saved = OmegaConf.load(multirun_yaml)
+        return [str(o) for o in OmegaConf.select(saved, "hydra.overrides.task", default=None) or []] or None
+    except Exception:  # a damaged or foreign file (OmegaConf and yaml raise many types): not this sweep
+        return None
 
 
 class JobLogCallback(Callback):
@@ -66,7 +82,7 @@ class JobLogCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         try:
-            check_sweep_dir(Path(config.hydra.sweep.dir))
+            check_sweep_dir(Path(config.hydra.sweep.dir), OmegaConf.select(config, "hydra.overrides.task", default=()))
         except ConfigError as exc:  # Hydra turns a callback's exception into a warning and runs the sweep anyway
             report(f"error: {exc}")
             raise SystemExit(2) from None

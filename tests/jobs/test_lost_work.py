@@ -84,14 +84,17 @@ def test_second_job_into_a_busy_run_directory_is_refused(tmp_path, script, overr
 # ----------------------------------------------------------------------------- sweep directories
 def test_second_sweep_into_the_folder_of_a_first_is_refused(tmp_path):
     """Before: both exited 0; job 0 of the first sweep was replaced by the second's, job 1 stayed, and the log
-    said 'sweep finished: 2 of 2 jobs ok' after one job ran."""
+    said 'sweep finished: 2 of 2 jobs ok' after one job ran. The first sweep's own command runs again (so its
+    checkpointed jobs can resume)."""
     sweep = tmp_path / "sweep"
     first = _script(RECONSTRUCT, "-m", *QUICK, "seed=0,1", f"hydra.sweep.dir={sweep}")
     assert first.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in first.stdout, first.stderr[-2000:]
     line = _one_line_error(_script(RECONSTRUCT, "-m", *QUICK, "seed=2", f"hydra.sweep.dir={sweep}"))
-    assert line == (f"error: hydra.sweep.dir={sweep} already holds a sweep (2 jobs): give this sweep another "
+    assert line == (f"error: hydra.sweep.dir={sweep} already holds another sweep (2 jobs): give this sweep another "
                     "hydra.sweep.dir, or delete that folder to run it again")
     assert [(r.status, r.config["seed"]) for r in collect_runs(sweep)] == [("ok", 0), ("ok", 1)]
+    again = _script(RECONSTRUCT, "-m", *QUICK, "seed=0,1", f"hydra.sweep.dir={sweep}")  # the same sweep: its folder
+    assert again.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in again.stdout, again.stderr[-2000:]
 
 
 # ----------------------------------------------------------------------------- damaged checkpoints

@@ -117,7 +117,7 @@ def test_a_sweep_into_the_folder_of_an_earlier_sweep_is_refused(sweep, tmp_path,
         callback.on_multirun_start(_hydra_cfg(sweep / "0", 0, sweep))
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and len(err.splitlines()) == 1, err
-    assert err.startswith(f"error: hydra.sweep.dir={sweep} already holds a sweep ({n} jobs): ")
+    assert err.startswith(f"error: hydra.sweep.dir={sweep} already holds another sweep ({n} jobs): ")
     assert "another hydra.sweep.dir" in err and "delete" in err
 
     started = tmp_path / "started"  # an earlier sweep that got no further than Hydra's multirun.yaml
@@ -129,3 +129,18 @@ def test_a_sweep_into_the_folder_of_an_earlier_sweep_is_refused(sweep, tmp_path,
         if fresh.name == "empty":
             fresh.mkdir()
         callback.on_multirun_start(_hydra_cfg(fresh / "0", 0, fresh))
+
+
+def test_the_same_sweep_run_again_goes_into_its_own_folder(tmp_path):
+    """Re-running a sweep's command (the same task overrides in its multirun.yaml) is let through, so jobs with
+    output.checkpoint resume; a sweep with other overrides into that folder is refused."""
+    callback = sweep_jobs.JobLogCallback()
+    done = tmp_path / "sweep"
+    (done / "0").mkdir(parents=True)
+    (done / "multirun.yaml").write_text("hydra:\n  overrides:\n    task: ['solver=minnorm,voxel', 'n_dips=8']\n")
+    again = OmegaConf.merge(_hydra_cfg(done / "0", 0, done),
+                            {"hydra": {"overrides": {"task": ["solver=minnorm,voxel", "n_dips=8"]}}})
+    callback.on_multirun_start(again)
+    other = OmegaConf.merge(again, {"hydra": {"overrides": {"task": ["solver=lsqr", "n_dips=8"]}}})
+    with pytest.raises(SystemExit):
+        callback.on_multirun_start(other)
