@@ -270,16 +270,17 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         result.height_trend_limit_mm = max(result.height_trend_limit_mm, centroid_allowance(
             quantum, measured, measurement.slab_thickness, spanned))  # NaN stays NaN
     result.profile_floor_mm3, result.profile_floor_share = profile_floor(measurement, measured)
-    result.profile_floor_limit_mm3 = FLOOR_SIGMAS * _slab_sigma(measurement)
+    slab_sigma = _slab_sigma(measurement)
+    result.profile_floor_limit_mm3 = FLOOR_SIGMAS * slab_sigma
     result.outside_share = beyond_slabs(measurement, result.profile_floor_mm3)
-    result.outside_limit = max(BEYOND_SLABS_TOL, FLOOR_SIGMAS * _slab_sigma(measurement) / measured)
+    result.outside_limit = max(BEYOND_SLABS_TOL, FLOOR_SIGMAS * slab_sigma / measured)
     if result.outside_share > 0:  # NaN compares False
         result.grid_volume_fraction *= 1.0 - result.outside_share
     metadata = measurement.metadata or {}
     if "tail_slope" in metadata and "readings_per_dip" in metadata:
         result.level_fall_share, result.level_fall_sigmas = level_fall(
             metadata["tail_slope"], metadata["readings_per_dip"], measured)
-    result.warnings = _findings(result, (measurement.metadata or {}).get("symmetry_group_order", 1), quantum)
+    result.warnings = _findings(result, metadata.get("symmetry_group_order", 1), quantum)
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
         for message in result.warnings:

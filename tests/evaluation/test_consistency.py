@@ -206,27 +206,37 @@ def test_a_volume_ten_times_too_small_for_the_region_its_dips_bound_is_named():
     assert 0.5 < result.hull_fill < 1.0
 
 
-def test_a_level_that_drifts_in_time_is_named():
-    """A level rising 0.002 mm/s puts a floor under every slab, which a reconstruction explains as more object:
-    the floor is found where the dips' slabs should be empty and named with the drift as its cause. Without
-    the drift the floor is nil and nothing is named."""
-    from dipnet.core.geometry import RigGeometry  # noqa: F401  (the ideal rig: no height trend)
+def _drifting_box(grid: Grid, drift: float):
+    """A box dipped along 30 directions at 40 dB by a level drifting ``drift`` mm/s, preprocessed onto ``grid``
+    (preprocessing's own warnings kept out): ``(measurement, operator, minnorm result)``."""
     from dipnet.preprocessing.preprocess import preprocess
     from dipnet.shapes import Box
     from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
     from dipnet.solvers.minnorm import MinNormSolver
 
-    grid = Grid(24, extent=100.0)
-    results = {}
-    for drift in (0.0, 0.002):
-        raw = simulate_scan(Box((30.0, 20.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(30), tank=Tank(60000.0),
-                            sensor=LevelSensor(snr_db=40.0, drift_mm_per_s=drift, seed=0), progress=False)
+    raw = simulate_scan(Box((30.0, 20.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(30), tank=Tank(60000.0),
+                        sensor=LevelSensor(snr_db=40.0, drift_mm_per_s=drift, seed=0), progress=False)
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
         measurement = preprocess(raw, grid=grid, t_start="metadata")
-        operator = make_operator(grid, measurement.directions, grid.n)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = check_consistency(measurement, operator, MinNormSolver(progress=False).solve(measurement, operator))
-        results[drift] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+    operator = make_operator(grid, measurement.directions, grid.n)
+    return measurement, operator, MinNormSolver(progress=False).solve(measurement, operator)
+
+
+def _checked(measurement, operator, recon):
+    """``(check_consistency's result, its DataConsistencyWarning messages)``."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = check_consistency(measurement, operator, recon)
+    return result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+
+
+def test_a_level_that_drifts_in_time_is_named():
+    """A level rising 0.002 mm/s puts a floor under every slab, which a reconstruction explains as more object:
+    the floor is found where the dips' slabs should be empty and named with the drift as its cause. Without
+    the drift the floor is nil and nothing is named."""
+    grid = Grid(24, extent=100.0)
+    results = {drift: _checked(*_drifting_box(grid, drift)) for drift in (0.0, 0.002)}
     still, messages = results[0.0]
     assert abs(still.profile_floor_share) < 0.01 and not any("drifts in time" in m for m in messages)
     drifting, messages = results[0.002]
@@ -239,24 +249,8 @@ def test_an_object_beyond_the_slabs_is_named_and_not_blamed_on_a_drift():
     its volume beyond the slabs, which the profiles leave out and fill to their ends. That is named, with
     extent_mm, and the full slabs are not read as a drifting level's floor. A level rising 0.002 mm/s puts as
     much volume per mm beyond the slabs as under them: the drift is named, not the grid."""
-    from dipnet.preprocessing.preprocess import preprocess
-    from dipnet.shapes import Box
-    from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
-    from dipnet.solvers.minnorm import MinNormSolver
-
     grid = Grid(24, extent=70.0)
-    results = {}
-    for drift in (0.0, 0.002):
-        raw = simulate_scan(Box((30.0, 20.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(30), tank=Tank(60000.0),
-                            sensor=LevelSensor(snr_db=40.0, drift_mm_per_s=drift, seed=0), progress=False)
-        with warnings.catch_warnings(record=True):
-            warnings.simplefilter("always")  # preprocessing's own warning of the volume beyond the slabs
-            measurement = preprocess(raw, grid=grid, t_start="metadata")
-        operator = make_operator(grid, measurement.directions, grid.n)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = check_consistency(measurement, operator, MinNormSolver(progress=False).solve(measurement, operator))
-        results[drift] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+    results = {drift: _checked(*_drifting_box(grid, drift)) for drift in (0.0, 0.002)}
     beyond, messages = results[0.0]
     assert beyond.outside_share == pytest.approx(0.017, abs=0.002) and beyond.grid_volume_fraction < 0.985
     assert any("beyond the working range: raise extent_mm" in m and "up to 1.7% of its volume beyond the slabs" in m
@@ -272,23 +266,11 @@ def test_a_falling_level_is_named_though_the_monotone_slabs_hide_it():
     every profile loses volume alike, so residual, volume ratio and floor all pass. The readings after the
     object is under fall instead of staying put: the share of the volume the fall takes is named with its
     cause. A still level names nothing, and a measurement without the readings' metadata has no verdict on it."""
-    from dipnet.preprocessing.preprocess import preprocess
-    from dipnet.shapes import Box
-    from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
-    from dipnet.solvers.minnorm import MinNormSolver
-
     grid = Grid(24, extent=100.0)
     results = {}
     for drift in (0.0, -0.002):
-        raw = simulate_scan(Box((30.0, 20.0, 16.0), (4.0, -3.0, 2.0)), fibonacci_hemisphere(30), tank=Tank(60000.0),
-                            sensor=LevelSensor(snr_db=40.0, drift_mm_per_s=drift, seed=0), progress=False)
-        measurement = preprocess(raw, grid=grid, t_start="metadata")
-        operator = make_operator(grid, measurement.directions, grid.n)
-        recon = MinNormSolver(progress=False).solve(measurement, operator)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = check_consistency(measurement, operator, recon)
-        results[drift] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+        measurement, operator, recon = _drifting_box(grid, drift)
+        results[drift] = _checked(measurement, operator, recon)
     still, messages = results[0.0]
     assert still.level_fall_share < 0.01 and not any("level falls" in m for m in messages)
     falling, messages = results[-0.002]
