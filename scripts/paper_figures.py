@@ -101,7 +101,8 @@ def plot_fig13a(groups: list[dict], path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     x = [g["percent"] for g in groups]
     for metric, marker in (("chamfer", "o"), ("hausdorff", "s")):
-        ax.errorbar(x, [g[f"{metric}_mean"] for g in groups], yerr=[g[f"{metric}_std"] for g in groups],
+        ax.errorbar(x, [g.get(f"{metric}_mean", math.nan) for g in groups],
+                    yerr=[g.get(f"{metric}_std", math.nan) for g in groups],
                     marker=marker, capsize=3, label=f"dipnet {collect.LABELS[metric]} (mean over objects, N)")
     ax.fill_between([9.0, 11.0], *PAPER_METRO_10, color="tab:red", alpha=0.25, label="paper METRO at 10% (Table 1)")
     ax.set(xscale="log", yscale="log", xlabel="% of the N^2 dips a square system needs",
@@ -115,18 +116,27 @@ def plot_fig13a(groups: list[dict], path: Path) -> Path:
     return path
 
 
+def _cell(value: float | None, spec: str) -> str:
+    """``value`` formatted by ``spec``, or ``-`` where a metric is undefined (``null`` in ``metrics.json``:
+    an empty truth has no IoU, an empty result no Chamfer)."""
+    return "-" if value is None or not math.isfinite(value) else format(value, spec)
+
+
 def summary(rows: list[dict], groups: list[dict]) -> str:
-    """Markdown: per mesh x N rows, then the mean over them per budget, next to the paper's numbers."""
+    """Markdown: per mesh x N rows, then the mean over them per budget, next to the paper's numbers
+    (``-`` for a metric a run leaves undefined)."""
     ok = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: (r["shape"], r["resolution"], r["percent"]))
     lines = ["| mesh | N | dips | % of N^2 | IoU | Chamfer | Hausdorff | solve s |", "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {r['shape']} | {r['resolution']} | {r['n_dips']} | {r['percent']:g} | {r['iou']:.3f} | "
-              f"{r['chamfer']:.4f} | {r['hausdorff']:.4f} | {r['seconds']:.1f} |" for r in ok]
+    lines += [f"| {r['shape']} | {r['resolution']} | {r['n_dips']} | {r['percent']:g} | {_cell(r.get('iou'), '.3f')} | "
+              f"{_cell(r.get('chamfer'), '.4f')} | {_cell(r.get('hausdorff'), '.4f')} | {r['seconds']:.1f} |"
+              for r in ok]
     lines += ["", "| % of N^2 | jobs | Chamfer (mean +- std) | Hausdorff (mean +- std) | paper METRO |",
               "|---|---|---|---|---|"]
     for g in groups:
         paper = f"{PAPER_METRO_10[0]}-{PAPER_METRO_10[1]}" if g["percent"] == 10 else ""
-        lines.append(f"| {g['percent']:g} | {g['runs']} | {g['chamfer_mean']:.4f} +- {g['chamfer_std']:.4f} | "
-                     f"{g['hausdorff_mean']:.4f} +- {g['hausdorff_std']:.4f} | {paper} |")
+        spread = [f"{_cell(g.get(f'{m}_mean'), '.4f')} +- {_cell(g.get(f'{m}_std'), '.4f')}"
+                  for m in ("chamfer", "hausdorff")]
+        lines.append(f"| {g['percent']:g} | {g['runs']} | {spread[0]} | {spread[1]} | {paper} |")
     return "\n".join(lines) + "\n"
 
 
@@ -151,8 +161,8 @@ def main(argv=None) -> int:
         written.append(figures.plot_montage(same_n, args.out / f"fig11_n{n}.png", row_key="shape",
                                             col_key="n_dips"))
     print("figures: " + ", ".join(map(str, written)))
-    print("RESULT " + " ".join(f"chamfer_{g['percent']:g}={g['chamfer_mean']:.4f} "
-                               f"hausdorff_{g['percent']:g}={g['hausdorff_mean']:.4f}" for g in groups))
+    print("RESULT " + " ".join(f"{m}_{g['percent']:g}={g.get(f'{m}_mean', math.nan):.4f}"
+                               for g in groups for m in ("chamfer", "hausdorff")))
     return 0
 
 

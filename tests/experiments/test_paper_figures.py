@@ -36,3 +36,18 @@ def test_figures_and_table_from_a_tiny_sweep(paper_figures, tmp_path, capsys):
     assert paper_figures.main(args) == 0
     assert (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime == mtime
     assert capsys.readouterr().out.strip().splitlines()[-1] == printed.strip().splitlines()[-1]
+
+
+def test_summary_shows_undefined_metrics_as_dashes(paper_figures):
+    # an empty truth has no IoU and an empty result no Chamfer: metrics.json holds null, not a number
+    rows = [{"shape": "plate", "resolution": 16, "n_dips": 26, "percent": 10.0, "status": "ok", "iou": None,
+             "chamfer": None, "hausdorff": None, "seconds": 1.5},
+            {"shape": "bunny", "resolution": 16, "n_dips": 26, "percent": 10.0, "status": "ok", "iou": 0.9,
+             "chamfer": 0.012, "hausdorff": 0.05, "seconds": 2.0}]
+    groups = paper_figures.collect.aggregate(rows, ("percent",), metrics=("iou", "chamfer", "hausdorff"))
+    table = paper_figures.summary(rows, groups)
+    assert "| plate | 16 | 26 | 10 | - | - | - | 1.5 |" in table
+    assert "| bunny | 16 | 26 | 10 | 0.900 | 0.0120 | 0.0500 | 2.0 |" in table
+    assert "| 10 | 2 | 0.0120 +- 0.0000 | 0.0500 +- 0.0000 |" in table  # the mean over the defined ones
+    only_undefined = paper_figures.collect.aggregate(rows[:1], ("percent",), metrics=("chamfer", "hausdorff"))
+    assert "| 10 | 1 | - +- - | - +- - |" in paper_figures.summary(rows[:1], only_undefined)
