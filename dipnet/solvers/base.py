@@ -6,6 +6,7 @@ Solvers never read files or configs; scripts and Hydra build them.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import replace
 
 import torch
 
@@ -43,6 +44,19 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
             and abs(measurement.slab_thickness - operator.slab_thickness) < 1e-9 * operator.slab_thickness
             and torch.allclose(measurement.offsets.double(), edges[:1].expand_as(measurement.offsets), atol=1e-9))
     return measurement.profiles.clone() if same else measurement.resampled(edges, BEYOND_SLABS_TOL)
+
+
+def on_operator_slabs(measurement: DipMeasurement, operator: DipOperator) -> DipMeasurement:
+    """``measurement`` with its profiles on the operator's slabs (:func:`measured_profiles`): itself when
+    they are there already, else a copy resampled once (its per-slab ``sigma`` dropped: it was for the
+    other slabs). Solvers that read the profiles at every stage or round call this first, so a volume
+    lost beyond the operator's slabs is warned about once per solve."""
+    profiles = measured_profiles(measurement, operator)
+    if torch.equal(profiles, measurement.profiles):
+        return measurement
+    return replace(measurement, profiles=profiles, slab_thickness=operator.slab_thickness,
+                   offsets=operator.slab_edges()[:1].to(measurement.offsets).expand(operator.n_orientations).clone(),
+                   sigma=None)
 
 
 def filled_slabs(target: torch.Tensor, rel_tol: float = 0.005) -> torch.Tensor:

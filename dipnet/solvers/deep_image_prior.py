@@ -49,6 +49,7 @@ from dipnet.core.keywords import forwards_to
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators import DipOperator
+from dipnet.solvers.base import on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, seeded
 
 
@@ -134,6 +135,7 @@ class DeepImagePriorSolver(OptimisationSolver):
     def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
         """Reconstruct on ``operator.grid``; ``info`` holds the network's size (``network_weights``) and the final temperature."""
         started = time.perf_counter()
+        measurement = on_operator_slabs(measurement, operator)  # resampled (and warned about) once
         problem = self._problem(measurement, operator)  # an "auto" prior weight stays at the rule's start
         data, priors, mask = problem.data, problem.priors, problem.support.to(torch.float32)
         with seeded(self.seed):

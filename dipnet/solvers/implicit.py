@@ -32,6 +32,7 @@ from dipnet.operators import DipOperator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.fields import OccupancyField
+from dipnet.solvers.base import on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP]
@@ -90,6 +91,7 @@ class ImplicitSolver(OptimisationSolver):
         """Fit the field and sample it on ``operator.grid`` (and the fine grid, see the module
         docstring); ``info`` holds steps, seconds and the number of field parameters."""
         started = time.perf_counter()
+        measurement = on_operator_slabs(measurement, operator)  # resampled (and warned about) once
         grid = operator.grid
         problem = self._problem(measurement, operator)
         data, fraction, support = problem.data, problem.volume_fraction, problem.support

@@ -46,6 +46,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.solvers.base import on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.weights import prior_options, with_weight
@@ -137,6 +138,7 @@ class VoxelSolver(OptimisationSolver):
         """Reconstruct on ``operator.grid``; ``history`` holds the loss terms of every stage of every
         round in order, ``info`` the stages' rounds, resolutions and steps and the final temperature."""
         started = time.perf_counter()
+        measurement = on_operator_slabs(measurement, operator)  # resampled (and warned about) once
         start = self._initial_occupancy(measurement, operator)
         histories, stage_info, rounds = [], [], {}
         for k in range(1, self.rounds + 1):

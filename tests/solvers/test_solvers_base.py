@@ -13,7 +13,8 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators import make_operator
-from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers import make_solver
+from dipnet.solvers.base import Solver, measured_profiles, on_operator_slabs
 
 
 def _measurement(k=4, m=10):
@@ -59,6 +60,30 @@ def test_resampling_onto_narrower_slabs_warns_of_the_volume_it_drops():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         measured_profiles(m, make_operator(Grid(16, 3, 40.0), fibonacci_hemisphere(4)))
+
+
+def test_on_operator_slabs_resamples_once_and_drops_the_other_slabs_sigma():
+    m = _measurement()
+    m.sigma = torch.full_like(m.profiles, 0.1)
+    op = make_operator(Grid(16, 3, 40.0), fibonacci_hemisphere(4))
+    on_op = on_operator_slabs(m, op)
+    torch.testing.assert_close(on_op.profiles, measured_profiles(m, op))
+    assert on_op.slab_thickness == op.slab_thickness and on_op.sigma is None  # the sigma was for the other slabs
+    torch.testing.assert_close(on_op.offsets, torch.full((4,), -20.0, dtype=on_op.offsets.dtype))
+    assert on_operator_slabs(on_op, op) is on_op  # already there: itself
+    assert torch.equal(measured_profiles(on_op, op), on_op.profiles)
+
+
+@pytest.mark.parametrize("name", ["voxel", "implicit", "dip"])
+def test_a_solve_on_narrower_slabs_warns_once(name):
+    """The voxel solver reads the profiles at each coarse-to-fine stage and round, the others more than once too:
+    the volume dropped beyond the operator's slabs is still warned about once per solve."""
+    m = _measurement()
+    op = make_operator(Grid(16, 3, 20.0), fibonacci_hemisphere(4))  # 16^3: a coarse stage at 8^3 first
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        make_solver(name, iterations=20).solve(m, op)
+    assert sum("drops up to" in str(w.message) for w in caught) == 1
 
 
 def test_other_dimensions_and_other_directions_are_refused():
