@@ -1,9 +1,9 @@
 """``rotate_sum``: the reference dip transform, rotation by ``grid_sample`` plus slab sums.
 
 The paper's ``B = S R``: rotate the object into the frame of the orientation, then sum the
-rotated volume plane by plane into slabs. The rotated frame is a grid of ``M * P`` planes
-(``P`` sampling planes per slab, see :func:`~dipnet.operators.splat.planes_per_slab`) of
-``N x N`` (3D) or ``N`` (2D) samples, aligned with ``theta``.
+rotated volume plane by plane into slabs. The rotated frame is a grid like the object's (``N`` planes
+of ``N x N`` (3D) or ``N`` (2D) samples, one voxel apart), aligned with ``theta``; each plane's sum
+is shared between the slabs it overlaps (:func:`~dipnet.operators.splat.plane_slab_weights`).
 
 The rotation moves each voxel's volume to the trilinear (bilinear) neighbours of its position
 in the rotated frame: the exact transpose of sampling the rotated frame with ``grid_sample``
@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from dipnet.core.grid import Grid
 from dipnet.operators.base import DipOperator
-from dipnet.operators.splat import planes_per_slab
+from dipnet.operators.splat import plane_slab_weights, planes_to_slabs, slabs_to_planes
 
 
 def orthonormal_frame(directions: torch.Tensor) -> torch.Tensor:
@@ -66,12 +66,12 @@ class RotateSumOperator(DipOperator):
 
     Args:
         grid, directions, n_slabs: see :class:`~dipnet.operators.base.DipOperator`.
-        chunk: orientations rotated at once (memory ``chunk * M * P * N^(d-1)`` floats).
+        chunk: orientations rotated at once (memory ``chunk * N^d`` floats).
     """
 
     def __init__(self, grid: Grid, directions: torch.Tensor, n_slabs: int | None = None, chunk: int = 8) -> None:
         super().__init__(grid, directions, n_slabs)
-        self.planes = planes_per_slab(grid, self.n_slabs)
+        self.register_buffer("slab_weights", plane_slab_weights(grid, self.n_slabs))
         self.chunk = int(chunk)
         self.register_buffer("voxel_index", torch.nonzero(self.mask.reshape(-1)).squeeze(1))
         # grid_sample, align_corners=False: normalised coordinate = mm / (extent / 2) on every
@@ -86,7 +86,7 @@ class RotateSumOperator(DipOperator):
         return rotated.reshape(k1 - k0, *([1] * (self.grid.ndim - 1)), -1, self.grid.ndim)
 
     def _rotated_shape(self) -> tuple[int, ...]:
-        return (self.n_slabs * self.planes,) + (self.grid.n,) * (self.grid.ndim - 1)
+        return (self.grid.n,) * self.grid.ndim
 
     def _pull(self, profiles: torch.Tensor) -> torch.Tensor:
         """Adjoint on the working voxels: ``(B, K, M)`` -> ``(B, n_points)``."""
@@ -94,7 +94,7 @@ class RotateSumOperator(DipOperator):
         out = profiles.new_zeros(b, self.voxel_index.numel())
         for k0 in range(0, self.n_orientations, self.chunk):
             k1 = min(k0 + self.chunk, self.n_orientations)
-            planes = profiles[:, k0:k1].repeat_interleave(self.planes, dim=-1)  # (B, kc, M P)
+            planes = slabs_to_planes(profiles[:, k0:k1], self.slab_weights)  # (B, kc, N)
             rot = planes.transpose(0, 1).reshape(k1 - k0, b, -1, *([1] * (self.grid.ndim - 1)))
             rot = rot.expand(k1 - k0, b, *self._rotated_shape())
             g = self._sample_grid(k0, k1, profiles.dtype)
@@ -113,8 +113,8 @@ class RotateSumOperator(DipOperator):
             sampled = F.grid_sample(rot, g, mode="bilinear", padding_mode="zeros", align_corners=False)
             weights = values.unsqueeze(0).expand(k1 - k0, b, -1).reshape(sampled.shape)
             (rotated_volume,) = torch.autograd.grad(sampled, rot, grad_outputs=weights)
-            plane_sums = rotated_volume.reshape(k1 - k0, b, self.n_slabs, self.planes, -1).sum((-1, -2))
-            out.append(plane_sums.transpose(0, 1))
+            plane_sums = rotated_volume.reshape(k1 - k0, b, self.grid.n, -1).sum(-1)
+            out.append(planes_to_slabs(plane_sums.transpose(0, 1), self.slab_weights))
         return torch.cat(out, dim=1) * self.grid.voxel_volume
 
     def _forward(self, volume: torch.Tensor) -> torch.Tensor:

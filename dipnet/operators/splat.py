@@ -1,11 +1,15 @@
 """``splat``: the dip transform by direct splatting, with no rotated volume.
 
 Each voxel's volume is shared linearly (a hat kernel) between the two sampling planes
-nearest to its height ``t_v = x_v . theta``; planes are summed into slabs. This is exactly
-what :class:`~dipnet.operators.rotate_sum.RotateSumOperator` computes (rotation by trilinear
-interpolation followed by plane sums), because the in-plane interpolation weights of a voxel
-sum to one: only the height matters. Cost ``O(K N^d)`` with no ``N^d``-sized temporaries
-per orientation, and the explicit sparse matrix comes from the same weights.
+nearest to its height ``t_v = x_v . theta``. The ``N`` planes lie one voxel apart at the heights of
+the voxel layers' centres, and plane ``i`` stands for the layer ``[c_i - h/2, c_i + h/2]`` (``h`` the
+voxel size), which :func:`plane_slab_weights` shares between the slabs by overlap. So a dip along a
+grid axis is exact for any number of slabs (each voxel layer lands in the slabs it overlaps), and with
+``M = N`` slabs (or ``N`` a multiple of ``M``) each plane lies in one slab. This is exactly what
+:class:`~dipnet.operators.rotate_sum.RotateSumOperator` computes (rotation by trilinear interpolation
+followed by plane sums), because the in-plane interpolation weights of a voxel sum to one: only the
+height matters. Cost ``O(K N^d)`` with no ``N^d``-sized temporaries per orientation, and the explicit
+sparse matrix comes from the same weights.
 """
 
 from __future__ import annotations
@@ -23,9 +27,26 @@ _CHUNK_ELEMENTS = 1 << 22  # voxel x orientation pairs handled at once
 _CACHE_BYTES = 1 << 29  # keep precomputed weights when they fit in 512 MiB
 
 
-def planes_per_slab(grid: Grid, n_slabs: int) -> int:
-    """Sampling planes per slab: enough that planes are no further apart than a voxel."""
-    return max(1, math.ceil(grid.extent / n_slabs / grid.voxel_size - 1e-9))
+def plane_slab_weights(grid: Grid, n_slabs: int) -> torch.Tensor | None:
+    """Share of sampling plane ``i`` (the layer ``[c_i - h/2, c_i + h/2]`` of the ``N`` voxel layers along the
+    dip, ``h`` the voxel size in mm) in slab ``j``: the overlap over ``h``, ``(N, M)`` float64, rows summing
+    to 1. ``None`` when planes and slabs coincide (``M = N``)."""
+    if n_slabs == grid.n:
+        return None
+    layers = torch.linspace(-grid.extent / 2, grid.extent / 2, grid.n + 1, dtype=torch.float64)
+    slabs = torch.linspace(-grid.extent / 2, grid.extent / 2, n_slabs + 1, dtype=torch.float64)
+    overlap = (torch.minimum(layers[1:, None], slabs[None, 1:]) - torch.maximum(layers[:-1, None], slabs[None, :-1]))
+    return overlap.clamp(min=0.0) / grid.voxel_size
+
+
+def planes_to_slabs(planes: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """Plane volumes ``(..., N)`` -> slab volumes ``(..., M)`` by :func:`plane_slab_weights` ``weights``."""
+    return planes if weights is None else planes @ weights.to(planes.dtype)
+
+
+def slabs_to_planes(profiles: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """The adjoint of :func:`planes_to_slabs`: ``(..., M)`` -> ``(..., N)``."""
+    return profiles if weights is None else profiles @ weights.to(profiles.dtype).T
 
 
 class SplatOperator(DipOperator):
@@ -33,7 +54,7 @@ class SplatOperator(DipOperator):
 
     def __init__(self, grid: Grid, directions: torch.Tensor, n_slabs: int | None = None) -> None:
         super().__init__(grid, directions, n_slabs)
-        self.planes = planes_per_slab(grid, self.n_slabs)
+        self.register_buffer("slab_weights", plane_slab_weights(grid, self.n_slabs))
         self.register_buffer("voxel_index", torch.nonzero(self.mask.reshape(-1)).squeeze(1))
         self.register_buffer("points", grid.centers().reshape(-1, grid.ndim)[self.voxel_index])
         n_pts = self.points.shape[0]
@@ -43,8 +64,8 @@ class SplatOperator(DipOperator):
 
     # ------------------------------------------------------------------ weights
     def _chunks(self):
-        """Yield ``(k0, k1, slab0, slab1, w)``: flat (k, slab) indices of the lower / upper plane
-        and the upper weight, each of shape ``(n_points * (k1 - k0),)``, orientation-major."""
+        """Yield ``(k0, k1, plane0, plane1, w)``: flat (k, plane) indices (``N`` planes per orientation) of the
+        lower / upper plane and the upper weight, each of shape ``(n_points * (k1 - k0),)``, orientation-major."""
         if self._cache is not None:
             yield from self._cache
             return
@@ -59,32 +80,28 @@ class SplatOperator(DipOperator):
             self._cache = built
 
     def _weights(self, k0: int, k1: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        step = self.slab_thickness / self.planes
+        n = self.grid.n
         t = self.directions[k0:k1] @ self.points.T  # (kc, n_points), mm
-        u = (t + self.grid.extent / 2) / step - 0.5  # plane coordinate
-        n_planes = self.n_slabs * self.planes
-        i0 = torch.floor(u).clamp(0, n_planes - 2)
+        u = (t + self.grid.extent / 2) / self.grid.voxel_size - 0.5  # plane coordinate
+        i0 = torch.floor(u).clamp(0, n - 2)
         w = (u - i0).clamp(0.0, 1.0)
-        i0 = i0.long()
-        base = (torch.arange(k0, k1) * self.n_slabs).unsqueeze(1)
-        s0 = base + torch.div(i0, self.planes, rounding_mode="floor")
-        s1 = base + torch.div(i0 + 1, self.planes, rounding_mode="floor")
-        return s0.reshape(-1), s1.reshape(-1), w.reshape(-1)
+        p0 = (torch.arange(k0, k1) * n).unsqueeze(1) + i0.long()
+        return p0.reshape(-1), (p0 + 1).reshape(-1), w.reshape(-1)
 
     # ------------------------------------------------------------------ application
     def _forward(self, volume: torch.Tensor) -> torch.Tensor:
         b = volume.shape[0]
         f = volume.reshape(b, -1)[:, self.voxel_index] * self.grid.voxel_volume  # (B, n_points)
-        out = volume.new_zeros(b, self.n_orientations * self.n_slabs)
+        out = volume.new_zeros(b, self.n_orientations * self.grid.n)
         for k0, k1, s0, s1, w in self._chunks():
             w = w.to(volume.dtype)
             src = f.repeat(1, k1 - k0)  # orientation-major, matches the weight layout
             out = out.index_add(1, s0, src * (1 - w)).index_add(1, s1, src * w)
-        return out.reshape(b, self.n_orientations, self.n_slabs)
+        return planes_to_slabs(out.reshape(b, self.n_orientations, self.grid.n), self.slab_weights)
 
     def _adjoint(self, profiles: torch.Tensor) -> torch.Tensor:
         b = profiles.shape[0]
-        y = profiles.reshape(b, -1)
+        y = slabs_to_planes(profiles, self.slab_weights).reshape(b, -1)
         n_pts = self.points.shape[0]
         acc = profiles.new_zeros(b, n_pts)
         for k0, k1, s0, s1, w in self._chunks():
@@ -107,8 +124,11 @@ class SplatOperator(DipOperator):
             rows += [s0.numpy(), s1.numpy()]
             cols += [c, c]
             vals += [(1 - wn) * hv, wn * hv]
-        shape = (self.n_orientations * self.n_slabs, math.prod(self.grid.shape))
+        shape = (self.n_orientations * self.grid.n, math.prod(self.grid.shape))
         mat = scipy.sparse.coo_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=shape
-        )
-        return mat.tocsr()
+        ).tocsr()
+        if self.slab_weights is None:
+            return mat
+        binning = scipy.sparse.csr_matrix(self.slab_weights.T.numpy())  # (M, N)
+        return (scipy.sparse.kron(scipy.sparse.eye(self.n_orientations, format="csr"), binning) @ mat).tocsr()

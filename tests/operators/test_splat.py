@@ -12,7 +12,8 @@ import torch
 from dipnet.core.grid import Grid
 from dipnet.operators import SplatOperator
 from dipnet.operators.analytic import ball_occupancy
-from dipnet.operators.splat import planes_per_slab
+from dipnet.operators import make_operator
+from dipnet.operators.splat import plane_slab_weights
 
 from operator_problems import generic_directions, random_problem
 
@@ -26,11 +27,36 @@ def test_splat_sparse_matrix_equals_operator():
     np.testing.assert_allclose(mat.T @ y.reshape(-1).numpy(), op.adjoint(y).reshape(-1).numpy(), rtol=1e-12, atol=1e-9)
 
 
-@pytest.mark.parametrize("n_slabs,planes", [(32, 1), (64, 1), (16, 2), (10, 4), (11, 3)])
-def test_planes_per_slab_keep_planes_at_most_a_voxel_apart(n_slabs, planes):
-    grid = Grid(32, 3, extent=96.0)  # 3 mm voxels
-    assert planes_per_slab(grid, n_slabs) == planes
-    assert grid.extent / n_slabs / planes <= grid.voxel_size + 1e-12
+@pytest.mark.parametrize("n_slabs", [16, 8, 10, 11, 47, 64])
+def test_each_voxel_layer_is_shared_between_the_slabs_it_overlaps(n_slabs):
+    grid = Grid(32, 3, extent=96.0)  # 3 mm voxel layers
+    weights = plane_slab_weights(grid, n_slabs)  # (32, M)
+    torch.testing.assert_close(weights.sum(1), torch.ones(32, dtype=torch.float64))
+    # the layers' shares of each slab add up to its thickness in voxels
+    torch.testing.assert_close(weights.sum(0), torch.full((n_slabs,), 32 / n_slabs, dtype=torch.float64))
+    if 32 % n_slabs == 0:  # a whole number of layers per slab: each layer in one slab
+        assert set(weights.unique().tolist()) == {0.0, 1.0}
+    assert plane_slab_weights(grid, 32) is None  # planes and slabs coincide
+
+
+@pytest.mark.parametrize("n_slabs", [20, 30, 36, 47, 72])
+def test_a_dip_along_a_grid_axis_is_right_for_any_number_of_slabs(n_slabs):
+    """A dip along z, x or y sees whole voxel layers at one height: with slabs of another thickness than a voxel
+    each layer must be shared by overlap (sharing it at its centre height gave profile errors of 13.6% at 20
+    slabs and 141% at 72 on a 24^3 ball). Now the error is the voxelisation's own, as for a tilted dip and
+    the Fourier backend, and splat and rotate_sum stay one operator."""
+    grid, r = Grid(24, 3, 100.0), 0.9 * 50.0
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.5, 0.75**0.5]], dtype=torch.float64)
+    occ = ball_occupancy(grid, torch.zeros(3, dtype=torch.float64), r, 7)
+    op = SplatOperator(grid, dirs, n_slabs)
+    prof = op(occ)
+    edges = op.slab_edges().clamp(-r, r)
+    cap = math.pi * (r**2 * edges - edges**3 / 3)
+    error = (prof - (cap[1:] - cap[:-1])).norm(dim=1) / (cap[1:] - cap[:-1]).norm()
+    fourier = make_operator(grid, dirs, n_slabs, backend="fourier")(occ)
+    assert float(error.max()) < 0.05
+    assert float(((prof[:2] - fourier[:2]).norm(dim=1) / fourier[:2].norm(dim=1)).max()) < 2e-3
+    torch.testing.assert_close(make_operator(grid, dirs, n_slabs, backend="rotate_sum")(occ), prof)
 
 
 def test_a_single_voxel_lands_on_its_height_with_a_hat_kernel():
@@ -69,11 +95,11 @@ def test_a_ball_gives_the_analytic_slab_volumes():
 
 
 def test_several_planes_per_slab_keep_the_volume_and_the_adjoint():
-    """Slabs three voxels thick (three sampling planes each): every profile still sums to the masked volume, and
+    """Slabs about three voxels thick (several sampling planes each): every profile still sums to the masked volume, and
     the adjoint is the transpose: <A x, y> = <x, A^T y>."""
     grid, dirs, x, gen = random_problem(3, seed=7)
     op = SplatOperator(grid, dirs, n_slabs=8)
-    assert op.planes == 3
+    assert op.slab_weights.shape == (grid.n, 8)
     volume = float((x * grid.working_mask()).sum()) * grid.voxel_volume
     torch.testing.assert_close(op(x).sum(1), torch.full((len(dirs),), volume, dtype=torch.float64))
     y = torch.rand(op.profile_shape, generator=gen, dtype=torch.float64)
