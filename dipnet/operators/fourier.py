@@ -62,7 +62,7 @@ class _FourierApply(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, op: "FourierOperator", transpose: bool) -> torch.Tensor:  # type: ignore[override]
         ctx.op, ctx.transpose = op, transpose
-        return op._apply(x, transpose)
+        return op._transform(x, transpose)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
@@ -164,7 +164,7 @@ class FourierOperator(DipOperator):
         spectrum = (folded[self._fold] * np.conj(self._weights)).astype(self._complex)
         return self._nufft().execute_adjoint(spectrum).real.astype(np.float64)
 
-    def _apply(self, x: torch.Tensor, transpose: bool) -> torch.Tensor:
+    def _transform(self, x: torch.Tensor, transpose: bool) -> torch.Tensor:
         step = self._adjoint_np if transpose else self._forward_np
         data = x.detach().to(torch.float64).numpy()
         out = np.stack([step(np.ascontiguousarray(item)) for item in data])

@@ -144,3 +144,19 @@ def test_float_inputs_keep_their_dtype_and_their_gradient(backend):
     assert prof.dtype == torch.float32 and prof.requires_grad
     (prof * y).sum().backward()
     torch.testing.assert_close(x.grad, op.adjoint(y), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("backend", BACKEND_NAMES)
+def test_every_backend_casts_as_a_module(backend):
+    """``.float()``, ``.double()``, ``.to()``, ``.cpu()`` and a module holding the operator work on every backend
+    (the Fourier backend once shadowed ``nn.Module._apply``, which they all call), and a float32 operator gives
+    float32 profiles equal to the float64 ones to single precision."""
+    op = make_operator(GRID, torch.eye(3, dtype=torch.float64), backend=backend)
+    x = torch.rand(GRID.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    expected = op(x)
+    assert op.float() is op and op.directions.dtype == torch.float32
+    torch.testing.assert_close(op(x.float()), expected.float(), rtol=1e-4, atol=1e-3)
+    assert op.double() is op and op.directions.dtype == torch.float64
+    assert op.to(torch.float64).cpu() is op
+    torch.nn.Sequential(op).to("cpu")
+    torch.testing.assert_close(op(x), expected)
