@@ -33,12 +33,16 @@ class Grid:
     extent: float = 100.0
 
     def __post_init__(self) -> None:
-        if int(self.n) != self.n or self.n < 4:
+        if isinstance(self.n, bool) or int(self.n) != self.n or self.n < 4:
             raise ValueError(f"grid resolution n must be an integer >= 4, got {self.n!r}")
-        if self.ndim not in (2, 3):
+        if isinstance(self.ndim, bool) or self.ndim not in (2, 3):
             raise ValueError(f"grid ndim must be 2 or 3, got {self.ndim!r}")
         if not self.extent > 0:
             raise ValueError(f"grid extent must be positive (mm), got {self.extent!r}")
+        # a whole float (15.0, a numpy integer) is stored as the int every shape and index needs
+        object.__setattr__(self, "n", int(self.n))
+        object.__setattr__(self, "ndim", int(self.ndim))
+        object.__setattr__(self, "extent", float(self.extent))
 
     @property
     def shape(self) -> tuple[int, ...]:

@@ -30,8 +30,22 @@ def test_2d_grid():
     assert g.shape == (10, 10) and g.centers().shape == (10, 10, 2) and g.voxel_volume == 0.25
 
 
+def test_a_whole_float_resolution_is_stored_as_an_int():
+    """``Grid(15.0)`` (a resolution read from a file or computed) is the grid ``Grid(15)``: operators and shapes
+    index with ``n``, and failed with a raw TypeError on the float."""
+    import numpy as np
+
+    from dipnet.operators import make_operator
+    from dipnet.core.orientations import fibonacci_hemisphere
+
+    for n in (15.0, np.int64(15)):
+        g = Grid(n, 3, 90)
+        assert g == Grid(15, 3, 90.0) and type(g.n) is int and type(g.extent) is float
+        assert make_operator(g, fibonacci_hemisphere(4))(torch.ones(g.shape)).shape == (4, 15)
+
+
 @pytest.mark.parametrize("kwargs", [dict(n=0), dict(n=3), dict(n=8.5), dict(n=8, ndim=4), dict(n=8, extent=0.0),
-                                    dict(n=8, extent=-1.0)])
+                                    dict(n=8, extent=-1.0), dict(n=True), dict(n=8, ndim=True)])
 def test_bad_grids_are_refused(kwargs):
     with pytest.raises(ValueError):
         Grid(**kwargs)
