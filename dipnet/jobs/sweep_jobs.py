@@ -49,12 +49,13 @@ def check_sweep_dir(sweep_dir: Path, overrides: Sequence[str] = ()) -> None:
     ``multirun.yaml`` or any job): the new jobs would replace its jobs of the same numbers and leave the others
     beside them, and ``scripts/compare.py`` would table both sweeps as one. The same sweep run again (its
     ``multirun.yaml`` holds the same task ``overrides``) is let through: its jobs take the same folders, and
-    those with ``output.checkpoint`` resume from their checkpoints."""
+    those with ``output.checkpoint`` resume from their checkpoints. A folder with no job (a sweep that failed
+    before its first job, on a bad override, leaves only ``multirun.yaml``) holds nothing to keep: let through."""
     if not sweep_dir.is_dir():
         return
     jobs = find_job_dirs(sweep_dir)
     saved = sweep_dir / "multirun.yaml"
-    if not jobs and not saved.is_file():
+    if not jobs:
         return
     if saved.is_file() and _sweep_overrides(saved) == list(overrides):
         log.info("%s holds this sweep (the same overrides): running it again into the same job folders", sweep_dir)

@@ -120,12 +120,12 @@ def test_a_sweep_into_the_folder_of_an_earlier_sweep_is_refused(sweep, tmp_path,
     assert err.startswith(f"error: hydra.sweep.dir={sweep} already holds another sweep ({n} jobs): ")
     assert "another hydra.sweep.dir" in err and "delete" in err
 
-    started = tmp_path / "started"  # an earlier sweep that got no further than Hydra's multirun.yaml
-    started.mkdir()
-    (started / "multirun.yaml").write_text("hydra: {}\n")
-    with pytest.raises(SystemExit):
-        callback.on_multirun_start(_hydra_cfg(started / "0", 0, started))
-    for fresh in (tmp_path / "new", tmp_path / "empty"):  # a new folder, or an empty one, takes the sweep
+    # a new folder, an empty one, or one whose sweep failed before its first job (a bad override: Hydra wrote
+    # only multirun.yaml) takes the sweep: it holds nothing to keep (the corrected command was refused before)
+    failed = tmp_path / "failed"
+    failed.mkdir()
+    (failed / "multirun.yaml").write_text("hydra:\n  overrides:\n    task: ['solver.threshold=0.5,0.9']\n")
+    for fresh in (tmp_path / "new", tmp_path / "empty", failed):
         if fresh.name == "empty":
             fresh.mkdir()
         callback.on_multirun_start(_hydra_cfg(fresh / "0", 0, fresh))
