@@ -227,6 +227,9 @@ def check_self_calibration(cfg: DictConfig) -> None:
             meaning=" (mm, the prior of each dip's height offset; null: no offsets)")
     _number(cfg, "calibration.max_section_change", positive=True, nullable=True,
             meaning=" (relative change of the cross-section)")
+    for key in ("section_min_resolution", "section_min_dips"):
+        if OmegaConf.select(cfg, f"calibration.{key}", default=_UNSET) is not _UNSET:
+            _integer(cfg, f"calibration.{key}", 0, meaning=" (0: trust the section at any grid and number of dips)")
 
 
 def check_symmetry(cfg: DictConfig) -> None:
