@@ -14,6 +14,7 @@ import os
 import re
 import socket
 import time
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +76,33 @@ def _direction(dip_or_angles) -> list[float]:
     return rig_to_direction(*dip_or_angles)[0].tolist()
 
 
+#: The log ``scripts/scan.py`` writes beside its scan (Hydra's job log in the run directory).
+SCAN_LOG = "scan.log"
+_LOGGED_STOP = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+)\].*?error: (scan stopped at .*)$")
+
+
+def logged_stop(tail: ScanTail) -> str | None:
+    """The rig runner's safe-stop message from :data:`SCAN_LOG` beside the scan, when logged after the scan's
+    last session began (a scan run without ``monitor=true`` keeps no journal: its log holds the message), else
+    ``None``."""
+    try:
+        lines = (tail.path.parent / SCAN_LOG).read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    started = None
+    if tail.sessions and tail.sessions[-1].get("time"):
+        try:
+            started = datetime.fromisoformat(str(tail.sessions[-1]["time"])).timestamp()
+        except ValueError:
+            return None
+    for line in reversed(lines):
+        found = _LOGGED_STOP.match(line)
+        if found:
+            logged = datetime.strptime(found.group(1), "%Y-%m-%d %H:%M:%S,%f").astimezone().timestamp()
+            return found.group(2) if started is None or logged >= started - 1.0 else None
+    return None
+
+
 def mode_of(tail: ScanTail, journal: JournalTail, replay: bool, alive: bool) -> tuple[str, str]:
     """``(mode, what it means)`` (one of :data:`MODES`)."""
     planned, done = planned_orientations(tail), sum(d.complete for d in tail.dips)
@@ -87,13 +115,16 @@ def mode_of(tail: ScanTail, journal: JournalTail, replay: bool, alive: bool) -> 
         return "live", f"live: the scan is running ({total} orientations done)"
     if stops and (not starts or stops[-1]["time"] >= starts[-1]["time"]):
         return "stopped", stops[-1]["message"]
+    logged = None if planned and done >= len(planned) else logged_stop(tail)
+    if logged:
+        return "stopped", logged
     if planned and done >= len(planned) or (not planned and done and not tail.truncated
                                              and all(d.complete for d in tail.dips)):
         return "finished", f"finished: {total} orientations recorded"
     cut = "; its last line is cut short" if tail.truncated else ""
     return "stopped", (f"stopped: the scan is not running and did not finish ({total} orientations done{cut}); "
-                       "it left no safe-stop message, so it died (killed, crashed or lost power): check the rig, "
-                       "then run the same scan command again to resume")
+                       f"it left no safe-stop message (in its monitor journal or in {SCAN_LOG} beside it), so it died "
+                       "(killed, crashed or lost power): check the rig, then run the same scan command again to resume")
 
 
 def dip_times(tail: ScanTail) -> tuple[float | None, float | None]:

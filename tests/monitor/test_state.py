@@ -86,7 +86,8 @@ def test_a_scan_that_died_says_so_and_how_to_resume(tmp_path):
         f.write(b'{"type": "reading", "k": 1, "sta')                # killed mid-line
     state = _state(path)
     assert state["mode"] == "stopped" and state["stopped"] == state["message"]
-    assert "it left no safe-stop message, so it died" in state["message"] and "last line is cut short" in state["message"]
+    assert "it left no safe-stop message (in its monitor journal or in scan.log beside it), so it died" in \
+        state["message"] and "last line is cut short" in state["message"]
     assert "1 of 4 orientations done" in state["message"] and "run the same scan command again" in state["message"]
     assert [o["status"] for o in state["orientations"]] == ["done", "incomplete", "planned", "planned"]
 
@@ -103,6 +104,23 @@ def test_a_safe_stop_shows_its_message_until_a_new_run_starts(tmp_path):
     with journal_path(path).open("a") as f:                         # resumed: the new run is live
         f.write(json.dumps({"type": "session", "time": 3.0}) + "\n")
     assert _state(path, alive=True)["mode"] == "live"
+
+
+def test_a_safe_stop_logged_beside_a_scan_without_a_journal_is_shown(tmp_path):
+    """A scan run without monitor=true keeps no journal; scan.py logs its safe stop to scan.log beside the scan. The
+    monitor called such a Ctrl-C'd scan dead ("killed, crashed or lost power: check the rig"). A stop logged before
+    the scan's last session began is an earlier run's: that run resumed, and then died."""
+    path = synthetic_scan(tmp_path / "rawscan.jsonl", [RISING, RISING[:3]], complete=1)
+    stop = ("scan stopped at orientation 1 (tilt 20, spin 90), reading 3 at 3 mm: interrupted (Ctrl-C); object lifted: "
+            "...; run the same command again to resume")
+    (tmp_path / "scan.log").write_text(f"[2026-11-27 19:24:20,100][dipnet][INFO] - orientation 1\n"
+                                       f"[2026-11-27 19:24:26,794][dipnet][ERROR] - error: {stop}\n")
+    state = _state(path)
+    assert state["mode"] == "stopped" and state["message"] == stop
+    with path.open("a") as f:  # resumed an hour later (the runner's session record), then killed
+        f.write(json.dumps({"type": "session", "first_k": 1, "time": "2026-11-27T20:30:00+0000"}) + "\n")
+    state = _state(path)
+    assert state["mode"] == "stopped" and "so it died" in state["message"]
 
 
 def test_a_replay_says_replay(recorded_scan):
