@@ -59,6 +59,17 @@ def planned_orientations(tail: ScanTail) -> list[tuple[float, float]]:
     return [(float(t), float(s)) for t, s in (plan or {}).get("orientations", [])]
 
 
+def planned_count(tail: ScanTail) -> int:
+    """How many orientations the scan will dip: an adaptive scan's budget (its header lists only the first batch's
+    orientations, planned before any dip; later batches are chosen from the dips), else the plan's count (0 when
+    the scan records none)."""
+    config = (tail.header.config or {}) if tail.header is not None else {}
+    planner = (config.get("scan") or {}).get("planner")
+    if isinstance(planner, dict) and isinstance(planner.get("budget"), int):
+        return int(planner["budget"])
+    return len(planned_orientations(tail))
+
+
 def readings_per_dip(tail: ScanTail) -> int | None:
     """Readings planned per orientation (the plan's start, stop and step), ``None`` if not recorded."""
     plan = (tail.header.config or {}).get("plan") if tail.header is not None else None
@@ -105,8 +116,8 @@ def logged_stop(tail: ScanTail) -> str | None:
 
 def mode_of(tail: ScanTail, journal: JournalTail, replay: bool, alive: bool) -> tuple[str, str]:
     """``(mode, what it means)`` (one of :data:`MODES`)."""
-    planned, done = planned_orientations(tail), sum(d.complete for d in tail.dips)
-    total = f"{done} of {len(planned)}" if planned else f"{done}"
+    planned, done = planned_count(tail), sum(d.complete for d in tail.dips)
+    total = f"{done} of {planned}" if planned else f"{done}"
     if replay:
         return "replay", f"replay of a recorded scan: {total} orientations played back"
     stops = [e for e in journal.events if e.get("type") == "stopped"]
@@ -115,10 +126,10 @@ def mode_of(tail: ScanTail, journal: JournalTail, replay: bool, alive: bool) -> 
         return "live", f"live: the scan is running ({total} orientations done)"
     if stops and (not starts or stops[-1]["time"] >= starts[-1]["time"]):
         return "stopped", stops[-1]["message"]
-    logged = None if planned and done >= len(planned) else logged_stop(tail)
+    logged = None if planned and done >= planned else logged_stop(tail)
     if logged:
         return "stopped", logged
-    if planned and done >= len(planned) or (not planned and done and not tail.truncated
+    if planned and done >= planned or (not planned and done and not tail.truncated
                                              and all(d.complete for d in tail.dips)):
         return "finished", f"finished: {total} orientations recorded"
     cut = "; its last line is cut short" if tail.truncated else ""
@@ -140,14 +151,14 @@ def dip_times(tail: ScanTail) -> tuple[float | None, float | None]:
 def finish_estimate(tail: ScanTail, now: float) -> dict[str, Any]:
     """Time per dip, remaining dips and the estimated finish (UNIX s), from the recorded readings."""
     per_dip, per_reading = dip_times(tail)
-    planned, n = planned_orientations(tail), readings_per_dip(tail)
+    planned, n = planned_count(tail), readings_per_dip(tail)
     done = sum(d.complete for d in tail.dips)
     out: dict[str, Any] = {"per_dip_s": per_dip, "per_reading_s": per_reading, "done": done,
-                           "planned": len(planned) or None, "finish_time": None, "remaining_s": None}
+                           "planned": planned or None, "finish_time": None, "remaining_s": None}
     if not planned or per_dip is None:
         return out
     current = tail.dips[-1] if tail.dips and not tail.dips[-1].complete else None
-    remaining = (len(planned) - done - (current is not None)) * per_dip
+    remaining = (planned - done - (current is not None)) * per_dip
     if current is not None and n is not None and per_reading is not None:
         # to the dip's last reading, then the lift and rotation before the next dip starts
         remaining += max(n - len(current.values), 0) * per_reading + max(per_dip - (n - 1) * per_reading, 0.0)

@@ -123,6 +123,26 @@ def test_a_safe_stop_logged_beside_a_scan_without_a_journal_is_shown(tmp_path):
     assert state["mode"] == "stopped" and "so it died" in state["message"]
 
 
+def test_an_adaptive_scan_counts_its_budget_not_its_first_batch(tmp_path):
+    """An adaptive scan's header lists only its first batch (4 of a budget of 12): cut off after that batch it was
+    shown "finished: 4 of 4 orientations recorded", and complete it would read "12 of 4"."""
+    path = tmp_path / "rawscan.jsonl"
+    config = {"plan": PLAN, "scan": {"planner": {"_target_": "dipnet.planning.plans.AdaptivePlan", "budget": 12,
+                                                 "batch_size": 4}}}
+    header = ScanHeader(tank_cross_section_mm2=1e4, step_mm=1.0, resolution=0.001, config=config)
+    with RawScanWriter(path, header, resume=False, fsync=False) as writer:
+        for k in range(4):
+            writer.begin_orientation(k, tilt_deg=PLAN["orientations"][k][0], spin_deg=PLAN["orientations"][k][1])
+            for i, value in enumerate(RISING):
+                writer.append_reading(float(i), value, 10.0 * k + i, [])
+            writer.complete_orientation()
+    state = _state(path)
+    assert state["mode"] == "stopped" and "4 of 12 orientations done" in state["message"]
+    tail = ScanTail(path)
+    tail.poll()
+    assert finish_estimate(tail, now=100.0)["planned"] == 12
+
+
 def test_a_replay_says_replay(recorded_scan):
     state = _state(recorded_scan, replay=True)
     assert state["mode"] == "replay" and state["message"].startswith("replay of a recorded scan")
