@@ -60,6 +60,13 @@ def main(cfg: DictConfig) -> None:
             if journal is not None:
                 journal.stopped(str(exc))
             raise SystemExit(3) from None
+        except KeyboardInterrupt:  # outside the rig runner (which stops safely itself): an adaptive scan planning
+            message = (f"scan stopped between batches of dips (while planning the next): no dip was in progress, "
+                       f"every complete one is kept in {path}; run the same command again to resume")
+            report(f"interrupted: {message}")
+            if journal is not None:
+                journal.stopped(message)
+            raise SystemExit(130) from None
     n = sum(o.n_readings for o in scan.orientations)
     log.info("scan complete: %d orientations, %d readings in %s", len(scan.completed()), n, path)
 

@@ -244,3 +244,26 @@ def test_full_disk_during_a_scan_ends_in_the_safe_stop_message_alone(tmp_path):
     assert proc.returncode == 3 and len(lines) == 1, proc.stderr[-3000:]
     assert re.fullmatch(r"error: scan stopped at .+: OSError: \[Errno 28\] No space left on device; object lifted: "
                         r"the controller reports lower 0\.000 mm \(safe height 0 mm\); kept \d+ readings .+", lines[0])
+
+
+PLANNING_INTERRUPTED = """
+import runpy, sys
+import dipnet.jobs.scan
+
+def planning(*args, **kwargs):  # Ctrl-C while an adaptive scan reconstructs to plan its next batch
+    raise KeyboardInterrupt
+
+dipnet.jobs.scan.scan_job = planning
+sys.argv = sys.argv[1:]
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def test_ctrl_c_between_an_adaptive_scans_batches_prints_one_line_and_how_to_resume(tmp_path):
+    """The runner stops a dip in progress safely itself (exit 3); a Ctrl-C outside it (an adaptive scan planning its
+    next batch) printed a 105-line KeyboardInterrupt traceback and no way on."""
+    proc = subprocess.run([sys.executable, "-c", PLANNING_INTERRUPTED, str(SCAN), f"hydra.run.dir={tmp_path}",
+                           *QUICK_SCAN], capture_output=True, text=True, timeout=300)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 130 and len(lines) == 1, proc.stderr[-3000:]
+    assert lines[0].startswith("interrupted: scan stopped between batches of dips") and "run the same command" in lines[0]
