@@ -3,8 +3,9 @@
 Runs the reconstruction pipeline (:func:`dipnet.jobs.pipeline.run`, the Hydra config of
 ``scripts/reconstruct.py``) for every bundled mesh x resolution ``N`` x dip budget (``--percent``
 of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job directory each under
-``--out`` (a finished job is reused, so an interrupted run continues, whatever the overrides:
-use one ``--out`` per solver or setting; every job uses the fast
+``--out`` (a finished job is reused, so an interrupted run continues; each job records its overrides in
+``overrides.json``, and a job made with other overrides is refused before anything runs: use one ``--out``
+per solver or setting; every job uses the fast
 ``fourier`` operator, ``eps=1e-3, upsampfac=1.25``, single precision, and by default ``minnorm``
 with at most 60 LSMR iterations), then writes there
 
@@ -25,7 +26,9 @@ Ends with ``RESULT chamfer_<p>=<mean> hausdorff_<p>=<mean> ...`` per budget ``p`
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -44,6 +47,7 @@ JOB_DEFAULTS = ["output.figures=false", "output.uncertainty=false", "output.reso
                 "shape.radius=45",  # mm: the bundled meshes come in mixed units; the grid follows them
                 "operator=fourier", "operator.eps=1e-3", "operator.upsampfac=1.25", "operator.single=true"]
 SOLVER_DEFAULTS = ["solver=minnorm", "solver.iter_lim=60"]  # LSMR at these sizes, as in bench_scale
+OVERRIDES_FILE = "overrides.json"  # a job's overrides, beside its metrics.json
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -67,18 +71,42 @@ def job_overrides(mesh: str, n: int, percent: float, extra: list[str]) -> list[s
             f"n_dips={n_dips}", "ndim=3", *extra]
 
 
+def jobs(args) -> list[tuple[str, int, float, Path, list[str]]]:
+    """``(mesh, N, percent, job directory, overrides)`` of every job the arguments ask for."""
+    return [(mesh, n, percent, args.out / job_name(mesh, n, percent), job_overrides(mesh, n, percent, args.overrides))
+            for n in args.n for mesh in args.meshes for percent in args.percent]
+
+
+def other_settings(args) -> list[str]:
+    """The finished jobs under ``--out`` made with other overrides than these arguments give them (or recording
+    none), one line each: reusing them would table another setting's numbers as this one's."""
+    found = []
+    for _, _, _, job, overrides in jobs(args):
+        if not (job / collect.METRICS_FILE).is_file():
+            continue
+        try:
+            recorded = json.loads((job / OVERRIDES_FILE).read_text())
+        except (OSError, ValueError):
+            recorded = None
+        if recorded != overrides:
+            differ = "records no overrides" if not isinstance(recorded, list) else \
+                "was made with " + " ".join(sorted(set(recorded) - set(overrides))) + \
+                " (now " + " ".join(sorted(set(overrides) - set(recorded))) + ")"
+            found.append(f"{job.name} {differ}")
+    return found
+
+
 def run_jobs(args) -> None:
     """Run every missing job (a failed one writes ``error.txt`` and the others go on)."""
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
-        for n in args.n:
-            for mesh in args.meshes:
-                for percent in args.percent:
-                    job = args.out / job_name(mesh, n, percent)
-                    if (job / collect.METRICS_FILE).is_file():
-                        continue
-                    cfg = compose(config_name="config", overrides=job_overrides(mesh, n, percent, args.overrides))
-                    print(f"{mesh} {n}^3 {percent:g}% ({cfg.n_dips} dips) -> {job}", flush=True)
-                    sweep_jobs.guarded_job(lambda cfg=cfg, job=job: run(cfg, job), job)
+        for mesh, n, percent, job, overrides in jobs(args):
+            if (job / collect.METRICS_FILE).is_file():
+                continue
+            cfg = compose(config_name="config", overrides=overrides)
+            print(f"{mesh} {n}^3 {percent:g}% ({cfg.n_dips} dips) -> {job}", flush=True)
+            job.mkdir(parents=True, exist_ok=True)
+            (job / OVERRIDES_FILE).write_text(json.dumps(overrides) + "\n")
+            sweep_jobs.guarded_job(lambda cfg=cfg, job=job: run(cfg, job), job)
 
 
 def job_name(mesh: str, n: int, percent: float) -> str:
@@ -142,6 +170,12 @@ def summary(rows: list[dict], groups: list[dict]) -> str:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    other = other_settings(args)
+    if other:
+        print(f"error: {args.out} holds finished jobs of another setting ({'; '.join(other[:3])}"
+              f"{f'; and {len(other) - 3} more' if len(other) > 3 else ''}): use another --out for this one",
+              file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     run_jobs(args)
     rows, runs = nominal_rows(args)

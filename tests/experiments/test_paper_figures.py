@@ -36,6 +36,12 @@ def test_figures_and_table_from_a_tiny_sweep(paper_figures, tmp_path, capsys):
     assert paper_figures.main(args) == 0
     assert (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime == mtime
     assert capsys.readouterr().out.strip().splitlines()[-1] == printed.strip().splitlines()[-1]
+    # another solver into the same --out: the finished minnorm jobs are not tabled as its numbers
+    assert paper_figures.main(["solver=voxel", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {out} holds finished jobs of another setting (bunny_n16_p10 was made with ")
+    assert "solver=minnorm" in err and "(now solver=voxel)" in err and "use another --out" in err
+    assert (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime == mtime
 
 
 def test_summary_shows_undefined_metrics_as_dashes(paper_figures):
