@@ -52,6 +52,11 @@ def markdown_table(groups: Sequence[dict], by: Sequence[str] = GROUP_BY,
     return "\n".join(lines) + "\n"
 
 
+def _setting(value: Any) -> str:
+    """An option's value as set, to 6 significant digits (``0.99999`` is not ``1``, as :func:`format_cell` shows it)."""
+    return f"{value:.6g}" if isinstance(value, float) else format_cell(value)
+
+
 def pooled_note(options: dict[str, list], by: Sequence[str], columns: set[str]) -> str:
     """One line on the summary's rows that pool unlike runs (``""`` when none do).
 
@@ -60,7 +65,7 @@ def pooled_note(options: dict[str, list], by: Sequence[str], columns: set[str]) 
     """
     if not options:
         return ""
-    named = "; ".join(f"{k} ({', '.join(format_cell(v) for v in values[:4])}{', ...' if len(values) > 4 else ''})"
+    named = "; ".join(f"{k} ({', '.join(_setting(v) for v in values[:4])}{', ...' if len(values) > 4 else ''})"
                       for k, values in options.items())
     note = f"rows of this table pool runs that differ in {named}: their mean ± std mixes those settings"
     split = [k for k in options if k in columns]

@@ -204,7 +204,7 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
                     export.save_mesh(placed, out / f"{name}.{fmt}")
             else:
                 why = ("the reconstruction is empty (no voxel of its occupancy reaches its threshold "
-                       f"{recon.threshold:.3g})" if name == "reconstruction" else
+                       f"{recon.threshold:.6g})" if name == "reconstruction" else
                        "the true shape has no surface on this grid (no voxel more than half inside)")
                 log.warning("%s, so %s was not written", why,
                             ", ".join(f"{name}.{fmt}" for fmt in cfg.output.mesh_formats))

@@ -42,3 +42,12 @@ def test_csv_and_markdown(sweep, tmp_path):
     assert f"({3} of {len(runs)})" in listing and "ValueError: n_dips too large" in listing
     assert "unfinished" in listing and "solver=lsmr n_dips=64" in listing
     assert tables.markdown_problems(runs[:2]) == ""
+
+
+def test_the_pooled_note_names_the_settings_as_set():
+    """The summary table's cells round to 3 digits; the settings a row pools are named to 6, so 0.99999 is not
+    shown as 1 (not even a legal threshold)."""
+    from dipnet.experiments.tables import pooled_note
+
+    note = pooled_note({"solver.threshold": [0.5, 0.99999], "resolution": [12, 24]}, ("solver",), {"resolution"})
+    assert "solver.threshold (0.5, 0.99999)" in note and "resolution (12, 24)" in note
