@@ -172,8 +172,8 @@ class SelfCalibrator:
     :func:`self_calibrate`, applied by :meth:`run` to a source's recording.
 
     Args:
-        params, iterations, dip_offset_sigma_mm, shape, gain_solver, max_section_change, section_min_resolution,
-            section_min_dips: as for :func:`self_calibrate`.
+        params, iterations, dip_offset_sigma_mm, shape, gain_solver: as for :func:`self_calibrate`.
+        max_section_change, section_min_resolution, section_min_dips: as for :func:`self_calibrate`.
         tank: the tank's identity for the written calibration file (``None``: the scan's).
     """
 
