@@ -253,7 +253,8 @@ def aggregate(rows: Sequence[dict], by: Sequence[str] = GROUP_BY,
               metrics: Sequence[str] = METRICS) -> list[dict[str, Any]]:
     """Mean, standard deviation (``ddof=1``; 0 for one run) and count per group of ``ok`` rows.
 
-    Returns one dict per group, sorted by ``by``: the ``by`` keys, ``runs`` (number of ok jobs)
+    Returns one dict per group, sorted by ``by``: the ``by`` keys, ``runs`` (number of ok jobs),
+    ``consistent`` (how many of them passed their consistency check, when the rows record it)
     and ``<metric>_mean``, ``<metric>_std`` for each metric present in the group (non-finite
     values are left out of that metric's statistics; a metric absent from every row of a group
     is absent from the group's dict).
@@ -267,6 +268,9 @@ def aggregate(rows: Sequence[dict], by: Sequence[str] = GROUP_BY,
         members = groups[key]
         entry: dict[str, Any] = dict(zip(by, key))
         entry["runs"] = len(members)
+        verdicts = [r.get("consistency") for r in members if r.get("consistency") is not None]
+        if verdicts:  # how many runs explain their own data (metrics.json's consistency verdict)
+            entry["consistent"] = sum(v == "consistent" for v in verdicts)
         for name in metrics:
             values = np.array([float(r[name]) for r in members
                                if isinstance(r.get(name), (int, float)) and not isinstance(r.get(name), bool)])

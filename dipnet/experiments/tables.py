@@ -40,13 +40,17 @@ def markdown_table(groups: Sequence[dict], by: Sequence[str] = GROUP_BY,
                    metrics: Sequence[str] = METRICS) -> str:
     """A Markdown table of :func:`aggregate`'s output: one row per group, ``mean ± std`` cells.
 
-    Metrics absent from every group are left out; ``snr_db = none`` means noise-free.
+    Metrics absent from every group are left out; ``snr_db = none`` means noise-free; ``consistent``: how many
+    of a row's runs passed their consistency check (when the runs record it).
     """
     present = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
-    header = [LABELS.get(k, k) for k in by] + ["runs"] + [LABELS.get(m, m) for m in present]
+    verdicts = any("consistent" in g for g in groups)
+    header = [LABELS.get(k, k) for k in by] + ["runs"] + (["consistent"] if verdicts else []) + \
+        [LABELS.get(m, m) for m in present]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for g in groups:
         cells = [format_cell(g.get(k)) for k in by] + [str(g["runs"])]
+        cells += [f"{g['consistent']} of {g['runs']}" if "consistent" in g else ""] if verdicts else []
         cells += [f"{_fmt(g[f'{m}_mean'])} ± {_fmt(g[f'{m}_std'])}" if f"{m}_mean" in g else "" for m in present]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

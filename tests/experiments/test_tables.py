@@ -51,3 +51,14 @@ def test_the_pooled_note_names_the_settings_as_set():
 
     note = pooled_note({"solver.threshold": [0.5, 0.99999], "resolution": [12, 24]}, ("solver",), {"resolution"})
     assert "solver.threshold (0.5, 0.99999)" in note and "resolution (12, 24)" in note
+
+
+def test_the_table_counts_the_runs_that_explain_their_data():
+    """A sweep of inconsistent runs was tabled by its IoU and Chamfer alone; now a column says how many of a row's
+    runs passed their consistency check (absent when no run records one)."""
+    rows = [{"status": "ok", "solver": "voxel", "n_dips": 20, "snr_db": None, "iou": 0.9, "consistency": verdict}
+            for verdict in ("consistent", "inconsistent", "inconsistent")]
+    table = tables.markdown_table(collect.aggregate(rows), metrics=("iou",))
+    assert "| runs | consistent |" in table and "| 3 | 1 of 3 |" in table
+    plain = [{k: v for k, v in row.items() if k != "consistency"} for row in rows]
+    assert "consistent" not in tables.markdown_table(collect.aggregate(plain), metrics=("iou",))
