@@ -60,9 +60,11 @@ def main(cfg: DictConfig) -> None:
             if journal is not None:
                 journal.stopped(str(exc))
             raise SystemExit(3) from None
-        except KeyboardInterrupt:  # outside the rig runner (which stops safely itself): an adaptive scan planning
-            message = (f"scan stopped between batches of dips (while planning the next): no dip was in progress, "
-                       f"every complete one is kept in {path}; run the same command again to resume")
+        except KeyboardInterrupt:  # outside the rig runner, which stops a dip safely itself: before the first dip,
+            # or while an adaptive scan plans its next batch
+            kept = (f"every complete dip is kept in {path}; run the same command again to resume" if path.is_file()
+                    else "nothing was recorded yet")
+            message = f"scan stopped outside a dip (no dip was in progress): {kept}"
             report(f"interrupted: {message}")
             if journal is not None:
                 journal.stopped(message)

@@ -89,13 +89,15 @@ def _direction(dip_or_angles) -> list[float]:
 
 #: The log ``scripts/scan.py`` writes beside its scan (Hydra's job log in the run directory).
 SCAN_LOG = "scan.log"
-_LOGGED_STOP = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+)\].*?error: (scan stopped at .*)$")
+_LOGGED_END = re.compile(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+)\].*? - (?:(?:error|interrupted): (scan stopped .*)|"
+                         r"(scan complete: .*))$")
 
 
-def logged_stop(tail: ScanTail) -> str | None:
-    """The rig runner's safe-stop message from :data:`SCAN_LOG` beside the scan, when logged after the scan's
-    last session began (a scan run without ``monitor=true`` keeps no journal: its log holds the message), else
-    ``None``."""
+def logged_end(tail: ScanTail) -> tuple[str, str] | None:
+    """``("stopped", message)`` or ``("finished", message)`` from the last end :data:`SCAN_LOG` beside the scan
+    records (a safe stop, a Ctrl-C outside a dip, or ``scan complete``: an adaptive scan may end before its budget),
+    when logged after the scan's last session began; else ``None``. A scan run without ``monitor=true`` keeps no
+    journal: its log holds these."""
     try:
         lines = (tail.path.parent / SCAN_LOG).read_text(errors="replace").splitlines()
     except OSError:
@@ -107,10 +109,12 @@ def logged_stop(tail: ScanTail) -> str | None:
         except ValueError:
             return None
     for line in reversed(lines):
-        found = _LOGGED_STOP.match(line)
+        found = _LOGGED_END.match(line)
         if found:
             logged = datetime.strptime(found.group(1), "%Y-%m-%d %H:%M:%S,%f").astimezone().timestamp()
-            return found.group(2) if started is None or logged >= started - 1.0 else None
+            if started is not None and logged < started - 1.0:
+                return None
+            return ("stopped", found.group(2)) if found.group(2) else ("finished", f"finished: {found.group(3)}")
     return None
 
 
@@ -126,9 +130,12 @@ def mode_of(tail: ScanTail, journal: JournalTail, replay: bool, alive: bool) -> 
         return "live", f"live: the scan is running ({total} orientations done)"
     if stops and (not starts or stops[-1]["time"] >= starts[-1]["time"]):
         return "stopped", stops[-1]["message"]
-    logged = None if planned and done >= planned else logged_stop(tail)
+    if tail.error is not None:
+        return "stopped", (f"the scan file cannot be read past {tail.error}: a damaged line, which resuming does not "
+                           "mend (the reconstruction refuses the file too); repair or cut the file at that line")
+    logged = None if planned and done >= planned else logged_end(tail)
     if logged:
-        return "stopped", logged
+        return logged
     if planned and done >= planned or (not planned and done and not tail.truncated
                                              and all(d.complete for d in tail.dips)):
         return "finished", f"finished: {total} orientations recorded"

@@ -266,4 +266,4 @@ def test_ctrl_c_between_an_adaptive_scans_batches_prints_one_line_and_how_to_res
                            *QUICK_SCAN], capture_output=True, text=True, timeout=300)
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 130 and len(lines) == 1, proc.stderr[-3000:]
-    assert lines[0].startswith("interrupted: scan stopped between batches of dips") and "run the same command" in lines[0]
+    assert lines[0] == "interrupted: scan stopped outside a dip (no dip was in progress): nothing was recorded yet"

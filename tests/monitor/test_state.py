@@ -141,6 +141,27 @@ def test_an_adaptive_scan_counts_its_budget_not_its_first_batch(tmp_path):
     tail = ScanTail(path)
     tail.poll()
     assert finish_estimate(tail, now=100.0)["planned"] == 12
+    # its uncertainty stop after 4 dips: scan.py logs "scan complete" (it was called dead); a Ctrl-C while it
+    # planned the next batch logs one line (it was called dead too)
+    log = tmp_path / "scan.log"
+    log.write_text("[2026-11-27 19:30:00,000][dipnet][INFO] - scan complete: 4 orientations, 20 readings in x\n")
+    state = _state(path)
+    assert state["mode"] == "finished" and state["message"] == "finished: scan complete: 4 orientations, 20 readings in x"
+    stop = "scan stopped outside a dip (no dip was in progress): every complete dip is kept in x; run the same command"
+    log.write_text(f"[2026-11-27 19:30:00,000][dipnet][ERROR] - interrupted: {stop}\n")
+    assert _state(path)["message"] == stop
+
+
+def test_a_damaged_line_is_named_not_taken_for_a_crash(tmp_path):
+    """A finished scan with one damaged line in the middle was shown as died ("check the rig ... resume"); resuming
+    cannot mend the file."""
+    path = synthetic_scan(tmp_path / "rawscan.jsonl", [RISING, RISING, RISING], complete=3)
+    lines = path.read_text().splitlines(keepends=True)
+    lines.insert(len(lines) // 2, "garbage that is not JSON\n")
+    path.write_text("".join(lines))
+    state = _state(path)
+    assert state["mode"] == "stopped" and state["message"].startswith("the scan file cannot be read past ")
+    assert "a damaged line, which resuming does not mend" in state["message"] and "died" not in state["message"]
 
 
 def test_a_replay_says_replay(recorded_scan):
