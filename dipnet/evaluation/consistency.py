@@ -184,11 +184,18 @@ def profile_floor(measurement: DipMeasurement, measured_volume: float) -> tuple[
     On the 16 bundled meshes scaled to fill the working ball (24 slabs, 30 dips, 30 dB) the share is
     at most 0.8 %; a drift of 0.0005 mm/s gives 4-61 %. NaNs with fewer than 6 slabs per dip.
     """
-    p = measurement.profiles.double().numpy()
-    if p.shape[1] < 6:
+    floors = dip_floors(measurement)
+    if floors is None:
         return float("nan"), float("nan")
-    floor = float(np.median(np.sort(p[:, 1:-1], axis=1)[:, 1]))
-    return floor, floor * p.shape[1] / measured_volume
+    floor = float(np.median(floors))
+    return floor, floor * measurement.n_slabs / measured_volume
+
+
+def dip_floors(measurement: DipMeasurement) -> np.ndarray | None:
+    """Each dip's second-smallest slab volume but its first and last ``(K,)`` (mm^3; mm^2 in 2D), or ``None``
+    with fewer than 6 slabs per dip (see :func:`profile_floor`)."""
+    p = measurement.profiles.double().numpy()
+    return None if p.shape[1] < 6 else np.sort(p[:, 1:-1], axis=1)[:, 1]
 
 
 def floor_limit(measurement: DipMeasurement, slab_sigma: float) -> float:
@@ -199,10 +206,9 @@ def floor_limit(measurement: DipMeasurement, slab_sigma: float) -> float:
     sigmas over ``sqrt(K)``). A slab sigma estimated on a coarse grid also takes the object's own
     curvature: with it alone, a drift that carried 10 % of the volume at 16^3-24^3 stayed under the limit and
     the run passed as consistent. NaN with fewer than 6 slabs per dip."""
-    p = measurement.profiles.double().numpy()
-    if p.shape[1] < 6:
+    floors = dip_floors(measurement)
+    if floors is None:
         return float("nan")
-    floors = np.sort(p[:, 1:-1], axis=1)[:, 1]
     median = float(np.median(floors))
     spread = 1.4826 * float(np.median(np.abs(floors - median)))
     if spread <= FLOOR_SPREAD * abs(median):
