@@ -52,6 +52,9 @@ def find_scan(run: str | Path, wait: bool = False) -> Path:
         return path
     if not run.exists():
         raise MonitorError(f"{run} does not exist: give the run directory of a scan (scans/<name>) or its rawscan.jsonl")
+    if run.is_file():
+        raise MonitorError(f"{run} is a file, not a scan: give the run directory of a scan (scans/<name>) or its "
+                           "rawscan.jsonl; a recording (.csv or .jsonl) plays with --replay FILE")
     raise MonitorError(f"{run} holds no scan: expected {path} (written by scripts/scan.py); to watch a recording "
                        "use --replay FILE")
 

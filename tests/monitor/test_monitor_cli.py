@@ -40,6 +40,15 @@ def test_a_run_directory_without_a_scan_is_one_message(tmp_path, capsys):
     assert "give either a run directory (RUN) or --replay FILE" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("name", ["measurement.npz", "recording.csv"])
+def test_a_file_that_is_not_a_scan_is_named_as_such(tmp_path, name):
+    path = tmp_path / name
+    path.write_text("x")
+    with pytest.raises(MonitorError, match=f"{name} is a file, not a scan: .* plays with --replay FILE") as info:
+        find_scan(path)
+    assert "rawscan.jsonl (written" not in str(info.value)  # not the wrong path foo.npz/rawscan.jsonl
+
+
 @pytest.mark.parametrize("port", [99999, 0, -1])
 def test_a_port_out_of_range_is_one_message(tmp_path, capsys, port):
     with pytest.raises(MonitorError, match=f"the monitor's port must be 1-65535, got {port}"):
