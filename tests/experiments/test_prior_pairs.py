@@ -14,7 +14,7 @@ from dipnet.solvers.denoiser import PriorWeightsError
 SMALL = {"n": 16, "dips": 8, "solver_options": {"iterations": 10}, "progress": False}
 
 
-def test_one_pair_per_seed_and_noise_level_cached_and_bounded(tmp_path):
+def test_one_pair_per_seed_and_noise_level_cached_and_bounded(tmp_path, shared_pairs):
     x, y = build_pairs([5000, 5001], cache=tmp_path, noise_levels=(None, 30.0), **SMALL)
     assert x.shape == y.shape == (4, 16, 16, 16) and len(list(tmp_path.glob("pair_*.npz"))) == 4
     assert 0 <= x.min() and x.max() <= 1 and 0 <= y.min() and y.max() <= 1
@@ -23,7 +23,7 @@ def test_one_pair_per_seed_and_noise_level_cached_and_bounded(tmp_path):
     assert np.array_equal(x, x2)
 
 
-def test_a_code_change_makes_the_pairs_afresh(tmp_path, monkeypatch):
+def test_a_code_change_makes_the_pairs_afresh(tmp_path, shared_pairs, monkeypatch):
     import dipnet.experiments.prior_pairs as prior_pairs
 
     build_pairs([5000], cache=tmp_path, noise_levels=(None,), **SMALL)
@@ -32,7 +32,7 @@ def test_a_code_change_makes_the_pairs_afresh(tmp_path, monkeypatch):
     assert len(list(tmp_path.glob("pair_*.npz"))) == 2  # the old pair is not handed back
 
 
-def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path):
+def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path, shared_pairs):
     _, y = build_pairs([5002], cache=tmp_path, noise_levels=(None,), **SMALL)
     grid = Grid(16, 3)
     shape = generated_shape(5002, radius=0.9 * grid.radius)
@@ -41,7 +41,7 @@ def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path):
     assert ((y > 0) & (y < 1)).any()  # soft at the surface, not a binary mask
 
 
-def test_a_named_family_makes_that_familys_solid_and_its_own_pairs(tmp_path):
+def test_a_named_family_makes_that_familys_solid_and_its_own_pairs(tmp_path, shared_pairs):
     """``family`` replaces the family the seed draws; the seed's own pair keeps its cache file."""
     _, own = build_pairs([5002], cache=tmp_path, noise_levels=(None,), **SMALL)
     _, organic = build_pairs([5002], cache=tmp_path, noise_levels=(None,), family="organic", **SMALL)
@@ -72,7 +72,7 @@ def test_a_rotated_mesh_is_turned_by_its_seed_and_scaled_to_the_radius(box_file)
     assert not np.allclose(shapes[0].mesh.vertices, shapes[2].mesh.vertices)
 
 
-def test_mesh_pairs_have_its_volume_and_their_own_cache_files_keyed_by_its_bytes(tmp_path, box_file):
+def test_mesh_pairs_have_its_volume_and_their_own_cache_files_keyed_by_its_bytes(tmp_path, shared_pairs, box_file):
     """A mesh pair's target is the turned mesh's partial volume; its cache file is named after the
     mesh and keyed by the file's bytes (not its path), beside the generated seeds' own files."""
     cache = tmp_path / "cache"
@@ -96,7 +96,7 @@ def test_mesh_pairs_have_its_volume_and_their_own_cache_files_keyed_by_its_bytes
         build_pairs([0], cache=cache, noise_levels=(None,), mesh=box_file, family="organic", **SMALL)
 
 
-def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path):
+def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path, shared_pairs):
     """With ``refine`` each input is the first-stage one after a solve warm-started from it (so closer
     to its data), the truth is the same, and the refined inputs are cached by their options."""
     refine = {"iterations": 8, "coarse_to_fine": False, "lr": 0.05, "priors": {"tv": {"weight": 1e-3}}}
@@ -111,7 +111,7 @@ def test_second_stage_inputs_refine_the_first_stage_ones_and_are_cached(tmp_path
     assert len(list(tmp_path.glob("stage2_*.npz"))) == 2  # other options: made afresh
 
 
-def test_new_first_stage_weights_under_the_same_name_make_new_second_stage_inputs(tmp_path, monkeypatch):
+def test_new_first_stage_weights_under_the_same_name_make_new_second_stage_inputs(tmp_path, shared_pairs, monkeypatch):
     """The second stage's round runs the learned prior, so its cache key holds the weights' bytes:
     a retrained first stage written over the same file is not handed the old round's inputs."""
     import dipnet.experiments.prior_pairs as prior_pairs
@@ -136,7 +136,7 @@ def test_new_first_stage_weights_under_the_same_name_make_new_second_stage_input
                     **SMALL)
 
 
-def test_noisy_options_change_only_the_noisy_pairs(tmp_path):
+def test_noisy_options_change_only_the_noisy_pairs(tmp_path, shared_pairs):
     """``noisy_options`` reach the solver of the noisy pairs only: the noise-free pair is reused (its
     digest unchanged) and the noisy one is the solve with those options."""
     plain = build_pairs([5000], cache=tmp_path, noise_levels=(None, 30.0), **SMALL)

@@ -24,7 +24,7 @@ def test_batches_flip_and_permute_input_and_target_alike():
     assert x.shape == (3, 1, 8, 8, 8) and torch.equal(y, 2 * x)
 
 
-def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path):
+def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path, shared_pairs):
     cache = tmp_path / "pairs"
     meta = train(TINY, tmp_path / "a.pt", cache, progress=False)
     assert meta["steps_done"] == 6 and meta["config"]["seed"] == 0
@@ -48,7 +48,7 @@ def test_a_checkpoint_older_than_a_config_field_resumes_with_its_default():
     assert not same_run(saved | {"seed": 1}, TINY)
 
 
-def test_the_noise_model_of_the_noisy_pairs_is_part_of_the_config(tmp_path):
+def test_the_noise_model_of_the_noisy_pairs_is_part_of_the_config(tmp_path, shared_pairs):
     """``noise_model="correlated"`` makes the noisy pairs afresh with it and reuses the noise-free ones."""
     cache = tmp_path / "pairs"
     train(dataclasses.replace(TINY, steps=1), tmp_path / "a.pt", cache, progress=False)
@@ -59,7 +59,7 @@ def test_the_noise_model_of_the_noisy_pairs_is_part_of_the_config(tmp_path):
     assert args.noise_model == "correlated"
 
 
-def test_a_second_stage_starts_from_the_given_weights_on_refined_inputs(tmp_path):
+def test_a_second_stage_starts_from_the_given_weights_on_refined_inputs(tmp_path, shared_pairs):
     """``init_weights`` + ``refine``: the run continues the given network (at a vanishing learning rate
     it stays the same) on second-stage inputs, and its meta says so; a network of another width is refused."""
     cache = tmp_path / "pairs"
@@ -117,7 +117,7 @@ def test_a_new_cascade_refines_with_its_own_first_stage_and_noise_model():
     assert "noise_model" not in script.learned_round()  # the shipped round: independent slabs
 
 
-def test_family_seeds_add_training_shapes_of_a_named_family(tmp_path):
+def test_family_seeds_add_training_shapes_of_a_named_family(tmp_path, shared_pairs):
     """``--family-seeds organic A B`` trains on the seeds' own pairs plus organic ones, and says so."""
     script = load_script("train_prior")
     config = script.config_of(script.parse_args(["--family-seeds", "organic", "5003", "5004"]))
@@ -131,7 +131,7 @@ def test_family_seeds_add_training_shapes_of_a_named_family(tmp_path):
     assert meta["trained_on"].endswith("organic seeds 5003..5003")
 
 
-def test_meshes_add_training_shapes_under_random_rotations(tmp_path):
+def test_meshes_add_training_shapes_under_random_rotations(tmp_path, shared_pairs):
     """``--meshes FILE --mesh-seeds A B`` trains on the seeds' pairs plus the mesh's turned copies, names
     the file and its digest in ``trained_on``, and refuses a missing or repeated file or an empty range."""
     import trimesh
@@ -186,7 +186,7 @@ def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, arg
     assert not (tmp_path / "w.pt").exists() and not (tmp_path / "pairs").exists()
 
 
-def test_a_diverging_training_writes_nothing_and_says_to_lower_the_learning_rate(tmp_path, capsys):
+def test_a_diverging_training_writes_nothing_and_says_to_lower_the_learning_rate(tmp_path, shared_pairs, capsys):
     """``--lr 1e12``: the validation loss becomes 2.6e+23 (a NaN or infinite one with more channels); one
     ``error:`` line naming the step and ``--lr``, exit 2, and neither weights nor a checkpoint of the diverged
     network: an earlier run's files stay as they were."""
