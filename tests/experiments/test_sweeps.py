@@ -28,28 +28,31 @@ def reconstruct(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 def check_sweep(sweep: Path, n_dips: list[int]) -> list[collect.Run]:
     runs = collect.collect_runs(sweep)
     assert [r.status for r in runs] == ["ok"] * len(n_dips), [r.error for r in runs]
-    for run, n in zip(runs, n_dips):
-        assert run.config["n_dips"] == n and f"n_dips={n}" in run.overrides
-        assert run.metrics["n_dips"] == n and 0.5 < run.metrics["iou"] <= 1.0
-        assert (run.path / "reconstruction.npz").is_file() and (run.path / "measurement.npz").is_file()
+    check_runs(runs, n_dips)
     return runs
 
 
-def test_basic_sweeper_two_jobs(tmp_path):
-    sweep = tmp_path / "sweep"
-    proc = reconstruct("-m", *TINY, "n_dips=6,12", "hydra/callbacks=job_log", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
-    check_sweep(sweep, [6, 12])
-    log = proc.stdout + proc.stderr
-    assert "job 0 done" in log and "job 1 done" in log and "sweep finished: 2 of 2 jobs ok" in log
+def check_runs(runs: list[collect.Run], n_dips: list[int]) -> None:
+    """Each finished run has its ``n_dips``, a fair IoU and its reconstruction and measurement files."""
+    for run, n in zip(runs, n_dips, strict=True):
+        assert run.config["n_dips"] == n and f"n_dips={n}" in run.overrides
+        assert run.metrics["n_dips"] == n and 0.5 < run.metrics["iou"] <= 1.0
+        assert (run.path / "reconstruction.npz").is_file() and (run.path / "measurement.npz").is_file()
 
 
-def test_a_failing_job_does_not_stop_the_sweep(tmp_path):
+def test_basic_sweeper_runs_every_job_and_a_failing_one_does_not_stop_the_sweep(tmp_path):
+    """One sweep (one subprocess, ~6 s of importing torch) of a failing job then two good ones: the
+    basic sweeper runs each, the job log says which finished, and the failure stops nothing."""
     sweep = tmp_path / "sweep"
-    proc = reconstruct("-m", *TINY, "n_dips=0,6", "hydra/callbacks=job_log", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    proc = reconstruct("-m", *TINY, "n_dips=0,6,12", "hydra/callbacks=job_log", f"hydra.sweep.dir={sweep}",
+                       cwd=tmp_path)
     runs = collect.collect_runs(sweep)
-    assert [r.status for r in runs] == ["failed", "ok"]
+    log = proc.stdout + proc.stderr
+    assert [r.status for r in runs] == ["failed", "ok", "ok"], [r.error for r in runs]
     assert "n_dips" in runs[0].error and (runs[0].path / "error.txt").is_file()
-    assert "sweep finished: 1 of 2 jobs ok" in proc.stdout + proc.stderr
+    check_runs(runs[1:], [6, 12])  # the jobs after the failed one ran to the end
+    assert "job 0 failed" in log and "job 1 done" in log and "job 2 done" in log, log[-3000:]
+    assert "sweep finished: 2 of 3 jobs ok" in log, log[-3000:]
 
 
 @pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None,
