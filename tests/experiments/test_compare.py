@@ -47,7 +47,8 @@ def _compare_cli(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=120)
 
 
-def test_compare_cli_errors_on_empty_and_unfinished_dirs(tmp_path):
+def test_compare_cli_errors_on_an_empty_dir(tmp_path):
+    """The real entry point (``sys.exit(main())``): exit status 2 and one ``error:`` line."""
     empty = tmp_path / "empty"
     empty.mkdir()
     proc = _compare_cli(str(empty))
@@ -56,15 +57,29 @@ def test_compare_cli_errors_on_empty_and_unfinished_dirs(tmp_path):
                                                 ".hydra/config.yaml, metrics.json or error.txt below it); "
                                                 "pass the directory of a sweep (`-m`) or of a run"]
 
+
+def quiet_main(argv: list[str], capsys, caplog, recwarn) -> tuple[int, str, str]:
+    """``compare.main(argv)`` in-process (the CLI's exit code and streams without a subprocess's ~6 s of
+    importing torch): ``(return code, stdout, stderr)``, after checking that it logged no warning and
+    raised no Python warning (but a deprecation one), which a subprocess would have printed to its stderr too."""
+    with caplog.at_level("WARNING"):
+        code = _load_compare().main(argv)
+    out, err = capsys.readouterr()
+    shown = [w for w in recwarn.list if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning))]
+    assert not caplog.records and not shown, ([r.getMessage() for r in caplog.records], [str(w.message) for w in shown])
+    return code, out, err
+
+
+def test_compare_errors_on_an_unfinished_dir(tmp_path, capsys, caplog, recwarn):
     partial = tmp_path / "partial"
     partial.mkdir()
     (partial / "multirun.yaml").write_text("hydra: {}\n")
     write_job(partial / "0", solver="lsmr", n_dips=4, snr_db=None, seed=0, metrics=None)
     (partial / "1").mkdir()
-    proc = _compare_cli(str(partial))
-    assert proc.returncode == 1
-    assert "0 of 2 jobs finished" in proc.stdout and "no job in" in proc.stderr
-    assert proc.stderr.count("\n") == 1                               # one line
+    code, out, err = quiet_main([str(partial)], capsys, caplog, recwarn)
+    assert code == 1
+    assert "0 of 2 jobs finished" in out and "no job in" in err
+    assert err.count("\n") == 1                                      # one line
 
 
 def test_a_sweep_of_recordings_is_compared_without_a_truth(tmp_path, capsys):
@@ -85,17 +100,17 @@ def test_a_sweep_of_recordings_is_compared_without_a_truth(tmp_path, capsys):
         assert {row["shape"] for row in csv.DictReader(f)} == {"torus"}
 
 
-def test_a_sweep_with_nothing_to_compare_is_one_error_line(tmp_path):
+def test_a_sweep_with_nothing_to_compare_is_one_error_line(tmp_path, capsys, caplog, recwarn):
     sweep = tmp_path / "sw"
     sweep.mkdir()
     (sweep / "multirun.yaml").write_text("hydra: {}\n")
     job = write_job(sweep / "0", solver="lsqr", n_dips=8, snr_db=None, seed=0, recording="/data/torus.npz",
                     metrics={})
     (job / "metrics.json").write_text('{"solver": "lsqr"}')
-    proc = _compare_cli(str(sweep))
-    assert proc.returncode == 1
-    assert proc.stderr.startswith("error: the finished jobs record none of profile_residual, volume_ratio, seconds")
-    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+    code, _, err = quiet_main([str(sweep)], capsys, caplog, recwarn)  # a traceback would fail the test here
+    assert code == 1
+    assert err.startswith("error: the finished jobs record none of profile_residual, volume_ratio, seconds")
+    assert err.count("\n") == 1 and "Traceback" not in err
 
 
 @pytest.mark.parametrize("differ", ["resolution", "seed"])
