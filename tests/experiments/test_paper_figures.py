@@ -22,26 +22,28 @@ def test_job_overrides_take_the_percent_of_n_squared(paper_figures):
 
 def test_figures_and_table_from_a_tiny_sweep(paper_figures, tmp_path, capsys):
     out = tmp_path / "figs"
-    args = ["--n", "16", "--meshes", "bunny", "spot", "--percent", "10", "40", "--out", str(out)]
+    # 5 and 20 % of 16^2 (13 and 52 dips a mesh; 10 and 40 % before, twice the simulated dips): measured
+    # Chamfer 0.031 and 0.013 (10 and 40 %: 0.018 and 0.012), so the budgets stay well apart
+    args = ["--n", "16", "--meshes", "bunny", "spot", "--percent", "5", "20", "--out", str(out)]
     assert paper_figures.main(args) == 0
     printed = capsys.readouterr().out
     for name in ("fig13a.png", "fig11_n16.png", "summary.md", "runs.csv"):
         assert (out / name).stat().st_size > 0, name
     result = dict(item.split("=") for item in printed.strip().splitlines()[-1].split()[1:])
-    assert set(result) == {"chamfer_10", "hausdorff_10", "chamfer_40", "hausdorff_40"}
+    assert set(result) == {"chamfer_5", "hausdorff_5", "chamfer_20", "hausdorff_20"}
     # more dips, smaller mean surface error (averaged over the two meshes)
-    assert 0 < float(result["chamfer_40"]) < float(result["chamfer_10"]) < 0.2
+    assert 0 < float(result["chamfer_20"]) < float(result["chamfer_5"]) < 0.2
     # finished jobs are reused: a second call runs nothing and prints the same numbers
-    mtime = (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime
+    mtime = (out / "bunny_n16_p5" / "metrics.json").stat().st_mtime
     assert paper_figures.main(args) == 0
-    assert (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime == mtime
+    assert (out / "bunny_n16_p5" / "metrics.json").stat().st_mtime == mtime
     assert capsys.readouterr().out.strip().splitlines()[-1] == printed.strip().splitlines()[-1]
     # another solver into the same --out: the finished minnorm jobs are not tabled as its numbers
     assert paper_figures.main(["solver=voxel", *args]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"error: {out} holds finished jobs of another setting (bunny_n16_p10 was made with ")
+    assert err.startswith(f"error: {out} holds finished jobs of another setting (bunny_n16_p5 was made with ")
     assert "solver=minnorm" in err and "(now solver=voxel)" in err and "use another --out" in err
-    assert (out / "bunny_n16_p10" / "metrics.json").stat().st_mtime == mtime
+    assert (out / "bunny_n16_p5" / "metrics.json").stat().st_mtime == mtime
 
 
 def test_summary_shows_undefined_metrics_as_dashes(paper_figures):
