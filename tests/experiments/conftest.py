@@ -18,7 +18,26 @@ def _pair_store(tmp_path_factory) -> tuple[Path, dict]:
 
 
 @pytest.fixture
-def shared_pairs(_pair_store, monkeypatch) -> None:
+def generated(_pair_store):
+    """``generated_shape(seed, family=None, radius=45.0)`` made once per session for each arguments (a
+    128^3 marching-cubes mesh, ~3 s): the very objects :func:`shared_pairs` hands the training pairs."""
+    from dipnet.shapes.procedural import generated_shape
+
+    shapes = _pair_store[1]
+
+    def shape(seed: int, family: str | None = None, radius: float = 45.0, **more):
+        if more:
+            return generated_shape(seed, family=family, radius=radius, **more)
+        key = (int(seed), family, float(radius))
+        if key not in shapes:
+            shapes[key] = generated_shape(seed, family=family, radius=radius)
+        return shapes[key]
+
+    return shape
+
+
+@pytest.fixture
+def shared_pairs(_pair_store, generated, monkeypatch) -> None:
     """Make each first-stage training pair and each generated shape once per session, not once per test.
 
     A pair's cache file name holds the digest of everything that makes it (seed, noise level, grid, dips,
@@ -35,8 +54,8 @@ def shared_pairs(_pair_store, monkeypatch) -> None:
 
     Not for ``workers > 1``: the spawned workers pickle ``_make_and_save`` by name.
     """
-    store, shapes = _pair_store
-    make_and_save, generated_shape = prior_pairs._make_and_save, prior_pairs.generated_shape
+    store = _pair_store[0]
+    make_and_save = prior_pairs._make_and_save
 
     def make_or_copy(file: Path, seed: int, snr_db, options: dict, refine=None, first=None) -> None:
         if refine is not None:
@@ -48,13 +67,5 @@ def shared_pairs(_pair_store, monkeypatch) -> None:
         Path(file).parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(stored, file)
 
-    def shared_shape(seed: int, family: str | None = None, radius: float = 45.0, **more):
-        if more:
-            return generated_shape(seed, family=family, radius=radius, **more)
-        key = (int(seed), family, float(radius))
-        if key not in shapes:
-            shapes[key] = generated_shape(seed, family=family, radius=radius)
-        return shapes[key]
-
     monkeypatch.setattr(prior_pairs, "_make_and_save", make_or_copy)
-    monkeypatch.setattr(prior_pairs, "generated_shape", shared_shape)
+    monkeypatch.setattr(prior_pairs, "generated_shape", generated)

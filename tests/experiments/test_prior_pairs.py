@@ -8,7 +8,7 @@ import trimesh
 
 from dipnet.core.grid import Grid
 from dipnet.experiments.prior_pairs import build_pairs, make_pair, refine_weights_digest, rotated_mesh
-from dipnet.shapes.procedural import generated_shape
+from dipnet.shapes.procedural import family_of
 from dipnet.solvers.denoiser import PriorWeightsError
 
 SMALL = {"n": 16, "dips": 8, "solver_options": {"iterations": 10}, "progress": False}
@@ -32,22 +32,22 @@ def test_a_code_change_makes_the_pairs_afresh(tmp_path, shared_pairs, monkeypatc
     assert len(list(tmp_path.glob("pair_*.npz"))) == 2  # the old pair is not handed back
 
 
-def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path, shared_pairs):
+def test_target_is_the_partial_volume_of_the_generated_solid(tmp_path, shared_pairs, generated):
     _, y = build_pairs([5002], cache=tmp_path, noise_levels=(None,), **SMALL)
     grid = Grid(16, 3)
-    shape = generated_shape(5002, radius=0.9 * grid.radius)
+    shape = generated(5002, radius=0.9 * grid.radius)  # generated_shape, made once per session
     volume = float(y.sum()) * grid.voxel_volume
     assert abs(volume / abs(shape.mesh.volume) - 1) < 0.05
     assert ((y > 0) & (y < 1)).any()  # soft at the surface, not a binary mask
 
 
-def test_a_named_family_makes_that_familys_solid_and_its_own_pairs(tmp_path, shared_pairs):
+def test_a_named_family_makes_that_familys_solid_and_its_own_pairs(tmp_path, shared_pairs, generated):
     """``family`` replaces the family the seed draws; the seed's own pair keeps its cache file."""
     _, own = build_pairs([5002], cache=tmp_path, noise_levels=(None,), **SMALL)
     _, organic = build_pairs([5002], cache=tmp_path, noise_levels=(None,), family="organic", **SMALL)
     grid = Grid(16, 3)
-    shape = generated_shape(5002, family="organic", radius=0.9 * grid.radius)
-    assert generated_shape(5002).solid.family != "organic" and not np.array_equal(own, organic)
+    shape = generated(5002, family="organic", radius=0.9 * grid.radius)  # generated_shape, made once per session
+    assert family_of(5002) != "organic" and not np.array_equal(own, organic)  # the family the seed draws
     assert abs(float(organic.sum()) * grid.voxel_volume / abs(shape.mesh.volume) - 1) < 0.05
     assert len(list(tmp_path.glob("pair_*.npz"))) == 2
 
