@@ -9,11 +9,18 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from dipnet.preprocessing.datasets import MESHES_DIR
 
 # helper modules shared by several test folders (sweep_fixtures) live here, beside this file
 sys.path.insert(0, str(Path(__file__).parent))
+
+# under pytest-xdist (``-n auto``: one worker per core) each worker computes on one thread, and so do the
+# scripts the tests start, unless OMP_NUM_THREADS says otherwise
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
