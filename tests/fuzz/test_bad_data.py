@@ -28,6 +28,7 @@ from dipnet.shapes import ShapeError, builtin_shape, load_mesh
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.preprocessing.sources import read_recorded
 from dipnet.preprocessing.validation import MeasurementValidationError, validate_measurement
+from script_runs import run_script
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reconstruct.py"
 GRID = Grid(16, 3, 100.0)
@@ -75,9 +76,19 @@ def _middle_reading(rows: list[dict], k: int = 0) -> int:
     return min(values, key=lambda iv: abs(iv[1] - 0.5 * (lo + hi)))[0]
 
 
-def _cli(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
+def _cli_subprocess(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), f"hydra.run.dir={tmp_path}", "output.progress=false",
                            *overrides], capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture
+def cli(monkeypatch, capsys):
+    """``_cli_subprocess`` in this process (tests/script_runs.py: the same exit code and output, without the
+    ~6 s a subprocess spends importing torch); one test below keeps the real subprocess."""
+    def run(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
+        return run_script("reconstruct", f"hydra.run.dir={tmp_path}", "output.progress=false", *overrides,
+                          monkeypatch=monkeypatch, capsys=capsys)
+    return run
 
 
 def _one_line_error(proc: subprocess.CompletedProcess) -> str:
@@ -264,13 +275,20 @@ def test_garbage_stl_names_the_file(tmp_path):
     (["source=recorded"], r"error: option source.reader.path is required"),
     (["resolution=100000"], r"error: resolution=100000 \(ndim=3, n_dips=120\) needs ~\d+ PB"),
 ])
-def test_cli_errors_are_one_line_with_exit_2(tmp_path, overrides, message):
-    line = _one_line_error(_cli(tmp_path, *overrides))
+def test_cli_errors_are_one_line_with_exit_2(tmp_path, cli, overrides, message):
+    line = _one_line_error(cli(tmp_path, *overrides))
     assert re.match(message, line), line
 
 
+def test_cli_error_of_the_real_process_is_one_line_with_exit_2(tmp_path):
+    """The cases above run the script in this process; here the process itself: its exit code is 2."""
+    line = _one_line_error(_cli_subprocess(tmp_path, "source=recorded"))
+    assert line == "error: option source.reader.path is required: set it on the command line, e.g. " \
+                   "source.reader.path=...", line
+
+
 # ----------------------------------------------------------------------------- issue 22: messages
-def test_nan_sigma_in_a_measurement_names_the_file_and_the_array(tmp_path, scan_file):
+def test_nan_sigma_in_a_measurement_names_the_file_and_the_array(tmp_path, scan_file, cli):
     """Before: NaN noise reached the solver; the message named neither the file nor the array."""
     m = preprocess(read_rawscan(scan_file), grid=GRID)
     valid = DipMeasurement(m.directions, m.profiles, m.slab_thickness, m.offsets, torch.full_like(m.profiles, 50.0))
@@ -279,17 +297,17 @@ def test_nan_sigma_in_a_measurement_names_the_file_and_the_array(tmp_path, scan_
     arrays["sigma"][2, 5] = np.nan
     path = tmp_path / "nan.npz"
     np.savez(path, **arrays)
-    line = _one_line_error(_cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
+    line = _one_line_error(cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
     assert line == (f"error: {path}: measurement array 'sigma' holds 1 NaN or infinite value(s) of "
                     f"{m.profiles.numel()}"), line
 
 
 @pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16"])
-def test_csv_saved_by_a_spreadsheet_is_read_as_the_original(tmp_path, encoding):
+def test_csv_saved_by_a_spreadsheet_is_read_as_the_original(tmp_path, cli, encoding):
     """Before: the byte-order mark spreadsheet programs write first was refused as a header "���SN,..."."""
     path = tmp_path / "cats.csv"
     path.write_bytes(CATS_CSV.read_text().replace("\n", "\r\n").encode(encoding))
-    proc = _cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=360", "resolution=16",
+    proc = cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=360", "resolution=16",
                 "+source.reader.t_start=centroid", "+source.reader.truncated=keep", "output.figures=false",
                 "output.uncertainty=false", "output.resolvability=false")
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -315,12 +333,12 @@ def _measured_volume(proc: subprocess.CompletedProcess, run_dir: Path) -> float:
 
 
 @pytest.mark.slow
-def test_declared_units_are_honoured(tmp_path, scan_file):
+def test_declared_units_are_honoured(tmp_path, scan_file, cli):
     inches = _edit_jsonl(scan_file, tmp_path / "inches.jsonl", lambda rows: _in_units(rows, "in", "cm", 25.4, 10.0))
     quiet = ("source=recorded", "resolution=16", "extent_mm=100", "output.figures=false", "output.uncertainty=false",
              "output.resolvability=false", "+source.reader.t_start=metadata")
-    reference = _measured_volume(_cli(tmp_path / "mm", *quiet, f"source.reader.path={scan_file}"), tmp_path / "mm")
-    converted = _measured_volume(_cli(tmp_path / "in", *quiet, f"source.reader.path={inches}"), tmp_path / "in")
+    reference = _measured_volume(cli(tmp_path / "mm", *quiet, f"source.reader.path={scan_file}"), tmp_path / "mm")
+    converted = _measured_volume(cli(tmp_path / "in", *quiet, f"source.reader.path={inches}"), tmp_path / "in")
     assert converted == pytest.approx(reference, rel=1e-9)
     assert read_rawscan(inches).orientations[0].stage_mm == pytest.approx(read_rawscan(scan_file).orientations[0].stage_mm)
 
@@ -330,18 +348,18 @@ def test_declared_units_are_honoured(tmp_path, scan_file):
     ({"value": "psi"}, r"quantity 'level_mm' is read in mm but the header's units say readings are in 'psi'"),
     ({"pressure": "Pa"}, r"units.pressure: no such field"),
 ])
-def test_unknown_units_are_refused_naming_the_field(tmp_path, scan_file, units, message):
+def test_unknown_units_are_refused_naming_the_field(tmp_path, scan_file, cli, units, message):
     path = _edit_jsonl(scan_file, tmp_path / "odd.jsonl", lambda rows: [{**rows[0], "units": units}, *rows[1:]])
-    line = _one_line_error(_cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
+    line = _one_line_error(cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
     assert re.search(rf"error: {re.escape(str(path))}:1: {message}", line), line
 
 
 @pytest.mark.slow
-def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path):
+def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path, cli):
     lines = CATS_CSV.read_text().splitlines()
     metres = [lines[0]] + [",".join([*row.split(",")[:4], f"{float(row.split(',')[4]) / 1000:.5f}"]) for row in lines[1:]]
     path = tmp_path / "cats_metres.csv"
     path.write_text("\n".join(metres) + "\n")
-    line = _one_line_error(_cli(tmp_path / "run", "experiment=cats_real", f"source.reader.path={path}"))
+    line = _one_line_error(cli(tmp_path / "run", "experiment=cats_real", f"source.reader.path={path}"))
     assert line.startswith(f"error: {path}: column WaterLevel_mm: the water levels are at most 0.199 mm"), line
     assert "below the sensor resolution 0.04 mm" in line and "look like metres (199 mm)" in line, line
