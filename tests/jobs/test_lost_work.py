@@ -1,6 +1,7 @@
 """Issue 22, files and lost work: two jobs never share a run directory, damaged checkpoints never
 block a rerun, a full disk never buries the safe-stop message. Each case runs the command as a
-user would (a subprocess of the script)."""
+user would: a subprocess of the script, or its Hydra entry point in this process with the same arguments
+(tests/script_runs.py) where only its output and exit code are checked."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import torch
 from dipnet.experiments.collect import collect_runs
 from dipnet.jobs.cli import run_hydra
 from script_modules import load_script
+from script_runs import run_script
 
 ROOT = Path(__file__).resolve().parents[2]
 RECONSTRUCT = ROOT / "scripts" / "reconstruct.py"
@@ -82,18 +84,22 @@ def test_second_job_into_a_busy_run_directory_is_refused(tmp_path, script, overr
 
 
 # ----------------------------------------------------------------------------- sweep directories
-def test_second_sweep_into_the_folder_of_a_first_is_refused(tmp_path):
+def test_second_sweep_into_the_folder_of_a_first_is_refused(tmp_path, monkeypatch, capsys):
     """Before: both exited 0; job 0 of the first sweep was replaced by the second's, job 1 stayed, and the log
     said 'sweep finished: 2 of 2 jobs ok' after one job ran. The first sweep's own command runs again (so its
-    checkpointed jobs can resume)."""
+    checkpointed jobs can resume). The three sweeps run in this process (tests/script_runs.py: the same exit
+    code and output, without the ~6 s each subprocess spent importing torch)."""
+    def sweep_of(*overrides: str) -> subprocess.CompletedProcess:
+        return run_script("reconstruct", "-m", *QUICK, *overrides, monkeypatch=monkeypatch, capsys=capsys)
+
     sweep = tmp_path / "sweep"
-    first = _script(RECONSTRUCT, "-m", *QUICK, "seed=0,1", f"hydra.sweep.dir={sweep}")
+    first = sweep_of("seed=0,1", f"hydra.sweep.dir={sweep}")
     assert first.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in first.stdout, first.stderr[-2000:]
-    line = _one_line_error(_script(RECONSTRUCT, "-m", *QUICK, "seed=2", f"hydra.sweep.dir={sweep}"))
+    line = _one_line_error(sweep_of("seed=2", f"hydra.sweep.dir={sweep}"))
     assert line == (f"error: hydra.sweep.dir={sweep} already holds another sweep (2 jobs): give this sweep another "
                     "hydra.sweep.dir, or delete that folder to run it again")
     assert [(r.status, r.config["seed"]) for r in collect_runs(sweep)] == [("ok", 0), ("ok", 1)]
-    again = _script(RECONSTRUCT, "-m", *QUICK, "seed=0,1", f"hydra.sweep.dir={sweep}")  # the same sweep: its folder
+    again = sweep_of("seed=0,1", f"hydra.sweep.dir={sweep}")  # the same sweep: its folder
     assert again.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in again.stdout, again.stderr[-2000:]
 
 
@@ -246,24 +252,17 @@ def test_full_disk_during_a_scan_ends_in_the_safe_stop_message_alone(tmp_path):
                         r"the controller reports lower 0\.000 mm \(safe height 0 mm\); kept \d+ readings .+", lines[0])
 
 
-PLANNING_INTERRUPTED = """
-import runpy, sys
-import dipnet.jobs.scan
-
-def planning(*args, **kwargs):  # Ctrl-C while an adaptive scan reconstructs to plan its next batch
-    raise KeyboardInterrupt
-
-dipnet.jobs.scan.scan_job = planning
-sys.argv = sys.argv[1:]
-runpy.run_path(sys.argv[0], run_name="__main__")
-"""
-
-
-def test_ctrl_c_between_an_adaptive_scans_batches_prints_one_line_and_how_to_resume(tmp_path):
+def test_ctrl_c_between_an_adaptive_scans_batches_prints_one_line_and_how_to_resume(tmp_path, monkeypatch, capsys):
     """The runner stops a dip in progress safely itself (exit 3); a Ctrl-C outside it (an adaptive scan planning its
-    next batch) printed a 105-line KeyboardInterrupt traceback and no way on."""
-    proc = subprocess.run([sys.executable, "-c", PLANNING_INTERRUPTED, str(SCAN), f"hydra.run.dir={tmp_path}",
-                           *QUICK_SCAN], capture_output=True, text=True, timeout=300)
+    next batch) printed a 105-line KeyboardInterrupt traceback and no way on. The script runs in this process
+    (tests/script_runs.py); loaded afresh, it imports the patched scan job."""
+    import dipnet.jobs.scan
+
+    def planning(*args, **kwargs):  # Ctrl-C while an adaptive scan reconstructs to plan its next batch
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dipnet.jobs.scan, "scan_job", planning)
+    proc = run_script("scan", f"hydra.run.dir={tmp_path}", *QUICK_SCAN, monkeypatch=monkeypatch, capsys=capsys)
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 130 and len(lines) == 1, proc.stderr[-3000:]
     assert lines[0] == "interrupted: scan stopped outside a dip (no dip was in progress): nothing was recorded yet"

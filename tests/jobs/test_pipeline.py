@@ -4,8 +4,6 @@ import json
 import math
 import os
 import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,8 +18,8 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.jobs.pipeline import run, write_outputs
 
 from planning_fixtures import reconstruct_cfg, tilt_spin
+from script_runs import run_script
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reconstruct.py"
 QUIET = ["output.progress=false"]
 
 
@@ -69,9 +67,15 @@ def test_3d_end_to_end_reaches_the_iou_floor(tmp_path):
     assert measured.profiles.shape == (100, 32)
 
 
-def _cli(tmp_path, *overrides):
-    return subprocess.run([sys.executable, str(SCRIPT), f"hydra.run.dir={tmp_path}", *QUIET, *overrides],
-                          capture_output=True, text=True, timeout=300)
+@pytest.fixture
+def cli(monkeypatch, capsys):
+    """``python scripts/reconstruct.py hydra.run.dir=<dir> ...`` in this process (tests/script_runs.py: the same
+    exit code and output without the ~6 s a subprocess spends importing torch; tests/fuzz/test_bad_data.py keeps
+    a real subprocess of the script)."""
+    def run(tmp_path, *overrides) -> subprocess.CompletedProcess:
+        return run_script("reconstruct", f"hydra.run.dir={tmp_path}", *QUIET, *overrides, monkeypatch=monkeypatch,
+                          capsys=capsys)
+    return run
 
 
 @pytest.mark.parametrize("overrides,message", [
@@ -80,20 +84,20 @@ def _cli(tmp_path, *overrides):
     pytest.param(["shape=mesh", "shape.path=/nonexistent/bunny.stl"], "/nonexistent/bunny.stl", marks=pytest.mark.slow),
     pytest.param(["source=recorded", "source.reader.path=/nonexistent/m.npz"], "/nonexistent/m.npz", marks=pytest.mark.slow),
 ])
-def test_bad_input_gets_a_one_line_error(tmp_path, overrides, message):
-    proc = _cli(tmp_path, *overrides)
+def test_bad_input_gets_a_one_line_error(tmp_path, cli, overrides, message):
+    proc = cli(tmp_path, *overrides)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
     assert message in proc.stderr
 
 
 @pytest.mark.slow
-def test_malformed_measurement_and_unknown_option(tmp_path):
+def test_malformed_measurement_and_unknown_option(tmp_path, cli):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"garbage")
-    proc = _cli(tmp_path / "a", "source=recorded", f"source.reader.path={bad}")
+    proc = cli(tmp_path / "a", "source=recorded", f"source.reader.path={bad}")
     assert proc.returncode == 2 and "bad.npz" in proc.stderr and "Traceback" not in proc.stderr
-    proc = _cli(tmp_path / "b", "solver=nonsense")
+    proc = cli(tmp_path / "b", "solver=nonsense")
     assert proc.returncode != 0 and "solver" in proc.stderr and "Traceback" not in proc.stderr
 
 

@@ -15,6 +15,7 @@ from dipnet.jobs.deprecations import upgrade_scan_config
 from dipnet.jobs.scan import deepest_lowering, orientations_from_config, plan_settings, scan_geometry
 
 from rig_helpers import make_world
+from script_runs import run_script
 
 
 def _scan_cfg(*overrides):
@@ -135,6 +136,15 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
     return lines[-1]
 
 
+@pytest.fixture
+def scan_script(monkeypatch, capsys):
+    """``_scan_script`` in this process (tests/script_runs.py: the same exit code and output without the ~6 s a
+    subprocess spends importing torch); the first case below also runs as a real subprocess."""
+    def run(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+        return run_script("scan", f"hydra.run.dir={run_dir}", *overrides, monkeypatch=monkeypatch, capsys=capsys)
+    return run
+
+
 @pytest.mark.parametrize("overrides,message", [
     # before: +n_dip=4 ran the full 40-dip default scan, exit 0
     (["+n_dip=4"], "error: unknown option n_dip: no code reads it; did you mean n_dips?"),
@@ -147,8 +157,15 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
     (["tilts=[0,30]", "spins=[0]"],
      "error: tilts and spins set a grid plan, but orientations=fibonacci: add orientations=grid, or drop them"),
 ])
-def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, overrides, message):
-    assert _error_line(_scan_script(tmp_path, *QUICK_SCAN, *overrides)) == message
+def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, scan_script, overrides, message):
+    assert _error_line(scan_script(tmp_path, *QUICK_SCAN, *overrides)) == message
+    assert not (tmp_path / "rawscan.jsonl").exists()
+
+
+def test_scan_script_process_refuses_an_unknown_option_with_exit_2(tmp_path):
+    """The cases above run the script in this process; here the process itself: its exit code is 2."""
+    assert _error_line(_scan_script(tmp_path, *QUICK_SCAN, "+n_dip=4")) == \
+        "error: unknown option n_dip: no code reads it; did you mean n_dips?"
     assert not (tmp_path / "rawscan.jsonl").exists()
 
 
