@@ -5,6 +5,8 @@ user would: a subprocess of the script, or its Hydra entry point in this process
 
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import pickle
 import re
@@ -18,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_module
+from omegaconf import DictConfig
 
 from dipnet.experiments.collect import collect_runs
 from dipnet.jobs.cli import run_hydra
@@ -117,6 +121,21 @@ def _reconstruct_in_process(monkeypatch, run_dir: Path, *overrides: str) -> dict
     return json.loads((run_dir / "metrics.json").read_text())
 
 
+@functools.cache
+def _composed(overrides: tuple[str, ...]) -> DictConfig:
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=[*CHECKPOINTED, *overrides])
+
+
+def _rerun(run_dir: Path, *overrides: str) -> dict:
+    """The job ``_reconstruct_in_process`` runs, as the script runs it (its ``locked_run``: the pipeline holding
+    ``run_dir``) on the config Hydra composes from the same overrides; its metrics. Hydra's start-up (it composes
+    the config twice, writes its log and config files) cost twice the job and is no part of what the reruns
+    check: the checkpoint each stage finds. ``finished`` runs through the script's Hydra entry point."""
+    load_script("reconstruct").locked_run(copy.deepcopy(_composed(overrides)), run_dir)
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory) -> Path:
     """A checkpointed job run to its end: its directory (checkpoints/ and metrics.json)."""
@@ -150,13 +169,13 @@ DAMAGE = {
 
 
 @pytest.mark.parametrize("damage", DAMAGE)
-def test_damaged_checkpoint_warns_once_and_its_stage_starts_afresh(finished, tmp_path, monkeypatch, damage):
+def test_damaged_checkpoint_warns_once_and_its_stage_starts_afresh(finished, tmp_path, damage):
     """Before: EOFError, UnpicklingError or RuntimeError tracebacks on every rerun (and a pickle ran its code)."""
     shutil.copytree(finished / "checkpoints", tmp_path / "checkpoints")
     file = tmp_path / "checkpoints" / FINE
     DAMAGE[damage](file)
     with pytest.warns(UserWarning) as record:
-        metrics = _reconstruct_in_process(monkeypatch, tmp_path)
+        metrics = _rerun(tmp_path)
     [message] = _checkpoint_warnings(record)
     assert message.startswith(f"checkpoint {file} is not used: ") and message.endswith(
         "starting 'voxel 16^3' afresh"), message
@@ -166,21 +185,21 @@ def test_damaged_checkpoint_warns_once_and_its_stage_starts_afresh(finished, tmp
     assert torch.load(file, weights_only=True)["done"] is True  # rewritten whole
 
 
-def test_checkpoint_of_another_operator_is_not_resumed(finished, tmp_path, monkeypatch):
+def test_checkpoint_of_another_operator_is_not_resumed(finished, tmp_path):
     """Same parameter shapes and data, another forward model: the saved state does not belong here."""
     shutil.copytree(finished / "checkpoints", tmp_path / "checkpoints")
     with pytest.warns(UserWarning) as record:
-        _reconstruct_in_process(monkeypatch, tmp_path, "operator=grid_sample")
+        _rerun(tmp_path, "operator=grid_sample")
     assert [m.split(" is not used: ")[1] for m in _checkpoint_warnings(record)] == [
         f"it was made for another problem (grid, operator, measured data or solver settings differ); "
         f"starting {stage!r} afresh" for stage in ("voxel 8^3", "voxel 16^3", "voxel 16^3 refit")]
 
 
-def test_stale_tmp_beside_a_checkpoint_is_harmless(finished, tmp_path, monkeypatch):
+def test_stale_tmp_beside_a_checkpoint_is_harmless(finished, tmp_path):
     shutil.copytree(finished / "checkpoints", tmp_path / "checkpoints")
     (tmp_path / "checkpoints" / f"{FINE}.tmp").write_bytes(b"half a checkpoint")  # a kill mid-write
     with pytest.warns(UserWarning) as record:
-        _reconstruct_in_process(monkeypatch, tmp_path)
+        _rerun(tmp_path)
     assert _checkpoint_warnings(record) == []  # resumed from the finished stages
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
         "voxel_16_3.pt", "voxel_16_3_refit.pt", "voxel_8_3.pt"]  # the refit: the TV weight's (weight_rule)
@@ -199,7 +218,7 @@ def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(fi
 
     monkeypatch.setattr(torch, "save", full_disk)
     with pytest.warns(UserWarning) as record:
-        metrics = _reconstruct_in_process(monkeypatch, tmp_path)
+        metrics = _rerun(tmp_path)
     [message] = _checkpoint_warnings(record)
     assert message.startswith(f"checkpoint {tmp_path / 'checkpoints' / FINE} could not be written (RuntimeError: ")
     assert message.endswith("the solve goes on, a rerun resumes from the previous checkpoint (if any)")
