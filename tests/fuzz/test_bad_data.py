@@ -272,7 +272,7 @@ def test_garbage_stl_names_the_file(tmp_path):
 
 @pytest.mark.parametrize("overrides,message", [
     (["solver=foo"], r"error: In 'config': Could not find 'solver/foo' Available options in 'solver': .*implicit"),
-    (["source=recorded"], r"error: option source.reader.path is required"),
+    # source=recorded without its path ("error: option source.reader.path is required"): the real process below
     (["resolution=100000"], r"error: resolution=100000 \(ndim=3, n_dips=120\) needs ~\d+ PB"),
 ])
 def test_cli_errors_are_one_line_with_exit_2(tmp_path, cli, overrides, message):
@@ -281,7 +281,8 @@ def test_cli_errors_are_one_line_with_exit_2(tmp_path, cli, overrides, message):
 
 
 def test_cli_error_of_the_real_process_is_one_line_with_exit_2(tmp_path):
-    """The cases above run the script in this process; here the process itself: its exit code is 2."""
+    """The cases above run the script in this process; here the process itself (its exit code 2), on the third
+    case: a required option left unset."""
     line = _one_line_error(_cli_subprocess(tmp_path, "source=recorded"))
     assert line == "error: option source.reader.path is required: set it on the command line, e.g. " \
                    "source.reader.path=...", line

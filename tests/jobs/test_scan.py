@@ -139,15 +139,15 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
 @pytest.fixture
 def scan_script(monkeypatch, capsys):
     """``_scan_script`` in this process (tests/script_runs.py: the same exit code and output without the ~6 s a
-    subprocess spends importing torch); the first case below also runs as a real subprocess."""
+    subprocess spends importing torch); test_scan_script_process_refuses_an_unknown_option_with_exit_2 runs the
+    real subprocess."""
     def run(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
         return run_script("scan", f"hydra.run.dir={run_dir}", *overrides, monkeypatch=monkeypatch, capsys=capsys)
     return run
 
 
 @pytest.mark.parametrize("overrides,message", [
-    # before: +n_dip=4 ran the full 40-dip default scan, exit 0
-    (["+n_dip=4"], "error: unknown option n_dip: no code reads it; did you mean n_dips?"),
+    # +n_dip=4 (before: it ran the full 40-dip default scan, exit 0): the real process, in the test below
     # before: the 400 deg tilt was dropped without a word and one orientation scanned
     (["orientations=grid", "tilts=[0,400]", "spins=[0]"],
      "error: tilts=[0,400]: 400 deg outside the rig's tilt range [0, 90] deg (max_tilt_deg)"),
@@ -163,7 +163,8 @@ def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, scan_sc
 
 
 def test_scan_script_process_refuses_an_unknown_option_with_exit_2(tmp_path):
-    """The cases above run the script in this process; here the process itself: its exit code is 2."""
+    """The cases above run the script in this process; here the process itself (its exit code 2), on an option no
+    code reads (before: +n_dip=4 ran the full 40-dip default scan, exit 0)."""
     assert _error_line(_scan_script(tmp_path, *QUICK_SCAN, "+n_dip=4")) == \
         "error: unknown option n_dip: no code reads it; did you mean n_dips?"
     assert not (tmp_path / "rawscan.jsonl").exists()
