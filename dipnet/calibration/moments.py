@@ -44,9 +44,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.optimize
+import torch
 
 from dipnet.core.geometry import RigGeometry, scan_geometry
-from dipnet.core.orientations import rig_to_direction
 from dipnet.core.rawscan import RawScan, complete_dips
 from dipnet.preprocessing.preprocess import onset_index
 from dipnet.preprocessing.readings import repair_readings
@@ -328,9 +328,38 @@ class MomentFit:
 
 
 def _quadratic_design(d: np.ndarray) -> np.ndarray:
-    """``(K, 6)`` columns of ``theta^T S theta`` for the 6 entries of a symmetric ``S`` (xx, yy, zz, xy, xz, yz)."""
-    return np.stack([d[:, 0]**2, d[:, 1]**2, d[:, 2]**2, 2 * d[:, 0] * d[:, 1], 2 * d[:, 0] * d[:, 2],
-                     2 * d[:, 1] * d[:, 2]], axis=1)
+    """``(..., K, 6)`` columns of ``theta^T S theta`` for the 6 entries of a symmetric ``S`` (xx, yy, zz, xy, xz,
+    yz), from directions ``d`` ``(..., K, 3)``."""
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    return np.stack([x**2, y**2, z**2, 2 * x * y, 2 * x * z, 2 * y * z], axis=-1)
+
+
+def rig_directions(tilt_deg: np.ndarray, spin_deg: np.ndarray) -> np.ndarray:
+    """:func:`~dipnet.core.orientations.rig_to_direction`'s unit directions ``(..., 3)`` for numpy arrays of rig
+    angles (degrees) of broadcastable shapes ``(...)``, without its tensor conversions' overhead in the fits' inner
+    loops.
+
+    The sines and cosines are torch's, as there: for ``(K,)`` angles the directions are the same to the last bit
+    (numpy's differ by an ulp in some), so a fit's rounding, and where a flat misfit leaves it, is the same too.
+    """
+    t, s = (torch.from_numpy(np.radians(a, dtype=np.float64)) for a in np.broadcast_arrays(tilt_deg, spin_deg))
+    sin_t = t.sin().numpy()
+    return np.stack([sin_t * s.cos().numpy(), -sin_t * s.sin().numpy(), t.cos().numpy()], axis=-1)
+
+
+def _stack_columns(columns: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+    """The design ``(*shape, J)`` of ``J`` columns broadcastable to ``shape`` (``(P, K)``: points, dips)."""
+    return np.stack([np.broadcast_to(c, shape) for c in columns], axis=-1)
+
+
+def _projection_residual(design: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """What ``b`` ``(..., N)`` leaves after its least-squares fit by the columns of ``design`` ``(..., N, J)``, for a
+    stack of systems at once: ``np.linalg.lstsq``'s residual (its ``rcond``: singular values below ``eps max(N, J)``
+    of the largest drop out), to rounding."""
+    u, s, _ = np.linalg.svd(design, full_matrices=False)
+    u = u * (s > np.finfo(np.float64).eps * max(design.shape[-2:]) * s[..., :1])[..., None, :]
+    b = np.broadcast_to(b, design.shape[:-1])
+    return b - np.einsum("...nj,...j->...n", u, np.einsum("...nj,...n->...j", u, b))
 
 
 class MomentModel:
@@ -360,56 +389,95 @@ class MomentModel:
         self.weights = (1.0, 1.0)
         self.prior_residual = np.zeros(0)  # the priors' residuals at the last solve, in the units of r1
 
-    def solve(self, nonlinear: dict[str, float]) -> tuple[np.ndarray, np.ndarray, dict[str, float], np.ndarray,
-                                                          np.ndarray]:
-        """``(r1 (K,), r2 (K,), linear values, centroid (3,), covariance (3, 3))`` at ``nonlinear``."""
-        p = {**self.fixed, **nonlinear}
-        r = np.radians(self.m.tilt_deg + p["tilt_zero_deg"])
-        theta = rig_to_direction(self.m.tilt_deg + p["tilt_zero_deg"], self.m.spin_deg + p["spin_zero_deg"]).numpy()
+    def _conditions(self, p: dict[str, float | np.ndarray]) -> tuple[np.ndarray, np.ndarray, list[np.ndarray],
+                                                                     np.ndarray]:
+        """The range conditions' parts at the parameter values ``p`` (floats, or ``(P, 1)`` arrays for ``P`` points):
+        ``(theta (..., K, 3), target (..., K), columns, var (..., K))``, ``columns`` the linear unknowns' ``(..., K)``
+        (``linear_free``, the priors', a known object's distance from the spin axis): ``target + sum_j x_j column_j``
+        is the first condition's residual (its ``c . theta`` too among the unknowns for an unknown object)."""
+        tilt = self.m.tilt_deg + p["tilt_zero_deg"]
+        r = np.radians(tilt)
+        theta = rig_directions(tilt, self.m.spin_deg + p["spin_zero_deg"])
         mean, var = self.m.centroid_and_variance(p["step_scale"])
         columns = {"pivot_mm": np.cos(r) - 1.0, "tilt_axis_offset_mm": np.sin(r), "t0_mm": np.ones_like(r)}
         target = self.m.t_recorded + mean + sum(p[n] * columns[n] for n in columns if n not in self.linear_free)
-        # target + sum_j x_j column_j = c . theta
         lin = [columns[n] for n in self.linear_free]
+        if self.known is None:  # target + sum_j x_j column_j = c . theta
+            return theta, target, lin + [-theta[..., i] for i in range(3)], var
+        nuisance = {"t0_mm": columns["t0_mm"], **{f"shift_{a}_mm": -theta[..., i] for i, a in enumerate("xyz")}}
+        lin = lin + [nuisance[n] for n in self.priors]  # each fitted as its departure from its assumed value
+        if self.radial is not None:  # a nuisance column: the distance from the spin axis
+            lin = lin + [-theta @ self.radial]
+        return theta, target - theta @ self.known.centroid, lin, var
+
+    def _ridge(self, n_columns: int) -> np.ndarray:
+        """The priors' rows ``(len(priors), n_columns)``: ``(x - mean) / sd`` in the whitened units of r1."""
+        ridge = np.zeros((len(self.priors), n_columns))
+        for row, name in enumerate(self.priors):
+            ridge[row, len(self.linear_free) + row] = self.weights[0] / self.priors[name]
+        return ridge
+
+    def _fit(self, nonlinear: dict[str, float]) -> tuple[dict[str, float], np.ndarray, np.ndarray, np.ndarray,
+                                                         np.ndarray]:
+        """``(p, r1 (K,), r2 (K,), x, s6)`` at ``nonlinear``: all parameter values ``p``, the residuals, the linear
+        unknowns ``x`` (``_conditions``' columns) and an unknown object's covariance entries ``s6`` (6,) (else
+        empty); :attr:`prior_residual` too."""
+        p = {**self.fixed, **nonlinear}
+        theta, target, lin, var = self._conditions(p)
         if self.known is None:
-            design = np.column_stack(lin + [-theta]) if lin else -theta
+            design = np.column_stack(lin)
             x = np.linalg.lstsq(design, -target, rcond=None)[0]
-            r1 = target + design @ x
-            values = dict(zip(self.linear_free, x[: len(lin)]))
-            centroid = x[len(lin):]
             quad = _quadratic_design(theta)
             s6 = np.linalg.lstsq(quad, var, rcond=None)[0]
-            r2 = var - quad @ s6
-            cov = np.array([[s6[0], s6[3], s6[4]], [s6[3], s6[1], s6[5]], [s6[4], s6[5], s6[2]]])
+            return p, target + design @ x, var - quad @ s6, x, s6
+        if lin:
+            design = np.column_stack(lin)
+            ridge = self._ridge(design.shape[1])
+            rhs = np.concatenate([target, np.zeros(len(ridge))])
+            x = np.linalg.lstsq(np.vstack([design, ridge]), -rhs, rcond=None)[0]
+            r1 = target + design @ x
+            self.prior_residual = ridge @ x
         else:
-            centroid, cov = self.known.centroid, self.known.covariance
-            target = target - theta @ centroid
-            nuisance = {"t0_mm": np.ones_like(r), **{f"shift_{a}_mm": -theta[:, i] for i, a in enumerate("xyz")}}
-            names = list(self.linear_free) + list(self.priors)
-            lin = lin + [nuisance[n] for n in self.priors]  # each fitted as its departure from its assumed value
-            if self.radial is not None:  # a nuisance column: the distance from the spin axis
-                lin = lin + [-theta @ self.radial]
-            if lin:
-                design = np.column_stack(lin)
-                ridge = np.zeros((len(self.priors), design.shape[1]))
-                for row, name in enumerate(self.priors):  # (x - mean) / sd in the whitened units of r1
-                    ridge[row, len(self.linear_free) + row] = self.weights[0] / self.priors[name]
-                x = np.linalg.lstsq(np.vstack([design, ridge]), -np.r_[target, np.zeros(len(ridge))], rcond=None)[0]
-                r1 = target + design @ x
-                self.prior_residual = ridge @ x
-            else:
-                x, r1 = np.zeros(0), target
-            values = dict(zip(names, x))
-            if "t0_mm" in self.priors:
-                values["t0_mm"] += p["t0_mm"]
-            centroid = centroid + np.array([values.get(f"shift_{a}_mm", 0.0) for a in "xyz"])
-            if self.radial is not None:
-                centroid = centroid + x[-1] * self.radial
-            r2 = var - np.einsum("ki,ij,kj->k", theta, cov, theta)
-        return r1, r2, values, centroid, cov
+            x, r1 = np.zeros(0), target
+        return p, r1, var - np.einsum("ki,ij,kj->k", theta, self.known.covariance, theta), x, np.zeros(0)
+
+    def solve(self, nonlinear: dict[str, float]) -> tuple[np.ndarray, np.ndarray, dict[str, float], np.ndarray,
+                                                          np.ndarray]:
+        """``(r1 (K,), r2 (K,), linear values, centroid (3,), covariance (3, 3))`` at ``nonlinear``."""
+        p, r1, r2, x, s6 = self._fit(nonlinear)
+        if self.known is None:
+            values = dict(zip(self.linear_free, x[: len(self.linear_free)]))
+            cov = np.array([[s6[0], s6[3], s6[4]], [s6[3], s6[1], s6[5]], [s6[4], s6[5], s6[2]]])
+            return r1, r2, values, x[len(self.linear_free):], cov
+        values = dict(zip(list(self.linear_free) + list(self.priors), x))
+        if "t0_mm" in self.priors:
+            values["t0_mm"] += p["t0_mm"]
+        centroid = self.known.centroid + np.array([values.get(f"shift_{a}_mm", 0.0) for a in "xyz"])
+        if self.radial is not None:
+            centroid = centroid + x[-1] * self.radial
+        return r1, r2, values, centroid, self.known.covariance
+
+    def misfits(self, points: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """``(r1 (P, K), r2 (P, K))`` at ``P`` points of the nonlinear parameters at once (name -> ``(P,)``): what
+        :meth:`solve` gives point by point, to rounding."""
+        p = {**self.fixed, **{n: np.asarray(v, dtype=np.float64)[:, None] for n, v in points.items()}}
+        theta, target, lin, var = self._conditions(p)
+        shape = np.broadcast_shapes(theta.shape[:-1], target.shape, var.shape)
+        theta = np.broadcast_to(theta, (*shape, 3))
+        if self.known is None:
+            design = _stack_columns(lin, shape)
+            return _projection_residual(design, target), _projection_residual(_quadratic_design(theta), var)
+        r2 = var - np.einsum("...ki,ij,...kj->...k", theta, self.known.covariance, theta)
+        if not lin:
+            return np.broadcast_to(target, shape), r2
+        design = _stack_columns(lin, shape)
+        ridge = np.broadcast_to(self._ridge(design.shape[-1]), (*shape[:-1], len(self.priors), design.shape[-1]))
+        rhs = np.concatenate([np.broadcast_to(target, shape), np.zeros((*shape[:-1], len(self.priors)))], axis=-1)
+        return _projection_residual(np.concatenate([design, ridge], axis=-2), rhs)[..., :shape[-1]], r2
 
     def residual(self, nonlinear: dict[str, float]) -> np.ndarray:
-        r1, r2, *_ = self.solve(nonlinear)
+        """The whitened residuals ``(2 K + len(priors),)`` at ``nonlinear``: both conditions', the priors'."""
+        _, r1, r2, *_ = self._fit(nonlinear)
         return np.concatenate([r1 / self.weights[0], r2 / self.weights[1], self.prior_residual / self.weights[0]])
 
 
@@ -501,19 +569,29 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
     return fit
 
 
+#: Grid points whose batched misfit (:meth:`MomentModel.misfits`) is within this of the least are compared by
+#: :meth:`MomentModel.solve`'s, so that rounding never picks another point than a point-by-point search would.
+TIE = 1e-6
+
+
 def _grid_search(model: MomentModel, names: tuple[str, ...], fixed: dict[str, float]) -> dict[str, float]:
-    """The grid point of the nonlinear parameters with the smallest (scale-free) moment misfit."""
+    """The grid point of the nonlinear parameters with the smallest (scale-free) moment misfit (the first of equal
+    ones in the grid's order). All points are evaluated at once; those within :data:`TIE` of the least again one
+    by one."""
     if not names:
         return {}
     axes = [fixed[n] + np.arange(-SEARCH[n][0], SEARCH[n][0] + 1e-9, SEARCH[n][1]) for n in names]
-    best, best_cost = None, np.inf
-    for point in np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names)):
-        trial = dict(zip(names, point))
-        r1, r2, *_ = model.solve(trial)
-        cost = np.log(np.mean(r1**2) + 1e-30) + np.log(np.mean(r2**2) + 1e-30)  # invariant to each group's scale
-        if cost < best_cost:
-            best, best_cost = trial, cost
-    return {k: float(v) for k, v in best.items()}
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
+    costs = _scale_free_misfit(*model.misfits(dict(zip(names, points.T))))
+    near = np.flatnonzero(costs <= np.nanmin(costs) + TIE)
+    exact = [_scale_free_misfit(*model.solve(dict(zip(names, points[i])))[:2]) for i in near]
+    return {n: float(v) for n, v in zip(names, points[near[np.nanargmin(exact)]])}
+
+
+def _scale_free_misfit(r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+    """``log mean r1^2 + log mean r2^2`` over the dips (the last axis of ``r1``, ``r2`` ``(..., K)``): invariant to
+    each condition's scale."""
+    return np.log(np.mean(r1**2, axis=-1) + 1e-30) + np.log(np.mean(r2**2, axis=-1) + 1e-30)
 
 
 def _group_scales(model: MomentModel, at: dict[str, float]) -> tuple[float, float]:

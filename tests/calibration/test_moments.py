@@ -97,3 +97,40 @@ def test_the_drift_slope_drops_spikes_and_needs_two_distinct_times():
         assert np.isnan(_robust_slope(np.full(5, 3.0), np.arange(5.0)))
         t2 = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 1.0])  # both readings at the other time are trimmed as spikes
         assert _robust_slope(t2, np.array([0.0, 0.0, 0.0, 0.0, 100.0, -100.0])) == pytest.approx(0.0, abs=1e-9)  # rounding only
+
+
+def test_the_fits_directions_and_batched_grid_search_match_the_point_by_point_ones():
+    """The moment fits' speed-ups change no result: their numpy directions are rig_to_direction's to the last bit
+    (the same torch sines), the batched misfits are solve's to rounding, and the grid search picks the point a
+    search point by point picks (the first of the least misfit), for a reference ball off the axis and an unknown
+    object."""
+    import numpy as np
+
+    from dipnet.calibration.moments import MomentModel, _grid_search, _scale_free_misfit, rig_directions
+    from dipnet.core.orientations import rig_to_direction
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        tilt, spin = rng.uniform(-10.0, 90.0, 60), rng.uniform(-10.0, 370.0, 60)
+        assert np.array_equal(rig_directions(tilt, spin), rig_to_direction(tilt, spin).numpy())
+    true = RigGeometry(pivot_mm=-45.0, tilt_axis_offset_mm=30.0, tilt_zero_deg=-3.0, spin_zero_deg=2.0)
+    _, moments = ideal_ball_moments(true, snr_db=30.0)
+    fixed = {"pivot_mm": 0.0, "tilt_axis_offset_mm": 0.0, "tilt_zero_deg": 0.5, "spin_zero_deg": 0.0,
+             "step_scale": 1.0, "t0_mm": 0.0}
+    names = ("tilt_zero_deg", "step_scale")
+    for known in (KnownObject.ball(30.0, (25.0, 0.0, 0.0)), None):
+        model = MomentModel(moments, known, fixed, ("pivot_mm", "tilt_axis_offset_mm"))
+        points = {"tilt_zero_deg": np.array([-2.5, 0.5, 4.0]), "step_scale": np.array([0.97, 1.0, 1.04])}
+        r1, r2 = model.misfits(points)
+        for i in range(3):
+            s1, s2, *_ = model.solve({n: v[i] for n, v in points.items()})
+            np.testing.assert_allclose(r1[i], s1, rtol=0, atol=1e-10 * np.abs(s1).max())
+            np.testing.assert_allclose(r2[i], s2, rtol=0, atol=1e-10 * np.abs(s2).max())
+        best, best_cost = None, np.inf
+        for tilt_zero in 0.5 + np.arange(-6.0, 6.0 + 1e-9, 0.5):
+            for scale in 1.0 + np.arange(-0.05, 0.05 + 1e-9, 0.005):
+                cost = _scale_free_misfit(*model.solve({"tilt_zero_deg": tilt_zero, "step_scale": scale})[:2])
+                if cost < best_cost:
+                    best, best_cost = {"tilt_zero_deg": tilt_zero, "step_scale": scale}, cost
+        assert _grid_search(model, names, fixed) == best
+        assert known is None or best["tilt_zero_deg"] == -3.0  # the truth (an unknown ball shows no tilt zero)
