@@ -26,6 +26,19 @@ def tune_script():
     return load_script("tune")
 
 
+@pytest.fixture(autouse=True)
+def no_optuna_handler():
+    """Optuna's own log handler (and its colour formatter) keeps the ``sys.stderr`` of the moment it was made:
+    made under another test's ``capsys`` (which test imports optuna first depends on the order, which differs
+    between pytest-xdist workers), a capture closed since, each of its lines adds a "Logging error" to the
+    stderr a test here reads. It is off during these tests (they read dipnet's lines, not optuna's)."""
+    import optuna
+
+    optuna.logging.disable_default_handler()
+    yield
+    optuna.logging.enable_default_handler()
+
+
 @pytest.mark.slow
 def test_a_study_runs_its_trials_and_keeps_the_best(tmp_path, monkeypatch, tune_script):
     received = []  # the weight each job's solver was configured with
