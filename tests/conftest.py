@@ -15,6 +15,7 @@ from dipnet.preprocessing.datasets import MESHES_DIR
 
 # helper modules shared by several test folders (sweep_fixtures) live here, beside this file
 sys.path.insert(0, str(Path(__file__).parent))
+from script_runs import script_run  # noqa: E402,F401  (a fixture: scripts run in this process)
 
 # under pytest-xdist (``-n auto``: one worker per core) each worker computes on one thread, and so do the
 # scripts the tests start, unless OMP_NUM_THREADS says otherwise

@@ -32,8 +32,9 @@ from script_modules import SCRIPTS, load_script
 
 
 def run_script(name: str, *argv: str, monkeypatch: pytest.MonkeyPatch,
-               capsys: pytest.CaptureFixture[str]) -> subprocess.CompletedProcess:
-    """``python scripts/<name>.py *argv`` in this process: its exit code and what it printed."""
+               capsys: pytest.CaptureFixture[str] | None) -> subprocess.CompletedProcess:
+    """``python scripts/<name>.py *argv`` in this process: its exit code and what it printed (``capsys``
+    ``None``, as in a module-scoped fixture: its exit code, and ``""`` for the output)."""
     script = load_script(name)
     path = str(SCRIPTS / f"{name}.py")
     root = logging.getLogger()
@@ -45,7 +46,8 @@ def run_script(name: str, *argv: str, monkeypatch: pytest.MonkeyPatch,
     monkeypatch.setenv("MPLBACKEND", "Agg")
     monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)
     monkeypatch.setattr(warnings_once, "_installed", False)
-    capsys.readouterr()  # what the test printed before is not the script's
+    if capsys is not None:
+        capsys.readouterr()  # what the test printed before is not the script's
     try:
         try:
             sys.exit(run_hydra(script.main))
@@ -54,7 +56,7 @@ def run_script(name: str, *argv: str, monkeypatch: pytest.MonkeyPatch,
         returncode = 0 if code is None else code if isinstance(code, int) else 1
         if not isinstance(code, int | None):  # sys.exit("text") prints the text, exit code 1
             print(code, file=sys.stderr)
-        out, err = capsys.readouterr()
+        out, err = capsys.readouterr() if capsys is not None else ("", "")
     finally:
         for handler in root.handlers:
             if handler not in handlers:
@@ -68,3 +70,21 @@ def run_script(name: str, *argv: str, monkeypatch: pytest.MonkeyPatch,
         np.random.set_state(rng[1])
         random.setstate(rng[2])
     return subprocess.CompletedProcess([sys.executable, path, *argv], returncode, out, err)
+
+
+def one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: str = "error: ") -> str:
+    """The one line a script printed on stderr for a user error (exit ``code``), once on the terminal: not
+    repeated on stdout by Hydra's console log."""
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == code and len(lines) == 1 and lines[0].startswith(prefix), proc.stderr[-3000:]
+    assert lines[0] not in proc.stdout, proc.stdout[-3000:]
+    return lines[0]
+
+
+@pytest.fixture
+def script_run(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]):
+    """``run(name, run_dir, *overrides)``: ``python scripts/<name>.py hydra.run.dir=<run_dir> *overrides`` in
+    this process (:func:`run_script`), bound to the test's ``monkeypatch`` and ``capsys``."""
+    def run(name: str, run_dir, *overrides: str) -> subprocess.CompletedProcess:
+        return run_script(name, f"hydra.run.dir={run_dir}", *overrides, monkeypatch=monkeypatch, capsys=capsys)
+    return run

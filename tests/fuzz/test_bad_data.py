@@ -28,7 +28,7 @@ from dipnet.shapes import ShapeError, builtin_shape, load_mesh
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.preprocessing.sources import read_recorded
 from dipnet.preprocessing.validation import MeasurementValidationError, validate_measurement
-from script_runs import run_script
+from script_runs import one_line_error
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reconstruct.py"
 GRID = Grid(16, 3, 100.0)
@@ -82,19 +82,10 @@ def _cli_subprocess(tmp_path: Path, *overrides: str) -> subprocess.CompletedProc
 
 
 @pytest.fixture
-def cli(monkeypatch, capsys):
+def cli(script_run):
     """``_cli_subprocess`` in this process (tests/script_runs.py: the same exit code and output, without the
     ~6 s a subprocess spends importing torch); one test below keeps the real subprocess."""
-    def run(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
-        return run_script("reconstruct", f"hydra.run.dir={tmp_path}", "output.progress=false", *overrides,
-                          monkeypatch=monkeypatch, capsys=capsys)
-    return run
-
-
-def _one_line_error(proc: subprocess.CompletedProcess) -> str:
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
-    return lines[0]
+    return lambda run_dir, *overrides: script_run("reconstruct", run_dir, "output.progress=false", *overrides)
 
 
 # ----------------------------------------------------------------------------- item 1: robust readings
@@ -276,14 +267,14 @@ def test_garbage_stl_names_the_file(tmp_path):
     (["resolution=100000"], r"error: resolution=100000 \(ndim=3, n_dips=120\) needs ~\d+ PB"),
 ])
 def test_cli_errors_are_one_line_with_exit_2(tmp_path, cli, overrides, message):
-    line = _one_line_error(cli(tmp_path, *overrides))
+    line = one_line_error(cli(tmp_path, *overrides))
     assert re.match(message, line), line
 
 
 def test_cli_error_of_the_real_process_is_one_line_with_exit_2(tmp_path):
     """The cases above run the script in this process; here the process itself (its exit code 2), on the third
     case: a required option left unset."""
-    line = _one_line_error(_cli_subprocess(tmp_path, "source=recorded"))
+    line = one_line_error(_cli_subprocess(tmp_path, "source=recorded"))
     assert line == "error: option source.reader.path is required: set it on the command line, e.g. " \
                    "source.reader.path=...", line
 
@@ -298,7 +289,7 @@ def test_nan_sigma_in_a_measurement_names_the_file_and_the_array(tmp_path, scan_
     arrays["sigma"][2, 5] = np.nan
     path = tmp_path / "nan.npz"
     np.savez(path, **arrays)
-    line = _one_line_error(cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
+    line = one_line_error(cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
     assert line == (f"error: {path}: measurement array 'sigma' holds 1 NaN or infinite value(s) of "
                     f"{m.profiles.numel()}"), line
 
@@ -351,7 +342,7 @@ def test_declared_units_are_honoured(tmp_path, scan_file, cli):
 ])
 def test_unknown_units_are_refused_naming_the_field(tmp_path, scan_file, cli, units, message):
     path = _edit_jsonl(scan_file, tmp_path / "odd.jsonl", lambda rows: [{**rows[0], "units": units}, *rows[1:]])
-    line = _one_line_error(cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
+    line = one_line_error(cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}"))
     assert re.search(rf"error: {re.escape(str(path))}:1: {message}", line), line
 
 
@@ -361,6 +352,6 @@ def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path, cli):
     metres = [lines[0]] + [",".join([*row.split(",")[:4], f"{float(row.split(',')[4]) / 1000:.5f}"]) for row in lines[1:]]
     path = tmp_path / "cats_metres.csv"
     path.write_text("\n".join(metres) + "\n")
-    line = _one_line_error(cli(tmp_path / "run", "experiment=cats_real", f"source.reader.path={path}"))
+    line = one_line_error(cli(tmp_path / "run", "experiment=cats_real", f"source.reader.path={path}"))
     assert line.startswith(f"error: {path}: column WaterLevel_mm: the water levels are at most 0.199 mm"), line
     assert "below the sensor resolution 0.04 mm" in line and "look like metres (199 mm)" in line, line

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -20,44 +19,25 @@ from dipnet.core.rawscan import read_rawscan
 from dipnet.core.memory import ResourceError
 from dipnet.simulator.size import check_simulation
 from dipnet.shapes import builtin_shape
-from script_runs import run_script
+from script_runs import one_line_error
 
-ROOT = Path(__file__).resolve().parents[2]
-RECONSTRUCT = ROOT / "scripts" / "reconstruct.py"
-SCAN = ROOT / "scripts" / "scan.py"
 QUICK = ["output.progress=false", "output.figures=false", "output.uncertainty=false", "output.resolvability=false"]
 
 
-@pytest.fixture
-def script(monkeypatch, capsys):
-    """``python scripts/<name>.py hydra.run.dir=<out> ...`` run in this process (tests/script_runs.py: the same
-    exit code and output without the ~6 s a subprocess spends importing torch; tests/fuzz/test_bad_data.py and
-    tests/jobs/test_scan.py keep a real subprocess of each script)."""
-    def run(script: Path, out: Path, *overrides: str) -> subprocess.CompletedProcess:
-        return run_script(script.stem, f"hydra.run.dir={out}", *overrides, monkeypatch=monkeypatch, capsys=capsys)
-    return run
-
-
-def _one_line_error(proc: subprocess.CompletedProcess) -> str:
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), proc.stderr[-3000:]
-    return lines[0]
-
-
-def _metrics(script, out: Path, *overrides: str) -> dict:
-    proc = script(RECONSTRUCT, out, "resolution=24", *QUICK, *overrides)
+def _metrics(script_run, out: Path, *overrides: str) -> dict:
+    proc = script_run("reconstruct", out, "resolution=24", *QUICK, *overrides)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads((out / "metrics.json").read_text())
 
 
 # ----------------------------------------------------------------------------- case 2: one scan, two files
 @pytest.mark.slow
-def test_ball_scan_reads_the_same_from_its_npz_and_its_jsonl(tmp_path, script):
+def test_ball_scan_reads_the_same_from_its_npz_and_its_jsonl(tmp_path, script_run):
     """Before: the .jsonl reader smoothed by default (the .npz was not): 0.871 inconsistent vs 0.957."""
-    simulated = _metrics(script, tmp_path / "sim", "shape.name=ball", "n_dips=40")
+    simulated = _metrics(script_run, tmp_path / "sim", "shape.name=ball", "n_dips=40")
     extent = 2 * 24 * 45.0 / (0.9 * 22)  # the simulated run's grid (conf: fill 0.9 around the 45 mm ball)
-    npz = _metrics(script, tmp_path / "npz", "source=recorded", f"source.reader.path={tmp_path / 'sim' / 'measurement.npz'}")
-    jsonl = _metrics(script, tmp_path / "jsonl", "source=recorded", f"source.reader.path={tmp_path / 'sim' / 'rawscan.jsonl'}",
+    npz = _metrics(script_run, tmp_path / "npz", "source=recorded", f"source.reader.path={tmp_path / 'sim' / 'measurement.npz'}")
+    jsonl = _metrics(script_run, tmp_path / "jsonl", "source=recorded", f"source.reader.path={tmp_path / 'sim' / 'rawscan.jsonl'}",
                      f"extent_mm={extent}")
     assert simulated["consistency"] == npz["consistency"] == jsonl["consistency"] == "consistent"
     assert npz["volume_ratio"] == pytest.approx(simulated["volume_ratio"], abs=1e-6)
@@ -65,11 +45,11 @@ def test_ball_scan_reads_the_same_from_its_npz_and_its_jsonl(tmp_path, script):
 
 
 # ----------------------------------------------------------------------------- case 3: a mesh in the wrong units
-def test_mesh_in_wrong_units_is_refused_before_simulating(tmp_path, script):
+def test_mesh_in_wrong_units_is_refused_before_simulating(tmp_path, script_run):
     """Before: a sphere of radius 3e7 file units planned 60 million readings per dip and was OOM-killed."""
     path = tmp_path / "sphere_in_nm.stl"
     trimesh.creation.icosphere(subdivisions=1, radius=3e7).export(path)
-    line = _one_line_error(script(RECONSTRUCT, tmp_path / "run", "shape=mesh", f"shape.path={path}",
+    line = one_line_error(script_run("reconstruct", tmp_path / "run", "shape=mesh", f"shape.path={path}",
                                    "resolution=16", "n_dips=4", *QUICK))
     assert re.match(r"error: the simulator would take 60,000,008 readings per dip \(4 dips: 240,000,032 readings, "
                     r"needing ~\d+ GB .*at most 100,000 per dip\) for an object of radius 3e\+07 mm at 1 mm steps: "
@@ -101,8 +81,8 @@ def test_simulation_beyond_the_available_memory_is_refused():
                                           r"\(1\) the scan lowers from 0 to 110 mm \(Z span 110\), more than the "
                                           r"board's Z travel \$132=100: lower protocol.stop_mm"),
 ])
-def test_scan_plan_beyond_the_rig_stops_before_moving(tmp_path, script, overrides, message):
-    line = _one_line_error(script(SCAN, tmp_path, "progress=false", "fsync=false", *overrides))
+def test_scan_plan_beyond_the_rig_stops_before_moving(tmp_path, script_run, overrides, message):
+    line = one_line_error(script_run("scan", tmp_path, "progress=false", "fsync=false", *overrides))
     assert re.match(message, line), line
     path = tmp_path / "rawscan.jsonl"
     assert not path.exists() or not read_rawscan(path).orientations  # nothing dipped
@@ -124,12 +104,12 @@ def _cracked_ball(pieces: int, flip: bool) -> trimesh.Trimesh:
     return trimesh.Trimesh(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3), process=False)
 
 
-def test_mesh_whose_repair_disagrees_with_its_inside_test_is_refused(tmp_path, script):
+def test_mesh_whose_repair_disagrees_with_its_inside_test_is_refused(tmp_path, script_run):
     """Before: agave.stl's caps cancelled its surface (-0.0004 mm^3 vs ~71,900 inside) and every dip
     was rejected as an outlier; here 30 cracked patches, half inside out, capped one by one."""
     path = tmp_path / "cracked.stl"
     _cracked_ball(30, flip=True).export(path)
-    line = _one_line_error(script(RECONSTRUCT, tmp_path / "run", "shape=mesh", f"shape.path={path}",
+    line = one_line_error(script_run("reconstruct", tmp_path / "run", "shape=mesh", f"shape.path={path}",
                                    "resolution=16", "n_dips=8", *QUICK))
     assert re.match(rf"error: mesh {re.escape(str(path))}: after repair its surface encloses [\d.e+]+ mm\^3 but its "
                     r"inside test \(winding numbers\) holds [\d.e+]+ mm\^3: the repair could not close or orient the "
@@ -139,11 +119,11 @@ def test_mesh_whose_repair_disagrees_with_its_inside_test_is_refused(tmp_path, s
 
 
 @pytest.mark.slow
-def test_open_pieces_off_the_origin_are_oriented_by_their_capped_volume(tmp_path, script):
+def test_open_pieces_off_the_origin_are_oriented_by_their_capped_volume(tmp_path, script_run):
     """Before: a ball in two open pieces 200 mm off the origin came out with one piece inverted
     (trimesh's open-surface volume depends on the origin): -18,867 mm^3 against 33,510."""
     path = tmp_path / "two_pieces.stl"
     _cracked_ball(2, flip=True).export(path)
-    metrics = _metrics(script, tmp_path / "run", "shape=mesh", f"shape.path={path}", "n_dips=40")
+    metrics = _metrics(script_run, tmp_path / "run", "shape=mesh", f"shape.path={path}", "n_dips=40")
     assert metrics["measured_volume_mm3"] == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.03)
     assert metrics["consistency"] == "consistent" and metrics["dips_rejected"] == 0

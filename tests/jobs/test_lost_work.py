@@ -24,9 +24,8 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
 from dipnet.experiments.collect import collect_runs
-from dipnet.jobs.cli import run_hydra
 from script_modules import load_script
-from script_runs import run_script
+from script_runs import one_line_error, run_script
 
 ROOT = Path(__file__).resolve().parents[2]
 RECONSTRUCT = ROOT / "scripts" / "reconstruct.py"
@@ -38,12 +37,6 @@ QUICK_SCAN = ["n_dips=2", "protocol.step_mm=20", "fsync=false", "progress=false"
 
 def _script(script: Path, *overrides: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(script), *overrides], capture_output=True, text=True, timeout=300)
-
-
-def _one_line_error(proc: subprocess.CompletedProcess) -> str:
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
-    return lines[0]
 
 
 @contextmanager
@@ -77,7 +70,7 @@ def test_dipnet_imports_without_fcntl():
 def test_second_job_into_a_busy_run_directory_is_refused(tmp_path, script, overrides):
     """Before: both jobs exited 0 saying "outputs written"; only the second one's files remained."""
     with _job_in(tmp_path) as pid:
-        line = _one_line_error(_script(script, f"hydra.run.dir={tmp_path}", *overrides))
+        line = one_line_error(_script(script, f"hydra.run.dir={tmp_path}", *overrides))
     assert re.match(rf"error: run directory {re.escape(str(tmp_path))} is in use by another job \(pid {pid} on "
                     r".+, since \d{4}-\d\d-\d\dT[\d:]+[+-]\d{4}\): wait for it to finish, stop it, or choose another "
                     r"output directory \(hydra\.run\.dir=\.\.\.\)$", line), line
@@ -99,7 +92,7 @@ def test_second_sweep_into_the_folder_of_a_first_is_refused(tmp_path, monkeypatc
     sweep = tmp_path / "sweep"
     first = sweep_of("seed=0,1", f"hydra.sweep.dir={sweep}")
     assert first.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in first.stdout, first.stderr[-2000:]
-    line = _one_line_error(sweep_of("seed=2", f"hydra.sweep.dir={sweep}"))
+    line = one_line_error(sweep_of("seed=2", f"hydra.sweep.dir={sweep}"))
     assert line == (f"error: hydra.sweep.dir={sweep} already holds another sweep (2 jobs): give this sweep another "
                     "hydra.sweep.dir, or delete that folder to run it again")
     assert [(r.status, r.config["seed"]) for r in collect_runs(sweep)] == [("ok", 0), ("ok", 1)]
@@ -114,10 +107,11 @@ FINE = "voxel_16_3.pt"  # the fine stage's file (the coarse stage is voxel_8_3.p
 
 
 def _reconstruct_in_process(monkeypatch, run_dir: Path, *overrides: str) -> dict:
-    """``python scripts/reconstruct.py hydra.run.dir=<run_dir> ...`` in this process; its metrics."""
-    script = load_script("reconstruct")
-    monkeypatch.setattr(sys, "argv", [str(RECONSTRUCT), f"hydra.run.dir={run_dir}", *CHECKPOINTED, *overrides])
-    run_hydra(script.main)
+    """``python scripts/reconstruct.py hydra.run.dir=<run_dir> ...`` in this process (tests/script_runs.py); its
+    metrics."""
+    done = run_script("reconstruct", f"hydra.run.dir={run_dir}", *CHECKPOINTED, *overrides, monkeypatch=monkeypatch,
+                      capsys=None)
+    assert done.returncode == 0, f"the job exited {done.returncode}"
     return json.loads((run_dir / "metrics.json").read_text())
 
 
@@ -234,7 +228,7 @@ def test_refused_scan_resume_names_the_differing_fields_in_one_line(tmp_path):
     """Before: both full headers (~2,500 characters) and no word on what differs."""
     first = _script(SCAN, f"hydra.run.dir={tmp_path}", *QUICK_SCAN)
     assert first.returncode == 0, first.stderr[-2000:]
-    line = _one_line_error(_script(SCAN, f"hydra.run.dir={tmp_path}", *QUICK_SCAN, "protocol.step_mm=10",
+    line = one_line_error(_script(SCAN, f"hydra.run.dir={tmp_path}", *QUICK_SCAN, "protocol.step_mm=10",
                                    "rig.tank_cross_section_mm2=50000"))
     assert re.fullmatch(rf"error: {re.escape(str(tmp_path / 'rawscan.jsonl'))}: cannot resume, the new scan differs "
                         r"from the recorded one in tank_cross_section_mm2 20000\.0 -> 50000; step_mm 20\.0 -> "

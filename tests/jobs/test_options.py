@@ -16,6 +16,7 @@ from hydra.utils import instantiate
 
 from dipnet.preprocessing.datasets import CATS_CSV
 from dipnet.jobs.options import ConfigError, check_config
+from script_runs import one_line_error
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reconstruct.py"
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -27,13 +28,6 @@ RECORDED = ("source=recorded", f"source.reader.path={CATS_CSV}")
 def _cli(run_dir: Path, *overrides: str, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), f"hydra.run.dir={run_dir}", *SMALL, *overrides],
                           capture_output=True, text=True, timeout=300, env=env)
-
-
-def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: str = "error: ") -> str:
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert proc.returncode == code and len(lines) == 1 and lines[0].startswith(prefix), proc.stderr
-    assert lines[0] not in proc.stdout, proc.stdout  # once on the terminal: not repeated by Hydra's console log
-    return lines[0]
 
 
 @pytest.mark.parametrize("overrides,message", [
@@ -57,7 +51,7 @@ def _one_line_error(proc: subprocess.CompletedProcess, code: int = 2, prefix: st
 ])
 @pytest.mark.slow
 def test_bad_options_are_refused_before_any_work(tmp_path, overrides, message):
-    line = _one_line_error(_cli(tmp_path, *overrides))
+    line = one_line_error(_cli(tmp_path, *overrides))
     assert line.startswith(message), line
     assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "measurement.npz").exists()
 
@@ -65,7 +59,7 @@ def test_bad_options_are_refused_before_any_work(tmp_path, overrides, message):
 @pytest.mark.slow
 def test_a_rejected_run_leaves_what_the_guide_says(tmp_path):
     """docs/guide/bad-data.md: Hydra's config and log (the error logged once) and the empty run-directory lock."""
-    _one_line_error(_cli(tmp_path, "n_dips=-5"))
+    one_line_error(_cli(tmp_path, "n_dips=-5"))
     assert sorted(p.name for p in tmp_path.iterdir()) == [".dipnet-run.lock", ".hydra", "reconstruct.log"]
     log = (tmp_path / "reconstruct.log").read_text()
     assert log.count("error: n_dips must be a positive integer, got -5") == 1, log
@@ -77,7 +71,7 @@ def test_report_without_plotly_is_refused_before_any_work(tmp_path):
     fake.mkdir(parents=True)
     (fake / "__init__.py").write_text("raise ImportError('No module named plotly')\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(fake.parent), os.environ.get("PYTHONPATH")]))}
-    line = _one_line_error(_cli(tmp_path / "run", "output.report=true", env=env))
+    line = one_line_error(_cli(tmp_path / "run", "output.report=true", env=env))
     assert line.startswith("error: output.report=true: HTML reports need plotly: pip install"), line
     assert not (tmp_path / "run" / "metrics.json").exists()
 
@@ -85,7 +79,7 @@ def test_report_without_plotly_is_refused_before_any_work(tmp_path):
 @pytest.mark.slow
 def test_unwritable_run_directory_is_named(tmp_path):
     (tmp_path / "reconstruct.log").mkdir()  # the log file cannot be written (root ignores chmod)
-    line = _one_line_error(_cli(tmp_path))
+    line = one_line_error(_cli(tmp_path))
     assert line.startswith(f"error: the run directory {tmp_path} is not writable"), line
     assert "hydra.run.dir" in line
 
@@ -108,7 +102,7 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
         proc.kill()
         _, stderr = proc.communicate()
         pytest.fail(f"Ctrl-C did not end the job within 120 s; its stderr ends:\n{stderr[-3000:]}")
-    line = _one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, "", stderr), code=130,
+    line = one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, "", stderr), code=130,
                            prefix="interrupted: ")
     assert f"rerun the same command with hydra.run.dir={tmp_path} to resume" in line, line
 

@@ -3,7 +3,6 @@
 import json
 import math
 import os
-import subprocess
 
 import numpy as np
 import pytest
@@ -18,7 +17,6 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.jobs.pipeline import run, write_outputs
 
 from planning_fixtures import reconstruct_cfg, tilt_spin
-from script_runs import run_script
 
 QUIET = ["output.progress=false"]
 
@@ -75,14 +73,11 @@ def test_3d_end_to_end_reaches_the_iou_floor(tmp_path):
 
 
 @pytest.fixture
-def cli(monkeypatch, capsys):
+def cli(script_run):
     """``python scripts/reconstruct.py hydra.run.dir=<dir> ...`` in this process (tests/script_runs.py: the same
     exit code and output without the ~6 s a subprocess spends importing torch; tests/fuzz/test_bad_data.py keeps
     a real subprocess of the script)."""
-    def run(tmp_path, *overrides) -> subprocess.CompletedProcess:
-        return run_script("reconstruct", f"hydra.run.dir={tmp_path}", *QUIET, *overrides, monkeypatch=monkeypatch,
-                          capsys=capsys)
-    return run
+    return lambda run_dir, *overrides: script_run("reconstruct", run_dir, *QUIET, *overrides)
 
 
 @pytest.mark.parametrize("overrides,message", [

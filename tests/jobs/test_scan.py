@@ -15,7 +15,6 @@ from dipnet.jobs.deprecations import upgrade_scan_config
 from dipnet.jobs.scan import deepest_lowering, orientations_from_config, plan_settings, scan_geometry
 
 from rig_helpers import make_world
-from script_runs import run_script
 
 
 def _scan_cfg(*overrides):
@@ -136,16 +135,6 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
     return lines[-1]
 
 
-@pytest.fixture
-def scan_script(monkeypatch, capsys):
-    """``_scan_script`` in this process (tests/script_runs.py: the same exit code and output without the ~6 s a
-    subprocess spends importing torch); test_scan_script_process_refuses_an_unknown_option_with_exit_2 runs the
-    real subprocess."""
-    def run(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
-        return run_script("scan", f"hydra.run.dir={run_dir}", *overrides, monkeypatch=monkeypatch, capsys=capsys)
-    return run
-
-
 @pytest.mark.parametrize("overrides,message", [
     # +n_dip=4 (before: it ran the full 40-dip default scan, exit 0): the real process, in the test below
     # before: the 400 deg tilt was dropped without a word and one orientation scanned
@@ -157,8 +146,8 @@ def scan_script(monkeypatch, capsys):
     (["tilts=[0,30]", "spins=[0]"],
      "error: tilts and spins set a grid plan, but orientations=fibonacci: add orientations=grid, or drop them"),
 ])
-def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, scan_script, overrides, message):
-    assert _error_line(scan_script(tmp_path, *QUICK_SCAN, *overrides)) == message
+def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, script_run, overrides, message):
+    assert _error_line(script_run("scan", tmp_path, *QUICK_SCAN, *overrides)) == message
     assert not (tmp_path / "rawscan.jsonl").exists()
 
 
