@@ -92,9 +92,12 @@ voxel loop, load average 3-8) 2.0 s per step on average and at most 2.7 s.
 
 from __future__ import annotations
 
+import inspect
 import logging
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import scipy.sparse
@@ -111,6 +114,11 @@ log = logging.getLogger(__name__)
 CRITERIA = ("information", "variance")
 
 
+def _keyword_defaults(function: Callable[..., Any]) -> dict[str, Any]:
+    """The defaults of ``function``'s keyword-only arguments."""
+    return {name: p.default for name, p in inspect.signature(function).parameters.items() if p.kind is p.KEYWORD_ONLY}
+
+
 class Planner(ABC):
     """Chooses the next dips among candidate directions."""
 
@@ -125,6 +133,11 @@ class Planner(ABC):
         """The linearised posterior around ``reconstruction`` (:func:`dipnet.evaluation.uncertainty.fit_posterior`)
         that the loop reports and this planner plans with, so that it is fitted once per step."""
         return fit_posterior(reconstruction, measurement, operator)
+
+    def posterior_settings(self) -> dict[str, Any]:
+        """How :meth:`posterior` is fitted (``planning.json``'s ``posterior``): the loop's uncertainty figures
+        come from it, the job's ``metrics.json`` from ``output.uncertainty`` (its method and the job's seed)."""
+        return {"method": "linearised", **_keyword_defaults(fit_posterior)}
 
 
 class NextBestDipPlanner(Planner):
@@ -150,6 +163,9 @@ class NextBestDipPlanner(Planner):
     def posterior(self, reconstruction: Reconstruction, measurement: DipMeasurement,
                   operator: DipOperator | None = None) -> Posterior:
         return fit_posterior(reconstruction, measurement, operator, **self.options)
+
+    def posterior_settings(self) -> dict[str, Any]:
+        return {**super().posterior_settings(), **self.options}
 
     def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
              k: int = 1, operator: DipOperator | None = None, posterior: Posterior | None = None) -> torch.Tensor:

@@ -30,7 +30,8 @@ MakeOperator = Callable[[torch.Tensor], DipOperator]
 @dataclass
 class PlanResult:
     """What a plan ended with: the measurement of all its dips, and the loop's report
-    (``{"stop_reason", "history"}``, ``None`` for a plan made up front)."""
+    (``{"stop_reason", "history", "posterior"}``: why it stopped, one row per step, how the posterior behind the
+    rows' uncertainty figures was fitted; ``None`` for a plan made up front)."""
 
     measurement: DipMeasurement
     report: dict[str, Any] | None = None
@@ -91,4 +92,5 @@ class AdaptivePlan:
             return solver.solve(measurement, operator), operator
 
         result = adaptive_loop(acquire, reconstruct, self.planner, reach or Reach(), self.settings)
-        return PlanResult(result.measurement, {"stop_reason": result.stop_reason, "history": result.history})
+        return PlanResult(result.measurement, {"stop_reason": result.stop_reason, "history": result.history,
+                                               "posterior": self.planner.posterior_settings()})

@@ -32,6 +32,10 @@ def test_adaptive_loop_stops_at_the_budget(tmp_path):
     planning = json.loads((tmp_path / "planning.json").read_text())
     assert result.measurement.n_orientations == 11 and planning["stop_reason"] == "budget"
     assert [h["n_dips"] for h in planning["history"]] == [4, 7, 10, 11]
+    # the rows' uncertainty figures come from the planner's own posterior, which the report states (the
+    # job's metrics.json from output.uncertainty: with another seed or method the two differ)
+    assert planning["posterior"] == {"method": "linearised", "resolution": 16, "n_samples": 64, "band_voxels": 1.5,
+                                     "floor": 0.05, "seed": 0, "max_rows": 4000, "max_work": 6e7}
     with np.load(tmp_path / "reconstruction.npz") as saved:
         assert saved["uncertainty_std"].shape == (16, 16, 16)
     assert 0 < result.metrics["uncertainty_mean"] < 0.5 and len(result.metrics["error_rate_by_uncertainty_decile"]) == 10
