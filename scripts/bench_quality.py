@@ -17,7 +17,8 @@ each mesh's ratio of voxel's Chamfer at the smallest budget to minnorm's at the 
     python scripts/bench_quality.py --options voxel='{"iterations": 300}'
     python scripts/bench_quality.py --dips voxel=41 minnorm=410                   # the headline pair only
     python scripts/bench_quality.py --headline --generated 50           # the learned prior's targets
-    python scripts/bench_quality.py --headline --quick                  # bunny + 2 generated shapes (64^3)
+    python scripts/bench_quality.py --headline --quick                  # bunny + 2 generated shapes (64^3), 2 processes
+    python scripts/bench_quality.py --headline --generated 50 --workers 2  # rows solved in 2 processes, 1 thread each
     python scripts/bench_quality.py --headline --from-json a.json b.json  # summaries of earlier runs' rows
 
 ``prior`` is ``solver=voxel_learned`` and ``implicit_prior`` ``solver=implicit_learned``, read from
@@ -38,6 +39,8 @@ generated shapes on which prior's Chamfer is below voxel's at the smallest budge
 Simulated measurements and truths are cached in ``--cache`` (``.npz``), keyed by their parameters
 and the simulation code version (:func:`dipnet.core.code_version.simulation_digest`), so repeated
 runs only pay for the solvers and a run after a change to the simulator simulates afresh.
+``--workers W`` solves the rows in ``W`` processes (``--threads`` torch threads each, default 1), the
+dearest solvers first; the rows are the ones a single process gives, printed as they finish.
 """
 
 from __future__ import annotations
@@ -45,8 +48,12 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import multiprocessing
+import os
 import statistics
 import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +123,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--fill", type=float, default=0.9, help="mesh radius / working-ball radius")
     p.add_argument("--options", nargs="*", default=[], metavar="SOLVER=JSON",
                    help="constructor options per solver, e.g. voxel='{\"iterations\": 300}'")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads per solve (default: torch's; with --workers above 1: 1)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="solve in this many processes (default 1; 2 for --headline --quick)")
     p.add_argument("--cache", type=Path, default=Path("outputs/bench_quality_cache"),
                    help="folder caching simulated measurements and truths")
     p.add_argument("--seed", type=int, default=0)
@@ -134,9 +144,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     if args.quick and args.headline:
         args.meshes, args.n, args.budgets, args.noise = args.meshes or ["bunny"], 64, [41, 410], ["clean"]
         args.solvers, args.generated = ["minnorm", "voxel", "prior"], args.generated or 2
+        args.workers = args.workers or 2
     elif args.quick:
         args.meshes, args.n, args.budgets = args.meshes or ["bunny", "torus"], 32, [41, 123]
         args.noise, args.solvers = ["clean"], ["minnorm", "voxel"]
+    args.workers = args.workers or 1
+    if args.workers < 1:
+        raise SystemExit(f"--workers must be 1 or more, got {args.workers}")
     if args.headline:  # minnorm at the largest budget, the optimisers at the smallest
         args.plan = {name: [max(args.budgets) if name == "minnorm" else min(args.budgets)] for name in args.solvers}
     else:
@@ -209,13 +223,64 @@ def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
         sensor = LevelSensor(snr_db=args.snr if noise == "snr" else None, quantum_mm=args.quantum_mm, seed=args.seed)
         _, measurement = simulate_measurement(shape, fibonacci_hemisphere(k), grid=grid, sensor=sensor,
                                               seed=args.seed, progress=False)
-        measurement.save(meas_file)
+        write_whole(meas_file, measurement.save)
     if truth_file.is_file():
         truth = np.load(truth_file)
     else:
         truth = shape.occupancy(grid, supersample=TRUTH_SUPERSAMPLE).numpy() >= 0.5
-        np.save(truth_file, truth)
+        write_whole(truth_file, lambda path: np.save(path, truth))
     return measurement, truth, shape
+
+
+def write_whole(path: Path, write: Callable[[Path], object]) -> None:
+    """``write(temporary file)`` then rename it to ``path``: a worker that finds ``path`` reads it whole (two
+    workers that make one case both write the same file)."""
+    part = path.with_name(f"{path.stem}.{os.getpid()}.part{path.suffix}")
+    write(part)
+    os.replace(part, path)
+
+
+#: Solvers in order of cost, the dearest first: with ``--workers`` their rows start first, so the workers end together.
+COST_ORDER = ("implicit_prior", "prior", "implicit", "dip", "voxel", "minnorm", "truth")
+
+
+def solve_row(args, grid: Grid, options: dict, task: tuple) -> dict:
+    """One row of the table: ``task = (label, kind, source, k, noise, solver)`` solved and scored (``source``: a
+    mesh path, or a generated shape's seed)."""
+    label, kind, source, k, noise, name = task
+    if kind == "mesh":
+        measurement, truth, shape = case_data(args, source, grid, k, noise)
+    else:
+        measurement, truth, shape = generated_case_data(args, source, grid, k, noise)
+    t0 = time.perf_counter()
+    if name == "truth":
+        recon = Reconstruction(shape.occupancy(grid, supersample=TRUTH_SUPERSAMPLE).float(), grid)
+    else:
+        operator = make_operator(grid, measurement.directions, grid.n)
+        recon = SOLVERS[name](progress=False, **options.get(name, {})).solve(measurement, operator)
+    seconds = time.perf_counter() - t0
+    scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
+    rule = recon.info.get("weight_rule") or {}
+    return {"mesh": label, "set": kind, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
+            **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
+            "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
+            "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
+            "target_residual": rule.get("target_residual")}
+
+
+def solved_rows(args, grid: Grid, options: dict, tasks: list[tuple]) -> Iterator[dict]:
+    """The rows of ``tasks``, in this process or, with ``--workers`` above 1, in that many processes of
+    ``--threads`` (default 1) torch threads each, dearest solvers first; rows come as they finish."""
+    if args.workers <= 1:
+        for task in tasks:
+            yield solve_row(args, grid, options, task)
+        return
+    dearest_first = sorted(tasks, key=lambda task: COST_ORDER.index(task[-1]))
+    with ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=torch.set_num_threads, initargs=(args.threads or 1,)) as pool:
+        futures = [pool.submit(solve_row, args, grid, options, task) for task in dearest_first]
+        for future in as_completed(futures):
+            yield future.result()
 
 
 def main(argv=None) -> list[dict]:
@@ -235,41 +300,24 @@ def main(argv=None) -> list[dict]:
     if args.generated:
         check_test_seeds(args.generated_first, args.generated)
     grid = Grid(args.n, 3)
-    cases = [(p.stem, "mesh", lambda k, noise, p=p: case_data(args, p, grid, k, noise)) for p in paths]
-    cases += [(f"gen{seed}", "generated", lambda k, noise, seed=seed: generated_case_data(args, seed, grid, k, noise))
+    cases = [(p.stem, "mesh", p) for p in paths]
+    cases += [(f"gen{seed}", "generated", seed)
               for seed in range(args.generated_first, args.generated_first + args.generated)]
+    budgets = sorted({k for ks in args.plan.values() for k in ks})
+    tasks = [(label, kind, source, k, noise, name)
+             for label, kind, source in cases for k in budgets for noise in args.noise
+             for name, ks in args.plan.items()
+             if k in ks and (kind == "mesh" or name != "minnorm")]  # minnorm is the meshes' reference only
     rows = []
     print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<14} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} {'time s':>7} "
           f"{'TV w':>8}", flush=True)
-    budgets = sorted({k for ks in args.plan.values() for k in ks})
-    for label, kind, make_case in cases:
-        for k in budgets:
-            for noise in args.noise:  # minnorm is the meshes' reference only
-                names = [name for name, ks in args.plan.items() if k in ks and (kind == "mesh" or name != "minnorm")]
-                if not names:
-                    continue
-                measurement, truth, shape = make_case(k, noise)
-                operator = make_operator(grid, measurement.directions, grid.n)
-                for name in names:
-                    t0 = time.perf_counter()
-                    if name == "truth":
-                        recon = Reconstruction(shape.occupancy(grid, supersample=TRUTH_SUPERSAMPLE).float(), grid)
-                    else:
-                        recon = SOLVERS[name](progress=False, **options.get(name, {})).solve(measurement, operator)
-                    seconds = time.perf_counter() - t0
-                    scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
-                    rule = recon.info.get("weight_rule") or {}
-                    row = {"mesh": label, "set": kind, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
-                           **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
-                           "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
-                           "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
-                           "target_residual": rule.get("target_residual")}
-                    rows.append(row)
-                    weight = "" if row["tv_weight"] is None else f"{row['tv_weight']:8.2e}"
-                    print(f"{label:<12} {k:>5} {noise:>6} {name:<14} {row['iou']:6.3f} {row['chamfer']:8.4f} "
-                          f"{row['hausdorff']:7.4f} {seconds:7.1f} {weight}", flush=True)
-                    if args.json:
-                        args.json.write_text(json.dumps(rows, indent=1))
+    for row in solved_rows(args, grid, options, tasks):
+        rows.append(row)
+        weight = "" if row["tv_weight"] is None else f"{row['tv_weight']:8.2e}"
+        print(f"{row['mesh']:<12} {row['dips']:>5} {row['noise']:>6} {row['solver']:<14} {row['iou']:6.3f} "
+              f"{row['chamfer']:8.4f} {row['hausdorff']:7.4f} {row['seconds']:7.1f} {weight}", flush=True)
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1))
     print_all(rows, args)
     return rows
 

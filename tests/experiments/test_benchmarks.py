@@ -8,7 +8,7 @@ import argparse
 import pytest
 
 from dipnet.preprocessing.datasets import MESHES_DIR
-from script_modules import load_script
+from script_modules import SCRIPTS, load_script
 
 
 @pytest.fixture(scope="module")
@@ -138,3 +138,23 @@ def test_the_truth_row_scores_the_truths_own_occupancy(tmp_path, capsys):
     truth, voxel = (next(r for r in rows if r["solver"] == name) for name in ("truth", "voxel"))
     assert truth["iou"] == 1.0 and truth["chamfer"] < voxel["chamfer"]
     assert "truth" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_the_quality_bench_gives_the_same_rows_in_two_worker_processes(tmp_path, capsys, monkeypatch):
+    """``--workers 2`` solves the rows in two processes (dearest first) and gives the rows one process
+    gives; the two workers share the case cache, whose files are written whole."""
+    monkeypatch.syspath_prepend(str(SCRIPTS))  # the workers import the script's functions (run as a script: __main__)
+    bench = load_script("bench_quality")
+    argv = ["--meshes", "torus", "--generated", "1", "--n", "16", "--dips", "minnorm=12", "voxel=8",
+            "--noise", "clean", "--options", 'voxel={"iterations": 60}', "--threads", "1", "--cache", str(tmp_path)]
+    two = bench.main([*argv, "--workers", "2"])
+    one = bench.main([*argv, "--workers", "1"])
+
+    def table(rows):
+        return {(r["mesh"], r["dips"], r["solver"]): r["chamfer"] for r in rows}
+    assert sorted(table(two)) == [("gen0", 8, "voxel"), ("torus", 8, "voxel"), ("torus", 12, "minnorm")]
+    assert table(two) == pytest.approx(table(one), rel=1e-9)
+    assert table(two)[("torus", 8, "voxel")] < 0.05  # a torus, not an empty grid (gen0's limbs are too thin at 16^3)
+    assert not list(tmp_path.glob("*.part*"))  # every cache file renamed whole
+    assert "RESULT" in capsys.readouterr().out
