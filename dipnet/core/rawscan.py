@@ -447,6 +447,7 @@ def read_rawscan(path: str | Path) -> RawScan:
                                     meta=dict(obj.get("meta") or {}))
                 if o.direction is not None and o.direction.shape != (scan.header.ndim,):
                     raise ValueError(f"direction must have {scan.header.ndim} components")
+                _check_direction(o)
                 scan.orientations = [x for x in scan.orientations if x.k != k] + [o]
                 by_k[k] = o
             elif kind == "reading":
@@ -479,6 +480,36 @@ def read_rawscan(path: str | Path) -> RawScan:
             raise RawScanFileError(f"{path}:{lineno}: {detail}") from exc
     assert scan is not None  # the first non-blank line either parses as a header or raised
     return scan
+
+
+#: How far (degrees) an orientation's recorded direction may lie from the one its rig angles give.
+DIRECTION_TOLERANCE_DEG = 0.5
+
+
+def _check_direction(o: OrientationScan) -> None:
+    """Raise ``ValueError`` when ``o``'s recorded direction has no length or is not finite, or, with
+    both rig angles recorded (3D), lies more than :data:`DIRECTION_TOLERANCE_DEG` from the direction
+    the angles give (:func:`~dipnet.core.orientations.rig_to_direction`). Preprocessing dips along the
+    angles' direction (:func:`dipnet.core.geometry.invert_scan`), so a file whose two disagree (angles
+    in another convention or unit, an elevation for a tilt, a hand edit) would be reconstructed from
+    directions it does not mean, without a word."""
+    if o.direction is None:
+        return
+    norm = float(np.linalg.norm(o.direction))
+    if not np.isfinite(o.direction).all() or norm == 0.0:
+        raise ValueError(f"orientation {o.k}: direction {o.direction.tolist()} is not a direction "
+                         "(non-finite or of length 0)")
+    if o.tilt_deg is None or o.spin_deg is None or o.direction.shape != (3,):
+        return
+    angles = rig_to_direction(o.tilt_deg, o.spin_deg)[0].numpy()
+    off = float(np.degrees(np.arccos(np.clip(o.direction @ angles / norm, -1.0, 1.0))))
+    if off > DIRECTION_TOLERANCE_DEG:
+        raise ValueError(
+            f"orientation {o.k}: its direction {np.round(o.direction / norm, 4).tolist()} is {off:.1f} deg from "
+            f"the one its rig angles give (tilt {o.tilt_deg:g} deg, spin {o.spin_deg:g} deg: "
+            f"{np.round(angles, 4).tolist()}); the record contradicts itself (angles in another convention "
+            "or unit, an elevation for a tilt?) and dipnet dips along the angles: correct one of them, "
+            "or drop tilt_deg and spin_deg to use the direction")
 
 
 @contextmanager

@@ -147,6 +147,34 @@ def test_malformed_file_names_file_and_line(tmp_path, lines, line_no, message):
     assert f"{path}:{line_no}:" in str(info.value)
 
 
+def _orientation_line(k: int, direction, tilt_deg: float, spin_deg: float) -> str:
+    return json.dumps({"type": "orientation", "k": k, "direction": list(direction), "tilt_deg": tilt_deg,
+                       "spin_deg": spin_deg})
+
+
+def test_a_direction_that_contradicts_its_rig_angles_is_refused(tmp_path):
+    """A record holding both a direction and rig angles is dipped along the angles (invert_scan):
+    angles that mean another direction (an elevation for a tilt: a torus at 20^3 then came back at
+    IoU 0.10 against its true reconstruction, "consistent") are refused, naming the line."""
+    header = json.dumps(_header().to_json())
+    true = rig_to_direction(20.0, 30.0)[0].numpy()
+    path = tmp_path / "ok.jsonl"  # a direction rounded to 3 decimals (0.03 deg) agrees with its angles
+    path.write_text("\n".join([header, _orientation_line(0, np.round(true, 3).tolist(), 20.0, 30.0)]) + "\n")
+    assert read_rawscan(path).orientations[0].tilt_deg == 20.0
+    path = tmp_path / "elevation.jsonl"
+    path.write_text("\n".join([header, _orientation_line(0, true.tolist(), 20.0, 30.0),
+                               _orientation_line(1, true.tolist(), 70.0, 30.0)]) + "\n")
+    with pytest.raises(RawScanFileError, match=r"orientation 1: its direction .* is 50.0 deg from the one its "
+                                                r"rig angles give \(tilt 70 deg, spin 30 deg") as info:
+        read_rawscan(path)
+    assert f"{path}:3:" in str(info.value)
+    path = tmp_path / "zero.jsonl"
+    path.write_text("\n".join([header, _orientation_line(0, [0.0, 0.0, 0.0], 20.0, 30.0)]) + "\n")
+    with pytest.raises(RawScanFileError, match=r"zero.jsonl:2: orientation 0: direction \[0.0, 0.0, 0.0\] is not a "
+                                                r"direction"):
+        read_rawscan(path)
+
+
 def test_missing_and_empty_files(tmp_path):
     with pytest.raises(RawScanFileError, match="not found"):
         read_rawscan(tmp_path / "nope.jsonl")
