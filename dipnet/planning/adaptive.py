@@ -45,7 +45,8 @@ class AdaptiveSettings:
         budget: the most dips in all.
         batch_size: dips planned per step.
         initial_dips: dips spread uniformly over the reach before the first plan.
-        stop_uncertainty: stop early when ``expected_error_fraction`` drops below this (``None``: never).
+        stop_uncertainty: stop early when ``expected_error_fraction`` drops below this, a fraction in (0, 1)
+            (``None``: never); a percentage (5 for 5 %) would stop after the first dips, so 1 and above are refused.
     """
 
     budget: int = 41
@@ -57,8 +58,12 @@ class AdaptiveSettings:
         if not 1 <= self.initial_dips <= self.budget or self.batch_size < 1:
             raise ValueError(f"need 1 <= initial_dips <= budget and batch_size >= 1, got initial_dips "
                              f"{self.initial_dips}, budget {self.budget}, batch_size {self.batch_size}")
-        if self.stop_uncertainty is not None and not self.stop_uncertainty > 0:
-            raise ValueError(f"stop_uncertainty must be positive or null, got {self.stop_uncertainty}")
+        if self.stop_uncertainty is not None and not 0 < self.stop_uncertainty < 1:
+            hint = (f" ({self.stop_uncertainty:g} would stop after the first {self.initial_dips} dips, whatever the "
+                    f"budget; for {self.stop_uncertainty:g} % give {self.stop_uncertainty / 100:g})"
+                    if self.stop_uncertainty >= 1 else "")
+            raise ValueError(f"stop_uncertainty must be a fraction in (0, 1) or null (the share of the object's "
+                             f"volume expected misclassified, e.g. 0.05), got {self.stop_uncertainty:g}{hint}")
 
 
 @dataclass

@@ -43,7 +43,7 @@ def test_adaptive_loop_stops_at_the_budget(tmp_path):
 
 def test_adaptive_loop_stops_when_certain_enough(tmp_path):
     run(reconstruct_cfg("resolution=16", "planner=adaptive", "planner.budget=20", "planner.initial_dips=5",
-                        "planner.stop_uncertainty=100", "output.figures=false", "output.uncertainty=false"), tmp_path)
+                        "planner.stop_uncertainty=0.999", "output.figures=false", "output.uncertainty=false"), tmp_path)
     planning = json.loads((tmp_path / "planning.json").read_text())
     assert planning["stop_reason"] == "uncertainty" and [h["n_dips"] for h in planning["history"]] == [5]
 
@@ -92,5 +92,11 @@ def test_bad_loop_settings_are_user_errors(tmp_path):
 
     with pytest.raises(ValueError, match="initial_dips <= budget"):
         AdaptiveSettings(budget=4, initial_dips=8)
+    # a percentage for the fraction (before: planner.stop_uncertainty=5 stopped at the 8 initial dips of 41, exit 0)
+    with pytest.raises(ValueError, match=r"fraction in \(0, 1\) .* got 5 \(5 would stop after the first 8 dips, "
+                                         r"whatever the budget; for 5 % give 0.05\)"):
+        AdaptiveSettings(stop_uncertainty=5)
+    with pytest.raises(ValueError, match="fraction in"):
+        AdaptiveSettings(stop_uncertainty=0)
     with pytest.raises(ValueError, match="plans 3D dips"):
         run(reconstruct_cfg("ndim=2", "planner=adaptive"), tmp_path)
