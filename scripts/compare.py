@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 from dipnet.experiments import collect, figures, tables
@@ -42,10 +43,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        runs = collect.collect_runs(args.dirs)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            runs = collect.collect_runs(args.dirs)
     except collect.NoRunsError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    for w in caught:  # e.g. a job given twice: one line each, as the pooled-options warning below
+        print(f"warning: {w.message}", file=sys.stderr)
     root = args.dirs[0] if len(args.dirs) == 1 else None
     out = args.out or args.dirs[0] / "compare"
     out.mkdir(parents=True, exist_ok=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -134,17 +135,33 @@ def load_run(job_dir: str | Path) -> Run:
 def collect_runs(dirs: str | Path | Iterable[str | Path]) -> list[Run]:
     """All jobs under one or several sweep directories (or job directories).
 
+    A job reached twice (a directory given twice, or a sweep and one of its jobs) is read once, with a
+    warning naming it: counted twice, it weighted its row's mean and shrank its std.
+
     Raises:
         NoRunsError: a directory does not exist or holds no job at all.
     """
     dirs = [dirs] if isinstance(dirs, (str, Path)) else list(dirs)
     runs: list[Run] = []
+    seen: set[Path] = set()
+    repeated: list[Path] = []
     for d in dirs:
         jobs = find_job_dirs(d)
         if not jobs:
             raise NoRunsError(f"{d}: no reconstruction jobs found (no .hydra/config.yaml, metrics.json "
                               f"or error.txt below it); pass the directory of a sweep (`-m`) or of a run")
-        runs.extend(load_run(j) for j in jobs)
+        for job in jobs:
+            key = job.resolve()
+            if key in seen:
+                repeated.append(job)
+                continue
+            seen.add(key)
+            runs.append(load_run(job))
+    if repeated:
+        names = ", ".join(map(str, repeated[:3])) + (f" and {len(repeated) - 3} more" if len(repeated) > 3 else "")
+        message = (f"{len(repeated)} job(s) were given more than once (the same directory twice, or a sweep and "
+                   f"its own jobs): {names}; each is compared once")
+        warnings.warn(message, stacklevel=2)
     return runs
 
 

@@ -132,3 +132,18 @@ def test_a_row_pooling_runs_of_another_resolution_is_named(tmp_path, capsys, dif
         assert f"warning: r{note}" in err and f"\nR{note}" in md
     else:
         assert "pool runs" not in err + md
+
+
+def test_a_job_given_twice_is_compared_once(sweep, tmp_path, capsys):
+    """``compare.py SWEEP SWEEP/0`` (a sweep and one of its jobs, as a shell glob gives): before, job 0 was read
+    twice, its row showed "runs 3" for two seeds (its mean weighted to job 0), exit 0 without a word."""
+    out = tmp_path / "cmp"
+    n = len(collect.collect_runs(sweep))
+    assert _load_compare().main([str(sweep), str(sweep / "0"), str(sweep), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {n + 1} job(s) were given more than once (the same directory twice, or a sweep and its own " \
+           f"jobs): {sweep / '0'}, " in err and "each is compared once" in err
+    with (out / "runs.csv").open() as f:
+        assert len(list(csv.DictReader(f))) == n
+    with (out / "summary.csv").open() as f:
+        assert {row["runs"] for row in csv.DictReader(f)} <= {"1", "2"}
