@@ -104,7 +104,8 @@ class SensorModel(ABC):
         """``(sigma, snr_db, quantum, drift_per_s)`` in reading units."""
 
     def __post_init__(self) -> None:
-        """Raise ``ValueError`` for a negative or non-finite noise, quantum or drift, or an SNR out of range."""
+        """Raise ``ValueError`` for a negative or non-finite noise, quantum or drift, an SNR out of range, or
+        both a noise sigma and an SNR (the SNR sets the noise, so the sigma would be ignored without a word)."""
         unit = self.quantity.rsplit("_", 1)[-1]  # mm or g
         names = (f"sigma_{unit}", "snr_db", f"quantum_{unit}", f"drift_{unit}_per_s")
         for name, value in zip(names, self._params()):
@@ -115,6 +116,10 @@ class SensorModel(ABC):
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not low <= value < math.inf:
                 kind = "a finite number" if low < 0 else "a number >= 0 (0: none)"
                 raise ValueError(f"sensor {name} must be {kind}, got {value!r}")
+        sigma, snr_db, _, _ = self._params()
+        if snr_db is not None and sigma > 0:
+            raise ValueError(f"the sensor's sigma_{unit}={sigma:g} {unit} and snr_db={snr_db:g} both set its noise, and "
+                             f"with snr_db the sigma is ignored: give one (snr_db=null for a noise of {sigma:g} {unit})")
 
     @property
     def quantum(self) -> float:
@@ -157,7 +162,7 @@ class LevelSensor(SensorModel):
     """Water-level transducer (mm).
 
     Attributes:
-        sigma_mm: white noise standard deviation per reading (mm); ignored if ``snr_db`` is set.
+        sigma_mm: white noise standard deviation per reading (mm); 0 with ``snr_db`` set (both: ``ValueError``).
         snr_db: noise from a signal-to-noise ratio instead (see :meth:`SensorModel.noise_sigma`).
         quantum_mm: reading resolution (mm); 0 (default) for none. The authors' robot: 0.04 mm.
             Mind the scale: one quantum is ``quantum_mm * A`` mm^3 (600 mm^3 for 0.01 mm in a

@@ -125,6 +125,17 @@ def test_negative_or_non_finite_noise_is_refused(sensor, message):
         LevelSensor(**sensor)
 
 
+def test_a_noise_sigma_beside_an_snr_is_refused():
+    """The SNR sets the noise: before, ``sigma_mm=0.1`` with ``snr_db=30`` simulated a noise of 0.0009-0.0012 mm
+    (the 30 dB one, 90x below the sigma asked for) without a word."""
+    with pytest.raises(ValueError, match=r"the sensor's sigma_mm=0.1 mm and snr_db=30 both set its noise, and with "
+                                         r"snr_db the sigma is ignored: give one \(snr_db=null for a noise of 0.1 mm\)"):
+        LevelSensor(sigma_mm=0.1, snr_db=30.0)
+    with pytest.raises(ValueError, match=r"sigma_g=0.5 g and snr_db=20"):
+        Balance(sigma_g=0.5, snr_db=20.0)
+    assert LevelSensor(sigma_mm=0.0, snr_db=30.0).snr_db == 30.0 and LevelSensor(sigma_mm=0.1).sigma_mm == 0.1
+
+
 def test_balance_checks_its_own_units():
     with pytest.raises(ValueError, match="sensor quantum_g must be a number >= 0"):
         Balance(quantum_g=-0.01)
