@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -89,6 +90,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     check_config(cfg, *hydra_overrides())
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    earlier = output_files(out)
     torch.manual_seed(int(cfg.seed))
     configure_threads(cfg.get("threads"))
     check_memory(cfg)
@@ -162,8 +164,49 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         stage("report")
         write_run_report(out)
     stage.close()
+    warn_earlier_outputs(out, earlier, cfg)
     log.info("done: %s (every metric: %s)", headline(scores), out / "metrics.json")
     return JobResult(measurement, recon, scores, out)
+
+
+#: The files a reconstruction job may write into its run directory (meshes: :data:`MESH_NAMES` x any format).
+RUN_OUTPUTS = ("measurement.npz", "rawscan.jsonl", "planning.json", "reconstruction.npz", "metrics.json",
+               "resolvability.npz", "resolvability.png", "uncertainty.png", "sinogram.png", "profiles.png",
+               "slices.png", "history.json", "loss.png", "mesh.png", "report.html", "plotly.min.js",
+               "self_calibration.json", "rig_calibration.yaml")
+MESH_NAMES = ("truth", "reconstruction")
+MESH_SUFFIXES = (".ply", ".stl", ".obj")
+
+
+def output_files(out: Path) -> dict[str, tuple[int, int]]:
+    """The job output files (:data:`RUN_OUTPUTS`, the meshes) already in ``out``: name -> ``(inode, mtime in ns)``."""
+    found = {}
+    for path in out.iterdir() if out.is_dir() else ():
+        if path.name in RUN_OUTPUTS or (path.stem in MESH_NAMES and path.suffix in MESH_SUFFIXES):
+            try:
+                stat = path.stat()
+            except OSError:
+                continue
+            found[path.name] = (stat.st_ino, stat.st_mtime_ns)
+    return found
+
+
+def warn_earlier_outputs(out: Path, earlier: dict[str, tuple[int, int]], cfg: DictConfig) -> list[str]:
+    """Warn about the output files an earlier job left in ``out`` that this job did not write again (``earlier``:
+    :func:`output_files` before it ran): a mesh format or figure no longer asked for, a truth a recording does not
+    have, a reconstruction too empty to mesh. They lie beside this job's results as if they were its own. The
+    job's own input (a recording in ``out``) is not named. Returns their names."""
+    recording = OmegaConf.select(cfg, "source.reader.path", default=None)
+    source = Path(str(recording)).resolve() if isinstance(recording, str) and recording != "???" else None
+    now = output_files(out)
+    stale = sorted(name for name, mark in earlier.items() if now.get(name) == mark and (out / name).resolve() != source)
+    if stale:
+        message = (f"{out} holds {len(stale)} file(s) of an earlier run that this run did not write: "
+                   f"{', '.join(stale)}; they are not this run's results: delete them, or give each run its own "
+                   "hydra.run.dir")
+        log.warning("%s", message)
+        warnings.warn(message, stacklevel=2)
+    return stale
 
 
 def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> None:

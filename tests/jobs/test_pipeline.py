@@ -210,3 +210,20 @@ def test_the_outputs_bar_counts_to_the_stages_the_job_runs(tmp_path, monkeypatch
     run(_cfg("ndim=2", "resolution=32", "n_dips=10", "output.figures=false", "output.progress=true"), tmp_path)
     (bar,) = RecordingBar.made
     assert bar.first_total == bar.n == bar.total < len(progress.STAGES)
+
+
+def test_a_run_into_the_folder_of_an_earlier_run_names_the_files_it_did_not_write(tmp_path, cli):
+    """Before: a recording reconstructed into the hydra.run.dir of a simulated run left that run's truth.ply,
+    truth.stl, reconstruction.stl (the other object's) and 6 figures beside its own results, exit 0 without a word.
+    The same command again writes every file again: no warning; the recording it reads is not named."""
+    quick = ["resolution=16", "output.figures=false", "output.uncertainty=false", "output.resolvability=false"]
+    assert cli(tmp_path, *quick, "n_dips=8", "output.mesh_formats=[ply,stl]").returncode == 0
+    again = cli(tmp_path, *quick, "n_dips=8", "output.mesh_formats=[ply,stl]")
+    assert again.returncode == 0 and "earlier run" not in again.stderr + (tmp_path / "reconstruct.log").read_text()
+    extent = float(np.load(tmp_path / "reconstruction.npz")["grid_extent"])
+    recorded = cli(tmp_path, *quick, "source=recorded", f"source.reader.path={tmp_path / 'rawscan.jsonl'}",
+                   f"extent_mm={extent}")
+    assert recorded.returncode == 0, recorded.stderr[-2000:]
+    assert (f"{tmp_path} holds 3 file(s) of an earlier run that this run did not write: reconstruction.stl, "
+            "truth.ply, truth.stl; they are not this run's results: delete them, or give each run its own "
+            "hydra.run.dir") in (tmp_path / "reconstruct.log").read_text()
