@@ -188,7 +188,9 @@ def plot_montage(runs: Sequence[Run], path: str | Path, *, row_key: str | Sequen
     reference = max(order, key=lambda run: run.metrics.get("iou") or -1.0)  # the first of the best (null: none)
     ref = volumes[reference.path]
     images = {p: render_volume(v, cut=True) for p, v in volumes.items()}
-    (r0, c0), (r1, c1) = _box(np.any([im > 0 for im in images.values()], axis=0))
+    # one zoom per picture size: a sweep over resolution (or 2D beside 3D) draws pictures of several sizes
+    boxes = {size: _box(np.any([im > 0 for im in images.values() if im.shape == size], axis=0))
+             for size in {im.shape for im in images.values()}}
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.8 * len(cols), 3.0 * len(rows) + 0.8),
                              squeeze=False, layout="constrained")
     for i, r in enumerate(rows):
@@ -203,6 +205,7 @@ def plot_montage(runs: Sequence[Run], path: str | Path, *, row_key: str | Sequen
             vol = volumes[run.path]
             ax.imshow(np.ma.masked_equal(images[run.path], 0.0), cmap=_MONTAGE_CMAP, vmin=-0.5, vmax=1.1,
                       interpolation="nearest")
+            (r0, c0), (r1, c1) = boxes[images[run.path].shape]
             ax.set(xlim=(c0 - 0.5, c1 + 0.5), ylim=(r1 + 0.5, r0 - 0.5))
             iou = run.metrics.get("iou")
             note = "" if iou is None else f"IoU {iou:.3f}"

@@ -57,3 +57,20 @@ def test_a_null_iou_of_strict_json_is_no_reference(tmp_path, monkeypatch):
     monkeypatch.setattr(figures, "save_figure", lambda fig, path: figs.append(fig) or path)
     figures.plot_montage(collect.collect_runs(tmp_path), tmp_path / "m.png")
     assert figs[0].axes[1].get_title().endswith("\nIoU 0.800 · reference")
+
+
+def test_a_sweep_over_resolution_draws_its_montage(tmp_path, monkeypatch):
+    """Before: ``compare.py`` on jobs of 12^3 and 24^3 (``resolution=12,24``; or 2D beside 3D) printed
+    "skipping montage.png: setting an array element with a sequence. The requested array has an inhomogeneous
+    shape ..." (one zoom box from all the pictures) and drew none. Now each picture size has its own zoom."""
+    for i, n in enumerate((12, 24)):
+        write_job(tmp_path / str(i), solver="minnorm", n_dips=8, snr_db=None, seed=0, ndim=3, resolution=n,
+                  metrics={"iou": 0.5 + i / 4})
+    figs = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, path: figs.append(fig) or path)
+    figures.plot_montage(collect.collect_runs(tmp_path), tmp_path / "m.png", row_key="resolution")
+    shown = [ax for ax in figs[0].axes if ax.images]
+    assert len(shown) == 2
+    for ax in shown:  # every cell zoomed inside its own picture
+        (x0, x1), width = ax.get_xlim(), ax.images[0].get_array().shape[1]
+        assert -0.5 <= x0 < x1 <= width - 0.5
