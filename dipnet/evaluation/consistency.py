@@ -92,6 +92,8 @@ HULL_FILL_MIN = 0.04  # measured volume / the dips' support hull below which the
 HULL_FILL_MAX = 1.1  # above it the dips measure more than the region they bound can hold (a box fills ~1)
 FLOOR_SIGMAS = 3.0  # a profile floor within this many noise sigmas of 0 is noise
 FLOOR_SPREAD = 0.25  # the dips' floors agree (a drift's floor) when their robust spread is at most this share
+FLOOR_BEYOND_MATERIAL = 0.01  # a drift of the floor that puts less than this share of the volume beyond the slabs: untested
+FLOOR_BEYOND_MIN = 0.25  # readings beyond the slabs holding less than this share of a drift's: the floor is no drift
 
 
 class DataConsistencyWarning(UserWarning):
@@ -128,6 +130,7 @@ class Consistency:
     profile_floor_limit_mm3: float = float("nan")
     outside_share: float = float("nan")
     outside_limit: float = float("nan")
+    floor_beyond_ratio: float = float("nan")
     quantum_volume_mm3: float = float("nan")
     mean_slab_mm3: float = float("nan")
     level_fall_share: float = float("nan")
@@ -236,6 +239,24 @@ def beyond_slabs(measurement: DipMeasurement, floor_mm3: float) -> float:
     return float(shares.max())
 
 
+def floor_beyond_ratio(measurement: DipMeasurement, floor_mm3: float) -> float:
+    """What the dips' readings beyond their slabs hold over what a level drift that puts ``floor_mm3`` (mm^3;
+    mm^2 in 2D) under every slab would put there (``floor_mm3 / h`` per mm of readings beyond the slabs,
+    ``outside_mm``): about 1 for a drift; far below 1 when the floor is the object's own, its slabs so coarse
+    that it fills every inner one (2D, 24 pixels, 7 slabs: 0.02). NaN without the metadata, without readings
+    beyond the slabs, or when a drift of that floor would put there less than 1 % of the volume."""
+    meta = measurement.metadata or {}
+    shares = np.asarray(meta.get("outside_share", []), dtype=np.float64)
+    spans = np.asarray(meta.get("outside_mm", []), dtype=np.float64)
+    if not floor_mm3 > 0 or shares.size == 0 or spans.size != shares.size:
+        return float("nan")
+    totals = float(measurement.profiles.double().sum(1).mean())
+    drift = floor_mm3 / measurement.slab_thickness * float(spans.mean())
+    if not drift > FLOOR_BEYOND_MATERIAL * totals:
+        return float("nan")
+    return float(np.mean(shares / np.clip(1.0 - shares, 1e-12, None))) * totals / drift
+
+
 def _relative_residual(operator: DipOperator, volume: torch.Tensor, target: torch.Tensor) -> float:
     with torch.no_grad():
         predicted = operator(volume.to(torch.float64))
@@ -300,6 +321,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     slab_sigma = _slab_sigma(measurement)
     result.profile_floor_limit_mm3 = floor_limit(measurement, slab_sigma)
     result.outside_share = beyond_slabs(measurement, result.profile_floor_mm3)
+    result.floor_beyond_ratio = floor_beyond_ratio(measurement, result.profile_floor_mm3)
     result.outside_limit = max(BEYOND_SLABS_TOL, FLOOR_SIGMAS * slab_sigma / measured)
     if result.outside_share > 0:  # NaN compares False
         result.grid_volume_fraction *= 1.0 - result.outside_share
@@ -370,8 +392,9 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by {c.height_trend_offset_mm:+.2f}"
                    f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
                    "scripts/calibrate.py)")
+    drift_free = c.floor_beyond_ratio < FLOOR_BEYOND_MIN  # NaN compares False: no readings to tell by
     if abs(c.profile_floor_mm3) > c.profile_floor_limit_mm3 and abs(c.profile_floor_share) > c.volume_limit \
-            and not beyond:  # an object beyond the slabs fills them to their ends: no drift's floor
+            and not beyond and not drift_free:  # an object beyond the slabs fills them to their ends: no drift's floor
         out.append(f"every dip holds {c.profile_floor_mm3:+.4g} {c.volume_unit} per slab where its slabs should be empty (before "
                    f"the object touches the water and after it is under): {c.profile_floor_share:+.1%} of the "
                    "measured volume, which the reconstruction takes for object. A level that drifts in time (the "

@@ -78,6 +78,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "level_fall_sigmas": ("how consistent with the data", "the fall in standard errors"),
     "outside_share": ("how consistent with the data", "largest share of a dip's volume beyond the slabs"),
     "outside_limit": ("how consistent with the data", "limit of that share"),
+    "floor_beyond_ratio": ("how consistent with the data", "readings beyond the slabs over what a drift of the floor puts there"),
     "quantum_volume_mm3": ("how consistent with the data", "volume of one step of the sensor's reading (mm³)"),
     "mean_slab_mm3": ("how consistent with the data", "mean slab the object fills (mm³)"),
     "consistency": ("how consistent with the data", "verdict"),

@@ -300,6 +300,29 @@ def test_an_object_beyond_the_slabs_is_named_and_not_blamed_on_a_drift():
     assert any("drifts in time" in m for m in messages) and not any("beyond the working range" in m for m in messages)
 
 
+@pytest.mark.parametrize("overrides, drift_named", [(("n_slabs=7",), False),
+                                                    (("source.simulator.sensor.drift_mm_per_s=0.05",), True)])
+def test_slabs_an_object_fills_to_their_ends_are_not_blamed_on_a_drift(tmp_path, overrides, drift_named):
+    """A 2D object on 24 pixels read into 7 slabs fills every inner slab: the floor check read 113 % of the volume as
+    a level drift ("every dip holds +464.5 mm^2 per slab ... A level that drifts in time ...") with no drift in the
+    data. A drift puts as much volume per mm into the readings beyond the slabs as under them (ratio 0.98 at 0.05
+    mm/s, still named); there the dips hold nothing (ratio ~0), so no drift is named. The run stays inconsistent."""
+    from hydra import compose, initialize_config_module
+
+    from dipnet.jobs.pipeline import run
+
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "ndim=2", "resolution=24", "n_dips=12", *overrides, "output.progress=false", "output.figures=false",
+            "output.uncertainty=false", "output.resolvability=false"])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        metrics = run(cfg, tmp_path).metrics
+    assert metrics["profile_floor_share"] > 0.5 and metrics["consistency"] == "inconsistent"
+    assert metrics["floor_beyond_ratio"] == (pytest.approx(0.98, abs=0.05) if drift_named else pytest.approx(0, abs=1e-6))
+    assert any("drifts in time" in str(w.message) for w in caught) == drift_named
+
+
 def test_a_falling_level_is_named_though_the_monotone_slabs_hide_it():
     """A level falling 0.002 mm/s (a leak) leaves no floor: preprocessing's monotone fit flattens it and
     every profile loses volume alike, so residual, volume ratio and floor all pass. The readings after the
