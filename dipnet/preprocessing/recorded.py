@@ -331,7 +331,7 @@ def interpolate_orientations(measurement: DipMeasurement, targets, k: int = 3, m
 def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = None, fixture: str | Path | None = None,
                       geometry: RigGeometry | dict | None = None, calibration: str | Path | None = None,
                       centre: str = "extent", truncated: str = "drop", tail_fraction: float = 0.1,
-                      tail_tol: float = 0.04, max_cross_section: float | None = None
+                      tail_tol: float = 0.04, max_cross_section: float | None = None, ndim: int | None = None
                       ) -> tuple[RawScan, RigGeometry, dict]:
     """A recording made ready for :func:`~dipnet.core.geometry.invert_scan` and preprocessing.
 
@@ -345,9 +345,15 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     placed by :func:`geometry_start_heights` (the geometry's height shift is *not* in it:
     ``invert_scan`` adds it). Arguments as for :func:`read_raw_recording`.
 
+    ``ndim``: the grid's dimension, which the recording's must match (checked before its readings are
+    repaired: a 3D recording's rises exceed a 2D grid's physical cap, and were "repaired" before the refusal).
+
     Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``.
     """
     raw = read_scan(path, cross_section_mm2)
+    if ndim is not None and raw.header.ndim != ndim:
+        raise ValueError(f"{path}: a {raw.header.ndim}D recording (its header's ndim) for a {ndim}D grid: "
+                         f"set ndim={raw.header.ndim}")
     raw.orientations = complete_dips(raw)
     raw, readings = repair_readings(raw, max_cross_section=max_cross_section)
     if calibration is not None and as_geometry(geometry) != RigGeometry():
@@ -450,7 +456,8 @@ def read_raw_recording(path: str | Path, grid: Grid, n_slabs: int | None = None,
         The measurement, ``metadata["recorded"]`` holding what was done (geometry, start heights,
         dropped dips, counts).
     """
-    raw, geometry, info = prepare_recording(path, max_cross_section=max_object_section(grid), **options)
+    raw, geometry, info = prepare_recording(path, max_cross_section=max_object_section(grid), ndim=grid.ndim,
+                                            **options)
     # cleaned once, by prepare_recording: complete dips kept, outliers repaired
     m = preprocess(invert_scan(raw, geometry), grid=grid, n_slabs=n_slabs,
                    t_start="metadata" if t_start == "geometry" else t_start, smooth=smooth, repair=False,

@@ -254,3 +254,16 @@ def test_dropped_truncated_dips_are_named_counted_and_refused_when_most(tmp_path
     path = _cut_short(raw, set(range(7))).save(tmp_path / "most_short.jsonl")
     with pytest.raises(ValueError, match=r"7 of 8 dips end before .* more than 75%"):
         read_raw_recording(path, grid)
+
+
+def test_a_recording_on_a_grid_of_the_other_dimension_is_refused_before_its_readings_are_repaired(tmp_path):
+    """Before: a 3D torus scan read with ndim=2 "repaired" 7 of its clean readings (against the 2D grid's rise cap),
+    each with a warning, and then was refused as "3D directions for a 2D grid"."""
+    import warnings
+
+    path = simulate_scan(Ball(20.0), fibonacci_hemisphere(8), progress=False).save(tmp_path / "ball.jsonl")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no repair warning comes first
+        with pytest.raises(ValueError, match=r"ball.jsonl: a 3D recording \(its header's ndim\) for a 2D grid: "
+                                             r"set ndim=3"):
+            read_raw_recording(path, Grid(16, ndim=2, extent=80.0))
