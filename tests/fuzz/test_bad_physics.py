@@ -44,10 +44,10 @@ def test_ball_scan_reads_the_same_from_its_npz_and_its_jsonl(tmp_path, script_ru
     assert jsonl["volume_ratio"] == pytest.approx(npz["volume_ratio"], abs=1e-3)
 
 
-def test_a_noise_sigma_beside_an_snr_is_one_error_line(tmp_path, script):
+def test_a_noise_sigma_beside_an_snr_is_one_error_line(tmp_path, script_run):
     """Before: exit 0 with the 30 dB noise (0.0009-0.0012 mm per reading), the 0.1 mm asked for ignored."""
-    line = _one_line_error(script(RECONSTRUCT, tmp_path / "run", "source.simulator.sensor.sigma_mm=0.1", "snr_db=30",
-                                  "resolution=16", "n_dips=4", *QUICK))
+    line = one_line_error(script_run("reconstruct", tmp_path / "run", "source.simulator.sensor.sigma_mm=0.1",
+                                     "snr_db=30", "resolution=16", "n_dips=4", *QUICK))
     assert line == ("error: the sensor's sigma_mm=0.1 mm and snr_db=30 both set its noise, and with snr_db the sigma "
                     "is ignored: give one (snr_db=null for a noise of 0.1 mm)")
     assert not (tmp_path / "run" / "rawscan.jsonl").exists()

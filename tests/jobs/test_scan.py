@@ -151,11 +151,11 @@ def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, script_
     assert not (tmp_path / "rawscan.jsonl").exists()
 
 
-def test_an_adaptive_scan_refuses_a_percentage_for_its_stopping_fraction(tmp_path, scan_script):
+def test_an_adaptive_scan_refuses_a_percentage_for_its_stopping_fraction(tmp_path, script_run):
     """Before: planner.stop_uncertainty=5 (meant as 5 %) stopped the scan after its 4 initial dips of a budget of 8,
     exit 0, "scan complete" (the expected error fraction is below 5 from the first step)."""
-    done = scan_script(tmp_path, "+planner=adaptive", "planner.budget=8", "planner.initial_dips=4",
-                       "planner.stop_uncertainty=5", "protocol.step_mm=20", "fsync=false", "progress=false")
+    done = script_run("scan", tmp_path, "+planner=adaptive", "planner.budget=8", "planner.initial_dips=4",
+                      "planner.stop_uncertainty=5", "protocol.step_mm=20", "fsync=false", "progress=false")
     assert _error_line(done) == (
         "error: stop_uncertainty must be a fraction in (0, 1) or null (the share of the object's volume expected "
         "misclassified, e.g. 0.05), got 5 (5 would stop after the first 4 dips, whatever the budget; for 5 % give 0.05)")
