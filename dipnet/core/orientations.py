@@ -116,6 +116,36 @@ def check_grid_angles(tilts, spins, max_tilt_deg: float = 90.0) -> None:
                          f"deg outside the rig's tilt range [0, {max_tilt_deg:g}] deg (max_tilt_deg){hint}")
 
 
+#: Rig angles whose dip directions lie closer than this (degrees) dip the same direction: a grid plan dips
+#: it once (:func:`distinct_rig_angles`). Far below any rig's angle resolution, far above rounding.
+SAME_DIRECTION_DEG = 1e-3
+
+
+def distinct_rig_angles(pairs, tol_deg: float = SAME_DIRECTION_DEG
+                        ) -> tuple[list[tuple[float, float]], list[tuple[tuple[float, float], tuple[float, float]]]]:
+    """``pairs`` of rig angles ``(tilt_deg, spin_deg)`` (degrees) with every pair whose dip direction
+    (:func:`rig_to_direction`) lies within ``tol_deg`` degrees of an earlier pair's left out: at tilt 0 every
+    spin dips the same direction (the vertical), and spins 360 deg apart are the same spin.
+
+    Returns:
+        The kept pairs, in their order, and the left-out ones as ``(pair, the earlier pair it repeats)``.
+    """
+    pairs = [(float(t), float(s)) for t, s in pairs]
+    if not pairs:
+        return [], []
+    d = rig_to_direction([t for t, _ in pairs], [s for _, s in pairs]).numpy()
+    chord = 2.0 * math.sin(math.radians(float(tol_deg)) / 2.0)
+    kept: list[int] = []
+    repeats: list[tuple[tuple[float, float], tuple[float, float]]] = []
+    for i in range(len(pairs)):
+        same = [j for j in kept if np.linalg.norm(d[i] - d[j]) <= chord]
+        if same:
+            repeats.append((pairs[i], pairs[same[0]]))
+        else:
+            kept.append(i)
+    return [pairs[i] for i in kept], repeats
+
+
 def unmeasured_band_deg(directions) -> float:
     """Half-angle (deg) of the band of directions about the horizontal plane that no dip of ``directions``
     ``(K, d)`` comes within: 90 minus the largest tilt from the vertical (last) axis (``d`` and ``-d`` give the

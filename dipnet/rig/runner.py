@@ -39,7 +39,7 @@ import serial
 import torch
 from tqdm.auto import tqdm
 
-from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig, make_directions
+from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig, distinct_rig_angles, make_directions
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
 from dipnet.core.rawscan_writer import RawScanWriter
 from dipnet.core.memory import MAX_READINGS_PER_DIP
@@ -104,6 +104,8 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
 
     Args:
         kind: ``"grid"`` (every ``tilts`` x ``spins`` pair, tilt-major, as the authors' robot),
+            each direction once (pairs that dip a direction an earlier pair dips, as every spin at tilt 0, are
+            left out with a warning: :func:`~dipnet.core.orientations.distinct_rig_angles`),
             or an orientation set of :func:`~dipnet.core.orientations.make_directions`
             (``fibonacci`` | ``random``) with ``n`` directions, converted to rig angles.
         max_tilt_deg: the rig's mechanical tilt limit (degrees): a set beyond it is kept within it
@@ -112,7 +114,14 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
     """
     if kind == "grid":
         check_grid_angles(tilts, spins, max_tilt_deg)  # a tilt the rig cannot reach is an error, not dropped
-        return [(float(t), float(s)) for t in tilts for s in spins]
+        pairs = [(float(t), float(s)) for t in tilts for s in spins]
+        kept, repeats = distinct_rig_angles(pairs)
+        if repeats:
+            log.warning("orientations=grid: %d of its %d tilts x spins pairs dip a direction an earlier pair dips "
+                        "already (at tilt 0 every spin dips the vertical; spins 360 deg apart are one spin): %s; "
+                        "each direction is dipped once, %d dips", len(repeats), len(pairs),
+                        ", ".join(f"({t:g}, {s:g}) as ({t0:g}, {s0:g})" for (t, s), (t0, s0) in repeats), len(kept))
+        return kept
     tilt, spin = direction_to_rig(set_within_tilt(kind, int(n), seed, max_tilt_deg))
     return [(float(t), float(s)) for t, s in zip(np.round(tilt, 6), np.round(spin, 6))]
 

@@ -12,7 +12,7 @@ from dipnet.core.rawscan import read_rawscan
 from dipnet.evaluation.metrics import iou
 from dipnet.operators import make_operator
 from dipnet.preprocessing.preprocess import preprocess
-from dipnet.rig.runner import ScanAborted, ScanPlan
+from dipnet.rig.runner import ScanAborted, ScanPlan, plan_orientations
 from dipnet.solvers.minnorm import MinNormSolver
 
 from rig_helpers import plan_for, scan
@@ -111,3 +111,19 @@ def test_a_step_that_leaves_a_dip_fewer_than_four_readings_is_refused_before_any
     with pytest.raises(ValueError, match=r"protocol.step_mm=200 plans 1 reading\(s\) per orientation .* at least 4"):
         ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=200.0)
     assert len(ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0).stages()) == MIN_READINGS_PER_DIP == 4
+
+
+def test_a_grid_plan_dips_each_direction_once_and_says_so(caplog):
+    """Before: ``tilts=[0,30] spins=[0,360]`` planned 4 dips of 2 directions, no word (scan.yaml's own example
+    ``[0,25,50,70] x [0,180]`` dipped the vertical twice)."""
+    with caplog.at_level("WARNING", logger="dipnet.rig.runner"):
+        assert plan_orientations("grid", tilts=[0, 30], spins=[0, 360]) == [(0.0, 0.0), (30.0, 0.0)]
+    [record] = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert record.getMessage() == (
+        "orientations=grid: 2 of its 4 tilts x spins pairs dip a direction an earlier pair dips already (at tilt 0 "
+        "every spin dips the vertical; spins 360 deg apart are one spin): (0, 360) as (0, 0), (30, 360) as (30, 0); "
+        "each direction is dipped once, 2 dips")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="dipnet.rig.runner"):
+        assert len(plan_orientations("grid", tilts=[10, 30], spins=[0, 180])) == 4  # nothing repeated: no word
+    assert not caplog.records
