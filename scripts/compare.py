@@ -63,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{n_ok} of {len(runs)} jobs finished")
     if problems:
         print(problems, end="")
+    if not n_ok and len(runs) == 1 and runs[0].error:
+        print(f"error: the run in {runs[0].path} failed: {runs[0].error}", file=sys.stderr)
+        return 1
     if not n_ok:
         print(f"error: no job in {', '.join(map(str, args.dirs))} finished (no metrics.json); "
               f"see {out / 'runs.csv'}", file=sys.stderr)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -17,6 +18,10 @@ log = logging.getLogger(__name__)
 
 ERROR_FILE = "error.txt"
 METRICS_FILE = "metrics.json"
+#: A record of a job's log (Hydra's ``<job>.log``) that starts a new entry, and the one line a refused job
+#: ends with (:func:`~dipnet.jobs.cli.user_errors`): ``[time][dipnet][ERROR] - error: ...``.
+_LOG_RECORD = re.compile(r"^\[[^\]]*\]\[[^\]]*\]\[[A-Z]+\] - ")
+_LOG_ERROR = re.compile(r"^\[[^\]]*\]\[[^\]]*\]\[ERROR\] - error: (?P<message>.+)$")
 #: The stems of the recordings a run writes (``measurement.npz``, ``rawscan.jsonl``): a recorded
 #: source read from one is labelled with its run folder too (``base/measurement``).
 RUN_RECORDINGS = ("measurement", "rawscan")
@@ -46,13 +51,15 @@ class Run:
 
     Attributes:
         path: the job directory.
-        status: ``"ok"`` (``metrics.json`` written), ``"failed"`` (``error.txt`` or an unreadable
-            ``metrics.json``) or ``"unfinished"`` (neither: still running, killed, or empty).
+        status: ``"ok"`` (``metrics.json`` written), ``"failed"`` (``error.txt``, an unreadable
+            ``metrics.json``, or a job log whose last record is an ``error: ...`` line: a refused run) or
+            ``"unfinished"`` (none of these: still running, killed, or empty).
         config: the job's config as a plain dict (``{}`` when ``.hydra/config.yaml`` is missing).
         overrides: the job's command-line overrides (``.hydra/overrides.yaml``).
         choices: Hydra's config-group choices (``.hydra/hydra.yaml``), e.g. ``{"solver": "lsmr"}``.
         metrics: the contents of ``metrics.json`` (``{}`` unless ``status == "ok"``).
-        error: the first line of ``error.txt`` (or why ``metrics.json`` is unreadable).
+        error: the first line of ``error.txt``, the job log's ``error:`` line, or why ``metrics.json`` is
+            unreadable.
     """
 
     path: Path
@@ -129,7 +136,27 @@ def load_run(job_dir: str | Path) -> Run:
     elif error_path.is_file():
         lines = error_path.read_text().strip().splitlines()
         run.status, run.error = "failed", (lines[0] if lines else "error.txt is empty")
+    else:
+        logged = logged_error(job_dir)
+        if logged is not None:
+            run.status, run.error = "failed", logged
     return run
+
+
+def logged_error(job_dir: str | Path) -> str | None:
+    """The error a job outside a sweep was refused or stopped with: its log (``<job>.log``, the newest when
+    there are several) ending in the ``error: ...`` record of :func:`~dipnet.jobs.cli.user_errors`, as
+    ``"<message> (<log name>)"``; ``None`` when no log ends so (a run still going, or killed, logs on)."""
+    logs = sorted(Path(job_dir).glob("*.log"), key=lambda p: p.stat().st_mtime)
+    if not logs:
+        return None
+    try:
+        text = logs[-1].read_text(errors="replace")
+    except OSError:
+        return None
+    records = [line for line in text.splitlines() if _LOG_RECORD.match(line)]
+    found = _LOG_ERROR.match(records[-1]) if records else None
+    return f"{found['message']} ({logs[-1].name})" if found else None
 
 
 def collect_runs(dirs: str | Path | Iterable[str | Path]) -> list[Run]:

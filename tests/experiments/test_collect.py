@@ -39,6 +39,22 @@ def test_a_single_job_dir_and_a_corrupt_metrics_file(tmp_path):
     assert run.status == "failed" and "metrics.json" in run.error
 
 
+def test_a_run_refused_outside_a_sweep_is_failed_with_its_logged_error(tmp_path):
+    """Before: "unfinished" (no metrics.json, no error.txt) though its log ends with the ``error:`` line."""
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics=None)
+    assert collect.load_run(job).status == "unfinished"  # no log yet: still starting, or killed
+    log = job / "reconstruct.log"
+    log.write_text("[2026-11-28 02:18:40,100][dipnet.jobs.pipeline][INFO] - building the grid\n"
+                   "[2026-11-28 02:18:40,979][dipnet][ERROR] - error: resolution=3 is too coarse\n")
+    run = collect.load_run(job)
+    assert (run.status, run.error) == ("failed", "resolution=3 is too coarse (reconstruct.log)")
+    with log.open("a") as f:  # run again into the folder (Hydra appends to the log): going on, not failed
+        f.write("[2026-11-28 02:20:00,000][dipnet.jobs.pipeline][INFO] - building the grid\n")
+    assert collect.load_run(job).status == "unfinished"
+    log.write_text("[2026-11-28 02:18:40,979][dipnet][WARNING] - error: quoted in a warning\n")
+    assert collect.load_run(job).status == "unfinished"
+
+
 def test_no_runs_is_a_clear_error(tmp_path):
     (tmp_path / "notes").mkdir()
     with pytest.raises(collect.NoRunsError, match="no reconstruction jobs found"):

@@ -82,6 +82,22 @@ def test_compare_errors_on_an_unfinished_dir(tmp_path, capsys, caplog, recwarn):
     assert err.count("\n") == 1                                      # one line
 
 
+REFUSED_LOG = ("[2026-11-28 02:18:40,979][dipnet][ERROR] - error: option n_dips is ignored with planner=adaptive "
+               "(the planner chooses the dips: set planner.budget): remove it\n")
+
+
+def test_compare_on_a_refused_run_reports_its_error(tmp_path, capsys, caplog, recwarn):
+    """Before: "(unfinished): no metrics.json (unfinished or killed)" for a run that ``reconstruct.py``
+    refused, although its log holds the ``error:`` line."""
+    run = write_job(tmp_path / "run", solver="lsmr", n_dips=8, snr_db=None, seed=0, metrics=None)
+    (run / "reconstruct.log").write_text(REFUSED_LOG)
+    code, out, err = quiet_main([str(run)], capsys, caplog, recwarn)
+    message = ("option n_dips is ignored with planner=adaptive (the planner chooses the dips: set planner.budget): "
+               "remove it (reconstruct.log)")
+    assert code == 1 and f"(failed): {message}" in out and "(unfinished)" not in out
+    assert err == f"error: the run in {run} failed: {message}\n"
+
+
 def test_a_sweep_of_recordings_is_compared_without_a_truth(tmp_path, capsys):
     sweep = tmp_path / "sw"
     sweep.mkdir()
