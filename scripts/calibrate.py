@@ -21,11 +21,12 @@ axis has its distance from the axis fitted: its fitted centre is printed and wri
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from dipnet.calibration.model import DEFAULT_REFERENCE, PARAMETERS, to_calibration
-from dipnet.calibration.reference import calibrate_reference
+from dipnet.calibration.reference import calibrate_reference, check_reference_options
 from dipnet.jobs.cli import user_errors
 from dipnet.jobs.warnings_once import log_warnings_once
 from dipnet.core.grid import Grid
@@ -57,10 +58,22 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def check_options(args: argparse.Namespace) -> Ball:
+    """The reference ball of ``args`` (``--ball-radius``, ``--centre``, mm) after refusing, with a
+    ``ValueError`` naming the option, the numbers no calibration can use: a radius or centre not finite and
+    positive, ``--max-residual`` not above 0, a tolerance negative or NaN."""
+    if not all(math.isfinite(c) for c in args.centre):
+        raise ValueError(f"--centre must be 3 finite coordinates (mm), got {' '.join(f'{c:g}' for c in args.centre)}")
+    ball = Ball(args.ball_radius, center=tuple(args.centre))
+    check_reference_options(args.max_residual, args.height_tolerance, args.position_tolerance)
+    return ball
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     log_warnings_once()  # a warning both logged and warned shows once
     with user_errors():
+        ball = check_options(args)  # before the scan is read: a slip in an option is named at once
         raw = read_scan(args.scan)  # a dipnet raw scan (.jsonl) or the authors' CSV
         recorded = scan_tank(raw.header)
         if args.tank and recorded and args.tank != recorded:
@@ -68,7 +81,6 @@ def main(argv=None) -> int:
         tank = args.tank or recorded
         if not tank:
             raise ValueError(f"{args.scan} does not name its tank: pass --tank")
-        ball = Ball(args.ball_radius, center=tuple(args.centre))
         reach = args.ball_radius + max(abs(c) for c in args.centre)
         grid = Grid(args.n, 3, extent=2.0 * (reach + 10.0))  # the check runs at the calibrated heights
         geometry, report = calibrate_reference(raw, ball, grid, args.params, max_relative_residual=args.max_residual,

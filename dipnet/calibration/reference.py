@@ -299,6 +299,20 @@ def _warn_misplaced(given: np.ndarray, fitted: list[float] | None, tolerance_mm:
     warnings.warn(message, stacklevel=3)
 
 
+def check_reference_options(max_relative_residual: float, start_height_tolerance_mm: float,
+                            position_tolerance_mm: float) -> None:
+    """Raise :class:`CalibrationError` (a ``ValueError``) for options of :func:`calibrate_reference` no fit can
+    honour, before any work: ``max_relative_residual`` (a fraction) not above 0 or NaN (every fit refused, after
+    the fit), a tolerance (mm) negative or NaN. Each message names the option and ``calibrate.py``'s flag."""
+    if not max_relative_residual > 0:  # NaN fails too; inf accepts any fit
+        raise CalibrationError(f"max_relative_residual must be a positive fraction (the default 0.05: a 5 % relative "
+                               f"profile residual), got {max_relative_residual!r} (calibrate.py --max-residual)")
+    for name, flag, tolerance in (("start_height_tolerance_mm", "--height-tolerance", start_height_tolerance_mm),
+                                  ("position_tolerance_mm", "--position-tolerance", position_tolerance_mm)):
+        if not tolerance >= 0:
+            raise CalibrationError(f"{name} must be >= 0 (mm), got {tolerance!r} (calibrate.py {flag})")
+
+
 def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
                         n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
                         max_relative_residual: float = 0.05, start_height_tolerance_mm: float = 0.5,
@@ -341,10 +355,7 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
         raise CalibrationError("the scan does not record its dips' start heights (the authors' CSV does not), which "
                                "a reference calibration measures the rig by: record the ball with scripts/scan.py")
     known = known_object(shape)
-    for name, tolerance in (("start_height_tolerance_mm", start_height_tolerance_mm),
-                            ("position_tolerance_mm", position_tolerance_mm)):
-        if not tolerance >= 0:
-            raise CalibrationError(f"{name} must be >= 0 (mm), got {tolerance!r}")
+    check_reference_options(max_relative_residual, start_height_tolerance_mm, position_tolerance_mm)
     state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed,
                                            t0_sd_mm=start_height_tolerance_mm / 1.645,
                                            position_sd_mm=position_tolerance_mm / 1.645)

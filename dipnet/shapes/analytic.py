@@ -24,12 +24,14 @@ BALL_RADIUS_MM = (1e-12, 1e12)
 
 
 def _vector(values: float | Sequence[float], ndim: int | None, what: str) -> np.ndarray:
-    """A float64 vector; a scalar is broadcast to ``ndim`` entries."""
+    """A float64 vector (mm) of finite entries; a scalar is broadcast to ``ndim`` entries."""
     v = np.atleast_1d(np.asarray(values, dtype=np.float64))
     if v.size == 1 and ndim is not None:
         v = np.full(ndim, float(v[0]))
     if v.ndim != 1 or v.size not in (2, 3) or (ndim is not None and v.size != ndim):
         raise ShapeError(f"{what} must have 2 or 3 entries (matching the shape), got {values!r}")
+    if not np.isfinite(v).all():
+        raise ShapeError(f"{what} must be finite numbers (mm), got {[float(x) for x in v]}")
     return v
 
 

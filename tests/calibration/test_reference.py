@@ -20,6 +20,7 @@ from dipnet.simulator.physics import LevelSensor, Tank, simulate_scan
 
 from calibration_helpers import AREA, FAKE_TRUTH, RADIUS, ideal_ball_moments, scan_ball
 from script_modules import load_script
+from script_runs import one_line_error, run_script
 
 
 @pytest.fixture(scope="module")
@@ -320,3 +321,26 @@ def test_a_reference_of_another_size_than_given_is_named_with_the_step_scale():
     assert not low <= 1.0 <= high and wrong.estimates["cross_section_mm2"] > 1.05 * 60000.0
     assert "the reference is -" in wrong.caveats["step_scale"] and "radius of 30" in wrong.caveats["step_scale"]
     assert "error in the reference's size" in wrong.caveats["cross_section_mm2"]
+
+
+@pytest.mark.parametrize("option,message", [
+    (["--max-residual", "-1"], "max_relative_residual must be a positive fraction (the default 0.05: a 5 % relative "
+                               "profile residual), got -1.0 (calibrate.py --max-residual)"),
+    (["--max-residual", "nan"], "got nan (calibrate.py --max-residual)"),
+    (["--centre", "nan", "0", "0"], "--centre must be 3 finite coordinates (mm), got nan 0 0"),
+    (["--centre", "0", "inf", "0"], "--centre must be 3 finite coordinates (mm), got 0 inf 0"),
+    (["--height-tolerance", "nan"], "start_height_tolerance_mm must be >= 0 (mm), got nan (calibrate.py --height-"),
+    (["--position-tolerance", "-1"], "position_tolerance_mm must be >= 0 (mm), got -1.0 (calibrate.py --position-")])
+def test_calibrate_refuses_an_option_slip_before_reading_the_scan(tmp_path, monkeypatch, capsys, option, message):
+    """The audit's cases: ``--max-residual -1`` failed after the whole fit ("residual 0.002 > -1.0"), ``--centre
+    nan 0 0`` said "grid extent must be positive (mm), got nan". Now one ``error:`` line, exit 2, before the scan is
+    read (here it does not exist)."""
+    done = run_script("calibrate", str(tmp_path / "missing.jsonl"), "--ball-radius", "30", "--tank", "t", *option,
+                      monkeypatch=monkeypatch, capsys=capsys)
+    assert message in one_line_error(done)
+
+
+def test_calibrate_reference_refuses_a_residual_bound_no_fit_can_meet():
+    raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(6), tank=Tank(60000.0), progress=False)
+    with pytest.raises(CalibrationError, match="max_relative_residual must be a positive fraction"):
+        calibrate_reference(raw, Ball(30.0), Grid(16, 3, extent=80.0), max_relative_residual=0.0)

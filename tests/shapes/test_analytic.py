@@ -136,3 +136,12 @@ def test_bad_chamber_geometry():
 def test_ball_radius_must_be_finite_and_positive(radius):
     with pytest.raises(ShapeError, match=r"ball radius must be a finite, positive number of mm in \[1e-12, 1e\+12\]"):
         Ball(radius)
+
+
+def test_a_centre_or_size_that_is_not_finite_is_refused():
+    """The audit's case: ``Ball(30, center=(nan, 0, 0))`` was made, and failed later as "grid extent must be
+    positive (mm), got nan"."""
+    with pytest.raises(ShapeError, match=r"center must be finite numbers \(mm\), got \[nan, 0.0, 0.0\]"):
+        Ball(30.0, center=(float("nan"), 0.0, 0.0))
+    with pytest.raises(ShapeError, match="half_sizes must be finite"):
+        ChamberBox((10.0, float("inf"), 10.0), chamber_half_sizes=5.0, channel_half_width=2.0)
