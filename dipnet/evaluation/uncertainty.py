@@ -85,6 +85,18 @@ class Posterior:
         return (mat @ self.samples.T).T.reshape(len(self.samples), len(directions), self.n_slabs)
 
 
+def check_posterior_options(resolution: int, n_samples: int, band_voxels: float, floor: float) -> None:
+    """Raise ``ValueError`` for options of :func:`fit_posterior` it cannot use: ``n_samples < 2``, ``floor``
+    outside ``(0, 1]``, ``resolution < 4`` (voxels per axis), or ``band_voxels`` (the boundary band's blur, in
+    posterior-grid voxels; 0: no blur) negative or not finite (a negative blur was taken as 0)."""
+    if n_samples < 2 or not 0 < floor <= 1 or resolution < 4:
+        raise ValueError(f"need n_samples >= 2, 0 < floor <= 1 and resolution >= 4, got {n_samples}, {floor}, "
+                         f"{resolution}")
+    if not 0 <= band_voxels < math.inf:  # NaN fails too
+        raise ValueError(f"band_voxels must be >= 0 (the width of the uncertain boundary band, in posterior-grid "
+                         f"voxels; 0: no band), got {band_voxels!r}")
+
+
 def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator | None = None,
                   *, resolution: int = 32, n_samples: int = 64, band_voxels: float = 1.5, floor: float = 0.05,
                   seed: int = 0, max_rows: int = 4000, max_work: float = 6e7) -> Posterior:
@@ -106,9 +118,7 @@ def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, o
             the default keeps the 32^3 grid up to 43 dips.
     """
     grid = reconstruction.grid
-    if n_samples < 2 or not 0 < floor <= 1 or resolution < 4:
-        raise ValueError(f"need n_samples >= 2, 0 < floor <= 1 and resolution >= 4, got {n_samples}, {floor}, "
-                         f"{resolution}")
+    check_posterior_options(resolution, n_samples, band_voxels, floor)
     if operator is None:
         operator = make_operator(grid, measurement.directions, grid.n)
     affordable = int((max_work / measurement.n_orientations**2) ** (1.0 / grid.ndim))

@@ -107,7 +107,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.minnorm import operator_matrix
-from dipnet.evaluation.uncertainty import Posterior, fit_posterior
+from dipnet.evaluation.uncertainty import Posterior, check_posterior_options, fit_posterior
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +157,8 @@ class NextBestDipPlanner(Planner):
         self.criterion = criterion
         self.options = {"resolution": int(resolution), "n_samples": int(n_samples),
                         "band_voxels": float(band_voxels), "floor": float(floor), "seed": int(seed)}
+        check_posterior_options(self.options["resolution"], self.options["n_samples"], self.options["band_voxels"],
+                                self.options["floor"])  # before the first dip, not after the initial ones
         self._cached: tuple[tuple, scipy.sparse.csr_matrix] | None = None
         self.last_seconds = 0.0
 

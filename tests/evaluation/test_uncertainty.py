@@ -71,3 +71,11 @@ def test_maps_have_the_reconstruction_grid(box_problem):
     maps = voxel_maps(recon, fit_posterior(recon, measurement, resolution=10))
     assert maps["std"].shape == grid.shape and maps["p_wrong"].shape == grid.shape
     assert float(maps["p_wrong"].max()) <= 0.5 + 1e-6 and float(maps["p_wrong"][~grid.working_mask().numpy()].max()) == 0
+
+
+def test_fit_posterior_refuses_a_negative_band(box_problem):
+    """The audit's case: ``band_voxels=-1`` gave the posterior of ``band_voxels=0``, no word."""
+    grid, truth, dips = box_problem
+    exact = Reconstruction(occupancy=torch.from_numpy(truth).float(), grid=grid)
+    with pytest.raises(ValueError, match=r"band_voxels must be >= 0 .*, got -1.0"):
+        fit_posterior(exact, dips(fibonacci_hemisphere(4)), resolution=10, band_voxels=-1.0)

@@ -13,6 +13,7 @@ from dipnet.solvers.minnorm import MinNormSolver
 
 from planning_fixtures import box_problem as make_box_problem
 from planning_fixtures import tilt_spin
+from script_runs import one_line_error
 
 
 @pytest.fixture(scope="module")
@@ -36,3 +37,17 @@ def test_planner_fills_the_missing_cone(box_problem):
     again = NextBestDipPlanner(resolution=20).next(measurement, recon, Reach().candidates(), k=4, operator=operator)
     assert torch.equal(again, chosen)
     assert planner.last_seconds < 10
+
+
+@pytest.mark.parametrize("band", [-1.0, float("nan"), float("inf")])
+def test_a_negative_boundary_band_is_refused(band):
+    """The audit's case: ``band_voxels=-1`` was taken as 0 (scipy's blur of a negative sigma), no word."""
+    with pytest.raises(ValueError, match=r"band_voxels must be >= 0 \(the width of the uncertain boundary band"):
+        NextBestDipPlanner(band_voxels=band)
+    NextBestDipPlanner(band_voxels=0.0)  # no band: allowed
+
+
+def test_reconstruct_refuses_a_negative_band_before_any_dip(tmp_path, script_run):
+    done = script_run("reconstruct", tmp_path, "planner=adaptive", "planner.planner.band_voxels=-1", "resolution=16")
+    assert one_line_error(done) == ("error: band_voxels must be >= 0 (the width of the uncertain boundary band, in "
+                                    "posterior-grid voxels; 0: no band), got -1.0")
