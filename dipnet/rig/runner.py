@@ -182,7 +182,8 @@ class ScanPlan:
         max_lower_source: where ``max_lower_mm`` comes from (for the message).
 
     Raises:
-        ValueError: a plan that cannot be run: steps, a negative ``retries`` or ``settle_s``, a stop below the tank bottom, or more than
+        ValueError: a plan that cannot be run: steps, a ``safe_mm`` deeper than ``start_mm`` (a larger lowering
+            position), a negative ``retries`` or ``settle_s``, a stop below the tank bottom, or more than
             :data:`~dipnet.core.memory.MAX_READINGS_PER_DIP` or fewer than :data:`MIN_READINGS_PER_DIP` readings per
             orientation (the message names the ``protocol`` option and the limit; nothing has moved).
     """
@@ -210,8 +211,10 @@ class ScanPlan:
                 and self.stop_mm > self.start_mm):
             raise ValueError(f"need step_mm > 0 and stop_mm > start_mm, got step {self.step_mm}, "
                              f"start {self.start_mm}, stop {self.stop_mm}")
-        if self.safe_mm > self.start_mm:
-            raise ValueError(f"safe_mm ({self.safe_mm}) must not be lower than start_mm ({self.start_mm})")
+        if not math.isfinite(self.safe_mm) or self.safe_mm > self.start_mm:  # lowering positions grow downward
+            raise ValueError(f"protocol.safe_mm={self.safe_mm:g} must be <= protocol.start_mm={self.start_mm:g}: "
+                             f"lowering positions grow downward (mm), and the safe position, where the object "
+                             f"turns, must be no deeper than the first reading's; nothing moved")
         if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
             raise ValueError(f"protocol.retries must be an integer >= 0 (extra readings when one is not stable), "
                              f"got {self.retries!r}; nothing moved")

@@ -15,6 +15,7 @@ from dipnet.jobs.deprecations import upgrade_scan_config
 from dipnet.jobs.scan import deepest_lowering, orientations_from_config, plan_settings, scan_geometry
 
 from rig_helpers import make_world
+from script_runs import one_line_error
 
 
 def _scan_cfg(*overrides):
@@ -201,3 +202,10 @@ def test_scan_script_stops_on_a_sensor_sending_error_lines(tmp_path):
     line = _error_line(_scan_script(tmp_path, *QUICK_SCAN, "+rig.fake.sensor_format={level_format: 'ERR 42'}"),
                        code=3)
     assert "no reading in 5 line(s); the last: not a level reading: 'ERR 42'" in line and "object lifted" in line
+
+
+def test_scan_refuses_a_safe_position_below_the_start(tmp_path, script_run):
+    done = script_run("scan", tmp_path, *QUICK_SCAN, "protocol.safe_mm=200")
+    assert one_line_error(done) == ("error: protocol.safe_mm=200 must be <= protocol.start_mm=0: lowering positions "
+                                    "grow downward (mm), and the safe position, where the object turns, must be no "
+                                    "deeper than the first reading's; nothing moved")

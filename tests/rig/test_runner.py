@@ -127,3 +127,13 @@ def test_a_grid_plan_dips_each_direction_once_and_says_so(caplog):
     with caplog.at_level("WARNING", logger="dipnet.rig.runner"):
         assert len(plan_orientations("grid", tilts=[10, 30], spins=[0, 180])) == 4  # nothing repeated: no word
     assert not caplog.records
+
+
+@pytest.mark.parametrize("safe", [200.0, float("nan")])
+def test_a_safe_position_deeper_than_the_start_is_refused_in_words_that_fit_the_numbers(safe):
+    """Before: "safe_mm (200) must not be lower than start_mm (0.0)": 200 reads as higher than 0, but lowering
+    positions grow downward; NaN was accepted."""
+    with pytest.raises(ValueError, match=rf"^protocol.safe_mm={safe:g} must be <= protocol.start_mm=0: lowering "
+                                         r"positions grow downward \(mm\), and the safe position"):
+        ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=100.0, step_mm=10.0, safe_mm=safe)
+    assert ScanPlan([(0.0, 0.0)], start_mm=5.0, stop_mm=100.0, step_mm=10.0, safe_mm=-5.0).safe_mm == -5.0
