@@ -32,7 +32,8 @@ orientation (:meth:`RawScan.complete_orientations`, :meth:`RawScan.next_orientat
 orientation (its earlier readings are dropped); consumers leave incomplete orientations out
 with a warning naming them (:func:`complete_dips`). Within an orientation the stage never moves
 back (the rig only lowers; equal positions are repeats): a reading at a lower stage than the one
-before is an error, not sorted silently. The header's ``quantity`` must agree with its
+before is an error, not sorted silently; reading times that run backwards within a dip are kept with a
+warning naming the line (a wall clock set back leaves sound readings, but not times to fit a drift by). The header's ``quantity`` must agree with its
 ``units`` and with ``config.sensor.quantity`` when those are recorded. The header's ``units``
 (dipnet writes mm, mm^2, g, s, deg) may declare other units for a field (:data:`UNITS`, e.g.
 ``"units": {"stage": "in"}``): the reader converts the readings, the step, the noise and resolution
@@ -418,6 +419,7 @@ def read_rawscan(path: str | Path) -> RawScan:
         raise RawScanFileError(f"{path}: empty file, expected a raw scan header line")
     scan: RawScan | None = None
     by_k: dict[int, OrientationScan] = {}
+    clock_back: list[tuple[int, int, float, float]] = []  # (line, orientation, time, time before) (s)
     for lineno, text in enumerate(lines, start=1):
         if not text.strip():
             continue
@@ -459,6 +461,8 @@ def read_rawscan(path: str | Path) -> RawScan:
                 if o.n_readings and values[0] < o.stage_mm[-1]:
                     raise ValueError(f"orientation {o.k}: stage {values[0]:g} mm after {o.stage_mm[-1]:g} mm: "
                                      "the stage moved backwards (readings out of order?)")
+                if o.n_readings and values[2] < o.time_s[-1]:
+                    clock_back.append((lineno, o.k, values[2], float(o.time_s[-1])))
                 flags = obj.get("flags", [])
                 if not isinstance(flags, list):
                     raise ValueError("flags must be a list of strings")
@@ -479,7 +483,25 @@ def read_rawscan(path: str | Path) -> RawScan:
             detail = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
             raise RawScanFileError(f"{path}:{lineno}: {detail}") from exc
     assert scan is not None  # the first non-blank line either parses as a header or raised
+    _warn_clock_back(path, clock_back)
     return scan
+
+
+def _warn_clock_back(path: Path, steps: list[tuple[int, int, float, float]]) -> None:
+    """Warn, naming the file and the first line, when reading times (s) run backwards within a dip:
+    ``steps`` holds ``(line, orientation, time, time before)``. Not refused, unlike a stage that moves
+    backwards: the readings themselves may be sound (the runner stamps wall-clock time, which a clock
+    adjustment can set back), but a level drift or sensor lag fitted against these times is wrong."""
+    if not steps:
+        return
+    lineno, k, t, before = steps[0]
+    dips = sorted({step[1] for step in steps})
+    more = (f" ({len(steps)} backward steps in {len(dips)} dip(s): {', '.join(map(str, dips))})"
+            if len(steps) > 1 else "")
+    warnings.warn(f"{path}:{lineno}: orientation {k}: time {t:g} s after {before:g} s: the reading times run "
+                  f"backwards within the dip{more} (a clock set back, or readings edited?); the readings are kept, "
+                  "but a level drift or sensor lag fitted against these times is wrong: fix the times, or do not "
+                  "fit level_drift_mm_per_s or sensor_lag_s from this recording", stacklevel=3)
 
 
 #: How far (degrees) an orientation's recorded direction may lie from the one its rig angles give.

@@ -203,3 +203,30 @@ def test_a_scan_resumed_in_another_tank_is_refused_naming_the_tanks(tmp_path):
         RawScanWriter(path, other, fsync=False)
     untold = ScanHeader(quantity="level_mm", step_mm=2.0, config={})
     assert header.differences(untold) == [] and untold.differences(header) == []
+
+
+def test_reading_times_that_run_backwards_within_a_dip_are_named(tmp_path):
+    """The audit's case: a ``.jsonl`` whose ``time_s`` ran backwards within a dip was read without a word
+    (a drift or sensor lag fitted against those times is wrong). Kept with a warning naming the file and line,
+    since the runner's wall-clock times can be set back while the readings are sound."""
+    path = tmp_path / "clock.jsonl"
+    reading = '{{"type": "reading", "k": {k}, "stage_mm": {s}, "value": 1, "time_s": {t}}}'
+    lines = [json.dumps(_header().to_json()),
+             '{"type": "orientation", "k": 0, "direction": [0, 0, 1]}',
+             *(reading.format(k=0, s=s, t=t) for s, t in ((0, 10.0), (1, 11.0), (2, 10.5), (3, 12.0))),
+             '{"type": "complete", "k": 0}',
+             '{"type": "orientation", "k": 1, "direction": [0, 0, 1]}',  # a new dip may start earlier: no word
+             *(reading.format(k=1, s=s, t=t) for s, t in ((0, 1.0), (1, 2.0), (2, 2.0)))]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.warns(UserWarning) as caught:
+        raw = read_rawscan(path)
+    assert [str(w.message) for w in caught] == [
+        f"{path}:5: orientation 0: time 10.5 s after 11 s: the reading times run backwards within the dip (a clock "
+        "set back, or readings edited?); the readings are kept, but a level drift or sensor lag fitted against "
+        "these times is wrong: fix the times, or do not fit level_drift_mm_per_s or sensor_lag_s from this recording"]
+    assert raw.orientations[0].n_readings == 4
+    lines[5] = reading.format(k=0, s=3, t=9.0)  # and the second dip's last reading 1 s early
+    path.write_text("\n".join(lines[:-1] + [reading.format(k=1, s=2, t=1.0)]) + "\n")
+    with pytest.warns(UserWarning, match=r":5: orientation 0: time 10.5 s after 11 s: .* within the dip \(3 "
+                                         r"backward steps in 2 dip\(s\): 0, 1\)"):
+        read_rawscan(path)
