@@ -116,34 +116,31 @@ def check_grid_angles(tilts, spins, max_tilt_deg: float = 90.0) -> None:
                          f"deg outside the rig's tilt range [0, {max_tilt_deg:g}] deg (max_tilt_deg){hint}")
 
 
-#: Rig angles whose dip directions lie closer than this (degrees) dip the same direction: a grid plan dips
-#: it once (:func:`distinct_rig_angles`). Far below any rig's angle resolution, far above rounding.
-SAME_DIRECTION_DEG = 1e-3
+#: Rig angles closer than this (degrees, tilt and spin modulo 360) command one pose: a grid plan dips it once
+#: (:func:`distinct_rig_angles`). Far below any rig's angle resolution, far above rounding.
+SAME_POSE_DEG = 1e-3
 
 
-def distinct_rig_angles(pairs, tol_deg: float = SAME_DIRECTION_DEG
+def distinct_rig_angles(pairs, tol_deg: float = SAME_POSE_DEG
                         ) -> tuple[list[tuple[float, float]], list[tuple[tuple[float, float], tuple[float, float]]]]:
-    """``pairs`` of rig angles ``(tilt_deg, spin_deg)`` (degrees) with every pair whose dip direction
-    (:func:`rig_to_direction`) lies within ``tol_deg`` degrees of an earlier pair's left out: at tilt 0 every
-    spin dips the same direction (the vertical), and spins 360 deg apart are the same spin.
+    """``pairs`` of rig angles ``(tilt_deg, spin_deg)`` (degrees) with every pair that commands an earlier pair's
+    pose left out: the same tilt and the same spin modulo 360 deg, within ``tol_deg`` (spin 360 is spin 0).
+    Pairs at tilt 0 with other spins are kept: an ideal rig dips them all along the vertical, but on a rig whose
+    tilt zero is off they are different directions, and self-calibration reads the tilt zero from them.
 
     Returns:
         The kept pairs, in their order, and the left-out ones as ``(pair, the earlier pair it repeats)``.
     """
-    pairs = [(float(t), float(s)) for t, s in pairs]
-    if not pairs:
-        return [], []
-    d = rig_to_direction([t for t, _ in pairs], [s for _, s in pairs]).numpy()
-    chord = 2.0 * math.sin(math.radians(float(tol_deg)) / 2.0)
-    kept: list[int] = []
+    kept: list[tuple[float, float]] = []
     repeats: list[tuple[tuple[float, float], tuple[float, float]]] = []
-    for i in range(len(pairs)):
-        same = [j for j in kept if np.linalg.norm(d[i] - d[j]) <= chord]
+    for tilt, spin in ((float(t), float(s)) for t, s in pairs):
+        same = [(t0, s0) for t0, s0 in kept
+                if abs(tilt - t0) <= tol_deg and abs((spin - s0 + 180.0) % 360.0 - 180.0) <= tol_deg]
         if same:
-            repeats.append((pairs[i], pairs[same[0]]))
+            repeats.append(((tilt, spin), same[0]))
         else:
-            kept.append(i)
-    return [pairs[i] for i in kept], repeats
+            kept.append((tilt, spin))
+    return kept, repeats
 
 
 def unmeasured_band_deg(directions) -> float:

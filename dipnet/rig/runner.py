@@ -104,8 +104,8 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
 
     Args:
         kind: ``"grid"`` (every ``tilts`` x ``spins`` pair, tilt-major, as the authors' robot),
-            each direction once (pairs that dip a direction an earlier pair dips, as every spin at tilt 0, are
-            left out with a warning: :func:`~dipnet.core.orientations.distinct_rig_angles`),
+            each pose once (a pair that commands an earlier pair's pose, as spin 360 after spin 0, is left
+            out with a warning: :func:`~dipnet.core.orientations.distinct_rig_angles`),
             or an orientation set of :func:`~dipnet.core.orientations.make_directions`
             (``fibonacci`` | ``random``) with ``n`` directions, converted to rig angles.
         max_tilt_deg: the rig's mechanical tilt limit (degrees): a set beyond it is kept within it
@@ -117,9 +117,9 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
         pairs = [(float(t), float(s)) for t in tilts for s in spins]
         kept, repeats = distinct_rig_angles(pairs)
         if repeats:
-            log.warning("orientations=grid: %d of its %d tilts x spins pairs dip a direction an earlier pair dips "
-                        "already (at tilt 0 every spin dips the vertical; spins 360 deg apart are one spin): %s; "
-                        "each direction is dipped once, %d dips", len(repeats), len(pairs),
+            log.warning("orientations=grid: %d of its %d tilts x spins pairs command the pose of an earlier pair "
+                        "(spins 360 deg apart are one spin): %s; each pose is dipped once, %d dips", len(repeats),
+                        len(pairs),
                         ", ".join(f"({t:g}, {s:g}) as ({t0:g}, {s0:g})" for (t, s), (t0, s0) in repeats), len(kept))
         return kept
     tilt, spin = direction_to_rig(set_within_tilt(kind, int(n), seed, max_tilt_deg))

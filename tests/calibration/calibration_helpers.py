@@ -9,7 +9,7 @@ from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.core.rawscan import ScanHeader
 from dipnet.rig.fake.world import FakeRig
 from dipnet.rig.grbl import GrblController
-from dipnet.rig.runner import ScanPlan, ScanRunner
+from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
 from dipnet.rig.sensors import LineSensor
 from dipnet.shapes import Ball
 from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank, simulate_scan
@@ -25,10 +25,7 @@ def scan_ball(path, plan_geometry: RigGeometry | None = None):
     ``plan_geometry`` (default: the ideal rig)."""
     world = FakeRig(Ball(RADIUS), tank=Tank(cross_section_mm2=AREA), origin_height_mm=40.0, geometry=FAKE_TRUTH,
                     level_quantum_mm=0.001, name="calibration-rig").register()
-    # every tilt at spins 0 and 180, the vertical too: a grid plan dips the vertical once (plan_orientations), but
-    # this scene's second vertical dip is a deliberate replicate (it pins the start height the tilt zero shows in)
-    pairs = [(t, s) for t in (0.0, 25.0, 50.0, 70.0) for s in (0.0, 180.0)]
-    plan = ScanPlan(pairs, start_mm=0.0,
+    plan = ScanPlan(plan_orientations("grid", tilts=[0.0, 25.0, 50.0, 70.0], spins=[0.0, 180.0]), start_mm=0.0,
                     stop_mm=95.0, step_mm=1.5, origin_height_mm=40.0, geometry=plan_geometry or RigGeometry())
     header = ScanHeader(quantity="level_mm", tank_cross_section_mm2=AREA, step_mm=plan.step_mm, resolution=0.001,
                         rig="fake-grbl", config={"tank_id": "tank-1"})

@@ -124,20 +124,21 @@ def test_a_grid_plan_refuses_a_tilt_the_rig_cannot_reach_instead_of_dropping_it(
     from dipnet.rig.runner import plan_orientations
 
     assert plan_orientations("grid", tilts=[0, 30], spins=[0, 90], max_tilt_deg=60.0) == \
-        [(0.0, 0.0), (30.0, 0.0), (30.0, 90.0)]  # tilt 0 once: every spin dips the vertical
+        [(0.0, 0.0), (0.0, 90.0), (30.0, 0.0), (30.0, 90.0)]
     with pytest.raises(ValueError, match="400 deg outside the rig's tilt range"):
         plan_orientations("grid", tilts=[0, 400], spins=[0])
 
 
-def test_rig_angles_of_one_direction_are_kept_once():
-    """Before: a grid dipped the vertical once per spin, and spin 360 again after spin 0 (minutes of robot
-    time each, no new profile)."""
+def test_rig_angles_of_one_pose_are_kept_once():
+    """Before: a grid with spins 0 and 360 dipped every tilt twice in one pose (minutes of robot time each, no
+    new profile). Tilt 0 at other spins stays: on a rig whose tilt zero is off they are other directions."""
     pairs = [(t, s) for t in (0.0, 30.0) for s in (0.0, 360.0)]
     assert o.distinct_rig_angles(pairs) == ([(0.0, 0.0), (30.0, 0.0)],
                                             [((0.0, 360.0), (0.0, 0.0)), ((30.0, 360.0), (30.0, 0.0))])
     kept, repeats = o.distinct_rig_angles([(t, s) for t in (0, 25, 50, 70) for s in (0, 180)])  # scan.yaml's example
-    assert len(kept) == 7 and repeats == [((0.0, 180.0), (0.0, 0.0))]
-    kept, repeats = o.distinct_rig_angles([(30, 0), (30, 0.0001), (30, 0.01), (90, 0), (90, 180), (30, -360)])
+    assert len(kept) == 8 and repeats == []
+    kept, repeats = o.distinct_rig_angles([(30, 0), (30, 0.0001), (30, 0.01), (90, 0), (90, 180), (30, -360),
+                                           (30, 359.9999)])
     assert kept == [(30.0, 0.0), (30.0, 0.01), (90.0, 0.0), (90.0, 180.0)]  # 0.01 deg apart and d, -d are other dips
-    assert repeats == [((30.0, 0.0001), (30.0, 0.0)), ((30.0, -360.0), (30.0, 0.0))]
+    assert repeats == [((30.0, 0.0001), (30.0, 0.0)), ((30.0, -360.0), (30.0, 0.0)), ((30.0, 359.9999), (30.0, 0.0))]
     assert o.distinct_rig_angles([]) == ([], [])

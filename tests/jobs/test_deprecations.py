@@ -65,7 +65,7 @@ def test_orientations_mean_the_same_in_the_scan_and_the_reconstruct_config(recwa
     assert len(orientations_from_config(upgrade_scan_config(scan))) == 12
     grid = upgrade_scan_config(_compose("scan", "orientations=grid", "tilts=[0,25]", "spins=[0,180]",
                                         "max_tilt_deg=30"))
-    assert orientations_from_config(grid) == [(0.0, 0.0), (25.0, 0.0), (25.0, 180.0)]  # the vertical once
+    assert orientations_from_config(grid) == [(0.0, 0.0), (0.0, 180.0), (25.0, 0.0), (25.0, 180.0)]
     beyond = upgrade_scan_config(_compose("scan", "orientations=grid", "tilts=[0,25,50]", "spins=[0,180]",
                                           "max_tilt_deg=30"))
     with pytest.raises(ValueError, match="50 deg outside the rig's tilt range"):  # refused, no longer dropped

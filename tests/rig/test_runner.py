@@ -113,27 +113,15 @@ def test_a_step_that_leaves_a_dip_fewer_than_four_readings_is_refused_before_any
     assert len(ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0).stages()) == MIN_READINGS_PER_DIP == 4
 
 
-def test_a_grid_plan_dips_each_direction_once_and_says_so(caplog):
-    """Before: ``tilts=[0,30] spins=[0,360]`` planned 4 dips of 2 directions, no word (scan.yaml's own example
-    ``[0,25,50,70] x [0,180]`` dipped the vertical twice)."""
+def test_a_grid_plan_dips_each_pose_once_and_says_so(caplog):
+    """Before: ``tilts=[0,30] spins=[0,360]`` planned 4 dips of 2 poses, no word."""
     with caplog.at_level("WARNING", logger="dipnet.rig.runner"):
         assert plan_orientations("grid", tilts=[0, 30], spins=[0, 360]) == [(0.0, 0.0), (30.0, 0.0)]
     [record] = [r for r in caplog.records if r.levelname == "WARNING"]
     assert record.getMessage() == (
-        "orientations=grid: 2 of its 4 tilts x spins pairs dip a direction an earlier pair dips already (at tilt 0 "
-        "every spin dips the vertical; spins 360 deg apart are one spin): (0, 360) as (0, 0), (30, 360) as (30, 0); "
-        "each direction is dipped once, 2 dips")
+        "orientations=grid: 2 of its 4 tilts x spins pairs command the pose of an earlier pair (spins 360 deg apart "
+        "are one spin): (0, 360) as (0, 0), (30, 360) as (30, 0); each pose is dipped once, 2 dips")
     caplog.clear()
-    with caplog.at_level("WARNING", logger="dipnet.rig.runner"):
-        assert len(plan_orientations("grid", tilts=[10, 30], spins=[0, 180])) == 4  # nothing repeated: no word
+    with caplog.at_level("WARNING", logger="dipnet.rig.runner"):  # the vertical at two spins: two poses, no word
+        assert len(plan_orientations("grid", tilts=[0, 30], spins=[0, 180])) == 4
     assert not caplog.records
-
-
-@pytest.mark.parametrize("safe", [200.0, float("nan")])
-def test_a_safe_position_deeper_than_the_start_is_refused_in_words_that_fit_the_numbers(safe):
-    """Before: "safe_mm (200) must not be lower than start_mm (0.0)": 200 reads as higher than 0, but lowering
-    positions grow downward; NaN was accepted."""
-    with pytest.raises(ValueError, match=rf"^protocol.safe_mm={safe:g} must be <= protocol.start_mm=0: lowering "
-                                         r"positions grow downward \(mm\), and the safe position"):
-        ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=100.0, step_mm=10.0, safe_mm=safe)
-    assert ScanPlan([(0.0, 0.0)], start_mm=5.0, stop_mm=100.0, step_mm=10.0, safe_mm=-5.0).safe_mm == -5.0
