@@ -79,10 +79,21 @@ def shape_from_file(path: str, ndim: int, radius: float | None = None, fill_seal
             file's units times ``scale``).
         scale: mm per file unit when ``radius`` is None (e.g. 1000 for a mesh in metres).
         fill_sealed_voids: treat sealed inner voids as solid (water cannot reach them).
-        axis: projection axis for 2D.
+        axis: projection axis for 2D (``"x"``, ``"y"`` or ``"z"``; checked in 3D too, where a slip would
+            otherwise wait for the first 2D run).
+
+    Raises:
+        ShapeError: a scale that is not positive, a scale beside a radius (the radius sets the size, and the
+            scale would be ignored without a word), or an axis that is not ``"x"``, ``"y"`` or ``"z"``.
     """
     if radius is None and not scale > 0:
         raise ShapeError(f"shape scale must be positive (mm per file unit), got {scale!r}")
+    if radius is not None and scale != 1.0:
+        raise ShapeError(f"shape.radius={radius:g} and shape.scale={scale:g} both set the mesh's size, and with a "
+                         f"radius the scale is ignored: give one (shape.radius=null to take the file's units times "
+                         f"{scale:g})")
+    if axis not in ("x", "y", "z"):
+        raise ShapeError(f"shape.axis must be 'x', 'y' or 'z' (the 2D projection's axis), got {axis!r}")
     shape = load_mesh(path, radius=radius, fill_sealed_voids=fill_sealed_voids, scale=None if radius else scale)
     if ndim == 3:
         return shape

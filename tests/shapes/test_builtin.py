@@ -32,3 +32,13 @@ def test_a_mesh_file_at_a_radius_and_its_silhouette():
     assert flat.ndim == 2 and flat.radius() <= 30.0 + 1e-6
     with pytest.raises(ShapeError, match="scale must be positive"):
         shape_from_file(str(mesh_path("bunny")), 3, scale=0.0)
+
+
+def test_a_mesh_file_refuses_a_scale_beside_a_radius_and_an_unknown_axis():
+    """Before: ``shape.radius=30 shape.scale=1000`` ignored the scale without a word, and ``shape.axis=q`` was
+    accepted in 3D (refused only by the first 2D run)."""
+    with pytest.raises(ShapeError, match=r"shape.radius=30 and shape.scale=1000 both set the mesh's size"):
+        shape_from_file(str(mesh_path("bunny")), 3, radius=30.0, scale=1000.0)
+    with pytest.raises(ShapeError, match=r"shape.axis must be 'x', 'y' or 'z' .*, got 'q'"):
+        shape_from_file(str(mesh_path("bunny")), 3, radius=30.0, axis="q")
+    assert shape_from_file(str(mesh_path("bunny")), 3, scale=1000.0).radius() > 1000.0  # a scale alone still scales
