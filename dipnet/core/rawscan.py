@@ -180,8 +180,11 @@ class ScanHeader:
         for name, kind in kinds.items():
             unit = units.get(name, self.units[name])
             if unit not in UNITS[kind]:
+                other = "length" if kind == "area" else "area"
+                hint = (f" ({unit!r} is the unit of a {5 - self.ndim}D tank's section: is the header's ndim="
+                        f"{self.ndim} right?)" if name == "tank_cross_section" and unit in UNITS[other] else "")
                 raise ValueError(f"units.{name}: unknown unit {unit!r}; {name} is read in one of "
-                                 f"{', '.join(UNITS[kind])}")
+                                 f"{', '.join(UNITS[kind])}{hint}")
             factors[name] = UNITS[kind][unit]
         return factors
 

@@ -192,6 +192,22 @@ def test_header_validation():
     assert ScanHeader(ndim=2).units["tank_cross_section"] == "mm"
 
 
+def test_a_header_whose_ndim_was_edited_names_the_dimension_behind_its_section_unit(tmp_path):
+    """Before: a 3D scan's header edited to ``ndim: 2`` said only "units.tank_cross_section: unknown unit 'mm^2'"."""
+    header = {**_header().to_json(), "ndim": 2}
+    path = tmp_path / "edited.jsonl"
+    path.write_text(json.dumps(header) + "\n")
+    with pytest.raises(RawScanFileError, match=r"edited.jsonl:1: units.tank_cross_section: unknown unit 'mm\^2'; .* "
+                                                r"\('mm\^2' is the unit of a 3D tank's section: is the header's ndim=2 "
+                                                r"right\?\)"):
+        read_rawscan(path)
+    with pytest.raises(ValueError, match=r"'mm' is the unit of a 2D tank's section: is the header's ndim=3 right"):
+        _header().unit_factors({"tank_cross_section": "mm"})
+    with pytest.raises(ValueError) as info:  # no hint for a unit of neither kind
+        _header().unit_factors({"tank_cross_section": "litre"})
+    assert "ndim" not in str(info.value)
+
+
 def test_a_scan_resumed_in_another_tank_is_refused_naming_the_tanks(tmp_path):
     """The tank a scan records (``+rig.tank``) is what its calibration file is checked against, so a resumed
     scan cannot change it; a scan that records no tank can be resumed with one."""
