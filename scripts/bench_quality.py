@@ -198,14 +198,25 @@ def solver_options(specs: list[str]) -> dict[str, dict]:
 
 def case_data(args, mesh_path: Path, grid: Grid, k: int, noise: str):
     """``(measurement, truth occupancy bool, shape)`` for one mesh / budget / noise, cached."""
-    return cached_case(args, mesh_path.stem, lambda: load_mesh(mesh_path, radius=args.fill * grid.radius), grid, k,
-                       noise)
+    return cached_case(args, mesh_path.stem, lambda: mesh_shape(mesh_path, args.fill * grid.radius), grid, k, noise)
 
 
 def generated_case_data(args, seed: int, grid: Grid, k: int, noise: str):
     """As :func:`case_data` for the generated shape of ``seed`` (farthest point at ``--fill`` of the ball)."""
-    return cached_case(args, f"generated{seed}",
-                       lambda: generated_shape(seed, radius=args.fill * grid.radius), grid, k, noise)
+    return cached_case(args, f"generated{seed}", lambda: procedural_shape(seed, args.fill * grid.radius), grid, k,
+                       noise)
+
+
+@functools.cache
+def mesh_shape(path: Path, radius: float):
+    """The mesh file scaled to ``radius`` (mm), made once per process: the rows of one case share it."""
+    return load_mesh(path, radius=radius)
+
+
+@functools.cache
+def procedural_shape(seed: int, radius: float):
+    """The generated shape of ``seed`` at ``radius`` (mm), made once per process (about 2 s each)."""
+    return generated_shape(seed, radius=radius)
 
 
 def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):

@@ -134,12 +134,12 @@ def distinct_rig_angles(pairs, tol_deg: float = SAME_POSE_DEG
     kept: list[tuple[float, float]] = []
     repeats: list[tuple[tuple[float, float], tuple[float, float]]] = []
     for tilt, spin in ((float(t), float(s)) for t, s in pairs):
-        same = [(t0, s0) for t0, s0 in kept
-                if abs(tilt - t0) <= tol_deg and abs((spin - s0 + 180.0) % 360.0 - 180.0) <= tol_deg]
-        if same:
-            repeats.append(((tilt, spin), same[0]))
-        else:
+        same = next(((t0, s0) for t0, s0 in kept
+                     if abs(tilt - t0) <= tol_deg and abs((spin - s0 + 180.0) % 360.0 - 180.0) <= tol_deg), None)
+        if same is None:
             kept.append((tilt, spin))
+        else:
+            repeats.append(((tilt, spin), same))
     return kept, repeats
 
 

@@ -117,10 +117,10 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
         pairs = [(float(t), float(s)) for t in tilts for s in spins]
         kept, repeats = distinct_rig_angles(pairs)
         if repeats:
+            named = ", ".join(f"({t:g}, {s:g}) as ({t0:g}, {s0:g})" for (t, s), (t0, s0) in repeats)
             log.warning("orientations=grid: %d of its %d tilts x spins pairs command the pose of an earlier pair "
                         "(spins 360 deg apart are one spin): %s; each pose is dipped once, %d dips", len(repeats),
-                        len(pairs),
-                        ", ".join(f"({t:g}, {s:g}) as ({t0:g}, {s0:g})" for (t, s), (t0, s0) in repeats), len(kept))
+                        len(pairs), named, len(kept))
         return kept
     tilt, spin = direction_to_rig(set_within_tilt(kind, int(n), seed, max_tilt_deg))
     return [(float(t), float(s)) for t, s in zip(np.round(tilt, 6), np.round(spin, 6))]
