@@ -18,6 +18,7 @@ import torch
 import trimesh
 
 from dipnet.core.optional import optional_import
+from dipnet.shapes.analytic import BALL_RADIUS_MM
 from dipnet.shapes.base import Shape, ShapeError, check_dips
 from dipnet.shapes.divergence import PlaneSweep, boundary_volume_below
 from dipnet.shapes.holes import boundary_caps
@@ -132,8 +133,9 @@ def load_mesh(
         scale: mm per file unit (``None``: 1), applied when ``radius`` is ``None``.
 
     Raises:
-        ShapeError: the file is missing, unreadable, empty, or encloses no volume (the message
-            names the file).
+        ShapeError: the file is missing, unreadable, empty, or encloses no volume, or ``radius`` or
+            ``scale`` is not a finite positive number (a scale of 0 or below would shrink the mesh to a
+            point or mirror it), or the scaled mesh reaches outside ``BALL_RADIUS_MM`` (the message names the file).
     """
     path = Path(path)
     if not path.is_file():
@@ -164,8 +166,11 @@ def from_trimesh(
     Args: as :func:`load_mesh`; ``source`` names the origin of the mesh in messages.
     """
     where = source or name
-    if radius is not None and not radius > 0:
-        raise ShapeError(f"radius must be positive (mm), got {radius!r}")
+    if radius is not None and not 0 < radius < np.inf:  # NaN fails too
+        raise ShapeError(f"mesh {where}: radius must be a finite, positive number of mm, got {radius!r}")
+    if scale is not None and not 0 < scale < np.inf:
+        raise ShapeError(f"mesh {where}: scale must be a finite, positive number of mm per file unit (1000 for a "
+                         f"mesh in metres), got {scale!r}: 0 shrinks the mesh to a point, a negative scale mirrors it")
     mesh = trimesh.Trimesh(
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
         faces=np.asarray(mesh.faces, dtype=np.int64), process=False,
@@ -194,6 +199,11 @@ def from_trimesh(
         factor = radius / float(np.linalg.norm(mesh.vertices, axis=1).max())
     elif scale is not None:
         factor = float(scale)
+    size, (low, high) = factor * float(np.linalg.norm(mesh.vertices, axis=1).max()), BALL_RADIUS_MM
+    if not low <= size <= high:
+        raise ShapeError(f"mesh {where}: scaled by {factor:g}, its farthest point lies {size:g} mm from its centre, "
+                         f"outside [{low:g}, {high:g}] mm, where its volume and dips stay finite and non-zero: check "
+                         "the radius or scale")
     if factor != 1:
         mesh.apply_scale(factor)
     shape = MeshShape(mesh, name=name, exact=mesh.is_watertight)

@@ -139,6 +139,19 @@ def test_physical_size_is_kept_without_radius(tmp_path):
     assert shape.radius() == pytest.approx(np.linalg.norm([5.0, 10.0, 15.0]))
 
 
+@pytest.mark.parametrize("size", [{"scale": 0.0}, {"scale": -1.0}, {"scale": float("nan")}, {"scale": float("inf")},
+                                  {"scale": 1e-300}, {"radius": float("inf")}, {"radius": 1e-300}],
+                         ids=["scale0", "mirror", "scale-nan", "scale-inf", "scale-tiny", "radius-inf", "radius-tiny"])
+def test_a_scale_or_radius_that_is_no_size_is_refused(tmp_path, size):
+    """Before: load_mesh(path, scale=0) gave a shape of volume 0 and radius 0, scale=-1 the mirror image (the
+    same volume, no word), scale=nan or inf a shape of volume NaN (the torus: a segmentation fault)."""
+    path = tmp_path / "brick.stl"
+    trimesh.creation.box(extents=[10.0, 20.0, 30.0]).export(path)
+    with pytest.raises(ShapeError, match="brick.stl: .*(finite, positive|outside \\[1e-12, 1e\\+12\\] mm)"):
+        load_mesh(path, **size)
+    assert load_mesh(path, scale=2.0).volume == pytest.approx(48000.0)
+
+
 def test_file_errors_name_the_file(tmp_path):
     missing = tmp_path / "missing.stl"
     garbage = tmp_path / "garbage.stl"
