@@ -34,11 +34,25 @@ def _numpy(volume: np.ndarray | torch.Tensor) -> np.ndarray:
     return volume.detach().cpu().numpy() if isinstance(volume, torch.Tensor) else np.asarray(volume)
 
 
+def _binary(volume: np.ndarray | torch.Tensor, name: str) -> np.ndarray:
+    """``volume`` as a boolean array: booleans, or numbers that are all 0 or 1. Other values (occupancy
+    fractions, raw least-squares values) raise a ``ValueError`` naming ``name``: cast to bool, every
+    non-zero voxel would count as inside."""
+    values = _numpy(volume)
+    if values.dtype != bool and not np.isin(values, (0, 1)).all():
+        finite = values[np.isfinite(values)] if np.issubdtype(values.dtype, np.floating) else values
+        span = f"{finite.min():.3g} to {finite.max():.3g}" if finite.size else "no finite value"
+        raise ValueError(f"{name} must be a boolean volume (inside / outside), got values other than 0 and 1 "
+                         f"({span}): threshold it first, e.g. Reconstruction.binary or occupancy > 0.5")
+    return values.astype(bool)
+
+
 def iou(a: np.ndarray | torch.Tensor, b: np.ndarray | torch.Tensor) -> float:
     """Intersection over union of a boolean volume ``a`` with a reference ``b`` of one shape;
     NaN (undefined, ``null`` in ``metrics.json``) when the reference is empty: there is nothing
-    to overlap, and an empty ``a`` must not score a perfect 1.0."""
-    a, b = _numpy(a).astype(bool), _numpy(b).astype(bool)
+    to overlap, and an empty ``a`` must not score a perfect 1.0. Both must be boolean (or hold only 0
+    and 1): occupancy fractions raise a ``ValueError`` (threshold them first)."""
+    a, b = _binary(a, "iou: a"), _binary(b, "iou: b")
     if a.shape != b.shape:
         raise ValueError(f"iou needs volumes of one shape, got {a.shape} and {b.shape}")
     if not b.any():
@@ -57,13 +71,13 @@ def volume_error(recon: np.ndarray | torch.Tensor, truth_volume: float, grid: Gr
     """Signed relative volume error ``(V_recon - V_truth) / V_truth`` of a boolean volume.
 
     Args:
-        recon: boolean volume, ``grid.shape``.
+        recon: boolean volume (or only 0 and 1; other values raise a ``ValueError``), ``grid.shape``.
         truth_volume: the true volume in mm^3 (mm^2 in 2D), positive.
         grid: the grid (for the voxel volume).
     """
     if not truth_volume > 0:
         raise ValueError(f"truth_volume must be positive, got {truth_volume}")
-    return float(_numpy(recon).astype(bool).sum() * grid.voxel_volume / truth_volume - 1.0)
+    return float(_binary(recon, "volume_error: recon").sum() * grid.voxel_volume / truth_volume - 1.0)
 
 
 Surface = Union[trimesh.Trimesh, list, np.ndarray]
@@ -235,9 +249,9 @@ def false_rates(recon: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     both NaN (undefined) when ``truth`` is empty, as :func:`iou`.
 
     Args:
-        recon, truth: boolean volumes of one shape.
+        recon, truth: boolean volumes of one shape (or only 0 and 1; other values raise a ``ValueError``).
     """
-    recon, truth = np.asarray(recon, dtype=bool), np.asarray(truth, dtype=bool)
+    recon, truth = _binary(recon, "false_rates: recon"), _binary(truth, "false_rates: truth")
     n = int(truth.sum())
     if n == 0:
         return {"false_positive": float("nan"), "false_negative": float("nan")}

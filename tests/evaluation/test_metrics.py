@@ -37,6 +37,25 @@ def test_iou_identical_disjoint_and_nested():
         iou(a, a[0])
 
 
+def test_occupancy_fractions_are_refused_where_a_boolean_volume_is_meant():
+    """Before: iou, volume_error and false_rates cast their volumes to bool, so occupancy fractions or a minnorm
+    result's raw values counted every non-zero voxel as inside: iou(recon.occupancy, truth occupancy) of a
+    16^3 chamber box was 0.342 (0.837 thresholded) and its volume error 3.40 (0.30), with no word."""
+    grid = Grid(10)
+    truth = ball(grid, (0, 0, 0), 30.0)
+    fractions = np.where(truth, 0.9, 0.05)  # a soft reconstruction: nearly every voxel slightly filled
+    for call in (lambda: iou(fractions, truth), lambda: iou(truth, torch.from_numpy(fractions)),
+                 lambda: volume_error(fractions, float(truth.sum()) * grid.voxel_volume, grid),
+                 lambda: false_rates(fractions, truth), lambda: false_rates(truth, fractions)):
+        with pytest.raises(ValueError, match=r"boolean volume .* \(0.05 to 0.9\): threshold it first"):
+            call()
+    with pytest.raises(ValueError, match="no finite value"):
+        iou(np.full(grid.shape, np.nan), truth)
+    assert iou(fractions > 0.5, truth) == 1.0
+    assert iou(truth.astype(np.float32), truth.astype(np.uint8)) == 1.0  # numbers that are all 0 or 1 are booleans
+    assert false_rates(fractions > 0.5, truth) == {"false_positive": 0.0, "false_negative": 0.0}
+
+
 def test_chamfer_of_identical_surfaces_is_zero():
     pts = np.random.default_rng(0).normal(size=(500, 3))
     out = chamfer_hausdorff(pts, pts)
