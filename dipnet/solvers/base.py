@@ -5,6 +5,7 @@ Solvers never read files or configs; scripts and Hydra build them.
 
 from __future__ import annotations
 
+import numbers
 from abc import ABC, abstractmethod
 from dataclasses import replace
 
@@ -23,6 +24,19 @@ class Solver(ABC):
     @abstractmethod
     def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
         """Return the reconstruction on ``operator.grid``."""
+
+
+def checked_threshold(threshold: float | str, rule: str) -> float | str:
+    """A solver's ``threshold`` option: its named ``rule`` (e.g. ``"otsu"``), or an occupancy level in
+    ``(0, 1)`` as a float. Anything else raises a ``ValueError``: a level outside ``(0, 1)`` (or NaN) makes the
+    binary shape (:attr:`~dipnet.core.reconstruction.Reconstruction.binary`) of an occupancy in ``[0, 1]`` empty
+    or the whole grid, beyond the working ball (the same limit as ``check_thresholds`` of a config)."""
+    if threshold == rule:
+        return rule
+    if isinstance(threshold, (bool, str)) or not isinstance(threshold, numbers.Real) or not 0 < threshold < 1:
+        raise ValueError(f"threshold must be an occupancy level in (0, 1) or {rule!r}, got {threshold!r}: a level "
+                         "of 1 or above leaves an occupancy in [0, 1] empty, one of 0 or below takes the whole grid")
+    return float(threshold)
 
 
 def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor:

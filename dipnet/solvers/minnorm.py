@@ -71,7 +71,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
 from dipnet.operators import SPLAT_MATRIX_BACKENDS, DipOperator, backend_name, make_operator
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.solvers.base import Solver, measured_profiles
+from dipnet.solvers.base import Solver, checked_threshold, measured_profiles
 from dipnet.solvers.progress import stop_bar
 
 log = logging.getLogger(__name__)
@@ -137,7 +137,7 @@ class MinNormSolver(Solver):
         max_cholesky_rows: largest ``K*M`` for which ``auto`` picks ``cholesky``.
         max_cholesky_bytes: largest :func:`cholesky_bytes` for which ``auto`` picks ``cholesky``.
         rcond: relative eigenvalue cut-off of the pseudo-inverse fallback.
-        threshold: ``"otsu"`` or a fixed occupancy level.
+        threshold: ``"otsu"`` or a fixed occupancy level in ``(0, 1)``.
         progress: show a progress bar.
     """
 
@@ -152,11 +152,10 @@ class MinNormSolver(Solver):
             raise ValueError(f"tikhonov must be >= 0, got {tikhonov}")
         if int(iter_lim) < 1 or int(max_cholesky_rows) < 1:
             raise ValueError("iter_lim and max_cholesky_rows must be positive")
-        if threshold != "otsu" and not isinstance(threshold, (int, float)):
-            raise ValueError(f"threshold must be 'otsu' or a number, got {threshold!r}")
         self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), int(iter_lim)
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
-        self.max_cholesky_rows, self.threshold, self.progress = int(max_cholesky_rows), threshold, progress
+        self.threshold = checked_threshold(threshold, "otsu")
+        self.max_cholesky_rows, self.progress = int(max_cholesky_rows), progress
         self.max_cholesky_bytes = float(max_cholesky_bytes)
 
     # ------------------------------------------------------------------ public

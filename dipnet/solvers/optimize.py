@@ -36,7 +36,7 @@ from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, filled_slabs, measured_profiles
+from dipnet.solvers.base import Solver, checked_threshold, filled_slabs, measured_profiles
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
@@ -474,7 +474,7 @@ class OptimisationSolver(Solver):
         hull_margin: the hull's slack in voxels; raise it when the profiles' start heights
             are uncertain by more than about a voxel (real rigs before calibration).
         seed: seed of every random choice (initial weights, features).
-        threshold: occupancy level of the final binary shape, or ``"volume"``: the level (in
+        threshold: occupancy level of the final binary shape, in ``(0, 1)``, or ``"volume"``: the level (in
             :data:`VOLUME_LEVELS`) whose iso-surface encloses the measured volume (the robust mean
             of the profiles' totals, over the fitted gain), recorded in ``info["threshold_rule"]``.
             A soft occupancy's 0.5 surface lies inside a convex part's true surface, so it can
@@ -513,9 +513,7 @@ class OptimisationSolver(Solver):
         self.priors = priors
         if hull_tol is not None and not 0 <= hull_tol < 1:
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
-        if isinstance(threshold, str) and threshold != "volume":
-            raise ValueError(f"threshold must be a number or 'volume', got {threshold!r}")
-        self.threshold = threshold if threshold == "volume" else float(threshold)
+        self.threshold = checked_threshold(threshold, "volume")
         self.warm_start, self.seed, self.progress = warm_start, int(seed), progress
         self.hull_tol = None if hull_tol is None else float(hull_tol)
         if not hull_margin >= 0:

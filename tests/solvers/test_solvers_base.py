@@ -109,3 +109,14 @@ def test_a_solver_must_solve():
     m = _measurement(m=8)
     m.slab_thickness, m.offsets = op.slab_thickness, torch.full((4,), -10.0)
     assert Empty().solve(m, op).shape == grid.shape and Empty.name == "empty" and Solver.name == "solver"
+
+
+@pytest.mark.parametrize("name,rule", [("minnorm", "otsu"), ("lsmr", "otsu"), ("voxel", "volume"), ("implicit", "volume")])
+@pytest.mark.parametrize("level", [2.0, 1.0, 0.0, -0.5, float("nan"), True, "0.5"])
+def test_a_threshold_outside_the_occupancy_levels_is_refused(name, rule, level):
+    """Before: make_solver(name, threshold=2.0) (or nan) gave an empty shape and -0.5 the whole 16^3 grid (4096
+    voxels, beyond the working ball's 1472) with no word; only a config's solver.threshold was checked."""
+    with pytest.raises(ValueError, match=rf"threshold must be an occupancy level in \(0, 1\) or '{rule}', got"):
+        make_solver(name, threshold=level)
+    assert make_solver(name, threshold=0.3).threshold == 0.3
+    assert make_solver(name, threshold=rule).threshold == rule
