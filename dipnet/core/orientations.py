@@ -152,8 +152,20 @@ def unmeasured_band_deg(directions) -> float:
     return float(np.degrees(np.arcsin(np.abs(d[:, -1]).min())))
 
 
+#: The named orientation sets of :func:`make_directions`.
+DIRECTION_SETS = ("fibonacci", "random", "uniform")
+
+
 def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor:
-    """Named orientation set: ``fibonacci`` | ``random`` | ``uniform`` (2D angles); ``(k, ndim)``."""
+    """Named orientation set: ``fibonacci`` | ``random`` | ``uniform`` (2D angles); ``(k, ndim)``.
+
+    In 2D ``fibonacci`` and ``uniform`` are both the ``k`` equal angles of :func:`angles_2d`. An unknown
+    ``kind``, a ``k`` below 1 or an ``ndim`` other than 2 or 3 raises a ``ValueError`` (in 2D as in 3D)."""
+    if kind not in DIRECTION_SETS:
+        raise ValueError(f"unknown orientation set {kind!r}; choose fibonacci, random or uniform")
+    if isinstance(ndim, bool) or ndim not in (2, 3):
+        raise ValueError(f"orientation sets exist in 2D and 3D, not {ndim!r}D")
+    _check_count(k)
     if ndim == 2:
         if kind == "random":
             gen = torch.Generator().manual_seed(int(seed))
@@ -161,9 +173,7 @@ def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor
         return directions_2d(angles_2d(k))
     if kind == "fibonacci" or kind == "uniform":
         return fibonacci_hemisphere(k)
-    if kind == "random":
-        return random_hemisphere(k, seed)
-    raise ValueError(f"unknown orientation set {kind!r}; choose fibonacci, random or uniform")
+    return random_hemisphere(k, seed)
 
 
 def _check_count(k: int) -> None:

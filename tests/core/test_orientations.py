@@ -71,6 +71,17 @@ def test_make_directions_names():
         o.make_directions("spiral", 10, 3)
 
 
+@pytest.mark.parametrize("kind,k,ndim,error", [("randon", 4, 2, "unknown orientation set 'randon'"),
+                                               ("random", 0, 2, "positive integer, got 0"),
+                                               ("fibonacci", 3, 4, "2D and 3D, not 4D")])
+def test_make_directions_refuses_in_2d_as_in_3d(kind, k, ndim, error):
+    """Before: in 2D any name gave the equal angles (reconstruct.py ndim=2 orientations=randon: exit 0 on
+    uniform dips), random with k=0 an empty (0, 2) set and ndim=4 Fibonacci 3D directions."""
+    with pytest.raises(ValueError, match=error):
+        o.make_directions(kind, k, ndim)
+    assert o.make_directions("random", 4, 2, seed=1).shape == (4, 2)
+
+
 def test_candidates_stay_within_the_rig_limits_and_cover_them():
     reach = Reach(tilt_range_deg=(10, 35), spin_range_deg=(0, 90), step_deg=5)
     tilt, spin = tilt_spin(reach.candidates())
