@@ -17,6 +17,27 @@ import numpy as np
 import torch
 
 
+def unit_directions(directions, ndim: int) -> torch.Tensor:
+    """``directions`` (anything ``torch.as_tensor`` takes, of any length) as unit vectors ``(K, ndim)`` float64.
+
+    Raises:
+        ValueError: a shape other than ``(K, ndim)`` with ``K >= 1``, or rows holding a NaN or infinite
+            component or a zero vector (the message names the rows).
+    """
+    d = torch.as_tensor(directions, dtype=torch.float64)
+    if d.ndim != 2 or d.shape[1] != ndim or d.shape[0] < 1:
+        raise ValueError(f"directions must have shape (K, {ndim}) with K >= 1, got {tuple(d.shape)}")
+    finite = torch.isfinite(d).all(dim=1)
+    if not bool(finite.all()):
+        raise ValueError(f"directions contain non-finite (NaN or inf) components in rows "
+                         f"{torch.nonzero(~finite).squeeze(1).tolist()}")
+    norms = d.norm(dim=1, keepdim=True)
+    zero = norms[:, 0] < 1e-12
+    if bool(zero.any()):
+        raise ValueError(f"directions contain a zero vector in rows {torch.nonzero(zero).squeeze(1).tolist()}")
+    return d / norms
+
+
 def angles_2d(k: int, *, start_deg: float = 0.0) -> torch.Tensor:
     """``k`` equally spaced 2D angles in ``[0, 180)`` degrees, shape ``(k,)``, degrees."""
     _check_count(k)

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from dipnet.core.grid import Grid
+from dipnet.core.orientations import unit_directions
 
 
 class DipOperator(nn.Module, ABC):
@@ -48,23 +49,13 @@ class DipOperator(nn.Module, ABC):
 
     def __init__(self, grid: Grid, directions: torch.Tensor, n_slabs: int | None = None) -> None:
         super().__init__()
-        directions = torch.as_tensor(directions, dtype=torch.float64)
-        if directions.ndim != 2 or directions.shape[1] != grid.ndim or directions.shape[0] < 1:
-            raise ValueError(
-                f"directions must have shape (K, {grid.ndim}) with K >= 1, got {tuple(directions.shape)}"
-            )
-        if not bool(torch.isfinite(directions).all()):
-            rows = torch.nonzero(~torch.isfinite(directions).all(dim=1)).squeeze(1).tolist()
-            raise ValueError(f"directions contain non-finite (NaN or inf) components in rows {rows}")
-        norms = directions.norm(dim=1, keepdim=True)
-        if bool((norms < 1e-12).any()):
-            raise ValueError("directions contain a zero vector")
+        directions = unit_directions(directions, grid.ndim)
         n_slabs = grid.n if n_slabs is None else int(n_slabs)
         if n_slabs < 2:
             raise ValueError(f"n_slabs must be >= 2, got {n_slabs}")
         self.grid = grid
         self.n_slabs = n_slabs
-        self.register_buffer("directions", directions / norms)
+        self.register_buffer("directions", directions)
         self.register_buffer("mask", grid.working_mask())
 
     # ----------------------------------------------------------------- geometry

@@ -40,13 +40,12 @@ from dataclasses import asdict, dataclass, replace
 from typing import ClassVar
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from dipnet.core.rawscan import WATER_DENSITY_G_PER_MM3, OrientationScan, RawScan, ScanHeader
 from dipnet.simulator.size import check_simulation
 from dipnet.core.geometry import RigGeometry
-from dipnet.core.orientations import direction_to_rig
+from dipnet.core.orientations import direction_to_rig, unit_directions
 from dipnet.simulator.volume_curve import dip_volume_curve
 
 _NEWTON_STEPS = 60  # most dips converge in 3-5 steps; the rest bisect inside the bracket
@@ -346,7 +345,8 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
 
     Args:
         shape: a :class:`~dipnet.shapes.Shape` (its exact ``volume_below`` is the physics).
-        directions: commanded unit "up" vectors ``(K, ndim)`` (torch or numpy).
+        directions: commanded "up" vectors ``(K, ndim)`` (torch or numpy; normalised here: a zero or
+            non-finite row raises a ``ValueError`` naming it, :func:`~dipnet.core.orientations.unit_directions`).
         tank: default :meth:`Tank.default` for the shape's ``ndim``; the *nominal* tank.
         sensor: default ``LevelSensor()`` (ideal: no noise, no quantisation).
         protocol: default ``DipProtocol()`` (1 mm steps).
@@ -364,10 +364,7 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
         ``noise_sigma`` (reading units) and the solver ``residual_mm3``. ``t0`` lies
         ``clearance_mm`` below the bounding sphere for the highest start of any dip.
     """
-    dirs = np.asarray(torch.as_tensor(directions, dtype=torch.float64).detach().cpu().numpy())
-    if dirs.ndim != 2 or dirs.shape[1] != shape.ndim or len(dirs) < 1:
-        raise ValueError(f"directions must have shape (K, {shape.ndim}) with K >= 1, got {dirs.shape}")
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = unit_directions(directions, shape.ndim).detach().cpu().numpy()
     tank = _expect("tank", tank, Tank) or Tank.default(shape.ndim)
     sensor = _expect("sensor", sensor, SensorModel) or LevelSensor()
     protocol = _expect("protocol", protocol, DipProtocol) or DipProtocol()

@@ -53,6 +53,17 @@ def test_object_wider_than_tank_is_refused():
         simulate_scan(BALL, DIRS, tank=Tank(cross_section_mm2=4000.0), sensor=EXACT, progress=False)
 
 
+@pytest.mark.parametrize("bad,message", [([0.0, 0.0, 0.0], r"a zero vector in rows \[1\]"),
+                                         ([float("nan"), 0.0, 1.0], r"non-finite \(NaN or inf\) components in rows \[1\]")])
+def test_a_zero_or_nan_direction_is_named(bad, message):
+    """Before: 'ValueError: cannot convert float NaN to integer' from deep in the dip solver (the operator named
+    such rows already); a direction of any other length is normalised, as the operator does."""
+    with pytest.raises(ValueError, match=message):
+        simulate_scan(BALL, torch.tensor([[0.0, 0.0, 1.0], bad]), sensor=EXACT, progress=False)
+    unit, longer = (simulate_scan(BALL, d, sensor=EXACT, progress=False) for d in (DIRS[:2], 3 * DIRS[:2]))
+    np.testing.assert_allclose(longer.orientations[1].values, unit.orientations[1].values)
+
+
 def test_timing_and_schedule():
     protocol = DipProtocol(step_mm=2.0, clearance_mm=4.0, extra_steps=2, settle_s=3.0, reorient_s=20.0)
     scan = simulate_scan(BALL, DIRS[:2], sensor=EXACT, protocol=protocol, progress=False)
