@@ -11,7 +11,7 @@ from dipnet.operators.base import DipOperator
 from dipnet.operators.fourier import FourierOperator
 from dipnet.operators.rotate_sum import RotateSumOperator
 from dipnet.operators.splat import SplatOperator
-from dipnet.core.keywords import forwards_to
+from dipnet.core.keywords import accepted_keywords, forwards_to
 
 BACKENDS: dict[str, type[DipOperator]] = {
     "rotate_sum": RotateSumOperator,
@@ -46,7 +46,12 @@ def make_operator(grid: Grid, directions: torch.Tensor, n_slabs: int | None = No
     ``"auto"``: :func:`select_backend`) for ``grid`` and ``directions`` ``(K, d)``.
 
     The operator's ``auto_selected`` attribute says whether ``"auto"`` chose it (a solver may
-    then use another backend of the same contract, and says so in its ``info``)."""
+    then use another backend of the same contract, and says so in its ``info``).
+
+    Raises:
+        ValueError: an unknown backend, or ``options`` the backend does not take (with ``"auto"``, the
+            backend it chose for this problem size: ``eps`` is the fourier backend's, which small problems
+            do not use; the message names the backends that take them)."""
     auto = backend == "auto"
     backend = ALIASES.get(backend, backend)
     if auto:
@@ -54,6 +59,14 @@ def make_operator(grid: Grid, directions: torch.Tensor, n_slabs: int | None = No
     if backend not in BACKENDS:
         raise ValueError(f"unknown operator backend {backend!r}; choose auto, one of {sorted(BACKENDS)} "
                          f"or an alias {sorted(ALIASES)}")
+    unknown = sorted(set(options) - (accepted_keywords(BACKENDS[backend]) or set(options)))
+    if unknown:
+        owners = [name for name, cls in BACKENDS.items() if set(unknown) <= (accepted_keywords(cls) or set())]
+        chose = (f"backend='auto' chose {backend} for {len(directions)} orientations on a {grid.n}^{grid.ndim} grid "
+                 f"(K N^d {'<=' if backend == 'splat' else '>'} {AUTO_SPLAT_LIMIT:,}), and " if auto else "")
+        fix = f"choose backend={owners[0]!r} to set them" if owners else "remove them"
+        raise ValueError(f"{chose}the {backend} backend takes no option(s) {', '.join(unknown)} "
+                         f"(backends that take them: {', '.join(owners) or 'none'}): {fix}")
     operator = BACKENDS[backend](grid, directions, n_slabs, **options)
     operator.auto_selected = auto
     return operator

@@ -169,3 +169,17 @@ def test_auto_backend_follows_problem_size():
     assert isinstance(make_operator(small, fibonacci_hemisphere(10), backend="auto"), SplatOperator)
     with pytest.raises(ValueError, match="unknown operator backend"):
         make_operator(small, fibonacci_hemisphere(3), backend="nope")
+
+
+def test_options_of_another_backend_are_named_with_the_auto_choice():
+    """Before: make_operator(grid, dirs, eps=1e-3) on a small problem failed with "TypeError: SplatOperator.__init__()
+    got an unexpected keyword argument 'eps'" (reconstruct.py ndim=2 resolution=16 +operator.eps=1e-3: a traceback,
+    exit 1): 'auto' had chosen splat, which has no NUFFT tolerance, and nothing said so."""
+    small = Grid(16, ndim=2)
+    dirs = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"backend='auto' chose splat for 2 orientations on a 16\^2 grid .*takes no "
+                                         r"option\(s\) eps \(backends that take them: fourier\): choose backend='fourier'"):
+        make_operator(small, dirs, eps=1e-3)
+    with pytest.raises(ValueError, match=r"^the splat backend takes no option\(s\) bogus .*: remove them"):
+        make_operator(small, dirs, backend="splat", bogus=1)
+    assert make_operator(small, dirs, backend="fourier", eps=1e-3).eps == 1e-3
