@@ -9,6 +9,7 @@ import numbers
 from abc import ABC, abstractmethod
 from dataclasses import replace
 
+import numpy as np
 import torch
 
 from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
@@ -45,7 +46,17 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
     The measurement's orientations must be the operator's (same order); its slabs are
     resampled onto :meth:`DipOperator.slab_edges` when thickness or offsets differ, with a warning
     when that drops more than :data:`~dipnet.core.measurement.BEYOND_SLABS_TOL` of a profile's volume.
+
+    Raises:
+        TypeError: ``measurement`` is not a :class:`DipMeasurement` (e.g. a profiles tensor, or the two
+            arguments swapped) or ``operator`` not a :class:`DipOperator`.
     """
+    if not isinstance(measurement, DipMeasurement) or not isinstance(operator, DipOperator):
+        hint = ("; profiles on the operator's slabs make one: DipMeasurement(operator.directions, profiles, "
+                "operator.slab_thickness, operator.slab_edges()[:1].expand(operator.n_orientations))"
+                if isinstance(measurement, (torch.Tensor, np.ndarray)) else "")
+        raise TypeError(f"solve(measurement, operator) takes a DipMeasurement and a DipOperator, got "
+                        f"{type(measurement).__name__} and {type(operator).__name__}{hint}")
     if measurement.n_orientations != operator.n_orientations or measurement.ndim != operator.grid.ndim:
         raise ValueError(
             f"measurement has {measurement.n_orientations} orientations in {measurement.ndim}D, "

@@ -120,3 +120,21 @@ def test_a_threshold_outside_the_occupancy_levels_is_refused(name, rule, level):
         make_solver(name, threshold=level)
     assert make_solver(name, threshold=0.3).threshold == 0.3
     assert make_solver(name, threshold=rule).threshold == rule
+
+
+@pytest.mark.parametrize("name", ["minnorm", "voxel"])
+def test_arguments_that_are_no_measurement_and_operator_are_named(name):
+    """Before: solve(operator, measurement) failed with "AttributeError: 'SplatOperator' object has no attribute
+    'ndim'", and solve(profiles, operator) (the README's op(occupancy)) with "'Tensor' object has no attribute
+    'n_orientations'", in every solver; the message's recipe for profiles makes a measurement that solves."""
+    grid = Grid(16, 2)
+    op = make_operator(grid, torch.tensor([[1.0, 0.0], [0.6, 0.8], [0.0, 1.0], [-0.6, 0.8]], dtype=torch.float64))
+    occupancy = (grid.centers().norm(dim=-1) < 20.0).double()
+    profiles = op(occupancy)
+    m = DipMeasurement(op.directions, profiles, op.slab_thickness, op.slab_edges()[:1].expand(op.n_orientations))
+    solver = make_solver(name, progress=False)
+    with pytest.raises(TypeError, match="takes a DipMeasurement and a DipOperator, got SplatOperator and DipMeasurement$"):
+        solver.solve(op, m)
+    with pytest.raises(TypeError, match=r"got Tensor and SplatOperator; profiles on the operator's slabs make one"):
+        solver.solve(profiles, op)
+    assert torch.equal(measured_profiles(m, op), profiles)
