@@ -13,6 +13,8 @@ Convention (used everywhere in dipnet)
 
 from __future__ import annotations
 
+import math
+import sys
 from dataclasses import dataclass
 
 import torch
@@ -25,7 +27,8 @@ class Grid:
     Args:
         n: voxels per axis (``N``).
         ndim: 2 or 3.
-        extent: side length of the grid in mm.
+        extent: side length of the grid in mm: finite and positive, with a voxel volume ``(extent / n)^ndim``
+            that float64 holds (normal, not infinite); otherwise a ``ValueError``.
     """
 
     n: int
@@ -37,12 +40,19 @@ class Grid:
             raise ValueError(f"grid resolution n must be an integer >= 4, got {self.n!r}")
         if isinstance(self.ndim, bool) or self.ndim not in (2, 3):
             raise ValueError(f"grid ndim must be 2 or 3, got {self.ndim!r}")
-        if not self.extent > 0:
-            raise ValueError(f"grid extent must be positive (mm), got {self.extent!r}")
+        if isinstance(self.extent, bool) or not 0 < self.extent < math.inf:  # NaN fails too
+            raise ValueError(f"grid extent must be a finite, positive number (mm), got {self.extent!r}")
         # a whole float (15.0, a numpy integer) is stored as the int every shape and index needs
         object.__setattr__(self, "n", int(self.n))
         object.__setattr__(self, "ndim", int(self.ndim))
         object.__setattr__(self, "extent", float(self.extent))
+        try:
+            voxel = self.voxel_volume
+        except OverflowError:
+            voxel = math.inf
+        if not sys.float_info.min < voxel < math.inf:
+            raise ValueError(f"grid extent {self.extent:g} mm at n={self.n} gives voxels of {voxel:g} mm^{self.ndim}, "
+                             "beyond float64 (profiles would be 0 or overflow): give the extent in mm")
 
     @property
     def shape(self) -> tuple[int, ...]:

@@ -49,3 +49,13 @@ def test_a_whole_float_resolution_is_stored_as_an_int():
 def test_bad_grids_are_refused(kwargs):
     with pytest.raises(ValueError):
         Grid(**kwargs)
+
+
+@pytest.mark.parametrize("extent,message", [(float("inf"), "finite, positive number"), (1e-300, "voxels of 0 mm\\^3"),
+                                            (1e300, "voxels of inf mm\\^3")])
+def test_an_extent_whose_voxels_float64_cannot_hold_is_refused(extent, message):
+    """Before: Grid(16, extent=inf) and extent=1e300 were accepted and every operator failed with
+    'ZeroDivisionError: integer division or modulo by zero'; extent=1e-300 gave profiles of 0 mm^3, no word."""
+    with pytest.raises(ValueError, match=message):
+        Grid(16, 3, extent)
+    assert Grid(16, 3, 1e-3).voxel_volume == pytest.approx((1e-3 / 16) ** 3)
