@@ -92,3 +92,12 @@ class Grid:
     def to_dict(self) -> dict:
         """Plain metadata, for files."""
         return {"n": self.n, "ndim": self.ndim, "extent": self.extent}
+
+
+def as_grid(grid: Grid) -> Grid:
+    """``grid`` itself when it is a :class:`Grid`; anything else (a resolution, a shape tuple) raises a
+    ``TypeError`` saying how to make one."""
+    if not isinstance(grid, Grid):
+        raise TypeError(f"grid must be a dipnet.Grid, e.g. Grid({grid if isinstance(grid, int) else 32}, ndim=3, "
+                        f"extent=100.0) (voxels per axis, 2 or 3 dimensions, side in mm), got {grid!r}")
+    return grid

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 from dipnet.operators.base import DipOperator
 from dipnet.operators.fourier import FourierOperator
 from dipnet.operators.rotate_sum import RotateSumOperator
@@ -52,6 +52,7 @@ def make_operator(grid: Grid, directions: torch.Tensor, n_slabs: int | None = No
         ValueError: an unknown backend, or ``options`` the backend does not take (with ``"auto"``, the
             backend it chose for this problem size: ``eps`` is the fourier backend's, which small problems
             do not use; the message names the backends that take them)."""
+    grid = as_grid(grid)
     auto = backend == "auto"
     backend = ALIASES.get(backend, backend)
     if auto:

@@ -34,7 +34,7 @@ import scipy.sparse.linalg
 import torch
 from torch import nn
 
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 from dipnet.core.orientations import unit_directions
 
 
@@ -49,6 +49,7 @@ class DipOperator(nn.Module, ABC):
 
     def __init__(self, grid: Grid, directions: torch.Tensor, n_slabs: int | None = None) -> None:
         super().__init__()
+        grid = as_grid(grid)
         directions = unit_directions(directions, grid.ndim)
         n_slabs = grid.n if n_slabs is None else int(n_slabs)
         if n_slabs < 2:

@@ -51,6 +51,15 @@ def test_bad_directions_and_slab_counts_are_named(directions, n_slabs, message):
         MiddleSlab(GRID, directions, n_slabs)
 
 
+@pytest.mark.parametrize("grid", [16, (16, 16, 16)])
+def test_a_grid_that_is_no_grid_is_named(grid):
+    """Before: make_operator(16, dirs) failed with "AttributeError: 'int' object has no attribute 'shape'"."""
+    with pytest.raises(TypeError, match=r"grid must be a dipnet.Grid, e.g. Grid\(\d+, ndim=3, extent=100.0\)"):
+        make_operator(grid, torch.eye(3))
+    with pytest.raises(TypeError, match="grid must be a dipnet.Grid"):
+        MiddleSlab(grid, torch.eye(3))
+
+
 def test_only_the_working_ball_counts_forward_and_back():
     """A full cube: the profile holds the volume of the voxels inside the working ball only, and the adjoint is
     zero outside it; both single and batched calls."""
