@@ -219,6 +219,9 @@ class DipProtocol:
         extra_steps: readings after the object is fully under water.
         settle_s: time per step (move + settling) before each reading (s).
         reorient_s: time between orientations (lift, rotate, lower) (s).
+
+    Every value must be finite and not negative (``step_mm`` positive, ``extra_steps`` whole), else a
+    ``ValueError`` names it.
     """
 
     step_mm: float = 1.0
@@ -228,10 +231,15 @@ class DipProtocol:
     reorient_s: float = 30.0
 
     def __post_init__(self) -> None:
-        if not self.step_mm > 0:
-            raise ValueError(f"step_mm must be positive, got {self.step_mm!r}")
-        if self.clearance_mm < 0 or self.extra_steps < 0 or self.settle_s < 0 or self.reorient_s < 0:
-            raise ValueError("clearance_mm, extra_steps, settle_s and reorient_s must be non-negative")
+        if not 0 < self.step_mm < math.inf:
+            raise ValueError(f"step_mm must be a finite, positive number (mm), got {self.step_mm!r}")
+        for name, unit in (("clearance_mm", "mm"), ("settle_s", "s"), ("reorient_s", "s")):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not 0 <= value < math.inf:  # NaN fails too
+                raise ValueError(f"protocol {name} must be a finite number >= 0 ({unit}), got {value!r}")
+        if isinstance(self.extra_steps, bool) or int(self.extra_steps) != self.extra_steps or self.extra_steps < 0:
+            raise ValueError(f"protocol extra_steps must be a whole number of readings >= 0, got {self.extra_steps!r}")
+        self.extra_steps = int(self.extra_steps)
 
     def n_readings(self, radius: float) -> int:
         """Readings per orientation for an object of bounding radius ``radius`` (mm)."""

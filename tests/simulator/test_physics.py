@@ -76,6 +76,23 @@ def test_timing_and_schedule():
     assert a.values[1] == a.values[0]  # the clearance gives flat readings first
 
 
+@pytest.mark.parametrize("option,message", [
+    ({"clearance_mm": float("nan")}, r"protocol clearance_mm must be a finite number >= 0 \(mm\), got nan"),
+    ({"settle_s": float("nan")}, r"protocol settle_s must be a finite number >= 0 \(s\), got nan"),
+    ({"reorient_s": float("inf")}, r"protocol reorient_s must be a finite number >= 0 \(s\), got inf"),
+    ({"clearance_mm": float("inf")}, r"protocol clearance_mm .* got inf"),
+    ({"step_mm": float("inf")}, r"step_mm must be a finite, positive number \(mm\), got inf"),
+    ({"extra_steps": 2.5}, r"extra_steps must be a whole number of readings >= 0, got 2.5"),
+])
+def test_a_protocol_value_that_is_not_finite_is_named(option, message):
+    """Before: DipProtocol(clearance_mm=nan) was accepted and the simulation failed with "cannot convert float NaN
+    to integer" (reconstruct.py source.simulator.protocol.clearance_mm=nan: that line, exit 2), settle_s=nan or
+    reorient_s=inf with "`x` must contain only finite values.", clearance_mm=inf with an OverflowError."""
+    with pytest.raises(ValueError, match=message):
+        DipProtocol(**option)
+    assert DipProtocol(extra_steps=2.0).extra_steps == 2 and type(DipProtocol(extra_steps=2.0).extra_steps) is int
+
+
 def test_snr_sets_the_stated_noise_level():
     snr_db = 20.0
     noisy = simulate_scan(BALL, DIRS, sensor=LevelSensor(snr_db=snr_db, quantum_mm=0.0), seed=3, progress=False)
