@@ -70,7 +70,7 @@ class Tank:
     Attributes:
         cross_section_mm2: free cross-section ``A`` at the water line, mm^2 (in 2D: a width in
             mm). Subtract anything fixed that pierces the surface (posts, the object holder).
-        rest_level_mm: water level before the object touches the water, mm.
+        rest_level_mm: water level before the object touches the water, mm (finite).
     """
 
     cross_section_mm2: float = 300.0 * 200.0
@@ -79,6 +79,8 @@ class Tank:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.cross_section_mm2) and self.cross_section_mm2 > 0):
             raise ValueError(f"tank cross_section_mm2 must be positive, got {self.cross_section_mm2!r}")
+        if isinstance(self.rest_level_mm, bool) or not math.isfinite(self.rest_level_mm):
+            raise ValueError(f"tank rest_level_mm must be a finite level (mm), got {self.rest_level_mm!r}")
 
     @classmethod
     def default(cls, ndim: int) -> "Tank":

@@ -175,6 +175,17 @@ def test_a_tank_without_its_class_is_named():
         simulate_scan(BALL, DIRS, tank={"cross_section_mm2": 100.0}, progress=False)
 
 
+@pytest.mark.parametrize("level", [float("nan"), float("inf")])
+def test_a_rest_level_that_is_not_finite_is_named(level):
+    """Before: Tank(rest_level_mm=nan) was accepted and the simulation failed with "`x` must contain only finite
+    values."; any finite level (0, negative) only offsets the readings."""
+    with pytest.raises(ValueError, match=rf"tank rest_level_mm must be a finite level \(mm\), got {level}"):
+        Tank(rest_level_mm=level)
+    low = simulate_scan(BALL, DIRS[:1], tank=Tank(rest_level_mm=-100.0), sensor=EXACT, progress=False)
+    base = simulate_scan(BALL, DIRS[:1], sensor=EXACT, progress=False)
+    np.testing.assert_allclose(low.orientations[0].values + 250.0, base.orientations[0].values)
+
+
 def test_a_quantum_as_large_as_the_whole_rise_is_refused():
     """The 40 mm ball (268,083 mm^3) raises the default tank's level by a few mm: a 5 mm quantum would round
     every reading of a dip to one or two levels (the audit's 'profile 0 sums to 0'); it is refused, naming
