@@ -10,6 +10,7 @@ they are dimensionless. All functions are pure and return plain Python floats.
 from __future__ import annotations
 
 import logging
+import math
 import warnings
 from typing import Union
 
@@ -201,7 +202,7 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         reconstruction: the solver's result; its surface is the iso-surface of the raw
             occupancy at its threshold (the boundary of :attr:`Reconstruction.binary`).
         truth_occupancy: true occupancy fractions in ``[0, 1]``, ``grid.shape``; inside is ``> 0.5``.
-        grid: the grid of both volumes.
+        grid: the grid of both volumes: the reconstruction's (another raises a ``ValueError``).
         truth_mesh: optional true surface in grid mm coordinates (3D); when given, the truth
             points and the true volume come from it rather than from voxels.
         n_points: surface samples per surface; seed: their random seed.
@@ -216,6 +217,12 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         object smaller than the grid resolves), ``volume_error`` (signed, relative), ``empty``
         (the reconstruction has no voxel inside).
     """
+    same = reconstruction.grid.n == grid.n and reconstruction.grid.ndim == grid.ndim and math.isclose(
+        reconstruction.grid.extent, grid.extent, rel_tol=1e-9)
+    if not same:
+        raise ValueError(f"evaluate: the reconstruction is on {reconstruction.grid}, the truth on {grid}: their voxels "
+                         "are not the same places; voxelise the truth on the reconstruction's grid "
+                         "(shape.occupancy(reconstruction.grid))")
     truth = _numpy(truth_occupancy).astype(np.float64)
     binary = reconstruction.binary
     exact_volume = truth_volume

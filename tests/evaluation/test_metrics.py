@@ -110,6 +110,19 @@ def test_surface_points_lie_on_the_surface():
     np.testing.assert_array_equal(pts2, same)  # seeded
 
 
+def test_evaluate_refuses_a_grid_other_than_the_reconstructions():
+    """Before: evaluate(recon on Grid(16, 2, 100), truth, Grid(16, 2, 120)) took every voxel of the reconstruction
+    for one of the other grid: a 2D disk's volume error +0.403 instead of -0.026 (and IoU 0.708 for 0.917 when
+    the truth was voxelised on that grid), with no word."""
+    grid, other = Grid(16, ndim=2, extent=100.0), Grid(16, ndim=2, extent=120.0)
+    truth = ball(grid, [0.0, 0.0], 30.0)
+    recon = Reconstruction(torch.from_numpy(truth).float(), grid, 0.5)
+    with pytest.raises(ValueError, match=r"the reconstruction is on Grid\(n=16, ndim=2, extent=100.0\), the truth on "
+                                         r"Grid\(n=16, ndim=2, extent=120.0\).*shape.occupancy\(reconstruction.grid\)"):
+        evaluate(recon, ball(other, [0.0, 0.0], 30.0), other, n_points=500)
+    assert evaluate(recon, truth, Grid(16, ndim=2, extent=100.0), n_points=500)["iou"] == 1.0
+
+
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_evaluate_perfect_and_empty(ndim):
     grid = Grid(32, ndim=ndim)
