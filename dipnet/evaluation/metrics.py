@@ -201,7 +201,8 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
     Args:
         reconstruction: the solver's result; its surface is the iso-surface of the raw
             occupancy at its threshold (the boundary of :attr:`Reconstruction.binary`).
-        truth_occupancy: true occupancy fractions in ``[0, 1]``, ``grid.shape``; inside is ``> 0.5``.
+        truth_occupancy: true occupancy fractions in ``[0, 1]`` (other values raise a ``ValueError``), ``grid.shape``;
+            inside is ``> 0.5``.
         grid: the grid of both volumes: the reconstruction's (another raises a ``ValueError``).
         truth_mesh: optional true surface in grid mm coordinates (3D); when given, the truth
             points and the true volume come from it rather than from voxels.
@@ -224,6 +225,13 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
                          "are not the same places; voxelise the truth on the reconstruction's grid "
                          "(shape.occupancy(reconstruction.grid))")
     truth = _numpy(truth_occupancy).astype(np.float64)
+    if not (np.isfinite(truth).all() and truth.min(initial=0.0) >= 0.0 and truth.max(initial=0.0) <= 1.0):
+        finite = truth[np.isfinite(truth)]
+        span = f"{finite.min():.3g} to {finite.max():.3g}" if finite.size else "no finite value"
+        hint = f" (a 0/{finite.max():.3g} mask? divide it by {finite.max():.3g})" if finite.size and finite.max() > 1 else ""
+        raise ValueError(f"evaluate: truth_occupancy must hold occupancy fractions in [0, 1], got {span}"
+                         f"{' and NaN or inf' if finite.size < truth.size else ''}: the true volume and surface are "
+                         f"read from them{hint}")
     binary = reconstruction.binary
     exact_volume = truth_volume
     if truth_mesh is not None:

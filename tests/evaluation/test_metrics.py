@@ -123,6 +123,19 @@ def test_evaluate_refuses_a_grid_other_than_the_reconstructions():
     assert evaluate(recon, truth, Grid(16, ndim=2, extent=100.0), n_points=500)["iou"] == 1.0
 
 
+def test_evaluate_refuses_a_truth_outside_the_occupancy_fractions():
+    """Before: a 0/255 mask as the truth scored IoU 1.0 but volume error -0.996 and Chamfer 0.026 for a perfect
+    2D reconstruction (0 and 0.0 with the mask in [0, 1]): its volume was read as 255 times the object's."""
+    grid = Grid(16, ndim=2)
+    truth = ball(grid, [0.0, 0.0], 30.0)
+    recon = Reconstruction(torch.from_numpy(truth).float(), grid, 0.5)
+    with pytest.raises(ValueError, match=r"fractions in \[0, 1\], got 0 to 255: .* \(a 0/255 mask\? divide it by 255\)"):
+        evaluate(recon, truth.astype(np.uint8) * 255, grid, n_points=500)
+    with pytest.raises(ValueError, match=r"got 1 to 1 and NaN or inf"):
+        evaluate(recon, np.where(truth, 1.0, np.nan), grid, n_points=500)
+    assert evaluate(recon, truth.astype(np.uint8), grid, n_points=500)["volume_error"] == 0.0
+
+
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_evaluate_perfect_and_empty(ndim):
     grid = Grid(32, ndim=ndim)
