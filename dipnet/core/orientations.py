@@ -11,6 +11,7 @@ increasing ``t``. Since a profile along ``-theta`` is the same profile reversed,
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,8 +46,23 @@ def angles_2d(k: int, *, start_deg: float = 0.0) -> torch.Tensor:
 
 
 def directions_2d(angles_deg: torch.Tensor | np.ndarray | list[float]) -> torch.Tensor:
-    """Unit vectors ``(cos a, sin a)`` for angles in degrees; shape ``(k, 2)``."""
-    a = torch.deg2rad(torch.as_tensor(angles_deg, dtype=torch.float64))
+    """Unit vectors ``(cos a, sin a)`` for angles in degrees; shape ``(k, 2)``.
+
+    Three or more angles that all lie within ``[-2 pi, 2 pi]`` (as radians would, e.g.
+    ``np.linspace(0, np.pi, k)``) are warned about: as degrees they span a few degrees only, and dips that
+    close together leave the shape undetermined (give ``np.degrees(angles)``)."""
+    a = torch.as_tensor(angles_deg, dtype=torch.float64)
+    if a.numel() >= 3 and bool(torch.isfinite(a).all()) and float(a.abs().max()) <= 2 * math.pi \
+            and float(a.max() - a.min()) > 0:
+        warnings.warn(f"directions_2d: all {a.numel()} angles lie within [-2 pi, 2 pi] ({float(a.min()):.3g} to "
+                      f"{float(a.max()):.3g}), which are read as degrees: the dips span {float(a.max() - a.min()):.3g} "
+                      "deg; angles in radians need np.degrees(angles)", stacklevel=2)
+    return _unit_2d(a)
+
+
+def _unit_2d(angles_deg: torch.Tensor) -> torch.Tensor:
+    """``(cos a, sin a)`` of float64 ``angles_deg`` ``(k,)`` (degrees), ``(k, 2)``."""
+    a = torch.deg2rad(angles_deg)
     return torch.stack([torch.cos(a), torch.sin(a)], dim=-1)
 
 
@@ -190,8 +206,8 @@ def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor
     if ndim == 2:
         if kind == "random":
             gen = torch.Generator().manual_seed(int(seed))
-            return directions_2d(torch.rand(k, generator=gen, dtype=torch.float64) * 180.0)
-        return directions_2d(angles_2d(k))
+            return _unit_2d(torch.rand(k, generator=gen, dtype=torch.float64) * 180.0)  # any span is meant
+        return _unit_2d(angles_2d(k))
     if kind == "fibonacci" or kind == "uniform":
         return fibonacci_hemisphere(k)
     return random_hemisphere(k, seed)

@@ -1,4 +1,5 @@
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -39,6 +40,20 @@ def test_2d_angles_cover_half_turn():
     assert torch.allclose(a, torch.tensor([0, 30, 60, 90, 120, 150], dtype=torch.float64))
     d = o.directions_2d(a)
     assert torch.allclose(d[3], torch.tensor([0.0, 1.0], dtype=torch.float64), atol=1e-12)
+
+
+def test_2d_angles_in_radians_are_warned_about():
+    """Before: directions_2d(np.linspace(0, np.pi, 12, endpoint=False)) read the radians as degrees without a word:
+    12 dips within 2.9 deg, a 24^2 elephant reconstructed (minnorm) at IoU 0.431 instead of 0.775."""
+    with pytest.warns(UserWarning, match=r"all 12 angles lie within \[-2 pi, 2 pi\] \(0 to 2.88\).*np.degrees"):
+        d = o.directions_2d(np.linspace(0, np.pi, 12, endpoint=False))
+    assert torch.allclose(d[1], torch.tensor([math.cos(math.radians(math.pi / 12)), math.sin(math.radians(math.pi / 12))],
+                                             dtype=torch.float64))  # still read as degrees, as documented
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        o.directions_2d(o.angles_2d(12))
+        o.directions_2d([0.0, 3.0])  # two angles, or one: too few to tell
+        o.make_directions("random", 40, 2, seed=3)
 
 
 def test_paper_grid_matches_its_formula():
