@@ -53,7 +53,7 @@ class ImplicitSolver(OptimisationSolver):
         encoding: ``{"type": "densegrid" | "fourier" | "positional", **options}``
             (see :mod:`dipnet.solvers.fields`); a ``densegrid`` with ``max_resolution: None``
             gets the data grid's ``N``.
-        hidden_width, hidden_layers: the MLP.
+        hidden_width, hidden_layers: the MLP: neurons per hidden layer (>= 1) and hidden layers (>= 0).
         symmetry: built-in symmetry ``{"plane_normal": [..], "axis": [..], "order": k}`` or ``None``.
         output_upsample: also sample the field on a grid this many times finer (1 = no).
         warm_iterations: Adam steps fitting the field to the warm-start occupancy (binary
@@ -76,6 +76,10 @@ class ImplicitSolver(OptimisationSolver):
         super().__init__(**options)
         if int(output_upsample) < 1 or int(warm_iterations) < 0:
             raise ValueError("output_upsample must be >= 1 and warm_iterations >= 0")
+        for key, value, low, meaning in (("hidden_width", hidden_width, 1, "neurons per hidden layer"),
+                                         ("hidden_layers", hidden_layers, 0, "hidden layers")):
+            if isinstance(value, bool) or int(value) != value or value < low:  # 0 neurons: an empty shape
+                raise ValueError(f"{key} must be an integer >= {low} ({meaning}), got {value!r}")
         self.encoding = plain(encoding) if encoding is not None else {
             "type": "densegrid", "levels": 6, "features": 2, "base_resolution": 4, "max_resolution": None}
         self.hidden_width, self.hidden_layers = int(hidden_width), int(hidden_layers)
