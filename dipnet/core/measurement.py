@@ -124,13 +124,24 @@ class DipMeasurement:
         return float(self.profiles.sum(1).median())
 
     def resampled(self, edges: torch.Tensor, rel_tol: float | None = None) -> torch.Tensor:
-        """Slab volumes on other slab boundaries ``edges`` ``(M' + 1,)`` (mm, same for every
-        orientation), by linear interpolation of the cumulative volume; ``(K, M')``.
+        """Slab volumes on other slab boundaries ``edges`` ``(M' + 1,)`` (mm, increasing; a tensor or array, the
+        same for every orientation), by linear interpolation of the cumulative volume; ``(K, M')``.
 
         Volume outside ``[edges[0], edges[-1]]`` is lost; with ``rel_tol`` given, a loss above that share
         of a profile's volume is logged and warned about, naming both slab ranges (the grid is too small
         for the object).
+
+        Raises:
+            MeasurementFileError: ``edges`` that are not finite and increasing (heights ``t`` grow upward, in the
+                order the slabs go under water: decreasing edges would give every slab a negative volume).
         """
+        edges = torch.as_tensor(edges, dtype=torch.float64)
+        if edges.ndim != 1 or edges.numel() < 2 or not bool(torch.isfinite(edges).all()) \
+                or not bool((torch.diff(edges) > 0).all()):
+            got = (f"{edges.numel()} edges from {float(edges[0]):g} to {float(edges[-1]):g} mm" if edges.ndim == 1
+                   and edges.numel() >= 2 else f"shape {tuple(edges.shape)}")
+            raise MeasurementFileError(f"re-binning needs finite, increasing slab edges (mm, heights t growing upward, "
+                                       f"at least 1 slab), got {got}")
         k, m = self.profiles.shape
         cum = torch.cat([torch.zeros(k, 1, dtype=torch.float64), torch.cumsum(self.profiles, 1)], 1)
         src = self.offsets[:, None] + self.slab_thickness * torch.arange(m + 1, dtype=torch.float64)

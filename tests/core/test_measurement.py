@@ -58,6 +58,20 @@ def test_resampling_keeps_volume_and_matches_on_same_edges():
     assert torch.allclose(coarse.sum(1), m.profiles.sum(1))
 
 
+def test_resampling_refuses_edges_that_do_not_increase():
+    """Before: m.resampled(edges.flip(0)) returned every slab's volume negated (totals -2827.4 mm^2 for a 2827.4
+    mm^2 disk) without a word, and a numpy array of edges failed with "'numpy.ndarray' object has no attribute
+    'numpy'"."""
+    m = _measurement()
+    edges = torch.linspace(-20, 20, 6, dtype=torch.float64)
+    with pytest.raises(MeasurementFileError, match=r"finite, increasing slab edges .* got 6 edges from 20 to -20 mm"):
+        m.resampled(edges.flip(0))
+    with pytest.raises(MeasurementFileError, match="increasing slab edges"):
+        m.resampled(torch.tensor([0.0, float("nan"), 1.0]))
+    torch.testing.assert_close(m.resampled(edges.numpy()), m.resampled(edges))
+    assert torch.allclose(m.resampled(edges).sum(1), m.profiles.sum(1))
+
+
 def test_rebinning_round_trip_preserves_profile_totals(tmp_path):
     """A saved measurement re-bins onto any slab count: totals kept exactly, cumulative volumes
     kept at the common edges, and 10 -> 5 -> 10 slabs is exact where the coarse edges fall."""
