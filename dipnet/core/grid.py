@@ -14,6 +14,7 @@ Convention (used everywhere in dipnet)
 from __future__ import annotations
 
 import math
+import numbers
 import sys
 from dataclasses import dataclass
 
@@ -92,6 +93,16 @@ class Grid:
     def to_dict(self) -> dict:
         """Plain metadata, for files."""
         return {"n": self.n, "ndim": self.ndim, "extent": self.extent}
+
+
+def slab_count(grid: Grid, n_slabs: int | None = None) -> int:
+    """Slabs per profile ``M``: ``n_slabs`` as an int, ``grid.n`` when ``None``; a ``ValueError`` unless it is a
+    whole number >= 2 (``24.0`` is 24, ``7.5`` is refused rather than cut to 7)."""
+    if n_slabs is None:
+        return grid.n
+    if isinstance(n_slabs, bool) or not isinstance(n_slabs, numbers.Real) or int(n_slabs) != n_slabs or n_slabs < 2:
+        raise ValueError(f"n_slabs must be a whole number >= 2 (slabs per profile), got {n_slabs!r}")
+    return int(n_slabs)
 
 
 def as_grid(grid: Grid) -> Grid:

@@ -34,7 +34,7 @@ import scipy.sparse.linalg
 import torch
 from torch import nn
 
-from dipnet.core.grid import Grid, as_grid
+from dipnet.core.grid import Grid, as_grid, slab_count
 from dipnet.core.orientations import unit_directions
 
 
@@ -51,9 +51,7 @@ class DipOperator(nn.Module, ABC):
         super().__init__()
         grid = as_grid(grid)
         directions = unit_directions(directions, grid.ndim)
-        n_slabs = grid.n if n_slabs is None else int(n_slabs)
-        if n_slabs < 2:
-            raise ValueError(f"n_slabs must be >= 2, got {n_slabs}")
+        n_slabs = slab_count(grid, n_slabs)
         self.grid = grid
         self.n_slabs = n_slabs
         self.register_buffer("directions", directions)

@@ -47,7 +47,7 @@ import scipy.ndimage
 import scipy.optimize
 from scipy.interpolate import PchipInterpolator
 
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, slab_count
 from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
 from dipnet.preprocessing.level_trend import tail_slope
@@ -79,9 +79,9 @@ def smooth_profiles(profiles: np.ndarray, kernel: np.ndarray | None = None) -> n
 
 
 def slab_edges(grid: Grid, n_slabs: int | None = None) -> np.ndarray:
-    """The operator's slab edges for ``grid``: ``[-L/2, L/2]`` in ``M`` slabs, ``(M + 1,)`` mm."""
-    m = grid.n if n_slabs is None else int(n_slabs)
-    return np.linspace(-grid.extent / 2, grid.extent / 2, m + 1)
+    """The operator's slab edges for ``grid``: ``[-L/2, L/2]`` in ``M`` slabs, ``(M + 1,)`` mm
+    (``M`` = ``n_slabs``, default ``grid.n``; :func:`~dipnet.core.grid.slab_count` checks it)."""
+    return np.linspace(-grid.extent / 2, grid.extent / 2, slab_count(grid, n_slabs) + 1)
 
 
 def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: int | None = None,

@@ -44,7 +44,7 @@ def test_directions_are_normalised_and_the_slabs_cover_the_extent():
     (torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]), None, "zero vector"),
     (torch.tensor([[0.0, 0.0, 1.0], [float("nan")] * 3]), None, r"non-finite \(NaN or inf\) components in rows \[1\]"),
     (torch.tensor([[float("inf"), 0.0, 1.0]]), None, r"non-finite \(NaN or inf\) components in rows \[0\]"),
-    (torch.ones(1, 3), 1, "n_slabs must be >= 2"),
+    (torch.ones(1, 3), 1, "n_slabs must be a whole number >= 2"),
 ])
 def test_bad_directions_and_slab_counts_are_named(directions, n_slabs, message):
     with pytest.raises(ValueError, match=message):

@@ -64,6 +64,18 @@ def test_default_edges_are_the_operators():
     assert m.n_slabs == 8 and m.profiles.sum().item() == pytest.approx(VOLUME)
 
 
+@pytest.mark.parametrize("n_slabs", [0, 7.5, True])
+def test_a_slab_count_that_is_no_whole_number_of_two_or_more_is_named(n_slabs):
+    """Before: preprocess(scan, grid=grid, n_slabs=0) failed with "IndexError: index 1 is out of bounds for axis 0
+    with size 1", n_slabs=7.5 gave 7 slabs (and make_operator(grid, dirs, n_slabs=2.5) 2) without a word."""
+    grid = Grid(16, 3, 100.0)
+    with pytest.raises(ValueError, match=rf"n_slabs must be a whole number >= 2 \(slabs per profile\), got {n_slabs}"):
+        preprocess(_scan(), grid=grid, n_slabs=n_slabs)
+    with pytest.raises(ValueError, match="n_slabs must be a whole number >= 2"):
+        make_operator(grid, np.array([[0.0, 0.0, 1.0]]), n_slabs=n_slabs)
+    assert preprocess(_scan(), grid=grid, n_slabs=8.0).n_slabs == 8
+
+
 def test_start_height_estimates():
     raw = _scan()
     ref = preprocess(raw, edges=EDGES).profiles
