@@ -39,6 +39,8 @@ correlations when slabs are thinner than a stage step).
 from __future__ import annotations
 
 import logging
+import math
+import numbers
 import warnings
 from pathlib import Path
 
@@ -128,8 +130,9 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     area = cross_section_mm2 if cross_section_mm2 is not None else header.tank_cross_section_mm2
     if area is None or not area > 0:
         raise ValueError("the tank cross-section is unknown: pass cross_section_mm2 (mm^2; mm in 2D)")
-    if isinstance(t_start, str) and t_start not in T_START_METHODS:
-        raise ValueError(f"t_start must be a number (mm) or one of {T_START_METHODS}, got {t_start!r}")
+    if (t_start not in T_START_METHODS if isinstance(t_start, str)
+            else isinstance(t_start, bool) or not isinstance(t_start, numbers.Real) or not math.isfinite(t_start)):
+        raise ValueError(f"t_start must be a finite number (mm) or one of {T_START_METHODS}, got {t_start!r}")
     scans = raw.orientations if include_incomplete else complete_dips(raw)
     if not scans:
         raise ValueError(f"the raw scan{'' if raw.path is None else ' ' + str(raw.path)} has no orientation")

@@ -94,6 +94,16 @@ def test_start_height_estimates():
     assert auto.metadata["t_start_mm"][0] == pytest.approx(T_START, abs=0.05)
 
 
+@pytest.mark.parametrize("t_start", [float("nan"), float("inf"), "middle"])
+def test_a_start_height_that_is_no_height_is_named(t_start):
+    """Before: preprocess(scan, t_start=nan) (or inf) failed with "`x` must contain only finite values." from the
+    interpolation; a number still places the profiles (t_start=-40 as the scan's own start)."""
+    with pytest.raises(ValueError, match=r"t_start must be a finite number \(mm\) or one of \('auto'"):
+        preprocess(_scan(), edges=EDGES, t_start=t_start)
+    np.testing.assert_allclose(preprocess(_scan(), edges=EDGES, t_start=T_START).profiles.numpy(),
+                               preprocess(_scan(), edges=EDGES).profiles.numpy())
+
+
 def test_flagged_and_repeated_readings():
     raw = _scan()
     ref = preprocess(raw, edges=EDGES).profiles
