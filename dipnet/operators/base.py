@@ -85,7 +85,7 @@ class DipOperator(nn.Module, ABC):
         volume = self._as_real_tensor(volume, "volume")
         batched = self._check_volume(volume)
         v = volume if batched else volume.unsqueeze(0)
-        out = self._forward(v * self.mask.to(v.dtype))
+        out = self._forward(v.masked_fill(~self.mask, 0.0))  # not v * mask: a NaN or inf outside is no 0
         return out if batched else out.squeeze(0)
 
     def adjoint(self, profiles: torch.Tensor) -> torch.Tensor:

@@ -77,6 +77,20 @@ def test_only_the_working_ball_counts_forward_and_back():
     torch.testing.assert_close(back[:, inside], torch.full_like(back[:, inside], 3 * GRID.voxel_volume))
 
 
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
+@pytest.mark.parametrize("outside", [float("nan"), float("inf")])
+def test_values_outside_the_working_ball_do_not_count_even_when_not_finite(backend, outside):
+    """Before: the fourier backend gave every slab NaN for a volume holding NaN or inf outside the working ball
+    (masked by multiplying: inf * 0 is NaN), while splat and rotate_sum ignored them as the contract says."""
+    grid = Grid(12, ndim=2)
+    op = make_operator(grid, torch.tensor([[1.0, 0.0], [0.6, 0.8]], dtype=torch.float64), backend=backend)
+    inside = grid.working_mask().double()
+    torch.testing.assert_close(op(torch.where(grid.working_mask(), 1.0, outside).double()), op(inside))
+    volume = inside.clone().requires_grad_(True)
+    op(volume).sum().backward()
+    assert float(volume.grad[~grid.working_mask()].abs().max()) == 0.0
+
+
 def test_cumulative_is_the_submerged_volume():
     op = MiddleSlab(GRID, torch.eye(3, dtype=torch.float64))
     x = torch.rand(2, *GRID.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
