@@ -15,8 +15,8 @@ class Reconstruction:
     """A solver's result on a grid.
 
     Attributes:
-        occupancy: estimated occupancy on ``grid``, ``grid.shape``, float (probabilities in
-            ``[0, 1]`` for the optimisation solvers; raw least-squares values for ``minnorm``).
+        occupancy: estimated occupancy on ``grid``, ``grid.shape``, a float tensor (a numpy array is converted):
+            probabilities in ``[0, 1]`` for the optimisation solvers, raw least-squares values for ``minnorm``.
         grid: the grid.
         threshold: the level that separates inside from outside (e.g. Otsu's).
         history: loss terms per iteration, ``{name: [values]}`` (empty for direct solvers).
@@ -31,6 +31,10 @@ class Reconstruction:
     history: dict[str, list[float]] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
     fine: "Reconstruction | None" = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.occupancy, torch.Tensor):  # a numpy array (a result made by hand) is taken as a tensor
+            self.occupancy = torch.as_tensor(self.occupancy)
 
     @property
     def binary(self) -> np.ndarray:

@@ -18,3 +18,13 @@ def test_the_binary_volume_is_the_occupancy_above_the_threshold_and_round_trips(
         assert np.array_equal(saved["binary"], recon.binary) and float(saved["threshold"]) == 0.25
         assert (int(saved["grid_n"]), int(saved["grid_ndim"]), float(saved["grid_extent"])) == (8, 3, 40.0)
         assert str(saved["axis_order"]) == "zyx" and saved["extra_map"].shape == grid.shape
+
+
+def test_a_numpy_occupancy_is_taken_as_a_tensor():
+    """Before: Reconstruction(numpy_array, grid).binary (and evaluate on it) failed with "AttributeError: 'numpy.ndarray'
+    object has no attribute 'detach'"."""
+    grid = Grid(8, 2, 40.0)
+    occupancy = np.linspace(0, 1, 64, dtype=np.float32).reshape(grid.shape)
+    recon = Reconstruction(occupancy, grid, threshold=0.5)
+    assert isinstance(recon.occupancy, torch.Tensor) and recon.occupancy.dtype == torch.float32
+    assert np.array_equal(recon.binary, occupancy > 0.5)
