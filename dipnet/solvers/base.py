@@ -57,13 +57,20 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
                 if isinstance(measurement, (torch.Tensor, np.ndarray)) else "")
         raise TypeError(f"solve(measurement, operator) takes a DipMeasurement and a DipOperator, got "
                         f"{type(measurement).__name__} and {type(operator).__name__}{hint}")
+    fix = (f"build the operator from the measurement's own directions on a {measurement.ndim}D grid: "
+           "make_operator(grid, measurement.directions)")
     if measurement.n_orientations != operator.n_orientations or measurement.ndim != operator.grid.ndim:
         raise ValueError(
             f"measurement has {measurement.n_orientations} orientations in {measurement.ndim}D, "
-            f"the operator {operator.n_orientations} in {operator.grid.ndim}D")
+            f"the operator {operator.n_orientations} in {operator.grid.ndim}D: {fix}")
     dirs = measurement.directions / measurement.directions.norm(dim=1, keepdim=True)
     if not torch.allclose(dirs, operator.directions.to(dirs), atol=1e-6):
-        raise ValueError("the measurement's orientations differ from the operator's")
+        cosine = (dirs * operator.directions.to(dirs)).sum(1).clamp(-1.0, 1.0)
+        rows = torch.nonzero(~torch.isclose(cosine, torch.ones_like(cosine), atol=1e-9)).squeeze(1).tolist()
+        angle = float(torch.rad2deg(torch.arccos(cosine[rows[0]]))) if rows else 0.0
+        raise ValueError(f"the measurement's orientations differ from the operator's in {len(rows)} of "
+                         f"{len(dirs)} rows (first: row {rows[0] if rows else 0}, {angle:.3g} deg apart; the rows must "
+                         f"be the same dips in the same order): {fix}")
     edges = operator.slab_edges()
     same = (measurement.n_slabs == operator.n_slabs
             and abs(measurement.slab_thickness - operator.slab_thickness) < 1e-9 * operator.slab_thickness

@@ -92,6 +92,10 @@ def test_other_dimensions_and_other_directions_are_refused():
         measured_profiles(m, make_operator(Grid(16, 2, 40.0), torch.eye(2)[[0, 1, 0, 1]] * 1.0))
     with pytest.raises(ValueError, match="the measurement's orientations differ from the operator's"):
         measured_profiles(m, make_operator(Grid(16, 3, 40.0), fibonacci_hemisphere(4).flip(0)))
+    # the rows that differ and how to build the operator that fits (before: only the first sentence)
+    with pytest.raises(ValueError, match=r"differ from the operator's in 4 of 4 rows \(first: row 0, 180 deg apart; .*"
+                                         r"make_operator\(grid, measurement.directions\)"):
+        measured_profiles(m, make_operator(Grid(16, 3, 40.0), -fibonacci_hemisphere(4)))
 
 
 def test_a_solver_must_solve():
