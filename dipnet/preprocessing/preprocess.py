@@ -49,6 +49,7 @@ import scipy.ndimage
 import scipy.optimize
 from scipy.interpolate import PchipInterpolator
 
+from dipnet.core.geometry import CROSS_SECTION_RANGE_MM2
 from dipnet.core.grid import Grid, slab_count
 from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
@@ -98,7 +99,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         edges: uniform slab edges ``(M + 1,)`` mm shared by all orientations; default from
             ``grid`` and ``n_slabs`` (:func:`slab_edges`).
         grid, n_slabs: the reconstruction grid and slab count (when ``edges`` is not given).
-        cross_section_mm2: tank free cross-section ``A`` (mm^2; mm in 2D); default the header's.
+        cross_section_mm2: tank free cross-section ``A`` (mm^2; mm in 2D); default the header's. Either must lie
+            in :data:`~dipnet.core.geometry.CROSS_SECTION_RANGE_MM2` (else a ``ValueError``: wrong units).
         t_start: ``"metadata"`` | ``"centroid"`` | ``"onset"`` | a number (mm) | ``"auto"``
             (``"metadata"`` when the scan records it, else ``"centroid"``). See module docstring.
         object_centre: the object centre ``(ndim,)`` mm for ``"centroid"`` (default the origin).
@@ -128,8 +130,13 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     edges = _resolve_edges(edges, grid, n_slabs)
     _check_step(_stage_step(raw), float(edges[1] - edges[0]))
     area = cross_section_mm2 if cross_section_mm2 is not None else header.tank_cross_section_mm2
-    if area is None or not area > 0:
+    if area is None:
         raise ValueError("the tank cross-section is unknown: pass cross_section_mm2 (mm^2; mm in 2D)")
+    low, high = CROSS_SECTION_RANGE_MM2
+    if isinstance(area, bool) or not isinstance(area, numbers.Real) or not low <= area <= high:  # NaN fails too
+        source = "cross_section_mm2" if cross_section_mm2 is not None else "the scan header's tank_cross_section_mm2"
+        raise ValueError(f"the tank cross-section {area!r} ({source}) is outside [{low:g}, {high:g}] mm^2 (mm in 2D): "
+                         "wrong units?")
     if (t_start not in T_START_METHODS if isinstance(t_start, str)
             else isinstance(t_start, bool) or not isinstance(t_start, numbers.Real) or not math.isfinite(t_start)):
         raise ValueError(f"t_start must be a finite number (mm) or one of {T_START_METHODS}, got {t_start!r}")

@@ -104,6 +104,18 @@ def test_a_start_height_that_is_no_height_is_named(t_start):
                                preprocess(_scan(), edges=EDGES).profiles.numpy())
 
 
+@pytest.mark.parametrize("area,message", [(1e-300, "1e-300"), (-5.0, "-5.0"), (float("nan"), "nan"), (float("inf"), "inf")])
+def test_a_cross_section_outside_any_tank_is_named(area, message):
+    """Before: preprocess(scan, cross_section_mm2=1e-300) gave a 2827 mm^2 disk profiles totalling 9.4e-300 mm^2
+    without a word (the
+    range a calibration file's section must lie in was not applied here), -5 and nan said the section was
+    "unknown", inf failed with "`x` must contain only finite values."."""
+    with pytest.raises(ValueError, match=rf"tank cross-section {message} \(cross_section_mm2\) is outside "
+                                         r"\[1, 1e\+08\] mm\^2 \(mm in 2D\): wrong units\?"):
+        preprocess(_scan(), edges=EDGES, cross_section_mm2=area)
+    assert preprocess(_scan(), edges=EDGES, cross_section_mm2=AREA).profiles.sum().item() == pytest.approx(VOLUME)
+
+
 def test_flagged_and_repeated_readings():
     raw = _scan()
     ref = preprocess(raw, edges=EDGES).profiles
