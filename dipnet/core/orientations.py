@@ -25,6 +25,8 @@ def unit_directions(directions, ndim: int) -> torch.Tensor:
         ValueError: a shape other than ``(K, ndim)`` with ``K >= 1``, or rows holding a NaN or infinite
             component or a zero vector (the message names the rows).
     """
+    if isinstance(directions, np.ndarray):  # a view with negative strides ([::-1]) is copied: torch takes none
+        directions = np.ascontiguousarray(directions)
     d = torch.as_tensor(directions, dtype=torch.float64)
     if d.ndim != 2 or d.shape[1] != ndim or d.shape[0] < 1:
         raise ValueError(f"directions must have shape (K, {ndim}) with K >= 1, got {tuple(d.shape)}")

@@ -134,8 +134,8 @@ class DipOperator(nn.Module, ABC):
         """``values`` as a real floating tensor: floating tensors unchanged (autograd kept), numpy
         arrays via ``torch.as_tensor`` on the operator's device, bool / integer values converted
         to the operator's float dtype."""
-        if not isinstance(values, torch.Tensor):
-            values = torch.as_tensor(values, device=self.directions.device)
+        if not isinstance(values, torch.Tensor):  # a view with negative strides (np.flip) is copied: torch takes none
+            values = torch.as_tensor(np.ascontiguousarray(values), device=self.directions.device)
         if values.is_complex():
             raise TypeError(f"{name} must be real (occupancies or slab volumes), got dtype {values.dtype}")
         if not values.is_floating_point():

@@ -156,6 +156,19 @@ def test_bool_integer_and_numpy_occupancies_are_accepted_as_floats(backend):
         op.adjoint(counts.to(torch.complex64))
 
 
+def test_numpy_views_with_negative_strides_are_accepted():
+    """Before: a flipped numpy volume (np.flip, [::-1]), profiles or directions failed with "ValueError: At least one
+    stride in the given numpy array is negative, and tensors with negative strides are not currently supported",
+    though the operator takes numpy arrays."""
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]], dtype=torch.float64)
+    op = make_operator(GRID, dirs.numpy()[::-1])
+    torch.testing.assert_close(op.directions, dirs.flip(0))
+    volume = np.random.default_rng(0).random(GRID.shape)
+    torch.testing.assert_close(op(np.flip(volume, 0)), op(torch.from_numpy(volume.copy()).flip(0)))
+    profiles = np.arange(2.0 * GRID.n).reshape(2, GRID.n)
+    torch.testing.assert_close(op.adjoint(profiles[:, ::-1]), op.adjoint(torch.from_numpy(profiles).flip(1)))
+
+
 @pytest.mark.parametrize("backend", BACKEND_NAMES)
 def test_float_inputs_keep_their_dtype_and_their_gradient(backend):
     """A float32 volume that requires grad is used as it is: float32 profiles, and the gradient of
