@@ -33,6 +33,14 @@ class MeasurementFileError(ValueError):
     """A measurement file is missing, unreadable or inconsistent."""
 
 
+def _float64(values) -> torch.Tensor:
+    """``values`` (a tensor, a numpy array, a list) as a float64 tensor; a numpy view with negative strides
+    (``np.flip``, ``[::-1]``) is copied, as torch takes none."""
+    if isinstance(values, np.ndarray):
+        values = np.ascontiguousarray(values)
+    return torch.as_tensor(values, dtype=torch.float64)
+
+
 def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
     """``(volume, spread)``: a robust mean of the profiles' totals (the mean of those within
     3 MAD-sigmas of the median) and its standard error (robust sigma / sqrt(K)), mm^3.
@@ -68,11 +76,11 @@ class DipMeasurement:
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.directions = torch.as_tensor(self.directions, dtype=torch.float64)
-        self.profiles = torch.as_tensor(self.profiles, dtype=torch.float64)
-        self.offsets = torch.as_tensor(self.offsets, dtype=torch.float64).reshape(-1)
+        self.directions = _float64(self.directions)
+        self.profiles = _float64(self.profiles)
+        self.offsets = _float64(self.offsets).reshape(-1)
         if self.sigma is not None:
-            self.sigma = torch.as_tensor(self.sigma, dtype=torch.float64)
+            self.sigma = _float64(self.sigma)
             if self.sigma.numel() == 1:
                 self.sigma = self.sigma.reshape(1, 1).expand_as(self.profiles).clone()
         self.validate()

@@ -72,6 +72,15 @@ def test_resampling_refuses_edges_that_do_not_increase():
     assert torch.allclose(m.resampled(edges).sum(1), m.profiles.sum(1))
 
 
+def test_numpy_views_with_negative_strides_make_a_measurement():
+    """Before: DipMeasurement(np.eye(2)[::-1], profiles[:, ::-1], ...) failed with torch's "At least one stride in the
+    given numpy array is negative"."""
+    profiles = np.arange(8.0).reshape(2, 4)
+    m = DipMeasurement(np.eye(2)[::-1], profiles[:, ::-1], 1.0, np.zeros(2)[::-1], sigma=np.ones((2, 4))[::-1])
+    torch.testing.assert_close(m.profiles, torch.from_numpy(profiles).flip(1))
+    torch.testing.assert_close(m.directions, torch.tensor([[0.0, 1.0], [1.0, 0.0]], dtype=torch.float64))
+
+
 def test_rebinning_round_trip_preserves_profile_totals(tmp_path):
     """A saved measurement re-bins onto any slab count: totals kept exactly, cumulative volumes
     kept at the common edges, and 10 -> 5 -> 10 slabs is exact where the coarse edges fall."""
