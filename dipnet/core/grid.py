@@ -90,6 +90,10 @@ class Grid:
         """Boolean mask of the voxels whose centre lies in the working region, shape ``shape``."""
         return self.centers().norm(dim=-1) <= self.radius
 
+    def matches(self, other: "Grid") -> bool:
+        """Whether ``other`` has the same voxels: same ``n`` and ``ndim``, extents equal to 1e-9 relative."""
+        return (self.n, self.ndim) == (other.n, other.ndim) and math.isclose(self.extent, other.extent, rel_tol=1e-9)
+
     def to_dict(self) -> dict:
         """Plain metadata, for files."""
         return {"n": self.n, "ndim": self.ndim, "extent": self.extent}

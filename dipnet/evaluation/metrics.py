@@ -10,7 +10,6 @@ they are dimensionless. All functions are pure and return plain Python floats.
 from __future__ import annotations
 
 import logging
-import math
 import warnings
 from typing import Union
 
@@ -218,9 +217,7 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         object smaller than the grid resolves), ``volume_error`` (signed, relative), ``empty``
         (the reconstruction has no voxel inside).
     """
-    same = reconstruction.grid.n == grid.n and reconstruction.grid.ndim == grid.ndim and math.isclose(
-        reconstruction.grid.extent, grid.extent, rel_tol=1e-9)
-    if not same:
+    if not reconstruction.grid.matches(grid):
         raise ValueError(f"evaluate: the reconstruction is on {reconstruction.grid}, the truth on {grid}: their voxels "
                          "are not the same places; voxelise the truth on the reconstruction's grid "
                          "(shape.occupancy(reconstruction.grid))")

@@ -468,7 +468,8 @@ class OptimisationSolver(Solver):
         warm_start: initial occupancy: ``None`` (uniform, at the measured volume), a tensor
             ``grid.shape``, a solver (its ``solve(measurement, operator)`` result, e.g. a
             ``MinNormSolver``), or a callable ``(measurement, operator) -> tensor | Reconstruction``.
-            A reconstruction's values are shifted so its threshold maps to 0.5, then clipped to [0, 1].
+            A reconstruction's values are shifted so its threshold maps to 0.5, then clipped to [0, 1]; one on
+            another grid than the operator's raises a ``ValueError``.
         hull_tol: voxels outside the data's :func:`support_hull` (with this ``rel_tol``) are
             fixed empty; ``None``: only the working ball.
         hull_margin: the hull's slack in voxels; raise it when the profiles' start heights
@@ -603,6 +604,10 @@ class OptimisationSolver(Solver):
         elif callable(start):
             start = start(measurement, operator)
         if isinstance(start, Reconstruction):
+            if not start.grid.matches(operator.grid):  # the same shape on other voxels would start elsewhere
+                raise ValueError(f"warm start is a reconstruction on {start.grid}, the operator's grid is "
+                                 f"{operator.grid}: their voxels are not the same places; solve the start on the "
+                                 "operator's grid")
             start = start.occupancy.detach().float() - start.threshold + 0.5
         start = torch.as_tensor(start, dtype=torch.float32)
         if tuple(start.shape) != operator.grid.shape:

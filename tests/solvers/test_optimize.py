@@ -11,7 +11,10 @@ import torch
 
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
+from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators import make_operator
+from dipnet.shapes import Disk
+from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers import optimize
 from dipnet.solvers.optimize import DataTerm, filled_span, slab_support, support_hull
 from dipnet.solvers.voxel import VoxelSolver
@@ -199,3 +202,19 @@ def test_solver_compares_its_residual_with_the_correlated_noise_expectation():
     expected = DataTerm(op, target, sigma, noise_model="correlated", white_share=0.5).expected_noise
     record = recon.info["weight_rule"]  # the TV weight's rule compared the residual with this noise
     assert record["noise_source"] == "sigma" and record["noise_residual"] == pytest.approx(expected ** 0.5, rel=1e-6)
+
+
+def test_a_warm_start_on_other_voxels_is_refused():
+    """Before: a Reconstruction of the same shape on another grid (16^3 over 200 mm for the operator's 100 mm) was
+    taken voxel by voxel as the start: a chamber box came back at IoU 0.551 (no warm start 0.744, the minnorm
+    start on the operator's grid 0.784), without a word."""
+    grid, other = Grid(16, 2, 100.0), Grid(16, 2, 200.0)
+    directions = torch.tensor([[1.0, 0.0], [0.6, 0.8], [0.0, 1.0], [-0.6, 0.8]], dtype=torch.float64)
+    disk = Disk(30.0)
+    _, meas = simulate_measurement(disk, directions, grid=grid, progress=False)
+    op = make_operator(grid, directions)
+    opts = dict(iterations=2, coarse_to_fine=False, progress=False)
+    with pytest.raises(ValueError, match=r"warm start is a reconstruction on Grid\(n=16, ndim=2, extent=200.0\), the "
+                                         r"operator's grid is Grid\(n=16, ndim=2, extent=100.0\)"):
+        VoxelSolver(warm_start=Reconstruction(disk.occupancy(other), other), **opts).solve(meas, op)
+    VoxelSolver(warm_start=Reconstruction(disk.occupancy(grid), Grid(16, 2, 100.0)), **opts).solve(meas, op)
