@@ -115,9 +115,10 @@ def job_name(mesh: str, n: int, percent: float) -> str:
 
 
 def nominal_rows(args) -> tuple[list[dict], list]:
-    """The runs under ``--out`` and their rows (:func:`~dipnet.experiments.collect.run_row`) with
-    ``percent``: the requested budget (41 dips at 64^3 and 164 at 128^3 are both 1 %)."""
-    runs = collect.collect_runs(args.out)
+    """The runs of the jobs these arguments ask for and their rows (:func:`~dipnet.experiments.collect.run_row`)
+    with ``percent``: the requested budget (41 dips at 64^3 and 164 at 128^3 are both 1 %). Other jobs under
+    ``--out`` (an earlier call's other meshes, resolutions or budgets) are left out: they are not this call's."""
+    runs = collect.collect_runs(job for *_, job, _ in jobs(args) if job.is_dir() and collect.find_job_dirs(job))
     rows = collect.run_rows(runs, args.out)
     for row in rows:
         row["percent"] = float(Path(row["job"]).name.rsplit("_p", 1)[1])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 
 import pytest
 from script_modules import load_script
@@ -59,3 +60,19 @@ def test_summary_shows_undefined_metrics_as_dashes(paper_figures):
     assert "| 10 | 2 | 0.0120 +- 0.0000 | 0.0500 +- 0.0000 |" in table  # the mean over the defined ones
     only_undefined = paper_figures.collect.aggregate(rows[:1], ("percent",), metrics=("chamfer", "hausdorff"))
     assert "| 10 | 1 | - +- - | - +- - |" in paper_figures.summary(rows[:1], only_undefined)
+
+
+def test_the_table_and_result_hold_only_the_jobs_asked_for(paper_figures, tmp_path, capsys):
+    """A second call into the same ``--out`` with another mesh: its table and RESULT line are that mesh's
+    alone, not pooled with the first call's finished jobs (which stay on disk, untouched)."""
+    out = tmp_path / "figs"
+    base = ["--n", "12", "--percent", "10", "--out", str(out)]
+    assert paper_figures.main([*base, "--meshes", "bunny"]) == 0
+    capsys.readouterr()
+    assert paper_figures.main([*base, "--meshes", "hand"]) == 0
+    printed = capsys.readouterr().out
+    assert "| hand | 12 |" in printed and "| bunny |" not in printed and "| 10 | 1 |" in printed
+    hand = json.loads((out / "hand_n12_p10" / "metrics.json").read_text())
+    result = dict(item.split("=") for item in printed.strip().splitlines()[-1].split()[1:])
+    assert result["chamfer_10"] == f"{hand['chamfer']:.4f}"
+    assert (out / "bunny_n12_p10" / "metrics.json").is_file()
