@@ -7,7 +7,8 @@ of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job direct
 ``overrides.json``, and a job made with other overrides is refused before anything runs: use one ``--out``
 per solver or setting; every job uses the fast
 ``fourier`` operator, ``eps=1e-3, upsampfac=1.25``, single precision, and by default ``minnorm``
-with at most 60 LSMR iterations), then writes there
+with at most 60 LSMR iterations; an override of what each job sets itself, ``resolution``, ``n_dips``, ``ndim`` or
+``shape``, is refused: ``--n``, ``--percent`` and ``--meshes`` set them), then writes there
 
 * ``fig11_n<N>.png``: per resolution, one row per mesh, one column per budget (depth-shaded
   renders of the binary reconstructions, as the paper's Fig. 11 rows);
@@ -39,6 +40,9 @@ from hydra import compose, initialize_config_module  # noqa: E402
 
 from dipnet.experiments import collect, figures, tables  # noqa: E402
 from dipnet.jobs import sweep_jobs  # noqa: E402
+from dipnet.preprocessing.datasets import mesh_path  # noqa: E402
+from dipnet.jobs.cli import user_errors  # noqa: E402
+from dipnet.jobs.options import check_config  # noqa: E402
 from dipnet.jobs.pipeline import run  # noqa: E402
 
 PAPER_METRO_10 = (0.0125, 0.0433)  # paper Table 1: METRO error / bbox diagonal at 10 % of N^2 (240^3)
@@ -48,6 +52,10 @@ JOB_DEFAULTS = ["output.figures=false", "output.uncertainty=false", "output.reso
                 "operator=fourier", "operator.eps=1e-3", "operator.upsampfac=1.25", "operator.single=true"]
 SOLVER_DEFAULTS = ["solver=minnorm", "solver.iter_lim=60"]  # LSMR at these sizes, as in bench_scale
 OVERRIDES_FILE = "overrides.json"  # a job's overrides, beside its metrics.json
+#: The options each job's overrides set from the command line's own flags (:func:`job_overrides`), and the flag:
+#: an override of one would run every job at one value under names, N and % that say another.
+PER_JOB_OPTIONS = {"resolution": "--n", "n_dips": "--percent", "ndim": None, "shape": "--meshes",
+                   "shape.path": "--meshes"}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -69,6 +77,26 @@ def job_overrides(mesh: str, n: int, percent: float, extra: list[str]) -> list[s
     n_dips = math.ceil(percent / 100 * n * n)
     return [*JOB_DEFAULTS, f"shape.path=${{dipnet_data:meshes/{mesh}.ply}}", f"resolution={n}",
             f"n_dips={n_dips}", "ndim=3", *extra]
+
+
+def check_settings(args) -> None:
+    """Raise ``ValueError``, ``FileNotFoundError`` (or Hydra's error) for a setting the jobs cannot run with, before
+    any job: a name of ``--meshes`` that is not a bundled mesh, an override of an option each job sets itself
+    (:data:`PER_JOB_OPTIONS`), an unknown config choice (``solver=foo``) or an option out of range
+    (:func:`~dipnet.jobs.options.check_config` of every job's config)."""
+    for mesh in args.meshes:
+        mesh_path(mesh)
+    for item in args.overrides:
+        key = item.lstrip("+~").partition("=")[0]
+        if key in PER_JOB_OPTIONS:
+            flag = PER_JOB_OPTIONS[key]
+            instead = f"give {flag} instead" if flag else "the figures are of 3D jobs"
+            raise ValueError(f"override {item}: paper_figures.py sets {key} for each job from --meshes, --n and "
+                             f"--percent (the job names and the table's N and % of N^2 would not be the jobs' "
+                             f"own): {instead}")
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        for *_, overrides in jobs(args):
+            check_config(compose(config_name="config", overrides=overrides))
 
 
 def jobs(args) -> list[tuple[str, int, float, Path, list[str]]]:
@@ -171,6 +199,8 @@ def summary(rows: list[dict], groups: list[dict]) -> str:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    with user_errors():  # a bad mesh name or override: one line and exit 2, before any job
+        check_settings(args)
     other = other_settings(args)
     if other:
         print(f"error: {args.out} holds finished jobs of another setting ({'; '.join(other[:3])}"

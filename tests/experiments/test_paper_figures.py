@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from script_modules import load_script
@@ -76,3 +77,24 @@ def test_the_table_and_result_hold_only_the_jobs_asked_for(paper_figures, tmp_pa
     result = dict(item.split("=") for item in printed.strip().splitlines()[-1].split()[1:])
     assert result["chamfer_10"] == f"{hand['chamfer']:.4f}"
     assert (out / "bunny_n12_p10" / "metrics.json").is_file()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["resolution=16"], "override resolution=16: paper_figures.py sets resolution for each job .* give --n instead"),
+    (["+n_dips=5"], "override \\+n_dips=5: .* give --percent instead"),
+    (["shape.path=x.ply"], "override shape.path=x.ply: .* give --meshes instead"),
+    (["solver=foo"], "In 'config': Could not find 'solver/foo'"),
+    (["--meshes", "bunnyy"], "no bundled mesh 'bunnyy'; bundled: boot, "),
+])
+def test_settings_the_jobs_cannot_run_with_are_one_line_and_exit_2(paper_figures, tmp_path, capsys, argv, message):
+    """An override of what each job sets from --n, --percent or --meshes (``resolution=16`` ran every job at 16^3
+    with the dips of 12^3, tabled as N 16 at '10 %' though 15 dips are 5.9 % of 16^2), an unknown config choice
+    (a traceback) or a mesh name that is not bundled (a failed job): one ``error:`` line, exit 2, no job."""
+    out = tmp_path / "figs"
+    argv = [*argv, "--n", "12", "--percent", "10", "--out", str(out)]
+    argv += [] if "--meshes" in argv else ["--meshes", "bunny"]
+    with pytest.raises(SystemExit) as exit_:
+        paper_figures.main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
+    assert not out.exists()
