@@ -101,12 +101,15 @@ SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitS
 TRUTH_SUPERSAMPLE = 3
 OPTIMISERS = ("voxel", "implicit", "dip", "prior", "implicit_prior")
 DEFAULT_MESHES = MESHES_DIR
+#: The ``--meshes`` name that selects no mesh file (with ``--generated``: the generated shapes alone).
+NO_MESH = "none"
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--meshes-dir", type=Path, default=DEFAULT_MESHES, help="folder of mesh files")
-    p.add_argument("--meshes", nargs="*", help="mesh names (file stems) to use; default all")
+    p.add_argument("--meshes", nargs="*", help="mesh names (file stems) to use; default all; none: no mesh "
+                   "(with --generated)")
     p.add_argument("--n", type=int, default=64, help="grid resolution N")
     p.add_argument("--budgets", type=int, nargs="+", default=[41, 123, 410], help="numbers of dips")
     p.add_argument("--solvers", nargs="+", default=["minnorm", "voxel", "implicit"], choices=list(SOLVERS),
@@ -305,6 +308,11 @@ def main(argv=None) -> list[dict]:
     options = solver_options(args.options)
     paths = sorted(p for p in args.meshes_dir.glob("*") if p.suffix.lower() in {".ply", ".stl", ".obj", ".off"})
     if args.meshes:
+        unknown = sorted(set(args.meshes) - {p.stem for p in paths} - {NO_MESH})
+        if unknown:
+            raise SystemExit(f"--meshes: no mesh named {', '.join(unknown)} in {args.meshes_dir} (its meshes: "
+                             f"{', '.join(sorted(p.stem for p in paths)) or 'none'}; --meshes {NO_MESH} runs the "
+                             "generated shapes alone)")
         paths = [p for p in paths if p.stem in set(args.meshes)]
     if not paths and not args.generated:
         raise SystemExit(f"no meshes found in {args.meshes_dir} (names {args.meshes})")

@@ -158,3 +158,15 @@ def test_the_quality_bench_gives_the_same_rows_in_two_worker_processes(tmp_path,
     assert table(two)[("torus", 8, "voxel")] < 0.05  # a torus, not an empty grid (gen0's limbs are too thin at 16^3)
     assert not list(tmp_path.glob("*.part*"))  # every cache file renamed whole
     assert "RESULT" in capsys.readouterr().out
+
+
+def test_a_mesh_name_the_quality_bench_does_not_find_is_refused(tmp_path):
+    """``--meshes torus torsu`` ran the torus alone, its means and RESULT line over one mesh, exit 0; a name
+    not among ``--meshes-dir``'s files is refused before any case, naming it; ``none`` still selects no mesh."""
+    bench = load_script("bench_quality")
+    argv = ["--cache", str(tmp_path), "--n", "8", "--budgets", "4", "--noise", "clean", "--solvers", "minnorm"]
+    with pytest.raises(SystemExit, match=r"--meshes: no mesh named torsu in .*meshes \(its meshes: boot, .*torus"):
+        bench.main([*argv, "--meshes", "torus", "torsu"])
+    assert not list(tmp_path.iterdir())
+    with pytest.raises(SystemExit, match="no meshes found"):  # none and no --generated: nothing to run
+        bench.main([*argv, "--meshes", "none"])
