@@ -154,10 +154,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     args.workers = args.workers or 1
     if args.workers < 1:
         raise SystemExit(f"--workers must be 1 or more, got {args.workers}")
-    if args.headline:  # minnorm at the largest budget, the optimisers at the smallest
+    if args.dips:  # each solver at its own budgets, with --headline too (whose ratios take the smallest and largest)
+        args.plan = solver_budgets(args.dips)
+        args.budgets = sorted({k for ks in args.plan.values() for k in ks})
+    elif args.headline:  # minnorm at the largest budget, the optimisers at the smallest
         args.plan = {name: [max(args.budgets) if name == "minnorm" else min(args.budgets)] for name in args.solvers}
     else:
-        args.plan = solver_budgets(args.dips) if args.dips else {name: list(args.budgets) for name in args.solvers}
+        args.plan = {name: list(args.budgets) for name in args.solvers}
     return args
 
 

@@ -170,3 +170,15 @@ def test_a_mesh_name_the_quality_bench_does_not_find_is_refused(tmp_path):
     assert not list(tmp_path.iterdir())
     with pytest.raises(SystemExit, match="no meshes found"):  # none and no --generated: nothing to run
         bench.main([*argv, "--meshes", "none"])
+
+
+def test_the_headline_runs_the_solvers_and_budgets_of_dips():
+    """``--headline --dips prior=41 minnorm=410`` ran minnorm, voxel and implicit (the default --solvers) and no
+    prior, so its RESULT line was nan, exit 0; now --dips sets the plan with --headline too, and the headline's
+    ratios take its smallest and largest budgets."""
+    bench = load_script("bench_quality")
+    args = bench.parse_args(["--headline", "--dips", "prior=41", "minnorm=410"])
+    assert args.plan == {"prior": [41], "minnorm": [410]} and args.budgets == [41, 410]
+    args = bench.parse_args(["--headline", "--dips", "voxel=20", "minnorm=200"])
+    assert args.plan == {"voxel": [20], "minnorm": [200]} and (min(args.budgets), max(args.budgets)) == (20, 200)
+    assert bench.parse_args(["--headline"]).plan == {"minnorm": [410], "voxel": [41], "implicit": [41]}
