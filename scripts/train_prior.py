@@ -48,6 +48,7 @@ from omegaconf import OmegaConf
 from dipnet.experiments.prior_training import STAGE2, TrainConfig, train
 from dipnet.jobs.cli import user_errors
 from dipnet.jobs.tuning import compose_job
+from dipnet.jobs.warnings_once import log_warnings_once
 from dipnet.shapes.procedural import FAMILIES
 from dipnet.solvers.denoiser import SHIPPED_WEIGHTS
 
@@ -171,6 +172,7 @@ def family_seeds(specs: list[list[str]]) -> dict[str, tuple[int, int]]:
 def main(argv=None) -> dict:
     """Train as the command line says; a bad option or weights file: one line ``error: ...`` and exit 2."""
     args = parse_args(argv)
+    log_warnings_once()  # a warning (a checkpoint not used) in one line, without the source line
     with user_errors():
         if args.threads < 1 or args.workers < 1:
             raise ValueError(f"--threads and --workers must be positive integers, got {args.threads} and {args.workers}")

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
+from dipnet.solvers.checkpoint import read_state, write_state
 from dipnet.solvers.denoiser import OccupancyDenoiser, load_weights, save_weights
 from dipnet.experiments.prior_pairs import build_pairs, file_digest
 from dipnet.simulator.physics import check_snr_db
@@ -215,6 +217,52 @@ def same_run(saved: dict, config: TrainConfig) -> bool:
     return old | {"steps": config.steps, "max_minutes": config.max_minutes} == dataclasses.asdict(config)
 
 
+#: The fields of a training checkpoint (``<out>.ckpt``).
+CHECKPOINT_FIELDS = frozenset({"config", "model", "optimizer", "scheduler", "generator", "step", "history", "seconds"})
+
+
+def resumable_checkpoint(path: Path, config: TrainConfig) -> dict | None:
+    """The training checkpoint at ``path`` that ``config``'s run continues from, or ``None`` (with a warning naming
+    the file) when there is none, or it cannot be read or is not a training checkpoint (truncated, empty, another
+    file): the training then starts at step 0 and its first checkpoint replaces the file.
+
+    Raises:
+        TrainConfigError: the checkpoint is another run's (:func:`same_run`), naming the options that differ:
+            resuming it would continue that run under this one's name, starting afresh would overwrite it.
+    """
+    if not path.is_file():
+        _warn(f"--resume: there is no checkpoint {path} (none written yet, or another --out?); training from step 0")
+        return None
+    saved, problem = read_state(path)
+    if problem is None and not (isinstance(saved, dict) and set(saved) == CHECKPOINT_FIELDS
+                                and isinstance(saved["config"], dict)):
+        problem = "it is not a training checkpoint of scripts/train_prior.py"
+    if problem is not None:
+        _warn(f"checkpoint {path} is not used: {problem}; training from step 0")
+        return None
+    if not same_run(saved["config"], config):
+        recorded = dataclasses.asdict(TrainConfig()) | saved["config"]
+        now = dataclasses.asdict(config) | {"steps": recorded["steps"], "max_minutes": recorded["max_minutes"]}
+        differ = "; ".join(f"{key} {recorded.get(key)!r} -> {now.get(key)!r}" for key in sorted(set(recorded) | set(now))
+                           if _plain(recorded.get(key)) != _plain(now.get(key)))
+        raise TrainConfigError(f"checkpoint {path} was made with other options ({differ} (recorded -> now)): give "
+                               "the same options to resume it, or another --out to train afresh")
+    return saved
+
+
+def _plain(value):
+    """``value`` with tuples as lists (as a checkpoint's config holds them)."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def _warn(message: str) -> None:
+    warnings.warn(message, stacklevel=3)
+
+
 def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
     """A new network of ``config.channels``, or the weights ``config.init_weights`` (same width)."""
     if config.init_weights is None:
@@ -232,15 +280,21 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     is ``out.with_suffix(".ckpt")``; missing training pairs are made by ``workers`` processes.
     Returns the weights' meta (losses, steps, seconds).
 
+    With ``resume`` the run continues from the checkpoint (:func:`resumable_checkpoint`: none, or one that cannot
+    be read, starts at step 0 with a warning). Checkpoints are written atomically
+    (:func:`~dipnet.solvers.checkpoint.write_state`): a run killed mid-write leaves the previous one whole.
+
     Raises:
-        TrainConfigError: a bad option or starting weights, or a loss that became NaN or infinite, or a
-            validation loss above 1 (before any weights or checkpoint of the diverged network are written).
+        TrainConfigError: a bad option or starting weights, a checkpoint of another run to resume (before any
+            pair is made), or a loss that became NaN or infinite, or a validation loss above 1 (before any
+            weights or checkpoint of the diverged network are written).
     """
     if config.init_weights is not None:
         _initial_model(config)  # weights that are missing, damaged or of another size: an error before the pairs
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")
+    saved = resumable_checkpoint(ckpt_path, config) if resume else None  # another run's: refused before the pairs
     x_np, y_np = training_pairs(config, cache, progress, workers)
     xv_np, yv_np = _pairs(config, config.val_seeds, cache, progress, workers)
     inputs, targets = torch.from_numpy(x_np), torch.from_numpy(y_np)
@@ -252,10 +306,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
         opt, lambda i: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(i / config.steps, 1.0))))
     generator = torch.Generator().manual_seed(config.seed)
     step, history, seconds = 0, {"train": [], "val": []}, 0.0
-    if resume and ckpt_path.is_file():
-        saved = torch.load(ckpt_path, map_location="cpu", weights_only=True)
-        if not same_run(saved["config"], config):
-            raise ValueError(f"checkpoint {ckpt_path} was made with another config: {saved['config']}")
+    if saved is not None:
         model.load_state_dict(saved["model"])
         opt.load_state_dict(saved["optimizer"])
         sched.load_state_dict(saved["scheduler"])
@@ -263,9 +314,9 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
         step, history, seconds = saved["step"], saved["history"], saved["seconds"]
 
     def checkpoint() -> None:
-        torch.save({"config": dataclasses.asdict(config), "model": model.state_dict(), "optimizer": opt.state_dict(),
-                    "scheduler": sched.state_dict(), "generator": generator.get_state(), "step": step,
-                    "history": history, "seconds": seconds}, ckpt_path)
+        write_state({"config": dataclasses.asdict(config), "model": model.state_dict(), "optimizer": opt.state_dict(),
+                     "scheduler": sched.state_dict(), "generator": generator.get_state(), "step": step,
+                     "history": history, "seconds": seconds}, ckpt_path)
 
     started = time.perf_counter() - seconds
     session_start = time.perf_counter()

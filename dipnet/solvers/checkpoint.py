@@ -77,13 +77,12 @@ class Checkpoint:
             _tmp(file).unlink(missing_ok=True)
         if not file.is_file():
             return 0, None, False
-        try:
-            with warnings.catch_warnings():  # torch's own notes on odd files: the one warning below says it all
-                warnings.simplefilter("ignore")
-                state = torch.load(file, map_location="cpu", weights_only=True)
-            problem = _check_state(state, fingerprint, params)
-        except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, the stage starts afresh
-            problem = _unreadable(file, exc)
+        state, problem = read_state(file)
+        if problem is None:
+            try:
+                problem = _check_state(state, fingerprint, params)
+            except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, the stage starts afresh
+                problem = _unreadable(file, exc)
         if problem is None:
             problem = _load_state(state, params, optimizer, scheduler)
         if problem is not None:
@@ -99,20 +98,13 @@ class Checkpoint:
         if not done and step % self.every:
             return False
         file = self.path(stage)
-        tmp = _tmp(file)
         state = {"fingerprint": fingerprint, "step": step, "done": done,
                  "params": [p.detach().clone() for p in params], "optimizer": optimizer.state_dict(),
                  "scheduler": None if scheduler is None else scheduler.state_dict(), "history": history}
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            with open(tmp, "wb") as stream:
-                torch.save(state, stream)
-                stream.flush()
-                os.fsync(stream.fileno())
-            os.replace(tmp, file)
+            write_state(state, file)
         except (OSError, RuntimeError) as exc:  # torch.save reports a full disk as a RuntimeError
-            with suppress(OSError):
-                tmp.unlink(missing_ok=True)
             if file not in self._failed:  # once per file: a full disk stays full
                 self._failed.add(file)
                 _warn(f"checkpoint {file} could not be written ({type(exc).__name__}: "
@@ -125,6 +117,38 @@ class Checkpoint:
 def _tmp(file: Path) -> Path:
     """Where ``file`` is written before it is renamed into place."""
     return file.with_name(file.name + ".tmp")
+
+
+def write_state(state: dict, file: Path) -> None:
+    """``torch.save`` ``state`` to ``file`` atomically: a temporary file beside it, flushed to disk, renamed over
+    ``file``, so a kill mid-write leaves the previous file whole (a failed write removes its temporary file).
+
+    Raises:
+        OSError, RuntimeError: the write failed (``torch.save`` reports a full disk as a ``RuntimeError``).
+    """
+    tmp = _tmp(Path(file))
+    try:
+        with open(tmp, "wb") as stream:
+            torch.save(state, stream)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, file)
+    except BaseException:
+        with suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
+
+
+def read_state(file: Path) -> tuple[Any, str | None]:
+    """``(what file holds, None)``, read with ``torch.load(..., weights_only=True)`` (tensors, numbers, strings,
+    lists and dicts only: nothing in the file runs), or ``(None, why it cannot be read)`` in a few words (empty,
+    truncated, foreign bytes)."""
+    try:
+        with warnings.catch_warnings():  # torch's own notes on odd files: the caller's one message says it all
+            warnings.simplefilter("ignore")
+            return torch.load(file, map_location="cpu", weights_only=True), None
+    except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, it is not read
+        return None, _unreadable(Path(file), exc)
 
 
 def _check_state(state, fingerprint: dict, params: list[torch.Tensor]) -> str | None:

@@ -9,7 +9,7 @@ import re
 import pytest
 import torch
 
-from dipnet.experiments.prior_training import STAGE2, TrainConfig, random_batch, same_run, train
+from dipnet.experiments.prior_training import STAGE2, TrainConfig, TrainConfigError, random_batch, same_run, train
 from dipnet.solvers.denoiser import SHIPPED_DIR, OccupancyDenoiser, load_weights, save_weights
 
 from script_modules import load_script
@@ -203,3 +203,32 @@ def test_a_diverging_training_writes_nothing_and_says_to_lower_the_learning_rate
     assert re.match(r"error: training diverged: the (training|validation) loss became \S+ at step \d of 6 "
                     r"\(lr 1e\+12\); no weights or checkpoint written: try a lower --lr", err), err
     assert all(path.read_bytes() == data for path, data in before.items())
+
+
+def test_a_damaged_checkpoint_is_not_resumed_training_starts_afresh_with_a_warning(tmp_path, shared_pairs):
+    """A checkpoint cut short (a kill mid-write, before writes were atomic) stopped ``--resume`` with
+    ``error: [Errno 22] Invalid argument``, naming nothing; now it is named in a warning and the training starts at
+    step 0, as an uninterrupted run; no ``.tmp`` is left beside the checkpoints written."""
+    cache = tmp_path / "pairs"
+    fresh = train(TINY, tmp_path / "a.pt", cache, progress=False)
+    train(dataclasses.replace(TINY, steps=3), tmp_path / "b.pt", cache, progress=False)
+    ckpt = tmp_path / "b.ckpt"
+    ckpt.write_bytes(ckpt.read_bytes()[:ckpt.stat().st_size // 2])
+    with pytest.warns(UserWarning, match=r"checkpoint .*b\.ckpt is not used: it is damaged or truncated .*training "
+                                         r"from step 0"):
+        resumed = train(TINY, tmp_path / "b.pt", cache, resume=True, progress=False)
+    assert resumed["steps_done"] == 6 and resumed["validation"] == fresh["validation"]
+    with pytest.warns(UserWarning, match=r"--resume: there is no checkpoint .*c\.ckpt .*training from step 0"):
+        assert train(TINY, tmp_path / "c.pt", cache, resume=True, progress=False)["steps_done"] == 6
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_a_checkpoint_of_other_options_is_refused_naming_them_before_the_pairs(tmp_path, shared_pairs):
+    """``--resume --seed 3 --lr 0.002`` on another run's checkpoint: refused (as before), now naming the options
+    that differ instead of printing the recorded config whole, and before any training pair is made."""
+    train(dataclasses.replace(TINY, steps=3), tmp_path / "a.pt", tmp_path / "pairs", progress=False)
+    other = dataclasses.replace(TINY, seed=3, lr=2e-3, steps=9)
+    with pytest.raises(TrainConfigError, match=r"^checkpoint .*a\.ckpt was made with other options \(lr 0\.001 -> "
+                                               r"0\.002; seed 0 -> 3 \(recorded -> now\)\): give the same options"):
+        train(other, tmp_path / "a.pt", tmp_path / "other_pairs", resume=True, progress=False)
+    assert not (tmp_path / "other_pairs").exists()
