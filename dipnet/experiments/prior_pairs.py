@@ -24,6 +24,8 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing
+import os
+import warnings
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -142,7 +144,28 @@ def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, r
         x = refine_input(seed, start, refine, options["n"], options["dips"], snr_db, options["fill"],
                          options.get("family"), options.get("mesh"))
     file.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(file, input=x, target=y)
+    part = file.with_name(f"{file.stem}.{os.getpid()}.part.npz")  # renamed whole: a kill leaves no cut-short pair
+    np.savez_compressed(part, input=x, target=y)
+    os.replace(part, file)
+
+
+def _cached(file: Path, n: int) -> bool:
+    """Whether ``file`` holds a whole cached pair (an input and a target of shape ``(n, n, n)``); a file that does
+    not (cut short by a kill before pairs were written whole, damaged, or another program's) is named in a
+    warning and made again."""
+    if not file.is_file():
+        return False
+    try:
+        with np.load(file) as saved:
+            shapes = [saved[key].shape for key in ("input", "target")]
+    except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, the pair is made again
+        problem = f"unreadable: {type(exc).__name__}: {' '.join(str(exc).split())[:200]}"
+    else:
+        if shapes == [(n, n, n)] * 2:
+            return True
+        problem = f"its arrays have shapes {shapes[0]} and {shapes[1]}, not ({n}, {n}, {n})"
+    warnings.warn(f"cached training pair {file} is not used ({problem}): it is made again", stacklevel=3)
+    return False
 
 
 def _make_missing(jobs: list[tuple], desc: str, total: int, progress: bool, workers: int) -> None:
@@ -168,7 +191,8 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
                 family: str | None = None, mesh: str | Path | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One pair per seed and noise level (``None`` = noise-free, else SNR in dB), stacked as
     ``(S * len(noise_levels), n, n, n)`` inputs and targets (seed-major). Each pair is cached as
-    ``cache/pair_<seed>_<digest>.npz``, so an interrupted build resumes; the missing pairs are made
+    ``cache/pair_<seed>_<digest>.npz`` (written whole: a temporary file renamed into place), so an interrupted
+    build resumes (a cached file that cannot be read is made again, with a warning); the missing pairs are made
     by ``workers`` processes (one per core: a pair costs 20-30 s of one core at 64^3, 41 dips).
 
     ``noisy_options`` are solver options for the noisy pairs only (e.g. ``{"noise_model": "correlated"}``,
@@ -199,7 +223,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
 
     files = {(int(seed), snr): Path(cache) / f"pair_{name}{seed}_{key(seed, snr)}.npz"
              for seed in seeds for snr in noise_levels}
-    missing = [(file, seed, snr, options_at(snr)) for (seed, snr), file in files.items() if not file.is_file()]
+    missing = [(file, seed, snr, options_at(snr)) for (seed, snr), file in files.items() if not _cached(file, n)]
     _make_missing(missing, "training pairs", len(files), progress, workers)
     if refine is not None:
         refine = dict(refine)
@@ -208,7 +232,7 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
         files = {(seed, snr): Path(cache) / f"stage2_{name}{seed}_{key(seed, snr, refine=refine, weights=weights)}.npz"
                  for seed, snr in firsts}
         missing = [(file, seed, snr, options_at(snr), refine, firsts[seed, snr]) for (seed, snr), file in files.items()
-                   if not file.is_file()]
+                   if not _cached(file, n)]
         _make_missing(missing, "second-stage inputs", len(files), progress, workers)
     inputs, targets = [], []
     for file in files.values():

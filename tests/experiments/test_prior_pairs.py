@@ -153,3 +153,20 @@ def test_worker_processes_make_the_same_pairs(tmp_path):
     one = build_pairs([5003, 5004], cache=tmp_path / "one", noise_levels=(None,), **SMALL)
     two = build_pairs([5003, 5004], cache=tmp_path / "two", noise_levels=(None,), workers=2, **SMALL)
     assert all(np.array_equal(a, b) for a, b in zip(one, two))
+
+
+def test_a_damaged_cached_pair_is_made_again_with_a_warning(tmp_path, shared_pairs):
+    """A pair file cut short (a build killed mid-write), emptied, or holding arrays of another size stopped the
+    training with a traceback (``BadZipFile``, ``EOFError``) or ``error: all input arrays must have the same
+    shape``; now each is named in a warning and made again, the same pair as before; no part file is left."""
+    x, y = build_pairs([5000, 5001], cache=tmp_path, noise_levels=(None,), **SMALL)
+    first, second = sorted(tmp_path.glob("pair_*.npz"))
+    first.write_bytes(first.read_bytes()[:3000])
+    np.savez_compressed(second, input=np.zeros((8, 8, 8), np.float32), target=np.zeros((8, 8, 8), np.float32))
+    with pytest.warns(UserWarning) as caught:
+        x2, y2 = build_pairs([5000, 5001], cache=tmp_path, noise_levels=(None,), **SMALL)
+    messages = sorted(str(w.message) for w in caught if "cached training pair" in str(w.message))
+    assert len(messages) == 2 and "its arrays have shapes (8, 8, 8) and (8, 8, 8), not (16, 16, 16)" in messages[1]
+    assert "is not used (unreadable: " in messages[0] and messages[0].endswith("it is made again")
+    assert np.array_equal(x, x2) and np.array_equal(y, y2)
+    assert not list(tmp_path.glob("*.part*"))
