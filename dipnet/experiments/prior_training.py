@@ -274,6 +274,21 @@ def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
     return model
 
 
+def _check_refine(config: TrainConfig) -> None:
+    """Raise :class:`~dipnet.solvers.denoiser.PriorWeightsError` (missing, unreadable) or :class:`TrainConfigError`
+    (another grid) for the weights of ``config.refine``'s learned round (``--refine-weights``), which the second
+    stage first reads after every first-stage pair is made."""
+    learned = ((config.refine or {}).get("priors") or {}).get("learned")
+    if learned is None:
+        return
+    weights = learned.get("weights")
+    _, meta = load_weights(weights)
+    if int(meta["n"]) != config.n:
+        raise TrainConfigError(f"the second stage's round runs on the pairs' {config.n}^3 grid, but its weights "
+                               f"{weights or 'denoiser64'!s} (--refine-weights, or --init-weights) were trained for "
+                               f"{meta['n']}^3: give first-stage weights of n={config.n}")
+
+
 def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, progress: bool = True,
           workers: int = 1) -> dict:
     """Train (or continue) and write the weights to ``out`` (``.pt`` + ``.json``); the checkpoint
@@ -285,12 +300,13 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     (:func:`~dipnet.solvers.checkpoint.write_state`): a run killed mid-write leaves the previous one whole.
 
     Raises:
-        TrainConfigError: a bad option or starting weights, a checkpoint of another run to resume (before any
-            pair is made), or a loss that became NaN or infinite, or a validation loss above 1 (before any
+        TrainConfigError: a bad option, starting weights or second-stage round weights, a checkpoint of another
+            run to resume (these before any pair is made), or a loss that became NaN or infinite, or a validation loss above 1 (before any
             weights or checkpoint of the diverged network are written).
     """
     if config.init_weights is not None:
         _initial_model(config)  # weights that are missing, damaged or of another size: an error before the pairs
+    _check_refine(config)  # the second stage's round's too
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")

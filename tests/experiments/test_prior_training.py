@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dipnet.experiments.prior_training import STAGE2, TrainConfig, TrainConfigError, random_batch, same_run, train
-from dipnet.solvers.denoiser import SHIPPED_DIR, OccupancyDenoiser, load_weights, save_weights
+from dipnet.solvers.denoiser import SHIPPED_DIR, OccupancyDenoiser, PriorWeightsError, load_weights, save_weights
 
 from script_modules import load_script
 
@@ -232,3 +232,22 @@ def test_a_checkpoint_of_other_options_is_refused_naming_them_before_the_pairs(t
                                                r"0\.002; seed 0 -> 3 \(recorded -> now\)\): give the same options"):
         train(other, tmp_path / "a.pt", tmp_path / "other_pairs", resume=True, progress=False)
     assert not (tmp_path / "other_pairs").exists()
+
+
+@pytest.mark.parametrize("weights, error, message", [
+    ("{tmp}/cut.pt", PriorWeightsError, r"learned-prior weights .*cut\.pt are unreadable"),
+    ("{tmp}/none.pt", PriorWeightsError, r"learned-prior weights not found: .*none\.pt"),
+    ("denoiser64", TrainConfigError, r"the second stage's round runs on the pairs' 16\^3 grid, but its weights "
+                                     r"denoiser64 \(--refine-weights, or --init-weights\) were trained for 64\^3"),
+])
+def test_the_second_stage_rounds_weights_are_checked_before_any_pair(tmp_path, weights, error, message):
+    """A ``--refine-weights`` file that is cut short, missing or of another grid stopped the second stage only when
+    its round first ran, after every first-stage training pair was made (about 20 minutes at 64^3); now before."""
+    first = tmp_path / "first.pt"
+    save_weights(OccupancyDenoiser(TINY.channels), first, {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    (tmp_path / "cut.pt").write_bytes(first.read_bytes()[:5000])
+    refine = {"priors": {"learned": {"weights": weights.format(tmp=tmp_path)}}}
+    config = dataclasses.replace(TINY, init_weights=str(first), refine=refine)
+    with pytest.raises(error, match=message):
+        train(config, tmp_path / "w.pt", tmp_path / "pairs", progress=False)
+    assert not (tmp_path / "pairs").exists()
