@@ -363,6 +363,10 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
                 if (time.perf_counter() - session_start) / 60 > config.max_minutes:
                     break
     seconds = time.perf_counter() - started
+    if step < config.steps:  # weights written like a finished run's: say they are not
+        _warn(f"training stopped by max_minutes={config.max_minutes:g} (--max-minutes: the session's minutes of "
+              f"training) after {step} of {config.steps} steps: the weights written to {out} are those of step "
+              f"{step}; the same command with --resume continues to step {config.steps}")
     meta = {"n": config.n, "ndim": 3, "n_slabs_per_voxel": 1, "config": dataclasses.asdict(config),
             "steps_done": step, "seconds": round(seconds, 1), "validation": history["val"][-1] if history["val"] else None,
             "trained_on": "generated shapes (dipnet.shapes.procedural), seeds " f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"

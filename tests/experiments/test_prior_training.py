@@ -251,3 +251,13 @@ def test_the_second_stage_rounds_weights_are_checked_before_any_pair(tmp_path, w
     with pytest.raises(error, match=message):
         train(config, tmp_path / "w.pt", tmp_path / "pairs", progress=False)
     assert not (tmp_path / "pairs").exists()
+
+
+def test_a_session_stopped_by_max_minutes_says_its_weights_are_unfinished(tmp_path, shared_pairs):
+    """``--max-minutes`` (90 by default) ends a session at a checkpoint and writes the weights as a finished run
+    does, exit 0, ``RESULT steps=3``: now a warning says they are those of step 3 of 6 and how to continue."""
+    with pytest.warns(UserWarning, match=r"training stopped by max_minutes=0 \(--max-minutes: .*\) after 3 of 6 "
+                                         r"steps: the weights written to .*w\.pt are those of step 3; the same command "
+                                         r"with --resume continues to step 6"):
+        meta = train(dataclasses.replace(TINY, max_minutes=0.0), tmp_path / "w.pt", tmp_path / "pairs", progress=False)
+    assert meta["steps_done"] == 3
