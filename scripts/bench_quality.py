@@ -73,6 +73,7 @@ from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.jobs.cli import user_errors
 from dipnet.jobs.tuning import compose_job
 from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
@@ -147,13 +148,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     if args.quick and args.headline:
         args.meshes, args.n, args.budgets, args.noise = args.meshes or ["bunny"], 64, [41, 410], ["clean"]
         args.solvers, args.generated = ["minnorm", "voxel", "prior"], args.generated or 2
-        args.workers = args.workers or 2
+        args.workers = 2 if args.workers is None else args.workers
     elif args.quick:
         args.meshes, args.n, args.budgets = args.meshes or ["bunny", "torus"], 32, [41, 123]
         args.noise, args.solvers = ["clean"], ["minnorm", "voxel"]
-    args.workers = args.workers or 1
+    args.workers = 1 if args.workers is None else args.workers
     if args.workers < 1:
-        raise SystemExit(f"--workers must be 1 or more, got {args.workers}")
+        raise ValueError(f"--workers must be 1 or more, got {args.workers}")
+    if min(args.budgets) < 1:
+        raise ValueError(f"--budgets must be positive numbers of dips, got {' '.join(map(str, args.budgets))}")
     if args.dips:  # each solver at its own budgets, with --headline too (whose ratios take the smallest and largest)
         args.plan = solver_budgets(args.dips)
         args.budgets = sorted({k for ks in args.plan.values() for k in ks})
@@ -173,7 +176,7 @@ def check_test_seeds(first: int, count: int) -> None:
             used.update(range(*config[key]))
     overlap = used & set(range(first, first + count))
     if overlap:
-        raise SystemExit(f"generated test seeds {first}..{first + count - 1} overlap the prior's training / "
+        raise ValueError(f"generated test seeds {first}..{first + count - 1} overlap the prior's training / "
                          f"validation seeds ({min(overlap)}..{max(overlap)}): choose another --generated-first")
 
 
@@ -187,7 +190,7 @@ def solver_budgets(specs: list[str]) -> dict[str, list[int]]:
         except ValueError:
             budgets = []
         if name not in SOLVERS or not budgets or min(budgets) < 1:
-            raise SystemExit(f"--dips expects SOLVER=K[,K...] with SOLVER in {list(SOLVERS)}, got {spec!r}")
+            raise ValueError(f"--dips expects SOLVER=K[,K...] with SOLVER in {list(SOLVERS)}, got {spec!r}")
         out.setdefault(name, []).extend(budgets)
     return out
 
@@ -197,8 +200,14 @@ def solver_options(specs: list[str]) -> dict[str, dict]:
     for spec in specs:
         name, _, text = spec.partition("=")
         if name not in SOLVERS or not text:
-            raise SystemExit(f"--options expects SOLVER=JSON with SOLVER in {list(SOLVERS)}, got {spec!r}")
-        out[name] = json.loads(text)
+            raise ValueError(f"--options expects SOLVER=JSON with SOLVER in {list(SOLVERS)}, got {spec!r}")
+        try:
+            out[name] = json.loads(text)
+        except ValueError as exc:
+            out[name] = f"not JSON ({exc})"
+        if not isinstance(out[name], dict):
+            raise ValueError(f"--options {spec}: the options must be a JSON object of the solver's options, e.g. "
+                             f"voxel='{{\"iterations\": 300}}' (got {out[name]})")
     return out
 
 
@@ -301,9 +310,46 @@ def solved_rows(args, grid: Grid, options: dict, tasks: list[tuple]) -> Iterator
 
 
 def main(argv=None) -> list[dict]:
+    """Run the benchmark; a bad option or file: one line ``error: ...`` and exit 2."""
+    with user_errors():
+        return run(argv)
+
+
+#: What every row of ``--json`` holds that the summaries read.
+ROW_KEYS = ("mesh", "set", "dips", "noise", "solver", "seconds", "iou", "chamfer", "hausdorff")
+
+
+def read_rows(paths: list[Path]) -> list[dict]:
+    """The rows of earlier ``--json`` runs (``--from-json``), in order.
+
+    Raises:
+        ValueError: a file that is not JSON, or not a list of rows (objects holding :data:`ROW_KEYS`).
+        OSError: a file that cannot be read.
+    """
+    rows = []
+    for path in paths:
+        try:
+            data = json.loads(path.read_text())
+        except ValueError as exc:
+            raise ValueError(f"--from-json {path}: not JSON ({exc})") from None
+        if not isinstance(data, list):
+            problem = f"it holds a JSON {type(data).__name__}"
+        else:
+            bad = next((i for i, row in enumerate(data) if not isinstance(row, dict) or not set(ROW_KEYS) <= set(row)),
+                       None)
+            problem = None if bad is None else f"its item {bad} is not"
+        if problem:
+            raise ValueError(f"--from-json {path}: not the rows of a bench_quality.py --json run (a list of objects "
+                             f"holding {', '.join(ROW_KEYS)}; {problem})")
+        rows += data
+    return rows
+
+
+def run(argv=None) -> list[dict]:
+    """:func:`main`'s work (its errors raised)."""
     args = parse_args(argv)
     if args.from_json:
-        rows = [row for path in args.from_json for row in json.loads(path.read_text())]
+        rows = read_rows(args.from_json)
         print_all(rows, args)
         return rows
     if args.threads:
@@ -313,12 +359,12 @@ def main(argv=None) -> list[dict]:
     if args.meshes:
         unknown = sorted(set(args.meshes) - {p.stem for p in paths} - {NO_MESH})
         if unknown:
-            raise SystemExit(f"--meshes: no mesh named {', '.join(unknown)} in {args.meshes_dir} (its meshes: "
+            raise ValueError(f"--meshes: no mesh named {', '.join(unknown)} in {args.meshes_dir} (its meshes: "
                              f"{', '.join(sorted(p.stem for p in paths)) or 'none'}; --meshes {NO_MESH} runs the "
                              "generated shapes alone)")
         paths = [p for p in paths if p.stem in set(args.meshes)]
     if not paths and not args.generated:
-        raise SystemExit(f"no meshes found in {args.meshes_dir} (names {args.meshes})")
+        raise ValueError(f"no meshes found in {args.meshes_dir} (names {args.meshes})")
     if args.generated:
         check_test_seeds(args.generated_first, args.generated)
     grid = Grid(args.n, 3)

@@ -4,6 +4,7 @@ measured, and the simulation caches are keyed by the simulator's code version.""
 from __future__ import annotations
 
 import argparse
+import re
 
 import pytest
 
@@ -91,7 +92,7 @@ def test_the_prior_headline_ratios_and_result_line(capsys):
 def test_generated_test_seeds_must_not_overlap_the_training_seeds():
     bench = load_script("bench_quality")
     bench.check_test_seeds(0, 50)
-    with pytest.raises(SystemExit, match="overlap"):
+    with pytest.raises(ValueError, match="overlap"):
         bench.check_test_seeds(990, 20)
 
 
@@ -99,7 +100,7 @@ def test_the_quality_bench_runs_each_solver_at_its_own_budgets():
     bench = load_script("bench_quality")
     assert bench.parse_args(["--dips", "voxel=41", "minnorm=123,410"]).plan == {"voxel": [41], "minnorm": [123, 410]}
     assert bench.parse_args(["--budgets", "41", "--solvers", "voxel"]).plan == {"voxel": [41]}
-    with pytest.raises(SystemExit):
+    with pytest.raises(ValueError, match="--dips expects SOLVER=K"):
         bench.parse_args(["--dips", "voxel=many"])
     rows = [{"noise": "clean", "mesh": "a", "dips": 41, "solver": "voxel", "chamfer": 0.003},
             {"noise": "clean", "mesh": "a", "dips": 410, "solver": "minnorm", "chamfer": 0.002},
@@ -165,11 +166,36 @@ def test_a_mesh_name_the_quality_bench_does_not_find_is_refused(tmp_path):
     not among ``--meshes-dir``'s files is refused before any case, naming it; ``none`` still selects no mesh."""
     bench = load_script("bench_quality")
     argv = ["--cache", str(tmp_path), "--n", "8", "--budgets", "4", "--noise", "clean", "--solvers", "minnorm"]
-    with pytest.raises(SystemExit, match=r"--meshes: no mesh named torsu in .*meshes \(its meshes: boot, .*torus"):
-        bench.main([*argv, "--meshes", "torus", "torsu"])
+    with pytest.raises(ValueError, match=r"--meshes: no mesh named torsu in .*meshes \(its meshes: boot, .*torus"):
+        bench.run([*argv, "--meshes", "torus", "torsu"])
     assert not list(tmp_path.iterdir())
-    with pytest.raises(SystemExit, match="no meshes found"):  # none and no --generated: nothing to run
-        bench.main([*argv, "--meshes", "none"])
+    with pytest.raises(ValueError, match="no meshes found"):  # none and no --generated: nothing to run
+        bench.run([*argv, "--meshes", "none"])
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--from-json", "{tmp}/cut.json"], r"--from-json .*cut\.json: not JSON \(Expecting"),
+    (["--from-json", "{tmp}/metrics.json"], r"--from-json .*metrics\.json: not the rows of a bench_quality\.py --json "
+                                            r"run \(a list of objects holding mesh, .*; it holds a JSON dict\)"),
+    (["--options", "voxel={{iterations: 3}}"], r"--options voxel=\{iterations: 3\}: the options must be a JSON object"),
+    (["--workers", "0"], r"--workers must be 1 or more, got 0"),
+    (["--budgets", "0"], r"--budgets must be positive numbers of dips, got 0"),
+    (["--n", "3"], r"grid resolution n must be an integer >= 4, got 3"),
+    (["--meshes", "torsu"], r"--meshes: no mesh named torsu"),
+])
+def test_bad_options_of_the_quality_bench_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
+    """A cut-short or foreign ``--from-json`` file, ``--options`` that are not JSON, ``--n 3``: tracebacks before
+    (``JSONDecodeError``, ``AttributeError: 'str' object has no attribute 'get'``, ``ValueError``); ``--workers 0``
+    ran with one worker; now one ``error:`` line each, exit 2 (as the script's own checks, which exited 1)."""
+    (tmp_path / "cut.json").write_text('[{"mesh": "a"')
+    (tmp_path / "metrics.json").write_text('{"iou": 0.9}')
+    bench = load_script("bench_quality")
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    with pytest.raises(SystemExit) as exit_:
+        bench.main(["--cache", str(tmp_path / "cache"), "--meshes", "torus", "--noise", "clean", "--solvers",
+                    "minnorm", *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
 
 
 def test_the_headline_runs_the_solvers_and_budgets_of_dips():
