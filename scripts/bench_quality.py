@@ -323,10 +323,13 @@ def read_rows(paths: list[Path]) -> list[dict]:
     """The rows of earlier ``--json`` runs (``--from-json``), in order.
 
     Raises:
-        ValueError: a file that is not JSON, or not a list of rows (objects holding :data:`ROW_KEYS`).
+        ValueError: a file that is not JSON, or not a list of rows (objects holding :data:`ROW_KEYS`), or a case
+            (mesh, dips, noise, solver) in two rows: a file given twice, or runs of another ``--n``, ``--snr`` or
+            ``--fill`` (which the rows do not record), whose means would pool both.
         OSError: a file that cannot be read.
     """
     rows = []
+    seen: dict[tuple, Path] = {}
     for path in paths:
         try:
             data = json.loads(path.read_text())
@@ -341,6 +344,13 @@ def read_rows(paths: list[Path]) -> list[dict]:
         if problem:
             raise ValueError(f"--from-json {path}: not the rows of a bench_quality.py --json run (a list of objects "
                              f"holding {', '.join(ROW_KEYS)}; {problem})")
+        for row in data:
+            case = tuple(row[key] for key in ("mesh", "set", "dips", "noise", "solver"))
+            if case in seen:
+                raise ValueError(f"--from-json: {row['solver']} on {row['mesh']} at {row['dips']} dips ({row['noise']}) "
+                                 f"is in {seen[case]} and in {path}: a file given twice, or runs of another --n, --snr "
+                                 "or --fill, whose rows would be averaged as one case; give each case once")
+            seen[case] = path
         rows += data
     return rows
 

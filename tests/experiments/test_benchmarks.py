@@ -4,6 +4,7 @@ measured, and the simulation caches are keyed by the simulator's code version.""
 from __future__ import annotations
 
 import argparse
+import json
 import re
 
 import pytest
@@ -208,3 +209,22 @@ def test_the_headline_runs_the_solvers_and_budgets_of_dips():
     args = bench.parse_args(["--headline", "--dips", "voxel=20", "minnorm=200"])
     assert args.plan == {"voxel": [20], "minnorm": [200]} and (min(args.budgets), max(args.budgets)) == (20, 200)
     assert bench.parse_args(["--headline"]).plan == {"minnorm": [410], "voxel": [41], "implicit": [41]}
+
+
+def test_from_json_refuses_a_case_given_twice(tmp_path, capsys):
+    """The rows of a torus run at 16^3 and one at 24^3 (rows do not record --n) were averaged as one case: 'meshes 2'
+    for one mesh and RESULT minnorm_clean_16_chamfer=0.0161 between the runs' 0.0153 and 0.0170, exit 0; a file
+    given twice alike. Now refused naming the case and both files; distinct cases still pool."""
+    def rows(chamfer, mesh="torus"):
+        return [{"mesh": mesh, "set": "mesh", "dips": k, "noise": "clean", "solver": "minnorm", "seconds": 0.1,
+                 "iou": 0.8, "chamfer": chamfer, "hausdorff": 0.1} for k in (8, 16)]
+    for name, chamfer, mesh in (("n16", 0.0153, "torus"), ("n24", 0.0170, "torus"), ("bunny", 0.02, "bunny")):
+        (tmp_path / f"{name}.json").write_text(json.dumps(rows(chamfer, mesh)))
+    bench = load_script("bench_quality")
+    for files in (["n16", "n24"], ["n16", "n16"]):
+        with pytest.raises(SystemExit) as exit_:
+            bench.main(["--from-json", *(str(tmp_path / f"{f}.json") for f in files)])
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and re.match(r"error: --from-json: minnorm on torus at 8 dips \(clean\) is in "
+                                                  r".*n16\.json and in .*n(16|24)\.json: a file given twice", err), err
+    assert len(bench.main(["--from-json", str(tmp_path / "n16.json"), str(tmp_path / "bunny.json")])) == 4
