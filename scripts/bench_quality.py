@@ -36,8 +36,8 @@ and on the generated shapes only the optimisers. The last line is then
 ``snr_worst``: the same ratio at ``--snr`` dB, worst mesh; ``beats_voxel_generated``: share of the
 generated shapes on which prior's Chamfer is below voxel's at the smallest budget).
 
-Simulated measurements and truths are cached in ``--cache`` (``.npz``), keyed by their parameters
-and the simulation code version (:func:`dipnet.core.code_version.simulation_digest`), so repeated
+Simulated measurements and truths are cached in ``--cache`` (``.npz``), keyed by their parameters, the mesh
+file's bytes and the simulation code version (:func:`dipnet.core.code_version.simulation_digest`), so repeated
 runs only pay for the solvers and a run after a change to the simulator simulates afresh.
 ``--workers W`` solves the rows in ``W`` processes (``--threads`` torch threads each, default 1), the
 dearest solvers first; the rows are the ones a single process gives, printed as they finish.
@@ -67,6 +67,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.metrics import evaluate
+from dipnet.experiments.prior_pairs import file_digest
 from dipnet.operators import make_operator
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
@@ -212,8 +213,16 @@ def solver_options(specs: list[str]) -> dict[str, dict]:
 
 
 def case_data(args, mesh_path: Path, grid: Grid, k: int, noise: str):
-    """``(measurement, truth occupancy bool, shape)`` for one mesh / budget / noise, cached."""
-    return cached_case(args, mesh_path.stem, lambda: mesh_shape(mesh_path, args.fill * grid.radius), grid, k, noise)
+    """``(measurement, truth occupancy bool, shape)`` for one mesh / budget / noise, cached under the file's name
+    and the digest of its bytes (another file of the same name, or the file edited, is simulated afresh)."""
+    return cached_case(args, f"{mesh_path.stem}-{mesh_digest(mesh_path)}",
+                       lambda: mesh_shape(mesh_path, args.fill * grid.radius), grid, k, noise)
+
+
+@functools.cache
+def mesh_digest(path: Path) -> str:
+    """The sha256 of the mesh file's bytes, 12 hex characters (read once per process)."""
+    return file_digest(path)
 
 
 def generated_case_data(args, seed: int, grid: Grid, k: int, noise: str):
