@@ -152,11 +152,20 @@ def check_ground_truth(cfg: DictConfig) -> None:
 
 def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]) -> None:
     """Raise ``ValueError`` (:class:`~dipnet.jobs.options.ConfigError`, a Hydra error) for a study that cannot
-    run: fewer than 1 trial, a job option out of range or unknown (the overrides and every tuned option
+    run: fewer than 1 trial, an override of a tuned option (each trial would replace it without a word), a job
+    option out of range or unknown (the overrides and every tuned option
     at its ``low``), or a job with no ground truth (:func:`check_ground_truth`), before any trial (else every
     trial would fail alike)."""
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
         raise ValueError(f"the number of trials (--trials) must be a positive integer, got {n_trials!r}")
+    tuned = {p.key for p in params}
+    for item in overrides:
+        key = item.lstrip("+~").partition("=")[0]
+        if key in tuned:
+            how = ("one of the options tuned by default, without --param" if tuple(params) == DEFAULT_PARAMS
+                   else "a --param")
+            raise ValueError(f"override {item} sets {key}, which the study tunes ({how}): each trial's value would "
+                             "replace it; an option must be either fixed by an override or tuned, not both")
     job = compose_job([*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.low!r}" for p in params)])
     check_config(job)
     check_ground_truth(job)

@@ -87,6 +87,10 @@ def test_a_bad_tuned_option_is_refused(text):
 @pytest.mark.parametrize("argv, message", [
     (["--trials", "0"], "error: the number of trials (--trials) must be a positive integer, got 0"),
     (["--trials", "2", "resolution=-3"], "error: resolution must be an integer >= 4 (voxels per axis), got -3"),
+    # an override of a tuned option: every trial ran with the tuned values instead, without a word
+    (["--trials", "2", "solver.priors.tv.weight=0.5"], "error: override solver.priors.tv.weight=0.5 sets "
+     "solver.priors.tv.weight, which the study tunes (one of the options tuned by default, without --param): each "
+     "trial's value would replace it; an option must be either fixed by an override or tuned, not both"),
 ])
 def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, tune_script, argv, message):
     with pytest.raises(SystemExit) as exit_:
