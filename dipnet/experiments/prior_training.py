@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 from dipnet.solvers.checkpoint import read_state, write_state
 from dipnet.solvers.denoiser import OccupancyDenoiser, load_weights, save_weights
 from dipnet.experiments.prior_pairs import build_pairs, file_digest
+from dipnet.shapes.mesh import load_mesh
 from dipnet.simulator.physics import check_snr_db
 
 
@@ -301,12 +302,15 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
 
     Raises:
         TrainConfigError: a bad option, starting weights or second-stage round weights, a checkpoint of another
-            run to resume (these before any pair is made), or a loss that became NaN or infinite, or a validation loss above 1 (before any
+            run to resume (these, and a file of ``meshes`` that is not a mesh (``ShapeError``), before any pair is
+            made), or a loss that became NaN or infinite, or a validation loss above 1 (before any
             weights or checkpoint of the diverged network are written).
     """
     if config.init_weights is not None:
         _initial_model(config)  # weights that are missing, damaged or of another size: an error before the pairs
     _check_refine(config)  # the second stage's round's too
+    for mesh in config.meshes:  # a file that is not a mesh: an error now, not after the generated shapes' pairs
+        load_mesh(mesh)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")

@@ -261,3 +261,17 @@ def test_a_session_stopped_by_max_minutes_says_its_weights_are_unfinished(tmp_pa
                                          r"with --resume continues to step 6"):
         meta = train(dataclasses.replace(TINY, max_minutes=0.0), tmp_path / "w.pt", tmp_path / "pairs", progress=False)
     assert meta["steps_done"] == 3
+
+
+def test_a_meshes_file_that_is_not_a_mesh_is_refused_before_any_pair(tmp_path, capsys):
+    """``--meshes garbage.stl``: the error came after every generated shape's training pair was made (about 20
+    minutes at 64^3); now first, one line, exit 2, the cache untouched."""
+    (tmp_path / "garbage.stl").write_bytes(bytes(range(256)) * 12)
+    argv = ["--out", str(tmp_path / "w.pt"), "--cache", str(tmp_path / "pairs"), "--no-progress", "--n", "16",
+            "--dips", "8", "--solver-iterations", "10", "--channels", "2", "--crop", "8", "--train-seeds", "5000",
+            "5002", "--val-seeds", "5002", "5003", "--meshes", str(tmp_path / "garbage.stl")]
+    with pytest.raises(SystemExit) as exit_:
+        load_script("train_prior").main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and re.match(r"error: mesh file .*garbage\.stl: corrupt, or not a mesh", err), err
+    assert not (tmp_path / "pairs").exists()
