@@ -50,7 +50,7 @@ from scipy.spatial.transform import Rotation
 
 from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
 from dipnet.simulator.source import SimulatedDips, concatenate
-from dipnet.preprocessing.datasets import mesh_names, mesh_path
+from dipnet.preprocessing.datasets import check_mesh_names, mesh_names, mesh_path
 from dipnet.core.grid import Grid
 from dipnet.evaluation.metrics import evaluate
 from dipnet.operators import make_operator
@@ -96,6 +96,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     args.n = args.n or (32 if args.quick else 64)
     args.meshes = args.meshes or (QUICK_MESHES if args.quick else mesh_names())
     args.jobs = args.jobs or (2 if args.quick else 1)
+    try:
+        check_mesh_names(args.meshes)
+    except FileNotFoundError as exc:  # now, not after the meshes before it
+        p.error(f"--meshes: {exc}")
     return args
 
 

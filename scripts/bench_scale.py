@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from dipnet.solvers.checkpoint import Checkpoint
-from dipnet.preprocessing.datasets import mesh_path
+from dipnet.preprocessing.datasets import check_mesh_names, mesh_path
 from dipnet.core.code_version import simulation_digest
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
@@ -76,6 +76,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:
         args.n, args.meshes, args.fractions, args.noise, args.voxel_iters = [128], ["bunny"], [0.03], ["clean"], 150
+    try:
+        check_mesh_names(args.meshes)
+    except FileNotFoundError as exc:  # now, not after the meshes before it
+        p.error(f"--meshes: {exc}")
     return args
 
 

@@ -42,7 +42,7 @@ from dipnet.evaluation.ensemble import (brier_score, ensemble_maps, occupancy_pr
                                         sample_ensemble)
 from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
 from dipnet.operators import make_operator
-from dipnet.preprocessing.datasets import MESHES_DIR
+from dipnet.preprocessing.datasets import MESHES_DIR, check_mesh_names
 from dipnet.shapes import load_mesh
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
@@ -68,6 +68,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:
         args.meshes, args.n, args.noise = ["bunny", "torus"], 24, ["clean"]
+    try:
+        check_mesh_names(args.meshes)
+    except FileNotFoundError as exc:  # now, not after the meshes before it
+        p.error(f"--meshes: {exc}")
     return args
 
 

@@ -39,6 +39,18 @@ def mesh_names() -> list[str]:
     return sorted(p.stem for p in MESHES_DIR.glob("*.ply"))
 
 
+def check_mesh_names(names: list[str]) -> None:
+    """Raise ``FileNotFoundError`` naming every one of ``names`` that is not a bundled mesh (and the bundled
+    ones): a benchmark checks its ``--meshes`` before the first mesh's work, not when it reaches the name.
+
+    Raises:
+        FileNotFoundError: a name that is not a bundled mesh.
+    """
+    unknown = [name for name in names if not (MESHES_DIR / f"{name}.ply").is_file()]
+    if unknown:
+        raise FileNotFoundError(f"no bundled mesh {', '.join(map(repr, unknown))}; bundled: {', '.join(mesh_names())}")
+
+
 def mesh_path(name: str) -> Path:
     """The bundled mesh ``name`` (a file stem such as ``"bunny"``).
 

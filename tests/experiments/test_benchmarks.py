@@ -245,3 +245,13 @@ def test_the_quality_cache_is_keyed_by_the_mesh_files_bytes(tmp_path):
     assert len(list((tmp_path / "cache").iterdir())) == 4
     assert float(bunny.profiles.sum()) != pytest.approx(float(torus.profiles.sum()), rel=1e-3)
     assert (bunny_truth == (shape.occupancy(grid, supersample=bench.TRUTH_SUPERSAMPLE).numpy() >= 0.5)).all()
+
+
+@pytest.mark.parametrize("script", ["bench_scale", "bench_planning"])
+def test_a_mesh_name_not_bundled_is_refused_before_any_case(script, capsys):
+    """``--meshes torus nosuch``: a traceback when the loop reached it, after the meshes before it; now refused by
+    the argument parser, exit 2, naming it."""
+    with pytest.raises(SystemExit) as exit_:
+        load_script(script).parse_args(["--meshes", "torus", "nosuch"])
+    assert exit_.value.code == 2
+    assert "error: --meshes: no bundled mesh 'nosuch'; bundled: boot, " in capsys.readouterr().err

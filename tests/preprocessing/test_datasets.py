@@ -2,7 +2,7 @@
 
 import pytest
 
-from dipnet.preprocessing.datasets import CATS_CSV, DATA_DIR, data_path, mesh_names, mesh_path
+from dipnet.preprocessing.datasets import CATS_CSV, DATA_DIR, check_mesh_names, data_path, mesh_names, mesh_path
 
 
 def test_the_bundled_meshes_and_recording_are_there():
@@ -17,3 +17,9 @@ def test_unknown_names_are_refused_with_what_exists():
         mesh_path("dragon")
     with pytest.raises(FileNotFoundError, match=r"no bundled data file none\.txt \(dipnet/data holds: .*meshes"):
         data_path("none.txt")
+
+
+def test_a_list_of_names_is_checked_whole():
+    check_mesh_names(["bunny", "torus"])
+    with pytest.raises(FileNotFoundError, match=r"^no bundled mesh 'dragon', 'teapot'; bundled: boot, "):
+        check_mesh_names(["bunny", "dragon", "teapot"])
