@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 
 from dipnet.solvers.checkpoint import read_state, write_state
 from dipnet.solvers.denoiser import OccupancyDenoiser, load_weights, save_weights
-from dipnet.experiments.prior_pairs import build_pairs, file_digest
+from dipnet.experiments.prior_pairs import build_pairs, file_digest, pairs_code, refine_weights_digest
 from dipnet.shapes.mesh import load_mesh
 from dipnet.simulator.physics import check_snr_db
 
@@ -219,7 +219,16 @@ def same_run(saved: dict, config: TrainConfig) -> bool:
 
 
 #: The fields of a training checkpoint (``<out>.ckpt``).
-CHECKPOINT_FIELDS = frozenset({"config", "model", "optimizer", "scheduler", "generator", "step", "history", "seconds"})
+CHECKPOINT_FIELDS = frozenset({"config", "model", "optimizer", "scheduler", "generator", "step", "history", "seconds",
+                               "pairs"})
+
+
+def pairs_made_by(config: TrainConfig) -> dict[str, str | None]:
+    """What makes ``config``'s pairs beyond its options (recorded in each checkpoint as ``pairs``): the code version
+    (:func:`~dipnet.experiments.prior_pairs.pairs_code`), the digest of the second stage's round weights (their
+    bytes: retrained first-stage weights under the same name make other inputs) and of each of ``meshes``."""
+    return {"code": pairs_code(), "refine_weights": None if config.refine is None else refine_weights_digest(config.refine),
+            "meshes": " ".join(file_digest(mesh) for mesh in config.meshes)}
 
 
 def resumable_checkpoint(path: Path, config: TrainConfig) -> dict | None:
@@ -235,8 +244,8 @@ def resumable_checkpoint(path: Path, config: TrainConfig) -> dict | None:
         _warn(f"--resume: there is no checkpoint {path} (none written yet, or another --out?); training from step 0")
         return None
     saved, problem = read_state(path)
-    if problem is None and not (isinstance(saved, dict) and set(saved) == CHECKPOINT_FIELDS
-                                and isinstance(saved["config"], dict)):
+    if problem is None and not (isinstance(saved, dict) and set(saved) | {"pairs"} == CHECKPOINT_FIELDS
+                                and isinstance(saved["config"], dict)):  # pairs: absent from older checkpoints
         problem = "it is not a training checkpoint of scripts/train_prior.py"
     if problem is not None:
         _warn(f"checkpoint {path} is not used: {problem}; training from step 0")
@@ -248,6 +257,16 @@ def resumable_checkpoint(path: Path, config: TrainConfig) -> dict | None:
                            if _plain(recorded.get(key)) != _plain(now.get(key)))
         raise TrainConfigError(f"checkpoint {path} was made with other options ({differ} (recorded -> now)): give "
                                "the same options to resume it, or another --out to train afresh")
+    recorded, now = saved.get("pairs") or {}, pairs_made_by(config)
+    labels = {"code": "the code version of the simulation, operators and solvers",
+              "refine_weights": "the second stage's round weights (--refine-weights; their bytes)",
+              "meshes": "the bytes of --meshes"}
+    changed = [f"{label} {recorded[key]} -> {now[key]}" for key, label in labels.items()
+               if key in recorded and recorded[key] != now[key]]
+    if changed:
+        _warn(f"checkpoint {path} was trained on pairs made otherwise ({'; '.join(changed)} (recorded -> now)): the "
+              "resumed run goes on with the pairs made now, so its weights are trained on both; start afresh "
+              "(another --out) for weights of the new pairs alone")
     return saved
 
 
@@ -315,6 +334,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")
     saved = resumable_checkpoint(ckpt_path, config) if resume else None  # another run's: refused before the pairs
+    made_by = pairs_made_by(config)
     x_np, y_np = training_pairs(config, cache, progress, workers)
     xv_np, yv_np = _pairs(config, config.val_seeds, cache, progress, workers)
     inputs, targets = torch.from_numpy(x_np), torch.from_numpy(y_np)
@@ -336,7 +356,7 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     def checkpoint() -> None:
         write_state({"config": dataclasses.asdict(config), "model": model.state_dict(), "optimizer": opt.state_dict(),
                      "scheduler": sched.state_dict(), "generator": generator.get_state(), "step": step,
-                     "history": history, "seconds": seconds}, ckpt_path)
+                     "history": history, "seconds": seconds, "pairs": made_by}, ckpt_path)
 
     started = time.perf_counter() - seconds
     session_start = time.perf_counter()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import warnings
 
 import pytest
 import torch
@@ -275,3 +276,25 @@ def test_a_meshes_file_that_is_not_a_mesh_is_refused_before_any_pair(tmp_path, c
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and re.match(r"error: mesh file .*garbage\.stl: corrupt, or not a mesh", err), err
     assert not (tmp_path / "pairs").exists()
+
+
+def test_resuming_on_pairs_made_by_other_first_stage_weights_says_so(tmp_path, shared_pairs):
+    """A second stage resumed after its round's first-stage weights were retrained under the same name went on, exit
+    0, on the inputs those new weights make (new cache files), its weights trained on both sets: now a warning
+    names the change (digests recorded -> now); the same weights resume without a word."""
+    first = tmp_path / "first.pt"
+    save_weights(OccupancyDenoiser(TINY.channels), first, {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    config = dataclasses.replace(TINY, init_weights=str(first), steps=3,
+                                 refine=load_script("train_prior").learned_round(weights=str(first)))
+    cache, out = tmp_path / "pairs", tmp_path / "s2.pt"
+    train(config, out, cache, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        train(dataclasses.replace(config, steps=6), out, cache, resume=True, progress=False)
+    retrained = OccupancyDenoiser(TINY.channels)
+    torch.nn.init.constant_(retrained.out.bias, 0.01)
+    save_weights(retrained, first, {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    with pytest.warns(UserWarning, match=r"checkpoint .*s2\.ckpt was trained on pairs made otherwise \(the second "
+                                         r"stage's round weights \(--refine-weights; their bytes\) \w{12} -> \w{12} "
+                                         r"\(recorded -> now\)\): the resumed run goes on"):
+        assert train(dataclasses.replace(config, steps=9), out, cache, resume=True, progress=False)["steps_done"] == 9
