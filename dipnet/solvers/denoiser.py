@@ -110,9 +110,13 @@ def existing_weights_path(weights: str | Path | None) -> Path:
     """:func:`weights_path` of ``weights``, checked to exist.
 
     Raises:
-        PriorWeightsError: the file is missing.
+        PriorWeightsError: the file is missing, or is a folder.
     """
     path = weights_path(weights)
+    if path.is_dir():
+        inside = sorted(p.name for p in path.glob("*.pt"))
+        raise PriorWeightsError(f"learned-prior weights {path} is a folder, not a weights file: give the .pt file"
+                                + (f" in it ({', '.join(inside[:5])})" if inside else " (it holds no .pt file)"))
     if not path.is_file():
         raise PriorWeightsError(f"learned-prior weights not found: {path} (train them with scripts/train_prior.py, "
                                 f"pass weights: null for the shipped first stage, or a shipped name: {shipped_names()})")

@@ -117,3 +117,14 @@ def test_weights_meta_without_its_grid_names_the_file(tmp_path):
     torch.save(saved, path)
     with pytest.raises(PriorWeightsError, match=r"learned-prior weights .*no_n\.pt: their meta lacks n \("):
         load_weights(path)
+
+
+def test_a_folder_given_as_weights_is_named_a_folder(tmp_path):
+    """``weights=<a folder>`` (the folder of a training run, the .pt left off) said "weights not found: <folder>",
+    though the folder is there; now it says it is a folder and names the weights files in it."""
+    save_weights(OccupancyDenoiser(2), tmp_path / "run" / "d.pt", META)
+    with pytest.raises(PriorWeightsError, match=r"weights .*run is a folder, not a weights file: give the \.pt file "
+                                                r"in it \(d\.pt\)"):
+        load_weights(tmp_path / "run")
+    with pytest.raises(PriorWeightsError, match=r"is a folder, not a weights file: .*\(it holds no \.pt file\)"):
+        load_weights(tmp_path)
