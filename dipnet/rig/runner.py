@@ -396,16 +396,25 @@ class ScanRunner:
         self.controller.wait_idle()
 
     def _record(self, writer: RawScanWriter, stage: float) -> None:
+        """Read the sensor at lowering position ``stage`` (mm) and record the reading: up to ``retries`` more
+        tries while it is not stable or not a finite number (a transducer out of range, as one without an
+        echo sending NaN, or a line such as ``1e999 mm``). A last reading that is still not finite is not
+        recorded (:class:`SensorError`); a last unstable one is, flagged (:class:`SensorUnstable`)."""
         expected = UNITS[self.header.quantity]
-        for attempt in range(self.plan.retries + 1):
+        tries = self.plan.retries + 1
+        for attempt in range(tries):
             if self.plan.settle_s:
                 time.sleep(self.plan.settle_s)
             reading: Reading = self.sensor.read()
             if reading.unit != expected:
                 raise SensorError(f"sensor reports {reading.unit!r}, the scan records {expected!r}")
-            if reading.stable:
+            if reading.stable and math.isfinite(reading.value):
                 writer.append_reading(stage, reading.value, time.time(), [])
                 return
+        if not math.isfinite(reading.value):
+            raise SensorError(f"the sensor gave no finite reading in {tries} tr{'y' if tries == 1 else 'ies'} "
+                              f"(last {reading.value:g} {reading.unit}): a sensor out of its range (no echo, "
+                              f"overrange) or a garbled value; it was not recorded: check the sensor and run again")
         writer.append_reading(stage, reading.value, time.time(), ["unstable"])
         raise SensorUnstable(f"sensor not stable after {self.plan.retries + 1} readings "
                              f"(last {reading.value:g} {reading.unit})")

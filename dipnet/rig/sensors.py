@@ -338,7 +338,7 @@ class ModbusLevelSensor(Sensor):
 
 
 class AveragingSensor:
-    """The mean of ``n`` readings of ``sensor``; stable when every reading is stable and their
+    """The mean of ``n`` readings of ``sensor``; stable when every reading is stable and finite and their
     spread (max - min) is at most ``max_spread`` (``None``: no spread check).
 
     Args:
@@ -367,7 +367,7 @@ class AveragingSensor:
                 time.sleep(self.interval_s)
             readings.append(self.sensor.read())
         values = np.array([r.value for r in readings])
-        stable = all(r.stable for r in readings)
-        if self.max_spread is not None and np.ptp(values) > self.max_spread:
+        stable = all(r.stable for r in readings) and bool(np.isfinite(values).all())  # NaN or inf: not a reading
+        if stable and self.max_spread is not None and np.ptp(values) > self.max_spread:
             stable = False
         return Reading(float(values.mean()), readings[0].unit, stable)

@@ -13,6 +13,7 @@ from dipnet.evaluation.metrics import iou
 from dipnet.operators import make_operator
 from dipnet.preprocessing.preprocess import preprocess
 from dipnet.rig.runner import ScanAborted, ScanPlan, plan_orientations
+from dipnet.rig.sensors import AveragingSensor
 from dipnet.solvers.minnorm import MinNormSolver
 
 from rig_helpers import plan_for, scan
@@ -125,3 +126,33 @@ def test_a_grid_plan_dips_each_pose_once_and_says_so(caplog):
     with caplog.at_level("WARNING", logger="dipnet.rig.runner"):  # the vertical at two spins: two poses, no word
         assert len(plan_orientations("grid", tilts=[0, 30], spins=[0, 180])) == 4
     assert not caplog.records
+
+
+class _Readings(AveragingSensor):
+    """The fake rig's averaged level sensor ``averaging``, its first readings replaced by ``values`` (mm)."""
+
+    def __init__(self, averaging: AveragingSensor, values) -> None:
+        super().__init__(averaging.sensor, averaging.n, averaging.max_spread)
+        self.values = list(values)
+
+    def read(self):
+        real = super().read()
+        return real._replace(value=self.values.pop(0)) if self.values else real
+
+
+def test_a_reading_that_is_not_a_finite_number_is_retried_and_never_recorded(world, tmp_path):
+    """Before: a level of inf (``1e999 mm``) or NaN (a Modbus float32 transducer without an echo) stopped the scan
+    with "ValueError: Out of range float values are not JSON compliant" (and a numpy RuntimeWarning); now it counts as
+    a failed try, and a sensor that gives nothing else stops the scan naming the value, nothing of it recorded."""
+    from rig_helpers import make_sensor
+
+    plan = plan_for(1, step=20.0)
+    world.reset()
+    raw = scan(world, "grbl", _Readings(make_sensor(world, "level"), [float("nan"), float("inf")]), plan,
+               tmp_path / "recovers.jsonl")
+    assert raw.orientations[0].complete and np.isfinite(raw.orientations[0].values).all()
+    world.reset()
+    with pytest.raises(ScanAborted, match=r"reading 0 at 0 mm: SensorError: the sensor gave no finite reading in 3 "
+                                          r"tries \(last inf mm\): .*object lifted"):
+        scan(world, "grbl", _Readings(make_sensor(world, "level"), [float("inf")] * 3), plan, tmp_path / "inf.jsonl")
+    assert read_rawscan(tmp_path / "inf.jsonl").orientations[0].n_readings == 0

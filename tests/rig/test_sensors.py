@@ -4,6 +4,7 @@ level sensor against the fake rig's slave."""
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import pytest
@@ -138,3 +139,25 @@ def test_modbus_sensor_reads_real_frames_and_reports_faults(world):
     with pytest.raises(RigTimeout):
         wrong_slave.read()
     wrong_slave.close()
+
+
+def test_an_average_holding_nan_or_inf_is_not_stable_and_warns_of_nothing():
+    """Before: a NaN or inf among the averaged readings gave numpy's "invalid value encountered in subtract" and,
+    for NaN, a reading marked stable (NaN > max_spread is false)."""
+    from dipnet.rig.sensors import AveragingSensor, Reading
+
+    class Values:
+        quantity = "level_mm"
+
+        def __init__(self, values):
+            self.values = list(values)
+
+        def read(self):
+            return Reading(self.values.pop(0), "mm", True)
+
+    for bad in (float("nan"), float("inf")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            reading = AveragingSensor(Values([150.0, bad, 150.0]), n=3, max_spread=0.05).read()
+        assert not reading.stable
+    assert AveragingSensor(Values([150.0, 150.01, 150.0]), n=3, max_spread=0.05).read().stable
