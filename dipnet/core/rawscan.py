@@ -216,7 +216,8 @@ class ScanHeader:
 #: Settings in a header's ``config`` that change what a dip records, so a resumed scan must keep
 #: them: ``(dotted key in config, the scan option that sets it)``. A dict-valued key is compared
 #: leaf by leaf (``rig_geometry.pivot_mm``). Timing, retries, ports and the sensor's line pattern
-#: may change between runs.
+#: may change between runs. The fake rig's object (``rig.fake.shape``, recorded under ``scan``) is the
+#: thing dipped: another one resumed into the file would mix two objects' dips.
 RESUME_SETTINGS: tuple[tuple[str, str], ...] = (
     ("plan.start_mm", "protocol.start_mm"),
     ("plan.stop_mm", "protocol.stop_mm"),
@@ -238,6 +239,7 @@ RESUME_SETTINGS: tuple[tuple[str, str], ...] = (
     ("sensor.offset", "sensor.device.offset"),
     ("sensor.data_type", "sensor.device.data_type"),
     ("sensor.word_order", "sensor.device.word_order"),
+    ("scan.rig.fake.shape", "rig.fake.shape"),
 )
 _UNRECORDED = object()
 

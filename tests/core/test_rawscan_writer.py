@@ -111,3 +111,25 @@ def test_a_resume_with_the_same_dip_settings_goes_on(tmp_path):
     with RawScanWriter(path, HEADER, fsync=False) as w:  # records no plan: nothing to compare
         assert w.scan.next_orientation() == 2
     assert [o.k for o in read_rawscan(path).completed()] == [0, 1]
+
+
+def test_a_fake_rig_scan_resumed_with_another_object_is_refused_naming_it(tmp_path):
+    """Before: ``scan.py rig.fake.shape.name=ball`` resumed a torus scan killed after 4 of 12 dips: exit 0, the file
+    held 4 torus dips and 8 ball dips (reconstructed: profile residual 0.30, volume ratio 1.11). The fake rig's object is
+    recorded under ``config.scan``; a real rig's scan records none, and is not compared."""
+    def header(shape: dict | None) -> ScanHeader:
+        rig = {"name": "fake-grbl", "fake": None if shape is None else {"shape": shape}}
+        return ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=2e4, step_mm=4.0,
+                          config={"scan": {"rig": rig, "n_dips": 12}})
+
+    torus = {"_target_": "dipnet.shapes.builtin_shape", "name": "torus", "ndim": 3, "radius": 40.0}
+    path = tmp_path / "scan.jsonl"
+    with RawScanWriter(path, header(torus), fsync=False) as w:
+        _dip(w, 0)
+    with pytest.raises(RawScanFileError, match=re.escape(
+            "rig.fake.shape.name (config.scan.rig.fake.shape.name) 'torus' -> 'ball'")):
+        RawScanWriter(path, header({**torus, "name": "ball"}), fsync=False)
+    RawScanWriter(path, header(torus), fsync=False).close()  # the same object resumes
+    real = tmp_path / "real.jsonl"
+    RawScanWriter(real, header(None), fsync=False).close()
+    RawScanWriter(real, header(None), fsync=False).close()
