@@ -72,6 +72,11 @@ class PositionUnknown(RigError):
     nothing may move until the machine is homed or the operator confirms the position."""
 
 
+class PositionMismatch(RigError):
+    """The controller, idle after a move, reports a position other than the one commanded (beyond its step
+    resolution): a reading there would be recorded at a position the machine did not reach."""
+
+
 class MotionHeld(RigError):
     """The controller is in a feed hold or a safety-door state (an operator or a sensor stopped it)."""
 
@@ -458,6 +463,15 @@ class Controller(SerialDevice):
         self.moved = True
         self.command(f"{motion} {words}{feed}")
         self._target.update({k: v for k, v in target.items() if v is not None})
+
+    def check_arrived(self) -> None:
+        """After :meth:`wait_idle`: check that the machine stands where the moves since connecting (or homing)
+        commanded each axis (the rig values of :meth:`move_to`, the short way round included). Dialects whose
+        position report echoes the commanded position (Marlin's ``M114``) have nothing to compare and return.
+
+        Raises:
+            PositionMismatch: the controller reports another position (the message names both and the causes).
+        """
 
     @abstractmethod
     def _handshake(self) -> None:

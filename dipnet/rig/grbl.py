@@ -6,8 +6,8 @@ import logging
 import time
 from collections import deque
 
-from dipnet.rig.controller import (AlarmError, Controller, ControllerError, MotionHeld, Position, PositionUnknown,
-                                   ResetError, RigTimeout, require_link)
+from dipnet.rig.controller import (AlarmError, Controller, ControllerError, MotionHeld, Position, PositionMismatch,
+                                   PositionUnknown, ResetError, RigTimeout, require_link)
 from dipnet.rig.grbl_dialect import (FEED_HOLD, POSITION_LOST_ALARMS, RESET_ALARMS, SOFT_RESET, STATUS_QUERY,
                                       AxisCountError, GrblLine, GrblStatus, check_settings, classify, describe,
                                       in_motion, parse_status, read_settings)
@@ -312,6 +312,38 @@ class GrblController(Controller):
         finally:
             if seq is not None and self._answers.pop(seq, None) is None:
                 self._abandoned.add(seq)  # given up: its reply, when it comes, is accounted as late
+
+    def check_arrived(self) -> None:
+        """See :meth:`Controller.check_arrived`: the ``Idle`` report that ended :meth:`wait_idle` against the
+        commanded rig values, per axis within one step (``1 / $10N`` machine units, as read at connect; 0.01 when
+        unknown) plus the report's rounding, modulo :attr:`~dipnet.rig.controller.Axis.wrap` for a free axis.
+        GRBL moves to ``G0`` targets in work coordinates but reports machine ones (``MPos``): a work offset
+        (``G10 L2``/``L20``, ``G92``), inch reports (``$13=1``) or inch moves (``G20``) put the machine
+        elsewhere than the scan believes it is."""
+        st = self.last_status
+        if st is None or st.state != "Idle" or st.mpos is None:
+            return
+        here = self.axes.rig_position(st.mpos)
+        off = []
+        for name, reported in (("lower", here.lower_mm), ("tilt", here.tilt_deg), ("spin", here.spin_deg)):
+            if name not in self._target:
+                continue
+            axis, commanded, letter = getattr(self.axes, name), self._target[name], getattr(self.axes, name).letter
+            steps = self.settings.get(100 + "XYZABC".find(letter.upper())) if letter.upper() in "XYZABC" else None
+            tolerance = ((1.0 / steps if steps else 0.01) + 0.002) / axis.scale  # rig units
+            difference = reported - commanded
+            if axis.wrap is not None:
+                difference = (difference + axis.wrap / 2) % axis.wrap - axis.wrap / 2
+            if not abs(difference) <= tolerance:
+                unit = "mm" if name == "lower" else "deg"
+                off.append(f"{name} {reported:.3f} {unit} (commanded {commanded:g}, {letter.upper()} "
+                           f"{st.mpos[letter.upper()]:g} in MPos)")
+        if off:
+            raise PositionMismatch(
+                f"idle after the move, the controller reports {', '.join(off)}: the machine is not where the scan "
+                f"sent it, and no reading is recorded there. GRBL moves in work coordinates and reports machine ones: "
+                f"clear a work offset (G10 L2 P1 X0 Y0 Z0, with A0 B0 on a 5-axis board, and G92.1; '$#' lists "
+                f"them), set $13=0 (reports in mm) and check rig.controller.axes (scale, sign, offset)")
 
     def position(self) -> Position:
         st = self.status()

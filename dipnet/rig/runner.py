@@ -392,8 +392,12 @@ class ScanRunner:
         self.marker.unlink(missing_ok=True)
 
     def _move(self, **target) -> None:
+        """Move to ``target`` (rig values), wait until the machine is idle and check that it stands where it was
+        sent (:meth:`~dipnet.rig.controller.Controller.check_arrived`): no turn, lowering or reading follows a
+        move that ended elsewhere."""
         self.controller.move_to(**target)
         self.controller.wait_idle()
+        self.controller.check_arrived()
 
     def _record(self, writer: RawScanWriter, stage: float) -> None:
         """Read the sensor at lowering position ``stage`` (mm) and record the reading: up to ``retries`` more

@@ -156,3 +156,29 @@ def test_a_reading_that_is_not_a_finite_number_is_retried_and_never_recorded(wor
                                           r"tries \(last inf mm\): .*object lifted"):
         scan(world, "grbl", _Readings(make_sensor(world, "level"), [float("inf")] * 3), plan, tmp_path / "inf.jsonl")
     assert read_rawscan(tmp_path / "inf.jsonl").orientations[0].n_readings == 0
+
+
+def test_a_reading_is_never_recorded_where_the_controller_reports_the_machine_is_not(world, tmp_path, monkeypatch):
+    """A GRBL board with a work offset (G54 Z -7 mm, kept in its EEPROM after an operator zeroed Z in a sender) goes
+    to ``G0 Z-10`` at machine Z -17 and reports that in MPos. Before: both dips completed, exit 0, every reading
+    recorded 7 mm shallower than the object was (at stage 20 mm: 150.301 mm, where the clean scan reads 150.014).
+    Now the Idle report after each move is compared with the commanded position: the scan stops after the first
+    (the lift to the safe height), before the object is turned or anything is recorded."""
+    plan = plan_for(2, step=10.0)
+    world.reset()
+    real = world.target_from_words
+
+    def work_offset(words: dict[str, float]) -> dict[str, float | None]:
+        return real({**words, **({"Z": words["Z"] - 7.0} if "Z" in words else {})})
+
+    monkeypatch.setattr(world, "target_from_words", work_offset)
+    with pytest.raises(ScanAborted) as info:
+        scan(world, "grbl", "level", plan, tmp_path / "offset.jsonl")
+    message = str(info.value)
+    assert message.startswith("scan stopped at orientation 0 (tilt 41.4096, spin 0): PositionMismatch: idle after "
+                              "the move, the controller reports lower 7.000 mm (commanded 0, Z -7 in MPos): the "
+                              "machine is not where the scan sent it, and no reading is recorded there. GRBL moves in "
+                              "work coordinates and reports machine ones: clear a work offset (G10 L2 P1 X0 Y0 Z0")
+    assert "kept 0 readings" in message and world.position().tilt_deg == 0.0  # never turned
+    assert read_rawscan(tmp_path / "offset.jsonl").orientations == []
+
