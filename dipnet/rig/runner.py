@@ -339,9 +339,31 @@ class ScanRunner:
                     self._move(lower_mm=float(stage))
                     self._record(writer, float(stage))
                     bar.update()
+                self.where = f"the end of orientation {k} (tilt {tilt:g}, spin {spin:g})"
+                self._check_not_flat(writer, k)
                 writer.complete_orientation()
                 self.where = f"the lift after orientation {k}"
                 self._move(lower_mm=plan.safe_mm)
+
+    def _check_not_flat(self, writer: RawScanWriter, k: int) -> None:
+        """Refuse to complete orientation ``k`` when every one of its readings is the same value: the object
+        displaces water on the way down, so a level or mass that never changes is a stuck sensor (or one
+        repeating a stale value), or an object that never reached the water, and a dip of zero profile makes
+        the reconstruction refuse the whole scan. The readings stay in the file as an incomplete dip, which
+        the next run dips again.
+
+        Raises:
+            SensorError: the dip's readings are all equal (the message names the value and the stages).
+        """
+        dip = next(o for o in writer.scan.orientations if o.k == k)
+        if dip.n_readings < 2 or np.ptp(dip.values) > 0:
+            return
+        raise SensorError(f"all {dip.n_readings} readings of orientation {k} are {float(dip.values[0]):g} "
+                          f"{UNITS[self.header.quantity]}, from lower {float(dip.stage_mm[0]):g} to "
+                          f"{float(dip.stage_mm[-1]):g} mm: the object displaces water as it is lowered, so the "
+                          f"sensor is stuck (or repeats a stale value), or the object never reached the water "
+                          f"(protocol.stop_mm, rig.origin_height_mm); the dip is not marked complete (a dip of zero "
+                          f"profile would make the reconstruction refuse the scan): check the sensor")
 
     def _check_board(self, stages: np.ndarray, first: int) -> None:
         """Check the moves of orientations ``first``.. as they will be sent (the short way round

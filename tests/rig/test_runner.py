@@ -182,3 +182,23 @@ def test_a_reading_is_never_recorded_where_the_controller_reports_the_machine_is
     assert "kept 0 readings" in message and world.position().tilt_deg == 0.0  # never turned
     assert read_rawscan(tmp_path / "offset.jsonl").orientations == []
 
+
+def test_a_dip_whose_readings_never_change_is_not_completed_and_the_resume_redoes_it(meshes_dir, tmp_path):
+    """A stuck level sensor (every line ``L=150.000 mm``). Before: all dips recorded complete, exit 0 ("scan
+    complete: 8 orientations, 184 readings"), then ``reconstruct.py`` refused the whole file: "profile 0 sums to
+    0 mm^3". Now the first such dip stops the scan, kept as an incomplete dip, and the run after the repair dips it."""
+    from rig_helpers import make_world
+
+    stuck = make_world(meshes_dir, "stuck", sensor_format={"level_format": "L=150.000 mm"})
+    plan, path = plan_for(2, step=10.0), tmp_path / "stuck.jsonl"
+    with pytest.raises(ScanAborted, match=r"at the end of orientation 0 \(tilt 41.4096, spin 0\): SensorError: all 11 "
+                                          r"readings of orientation 0 are 150 mm, from lower 0 to 100 mm: .* the dip "
+                                          r"is not marked complete .*object lifted"):
+        scan(stuck, "grbl", "level", plan, path)
+    kept = read_rawscan(path)
+    assert [(o.k, o.complete, o.n_readings) for o in kept.orientations] == [(0, False, 11)]
+    stuck.sensor_format.level_format = "L={value:.3f} mm"  # the sensor repaired
+    stuck.reset()
+    resumed = scan(stuck, "grbl", "level", plan, path)
+    assert [(o.k, o.complete) for o in resumed.orientations] == [(0, True), (1, True)]
+    assert np.ptp(resumed.orientations[0].values) > 1.0
