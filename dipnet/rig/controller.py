@@ -296,18 +296,30 @@ class PortLock:
         self.lock: HeldLock | None = None
         if url.startswith("fakerig://"):
             return
-        name = re.sub(r"[^A-Za-z0-9._-]+", "_", url).strip("_")[:80]
-        self.path = self.directory / f"{name}-{hashlib.sha1(url.encode()).hexdigest()[:8]}.lock"
+        self.path = self.port_file(url, ".lock")
         try:
             self.lock = HeldLock(self.path)
         except LockHeld as exc:
             raise PortBusy(f"port {url} is in use by {exc} (lock {self.path}): "
                            f"another scan is running on this rig; wait for it or stop it") from None
 
+    @classmethod
+    def port_file(cls, url: str, suffix: str) -> Path:
+        """The file of port ``url`` in :attr:`directory` ending in ``suffix`` (``.lock``: the lock)."""
+        name = re.sub(r"[^A-Za-z0-9._-]+", "_", url).strip("_")[:80]
+        return cls.directory / f"{name}-{hashlib.sha1(url.encode()).hexdigest()[:8]}{suffix}"
+
     def release(self) -> None:
         if self.lock is not None:
             self.lock.release()
             self.lock = None
+
+
+def rig_position_marker(url: str) -> Path | None:
+    """Where a run that lost the position of the controller on ``url`` says so for every scan on that rig
+    (beside the port's lock, :meth:`PortLock.port_file`), or ``None`` for an in-process ``fakerig://`` world,
+    whose position ends with its process."""
+    return None if url.startswith("fakerig://") else PortLock.port_file(url, ".position-lost.json")
 
 
 def open_channel(url: str, terminator: bytes = b"\n", baudrate: int = 115200) -> LineChannel:

@@ -17,7 +17,8 @@ and what the operator must do. When the position was lost (an alarm or reset tha
 the controller's link lost after a move was commanded: the board may have restarted at 0), a
 marker file next to the scan (``<scan>.position-lost.json``) makes a resumed run refuse to move
 until the machine is homed (``home=true``) or the operator confirms the position
-(``confirm_position=true``).
+(``confirm_position=true``); a copy beside the controller port's lock
+(:func:`~dipnet.rig.controller.rig_position_marker`) does the same for a scan into another file on that rig.
 
 The scan file and the controller and sensor ports are locked while a scan runs: a second scan
 on the same file or port fails at once.
@@ -44,7 +45,7 @@ from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
 from dipnet.core.rawscan_writer import RawScanWriter
 from dipnet.core.memory import MAX_READINGS_PER_DIP
 from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
-                                   SensorUnstable)
+                                   SensorUnstable, rig_position_marker)
 from dipnet.core.geometry import GEOMETRY_CONFIG_KEY, RigGeometry
 from dipnet.rig.sensors import AveragingSensor, Reading, SensorError
 
@@ -274,6 +275,7 @@ class ScanRunner:
         self.header, self.home, self.progress, self.fsync = header, home, progress, fsync
         self.rehome_on_fault, self.confirm_position = rehome_on_fault, confirm_position
         self.marker = self.path.with_name(self.path.name + ".position-lost.json")
+        self.rig_marker = rig_position_marker(controller.url)  # the same, for a scan into another file on this rig
         header.config = {"plan": asdict(plan), "controller": controller.identity(), "sensor": sensor.identity(),
                          GEOMETRY_CONFIG_KEY: plan.geometry.to_dict(), **header.config}
         self.where = "connecting"
@@ -402,6 +404,11 @@ class ScanRunner:
             previous = json.loads(self.marker.read_text()).get("reason", "unknown")
             ctl.position_lost = None  # the marker says more than the controller's own state
             ctl.lose_position(f"the previous run lost the position ({previous})")
+        elif self.rig_marker is not None and self.rig_marker.exists():
+            previous = json.loads(self.rig_marker.read_text())
+            ctl.position_lost = None
+            ctl.lose_position(f"a run of the scan {previous.get('scan', 'unknown')} on this rig ({ctl.url}) lost the "
+                              f"position ({previous.get('reason', 'unknown')})")
         if self.home:
             self.where = "homing"
             ctl.home()
@@ -411,7 +418,7 @@ class ScanRunner:
             ctl.settle()
         if ctl.position_lost is not None:
             raise PositionUnknown(ctl.position_lost)
-        self.marker.unlink(missing_ok=True)
+        self._clear_position_lost()
 
     def _move(self, **target) -> None:
         """Move to ``target`` (rig values), wait until the machine is idle and check that it stands where it was
@@ -493,7 +500,7 @@ class ScanRunner:
                 ctl.wait_idle()
                 here = ctl.position()
                 ctl.stop()
-                self.marker.unlink(missing_ok=True)
+                self._clear_position_lost()
                 return (f"object lifted: the controller reports lower {round(here.lower_mm, 3) + 0.0:.3f} mm "
                         f"(safe height {safe:g} mm)")
             except PositionUnknown as err:
@@ -509,7 +516,24 @@ class ScanRunner:
         return f"COULD NOT LIFT THE OBJECT ({type(error).__name__}: {error}) - check the rig"
 
     def _mark_position_lost(self, reason: str) -> None:
-        self.marker.write_text(json.dumps({"reason": reason, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}) + "\n")
+        """Record beside the scan, and for every scan on this controller's port (:attr:`rig_marker`), that the
+        position is lost: a later run, of this scan or another, moves nothing until it homes or the operator
+        confirms the position."""
+        record = {"reason": reason, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "scan": str(self.path)}
+        self.marker.write_text(json.dumps(record) + "\n")
+        if self.rig_marker is not None:
+            try:
+                self.rig_marker.parent.mkdir(parents=True, exist_ok=True)
+                self.rig_marker.write_text(json.dumps(record) + "\n")
+            except OSError as exc:  # the scan's own marker still holds its resume
+                log.warning("could not record the lost position for other scans on %s in %s: %s",
+                            self.controller.url, self.rig_marker, exc)
+
+    def _clear_position_lost(self) -> None:
+        """The position is trusted again (homed, confirmed, or read back after a lift): drop both markers."""
+        self.marker.unlink(missing_ok=True)
+        if self.rig_marker is not None:
+            self.rig_marker.unlink(missing_ok=True)
 
 
 def value_ranges(moves: list[dict[str, float | None]]) -> dict[str, tuple[float, float]]:

@@ -202,3 +202,38 @@ def test_a_dip_whose_readings_never_change_is_not_completed_and_the_resume_redoe
     resumed = scan(stuck, "grbl", "level", plan, path)
     assert [(o.k, o.complete) for o in resumed.orientations] == [(0, True), (1, True)]
     assert np.ptp(resumed.orientations[0].values) > 1.0
+
+
+def test_a_lost_position_stops_a_scan_into_another_file_on_the_same_rig_too(meshes_dir, tmp_path):
+    """A board without homing loses the link while lowering (it may restart and count from 0 where the object is).
+    Before: the marker beside scan ``a`` kept ``a`` from moving, but a scan ``b`` on the same rig (a new
+    ``name``) made 30 moves, trusting the position, no homing and no confirmation. Now the marker is also kept
+    beside the port's lock, for every scan on that port, until a run homes or the operator confirms the position."""
+    from dipnet.core.rawscan import ScanHeader
+    from dipnet.rig.fake.server import serve
+    from dipnet.rig.grbl import GrblController
+    from dipnet.rig.runner import ScanRunner
+    from dipnet.rig.sensors import LineSensor
+    from rig_helpers import AREA, make_world
+
+    world = make_world(meshes_dir, "nohoming", grbl_settings={22: 0})
+    world.reset(faults=[{"kind": "disconnect", "at_move": 8}])
+
+    def run(name: str, **options):
+        ctl = GrblController(server.urls["grbl"], timeout=0.5, move_timeout=2.0)
+        sensor = LineSensor(server.urls["level"], pattern=r"L=(?P<value>[-+\d.]+) mm")
+        header = ScanHeader(quantity="level_mm", tank_cross_section_mm2=AREA, step_mm=10.0)
+        return ScanRunner(ctl, sensor, plan_for(2, step=10.0), tmp_path / name, header, progress=False, fsync=False,
+                          home=None, **options).run()
+
+    with serve(world, ["grbl", "level"]) as server:
+        with pytest.raises(ScanAborted, match="OBJECT NOT LIFTED"):
+            run("a.jsonl")
+        moved = world.motion_count
+        with pytest.raises(ScanAborted, match=r"a run of the scan .*a\.jsonl on this rig \(socket://127\.0\.0\.1:\d+\) "
+                                              r"lost the position \(lost the link .*nothing had moved.*"
+                                              r"confirm_position=true"):
+            run("b.jsonl")
+        assert world.motion_count == moved
+        assert len(run("b.jsonl", confirm_position=True).completed()) == 2  # the operator's word clears it
+        assert len(run("c.jsonl").completed()) == 2
