@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import re
 import tempfile
 import time
@@ -344,6 +345,14 @@ def open_port(url: str, timeout: float = 0.05, baudrate: int = 115200, **options
         raise RigDisconnected(f"cannot open {url}: {exc}") from exc
 
 
+def seconds(value, name: str, node: str) -> float:
+    """``value`` as a time limit in seconds: a positive finite number, else ``ValueError`` naming the option
+    ``node.name`` (a limit of 0 or less times out before any reply: the fault would be blamed on the rig)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+        raise ValueError(f"{node}.{name} must be a positive number of seconds (a time limit), got {value!r}")
+    return float(value)
+
+
 # ----------------------------------------------------------------------------- interface
 class SerialDevice(ABC):
     """A device behind one serial line (:class:`LineChannel` in ``self.link``, ``None`` when closed)."""
@@ -391,9 +400,9 @@ class Controller(SerialDevice):
         self.url = url
         self.axes = axes if isinstance(axes, AxisMap) else AxisMap.from_config(axes)
         self.baudrate = baudrate
-        self.timeout = float(timeout)
-        self.move_timeout = float(move_timeout)
-        self.home_timeout = float(home_timeout)
+        self.timeout = seconds(timeout, "timeout", "rig.controller")
+        self.move_timeout = seconds(move_timeout, "move_timeout", "rig.controller")
+        self.home_timeout = seconds(home_timeout, "home_timeout", "rig.controller")
         self.feed = feed
         self.messages: list[str] = []  # informational lines pushed by the controller
         self.link: LineChannel | None = None

@@ -31,7 +31,7 @@ import serial
 
 from dipnet.core.optional import optional_import
 from dipnet.rig.controller import (LineChannel, PortLock, RigDisconnected, RigError, RigTimeout, SerialDevice,
-                                   open_channel, open_port)
+                                   open_channel, open_port, seconds)
 
 
 def modbus() -> ModuleType:
@@ -167,7 +167,7 @@ class Sensor(SerialDevice):
     def __init__(self, url: str, *, baudrate: int = 9600, timeout: float = 1.0) -> None:
         self.url = url
         self.baudrate = baudrate
-        self.timeout = float(timeout)
+        self.timeout = seconds(timeout, "timeout", "sensor.device")
         self.link: LineChannel | None = None
 
     def connect(self) -> None:
@@ -214,6 +214,9 @@ class LineSensor(Sensor):
         if int(max_lines) < 1:
             raise ValueError(f"sensor max_lines must be >= 1, got {max_lines!r}")
         self.terminator = terminator.encode("ascii").decode("unicode_escape")
+        if not self.terminator:
+            raise ValueError("sensor.device.terminator is empty: give the end of the sensor's lines ('\\n', '\\r' "
+                             "or '\\r\\n')")
         self.query = None if query is None else query.encode("ascii").decode("unicode_escape")
         self.unit, self.unit_optional = unit, bool(unit_optional)
         self.max_lines = int(max_lines)

@@ -81,3 +81,14 @@ def test_a_failed_port_is_a_lost_link_and_tells_its_owner():
     assert len(told) == 1 and told[0].startswith("lost the link to loop://")
     with pytest.raises(RigDisconnected, match="cannot open fakerig://no-such-rig/grbl"):
         open_port("fakerig://no-such-rig/grbl")
+
+
+@pytest.mark.parametrize("option, value", [("timeout", -1), ("move_timeout", 0), ("home_timeout", float("nan"))])
+def test_a_time_limit_that_cannot_be_waited_is_refused_before_connecting(option, value):
+    """Before: ``scan.py rig.controller.timeout=-1`` connected and stopped with exit 3, "RigTimeout: no reply from
+    fakerig://fake/grbl within 0 s ... run the same command again to resume": a config slip blamed on the rig."""
+    from dipnet.rig.grbl import GrblController
+
+    with pytest.raises(ValueError, match=rf"^rig\.controller\.{option} must be a positive number of seconds "
+                                         rf"\(a time limit\), got {value!r}$"):
+        GrblController("fakerig://nowhere/grbl", **{option: value})

@@ -161,3 +161,16 @@ def test_an_average_holding_nan_or_inf_is_not_stable_and_warns_of_nothing():
             reading = AveragingSensor(Values([150.0, bad, 150.0]), n=3, max_spread=0.05).read()
         assert not reading.stable
     assert AveragingSensor(Values([150.0, 150.01, 150.0]), n=3, max_spread=0.05).read().stable
+
+
+def test_a_sensor_time_limit_or_terminator_that_cannot_work_is_refused_before_connecting():
+    """Before: ``sensor.device.timeout=-1`` stopped the scan after moving (a RigTimeout "within 0 s"), and
+    ``sensor.device.terminator=''`` read empty lines until "gave no reading in 5 line(s)", exit 3."""
+    from dipnet.rig.sensors import BalanceSensor, LineSensor
+
+    with pytest.raises(ValueError, match=r"^sensor\.device\.timeout must be a positive number of seconds .*got -1$"):
+        LineSensor("fakerig://nowhere/level", timeout=-1)
+    with pytest.raises(ValueError, match=r"^sensor\.device\.timeout must be a positive number .*got 0$"):
+        BalanceSensor("fakerig://nowhere/ad", timeout=0)
+    with pytest.raises(ValueError, match=r"^sensor\.device\.terminator is empty"):
+        LineSensor("fakerig://nowhere/level", terminator="")
