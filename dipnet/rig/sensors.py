@@ -354,6 +354,13 @@ class AveragingSensor:
     def __init__(self, sensor: Sensor, n: int = 1, max_spread: float | None = None, interval_s: float = 0.0) -> None:
         if int(n) < 1:
             raise ValueError(f"n must be >= 1, got {n}")
+        if max_spread is not None and (isinstance(max_spread, bool) or not isinstance(max_spread, (int, float))
+                                       or not 0 <= max_spread < np.inf):
+            raise ValueError(f"sensor.average.max_spread must be a number >= 0 in the sensor's unit, or null (no "
+                             f"spread check), got {max_spread!r}: below 0 no reading is ever stable")
+        if isinstance(interval_s, bool) or not isinstance(interval_s, (int, float)) or not 0 <= interval_s < np.inf:
+            raise ValueError(f"sensor.average.interval_s must be a number of seconds >= 0 (the pause between the "
+                             f"averaged readings), got {interval_s!r}")
         self.sensor, self.n, self.max_spread, self.interval_s = sensor, int(n), max_spread, float(interval_s)
 
     @property

@@ -92,3 +92,13 @@ def test_a_time_limit_that_cannot_be_waited_is_refused_before_connecting(option,
     with pytest.raises(ValueError, match=rf"^rig\.controller\.{option} must be a positive number of seconds "
                                          rf"\(a time limit\), got {value!r}$"):
         GrblController("fakerig://nowhere/grbl", **{option: value})
+
+
+@pytest.mark.parametrize("feed", [0, -100.0, float("inf")])
+def test_a_feed_rate_that_cannot_move_is_refused_before_connecting(feed):
+    """Before: ``scan.py rig.controller.feed=0`` sent ``G1 ... F0`` to the board (the fake rig moved anyway)."""
+    from dipnet.rig.grbl import GrblController
+
+    with pytest.raises(ValueError, match=rf"^rig\.controller\.feed must be a positive feed rate .*got {feed!r}"):
+        GrblController("fakerig://nowhere/grbl", feed=feed)
+    assert GrblController("fakerig://nowhere/grbl", feed=500).feed == 500

@@ -174,3 +174,17 @@ def test_a_sensor_time_limit_or_terminator_that_cannot_work_is_refused_before_co
         BalanceSensor("fakerig://nowhere/ad", timeout=0)
     with pytest.raises(ValueError, match=r"^sensor\.device\.terminator is empty"):
         LineSensor("fakerig://nowhere/level", terminator="")
+
+
+def test_an_averaging_that_cannot_work_is_refused_before_anything_moves():
+    """Before: ``sensor.average.interval_s=-1`` stopped the scan at its first reading with "ValueError: sleep length
+    must be non-negative"; ``sensor.average.max_spread=-1`` with "SensorUnstable: sensor not stable after 3 readings"
+    (exit 3 both, after the object had moved)."""
+    from dipnet.rig.sensors import AveragingSensor, LineSensor
+
+    device = LineSensor("fakerig://nowhere/level")
+    with pytest.raises(ValueError, match=r"^sensor\.average\.interval_s must be a number of seconds >= 0 .*got -1$"):
+        AveragingSensor(device, n=3, interval_s=-1)
+    with pytest.raises(ValueError, match=r"^sensor\.average\.max_spread must be a number >= 0 .*got -1"):
+        AveragingSensor(device, n=3, max_spread=-1)
+    assert AveragingSensor(device, n=3, max_spread=None, interval_s=0).max_spread is None
