@@ -239,6 +239,8 @@ RESUME_SETTINGS: tuple[tuple[str, str], ...] = (
     ("sensor.offset", "sensor.device.offset"),
     ("sensor.data_type", "sensor.device.data_type"),
     ("sensor.word_order", "sensor.device.word_order"),
+    ("sensor.slave", "sensor.device.slave"),  # a Modbus sensor's device and register: another one reads another value
+    ("sensor.address", "sensor.device.address"),
     ("scan.rig.fake.shape", "rig.fake.shape"),
 )
 _UNRECORDED = object()

@@ -62,7 +62,7 @@ def _rig_header(**plan) -> ScanHeader:
     axes = {"lower": {"letter": "Z", "scale": 1.0, "sign": -1, "offset": 0.0}}
     config = {"plan": {k: v for k, v in settings.items() if k != "pivot_mm"}, "rig_geometry": geometry,
               "controller": {"dialect": "grbl", "url": "/dev/ttyUSB0", "axes": axes},
-              "sensor": {"kind": "LineSensor", "quantity": "level_mm", "pattern": "old"}}
+              "sensor": {"kind": "LineSensor", "quantity": "level_mm", "pattern": "old", "slave": 1, "address": 0}}
     return ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=6e4, step_mm=1.0, config=config)
 
 
@@ -86,13 +86,15 @@ def test_a_resume_with_other_dip_settings_is_refused_naming_them(tmp_path):
     ("start_mm", 5.0, "protocol.start_mm"),
     ("axes", {"lower": {"letter": "Z", "scale": 2.0, "sign": -1, "offset": 0.0}}, "rig.controller.axes.lower.scale"),
     ("kind", "ModbusLevelSensor", "sensor (config.sensor.kind)"),
+    ("address", 2, "sensor.device.address (config.sensor.address) 0 -> 2"),  # before: a Modbus scan resumed reading
+    ("slave", 3, "sensor.device.slave (config.sensor.slave) 1 -> 3"),        # another register or device, no word
 ])
 def test_each_dip_setting_is_compared(tmp_path, key, value, named):
     path = tmp_path / "scan.jsonl"
     with RawScanWriter(path, _rig_header(), fsync=False) as w:
         _dip(w, 0)
     changed = _rig_header()
-    node = {"start_mm": "plan", "axes": "controller", "kind": "sensor"}[key]
+    node = {"start_mm": "plan", "axes": "controller"}.get(key, "sensor")
     changed.config[node][key] = value
     with pytest.raises(RawScanFileError, match=re.escape(named)):
         RawScanWriter(path, changed, fsync=False)
