@@ -180,6 +180,7 @@ class GrblController(Controller):
         self._expect_banner = True
         link.write(SOFT_RESET)
         deadline = time.monotonic() + self.timeout
+        heard = len(self.messages)
         while True:
             try:
                 self._pump(max(deadline - time.monotonic(), 0.0))
@@ -187,6 +188,12 @@ class GrblController(Controller):
                 return
             except AlarmError:
                 continue
+            except RigTimeout:
+                other = [text for text in self.messages[heard:] if classify(text).kind == "other"]
+                hint = (f"; it sent {len(other)} line(s) that are not GRBL's, the last {other[-1]!r}: is "
+                        f"rig.controller.url the controller's port (not the sensor's)?") if other else ""
+                raise RigTimeout(f"no start-up banner from {self.url} within {self.timeout:g} s of a soft reset"
+                                 + hint) from None
 
     # ------------------------------------------------------------------ connect
     def _handshake(self) -> None:

@@ -83,6 +83,16 @@ def classify(line: str) -> MarlinLine:
     return MarlinLine("other", text)
 
 
+def no_ok(line: str, url: str, limit: float, received: list[str]) -> str:
+    """The message of a command ``line`` that got no ``ok`` within ``limit`` s, naming the last of the other
+    lines ``received`` meanwhile: a device that answers with lines of its own (pure)."""
+    message = f"no 'ok' to {line!r} from {url} within {limit:g} s"
+    if not received:
+        return message
+    return (f"{message}; it sent {len(received)} other line(s), the last {received[-1]!r}: is rig.controller.url "
+            f"the controller's port (not the sensor's)?")
+
+
 def parse_position(line: str) -> dict[str, float]:
     """Axis positions of an ``M114`` reply, ``{"X": 0.0, ..., "E": 0.0}`` (the part before
     ``Count``, i.e. the planner's logical position); ``{}`` if the line is not one (pure)."""
@@ -134,10 +144,15 @@ class MarlinController(Controller):
         limit = self.timeout if timeout is None else float(timeout)
         link.write_line(self._frame(line))
         received, error, resend, tries = [], None, None, 0
+        deadline = time.monotonic() + limit  # other lines do not extend it: a port that streams is not waited forever
         while True:
-            reply = classify(link.read_line(limit))
+            try:
+                reply = classify(link.read_line(max(deadline - time.monotonic(), 0.0)))
+            except RigTimeout:
+                raise RigTimeout(no_ok(line, self.url, limit, received)) from None
             if reply.kind == "busy":
-                continue  # keep-alive: the read above restarts its time limit
+                deadline = time.monotonic() + limit  # keep-alive: the firmware is working, the limit restarts
+                continue
             if reply.kind == "start":
                 self.lose_position("the controller was reset (Marlin forgets its position)")
                 self._next, self._sent = 1, {}

@@ -49,3 +49,24 @@ def test_marlin_resend_is_recovered(world, tmp_path):
     world.reset(faults=[{"kind": "resend", "at_move": 5}])
     raw = scan(world, "marlin", "level", plan_for(1, step=10.0), tmp_path / "scan.jsonl")
     assert len(raw.completed()) == 1 and world.fired and world.fired[0].kind == "resend"
+
+
+def test_a_port_that_streams_other_lines_is_not_waited_on_forever(world):
+    """``rig=fake_marlin rig.controller.url=`` the level sensor's port (the two USB ports swapped). Before: every
+    sensor line restarted the wait for ``ok``, so connecting never ended (killed after 60 s); now the time limit
+    holds and the message names the line and the likely slip. Keep-alives (``echo:busy``) still extend it."""
+    import time
+
+    import pytest
+
+    from dipnet.rig.controller import RigTimeout
+
+    world.reset()
+    ctl = marlin.MarlinController(world.url("level"), timeout=0.3)
+    start = time.monotonic()
+    with pytest.raises(RigTimeout, match=r"^no 'ok' to 'M110 N0' from fakerig://testrig/level within 0\.3 s; it "
+                                         r"sent \d+ other line\(s\), the last 'L=\d+\.\d{3} mm': is "
+                                         r"rig\.controller\.url the controller's port \(not the sensor's\)\?$"):
+        ctl.connect()
+    assert time.monotonic() - start < 3.0
+    ctl.close()
