@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import json
 import logging
+import numbers
 import time
 import warnings
 from collections.abc import Iterator
@@ -128,6 +129,12 @@ class ScanHeader:
                 raise ValueError(f"{name} must be a positive number or None, got {value!r}")
         if not self.density_g_per_mm3 > 0:
             raise ValueError(f"density_g_per_mm3 must be positive, got {self.density_g_per_mm3!r}")
+        for name, option in (("resolution", "rig.resolution"), ("noise_sigma", "")):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, numbers.Real) and 0 <= value < np.inf):
+                raise ValueError(f"{name} (the readings' {'quantum' if name == 'resolution' else 'noise'}, in their "
+                                 f"unit{'; scan.py: ' + option if option else ''}) must be a number >= 0 or null, "
+                                 f"got {value!r}")
 
     @property
     def units(self) -> dict[str, str]:

@@ -212,6 +212,9 @@ class ScanPlan:
                 and self.stop_mm > self.start_mm):
             raise ValueError(f"need step_mm > 0 and stop_mm > start_mm, got step {self.step_mm}, "
                              f"start {self.start_mm}, stop {self.stop_mm}")
+        if self.origin_height_mm is not None and not math.isfinite(self.origin_height_mm):
+            raise ValueError(f"rig.origin_height_mm must be a finite height (mm) or null, got {self.origin_height_mm!r}; "
+                             "nothing moved")
         if not math.isfinite(self.safe_mm) or self.safe_mm > self.start_mm:  # lowering positions grow downward
             raise ValueError(f"protocol.safe_mm={self.safe_mm:g} must be <= protocol.start_mm={self.start_mm:g}: "
                              f"lowering positions grow downward (mm), and the safe position, where the object "

@@ -246,3 +246,14 @@ def test_reading_times_that_run_backwards_within_a_dip_are_named(tmp_path):
     with pytest.warns(UserWarning, match=r":5: orientation 0: time 10.5 s after 11 s: .* within the dip \(3 "
                                          r"backward steps in 2 dip\(s\): 0, 1\)"):
         read_rawscan(path)
+
+
+def test_a_negative_reading_quantum_or_noise_is_refused_naming_it():
+    """Before: ``scan.py rig.resolution=-1`` recorded ``"resolution": -1`` and reconstruct.py read it back as the
+    sensor's quantum (``quantum_volume_mm3: -20000`` in metrics.json)."""
+    with pytest.raises(ValueError, match=r"^resolution \(the readings' quantum, in their unit; scan.py: "
+                                         r"rig.resolution\) must be a number >= 0 or null, got -1$"):
+        ScanHeader(quantity="level_mm", step_mm=2.0, resolution=-1)
+    with pytest.raises(ValueError, match=r"^noise_sigma \(the readings' noise, in their unit\) must be .*got nan$"):
+        ScanHeader(quantity="level_mm", step_mm=2.0, noise_sigma=float("nan"))
+    assert ScanHeader(quantity="level_mm", step_mm=2.0, resolution=0.0, noise_sigma=None).resolution == 0.0

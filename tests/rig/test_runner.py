@@ -237,3 +237,11 @@ def test_a_lost_position_stops_a_scan_into_another_file_on_the_same_rig_too(mesh
         assert world.motion_count == moved
         assert len(run("b.jsonl", confirm_position=True).completed()) == 2  # the operator's word clears it
         assert len(run("c.jsonl").completed()) == 2
+
+
+def test_an_origin_height_that_is_not_a_number_is_refused_naming_the_option():
+    """Before: ``scan.py rig.origin_height_mm=nan`` ended in "error: Out of range float values are not JSON
+    compliant", naming no option."""
+    with pytest.raises(ValueError, match=r"^rig\.origin_height_mm must be a finite height \(mm\) or null, got nan; "
+                                         r"nothing moved$"):
+        ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0, origin_height_mm=float("nan"))
