@@ -198,7 +198,8 @@ class LineSensor(Sensor):
             ``value`` (and optionally ``unit``, ``flag``): see :func:`parse_line`.
         terminator: line terminator (``"\\n"``, ``"\\r"``, ``"\\r\\n"``; escapes accepted).
         query: string sent before each reading (polled sensors); ``None`` for a stream, whose
-            stale input is discarded first so the reading is fresh.
+            stale input is discarded first so the reading is fresh (with the line then in flight, which may
+            have lost its start: up to one line period more per reading).
         unit: the unit of the readings (``"mm"``); a line in another unit is not a reading.
         unit_optional: read a line without a unit (the pattern's ``unit`` group empty) in ``unit``.
         max_lines: lines to try before giving up (each line that is not a reading counts).
@@ -231,6 +232,9 @@ class LineSensor(Sensor):
         link = self._link()
         if self.query is None:
             link.discard_input()
+            # the line in flight when the input was dropped has lost its start ('234 mm' of 'L=151.234 mm'), which
+            # can still read as a number: drop up to the next terminator, so every line read is whole
+            link.read_line(self.timeout)
         else:
             link.write(self.query.encode("ascii"))
         failure, tried = None, 0

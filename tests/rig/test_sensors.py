@@ -188,3 +188,37 @@ def test_an_averaging_that_cannot_work_is_refused_before_anything_moves():
     with pytest.raises(ValueError, match=r"^sensor\.average\.max_spread must be a number >= 0 .*got -1"):
         AveragingSensor(device, n=3, max_spread=-1)
     assert AveragingSensor(device, n=3, max_spread=None, interval_s=0).max_spread is None
+
+
+class _MidLineStream:
+    """A pyserial-like port of a level sensor streaming ``L=151.234 mm`` lines: dropping its input
+    (``reset_input_buffer``) lands in the middle of the line then on the wire, as a real serial stream does."""
+
+    port = "stream://"
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+
+    def reset_input_buffer(self) -> None:
+        self.data = bytearray(b"234 mm\r\nL=151.240 mm\r\nL=151.246 mm\r\n")  # 'L=151.' was dropped
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.data)
+
+    def read(self, size: int = 1) -> bytes:
+        chunk, self.data = bytes(self.data[:size]), self.data[size:]
+        return chunk
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_streaming_sensor_never_reads_the_tail_of_a_line_cut_by_dropping_stale_input():
+    """Before: the first line after the stale input was dropped, ``234 mm`` (the tail of ``L=151.234 mm``), read as a
+    stable level of 234 mm (a partial line lands there whenever the drop falls inside a line on the wire)."""
+    from dipnet.rig.controller import LineChannel
+
+    sensor = sensors.LineSensor("stream://", terminator="\\r\\n", timeout=0.2)
+    sensor.link = LineChannel(_MidLineStream(), b"\r\n")
+    assert sensor.read() == sensors.Reading(151.24, "mm", True)
