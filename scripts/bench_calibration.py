@@ -49,6 +49,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.calibration.reference import calibrate_reference
 from dipnet.calibration.self_calibration import self_calibrate
 from dipnet.preprocessing.datasets import mesh_path
@@ -85,8 +86,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="the second ball's centre off the spin axis (along x, mm)")
     p.add_argument("--json", metavar="PATH", help="also write every rig's truth, estimates and intervals here")
     args = p.parse_args(argv)
-    if args.quick:
-        args.rigs, args.n, args.iterations = 3, 32, 80
+    if args.quick:  # the options given beside --quick keep their values
+        apply_quick(args, given_options(p, argv), rigs=3, n=32, iterations=80)
     return args
 
 

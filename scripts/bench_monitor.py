@@ -34,6 +34,8 @@ import threading
 import time
 from pathlib import Path
 
+from dipnet.experiments.quick_mode import apply_quick, given_options
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -126,8 +128,9 @@ def main() -> None:
     p.add_argument("--resolution", type=int, default=48)
     args = p.parse_args()
     fractions = (0.25, 0.5, 0.75, 1.0)
-    if args.quick:
-        args.dips, args.step, args.repeats, fractions = 6, 4.0, 2, (0.5, 1.0)
+    if args.quick:  # the options given beside --quick keep their values
+        apply_quick(args, given_options(p), dips=6, step=4.0, repeats=2)
+        fractions = (0.5, 1.0)
     runs = {False: [], True: []}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):

@@ -28,6 +28,7 @@ import time
 import numpy as np
 import torch
 
+from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.core.grid import Grid
 from dipnet.operators import BACKENDS, make_operator
 from dipnet.operators.analytic import ball_occupancy, ball_profiles
@@ -232,8 +233,8 @@ def main() -> None:
     if args.lsqr:
         print(json.dumps(bench_lsqr(128, 1600, args.lsqr_iterations)))
         return
-    if args.quick:
-        args.sizes, args.orientations, args.radon_size = [64], [100, 1000], 128
+    if args.quick:  # the options given beside --quick keep their values
+        apply_quick(args, given_options(parser), sizes=[64], orientations=[100, 1000], radon_size=128)
     print("|    N |     K | backend    | forward + adjoint (s) | speed-up | peak RSS (GB) | ball rel. L2 |")
     print("|------|-------|------------|-----------------------|----------|---------------|--------------|")
     rows = bench_table(args.sizes, args.orientations, args.backends, args.limit, args.memory_limit)

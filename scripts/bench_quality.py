@@ -61,6 +61,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.core.code_version import simulation_digest
 from dipnet.core.grid import Grid
@@ -146,13 +147,12 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="bunny and torus at 32^3, 41 and 123 dips, noise-free, minnorm and voxel (a few minutes); "
                         "with --headline: bunny and 2 generated shapes at 64^3, 41 / 410 dips, minnorm, voxel, prior")
     args = p.parse_args(argv)
-    if args.quick and args.headline:
-        args.meshes, args.n, args.budgets, args.noise = args.meshes or ["bunny"], 64, [41, 410], ["clean"]
-        args.solvers, args.generated = ["minnorm", "voxel", "prior"], args.generated or 2
-        args.workers = 2 if args.workers is None else args.workers
+    if args.quick and args.headline:  # the options given beside --quick keep their values
+        apply_quick(args, given_options(p, argv), meshes=["bunny"], n=64, budgets=[41, 410], noise=["clean"],
+                    solvers=["minnorm", "voxel", "prior"], generated=2, workers=2)
     elif args.quick:
-        args.meshes, args.n, args.budgets = args.meshes or ["bunny", "torus"], 32, [41, 123]
-        args.noise, args.solvers = ["clean"], ["minnorm", "voxel"]
+        apply_quick(args, given_options(p, argv), meshes=["bunny", "torus"], n=32, budgets=[41, 123],
+                    noise=["clean"], solvers=["minnorm", "voxel"])
     args.workers = 1 if args.workers is None else args.workers
     if args.workers < 1:
         raise ValueError(f"--workers must be 1 or more, got {args.workers}")

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.solvers.checkpoint import Checkpoint
 from dipnet.preprocessing.datasets import check_mesh_names, mesh_path
 from dipnet.core.code_version import simulation_digest
@@ -74,8 +75,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
     p.add_argument("--checkpoint-dir", type=Path, help="checkpoint the voxel solves here (and resume from it)")
     args = p.parse_args(argv)
-    if args.quick:
-        args.n, args.meshes, args.fractions, args.noise, args.voxel_iters = [128], ["bunny"], [0.03], ["clean"], 150
+    if args.quick:  # the options given beside --quick keep their values
+        apply_quick(args, given_options(p, argv), n=[128], meshes=["bunny"], fractions=[0.03], noise=["clean"],
+                    voxel_iters=150)
     try:
         check_mesh_names(args.meshes)
     except FileNotFoundError as exc:  # now, not after the meshes before it

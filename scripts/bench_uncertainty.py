@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.evaluation.ensemble import (brier_score, ensemble_maps, occupancy_probability, reliability,
@@ -66,8 +67,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
     p.add_argument("--quick", action="store_true", help="bunny and torus at 24^3, noise-free (about a minute idle)")
     args = p.parse_args(argv)
-    if args.quick:
-        args.meshes, args.n, args.noise = ["bunny", "torus"], 24, ["clean"]
+    if args.quick:  # the options given beside --quick keep their values
+        apply_quick(args, given_options(p, argv), meshes=["bunny", "torus"], n=24, noise=["clean"])
     try:
         check_mesh_names(args.meshes)
     except FileNotFoundError as exc:  # now, not after the meshes before it
