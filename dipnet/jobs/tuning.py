@@ -186,12 +186,15 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
     Returns:
         The ``optuna.Study`` (its best trial: :func:`best_trial`).
     Raises:
-        ValueError: ``n_trials`` < 1, an option out of range (:func:`check_study`), or an ``out`` holding
+        ValueError: ``n_trials`` < 1, ``n_startup_trials`` < 0, an option out of range (:func:`check_study`), or an ``out`` holding
             another study (:func:`check_out`), before any trial.
         NoBestTrialError: every trial failed or reconstructed nothing.
     """
     optuna = optional_import("optuna", extra="sweeps", purpose="tuning (scripts/tune.py)")
     check_study(n_trials, params, overrides)
+    if isinstance(n_startup_trials, bool) or not isinstance(n_startup_trials, int) or n_startup_trials < 0:
+        raise ValueError(f"n_startup_trials must be a whole number of random trials >= 0 (tune.py --startup-trials), "
+                         f"got {n_startup_trials!r}")
     out = Path(out)
     check_out(out, stored_trials(storage, study_name))
     sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=n_startup_trials)

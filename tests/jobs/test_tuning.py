@@ -102,6 +102,16 @@ def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, 
         tuning.tune(tmp_path / "study", n_trials=int(argv[1]), overrides=argv[2:])
 
 
+def test_a_negative_number_of_random_trials_is_refused_before_any_trial(tmp_path, capsys, tune_script):
+    """``--startup-trials -1`` was accepted and the study ran (Optuna took it for none)."""
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "2", "--startup-trials", "-1", "--out", str(tmp_path / "study")])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == ("error: n_startup_trials must be a whole number of random trials >= 0 "
+                                       "(tune.py --startup-trials), got -1\n")
+    assert not (tmp_path / "study").exists()
+
+
 def test_without_the_sweeps_extra_one_line_names_it(tmp_path, capsys, monkeypatch, tune_script):
     """Without optuna, tune.py printed a 27-line traceback and exited 1."""
     monkeypatch.setitem(sys.modules, "optuna", None)  # as if the `sweeps` extra were not installed
