@@ -133,11 +133,15 @@ class DipOperator(nn.Module, ABC):
     def _as_real_tensor(self, values: torch.Tensor | np.ndarray, name: str) -> torch.Tensor:
         """``values`` as a real floating tensor: floating tensors unchanged (autograd kept), numpy
         arrays via ``torch.as_tensor`` on the operator's device, bool / integer values converted
-        to the operator's float dtype."""
+        to the operator's float dtype. ``float16`` raises a ``TypeError``: its largest value, 65504, is below the
+        slab volumes of objects a few centimetres across (mm^3), so profiles came back ``inf``."""
         if not isinstance(values, torch.Tensor):  # a view with negative strides (np.flip) is copied: torch takes none
             values = torch.as_tensor(np.ascontiguousarray(values), device=self.directions.device)
         if values.is_complex():
             raise TypeError(f"{name} must be real (occupancies or slab volumes), got dtype {values.dtype}")
+        if values.dtype == torch.float16:
+            raise TypeError(f"{name} in float16 cannot hold slab volumes (mm^3; its largest value is 65504): give it "
+                            "as float32 or float64 (.float())")
         if not values.is_floating_point():
             values = values.to(self.directions.dtype)
         return values

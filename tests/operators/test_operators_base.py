@@ -169,6 +169,22 @@ def test_numpy_views_with_negative_strides_are_accepted():
     torch.testing.assert_close(op.adjoint(profiles[:, ::-1]), op.adjoint(torch.from_numpy(profiles).flip(1)))
 
 
+def test_float16_volumes_and_profiles_are_refused_naming_the_dtype():
+    """Before: a float16 volume of a 100 mm cube gave profiles of inf without a word (its slabs of 1.25e5 mm^3
+    exceed float16's 65504); bfloat16 is kept (its range holds them)."""
+    grid = Grid(16, ndim=3, extent=200.0)
+    op = make_operator(grid, torch.eye(3, dtype=torch.float64))
+    cube = torch.zeros(grid.shape)
+    cube[4:-4, 4:-4, 4:-4] = 1.0  # inside the working ball
+    with pytest.raises(TypeError, match=r"volume in float16 cannot hold slab volumes .*65504.*float32"):
+        op(cube.half())
+    with pytest.raises(TypeError, match=r"profiles in float16"):
+        op.adjoint(op(cube).half())
+    profiles = op(cube.bfloat16())
+    assert profiles.dtype == torch.bfloat16 and torch.isfinite(profiles).all()
+    assert float(profiles.float().sum(1).min()) == pytest.approx(float(cube.sum()) * grid.voxel_volume, rel=0.01)
+
+
 @pytest.mark.parametrize("backend", BACKEND_NAMES)
 def test_float_inputs_keep_their_dtype_and_their_gradient(backend):
     """A float32 volume that requires grad is used as it is: float32 profiles, and the gradient of
