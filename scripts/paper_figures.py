@@ -40,7 +40,7 @@ from hydra import compose, initialize_config_module  # noqa: E402
 
 from dipnet.experiments import collect, figures, tables  # noqa: E402
 from dipnet.jobs import sweep_jobs  # noqa: E402
-from dipnet.preprocessing.datasets import mesh_path  # noqa: E402
+from dipnet.preprocessing.datasets import check_mesh_names  # noqa: E402
 from dipnet.jobs.cli import user_errors  # noqa: E402
 from dipnet.jobs.options import check_config  # noqa: E402
 from dipnet.jobs.pipeline import run  # noqa: E402
@@ -84,8 +84,7 @@ def check_settings(args) -> None:
     any job: a name of ``--meshes`` that is not a bundled mesh, an override of an option each job sets itself
     (:data:`PER_JOB_OPTIONS`), an unknown config choice (``solver=foo``) or an option out of range
     (:func:`~dipnet.jobs.options.check_config` of every job's config)."""
-    for mesh in args.meshes:
-        mesh_path(mesh)
+    check_mesh_names(args.meshes)
     for item in args.overrides:
         key = item.lstrip("+~").partition("=")[0]
         if key in PER_JOB_OPTIONS:

@@ -57,7 +57,5 @@ def mesh_path(name: str) -> Path:
     Raises:
         FileNotFoundError: listing the bundled names when ``name`` is not one of them.
     """
-    path = MESHES_DIR / f"{name}.ply"
-    if not path.is_file():
-        raise FileNotFoundError(f"no bundled mesh {name!r}; bundled: {', '.join(mesh_names())}")
-    return path
+    check_mesh_names([name])
+    return MESHES_DIR / f"{name}.ply"
