@@ -43,6 +43,11 @@ class SensorError(RigError):
     """The sensor reported an error (overload, syntax error, Modbus exception, bad frame)."""
 
 
+class GarbledReply(SensorError):
+    """A reply that is not a line of the sensor's protocol at all (a byte lost or flipped on the wire, a reply
+    cut short): worth asking again, unlike an error the sensor reports (overload, a wrong mode or unit)."""
+
+
 class Reading(NamedTuple):
     """One sensor reading: ``value`` in ``unit`` (``"mm"`` or ``"g"``), and its stability flag."""
 
@@ -95,7 +100,7 @@ def _grams(value: str, unit: str | None, line: str) -> float:
     """``value`` in ``unit`` as g; :class:`SensorError` quoting ``line`` for a missing or unknown unit."""
     unit = (unit or "").strip()
     if not unit:
-        raise SensorError(f"balance line {line.strip()!r} has no unit")
+        raise GarbledReply(f"balance line {line.strip()!r} has no unit")
     if unit not in GRAMS:
         raise SensorError(f"balance reports unknown unit {unit!r} in {line!r}")
     return float(value) * GRAMS[unit]
@@ -106,7 +111,7 @@ def parse_ad(line: str) -> Reading:
     ``OL`` overload); value in g (pure)."""
     m = re.fullmatch(rf"\s*(?P<head>ST|US|QT|OL)\s*,\s*(?P<value>{NUMBER})\s*(?P<unit>[a-zA-Z]*)\s*", line)
     if m is None:
-        raise SensorError(f"not an A&D balance line: {line!r}")
+        raise GarbledReply(f"not an A&D balance line: {line!r}")
     if m["head"] == "OL":
         raise SensorError(f"balance overload: {line.strip()!r}")
     if m["head"] == "QT":
@@ -116,14 +121,17 @@ def parse_ad(line: str) -> Reading:
 
 def parse_sics(line: str) -> Reading:
     """An MT-SICS ``S``/``SI`` reply ``S S     100.00 g`` (``S`` stable, ``D`` dynamic); errors
-    ``S I`` (busy), ``S +``/``S -`` (over/underload), ``ES``/``ET``/``EL`` raise (pure)."""
+    ``S I`` (busy), ``S +``/``S -`` (over/underload), ``ES``/``ET``/``EL`` raise (pure; ``ET``, a transmission
+    error, and a reply of no MT-SICS form as :class:`GarbledReply`)."""
     text = line.strip()
-    if text in ("ES", "ET", "EL"):
+    if text == "ET":
+        raise GarbledReply("balance rejected the command (ET: transmission error)")
+    if text in ("ES", "EL"):
         raise SensorError(f"balance rejected the command ({text}: "
                           f"{ {'ES': 'syntax error', 'ET': 'transmission error', 'EL': 'logical error'}[text]})")
     m = re.fullmatch(rf"S\s+(?P<status>[SDI+\-])(?:\s+(?P<value>{NUMBER})\s*(?P<unit>[a-zA-Z]+))?", text)
     if m is None:
-        raise SensorError(f"not an MT-SICS weight reply: {line!r}")
+        raise GarbledReply(f"not an MT-SICS weight reply: {line!r}")
     status = m["status"]
     if status in "+-":
         raise SensorError(f"balance {'overload' if status == '+' else 'underload'}: {text!r}")
@@ -262,18 +270,25 @@ class BalanceSensor(Sensor):
         command: the query (default ``Q`` for A&D, ``SI`` for MT-SICS: immediate, with the
             stability flag).
         busy_retries: MT-SICS ``S I`` (busy) replies tolerated per reading.
+        garbled_retries: garbled replies (:class:`GarbledReply`: no line of the balance's protocol, or an
+            ``ET`` transmission error) asked again per reading; an error the balance reports (overload, a
+            wrong mode or unit) is never asked again.
     """
 
     quantity = "mass_g"
 
     def __init__(self, url: str, style: str = "ad", command: str | None = None, busy_retries: int = 5,
-                 **options) -> None:
+                 garbled_retries: int = 2, **options) -> None:
         super().__init__(url, **options)
         if style not in ("ad", "sics"):
             raise ValueError(f"balance style must be 'ad' or 'sics', got {style!r}")
         self.style = style
         self.command = command or ("Q" if style == "ad" else "SI")
-        self.busy_retries = int(busy_retries)
+        for name, value in (("busy_retries", busy_retries), ("garbled_retries", garbled_retries)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"sensor.device.{name} must be a whole number >= 0 (the queries asked again per "
+                                 f"reading), got {value!r}")
+        self.busy_retries, self.garbled_retries = busy_retries, garbled_retries
 
     def identity(self) -> dict:
         return {**super().identity(), "style": self.style, "command": self.command}
@@ -281,13 +296,23 @@ class BalanceSensor(Sensor):
     def read(self) -> Reading:
         link = self._link()
         parse = parse_ad if self.style == "ad" else parse_sics
-        for _ in range(self.busy_retries + 1):
+        busy = garbled = 0
+        while True:
             link.discard_input()
             link.write((self.command + "\r\n").encode("ascii"))
-            reading = parse(link.read_line(self.timeout))
+            try:
+                reading = parse(link.read_line(self.timeout))
+            except GarbledReply as exc:
+                garbled += 1
+                if garbled > self.garbled_retries:
+                    raise GarbledReply(f"balance {self.url} gave {garbled} garbled replies to one query (the last: "
+                                       f"{exc}): check the cable, the baud rate and style={self.style!r}") from exc
+                continue
             if np.isfinite(reading.value):
                 return reading
-        raise SensorError(f"balance {self.url} stayed busy for {self.busy_retries + 1} queries")
+            busy += 1
+            if busy > self.busy_retries:
+                raise SensorError(f"balance {self.url} stayed busy for {busy} queries")
 
 
 class ModbusLevelSensor(Sensor):

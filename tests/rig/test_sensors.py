@@ -222,3 +222,63 @@ def test_a_streaming_sensor_never_reads_the_tail_of_a_line_cut_by_dropping_stale
     sensor = sensors.LineSensor("stream://", terminator="\\r\\n", timeout=0.2)
     sensor.link = LineChannel(_MidLineStream(), b"\r\n")
     assert sensor.read() == sensors.Reading(151.24, "mm", True)
+
+
+class _Replies:
+    """A link whose every query is answered by the next of ``replies`` (a balance's lines, as read)."""
+
+    def __init__(self, replies: list[str]) -> None:
+        self.replies, self.queries = list(replies), 0
+
+    def discard_input(self) -> None:
+        pass
+
+    def write(self, data: bytes) -> None:
+        self.queries += 1
+
+    def read_line(self, timeout: float) -> str:
+        return self.replies.pop(0)
+
+
+def _balance(style: str, replies: list[str], **options) -> tuple[sensors.BalanceSensor, _Replies]:
+    balance, link = sensors.BalanceSensor("fakerig://nowhere/" + style, style=style, **options), _Replies(replies)
+    balance._link = lambda: link
+    return balance, link
+
+
+@pytest.mark.parametrize("style,garbled,good", [
+    ("ad", ["ST,+001\x0023.45  g", "ST,+00123.45"], "ST,+00123.45  g"),  # a byte flipped, a reply cut short
+    ("sics", ["S S   1\xff0.00 g", "ET"], "S S     123.45 g"),  # a byte flipped, a transmission error
+])
+def test_a_garbled_balance_reply_is_asked_again_and_not_recorded(style, garbled, good):
+    """Before: one garbled reply (a byte lost or flipped on the wire) stopped the scan ("SensorError: not an A&D
+    balance line"), though the next query would have been answered."""
+    balance, link = _balance(style, [*garbled, good])
+    assert balance.read() == (pytest.approx(123.45), "g", True) and link.queries == 3
+    balance, link = _balance(style, [*garbled, garbled[0], good])
+    with pytest.raises(sensors.GarbledReply, match=r"gave 3 garbled replies to one query .*check the cable"):
+        balance.read()
+    assert link.queries == 3
+
+
+@pytest.mark.parametrize("style,reply,error", [
+    ("ad", "OL,+9999999E+19", "overload"), ("ad", "QT,+00012345 PC", "counting"),
+    ("ad", "ST,+00123.45 lb", "unknown unit 'lb'"), ("sics", "S +", "overload"), ("sics", "ES", "syntax"),
+])
+def test_an_error_the_balance_reports_is_not_asked_again(style, reply, error):
+    balance, link = _balance(style, [reply, "never read"])
+    with pytest.raises(SensorError, match=error) as caught:
+        balance.read()
+    assert not isinstance(caught.value, sensors.GarbledReply) and link.queries == 1
+
+
+def test_a_busy_balance_is_asked_again_up_to_its_busy_retries():
+    balance, link = _balance("sics", ["S I", "S I", "S S     100.00 g"], busy_retries=2)
+    assert balance.read() == (100.0, "g", True) and link.queries == 3
+    balance, link = _balance("sics", ["S I"] * 3, busy_retries=1)
+    with pytest.raises(SensorError, match="stayed busy for 2 queries"):
+        balance.read()
+    for name in ("busy_retries", "garbled_retries"):
+        for bad in (-1, 1.5, True):
+            with pytest.raises(ValueError, match=rf"^sensor\.device\.{name} must be a whole number >= 0"):
+                sensors.BalanceSensor("fakerig://nowhere/ad", **{name: bad})
