@@ -488,6 +488,13 @@ class Controller(SerialDevice):
         self.command(f"{motion} {words}{feed}")
         self._target.update({k: v for k, v in target.items() if v is not None})
 
+    def absolute_mm(self) -> None:
+        """``G90`` then ``G21``: absolute moves in mm, whatever modes the board kept (a GRBL startup block ``$N0``,
+        run after every reset, or an earlier sender: ``G91``, or ``G20``, which makes every move 25.4 x too far).
+        A Marlin built without inch support answers ``G21`` with an ``Unknown command`` echo and ``ok``."""
+        self.command("G90")
+        self.command("G21")
+
     def check_arrived(self) -> None:
         """After :meth:`wait_idle`: check that the machine stands where the moves since connecting (or homing)
         commanded each axis (the rig values of :meth:`move_to`, the short way round included). Dialects whose
@@ -500,7 +507,7 @@ class Controller(SerialDevice):
     @abstractmethod
     def _handshake(self) -> None:
         """After opening: wait for / provoke the banner, clear buffers, read the settings,
-        select absolute moves (G90) unless the controller is in an alarm state."""
+        select absolute moves in mm (:meth:`absolute_mm`) unless the controller is in an alarm state."""
 
     @abstractmethod
     def settle(self) -> Position:

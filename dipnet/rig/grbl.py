@@ -216,7 +216,7 @@ class GrblController(Controller):
         self.settings = read_settings(self.command("$$"))
         self.build_info = self.command("$I")
         if state != "Alarm":
-            self.command("G90")
+            self.absolute_mm()
 
     def _connect_status(self) -> GrblStatus | None:
         """The first status report after the port opened, or ``None`` if GRBL is silent (after
@@ -265,7 +265,7 @@ class GrblController(Controller):
                                       "switches) or scan with home=false", 5) from None
             raise
         self.alarm, self.position_lost, self._target = None, None, {}
-        self.command("G90")
+        self.absolute_mm()
         self.wait_idle()
 
     def unlock(self) -> None:
@@ -274,7 +274,7 @@ class GrblController(Controller):
             raise PositionUnknown(f"refusing to unlock ($X) without homing: {self.position_lost}")
         self.command("$X")
         self.alarm = None
-        self.command("G90")
+        self.absolute_mm()
 
     def _check_state(self, st: GrblStatus) -> None:
         if st.state in ("Hold", "Door"):

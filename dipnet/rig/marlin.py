@@ -195,7 +195,7 @@ class MarlinController(Controller):
                 pass
         link.discard_input()
         self._reset_numbers()
-        self.command("G90")
+        self.absolute_mm()
 
     def _reset_numbers(self) -> None:
         if self.line_numbers:
@@ -214,7 +214,7 @@ class MarlinController(Controller):
                 self._reset_numbers()
                 self.command("M400", timeout=self.move_timeout)
                 position = self.position()
-                self.command("G90")
+                self.absolute_mm()
                 return position
             except (AlarmError, ResetError):
                 continue
@@ -226,7 +226,7 @@ class MarlinController(Controller):
             self.command("M999")  # restart after "Printer stopped due to errors" (harmless otherwise)
         self.command(self.home_command, timeout=self.home_timeout)
         self.position_lost, self._target = None, {}
-        self.command("G90")
+        self.absolute_mm()
 
     def wait_idle(self, timeout: float | None = None) -> None:
         self.command("M400", timeout=self.move_timeout if timeout is None else timeout)

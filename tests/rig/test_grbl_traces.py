@@ -21,13 +21,16 @@ from grbl_replay import ReplayPort, asked_first, read_trace, recorded_replies
 AXES_3 = {"tilt": {"letter": "X"}, "spin": {"letter": "Y"}}  # how the traces were recorded
 SETTINGS = recorded_replies(read_trace("t1.log")[3])  # the board's replies to $$ and $I
 AFTER_RESET = read_trace("t3b2.log")[0]  # what GRBL answered after the reset that ALARM:2 asks for
+#: The driver's G21 after each G90, which the recordings predate: answered as the firmware answers every accepted
+#: line, with ``ok`` (its modal state already held G21: the ``$G`` reply in t1.log).
+UNITS_MM = {b"G21\n": [b"ok\r\n"]}
 
 
 def replay(script, answers=None, axes=None, **options) -> tuple[GrblController, ReplayPort]:
     """The driver connected to a replay of ``script``; a recorded session that opens with the old
     driver's soft reset gets the ``?`` the driver now asks first (:func:`asked_first`)."""
     script = asked_first(script) if script[:1] == [(">>", b"\x18")] else script
-    port = ReplayPort(script, answers, extras={b"$$\n": SETTINGS[b"$$\n"], b"$I\n": SETTINGS[b"$I\n"]})
+    port = ReplayPort(script, answers, extras={b"$$\n": SETTINGS[b"$$\n"], b"$I\n": SETTINGS[b"$I\n"], **UNITS_MM})
     ctl = GrblController("replay://", axes or AXES_3, status_axes="XYZ", **{"timeout": 0.2, "move_timeout": 0.5,
                                                                              **options})
     ctl.attach(LineChannel(port))
@@ -197,7 +200,7 @@ def replay_runner(session, axes: dict, orientations, tmp_path, **options) -> tup
     """A scan of ``orientations`` (stages 0, 10, 20, 30 mm) replayed on one recorded session. The
     runner's extra ``?`` (where the first move starts, for the short way round) is answered as
     the firmware answered the query after the reset."""
-    port = ReplayPort(asked_first(session), extras={b"?": recorded_replies(session)[b"?"][:1]})
+    port = ReplayPort(asked_first(session), extras={b"?": recorded_replies(session)[b"?"][:1], **UNITS_MM})
     plan = ScanPlan(orientations, start_mm=0.0, stop_mm=30.0, step_mm=10.0)
     header = ScanHeader(tank_cross_section_mm2=2e4, step_mm=10.0)
     runner = ScanRunner(ReplayGrbl([port], axes), StubSensor(), plan, tmp_path / "scan.jsonl", header,

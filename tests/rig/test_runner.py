@@ -183,6 +183,22 @@ def test_a_reading_is_never_recorded_where_the_controller_reports_the_machine_is
     assert read_rawscan(tmp_path / "offset.jsonl").orientations == []
 
 
+def test_a_grbl_board_left_in_inches_by_its_startup_block_moves_in_mm(meshes_dir, tmp_path):
+    """GRBL runs its startup block (``$N0``) after every reset; one holding ``G20`` (set by a sender for another job)
+    makes every move inches. Before: the driver sent only ``G90``, and the first lowering (10 mm, ``G0 Z-10``) went
+    to Z -254 mm, 244 mm deeper than commanded (on a real rig, into the tank's floor); the arrival check then stopped
+    the scan (exit 3) with advice on work offsets. Now ``G21`` follows ``G90`` at connect (and after homing or
+    unlocking), so the moves are in mm whatever the board kept."""
+    from rig_helpers import make_world
+
+    inches = make_world(meshes_dir, "inches", grbl_startup="G20")
+    raw = scan(inches, "grbl", "level", plan_for(2, step=10.0), tmp_path / "inches.jsonl")
+    assert [o.complete for o in raw.orientations] == [True, True]
+    clean = make_world(meshes_dir, "mm")
+    reference = scan(clean, "grbl", "level", plan_for(2, step=10.0), tmp_path / "mm.jsonl")
+    for a, b in zip(raw.orientations, reference.orientations):
+        np.testing.assert_allclose(a.values, b.values)
+
 def test_a_dip_whose_readings_never_change_is_not_completed_and_the_resume_redoes_it(meshes_dir, tmp_path):
     """A stuck level sensor (every line ``L=150.000 mm``). Before: all dips recorded complete, exit 0 ("scan
     complete: 8 orientations, 184 readings"), then ``reconstruct.py`` refused the whole file: "profile 0 sums to

@@ -22,6 +22,11 @@ class GrblDevice(Device):
         self.status_fault: str | None = None
         self.world.critical = False
         self.banner()
+        self.run_startup()
+
+    def run_startup(self) -> None:
+        """After a reset GRBL is back in mm (``G21``), then runs its startup block (``$N0``), which may hold ``G20``."""
+        self.inches = bool(re.search(r"\bG20\b", self.world.grbl_startup))
 
     def banner(self) -> None:
         self.emit("")
@@ -107,6 +112,7 @@ class GrblDevice(Device):
         self.hold, self.held_target, self.held_dwell = None, None, False
         w.critical = False
         self.banner()
+        self.run_startup()
 
     def alarm(self, code: int) -> None:
         w = self.world
@@ -171,6 +177,9 @@ class GrblDevice(Device):
         elif re.search(r"\bG0*[01]\b", upper):
             self.motion(upper)
         elif re.match(r"^(G9[01]|G2[01]|G5[4-9]|M[0-9]+)\b", upper):
+            units = re.findall(r"\bG2([01])\b", upper)
+            if units:
+                self.inches = units[-1] == "0"
             self.emit("ok")
         else:
             self.emit("error:20")
@@ -188,6 +197,8 @@ class GrblDevice(Device):
             self.on_open()
             return
         words = parse_words(re.sub(r"\bG\d+\b|\bF[-+\d.]+", "", upper))
+        if self.inches:  # G20 scales the linear axes' words (X, Y, Z: also a turn sent as X or Y), not A, B, C
+            words = {k: v * 25.4 if k in "XYZ" else v for k, v in words.items()}
         if self.outside_soft_limits(words):
             self.alarm(2)
             return

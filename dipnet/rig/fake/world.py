@@ -100,6 +100,8 @@ class FakeRig:
         sensor_format: :class:`SensorFormat`.
         seed: noise seed.
         grbl_settings: ``$$`` values overriding :data:`GRBL_SETTINGS` (e.g. ``{22: 0}``: no homing).
+        grbl_startup: a startup block (``$N0``) the GRBL board runs after every reset; only its units word is
+            modelled: ``"G20"`` makes the moves that follow it inches until a ``G21``.
     """
 
     def __init__(self, shape, *, radius: float | None = None, tank: Tank | None = None,
@@ -109,7 +111,8 @@ class FakeRig:
                  balance_sigma_g: float = 0.0, balance_quantum_g: float = 0.001, density_g_per_mm3: float = 1e-3,
                  unstable_sigma: float = 0.5, latency_s: float = 0.0, move_s: float = 0.0, keepalive_s: float = 2.0,
                  faults: list[Fault | dict] | None = None, sensor_format: SensorFormat | dict | None = None,
-                 seed: int = 0, name: str = "fakerig", grbl_settings: dict | None = None) -> None:
+                 seed: int = 0, name: str = "fakerig", grbl_settings: dict | None = None,
+                 grbl_startup: str = "") -> None:
         if isinstance(shape, str):
             from dipnet.shapes import load_mesh
 
@@ -140,6 +143,7 @@ class FakeRig:
         self.grbl_settings = {**GRBL_SETTINGS, **{
             base + i: value for i in range(len(self.status_axes)) for base, value in _GRBL_AXIS_SETTINGS.items()},
             **{int(k): v for k, v in dict(grbl_settings or {}).items()}}
+        self.grbl_startup = str(grbl_startup).upper()
         self.lock = threading.RLock()
         self._tables: dict[tuple[float, float], tuple[np.ndarray, np.ndarray, float]] = {}
         self.reset(self.faults)
