@@ -3,12 +3,14 @@
 A small scripting API (see README.md and docs/getting-started.md)::
 
     import dipnet
-    grid = dipnet.Grid(32, ndim=3, extent=100.0)                 # 32^3 voxels over 100 mm
-    dirs = dipnet.fibonacci_hemisphere(100)                       # (K, 3) dip directions
+    grid = dipnet.Grid(40, ndim=3, extent=100.0)                 # 40^3 voxels over 100 mm
+    dirs = dipnet.fibonacci_hemisphere(60)                        # (K, 3) dip directions
     op = dipnet.make_operator(grid, dirs)                         # forward / adjoint
     shape = dipnet.builtin_shape("chamber_box", 3, 0.9 * grid.radius)
     raw, meas = dipnet.simulate_measurement(shape, dirs, grid=grid)
+    dipnet.validate_measurement(meas, grid)                       # refuses wrong units, NaN, ...
     recon = dipnet.make_solver("minnorm").solve(meas, op)
+    check = dipnet.check_consistency(meas, op, recon)             # does recon explain the dips?
 """
 
 from dipnet.jobs import resolvers  # noqa: F401 (registers the ${dipnet_data:...} config resolver)
@@ -25,13 +27,16 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes import Shape, ShapeError, builtin_shape, load_mesh, shape_from_file
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers import SOLVERS, Solver, make_solver
+from dipnet.preprocessing.validation import MeasurementValidationError, validate_measurement
+from dipnet.evaluation.consistency import Consistency, DataConsistencyWarning, check_consistency
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "BACKENDS", "Balance", "DipMeasurement", "DipOperator", "DipProtocol", "Grid", "LevelSensor",
-    "MeasurementFileError", "RawScan", "RawScanWriter", "Reconstruction", "SOLVERS", "Shape", "ShapeError",
-    "Solver", "Tank", "angles_2d", "builtin_shape", "directions_2d", "fibonacci_hemisphere", "load_mesh",
-    "make_directions", "make_operator", "make_solver", "paper_grid", "preprocess", "preprocess_file",
-    "random_hemisphere", "read_rawscan", "rig_to_direction", "shape_from_file", "simulate_measurement",
+    "BACKENDS", "Balance", "Consistency", "DataConsistencyWarning", "DipMeasurement", "DipOperator", "DipProtocol",
+    "Grid", "LevelSensor", "MeasurementFileError", "MeasurementValidationError", "RawScan", "RawScanWriter",
+    "Reconstruction", "SOLVERS", "Shape", "ShapeError", "Solver", "Tank", "angles_2d", "builtin_shape",
+    "check_consistency", "directions_2d", "fibonacci_hemisphere", "load_mesh", "make_directions", "make_operator",
+    "make_solver", "paper_grid", "preprocess", "preprocess_file", "random_hemisphere", "read_rawscan",
+    "rig_to_direction", "shape_from_file", "simulate_measurement", "validate_measurement",
 ]
