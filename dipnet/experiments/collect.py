@@ -51,9 +51,10 @@ class Run:
 
     Attributes:
         path: the job directory.
-        status: ``"ok"`` (``metrics.json`` written), ``"failed"`` (``error.txt``, an unreadable
+        status: ``"ok"`` (``metrics.json`` written by this run), ``"failed"`` (``error.txt``, an unreadable
             ``metrics.json``, or a job log whose last record is an ``error: ...`` line: a refused run) or
-            ``"unfinished"`` (none of these: still running, killed, or empty).
+            ``"unfinished"`` (none of these: still running, killed, or empty). A ``metrics.json`` an earlier
+            run left in the folder (:func:`earlier_metrics`) is not this run's: failed or unfinished.
         config: the job's config as a plain dict (``{}`` when ``.hydra/config.yaml`` is missing).
         overrides: the job's command-line overrides (``.hydra/overrides.yaml``).
         choices: Hydra's config-group choices (``.hydra/hydra.yaml``), e.g. ``{"solver": "lsmr"}``.
@@ -133,6 +134,12 @@ def load_run(job_dir: str | Path) -> Run:
             run.status = "ok"
         except ValueError as exc:
             run.status, run.error = "failed", f"unreadable {metrics_path.name}: {exc}"
+        earlier = earlier_metrics(run) if run.status == "ok" else None
+        if earlier is not None:  # the folder's latest run wrote no metrics: refused, killed or still going
+            logged = logged_error(job_dir)
+            run.metrics = {}
+            run.status, run.error = ("failed", f"{logged}; {earlier}") if logged is not None else \
+                ("unfinished", f"{earlier}: this run wrote none (still running, or killed)")
     elif error_path.is_file():
         lines = error_path.read_text().strip().splitlines()
         run.status, run.error = "failed", (lines[0] if lines else "error.txt is empty")
@@ -141,6 +148,24 @@ def load_run(job_dir: str | Path) -> Run:
         if logged is not None:
             run.status, run.error = "failed", logged
     return run
+
+
+def earlier_metrics(run: Run) -> str | None:
+    """Why ``run.metrics`` (its ``metrics.json``) are an earlier run's, or ``None``: a run into the folder of
+    another (the same ``hydra.run.dir``) writes its ``.hydra/overrides.yaml`` as it starts and its
+    ``metrics.json`` only when it finishes, so until then (and for good when it is refused or killed) the folder
+    pairs the new run's config with the old run's numbers. The job records the overrides it ran with
+    (``overrides`` in ``metrics.json``); they are compared, in any order, with ``.hydra/overrides.yaml``.
+    Metrics without that record (older runs, :func:`dipnet.jobs.pipeline.run` outside Hydra) are taken as the
+    run's."""
+    recorded = run.metrics.get("overrides")
+    if not isinstance(recorded, list) or not (run.path / ".hydra" / "overrides.yaml").is_file():
+        return None
+    recorded = [str(o) for o in recorded]
+    if sorted(recorded) == sorted(run.overrides):
+        return None
+    return (f"its metrics.json is an earlier run's in this folder (overrides: {' '.join(recorded) or 'none'}), "
+            f"not this run's ({' '.join(run.overrides) or 'none'})")
 
 
 def logged_error(job_dir: str | Path) -> str | None:

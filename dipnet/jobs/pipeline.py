@@ -87,7 +87,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     """Run one reconstruction job and write its outputs into ``out`` (every option checked first:
     :func:`dipnet.jobs.options.check_config`)."""
     cfg = upgrade_config(cfg)
-    check_config(cfg, *hydra_overrides())
+    overrides, groups = hydra_overrides()
+    check_config(cfg, overrides, groups)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     earlier = output_files(out)
@@ -128,7 +129,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                               "n_dips_measured": (measurement.metadata or {}).get("measured_orientations",
                                                                                   measurement.n_orientations),
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
-                              **prior_weight_metrics(recon.info)}
+                              **prior_weight_metrics(recon.info),
+                              **run_overrides(overrides)}
     stages = planned_stages(cfg.output, truth=shape is not None)
     stage = OutputStages(bool(cfg.output.progress), stages)
     stage("consistency")
@@ -215,6 +217,17 @@ def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> N
         raw.save(out / "rawscan.jsonl")
     if planning is not None:
         write_json(out / "planning.json", planning, indent=2)
+
+
+def run_overrides(overrides: list[str]) -> dict[str, list[str]]:
+    """``{"overrides": overrides}`` in a Hydra run (``scripts/reconstruct.py``, a sweep job), else ``{}``: whose
+    metrics ``metrics.json`` holds. A later run into the same folder rewrites ``.hydra/overrides.yaml`` as it
+    starts and ``metrics.json`` only when it finishes (:func:`dipnet.experiments.collect.earlier_metrics`).
+    Outside Hydra (the compose API of ``tune.py``, which writes the trial's ``.hydra/`` itself) there is no
+    record to compare with."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return {"overrides": list(overrides)} if HydraConfig.initialized() else {}
 
 
 def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:

@@ -227,3 +227,7 @@ def test_a_run_into_the_folder_of_an_earlier_run_names_the_files_it_did_not_writ
     assert (f"{tmp_path} holds 3 file(s) of an earlier run that this run did not write: reconstruction.stl, "
             "truth.ply, truth.stl; they are not this run's results: delete them, or give each run its own "
             "hydra.run.dir") in (tmp_path / "reconstruct.log").read_text()
+    # whose numbers metrics.json holds: the overrides of the run that wrote it, as Hydra saved them for that run
+    # (compare.py tells a later run's refusal from the earlier run's metrics by them)
+    written = json.loads((tmp_path / "metrics.json").read_text())["overrides"]
+    assert written == list(OmegaConf.load(tmp_path / ".hydra" / "overrides.yaml")) and "source=recorded" in written
