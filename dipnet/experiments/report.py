@@ -256,14 +256,29 @@ def report_root(job_dir: Path) -> Path:
 
 # --------------------------------------------------------------------------- run page
 
-def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, metrics: dict[str, Any]) -> str:
-    """The interactive view of the result: images (2D) or meshes cut open (3D)."""
+def run_mesh(job_dir: Path, name: str, formats: Sequence[str]) -> trimesh.Trimesh | None:
+    """The mesh ``name`` (``truth`` or ``reconstruction``) a run wrote, in the first of its ``formats``
+    (``output.mesh_formats``, e.g. ``["stl"]``) found in ``job_dir``; ``None`` when there is none or it is empty."""
+    for fmt in formats:
+        mesh = _load_mesh(job_dir / f"{name}.{str(fmt).lower()}")
+        if mesh is not None:
+            return mesh
+    return None
+
+
+def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, metrics: dict[str, Any],
+                formats: Sequence[str] = ("ply",)) -> str:
+    """The interactive view of the result: images (2D) or meshes cut open (3D), read in the run's mesh
+    ``formats``. A mesh file the run did not write is not shown: a truth only when the run has one (its
+    metrics name the ``shape``: a recording has none), a reconstruction only when its volume is not empty
+    (an earlier run into the folder may have left either)."""
     extent = float(volume["grid_extent"]) if volume is not None and "grid_extent" in volume else None
     if ndim == 2 and volume is not None:
         images = [("reconstruction (binary)", volume["binary"]), ("occupancy", volume["occupancy"])]
         return _figure_html(image_figure(images, extent), "recon")
-    truth = _load_mesh(job_dir / "truth.ply")
-    recon = _load_mesh(job_dir / "reconstruction.ply")
+    truth = run_mesh(job_dir, "truth", formats) if metrics.get("shape") is not None else None
+    empty = volume is not None and not volume["binary"].any()
+    recon = None if empty else run_mesh(job_dir, "reconstruction", formats)
     origin = np.asarray(metrics.get("frame_offset_mm") or (0.0, 0.0, 0.0), dtype=np.float64)
     if recon is None and volume is not None and volume["binary"].any():
         from dipnet.shapes.isosurface import volume_to_mesh
@@ -287,7 +302,8 @@ def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> lis
     ndim = int(volume["grid_ndim"]) if volume is not None else row.get("ndim")
     status = "" if run.status == "ok" else f"<p class={run.status}>{html.escape(run.status)}: " \
         f"{html.escape(run.error or 'no metrics.json')}</p>"
-    view = _shape_view(job_dir, volume, ndim, run.metrics)
+    formats = (run.config.get("output") or {}).get("mesh_formats") or ["ply"]
+    view = _shape_view(job_dir, volume, ndim, run.metrics, formats)
     sections: list[tuple[str, str]] = [
         ("", f"{status}<div class=top><div class=view>{view}</div>{answers_html(run.metrics)}</div>")]
 
