@@ -246,13 +246,22 @@ def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.
 def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, truth, level: float | None = None,
                   offset: np.ndarray | None = None) -> None:
     """Meshes (3D; moved by ``offset`` (3,) mm into the frame of the user's mesh file) and
-    PNG figures of one job (``level``: the truth occupancy counted as inside in the slices)."""
+    PNG figures of one job (``level``: the truth occupancy counted as inside in the slices). The
+    reconstruction's mesh comes from its finer sampling when the solver made one
+    (:attr:`Reconstruction.fine`: ``solver=implicit solver.output_upsample=2``), as the log says; its
+    volume, metrics and figures stay on the data grid."""
     grid = recon.grid
     meshes = []
     if grid.ndim == 3:
         if truth is not None:
             meshes.append((volume_to_mesh(truth, grid, 0.5), "truth"))
-        meshes.append((volume_to_mesh(recon.occupancy.numpy(), grid, recon.threshold), "reconstruction"))
+        surface = recon.fine if recon.fine is not None and recon.fine.grid.ndim == 3 else recon
+        if surface is not recon:
+            log.info("the reconstruction's mesh is its field sampled at %d^3 (the solver's finer sampling, "
+                     "solver.output_upsample); reconstruction.npz, the metrics and the figures are on the %d^3 grid",
+                     surface.grid.n, grid.n)
+        meshes.append((volume_to_mesh(surface.occupancy.detach().cpu().numpy(), surface.grid, surface.threshold),
+                       "reconstruction"))
         for mesh, name in meshes:
             if len(mesh.faces):
                 placed = mesh if offset is None else mesh.copy().apply_translation(offset)

@@ -231,3 +231,27 @@ def test_a_run_into_the_folder_of_an_earlier_run_names_the_files_it_did_not_writ
     # (compare.py tells a later run's refusal from the earlier run's metrics by them)
     written = json.loads((tmp_path / "metrics.json").read_text())["overrides"]
     assert written == list(OmegaConf.load(tmp_path / ".hydra" / "overrides.yaml")) and "source=recorded" in written
+
+
+def test_the_mesh_comes_from_the_solvers_finer_sampling_when_it_made_one(tmp_path, caplog):
+    """Before: ``solver=implicit solver.output_upsample=2`` sampled the field at 2N and the job dropped it without a
+    word: reconstruction.ply was the N^3 surface, as without the option (a ball of radius 30 mm: 102,214 mm^3 at
+    8^3 for 113,097; 110,677 at 32^3). Now the mesh is the fine one."""
+    coarse, fine = Grid(8, 3, 100.0), Grid(32, 3, 100.0)
+
+    def ball(grid):
+        return torch.as_tensor((grid.centers().norm(dim=-1) <= 30.0).double())
+
+    recon = Reconstruction(ball(coarse), coarse, 0.5)
+    recon.fine = Reconstruction(ball(fine), fine, 0.5)
+    cfg = OmegaConf.create({"output": {"mesh_formats": ["ply"], "figures": False}})
+    with caplog.at_level("INFO", logger="dipnet.jobs.pipeline"):
+        write_outputs(cfg, tmp_path, None, None, recon, None)
+    import trimesh
+
+    from dipnet.shapes.isosurface import volume_to_mesh
+
+    mesh = trimesh.load(tmp_path / "reconstruction.ply", force="mesh")
+    assert mesh.volume == pytest.approx(volume_to_mesh(recon.fine.occupancy, fine, 0.5).volume, rel=1e-9)
+    assert mesh.volume == pytest.approx(4 / 3 * math.pi * 30.0**3, rel=0.03)
+    assert "the reconstruction's mesh is its field sampled at 32^3" in caplog.text
