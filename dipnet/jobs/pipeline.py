@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -180,11 +181,14 @@ MESH_NAMES = ("truth", "reconstruction")
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
 
-def output_files(out: Path) -> dict[str, tuple[int, int]]:
-    """The job output files (:data:`RUN_OUTPUTS`, the meshes) already in ``out``: name -> ``(inode, mtime in ns)``."""
+def output_files(out: Path, names: Collection[str] | None = None) -> dict[str, tuple[int, int]]:
+    """The job output files (:data:`RUN_OUTPUTS`, the meshes; or the files called ``names``, e.g. those of
+    ``scripts/compare.py``) already in ``out``: name -> ``(inode, mtime in ns)``."""
     found = {}
     for path in out.iterdir() if out.is_dir() else ():
-        if path.name in RUN_OUTPUTS or (path.stem in MESH_NAMES and path.suffix in MESH_SUFFIXES):
+        known = path.name in names if names is not None else (
+            path.name in RUN_OUTPUTS or (path.stem in MESH_NAMES and path.suffix in MESH_SUFFIXES))
+        if known:
             try:
                 stat = path.stat()
             except OSError:
@@ -200,8 +204,7 @@ def warn_earlier_outputs(out: Path, earlier: dict[str, tuple[int, int]], cfg: Di
     job's own input (a recording in ``out``) is not named. Returns their names."""
     recording = OmegaConf.select(cfg, "source.reader.path", default=None)
     source = Path(str(recording)).resolve() if isinstance(recording, str) and recording != "???" else None
-    now = output_files(out)
-    stale = sorted(name for name, mark in earlier.items() if now.get(name) == mark and (out / name).resolve() != source)
+    stale = [name for name in not_rewritten(out, earlier) if (out / name).resolve() != source]
     if stale:
         message = (f"{out} holds {len(stale)} file(s) of an earlier run that this run did not write: "
                    f"{', '.join(stale)}; they are not this run's results: delete them, or give each run its own "
@@ -209,6 +212,13 @@ def warn_earlier_outputs(out: Path, earlier: dict[str, tuple[int, int]], cfg: Di
         log.warning("%s", message)
         warnings.warn(message, stacklevel=2)
     return stale
+
+
+def not_rewritten(out: Path, earlier: dict[str, tuple[int, int]]) -> list[str]:
+    """The names among ``earlier`` (:func:`output_files` of ``out`` before a job or a comparison wrote into it)
+    whose files are still the same (inode and modification time), sorted: left there by an earlier one."""
+    now = output_files(out, earlier)
+    return sorted(name for name, mark in earlier.items() if now.get(name) == mark)
 
 
 def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> None:
