@@ -34,6 +34,7 @@ import trimesh
 from dipnet.experiments import collect, figures, tables
 from dipnet.experiments.collect import GROUP_BY, METRICS, Run
 from dipnet.outputs import plots, summary
+from dipnet.outputs.progress import planned_stages
 
 REPORT_FILE = "report.html"
 #: plotly's JavaScript, written once per folder of reports (see :func:`plotly_js`).
@@ -291,6 +292,22 @@ def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, 
     return _figure_html(mesh_figure(truth, recon, origin), "meshes")
 
 
+def drawn_figures(output: dict[str, Any], truth: bool, ndim: Any) -> set[str]:
+    """The PNG figures a run with these ``output`` options draws (``truth``: its shape is known; ``ndim``: 2 or 3):
+    none with ``figures: false``; the slices with a truth, the uncertainty and resolvability figures when their
+    stages run (:func:`~dipnet.outputs.progress.planned_stages`), the rendered meshes in 3D. A figure of another
+    name in the run folder is an earlier run's (the same ``hydra.run.dir``), not this run's. Without ``output``
+    options (a run folder without its ``.hydra/config.yaml``) every figure there is taken as the run's."""
+    if not output:
+        return {name for name, _ in RUN_FIGURES} | {"loss.png"}
+    if output.get("figures", True) is False:
+        return set()
+    stages = planned_stages(output, truth)
+    return {"profiles.png", "loss.png"} | {name for name, drawn in (
+        ("slices.png", truth), ("uncertainty.png", "uncertainty" in stages),
+        ("resolvability.png", "resolvability" in stages), ("mesh.png", ndim == 3)) if drawn}
+
+
 def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> list[tuple[str, str]]:
     """The sections of one run's page (see the module docstring), from the files in ``job_dir``;
     its PNG figures are linked relative to ``page_dir`` (default ``job_dir``)."""
@@ -307,8 +324,10 @@ def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> lis
     sections: list[tuple[str, str]] = [
         ("", f"{status}<div class=top><div class=view>{view}</div>{answers_html(run.metrics)}</div>")]
 
+    drawn = drawn_figures(run.config.get("output") or {}, run.metrics.get("shape") is not None, ndim)
     figures_html = [f"<figure>{_png(job_dir / name, name, page_dir)}<figcaption>{html.escape(caption)}"
-                    f"</figcaption></figure>" for name, caption in RUN_FIGURES if (job_dir / name).is_file()]
+                    f"</figcaption></figure>" for name, caption in RUN_FIGURES
+                    if name in drawn and (job_dir / name).is_file()]
     if figures_html:
         sections.append(("figures", "\n".join(figures_html)))
 
@@ -321,7 +340,7 @@ def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> lis
     if (job_dir / "history.json").is_file():
         history = json.loads((job_dir / "history.json").read_text())
         sections.append(("loss", _figure_html(history_figure(history), "loss")))
-    elif (job_dir / "loss.png").is_file():
+    elif "loss.png" in drawn and (job_dir / "loss.png").is_file():
         sections.append(("loss", _png(job_dir / "loss.png", "loss curves", page_dir)))
     else:
         sections.append(("loss", "<p class=note>no loss history (direct solver)</p>"))

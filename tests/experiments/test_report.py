@@ -201,3 +201,31 @@ def test_the_3d_view_shows_only_the_meshes_the_run_wrote(tmp_path):
     traces = _mesh_traces(report.write_run_report(job).read_text())
     assert [(name, visible) for name, visible, _ in traces] == [("reconstruction", True), ("reconstruction", False)]
     assert traces[1][2] == len(box.faces)  # the whole box (the first trace is cut open)
+
+
+def test_the_page_shows_only_the_figures_the_run_drew(tmp_path):
+    """Before: the page showed every PNG of the folder: after a run with figures into it, a run with
+    ``output.figures=false`` (or without uncertainty, or from a recording: no slices) had the earlier run's
+    slices, uncertainty and loss figures on its page, as its own."""
+    from omegaconf import OmegaConf
+
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=8, snr_db=None, seed=0, ndim=3, resolution=20,
+                    metrics={"iou": 0.9})
+    names = [name for name, _ in report.RUN_FIGURES] + ["loss.png"]
+    for name in names:  # an earlier run's figures
+        (job / name).write_bytes(b"\x89PNG\r\n\x1a\n")
+    shown = [name for name in names if f'src="{name}"' in report.write_run_report(job).read_text()]
+    assert shown == names  # no output options recorded: every figure is taken as the run's
+    config = OmegaConf.load(job / ".hydra" / "config.yaml")
+    config.output = {"figures": True, "uncertainty": False, "resolvability": True}
+    OmegaConf.save(config, job / ".hydra" / "config.yaml")
+    metrics = json.loads((job / "metrics.json").read_text())
+    del metrics["shape"], metrics["iou"]  # a recording: no truth, no slices
+    (job / "metrics.json").write_text(json.dumps(metrics))
+    text = report.write_run_report(job).read_text()
+    assert [name for name in names if f'src="{name}"' in text] == ["resolvability.png", "profiles.png", "mesh.png",
+                                                                   "loss.png"]
+    config.output.figures = False
+    OmegaConf.save(config, job / ".hydra" / "config.yaml")
+    text = report.write_run_report(job).read_text()
+    assert not [name for name in names if f'src="{name}"' in text]
