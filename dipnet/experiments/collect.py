@@ -274,7 +274,11 @@ def override_values(overrides: Sequence[str]) -> dict[str, Any]:
 
 def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
     """One flat row per job: identity (job, status, error), axes (solver, shape, ndim,
-    resolution, n_dips, dips_percent, snr_db, seed, overrides) and every scalar metric."""
+    resolution, n_dips, dips_percent, snr_db, seed, overrides) and every scalar metric.
+
+    ``n_dips`` is the number of dips measured (``n_dips_measured`` in ``metrics.json``): with a declared
+    ``symmetry`` the job solves its images too (``n_dips`` there, here ``n_dips_with_images``), but a 10-dip run
+    with a 4-fold symmetry is a 10-dip run, not one to pool with the 40-dip runs."""
     cfg, m = run.config, run.metrics
     solver = run.choices.get("solver") or m.get("solver")
     if solver is None and isinstance(cfg.get("solver"), dict):
@@ -287,13 +291,15 @@ def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
         "shape": m.get("shape") or _shape_label(cfg),
         "ndim": m.get("ndim", cfg.get("ndim")),
         "resolution": m.get("resolution", cfg.get("resolution")),
-        "n_dips": m.get("n_dips", cfg.get("n_dips")),
+        "n_dips": m.get("n_dips_measured", m.get("n_dips", cfg.get("n_dips"))),
         "snr_db": snr if snr is None or isinstance(snr, str) else float(snr),
         "seed": cfg.get("seed"),
     }
     if None not in (row["n_dips"], row["resolution"], row["ndim"]):
         row["dips_percent"] = dips_percent(int(row["n_dips"]), int(row["resolution"]), int(row["ndim"]),
                                            cfg.get("n_slabs"))
+    if "n_dips" in m and m["n_dips"] != row["n_dips"]:
+        row["n_dips_with_images"] = m["n_dips"]
     for key, value in m.items():
         if key not in row and (isinstance(value, (int, float, str)) or value is None):
             row[key] = value

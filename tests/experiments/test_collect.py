@@ -74,6 +74,18 @@ def test_metrics_an_earlier_run_left_in_its_folder_are_not_the_later_runs(tmp_pa
     assert "iou" not in collect.run_row(run)
 
 
+def test_a_run_with_a_declared_symmetry_is_tabled_by_the_dips_it_measured(tmp_path):
+    """Before: ``n_dips=10 symmetry={n_fold: 4}`` was a 40-dip row (its metrics' ``n_dips`` counts the images it
+    solves), pooled with the 40-dip runs without symmetry, its % of dips four times its cost."""
+    plain = write_job(tmp_path / "plain", solver="minnorm", n_dips=40, snr_db=None, seed=0, metrics={"iou": 0.9})
+    sym = write_job(tmp_path / "sym", solver="minnorm", n_dips=10, snr_db=None, seed=0,
+                    metrics={"iou": 0.8, "n_dips": 40, "n_dips_measured": 10})
+    rows = collect.run_rows(collect.collect_runs([plain, sym]))
+    assert [(r["n_dips"], r.get("n_dips_with_images")) for r in rows] == [(40, None), (10, 40)]
+    assert rows[1]["dips_percent"] == pytest.approx(rows[0]["dips_percent"] / 4)
+    assert [g["n_dips"] for g in collect.aggregate(rows)] == [10, 40]
+
+
 def test_no_runs_is_a_clear_error(tmp_path):
     (tmp_path / "notes").mkdir()
     with pytest.raises(collect.NoRunsError, match="no reconstruction jobs found"):
