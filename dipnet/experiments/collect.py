@@ -155,17 +155,19 @@ def earlier_metrics(run: Run) -> str | None:
     another (the same ``hydra.run.dir``) writes its ``.hydra/overrides.yaml`` as it starts and its
     ``metrics.json`` only when it finishes, so until then (and for good when it is refused or killed) the folder
     pairs the new run's config with the old run's numbers. The job records the overrides it ran with
-    (``overrides`` in ``metrics.json``); they are compared, in any order, with ``.hydra/overrides.yaml``.
+    (``overrides`` in ``metrics.json``); they are compared, in any order and as typed (interpolations such as
+    ``n_slabs=${resolution}`` unresolved), with ``.hydra/overrides.yaml``.
     Metrics without that record (older runs, :func:`dipnet.jobs.pipeline.run` outside Hydra) are taken as the
     run's."""
-    recorded = run.metrics.get("overrides")
-    if not isinstance(recorded, list) or not (run.path / ".hydra" / "overrides.yaml").is_file():
+    recorded, path = run.metrics.get("overrides"), run.path / ".hydra" / "overrides.yaml"
+    if not isinstance(recorded, list) or not path.is_file():
         return None
     recorded = [str(o) for o in recorded]
-    if sorted(recorded) == sorted(run.overrides):
+    typed = [str(o) for o in OmegaConf.to_container(OmegaConf.load(path), resolve=False) or []]  # n_slabs=${resolution}
+    if sorted(recorded) == sorted(typed):
         return None
     return (f"its metrics.json is an earlier run's in this folder (overrides: {' '.join(recorded) or 'none'}), "
-            f"not this run's ({' '.join(run.overrides) or 'none'})")
+            f"not this run's ({' '.join(typed) or 'none'})")
 
 
 def logged_error(job_dir: str | Path) -> str | None:

@@ -131,7 +131,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                                                                                   measurement.n_orientations),
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
                               **prior_weight_metrics(recon.info),
-                              **run_overrides(overrides)}
+                              **run_overrides()}
     stages = planned_stages(cfg.output, truth=shape is not None)
     stage = OutputStages(bool(cfg.output.progress), stages)
     stage("consistency")
@@ -229,15 +229,18 @@ def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> N
         write_json(out / "planning.json", planning, indent=2)
 
 
-def run_overrides(overrides: list[str]) -> dict[str, list[str]]:
-    """``{"overrides": overrides}`` in a Hydra run (``scripts/reconstruct.py``, a sweep job), else ``{}``: whose
+def run_overrides() -> dict[str, list[str]]:
+    """``{"overrides": the job's command-line overrides}`` in a Hydra run (``scripts/reconstruct.py``, a sweep
+    job), as typed (``n_slabs=${resolution}`` unresolved, as in ``.hydra/overrides.yaml``), else ``{}``: whose
     metrics ``metrics.json`` holds. A later run into the same folder rewrites ``.hydra/overrides.yaml`` as it
     starts and ``metrics.json`` only when it finishes (:func:`dipnet.experiments.collect.earlier_metrics`).
     Outside Hydra (the compose API of ``tune.py``, which writes the trial's ``.hydra/`` itself) there is no
     record to compare with."""
     from hydra.core.hydra_config import HydraConfig
 
-    return {"overrides": list(overrides)} if HydraConfig.initialized() else {}
+    if not HydraConfig.initialized():
+        return {}
+    return {"overrides": [str(o) for o in OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)]}
 
 
 def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:

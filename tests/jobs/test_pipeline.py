@@ -222,15 +222,21 @@ def test_a_run_into_the_folder_of_an_earlier_run_names_the_files_it_did_not_writ
     assert again.returncode == 0 and "earlier run" not in again.stderr + (tmp_path / "reconstruct.log").read_text()
     extent = float(np.load(tmp_path / "reconstruction.npz")["grid_extent"])
     recorded = cli(tmp_path, *quick, "source=recorded", f"source.reader.path={tmp_path / 'rawscan.jsonl'}",
-                   f"extent_mm={extent}")
+                   f"extent_mm={extent}", "n_slabs=${resolution}")
     assert recorded.returncode == 0, recorded.stderr[-2000:]
     assert (f"{tmp_path} holds 3 file(s) of an earlier run that this run did not write: reconstruction.stl, "
             "truth.ply, truth.stl; they are not this run's results: delete them, or give each run its own "
             "hydra.run.dir") in (tmp_path / "reconstruct.log").read_text()
     # whose numbers metrics.json holds: the overrides of the run that wrote it, as Hydra saved them for that run
     # (compare.py tells a later run's refusal from the earlier run's metrics by them)
+    # (as typed: an interpolation unresolved, as Hydra saves it; resolved, this run's own metrics were "an earlier
+    # run's", unfinished)
+    from dipnet.experiments import collect
+
     written = json.loads((tmp_path / "metrics.json").read_text())["overrides"]
-    assert written == list(OmegaConf.load(tmp_path / ".hydra" / "overrides.yaml")) and "source=recorded" in written
+    assert written == OmegaConf.to_container(OmegaConf.load(tmp_path / ".hydra" / "overrides.yaml"), resolve=False)
+    assert "source=recorded" in written and "n_slabs=${resolution}" in written
+    assert collect.load_run(tmp_path).status == "ok"
 
 
 def test_the_mesh_comes_from_the_solvers_finer_sampling_when_it_made_one(tmp_path, caplog):
