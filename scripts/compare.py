@@ -24,6 +24,10 @@ import warnings
 from pathlib import Path
 
 from dipnet.experiments import collect, figures, tables
+from dipnet.jobs.pipeline import not_rewritten, output_files
+
+#: The files a comparison may write into its output directory (``plotly.min.js`` aside: the pages' shared copy).
+COMPARE_OUTPUTS = ("runs.csv", "summary.csv", "summary.md", "vs_dips.png", "vs_snr.png", "montage.png", "report.html")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -54,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     root = args.dirs[0] if len(args.dirs) == 1 else None
     out = args.out or args.dirs[0] / "compare"
     out.mkdir(parents=True, exist_ok=True)
+    earlier = output_files(out, COMPARE_OUTPUTS)
     rows = collect.run_rows(runs, root)
     metrics = collect.compared_metrics(rows)
     groups = collect.aggregate(rows, args.by, metrics)
@@ -116,6 +121,11 @@ def main(argv: list[str] | None = None) -> int:
         written.append(report.write_sweep_report(runs, out / "report.html", root=root or out, by=args.by,
                                                  images=[out / "montage.png"]))
     print("wrote " + ", ".join(str(p) for p in written))
+    stale = not_rewritten(out, earlier)
+    if stale:  # e.g. `-o results` given to two comparisons: the first's report.html beside the second's tables
+        print(f"warning: {out} holds {len(stale)} file(s) of an earlier comparison that this one did not write: "
+              f"{', '.join(stale)}; they are not this comparison's results: delete them, or give each comparison "
+              "its own -o", file=sys.stderr)
     return 0
 
 

@@ -51,9 +51,10 @@ class Run:
 
     Attributes:
         path: the job directory.
-        status: ``"ok"`` (``metrics.json`` written), ``"failed"`` (``error.txt``, an unreadable
+        status: ``"ok"`` (``metrics.json`` written by this run), ``"failed"`` (``error.txt``, an unreadable
             ``metrics.json``, or a job log whose last record is an ``error: ...`` line: a refused run) or
-            ``"unfinished"`` (none of these: still running, killed, or empty).
+            ``"unfinished"`` (none of these: still running, killed, or empty). A ``metrics.json`` an earlier
+            run left in the folder (:func:`earlier_metrics`) is not this run's: failed or unfinished.
         config: the job's config as a plain dict (``{}`` when ``.hydra/config.yaml`` is missing).
         overrides: the job's command-line overrides (``.hydra/overrides.yaml``).
         choices: Hydra's config-group choices (``.hydra/hydra.yaml``), e.g. ``{"solver": "lsmr"}``.
@@ -133,6 +134,12 @@ def load_run(job_dir: str | Path) -> Run:
             run.status = "ok"
         except ValueError as exc:
             run.status, run.error = "failed", f"unreadable {metrics_path.name}: {exc}"
+        earlier = earlier_metrics(run) if run.status == "ok" else None
+        if earlier is not None:  # the folder's latest run wrote no metrics: refused, killed or still going
+            logged = logged_error(job_dir)
+            run.metrics = {}
+            run.status, run.error = ("failed", f"{logged}; {earlier}") if logged is not None else \
+                ("unfinished", f"{earlier}: this run wrote none (still running, or killed)")
     elif error_path.is_file():
         lines = error_path.read_text().strip().splitlines()
         run.status, run.error = "failed", (lines[0] if lines else "error.txt is empty")
@@ -141,6 +148,26 @@ def load_run(job_dir: str | Path) -> Run:
         if logged is not None:
             run.status, run.error = "failed", logged
     return run
+
+
+def earlier_metrics(run: Run) -> str | None:
+    """Why ``run.metrics`` (its ``metrics.json``) are an earlier run's, or ``None``: a run into the folder of
+    another (the same ``hydra.run.dir``) writes its ``.hydra/overrides.yaml`` as it starts and its
+    ``metrics.json`` only when it finishes, so until then (and for good when it is refused or killed) the folder
+    pairs the new run's config with the old run's numbers. The job records the overrides it ran with
+    (``overrides`` in ``metrics.json``); they are compared, in any order and as typed (interpolations such as
+    ``n_slabs=${resolution}`` unresolved), with ``.hydra/overrides.yaml``.
+    Metrics without that record (older runs, :func:`dipnet.jobs.pipeline.run` outside Hydra) are taken as the
+    run's."""
+    recorded, path = run.metrics.get("overrides"), run.path / ".hydra" / "overrides.yaml"
+    if not isinstance(recorded, list) or not path.is_file():
+        return None
+    recorded = [str(o) for o in recorded]
+    typed = [str(o) for o in OmegaConf.to_container(OmegaConf.load(path), resolve=False) or []]  # n_slabs=${resolution}
+    if sorted(recorded) == sorted(typed):
+        return None
+    return (f"its metrics.json is an earlier run's in this folder (overrides: {' '.join(recorded) or 'none'}), "
+            f"not this run's ({' '.join(typed) or 'none'})")
 
 
 def logged_error(job_dir: str | Path) -> str | None:
@@ -249,7 +276,11 @@ def override_values(overrides: Sequence[str]) -> dict[str, Any]:
 
 def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
     """One flat row per job: identity (job, status, error), axes (solver, shape, ndim,
-    resolution, n_dips, dips_percent, snr_db, seed, overrides) and every scalar metric."""
+    resolution, n_dips, dips_percent, snr_db, seed, overrides) and every scalar metric.
+
+    ``n_dips`` is the number of dips measured (``n_dips_measured`` in ``metrics.json``): with a declared
+    ``symmetry`` the job solves its images too (``n_dips`` there, here ``n_dips_with_images``), but a 10-dip run
+    with a 4-fold symmetry is a 10-dip run, not one to pool with the 40-dip runs."""
     cfg, m = run.config, run.metrics
     solver = run.choices.get("solver") or m.get("solver")
     if solver is None and isinstance(cfg.get("solver"), dict):
@@ -262,13 +293,15 @@ def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
         "shape": m.get("shape") or _shape_label(cfg),
         "ndim": m.get("ndim", cfg.get("ndim")),
         "resolution": m.get("resolution", cfg.get("resolution")),
-        "n_dips": m.get("n_dips", cfg.get("n_dips")),
+        "n_dips": m.get("n_dips_measured", m.get("n_dips", cfg.get("n_dips"))),
         "snr_db": snr if snr is None or isinstance(snr, str) else float(snr),
         "seed": cfg.get("seed"),
     }
     if None not in (row["n_dips"], row["resolution"], row["ndim"]):
         row["dips_percent"] = dips_percent(int(row["n_dips"]), int(row["resolution"]), int(row["ndim"]),
                                            cfg.get("n_slabs"))
+    if "n_dips" in m and m["n_dips"] != row["n_dips"]:
+        row["n_dips_with_images"] = m["n_dips"]
     for key, value in m.items():
         if key not in row and (isinstance(value, (int, float, str)) or value is None):
             row[key] = value

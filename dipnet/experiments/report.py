@@ -34,6 +34,7 @@ import trimesh
 from dipnet.experiments import collect, figures, tables
 from dipnet.experiments.collect import GROUP_BY, METRICS, Run
 from dipnet.outputs import plots, summary
+from dipnet.outputs.progress import planned_stages
 
 REPORT_FILE = "report.html"
 #: plotly's JavaScript, written once per folder of reports (see :func:`plotly_js`).
@@ -256,14 +257,29 @@ def report_root(job_dir: Path) -> Path:
 
 # --------------------------------------------------------------------------- run page
 
-def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, metrics: dict[str, Any]) -> str:
-    """The interactive view of the result: images (2D) or meshes cut open (3D)."""
+def run_mesh(job_dir: Path, name: str, formats: Sequence[str]) -> trimesh.Trimesh | None:
+    """The mesh ``name`` (``truth`` or ``reconstruction``) a run wrote, in the first of its ``formats``
+    (``output.mesh_formats``, e.g. ``["stl"]``) found in ``job_dir``; ``None`` when there is none or it is empty."""
+    for fmt in formats:
+        mesh = _load_mesh(job_dir / f"{name}.{str(fmt).lower()}")
+        if mesh is not None:
+            return mesh
+    return None
+
+
+def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, metrics: dict[str, Any],
+                formats: Sequence[str] = ("ply",)) -> str:
+    """The interactive view of the result: images (2D) or meshes cut open (3D), read in the run's mesh
+    ``formats``. A mesh file the run did not write is not shown: a truth only when the run has one (its
+    metrics name the ``shape``: a recording has none), a reconstruction only when its volume is not empty
+    (an earlier run into the folder may have left either)."""
     extent = float(volume["grid_extent"]) if volume is not None and "grid_extent" in volume else None
     if ndim == 2 and volume is not None:
         images = [("reconstruction (binary)", volume["binary"]), ("occupancy", volume["occupancy"])]
         return _figure_html(image_figure(images, extent), "recon")
-    truth = _load_mesh(job_dir / "truth.ply")
-    recon = _load_mesh(job_dir / "reconstruction.ply")
+    truth = run_mesh(job_dir, "truth", formats) if metrics.get("shape") is not None else None
+    empty = volume is not None and not volume["binary"].any()
+    recon = None if empty else run_mesh(job_dir, "reconstruction", formats)
     origin = np.asarray(metrics.get("frame_offset_mm") or (0.0, 0.0, 0.0), dtype=np.float64)
     if recon is None and volume is not None and volume["binary"].any():
         from dipnet.shapes.isosurface import volume_to_mesh
@@ -274,6 +290,22 @@ def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, 
     if truth is None and recon is None:
         return "<p class=note>no mesh in this run (empty reconstruction)</p>"
     return _figure_html(mesh_figure(truth, recon, origin), "meshes")
+
+
+def drawn_figures(output: dict[str, Any], truth: bool, ndim: Any) -> set[str]:
+    """The PNG figures a run with these ``output`` options draws (``truth``: its shape is known; ``ndim``: 2 or 3):
+    none with ``figures: false``; the slices with a truth, the uncertainty and resolvability figures when their
+    stages run (:func:`~dipnet.outputs.progress.planned_stages`), the rendered meshes in 3D. A figure of another
+    name in the run folder is an earlier run's (the same ``hydra.run.dir``), not this run's. Without ``output``
+    options (a run folder without its ``.hydra/config.yaml``) every figure there is taken as the run's."""
+    if not output:
+        return {name for name, _ in RUN_FIGURES} | {"loss.png"}
+    if output.get("figures", True) is False:
+        return set()
+    stages = planned_stages(output, truth)
+    return {"profiles.png", "loss.png"} | {name for name, drawn in (
+        ("slices.png", truth), ("uncertainty.png", "uncertainty" in stages),
+        ("resolvability.png", "resolvability" in stages), ("mesh.png", ndim == 3)) if drawn}
 
 
 def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> list[tuple[str, str]]:
@@ -287,12 +319,15 @@ def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> lis
     ndim = int(volume["grid_ndim"]) if volume is not None else row.get("ndim")
     status = "" if run.status == "ok" else f"<p class={run.status}>{html.escape(run.status)}: " \
         f"{html.escape(run.error or 'no metrics.json')}</p>"
-    view = _shape_view(job_dir, volume, ndim, run.metrics)
+    formats = (run.config.get("output") or {}).get("mesh_formats") or ["ply"]
+    view = _shape_view(job_dir, volume, ndim, run.metrics, formats)
     sections: list[tuple[str, str]] = [
         ("", f"{status}<div class=top><div class=view>{view}</div>{answers_html(run.metrics)}</div>")]
 
+    drawn = drawn_figures(run.config.get("output") or {}, run.metrics.get("shape") is not None, ndim)
     figures_html = [f"<figure>{_png(job_dir / name, name, page_dir)}<figcaption>{html.escape(caption)}"
-                    f"</figcaption></figure>" for name, caption in RUN_FIGURES if (job_dir / name).is_file()]
+                    f"</figcaption></figure>" for name, caption in RUN_FIGURES
+                    if name in drawn and (job_dir / name).is_file()]
     if figures_html:
         sections.append(("figures", "\n".join(figures_html)))
 
@@ -305,7 +340,7 @@ def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> lis
     if (job_dir / "history.json").is_file():
         history = json.loads((job_dir / "history.json").read_text())
         sections.append(("loss", _figure_html(history_figure(history), "loss")))
-    elif (job_dir / "loss.png").is_file():
+    elif "loss.png" in drawn and (job_dir / "loss.png").is_file():
         sections.append(("loss", _png(job_dir / "loss.png", "loss curves", page_dir)))
     else:
         sections.append(("loss", "<p class=note>no loss history (direct solver)</p>"))

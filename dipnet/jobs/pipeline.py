@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -87,7 +88,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     """Run one reconstruction job and write its outputs into ``out`` (every option checked first:
     :func:`dipnet.jobs.options.check_config`)."""
     cfg = upgrade_config(cfg)
-    check_config(cfg, *hydra_overrides())
+    overrides, groups = hydra_overrides()
+    check_config(cfg, overrides, groups)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     earlier = output_files(out)
@@ -128,7 +130,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                               "n_dips_measured": (measurement.metadata or {}).get("measured_orientations",
                                                                                   measurement.n_orientations),
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
-                              **prior_weight_metrics(recon.info)}
+                              **prior_weight_metrics(recon.info),
+                              **run_overrides()}
     stages = planned_stages(cfg.output, truth=shape is not None)
     stage = OutputStages(bool(cfg.output.progress), stages)
     stage("consistency")
@@ -178,11 +181,14 @@ MESH_NAMES = ("truth", "reconstruction")
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
 
-def output_files(out: Path) -> dict[str, tuple[int, int]]:
-    """The job output files (:data:`RUN_OUTPUTS`, the meshes) already in ``out``: name -> ``(inode, mtime in ns)``."""
+def output_files(out: Path, names: Collection[str] | None = None) -> dict[str, tuple[int, int]]:
+    """The job output files (:data:`RUN_OUTPUTS`, the meshes; or the files called ``names``, e.g. those of
+    ``scripts/compare.py``) already in ``out``: name -> ``(inode, mtime in ns)``."""
     found = {}
     for path in out.iterdir() if out.is_dir() else ():
-        if path.name in RUN_OUTPUTS or (path.stem in MESH_NAMES and path.suffix in MESH_SUFFIXES):
+        known = path.name in names if names is not None else (
+            path.name in RUN_OUTPUTS or (path.stem in MESH_NAMES and path.suffix in MESH_SUFFIXES))
+        if known:
             try:
                 stat = path.stat()
             except OSError:
@@ -198,8 +204,7 @@ def warn_earlier_outputs(out: Path, earlier: dict[str, tuple[int, int]], cfg: Di
     job's own input (a recording in ``out``) is not named. Returns their names."""
     recording = OmegaConf.select(cfg, "source.reader.path", default=None)
     source = Path(str(recording)).resolve() if isinstance(recording, str) and recording != "???" else None
-    now = output_files(out)
-    stale = sorted(name for name, mark in earlier.items() if now.get(name) == mark and (out / name).resolve() != source)
+    stale = [name for name in not_rewritten(out, earlier) if (out / name).resolve() != source]
     if stale:
         message = (f"{out} holds {len(stale)} file(s) of an earlier run that this run did not write: "
                    f"{', '.join(stale)}; they are not this run's results: delete them, or give each run its own "
@@ -209,12 +214,33 @@ def warn_earlier_outputs(out: Path, earlier: dict[str, tuple[int, int]], cfg: Di
     return stale
 
 
+def not_rewritten(out: Path, earlier: dict[str, tuple[int, int]]) -> list[str]:
+    """The names among ``earlier`` (:func:`output_files` of ``out`` before a job or a comparison wrote into it)
+    whose files are still the same (inode and modification time), sorted: left there by an earlier one."""
+    now = output_files(out, earlier)
+    return sorted(name for name, mark in earlier.items() if now.get(name) == mark)
+
+
 def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> None:
     """Save what the run made while dipping: its raw scan (``rawscan.jsonl``) and a plan's report (``planning.json``)."""
     if raw is not None:
         raw.save(out / "rawscan.jsonl")
     if planning is not None:
         write_json(out / "planning.json", planning, indent=2)
+
+
+def run_overrides() -> dict[str, list[str]]:
+    """``{"overrides": the job's command-line overrides}`` in a Hydra run (``scripts/reconstruct.py``, a sweep
+    job), as typed (``n_slabs=${resolution}`` unresolved, as in ``.hydra/overrides.yaml``), else ``{}``: whose
+    metrics ``metrics.json`` holds. A later run into the same folder rewrites ``.hydra/overrides.yaml`` as it
+    starts and ``metrics.json`` only when it finishes (:func:`dipnet.experiments.collect.earlier_metrics`).
+    Outside Hydra (the compose API of ``tune.py``, which writes the trial's ``.hydra/`` itself) there is no
+    record to compare with."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return {}
+    return {"overrides": [str(o) for o in OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)]}
 
 
 def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:
@@ -233,13 +259,22 @@ def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.
 def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, truth, level: float | None = None,
                   offset: np.ndarray | None = None) -> None:
     """Meshes (3D; moved by ``offset`` (3,) mm into the frame of the user's mesh file) and
-    PNG figures of one job (``level``: the truth occupancy counted as inside in the slices)."""
+    PNG figures of one job (``level``: the truth occupancy counted as inside in the slices). The
+    reconstruction's mesh comes from its finer sampling when the solver made one
+    (:attr:`Reconstruction.fine`: ``solver=implicit solver.output_upsample=2``), as the log says; its
+    volume, metrics and figures stay on the data grid."""
     grid = recon.grid
     meshes = []
     if grid.ndim == 3:
         if truth is not None:
             meshes.append((volume_to_mesh(truth, grid, 0.5), "truth"))
-        meshes.append((volume_to_mesh(recon.occupancy.numpy(), grid, recon.threshold), "reconstruction"))
+        surface = recon.fine if recon.fine is not None and recon.fine.grid.ndim == 3 else recon
+        if surface is not recon:
+            log.info("the reconstruction's mesh is its field sampled at %d^3 (the solver's finer sampling, "
+                     "solver.output_upsample); reconstruction.npz, the metrics and the figures are on the %d^3 grid",
+                     surface.grid.n, grid.n)
+        meshes.append((volume_to_mesh(surface.occupancy.detach().cpu().numpy(), surface.grid, surface.threshold),
+                       "reconstruction"))
         for mesh, name in meshes:
             if len(mesh.faces):
                 placed = mesh if offset is None else mesh.copy().apply_translation(offset)

@@ -41,6 +41,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "prior_rounds": ("run", "plug-and-play rounds run, of the most allowed"),
     "prior_rounds_reason": ("run", "why the rounds ended there"),
     "threshold": ("run", "occupancy level of the binary shape and its surface"),
+    "overrides": ("run", "command-line overrides of the run that wrote these metrics"),
     "threshold_rule": ("run", "how that level was set (volume: its surface encloses the measured volume)"),
     "iou": ("how close to the truth", "intersection over union (1 = identical)"),
     "chamfer": ("how close to the truth", "Chamfer distance (fraction of the truth's diagonal)"),

@@ -61,6 +61,10 @@ def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: flo
     on the symmetry axis (heights ``t`` along ``g theta`` of the image equal those along
     ``theta``, so profiles and offsets are unchanged). Directions within ``tol_deg`` of each
     other (including measured repeats) are merged and their profiles averaged.
+
+    ``metadata["measured_orientations"]`` counts the dips measured: those of ``measurement``, or the count its
+    metadata already holds when it was expanded before (a job's ``measurement.npz`` read back with the symmetry
+    declared again: its images were not dipped).
     """
     m = measurement
     if m.ndim != 3:
@@ -77,7 +81,8 @@ def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: flo
         sigma = sig / np.sqrt(counts)[:, None]
     return DipMeasurement(dirs, prof, m.slab_thickness, np.full(len(dirs), m.offsets[0].item()), sigma,
                           {**m.metadata, "symmetry_group_order": int(len(group)),
-                           "measured_orientations": m.n_orientations, "symmetry_orientations": int(len(dirs))})
+                           "measured_orientations": int(m.metadata.get("measured_orientations", m.n_orientations)),
+                           "symmetry_orientations": int(len(dirs))})
 
 
 def apply_symmetry(measurement: DipMeasurement, spec: Mapping | None) -> DipMeasurement:

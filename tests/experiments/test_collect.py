@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from omegaconf import OmegaConf
 
 from dipnet.experiments import collect
 
@@ -53,6 +54,36 @@ def test_a_run_refused_outside_a_sweep_is_failed_with_its_logged_error(tmp_path)
     assert collect.load_run(job).status == "unfinished"
     log.write_text("[2026-11-28 02:18:40,979][dipnet][WARNING] - error: quoted in a warning\n")
     assert collect.load_run(job).status == "unfinished"
+
+
+def test_metrics_an_earlier_run_left_in_its_folder_are_not_the_later_runs(tmp_path):
+    """Before: ``reconstruct.py`` refused (or killed) in the ``hydra.run.dir`` of a finished run left that run's
+    ``metrics.json`` beside its own ``.hydra/``: "ok", the earlier numbers under the new config (compare.py tabled
+    a minnorm run's IoU 0.717 as ``solver=voxel``'s, exit 0)."""
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=4, snr_db=None, seed=0,
+                    metrics={"iou": 0.717, "overrides": ["seed=0", "solver=minnorm", "n_dips=4"]})
+    assert collect.load_run(job).status == "ok"  # the same overrides, in another order
+    OmegaConf.save(OmegaConf.create(["solver=voxel", "n_dips=4", "seed=0"]), job / ".hydra" / "overrides.yaml")
+    run = collect.load_run(job)
+    assert (run.status, run.metrics) == ("unfinished", {})
+    assert run.error == ("its metrics.json is an earlier run's in this folder (overrides: seed=0 solver=minnorm n_dips=4), "
+                         "not this run's (solver=voxel n_dips=4 seed=0): this run wrote none (still running, or killed)")
+    (job / "reconstruct.log").write_text("[2026-11-28 06:52:52,521][dipnet][ERROR] - error: snr_db must be ...\n")
+    run = collect.load_run(job)
+    assert run.status == "failed" and run.error.startswith("snr_db must be ... (reconstruct.log); its metrics.json is")
+    assert "iou" not in collect.run_row(run)
+
+
+def test_a_run_with_a_declared_symmetry_is_tabled_by_the_dips_it_measured(tmp_path):
+    """Before: ``n_dips=10 symmetry={n_fold: 4}`` was a 40-dip row (its metrics' ``n_dips`` counts the images it
+    solves), pooled with the 40-dip runs without symmetry, its % of dips four times its cost."""
+    plain = write_job(tmp_path / "plain", solver="minnorm", n_dips=40, snr_db=None, seed=0, metrics={"iou": 0.9})
+    sym = write_job(tmp_path / "sym", solver="minnorm", n_dips=10, snr_db=None, seed=0,
+                    metrics={"iou": 0.8, "n_dips": 40, "n_dips_measured": 10})
+    rows = collect.run_rows(collect.collect_runs([plain, sym]))
+    assert [(r["n_dips"], r.get("n_dips_with_images")) for r in rows] == [(40, None), (10, 40)]
+    assert rows[1]["dips_percent"] == pytest.approx(rows[0]["dips_percent"] / 4)
+    assert [g["n_dips"] for g in collect.aggregate(rows)] == [10, 40]
 
 
 def test_no_runs_is_a_clear_error(tmp_path):

@@ -163,3 +163,20 @@ def test_a_job_given_twice_is_compared_once(sweep, tmp_path, capsys):
         assert len(list(csv.DictReader(f))) == n
     with (out / "summary.csv").open() as f:
         assert {row["runs"] for row in csv.DictReader(f)} <= {"1", "2"}
+
+
+def test_files_of_an_earlier_comparison_in_the_output_folder_are_named(sweep, tmp_path, capsys):
+    """``compare.py A -o results`` then ``compare.py B -o results`` (the README gives ``-o results``): before, the
+    folder kept A's ``vs_snr.png`` (B has no noise levels) beside B's tables, exit 0 without a word."""
+    out = tmp_path / "results"
+    assert _load_compare().main([str(sweep), "-o", str(out)]) == 0
+    assert (out / "vs_snr.png").is_file() and "earlier comparison" not in capsys.readouterr().err
+    quiet = tmp_path / "quiet"
+    for i, n in enumerate((4, 8)):
+        write_job(quiet / str(i), solver="minnorm", n_dips=n, snr_db=None, seed=0, metrics={"iou": 0.5})
+    assert _load_compare().main([str(quiet), "-o", str(out)]) == 0
+    assert capsys.readouterr().err.endswith(
+        f"warning: {out} holds 1 file(s) of an earlier comparison that this one did not write: vs_snr.png; they are "
+        "not this comparison's results: delete them, or give each comparison its own -o\n")
+    assert _load_compare().main([str(quiet), "-o", str(out)]) == 0  # the same comparison again: vs_snr.png still
+    assert "vs_snr.png" in capsys.readouterr().err

@@ -164,3 +164,68 @@ def test_the_3d_view_is_cut_open_with_a_button_for_the_whole(answered_sweep):
     assert [(t["name"], t.get("visible", True)) for t in spec] == [
         ("truth", True), ("truth", False), ("reconstruction", True), ("reconstruction", False)]
     assert "cut open at y = 0 mm" in text and ">whole<" not in text and '"label":"whole"' in text.replace(" ", "")
+
+
+def _mesh_traces(text: str) -> list[tuple[str, bool, int]]:
+    """``(name, visible, faces)`` of each trace of a run page's 3D view (plotly may encode arrays as base64)."""
+    import base64
+
+    import numpy as np
+
+    spec = json.loads(re.search(r'Plotly.newPlot\(\s*"meshes",\s*(\[.*?\]),\s*(\{.*?\})\s*,\s*\{"responsive"',
+                                text, re.S).group(1))
+    faces = [np.frombuffer(base64.b64decode(t["i"]["bdata"]), t["i"]["dtype"]).size if isinstance(t["i"], dict)
+             else len(t["i"]) for t in spec]
+    return [(t["name"], t.get("visible", True), n) for t, n in zip(spec, faces)]
+
+
+def test_the_3d_view_shows_only_the_meshes_the_run_wrote(tmp_path):
+    """Before: a run into the folder of an earlier one, with ``output.mesh_formats=[stl]`` or from a recording (no
+    truth), showed the earlier run's ``truth.ply`` and ``reconstruction.ply`` as its own (the chamber box on a
+    torus run's page, exit 0); with ``[stl]`` alone and no earlier run, no truth at all."""
+    import trimesh
+    from omegaconf import OmegaConf
+
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=8, snr_db=None, seed=0, ndim=3, resolution=20,
+                    metrics={"iou": 0.9})
+    assert [(name, faces > 100) for name, _, faces in _mesh_traces(report.write_run_report(job).read_text())] == [
+        ("truth", True), ("truth", True), ("reconstruction", True), ("reconstruction", True)]
+    config = OmegaConf.load(job / ".hydra" / "config.yaml")
+    config.output = {"mesh_formats": ["stl"]}  # this run: STL files, from a recording (no truth, no shape)
+    OmegaConf.save(config, job / ".hydra" / "config.yaml")
+    metrics = json.loads((job / "metrics.json").read_text())
+    del metrics["shape"], metrics["iou"]
+    (job / "metrics.json").write_text(json.dumps(metrics))
+    box = trimesh.creation.box(extents=(10.0, 20.0, 30.0))
+    box.export(job / "reconstruction.stl")
+    traces = _mesh_traces(report.write_run_report(job).read_text())
+    assert [(name, visible) for name, visible, _ in traces] == [("reconstruction", True), ("reconstruction", False)]
+    assert traces[1][2] == len(box.faces)  # the whole box (the first trace is cut open)
+
+
+def test_the_page_shows_only_the_figures_the_run_drew(tmp_path):
+    """Before: the page showed every PNG of the folder: after a run with figures into it, a run with
+    ``output.figures=false`` (or without uncertainty, or from a recording: no slices) had the earlier run's
+    slices, uncertainty and loss figures on its page, as its own."""
+    from omegaconf import OmegaConf
+
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=8, snr_db=None, seed=0, ndim=3, resolution=20,
+                    metrics={"iou": 0.9})
+    names = [name for name, _ in report.RUN_FIGURES] + ["loss.png"]
+    for name in names:  # an earlier run's figures
+        (job / name).write_bytes(b"\x89PNG\r\n\x1a\n")
+    shown = [name for name in names if f'src="{name}"' in report.write_run_report(job).read_text()]
+    assert shown == names  # no output options recorded: every figure is taken as the run's
+    config = OmegaConf.load(job / ".hydra" / "config.yaml")
+    config.output = {"figures": True, "uncertainty": False, "resolvability": True}
+    OmegaConf.save(config, job / ".hydra" / "config.yaml")
+    metrics = json.loads((job / "metrics.json").read_text())
+    del metrics["shape"], metrics["iou"]  # a recording: no truth, no slices
+    (job / "metrics.json").write_text(json.dumps(metrics))
+    text = report.write_run_report(job).read_text()
+    assert [name for name in names if f'src="{name}"' in text] == ["resolvability.png", "profiles.png", "mesh.png",
+                                                                   "loss.png"]
+    config.output.figures = False
+    OmegaConf.save(config, job / ".hydra" / "config.yaml")
+    text = report.write_run_report(job).read_text()
+    assert not [name for name in names if f'src="{name}"' in text]

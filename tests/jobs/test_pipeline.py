@@ -222,8 +222,42 @@ def test_a_run_into_the_folder_of_an_earlier_run_names_the_files_it_did_not_writ
     assert again.returncode == 0 and "earlier run" not in again.stderr + (tmp_path / "reconstruct.log").read_text()
     extent = float(np.load(tmp_path / "reconstruction.npz")["grid_extent"])
     recorded = cli(tmp_path, *quick, "source=recorded", f"source.reader.path={tmp_path / 'rawscan.jsonl'}",
-                   f"extent_mm={extent}")
+                   f"extent_mm={extent}", "n_slabs=${resolution}")
     assert recorded.returncode == 0, recorded.stderr[-2000:]
     assert (f"{tmp_path} holds 3 file(s) of an earlier run that this run did not write: reconstruction.stl, "
             "truth.ply, truth.stl; they are not this run's results: delete them, or give each run its own "
             "hydra.run.dir") in (tmp_path / "reconstruct.log").read_text()
+    # whose numbers metrics.json holds: the overrides of the run that wrote it, as Hydra saved them for that run
+    # (compare.py tells a later run's refusal from the earlier run's metrics by them)
+    # (as typed: an interpolation unresolved, as Hydra saves it; resolved, this run's own metrics were "an earlier
+    # run's", unfinished)
+    from dipnet.experiments import collect
+
+    written = json.loads((tmp_path / "metrics.json").read_text())["overrides"]
+    assert written == OmegaConf.to_container(OmegaConf.load(tmp_path / ".hydra" / "overrides.yaml"), resolve=False)
+    assert "source=recorded" in written and "n_slabs=${resolution}" in written
+    assert collect.load_run(tmp_path).status == "ok"
+
+
+def test_the_mesh_comes_from_the_solvers_finer_sampling_when_it_made_one(tmp_path, caplog):
+    """Before: ``solver=implicit solver.output_upsample=2`` sampled the field at 2N and the job dropped it without a
+    word: reconstruction.ply was the N^3 surface, as without the option (a ball of radius 30 mm: 102,214 mm^3 at
+    8^3 for 113,097; 110,677 at 32^3). Now the mesh is the fine one."""
+    coarse, fine = Grid(8, 3, 100.0), Grid(32, 3, 100.0)
+
+    def ball(grid):
+        return torch.as_tensor((grid.centers().norm(dim=-1) <= 30.0).double())
+
+    recon = Reconstruction(ball(coarse), coarse, 0.5)
+    recon.fine = Reconstruction(ball(fine), fine, 0.5)
+    cfg = OmegaConf.create({"output": {"mesh_formats": ["ply"], "figures": False}})
+    with caplog.at_level("INFO", logger="dipnet.jobs.pipeline"):
+        write_outputs(cfg, tmp_path, None, None, recon, None)
+    import trimesh
+
+    from dipnet.shapes.isosurface import volume_to_mesh
+
+    mesh = trimesh.load(tmp_path / "reconstruction.ply", force="mesh")
+    assert mesh.volume == pytest.approx(volume_to_mesh(recon.fine.occupancy, fine, 0.5).volume, rel=1e-9)
+    assert mesh.volume == pytest.approx(4 / 3 * math.pi * 30.0**3, rel=0.03)
+    assert "the reconstruction's mesh is its field sampled at 32^3" in caplog.text

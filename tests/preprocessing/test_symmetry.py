@@ -23,3 +23,19 @@ def test_simulated_job_duplicates_profiles_under_the_declared_group(tmp_path):
     assert apply_symmetry(plain.measurement, None) is plain.measurement
     with pytest.raises(ValueError, match="unknown symmetry option"):
         apply_symmetry(plain.measurement, {"nfold": 3})
+
+
+def test_a_measurement_expanded_again_counts_the_dips_measured_once():
+    """Before: a job's ``measurement.npz`` (10 dips x a 4-fold group = 40) read back with ``symmetry={n_fold: 4}``
+    again reported ``n_dips_measured`` 40 in ``metrics.json``: the images counted as measured dips."""
+    import torch
+
+    from dipnet.core.orientations import fibonacci_hemisphere
+    from dipnet.core.measurement import DipMeasurement
+
+    measured = DipMeasurement(fibonacci_hemisphere(10), torch.ones(10, 8, dtype=torch.float64), 1.0,
+                              torch.full((10,), -4.0))
+    once = apply_symmetry(measured, {"n_fold": 4})
+    twice = apply_symmetry(once, {"n_fold": 4})
+    assert (once.n_orientations, twice.n_orientations) == (40, 40)
+    assert once.metadata["measured_orientations"] == twice.metadata["measured_orientations"] == 10
