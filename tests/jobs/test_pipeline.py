@@ -227,3 +227,24 @@ def test_a_run_into_the_folder_of_an_earlier_run_names_the_files_it_did_not_writ
     assert (f"{tmp_path} holds 3 file(s) of an earlier run that this run did not write: reconstruction.stl, "
             "truth.ply, truth.stl; they are not this run's results: delete them, or give each run its own "
             "hydra.run.dir") in (tmp_path / "reconstruct.log").read_text()
+
+
+def test_the_uncertainty_calibration_scores_the_truth_that_iou_scores(tmp_path):
+    """The audit's case: the job scored ``error_rate_by_uncertainty_decile`` and ``uncertainty_brier`` against the true
+    occupancy above 0.5, while IoU and the false rates score it above ``truth_level``, the level whose voxels hold the
+    exact volume (a 0.5 cut is 15 % too large for the chamber box at 24^3: 219 wrong voxels instead of 125, Brier
+    0.060 instead of 0.044, the top decile's error rate 0.337 instead of 0.266). Now both score one reference."""
+    from dipnet.evaluation.uncertainty import calibration_by_decile
+    from dipnet.shapes import builtin_shape
+
+    result = run(reconstruct_cfg("resolution=24", "n_dips=12", "output.figures=false"), tmp_path)
+    metrics = result.metrics
+    grid = result.reconstruction.grid
+    truth = builtin_shape("chamber_box", 3, 45.0).occupancy(grid, supersample=3).numpy()
+    with np.load(tmp_path / "reconstruction.npz") as saved:
+        p_wrong, binary = saved["uncertainty_p_wrong"], saved["binary"]
+    reference = truth > metrics["truth_level"]
+    assert metrics["truth_level"] != 0.5 and (reference != (truth > 0.5)).sum() > 0
+    assert metrics["error_rate_by_uncertainty_decile"] == [
+        round(float(v), 5) for v in calibration_by_decile(p_wrong, binary, reference)]
+    assert (binary & ~reference).sum() / reference.sum() == pytest.approx(metrics["false_positive"])
