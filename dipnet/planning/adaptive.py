@@ -105,7 +105,9 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
         maps = voxel_maps(recon, posterior)
         summary = summarise(maps, recon.binary)
         n = measurement.n_orientations
-        history.append({"n_dips": n, **summary})
+        # the grid and slabs the posterior was fitted on: at most the reconstruction's, coarser with many dips
+        history.append({"n_dips": n, **summary, "posterior_resolution": posterior.grid.n,
+                        "posterior_slabs": posterior.n_slabs})
         log.info("adaptive step: %d dips, expected error fraction %.4f", n, summary["expected_error_fraction"])
         if n >= settings.budget:
             return AdaptiveResult(measurement, recon, operator, maps, history, "budget")

@@ -36,6 +36,7 @@ def test_adaptive_loop_stops_at_the_budget(tmp_path):
     # job's metrics.json from output.uncertainty: with another seed or method the two differ)
     assert planning["posterior"] == {"method": "linearised", "resolution": 16, "n_samples": 64, "band_voxels": 1.5,
                                      "floor": 0.05, "seed": 0, "max_rows": 4000, "max_work": 6e7}
+    assert [(h["posterior_resolution"], h["posterior_slabs"]) for h in planning["history"]] == [(16, 16)] * 4
     with np.load(tmp_path / "reconstruction.npz") as saved:
         assert saved["uncertainty_std"].shape == (16, 16, 16)
     assert 0 < result.metrics["uncertainty_mean"] < 0.5 and len(result.metrics["error_rate_by_uncertainty_decile"]) == 10
@@ -134,3 +135,15 @@ def test_the_loop_never_dips_a_measured_direction_again(box_problem):
             ) in messages[0]
     assert "after 16 dips only 0 of the reach's 8 candidate directions" in messages[1]
     assert "the loop stops at 16 dips" in messages[1] and "a finer reach.step_deg (now 10 deg)" in messages[1]
+
+
+def test_each_step_names_the_grid_its_posterior_was_fitted_on(tmp_path):
+    """The audit's case: ``planner=adaptive resolution=24`` wrote ``"resolution": 32`` under ``posterior`` in
+    planning.json (the option), while every step's posterior was fitted on 24^3 (never finer than the
+    reconstruction), no word; with many dips it is coarser still. Each row now holds the grid and slabs used."""
+    run(reconstruct_cfg("resolution=12", "planner=adaptive", "planner.budget=6", "planner.batch_size=3",
+                        "planner.initial_dips=3", "solver=voxel", "solver.iterations=5", "output.figures=false",
+                        "output.uncertainty=false"), tmp_path)
+    planning = json.loads((tmp_path / "planning.json").read_text())
+    assert planning["posterior"]["resolution"] == 32  # the option asked for
+    assert [(h["posterior_resolution"], h["posterior_slabs"]) for h in planning["history"]] == [(12, 12)] * 2
