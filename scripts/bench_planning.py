@@ -100,7 +100,25 @@ def parse_args(argv=None) -> argparse.Namespace:
         check_mesh_names(args.meshes)
     except FileNotFoundError as exc:  # now, not after the meshes before it
         p.error(f"--meshes: {exc}")
+    check_plan_options(p, args)
     return args
+
+
+def check_plan_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse (``p.error``: one line, exit 2) before any mesh what a case would fail on after minutes of solves, or
+    run on without a word: ``--fill`` outside (0, 1] (a mesh larger than the working ball, which the grid cannot
+    hold), the loop's ``--budget`` / ``--batch`` / ``--initial``, the ``--cap-tilt`` reach, ``--large`` or ``--n``."""
+    if not 0 < args.fill <= 1:
+        p.error(f"--fill must be in (0, 1] (the mesh's radius over the working ball's: above 1 the mesh reaches beyond "
+                f"the working ball, which the grid cannot hold), got {args.fill:g}")
+    try:
+        Grid(args.n, 3)
+        AdaptiveSettings(budget=args.budget, batch_size=args.batch, initial_dips=args.initial)
+        Reach(tilt_range_deg=(0.0, args.cap_tilt), step_deg=5.0)
+        fibonacci_hemisphere(args.large)
+    except ValueError as exc:
+        p.error(f"--n {args.n}, --budget {args.budget}, --batch {args.batch}, --initial {args.initial}, --cap-tilt "
+                f"{args.cap_tilt:g}, --large {args.large}: {exc}")
 
 
 def main(argv=None) -> dict[str, float]:

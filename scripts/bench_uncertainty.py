@@ -39,8 +39,8 @@ import torch
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.evaluation.ensemble import (brier_score, ensemble_maps, occupancy_probability, reliability,
-                                        sample_ensemble)
+from dipnet.evaluation.ensemble import (brier_score, check_ensemble_options, ensemble_maps, occupancy_probability,
+                                        reliability, sample_ensemble)
 from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
 from dipnet.operators import make_operator
 from dipnet.preprocessing.datasets import MESHES_DIR, check_mesh_names
@@ -73,6 +73,13 @@ def parse_args(argv=None) -> argparse.Namespace:
         check_mesh_names(args.meshes)
     except FileNotFoundError as exc:  # now, not after the meshes before it
         p.error(f"--meshes: {exc}")
+    try:  # now, not by a traceback after the first case's reference solve
+        Grid(args.n, 3)
+        fibonacci_hemisphere(args.dips)
+        check_ensemble_options(args.samples, args.iterations_scale)
+    except ValueError as exc:
+        p.error(f"--n {args.n}, --dips {args.dips}, --samples {args.samples}, --iterations-scale "
+                f"{args.iterations_scale:g}: {exc}")
     return args
 
 

@@ -118,6 +118,15 @@ def profile_noise_std(reconstruction: Reconstruction, measurement: DipMeasuremen
     return math.sqrt(misfit_variance(reconstruction, measurement, operator) * ratio)
 
 
+def check_ensemble_options(n_samples: int, iterations_scale: float) -> None:
+    """Raise ``ValueError`` for what :func:`sample_ensemble` cannot use: fewer than 2 members ``n_samples`` (no
+    spread), or an ``iterations_scale`` (the share of the solver's iterations each member runs) outside ``(0, 1]``."""
+    if int(n_samples) < 2:
+        raise ValueError(f"an ensemble needs n_samples >= 2, got {n_samples}")
+    if not 0 < iterations_scale <= 1:
+        raise ValueError(f"iterations_scale must be in (0, 1], got {iterations_scale}")
+
+
 def sample_ensemble(solver: Solver, reconstruction: Reconstruction, measurement: DipMeasurement,
                     operator: DipOperator, *, n_samples: int = 4, seed: int = 0, perturb: bool = True,
                     random_start: bool = True, iterations_scale: float = 1.0) -> Ensemble:
@@ -133,10 +142,7 @@ def sample_ensemble(solver: Solver, reconstruction: Reconstruction, measurement:
         random_start: give optimisation solvers a :class:`RandomStart`.
         iterations_scale: fraction of the solver's iterations each member runs, in ``(0, 1]``.
     """
-    if int(n_samples) < 2:
-        raise ValueError(f"an ensemble needs n_samples >= 2, got {n_samples}")
-    if not 0 < iterations_scale <= 1:
-        raise ValueError(f"iterations_scale must be in (0, 1], got {iterations_scale}")
+    check_ensemble_options(n_samples, iterations_scale)
     started = time.perf_counter()
     std = profile_noise_std(reconstruction, measurement, operator) if perturb else 0.0
     rng = np.random.default_rng(int(seed))

@@ -78,7 +78,7 @@ class Resolvability:
         azimuthal_signal_ratio: the largest ``ring_rms`` over the noise sigma estimated from the
             profiles (:func:`dipnet.evaluation.consistency.estimate_slab_sigma`): about 1 when turning the
             object about its axis (the rig's spin) changes nothing beyond noise; ``None``
-            without rings.
+            without rings (and in 2D, which has no spin).
     """
 
     directions: np.ndarray
@@ -234,8 +234,10 @@ def ring_variation(measurement: DipMeasurement, tol_deg: float = 0.5) -> tuple[n
 
 
 def _rings(measurement: DipMeasurement | None) -> dict:
-    """The ring fields of :class:`Resolvability` for ``measurement`` (empty without one)."""
-    if measurement is None:
+    """The ring fields of :class:`Resolvability` for ``measurement`` (empty without one, and in 2D: a 2D dip has no
+    spin, and two directions at one angle from the last axis are mirror images, ``a`` and ``180 - a`` deg, whose
+    profiles differ for any object but a symmetric one)."""
+    if measurement is None or measurement.ndim != 3:
         return {"ring_polar_deg": np.zeros(0), "ring_rms": np.zeros(0), "azimuthal_signal_ratio": None}
     angles, rms = ring_variation(measurement)
     sigma = estimate_slab_sigma(measurement.profiles)

@@ -155,7 +155,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     if "uncertainty" in stages:
         stage("uncertainty")
         method = "linearised" if cfg.output.uncertainty is True else str(cfg.output.uncertainty)
-        scores.update(write_uncertainty(out, recon, measurement, operator, truth, bool(cfg.output.figures), method,
+        reference = None if truth is None else truth > level  # the inside / outside that IoU and false rates score
+        scores.update(write_uncertainty(out, recon, measurement, operator, reference, bool(cfg.output.figures), method,
                                         solver, int(cfg.output.get("uncertainty_samples") or 4), int(cfg.seed),
                                         float(cfg.output.get("uncertainty_iterations") or 1.0)))
     write_json(out / "metrics.json", scores, indent=2)

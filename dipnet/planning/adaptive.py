@@ -5,9 +5,12 @@
 behind ``planner=adaptive`` in ``scripts/reconstruct.py``) and the rig (:mod:`dipnet.rig.adaptive`)
 give it an ``acquire`` callback. It starts from
 ``initial_dips`` directions spread uniformly over the reachable set, and after each
-reconstruction either stops - at the ``budget`` of dips, or when the expected misclassified
-fraction (:func:`dipnet.evaluation.uncertainty.summarise`) falls below ``stop_uncertainty`` - or asks the
-planner for the next ``batch_size`` reachable directions.
+reconstruction either stops - at the ``budget`` of dips, when the expected misclassified
+fraction (:func:`dipnet.evaluation.uncertainty.summarise`) falls below ``stop_uncertainty``, or when every
+candidate direction of the reach is measured (``"candidates"``: a dip along a measured direction measures the
+same planes again, minutes of robot time for nothing new; a warning says so and how to get more candidates) - or
+asks the planner for the next ``batch_size`` reachable directions that are not measured yet (fewer when fewer are
+left).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import torch
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
 from dipnet.core.orientations import Reach
-from dipnet.planning.planner import Planner
+from dipnet.planning.planner import MEASURED_DEG, Planner, measured_candidates
 from dipnet.core.rawscan import RawScan, RawScanFileError
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.minnorm import MinNormSolver
@@ -69,7 +72,8 @@ class AdaptiveSettings:
 @dataclass
 class AdaptiveResult:
     """What the loop ended with: the last measurement and reconstruction, its uncertainty maps
-    (:func:`dipnet.evaluation.uncertainty.voxel_maps`), one history row per step and why it stopped."""
+    (:func:`dipnet.evaluation.uncertainty.voxel_maps`), one history row per step and why it stopped
+    (``"budget"``, ``"uncertainty"`` or ``"candidates"``: every candidate direction of the reach measured)."""
 
     measurement: DipMeasurement
     reconstruction: Reconstruction
@@ -101,16 +105,36 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
         maps = voxel_maps(recon, posterior)
         summary = summarise(maps, recon.binary)
         n = measurement.n_orientations
-        history.append({"n_dips": n, **summary})
+        # the grid and slabs the posterior was fitted on: at most the reconstruction's, coarser with many dips
+        history.append({"n_dips": n, **summary, "posterior_resolution": posterior.grid.n,
+                        "posterior_slabs": posterior.n_slabs})
         log.info("adaptive step: %d dips, expected error fraction %.4f", n, summary["expected_error_fraction"])
         if n >= settings.budget:
             return AdaptiveResult(measurement, recon, operator, maps, history, "budget")
         if settings.stop_uncertainty is not None and summary["expected_error_fraction"] < settings.stop_uncertainty:
             return AdaptiveResult(measurement, recon, operator, maps, history, "uncertainty")
+        wanted = min(settings.batch_size, settings.budget - n)
+        left = int((~measured_candidates(candidates, measurement.directions)).sum())
+        if left < wanted:
+            _warn_few_candidates(left, wanted, n, len(candidates), settings.budget, reach)
+            if not left:
+                return AdaptiveResult(measurement, recon, operator, maps, history, "candidates")
         start = time.perf_counter()
-        planned = planner.next(measurement, recon, candidates, min(settings.batch_size, settings.budget - n), operator,
-                               posterior=posterior)
+        planned = planner.next(measurement, recon, candidates, min(wanted, left), operator, posterior=posterior)
         history[-1]["plan_seconds"] = time.perf_counter() - start
+
+
+def _warn_few_candidates(left: int, wanted: int, n_dips: int, n_candidates: int, budget: int, reach: Reach) -> None:
+    """Warn that only ``left`` of the reach's ``n_candidates`` directions are not measured after ``n_dips`` dips, fewer
+    than the ``wanted`` next batch: the loop plans ``left`` (and stops when 0 are left) short of ``budget``."""
+    then = f"the loop stops at {n_dips} dips" if not left else f"the loop plans those {left}"
+    message = (f"planner=adaptive: after {n_dips} dips only {left} of the reach's {n_candidates} candidate directions "
+               f"are not measured yet (within {MEASURED_DEG:g} deg), fewer than the {wanted} of the next batch: {then}, "
+               f"short of the budget of {budget} (a dip along a measured direction measures the same planes again); "
+               f"for more candidates give a finer reach.step_deg (now {reach.step_deg:g} deg) or a wider reach "
+               f"(tilt {reach.tilt_range_deg[0]:g}-{reach.tilt_range_deg[1]:g} deg)")
+    log.warning(message)
+    warnings.warn(message, stacklevel=3)
 
 
 def warn_linear_loop_solver(solver) -> None:

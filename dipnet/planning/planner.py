@@ -107,11 +107,25 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.minnorm import operator_matrix
+from dipnet.evaluation.resolvability import angle_to_plan
 from dipnet.evaluation.uncertainty import Posterior, check_posterior_options, fit_posterior
 
 log = logging.getLogger(__name__)
 
 CRITERIA = ("information", "variance")
+#: A candidate within this angle (deg) of a measured dip's line (``d`` or ``-d``: the same planes) is that dip again:
+#: it measures no plane the data lack. The validation's duplicate-direction tolerance; candidates lie 5-10 deg apart.
+MEASURED_DEG = 0.5
+
+
+def measured_candidates(candidates: torch.Tensor, directions: torch.Tensor, tol_deg: float = MEASURED_DEG) -> np.ndarray:
+    """Boolean mask ``(C,)``: which ``candidates`` ``(C, 3)`` lie within ``tol_deg`` (deg) of the line of a measured
+    direction ``(K, 3)`` (any length: normalised here), so that dipping them again measures the same planes."""
+    c, d = (torch.nn.functional.normalize(torch.as_tensor(v, dtype=torch.float64), dim=1).numpy()
+            for v in (candidates, directions))
+    if not len(c) or not len(d):
+        return np.zeros(len(c), dtype=bool)
+    return np.degrees(angle_to_plan(c, d)) <= tol_deg
 
 
 def _keyword_defaults(function: Callable[..., Any]) -> dict[str, Any]:
@@ -125,8 +139,9 @@ class Planner(ABC):
     @abstractmethod
     def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
              k: int = 1, operator: DipOperator | None = None, posterior: Posterior | None = None) -> torch.Tensor:
-        """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first;
-        ``posterior``: :meth:`posterior` of the same reconstruction, if the caller has it already."""
+        """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first, none of them a
+        direction ``measurement`` holds (:func:`measured_candidates`); ``posterior``: :meth:`posterior` of the same
+        reconstruction, if the caller has it already."""
 
     def posterior(self, reconstruction: Reconstruction, measurement: DipMeasurement,
                   operator: DipOperator | None = None) -> Posterior:
@@ -175,12 +190,17 @@ class NextBestDipPlanner(Planner):
         candidates = torch.as_tensor(candidates, dtype=torch.float64)
         if candidates.ndim != 2 or candidates.shape[1] != 3 or len(candidates) < k or k < 1:
             raise ValueError(f"need 1 <= k <= C candidates of shape (C, 3), got k={k}, {tuple(candidates.shape)}")
+        measured = measured_candidates(candidates, measurement.directions)
+        if k > int((~measured).sum()):
+            raise ValueError(f"asked for {k} new dips, but only {int((~measured).sum())} of the {len(candidates)} "
+                             f"candidates are not measured already (within {MEASURED_DEG:g} deg): plan fewer, or give "
+                             "more candidates (a finer reach step_deg)")
         if posterior is None:
             posterior = self.posterior(reconstruction, measurement, operator)
         projections = self._candidate_matrix(posterior.grid, posterior.n_slabs, candidates) @ posterior.samples.T
         chosen = greedy_batch(projections.T.reshape(len(posterior.samples), len(candidates), posterior.n_slabs),
                               posterior.noise_var, k, np.random.default_rng(self.options["seed"] + 1),
-                              posterior.samples if self.criterion == "variance" else None)
+                              posterior.samples if self.criterion == "variance" else None, excluded=measured)
         self.last_seconds = time.perf_counter() - start
         log.info("planned %d dips among %d candidates in %.2f s", k, len(candidates), self.last_seconds)
         return candidates[chosen]
@@ -210,8 +230,9 @@ def candidate_scores(projections: np.ndarray, noise_var: float, gram: np.ndarray
 
 
 def greedy_batch(projections: np.ndarray, noise_var: float, k: int, rng: np.random.Generator,
-                 samples: np.ndarray | None = None) -> list[int]:
-    """Pick ``k`` candidates one by one by :func:`candidate_scores`, conditioning on each pick.
+                 samples: np.ndarray | None = None, excluded: np.ndarray | None = None) -> list[int]:
+    """Pick ``k`` candidates one by one by :func:`candidate_scores`, conditioning on each pick; never a candidate
+    of the boolean mask ``excluded`` ``(C,)`` (directions measured already), nor one twice.
 
     The conditioning is an ensemble Kalman update with perturbed observations; it acts on the
     samples from the left, ``D' = T D`` with ``T = I - E C_yy^-1 Y_c^T / (S - 1)`` ``(S, S)``, so
@@ -228,6 +249,8 @@ def greedy_batch(projections: np.ndarray, noise_var: float, k: int, rng: np.rand
     for _ in range(k):
         scores = candidate_scores(y, noise_var, gram)
         scores[chosen] = -np.inf
+        if excluded is not None:
+            scores[excluded] = -np.inf
         best = int(np.argmax(scores))
         chosen.append(best)
         picked = y[:, best, :]  # (S, M)

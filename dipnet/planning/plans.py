@@ -31,7 +31,9 @@ MakeOperator = Callable[[torch.Tensor], DipOperator]
 class PlanResult:
     """What a plan ended with: the measurement of all its dips, and the loop's report
     (``{"stop_reason", "history", "posterior"}``: why it stopped, one row per step, how the posterior behind the
-    rows' uncertainty figures was fitted; ``None`` for a plan made up front)."""
+    rows' uncertainty figures was fitted, its options; each row's ``posterior_resolution`` and ``posterior_slabs``
+    are the grid and slabs it was fitted on, at most the reconstruction's grid and coarser with many dips;
+    ``None`` for a plan made up front)."""
 
     measurement: DipMeasurement
     report: dict[str, Any] | None = None

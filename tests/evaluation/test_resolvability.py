@@ -96,3 +96,18 @@ def test_a_wide_unmeasured_band_is_warned_with_its_width_and_a_full_plan_is_not(
     assert "within 70 deg" in caplog.text
     assert warn_unmeasured_band(fibonacci_hemisphere(30)) is None
     assert warn_unmeasured_band(directions_2d([0.0, 45.0, 90.0, 135.0])) is None
+
+
+def test_a_2d_plan_has_no_spin_rings():
+    """The audit's case: a 2D elephant dipped at 12 equal angles reported ``azimuthal_signal_ratio`` 3.14 ("the spin
+    changes the profiles beyond noise"), from the profiles of mirror directions (15 and 165 deg, ...) compared as a
+    ring of one tilt; a 2D dip has no spin. Now ``None``, as for a plan without rings."""
+    from dipnet.shapes import builtin_shape
+    from dipnet.simulator.simulate import simulate_measurement
+
+    grid = Grid(32, 2, 100.0)
+    _, measurement = simulate_measurement(builtin_shape("elephant", 2, 40.0), directions_2d(np.arange(0, 180, 15.0)),
+                                          grid=grid, progress=False)
+    result = resolvability(measurement.directions, grid, measurement)
+    assert result.azimuthal_signal_ratio is None and result.ring_rms.size == 0
+    assert result.metrics()["azimuthal_signal_ratio"] is None

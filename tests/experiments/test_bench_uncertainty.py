@@ -27,3 +27,19 @@ def test_a_mesh_name_not_bundled_is_refused_before_any_case(capsys):
         load_script("bench_uncertainty").parse_args(["--meshes", "torus", "nosuch"])
     assert exit_.value.code == 2
     assert "error: --meshes: no bundled mesh 'nosuch'; bundled: boot, " in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--samples", "1"], "--n 32, --dips 41, --samples 1, --iterations-scale 1: an ensemble needs n_samples >= 2, got 1"),
+    (["--iterations-scale", "0"], "iterations_scale must be in (0, 1], got 0.0"),
+    (["--iterations-scale", "2"], "iterations_scale must be in (0, 1], got 2.0"),
+    (["--dips", "0"], "number of orientations must be a positive integer, got 0"),
+    (["--n", "3"], "grid resolution n must be an integer >= 4, got 3"),
+])
+def test_bad_ensemble_options_are_refused_before_any_case(capsys, argv, message):
+    """``--samples 1`` or ``--iterations-scale 0``: a ``ValueError`` traceback after the first case's reference solve
+    and its linearised posterior; ``--dips 0``, ``--n 3`` tracebacks too. Now refused by the argument parser, exit 2."""
+    with pytest.raises(SystemExit) as exit_:
+        load_script("bench_uncertainty").parse_args(["--meshes", "torus", *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and message in err and err.count("error:") == 1, err

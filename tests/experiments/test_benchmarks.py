@@ -255,3 +255,24 @@ def test_a_mesh_name_not_bundled_is_refused_before_any_case(script, capsys):
         load_script(script).parse_args(["--meshes", "torus", "nosuch"])
     assert exit_.value.code == 2
     assert "error: --meshes: no bundled mesh 'nosuch'; bundled: boot, " in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--fill", "2"], r"--fill must be in \(0, 1\] \(the mesh's radius over the working ball's: above 1 the mesh "
+                      r"reaches beyond the working ball, which the grid cannot hold\), got 2"),
+    (["--fill", "0"], r"--fill must be in \(0, 1\]"),
+    (["--budget", "5"], r"--n 32, --budget 5, --batch 8, --initial 8, --cap-tilt 35, --large 123: need 1 <= "
+                        r"initial_dips <= budget"),
+    (["--batch", "0"], r".*need 1 <= initial_dips <= budget and batch_size >= 1"),
+    (["--cap-tilt", "100"], r".*tilt range must satisfy 0 <= min <= max <= 90 degrees"),
+    (["--large", "0"], r".*number of orientations must be a positive integer, got 0"),
+])
+def test_bad_options_of_the_planning_bench_are_refused_before_any_mesh(capsys, argv, message):
+    """The audit's case: ``--fill 2`` (a torus twice the working ball, 16^3) ran every plan and printed
+    ``RESULT adaptive41_over_fib123=1.009 adaptive41_over_fib41=1.003 cap_adaptive_over_uniform=0.990``, exit 0, for a
+    mesh the grid cannot hold; ``--budget 5``, ``--batch 0``, ``--cap-tilt 100`` and ``--large 0`` gave tracebacks
+    after the plans before them. Now one ``error:`` line each, exit 2, before any mesh."""
+    with pytest.raises(SystemExit) as exit_:
+        load_script("bench_planning").parse_args(["--quick", "--meshes", "torus", *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and re.search(f"error: {message}", err), err

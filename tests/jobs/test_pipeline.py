@@ -261,3 +261,25 @@ def test_the_mesh_comes_from_the_solvers_finer_sampling_when_it_made_one(tmp_pat
     assert mesh.volume == pytest.approx(volume_to_mesh(recon.fine.occupancy, fine, 0.5).volume, rel=1e-9)
     assert mesh.volume == pytest.approx(4 / 3 * math.pi * 30.0**3, rel=0.03)
     assert "the reconstruction's mesh is its field sampled at 32^3" in caplog.text
+
+
+
+def test_the_uncertainty_calibration_scores_the_truth_that_iou_scores(tmp_path):
+    """The audit's case: the job scored ``error_rate_by_uncertainty_decile`` and ``uncertainty_brier`` against the true
+    occupancy above 0.5, while IoU and the false rates score it above ``truth_level``, the level whose voxels hold the
+    exact volume (a 0.5 cut is 15 % too large for the chamber box at 24^3: 219 wrong voxels instead of 125, Brier
+    0.060 instead of 0.044, the top decile's error rate 0.337 instead of 0.266). Now both score one reference."""
+    from dipnet.evaluation.uncertainty import calibration_by_decile
+    from dipnet.shapes import builtin_shape
+
+    result = run(reconstruct_cfg("resolution=24", "n_dips=12", "output.figures=false"), tmp_path)
+    metrics = result.metrics
+    grid = result.reconstruction.grid
+    truth = builtin_shape("chamber_box", 3, 45.0).occupancy(grid, supersample=3).numpy()
+    with np.load(tmp_path / "reconstruction.npz") as saved:
+        p_wrong, binary = saved["uncertainty_p_wrong"], saved["binary"]
+    reference = truth > metrics["truth_level"]
+    assert metrics["truth_level"] != 0.5 and (reference != (truth > 0.5)).sum() > 0
+    assert metrics["error_rate_by_uncertainty_decile"] == [
+        round(float(v), 5) for v in calibration_by_decile(p_wrong, binary, reference)]
+    assert (binary & ~reference).sum() / reference.sum() == pytest.approx(metrics["false_positive"])

@@ -36,6 +36,7 @@ def test_adaptive_loop_stops_at_the_budget(tmp_path):
     # job's metrics.json from output.uncertainty: with another seed or method the two differ)
     assert planning["posterior"] == {"method": "linearised", "resolution": 16, "n_samples": 64, "band_voxels": 1.5,
                                      "floor": 0.05, "seed": 0, "max_rows": 4000, "max_work": 6e7}
+    assert [(h["posterior_resolution"], h["posterior_slabs"]) for h in planning["history"]] == [(16, 16)] * 4
     with np.load(tmp_path / "reconstruction.npz") as saved:
         assert saved["uncertainty_std"].shape == (16, 16, 16)
     assert 0 < result.metrics["uncertainty_mean"] < 0.5 and len(result.metrics["error_rate_by_uncertainty_decile"]) == 10
@@ -100,3 +101,49 @@ def test_bad_loop_settings_are_user_errors(tmp_path):
         AdaptiveSettings(stop_uncertainty=0)
     with pytest.raises(ValueError, match="plans 3D dips"):
         run(reconstruct_cfg("ndim=2", "planner=adaptive"), tmp_path)
+
+
+def test_the_loop_never_dips_a_measured_direction_again(box_problem):
+    """The audit's case: a reach of 8 candidates (tilt 0-10 deg, step 10) and a budget of 20 in batches of 6. The
+    loop dipped 20 times, 5 of them along a direction it had dipped already (minutes of robot time each for planes
+    measured already), and 1 candidate never, no word. Now the loop plans only unmeasured candidates, warns
+    when fewer are left than a batch, and stops when none is left."""
+    from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
+
+    grid, _, dips = box_problem
+    dipped = []
+
+    def acquire(directions):
+        dipped.append(torch.as_tensor(directions))
+        return dips(torch.cat(dipped))
+
+    def reconstruct(measurement):
+        operator = make_operator(grid, measurement.directions, grid.n)
+        return MinNormSolver(progress=False).solve(measurement, operator), operator
+
+    reach = Reach(tilt_range_deg=(0, 10), step_deg=10)
+    with pytest.warns(UserWarning) as caught:
+        result = adaptive_loop(acquire, reconstruct, NextBestDipPlanner(resolution=10), reach,
+                               AdaptiveSettings(budget=20, batch_size=6, initial_dips=8))
+    directions = result.measurement.directions.numpy()
+    cosines = np.abs(directions @ directions.T)[np.triu_indices(len(directions), 1)]
+    assert cosines.max() < np.cos(np.radians(0.5))  # no direction twice
+    assert [h["n_dips"] for h in result.history] == [8, 14, 16] and result.stop_reason == "candidates"
+    messages = [str(w.message) for w in caught]
+    assert ("planner=adaptive: after 14 dips only 2 of the reach's 8 candidate directions are not measured yet "
+            "(within 0.5 deg), fewer than the 6 of the next batch: the loop plans those 2, short of the budget of 20"
+            ) in messages[0]
+    assert "after 16 dips only 0 of the reach's 8 candidate directions" in messages[1]
+    assert "the loop stops at 16 dips" in messages[1] and "a finer reach.step_deg (now 10 deg)" in messages[1]
+
+
+def test_each_step_names_the_grid_its_posterior_was_fitted_on(tmp_path):
+    """The audit's case: ``planner=adaptive resolution=24`` wrote ``"resolution": 32`` under ``posterior`` in
+    planning.json (the option), while every step's posterior was fitted on 24^3 (never finer than the
+    reconstruction), no word; with many dips it is coarser still. Each row now holds the grid and slabs used."""
+    run(reconstruct_cfg("resolution=12", "planner=adaptive", "planner.budget=6", "planner.batch_size=3",
+                        "planner.initial_dips=3", "solver=voxel", "solver.iterations=5", "output.figures=false",
+                        "output.uncertainty=false"), tmp_path)
+    planning = json.loads((tmp_path / "planning.json").read_text())
+    assert planning["posterior"]["resolution"] == 32  # the option asked for
+    assert [(h["posterior_resolution"], h["posterior_slabs"]) for h in planning["history"]] == [(12, 12)] * 2

@@ -51,3 +51,20 @@ def test_reconstruct_refuses_a_negative_band_before_any_dip(tmp_path, script_run
     done = script_run("reconstruct", tmp_path, "planner=adaptive", "planner.planner.band_voxels=-1", "resolution=16")
     assert one_line_error(done) == ("error: band_voxels must be >= 0 (the width of the uncertain boundary band, in "
                                     "posterior-grid voxels; 0: no band), got -1.0")
+
+
+def test_the_planner_never_picks_a_measured_direction(box_problem):
+    """A candidate along a measured dip's line (or its opposite: the same planes) is not planned again; asking for
+    more new dips than unmeasured candidates is refused, naming both counts."""
+    from dipnet.planning.planner import measured_candidates
+
+    grid, _, dips = box_problem
+    candidates = Reach(tilt_range_deg=(0, 10), step_deg=10).candidates()  # 8 directions
+    measurement = dips(torch.cat([candidates[:5], Reach().uniform(4)]))
+    operator = make_operator(grid, measurement.directions, grid.n)
+    recon = MinNormSolver(progress=False).solve(measurement, operator)
+    assert measured_candidates(candidates, -2.0 * measurement.directions).tolist() == [True] * 5 + [False] * 3
+    chosen = NextBestDipPlanner(resolution=10).next(measurement, recon, candidates, k=3, operator=operator)
+    assert sorted(map(tuple, chosen.tolist())) == sorted(map(tuple, candidates[5:].tolist()))
+    with pytest.raises(ValueError, match=r"asked for 4 new dips, but only 3 of the 8 candidates are not measured"):
+        NextBestDipPlanner(resolution=10).next(measurement, recon, candidates, k=4, operator=operator)
