@@ -263,7 +263,6 @@ def test_the_mesh_comes_from_the_solvers_finer_sampling_when_it_made_one(tmp_pat
     assert "the reconstruction's mesh is its field sampled at 32^3" in caplog.text
 
 
-
 def test_the_uncertainty_calibration_scores_the_truth_that_iou_scores(tmp_path):
     """The audit's case: the job scored ``error_rate_by_uncertainty_decile`` and ``uncertainty_brier`` against the true
     occupancy above 0.5, while IoU and the false rates score it above ``truth_level``, the level whose voxels hold the
