@@ -59,6 +59,9 @@ log = logging.getLogger(__name__)
 AUTHORS_COLUMNS = ("SN", "R1_deg", "R2_deg", "Height_mm", "WaterLevel_mm")
 AUTHORS_TANK_MM2 = 540.0 * 340.0  # the authors' value for the 3 mm cats recording
 AUTHORS_QUANTUM_MM = 0.04
+#: How close (mm) every level must lie to a multiple of :data:`AUTHORS_QUANTUM_MM` for a CSV to be read as the
+#: authors' sensor's (its file prints two decimals: every value is a multiple of 0.04 mm, up to rounding).
+AUTHORS_QUANTUM_TOL_MM = 1e-6
 
 
 # ============================================================================ readers
@@ -78,7 +81,8 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     The file may start with a byte-order mark (spreadsheet programs write one). Rows are grouped
     into orientations by consecutive equal ``(R1, R2)``; ``stage_mm =
     -Height_mm`` (increasing = lowered), ``values`` = water level (mm), tilt = R1, spin = R2.
-    Every orientation is complete; times are unknown (the row index is stored as time).
+    Every orientation is complete; times are unknown (the row index is stored as time). The reading
+    quantum is the authors' 0.04 mm when every level is a multiple of it, else unknown (:func:`authors_quantum`).
 
     Raises:
         RawScanFileError: missing file, wrong columns, non-numeric or non-finite values, a
@@ -128,7 +132,7 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     steps = np.diff(-a[:, 3])[np.diff(-a[:, 3]) > 0]
     header = ScanHeader(
         quantity="level_mm", ndim=3, tank_cross_section_mm2=float(tank_cross_section_mm2),
-        step_mm=float(np.median(steps)) if steps.size else None, resolution=AUTHORS_QUANTUM_MM,
+        step_mm=float(np.median(steps)) if steps.size else None, resolution=authors_quantum(a[:, 4], path),
         rig="Aberman et al. 2017 dipping robot (Kewiee/DipTransform)",
         metadata={"source": str(path), "format": "authors_csv", "columns": list(AUTHORS_COLUMNS)})
     scan = RawScan(header=header, path=path)
@@ -138,6 +142,24 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
             values=a[idx, 4], time_s=a[idx, 0], meta={"rows": [int(a[idx[0], 0]), int(a[idx[-1], 0])]},
             complete=True))
     return scan
+
+
+def authors_quantum(levels: np.ndarray, path: str | Path) -> float | None:
+    """The reading quantum (mm) of an authors'-format CSV's water levels ``levels`` ``(n,)`` (mm): the authors'
+    sensor's :data:`AUTHORS_QUANTUM_MM` when every level is a multiple of it, else ``None`` (unknown).
+
+    A quantum the readings do not have misleads every check that weighs it: levels converted to inches under
+    ``WaterLevel_mm`` (every volume 25.4**2 times too small) were taken as 0.04 mm readings, coarse against their
+    slabs, and the consistency check then named the sensor's resolution as the cause and left out the unit hint.
+    """
+    steps = np.asarray(levels, dtype=np.float64) / AUTHORS_QUANTUM_MM
+    off = float(np.max(np.abs(steps - np.round(steps)))) * AUTHORS_QUANTUM_MM if steps.size else 0.0
+    if off <= AUTHORS_QUANTUM_TOL_MM:
+        return AUTHORS_QUANTUM_MM
+    log.info("%s: the water levels are not multiples of the authors' %g mm reading quantum (up to %.3g mm off): "
+             "another sensor, or levels converted from another unit; the reading quantum is left unknown",
+             path, AUTHORS_QUANTUM_MM, off)
+    return None
 
 
 def read_scan(path: str | Path, tank_cross_section_mm2: float | None = None) -> RawScan:

@@ -69,6 +69,19 @@ def test_authors_csv_reader(cats_csv):
     assert all(tilt[k] >= 15 for k in cut) and all(o.k in cut for o in raw.orientations if o.tilt_deg >= 25)
 
 
+def test_authors_csv_levels_off_the_authors_quantum_leave_it_unknown(cats_csv, tmp_path):
+    """Levels converted to inches under WaterLevel_mm were read as the authors' 0.04 mm readings: the consistency
+    check then named that quantum (coarse against the tiny slabs) as the cause and left out the unit hint."""
+    rows = cats_csv.read_text().splitlines()
+    inches = tmp_path / "inches.csv"
+    inches.write_text("\n".join([rows[0]] + [",".join(r.split(",")[:4] + [f"{float(r.split(',')[4]) / 25.4:.5f}"])
+                                               for r in rows[1:]]) + "\n")
+    assert read_authors_csv(inches).header.resolution is None
+    m = read_raw_recording(inches, Grid(16, extent=360.0), truncated="keep")
+    assert m.metadata["reading_quantum"] is None
+    assert read_raw_recording(cats_csv, Grid(16, extent=360.0), truncated="keep").metadata["reading_quantum"] == 0.04
+
+
 def test_authors_csv_errors(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("SN,R1,R2,H,L\n1,0,0,-25,188\n")
