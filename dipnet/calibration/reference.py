@@ -15,7 +15,7 @@ import torch
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
                                       State, _check_params, _warn_undetermined)
 from dipnet.calibration.moments import (GAUGE_REASONS, MIN_SPARE_CONDITIONS, TOLERANCE, DipMoments, KnownObject,
-                                       dip_moments, fit_drift, fit_moments, spare_conditions)
+                                       confounded_heights, dip_moments, fit_drift, fit_moments, spare_conditions)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
@@ -91,6 +91,10 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         free = ()
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
                                                      "spin_zero_deg", "step_scale")}
+    confounded = confounded_heights(moments, free, known=known, fixed=fixed, t0_sd_mm=t0_sd_mm,
+                                    position_sd_mm=position_sd_mm) if free else {}
+    gauges.update(confounded)  # kept at the configured values, as the parameters of too few dips
+    free = tuple(p for p in free if p not in confounded)
     joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm,
                         position_sd_mm=position_sd_mm) if free else None
     fit, undetermined, caveats, held = _hold_undetermined(joint, moments, known, fixed, kind, seed, t0_sd_mm,
