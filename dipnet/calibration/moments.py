@@ -489,6 +489,62 @@ def spare_conditions(n_dips: int, free: tuple[str, ...], known: KnownObject | No
     return 2 * int(n_dips) - unknowns
 
 
+#: A free pivot, offset or start height whose first-moment column lies within this (relative) of the span of the
+#: other unknowns' columns is confounded with them (:func:`confounded_heights`).
+CONFOUNDED = 1e-6
+
+
+def _nuisance_priors(known: KnownObject | None, free: tuple[str, ...], t0_sd_mm: float,
+                     position_sd_mm: float) -> dict[str, float]:
+    """The priors (name -> standard deviation, mm) :func:`fit_moments` fits a reference object's nuisances with: the
+    common start height's (``t0_sd_mm`` with :data:`START_MODEL_SD_MM` in quadrature) unless ``t0_mm`` is free, and
+    the object's position's along x, y, z; none for an unknown object (``known`` ``None``)."""
+    if known is None:
+        return {}
+    t0_sd_mm = float(np.hypot(t0_sd_mm, START_MODEL_SD_MM))
+    return {n: sd for n, sd in (("t0_mm", t0_sd_mm), ("shift_x_mm", position_sd_mm), ("shift_y_mm", position_sd_mm),
+                                ("shift_z_mm", position_sd_mm)) if n not in free}
+
+
+def confounded_heights(moments: DipMoments, free: tuple[str, ...], *, known: KnownObject | None = None,
+                       fixed: dict[str, float] | None = None, t0_sd_mm: float = 0.0,
+                       position_sd_mm: float = 0.0) -> dict[str, str]:
+    """Free pivot, tilt-axis offset or start height (``free``'s linear parameters) -> why the dips' first moments
+    cannot tell it from the other unknowns, for those whose column (``cos r - 1``, ``sin r``, 1 over the dips' tilts
+    ``r``) lies in the span of the others' (with the priors' rows of :func:`fit_moments`: ``known``, ``t0_sd_mm``,
+    ``position_sd_mm``) to :data:`CONFOUNDED`.
+
+    Such a parameter is not determined whatever the noise: the least-squares fit takes one split of the heights
+    among the confounded unknowns, and every bootstrap refit of the same tilts takes the same, so its interval is
+    tight and meaningless (the audit: a ball dipped at one tilt of 30 deg gave a pivot of 7.6 mm, interval
+    [7.2, 7.9], for a true 30; an unknown object at tilts 0 and 40 deg, 10.3 mm, [9.4, 12.0]). One or two distinct
+    tilts confound the pivot with the offset (and an unknown object's height); one spin confounds the offset with an
+    unknown object's sideways position.
+    """
+    fixed = {"pivot_mm": 0.0, "tilt_axis_offset_mm": 0.0, "tilt_zero_deg": 0.0, "spin_zero_deg": 0.0,
+             "step_scale": 1.0, "t0_mm": 0.0, **(fixed or {})}
+    linear = tuple(p for p in ("pivot_mm", "tilt_axis_offset_mm", "t0_mm") if p in free)
+    model = MomentModel(moments, known, fixed, linear, _nuisance_priors(known, free, t0_sd_mm, position_sd_mm))
+    _, _, columns, _ = model._conditions(fixed)
+    design = np.column_stack([np.broadcast_to(c, moments.tilt_deg.shape) for c in columns])
+    design = np.vstack([design, model._ridge(design.shape[1])])
+    tilts = np.unique(np.round(moments.tilt_deg, 3))
+    spins = np.unique(np.round(np.mod(moments.spin_deg, 360.0), 3))
+    out = {}
+    for j, name in enumerate(linear):
+        column, others = design[:, j], np.delete(design, j, axis=1)
+        left = column - others @ np.linalg.lstsq(others, column, rcond=None)[0] if others.shape[1] else column
+        norm = float(np.linalg.norm(column))
+        if not norm > 0 or float(np.linalg.norm(left)) <= CONFOUNDED * norm:
+            out[name] = (f"the dips' first moments cannot tell it from the other unknowns (the pivot, the tilt-axis "
+                         f"offset, the start height{', the object' + chr(39) + 's position' if known is None else ''}): "
+                         f"{len(tilts)} distinct tilt(s) ({', '.join(f'{t:g}' for t in tilts[:6])}"
+                         f"{', ...' if len(tilts) > 6 else ''} deg) and {len(spins)} spin(s) leave any split of the "
+                         "heights among them as good, and a bootstrap over the same tilts repeats one; dip at three or "
+                         "more tilts spread over 0-60 deg (and two or more spins)")
+    return out
+
+
 def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObject | None = None,
                 fixed: dict[str, float] | None = None, bootstrap: int = BOOTSTRAP, seed: int = 0,
                 t0_sd_mm: float = 0.0, position_sd_mm: float = 0.0) -> MomentFit:
@@ -516,10 +572,8 @@ def fit_moments(moments: DipMoments, free: tuple[str, ...], *, known: KnownObjec
         raise ValueError(f"the moment stage cannot fit {unknown}; it fits {list(MOMENT_PARAMETERS)}")
     linear = tuple(p for p in ("pivot_mm", "tilt_axis_offset_mm", "t0_mm") if p in free)
     nonlinear = tuple(p for p in SEARCH if p in free)
+    priors = _nuisance_priors(known, tuple(free), t0_sd_mm, position_sd_mm)
     t0_sd_mm = float(np.hypot(t0_sd_mm, START_MODEL_SD_MM)) if known is not None else t0_sd_mm
-    priors = {} if known is None else {n: sd for n, sd in (("t0_mm", t0_sd_mm), ("shift_x_mm", position_sd_mm),
-                                                               ("shift_y_mm", position_sd_mm),
-                                                               ("shift_z_mm", position_sd_mm)) if n not in free}
     coarse = MomentModel(moments, known, fixed, linear)  # the nuisances at their assumed values
     start = _grid_search(coarse, nonlinear, fixed)
     model = MomentModel(moments, known, fixed, linear, priors)

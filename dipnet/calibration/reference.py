@@ -15,7 +15,7 @@ import torch
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
                                       State, _check_params, _warn_undetermined)
 from dipnet.calibration.moments import (GAUGE_REASONS, MIN_SPARE_CONDITIONS, TOLERANCE, DipMoments, KnownObject,
-                                       dip_moments, fit_drift, fit_moments, spare_conditions)
+                                       confounded_heights, dip_moments, fit_drift, fit_moments, spare_conditions)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
@@ -91,6 +91,10 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
         free = ()
     fixed = {f: float(getattr(initial, f)) for f in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
                                                      "spin_zero_deg", "step_scale")}
+    confounded = confounded_heights(moments, free, known=known, fixed=fixed, t0_sd_mm=t0_sd_mm,
+                                    position_sd_mm=position_sd_mm) if free else {}
+    gauges.update(confounded)  # kept at the configured values, as the parameters of too few dips
+    free = tuple(p for p in free if p not in confounded)
     joint = fit_moments(moments, free, known=known, fixed=fixed, seed=seed, t0_sd_mm=t0_sd_mm,
                         position_sd_mm=position_sd_mm) if free else None
     fit, undetermined, caveats, held = _hold_undetermined(joint, moments, known, fixed, kind, seed, t0_sd_mm,
@@ -146,8 +150,10 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
     offset may be pinned once the tilt zero is).
 
     Each is held at the precision-weighted mean of its estimate and its configured value (prior sd
-    :data:`CONFIGURED_SD`; the data's sd the larger of the bootstrap's and, for the nonlinear ones,
-    ``tolerance / sqrt(profile rise)``). When the data carry less than half the weight, or the estimate
+    :data:`CONFIGURED_SD`; the data's sd the largest of the bootstrap's, the joint fit's (a parameter held in a
+    later round was refitted around the ones held before it, whose errors it absorbs: a 10 mm bunny's pivot came
+    out 52.9 mm, interval [49.9, 55.7], after its offset was held, for a true 30; the joint fit's interval
+    [28.0, 77.6]) and, for the nonlinear ones, ``tolerance / sqrt(profile rise)``). When the data carry less than half the weight, or the estimate
     reached the edge of its search range, it is held at the configured value and named ``undetermined``;
     else it is estimated: ``held[name] = (value, 90% interval, sd)``, named in ``caveats``.
 
@@ -163,7 +169,8 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
             break
         name = max(why, key=lambda p: (fit.at_search_edge(p), _half_width(fit, p) / TOLERANCE[p]))
         rise = fit.profile_rise.get(name, np.inf)
-        data_sd = max(_half_width(fit, name) / 1.645, TOLERANCE[name] / math.sqrt(max(rise, 1e-12)))
+        data_sd = max(_half_width(fit, name) / 1.645, TOLERANCE[name] / math.sqrt(max(rise, 1e-12)),
+                      _half_width(joint, name) / 1.645)  # refitted around a held one: the joint fit's spread too
         weight = CONFIGURED_SD[name]**2 / (CONFIGURED_SD[name]**2 + data_sd**2)
         if fit.at_search_edge(name) or weight < 0.5:
             undetermined[name] = why[name]

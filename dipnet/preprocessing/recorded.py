@@ -51,7 +51,7 @@ from dipnet.core.rawscan import (OrientationScan, RawScan, RawScanFileError, Sca
                                  complete_dips, read_rawscan)
 from dipnet.preprocessing.readings import max_object_section, repair_readings
 from dipnet.core.calibration_file import scan_calibration
-from dipnet.core.geometry import RigGeometry, as_geometry, invert_scan
+from dipnet.core.geometry import RigGeometry, as_geometry, invert_scan, scan_geometry
 from dipnet.preprocessing.symmetry import apply_symmetry, expand_symmetry, symmetry_group  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
@@ -59,6 +59,9 @@ log = logging.getLogger(__name__)
 AUTHORS_COLUMNS = ("SN", "R1_deg", "R2_deg", "Height_mm", "WaterLevel_mm")
 AUTHORS_TANK_MM2 = 540.0 * 340.0  # the authors' value for the 3 mm cats recording
 AUTHORS_QUANTUM_MM = 0.04
+#: How close (mm) every level must lie to a multiple of :data:`AUTHORS_QUANTUM_MM` for a CSV to be read as the
+#: authors' sensor's (its file prints two decimals: every value is a multiple of 0.04 mm, up to rounding).
+AUTHORS_QUANTUM_TOL_MM = 1e-6
 
 
 # ============================================================================ readers
@@ -78,7 +81,8 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     The file may start with a byte-order mark (spreadsheet programs write one). Rows are grouped
     into orientations by consecutive equal ``(R1, R2)``; ``stage_mm =
     -Height_mm`` (increasing = lowered), ``values`` = water level (mm), tilt = R1, spin = R2.
-    Every orientation is complete; times are unknown (the row index is stored as time).
+    Every orientation is complete; times are unknown (the row index is stored as time). The reading
+    quantum is the authors' 0.04 mm when every level is a multiple of it, else unknown (:func:`authors_quantum`).
 
     Raises:
         RawScanFileError: missing file, wrong columns, non-numeric or non-finite values, a
@@ -128,7 +132,7 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     steps = np.diff(-a[:, 3])[np.diff(-a[:, 3]) > 0]
     header = ScanHeader(
         quantity="level_mm", ndim=3, tank_cross_section_mm2=float(tank_cross_section_mm2),
-        step_mm=float(np.median(steps)) if steps.size else None, resolution=AUTHORS_QUANTUM_MM,
+        step_mm=float(np.median(steps)) if steps.size else None, resolution=authors_quantum(a[:, 4], path),
         rig="Aberman et al. 2017 dipping robot (Kewiee/DipTransform)",
         metadata={"source": str(path), "format": "authors_csv", "columns": list(AUTHORS_COLUMNS)})
     scan = RawScan(header=header, path=path)
@@ -138,6 +142,24 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
             values=a[idx, 4], time_s=a[idx, 0], meta={"rows": [int(a[idx[0], 0]), int(a[idx[-1], 0])]},
             complete=True))
     return scan
+
+
+def authors_quantum(levels: np.ndarray, path: str | Path) -> float | None:
+    """The reading quantum (mm) of an authors'-format CSV's water levels ``levels`` ``(n,)`` (mm): the authors'
+    sensor's :data:`AUTHORS_QUANTUM_MM` when every level is a multiple of it, else ``None`` (unknown).
+
+    A quantum the readings do not have misleads every check that weighs it: levels converted to inches under
+    ``WaterLevel_mm`` (every volume 25.4**2 times too small) were taken as 0.04 mm readings, coarse against their
+    slabs, and the consistency check then named the sensor's resolution as the cause and left out the unit hint.
+    """
+    steps = np.asarray(levels, dtype=np.float64) / AUTHORS_QUANTUM_MM
+    off = float(np.max(np.abs(steps - np.round(steps)))) * AUTHORS_QUANTUM_MM if steps.size else 0.0
+    if off <= AUTHORS_QUANTUM_TOL_MM:
+        return AUTHORS_QUANTUM_MM
+    log.info("%s: the water levels are not multiples of the authors' %g mm reading quantum (up to %.3g mm off): "
+             "another sensor, or levels converted from another unit; the reading quantum is left unknown",
+             path, AUTHORS_QUANTUM_MM, off)
+    return None
 
 
 def read_scan(path: str | Path, tank_cross_section_mm2: float | None = None) -> RawScan:
@@ -363,6 +385,8 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
         if cross_section_mm2 is not None:
             geometry = geometry.with_values(cross_section_mm2=float(cross_section_mm2))
     geometry = as_geometry(geometry)
+    if calibration is None and geometry.is_ideal:
+        _warn_recorded_geometry_unused(raw, path)
     area = geometry.area(raw.header.tank_cross_section_mm2 or 0.0)
     if not area > 0:
         raise ValueError(f"{path}: the tank cross-section is unknown: set cross_section_mm2")
@@ -386,6 +410,31 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
             o.meta = {**o.meta, "t_start_mm": placed["t0_mm"]}
         info["start_heights"] = placed
     return raw, geometry, info
+
+
+def _warn_recorded_geometry_unused(raw: RawScan, path: str | Path) -> None:
+    """Warn when ``raw`` was scanned with a rig geometry that is not ideal (``scan.py +rig.calibration=FILE`` or
+    ``rig.geometry``, recorded in its header) and is read on the ideal rig because the reader was given none:
+    the recorded start heights' pivot and offset shift is then undone, and the tilt and spin zeros, the step
+    scale, drift and lag are ignored (a torus scanned on a rig with step scale 1.03 and tilt zero 2 deg, with
+    its reference calibration: IoU 0.82 instead of 0.94, ``consistent``, no word)."""
+    recorded = scan_geometry(raw.header)
+    if recorded.is_ideal:
+        return
+    scan_config = raw.header.config.get("scan")
+    rig = scan_config.get("rig") if isinstance(scan_config, dict) else None
+    file = rig.get("calibration") if isinstance(rig, dict) else None
+    ideal = RigGeometry()
+    differ = ", ".join(f"{name}={value:.6g}" for name, value in recorded.to_dict().items()
+                       if name != "cross_section_mm2" and value != getattr(ideal, name))
+    remedy = (f"give the reader that calibration: calibration={file} (reconstruct.py: "
+              f"+source.reader.calibration={file})") if file else \
+        "give the reader that geometry (reconstruct.py: source.reader.geometry={...}) or its calibration file"
+    message = (f"{path} was scanned with a rig geometry ({differ}; recorded in its header) and is read on the ideal "
+               f"rig, since the reader is given no geometry: the dips' start heights, directions and stage travel are "
+               f"then not the rig's; {remedy}")
+    log.warning("%s", message)
+    warnings.warn(message, stacklevel=3)
 
 
 #: Dropping more than this share of the dips as truncated is refused: the rest cannot stand for the scan (the

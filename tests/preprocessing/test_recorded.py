@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +17,9 @@ from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.rawscan import RawScanFileError
 from dipnet.core.geometry import RigGeometry
 from dipnet.preprocessing.recorded import (calibrate_cross_section, expand_symmetry, interpolate_orientations,
-                                           geometry_start_heights, read_authors_csv, read_raw_recording, read_scan,
-                                           subtract_fixture, symmetry_group, truncated_orientations)
+                                           geometry_start_heights, prepare_recording, read_authors_csv,
+                                           read_raw_recording, read_scan, subtract_fixture, symmetry_group,
+                                           truncated_orientations)
 from dipnet.shapes import Ball, Box
 from dipnet.simulator.simulate import simulate_measurement
 
@@ -67,6 +69,19 @@ def test_authors_csv_reader(cats_csv):
     cut = truncated_orientations(raw)
     tilt = {o.k: o.tilt_deg for o in raw.orientations}
     assert all(tilt[k] >= 15 for k in cut) and all(o.k in cut for o in raw.orientations if o.tilt_deg >= 25)
+
+
+def test_authors_csv_levels_off_the_authors_quantum_leave_it_unknown(cats_csv, tmp_path):
+    """Levels converted to inches under WaterLevel_mm were read as the authors' 0.04 mm readings: the consistency
+    check then named that quantum (coarse against the tiny slabs) as the cause and left out the unit hint."""
+    rows = cats_csv.read_text().splitlines()
+    inches = tmp_path / "inches.csv"
+    inches.write_text("\n".join([rows[0]] + [",".join(r.split(",")[:4] + [f"{float(r.split(',')[4]) / 25.4:.5f}"])
+                                               for r in rows[1:]]) + "\n")
+    assert read_authors_csv(inches).header.resolution is None
+    m = read_raw_recording(inches, Grid(16, extent=360.0), truncated="keep")
+    assert m.metadata["reading_quantum"] is None
+    assert read_raw_recording(cats_csv, Grid(16, extent=360.0), truncated="keep").metadata["reading_quantum"] == 0.04
 
 
 def test_authors_csv_errors(tmp_path):
@@ -233,6 +248,24 @@ def _cut_short(raw, ks, keep: float = 0.5):
             n = int(keep * len(o.values))
             o.stage_mm, o.values, o.time_s, o.flags = o.stage_mm[:n], o.values[:n], o.time_s[:n], o.flags[:n]
     return raw
+
+
+def test_a_scan_recorded_with_a_calibration_and_read_without_one_is_warned_about(tmp_path):
+    """A scan made with ``scan.py +rig.calibration=FILE`` records the calibrated geometry; read without it, its dips
+    were placed on the ideal rig without a word (the audit's torus, step scale 1.03 and tilt zero 2 deg: IoU 0.82
+    instead of 0.94, ``consistent``)."""
+    calibrated = RigGeometry(step_scale=1.03, tilt_zero_deg=2.0)
+    raw = simulate_scan(Ball(20.0), fibonacci_hemisphere(6), tank=Tank(20000.0), geometry=calibrated, progress=False)
+    raw.header.config.update({"rig_geometry": calibrated.to_dict(), "scan": {"rig": {"calibration": "rig_cal.yaml"}}})
+    path = raw.save(tmp_path / "scan.jsonl")
+    with pytest.warns(UserWarning, match=r"scan.jsonl was scanned with a rig geometry \(tilt_zero_deg=2, "
+                                         r"step_scale=1.03; .*\+source.reader.calibration=rig_cal.yaml"):
+        prepare_recording(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prepare_recording(path, geometry=calibrated)  # given: nothing to say
+        raw.header.config.pop("rig_geometry")
+        prepare_recording(raw.save(tmp_path / "ideal.jsonl"))  # scanned on the ideal rig
 
 
 def test_dropped_truncated_dips_are_named_counted_and_refused_when_most(tmp_path):
