@@ -49,10 +49,9 @@ def test_adaptive_loop_stops_when_certain_enough(tmp_path):
     assert planning["stop_reason"] == "uncertainty" and [h["n_dips"] for h in planning["history"]] == [5]
 
 
-def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
-    from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
-
-    grid, _, dips = box_problem
+def _loop_callbacks(grid, dips):
+    """``(dipped, acquire, reconstruct)`` for :func:`adaptive_loop` on ``box_problem``: ``acquire`` records each
+    batch of directions in ``dipped`` and returns the dips of all so far, ``reconstruct`` solves them by minnorm."""
     dipped = []
 
     def acquire(directions):
@@ -62,6 +61,14 @@ def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
     def reconstruct(measurement):
         operator = make_operator(grid, measurement.directions, grid.n)
         return MinNormSolver(progress=False).solve(measurement, operator), operator
+
+    return dipped, acquire, reconstruct
+
+def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
+    from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
+
+    grid, _, dips = box_problem
+    dipped, acquire, reconstruct = _loop_callbacks(grid, dips)
 
     class Counting(NextBestDipPlanner):
         def __init__(self):
@@ -111,15 +118,7 @@ def test_the_loop_never_dips_a_measured_direction_again(box_problem):
     from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
 
     grid, _, dips = box_problem
-    dipped = []
-
-    def acquire(directions):
-        dipped.append(torch.as_tensor(directions))
-        return dips(torch.cat(dipped))
-
-    def reconstruct(measurement):
-        operator = make_operator(grid, measurement.directions, grid.n)
-        return MinNormSolver(progress=False).solve(measurement, operator), operator
+    dipped, acquire, reconstruct = _loop_callbacks(grid, dips)
 
     reach = Reach(tilt_range_deg=(0, 10), step_deg=10)
     with pytest.warns(UserWarning) as caught:
