@@ -51,7 +51,9 @@ class Run:
 
     Attributes:
         path: the job directory.
-        status: ``"ok"`` (``metrics.json`` written by this run), ``"failed"`` (``error.txt``, an unreadable
+        status: ``"ok"`` (``metrics.json`` written by this run), ``"failed"`` (``error.txt``, also one written after
+            ``metrics.json``: a job that failed after its numbers, e.g. writing its meshes, or a ``tune.py`` trial without
+            a Chamfer distance; an unreadable
             ``metrics.json``, or a job log whose last record is an ``error: ...`` line: a refused run) or
             ``"unfinished"`` (none of these: still running, killed, or empty). A ``metrics.json`` an earlier
             run left in the folder (:func:`earlier_metrics`) is not this run's: failed or unfinished.
@@ -134,6 +136,13 @@ def load_run(job_dir: str | Path) -> Run:
             run.status = "ok"
         except ValueError as exc:
             run.status, run.error = "failed", f"unreadable {metrics_path.name}: {exc}"
+        if run.status == "ok" and error_path.is_file() and \
+                error_path.stat().st_mtime_ns >= metrics_path.stat().st_mtime_ns:
+            lines = error_path.read_text().strip().splitlines()
+            run.metrics = {}
+            run.status, run.error = "failed", (f"{lines[0] if lines else 'error.txt is empty'} (written after "
+                                               "its metrics.json: the job failed once its numbers were written, so "
+                                               "they are not tabled)")
         earlier = earlier_metrics(run) if run.status == "ok" else None
         if earlier is not None:  # the folder's latest run wrote no metrics: refused, killed or still going
             logged = logged_error(job_dir)

@@ -40,6 +40,25 @@ def test_a_single_job_dir_and_a_corrupt_metrics_file(tmp_path):
     assert run.status == "failed" and "metrics.json" in run.error
 
 
+def test_a_sweep_job_that_failed_after_writing_its_metrics_is_failed(tmp_path):
+    """Before: a job that raised after ``metrics.json`` (a full disk while writing its meshes) was ``ok`` in
+    ``compare.py``, its error.txt unread. An error.txt older than the metrics (a failed run, then the same sweep run
+    again into the folder, which succeeded) is the earlier run's: ``ok``."""
+    import os
+
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics={"iou": 0.5})
+    metrics, error = job / "metrics.json", job / "error.txt"
+    error.write_text("OSError: [Errno 28] No space left on device\n\nTraceback ...")
+    written = metrics.stat().st_mtime_ns
+    os.utime(error, ns=(written + 10**9, written + 10**9))
+    run = collect.load_run(job)
+    assert (run.status, run.metrics) == ("failed", {})
+    assert run.error == ("OSError: [Errno 28] No space left on device (written after its metrics.json: the job failed "
+                         "once its numbers were written, so they are not tabled)")
+    os.utime(error, ns=(written - 10**9, written - 10**9))
+    assert collect.load_run(job).status == "ok"
+
+
 def test_a_run_refused_outside_a_sweep_is_failed_with_its_logged_error(tmp_path):
     """Before: "unfinished" (no metrics.json, no error.txt) though its log ends with the ``error:`` line."""
     job = write_job(tmp_path / "job", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics=None)
