@@ -138,11 +138,9 @@ def load_run(job_dir: str | Path) -> Run:
             run.status, run.error = "failed", f"unreadable {metrics_path.name}: {exc}"
         if run.status == "ok" and error_path.is_file() and \
                 error_path.stat().st_mtime_ns >= metrics_path.stat().st_mtime_ns:
-            lines = error_path.read_text().strip().splitlines()
             run.metrics = {}
-            run.status, run.error = "failed", (f"{lines[0] if lines else 'error.txt is empty'} (written after "
-                                               "its metrics.json: the job failed once its numbers were written, so "
-                                               "they are not tabled)")
+            run.status, run.error = "failed", (f"{_first_line(error_path)} (written after its metrics.json: the job "
+                                               "failed once its numbers were written, so they are not tabled)")
         earlier = earlier_metrics(run) if run.status == "ok" else None
         if earlier is not None:  # the folder's latest run wrote no metrics: refused, killed or still going
             logged = logged_error(job_dir)
@@ -150,13 +148,18 @@ def load_run(job_dir: str | Path) -> Run:
             run.status, run.error = ("failed", f"{logged}; {earlier}") if logged is not None else \
                 ("unfinished", f"{earlier}: this run wrote none (still running, or killed)")
     elif error_path.is_file():
-        lines = error_path.read_text().strip().splitlines()
-        run.status, run.error = "failed", (lines[0] if lines else "error.txt is empty")
+        run.status, run.error = "failed", _first_line(error_path)
     else:
         logged = logged_error(job_dir)
         if logged is not None:
             run.status, run.error = "failed", logged
     return run
+
+
+def _first_line(error_path: Path) -> str:
+    """The first line of a job's ``error.txt`` (``Type: message``), or that it is empty."""
+    lines = error_path.read_text().strip().splitlines()
+    return lines[0] if lines else f"{error_path.name} is empty"
 
 
 def earlier_metrics(run: Run) -> str | None:
