@@ -32,11 +32,12 @@ def ball(grid: Grid, radius_mm: float) -> np.ndarray:
 
 def write_job(job: Path, *, solver: str, n_dips: int, snr_db: float | None, seed: int, metrics: dict | None,
               ndim: int = 2, resolution: int = 16, error: str | None = None, shape: str = "disk",
-              recording: str | None = None) -> Path:
+              recording: str | None = None, history: dict[str, list[float]] | None = None) -> Path:
     """One job directory: ``.hydra/{config,overrides,hydra}.yaml`` always; ``metrics.json``,
     ``reconstruction.npz``, ``measurement.npz`` (and ``truth.ply``/``reconstruction.ply`` in 3D)
     when ``metrics`` is given; ``error.txt`` when ``error`` is given. ``recording``: the job read
-    that file (a recorded source: the configured ``shape`` is unused and not in the metrics)."""
+    that file (a recorded source: the configured ``shape`` is unused and not in the metrics). ``history``: the
+    solver's loss terms per iteration, kept in the reconstruction and written to ``history.json``."""
     grid = Grid(resolution, ndim, 100.0)
     cfg = {"ndim": ndim, "resolution": resolution, "n_dips": n_dips, "n_slabs": None, "seed": seed,
            "snr_db": snr_db, "extent_mm": 100.0, "shape": {"_target_": "dipnet.shapes.builtin_shape", "name": shape},
@@ -53,7 +54,9 @@ def write_job(job: Path, *, solver: str, n_dips: int, snr_db: float | None, seed
         radius = 30.0 * (1 - 1 / n_dips)
         truth, recon = ball(grid, 30.0), ball(grid, radius)
         occupancy = torch.as_tensor(recon, dtype=torch.float32)
-        Reconstruction(occupancy, grid, threshold=0.5).save(job / "reconstruction.npz")
+        Reconstruction(occupancy, grid, threshold=0.5, history=history or {}).save(job / "reconstruction.npz")
+        if history:
+            (job / "history.json").write_text(json.dumps(history))
         directions = make_directions("fibonacci" if ndim == 3 else "uniform", n_dips, ndim, seed)
         profiles = torch.rand(n_dips, resolution, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
         DipMeasurement(directions, profiles, 100.0 / resolution, torch.full((n_dips,), -50.0)).save(job / "measurement.npz")

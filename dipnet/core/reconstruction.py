@@ -43,8 +43,11 @@ class Reconstruction:
 
     def save(self, path, **extra: np.ndarray) -> None:
         """Write occupancy, binary volume, grid metadata and any ``extra`` named arrays (e.g. the
-        uncertainty maps of :func:`dipnet.outputs.uncertainty.write_uncertainty`) to an ``.npz`` file."""
+        uncertainty maps of :func:`dipnet.outputs.uncertainty.write_uncertainty`) to an ``.npz`` file.
+        ``history_steps`` records how many iterations the loss history holds (0 for a direct solver), so a
+        ``history.json`` an earlier run left beside it is not taken for this one's."""
+        steps = max((len(v) for v in self.history.values()), default=0)
         np.savez_compressed(path, **extra, occupancy=self.occupancy.detach().cpu().numpy().astype(np.float32),
-                            binary=self.binary, threshold=self.threshold,
+                            binary=self.binary, threshold=self.threshold, history_steps=steps,
                             grid_n=self.grid.n, grid_ndim=self.grid.ndim, grid_extent=self.grid.extent,
                             axis_order="zyx" if self.grid.ndim == 3 else "yx")

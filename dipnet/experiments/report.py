@@ -337,13 +337,7 @@ def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> lis
         profiles = DipMeasurement.load(job_dir / "measurement.npz").profiles.numpy()
         sections.append(("sinogram (measured slab volumes)", _figure_html(sinogram_figure(profiles), "sinogram")))
 
-    if (job_dir / "history.json").is_file():
-        history = json.loads((job_dir / "history.json").read_text())
-        sections.append(("loss", _figure_html(history_figure(history), "loss")))
-    elif "loss.png" in drawn and (job_dir / "loss.png").is_file():
-        sections.append(("loss", _png(job_dir / "loss.png", "loss curves", page_dir)))
-    else:
-        sections.append(("loss", "<p class=note>no loss history (direct solver)</p>"))
+    sections.append(("loss", _loss_html(job_dir, page_dir, volume, "loss.png" in drawn)))
 
     settings = {k: row.get(k) for k in ("status", "solver", "shape", "ndim", "resolution", "n_dips",
                                         "dips_percent", "snr_db", "seed") if row.get(k) is not None or k == "snr_db"}
@@ -352,6 +346,23 @@ def run_sections(job_dir: str | Path, page_dir: str | Path | None = None) -> lis
     if run.overrides:
         sections.append(("overrides", f"<pre>{html.escape(' '.join(run.overrides))}</pre>"))
     return sections
+
+
+def _loss_html(job_dir: Path, page_dir: Path, volume: dict[str, np.ndarray] | None, drawn: bool) -> str:
+    """The loss curves from ``history.json`` (else ``loss.png`` when the run draws it), or why there are none.
+    A run whose ``reconstruction.npz`` records no iterations (``history_steps`` 0: a direct solver) shows none,
+    whatever an earlier run into the folder left there."""
+    direct = volume is not None and "history_steps" in volume and int(volume["history_steps"]) == 0
+    if direct:
+        left = [name for name in ("history.json", "loss.png") if (job_dir / name).is_file()]
+        return ("<p class=note>no loss history (direct solver)" +
+                (f"; {html.escape(' and '.join(left))} in this folder are an earlier run's" if left else "") + "</p>")
+    if (job_dir / "history.json").is_file():
+        history = json.loads((job_dir / "history.json").read_text())
+        return _figure_html(history_figure(history), "loss")
+    if drawn and (job_dir / "loss.png").is_file():
+        return _png(job_dir / "loss.png", "loss curves", page_dir)
+    return "<p class=note>no loss history (direct solver)</p>"
 
 
 def write_run_report(job_dir: str | Path, path: str | Path | None = None) -> Path:

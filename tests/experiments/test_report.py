@@ -48,9 +48,9 @@ def sweep(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("sweep")
     (root / "multirun.yaml").write_text("hydra: {}\n")
     for i, n in enumerate((4, 8)):
-        write_job(root / str(i), solver="minnorm", n_dips=n, snr_db=None, seed=0, ndim=3, resolution=20,
-                  metrics={"iou": 1 - 1 / n, "chamfer": 0.1 / n})
-    (root / "0" / "history.json").write_text(json.dumps({"data": [1.0, 0.5, 0.2], "tv": [0.1, 0.1, 0.05]}))
+        write_job(root / str(i), solver="voxel" if i == 0 else "minnorm", n_dips=n, snr_db=None, seed=0, ndim=3,
+                  resolution=20, metrics={"iou": 1 - 1 / n, "chamfer": 0.1 / n},
+                  history={"data": [1.0, 0.5, 0.2], "tv": [0.1, 0.1, 0.05]} if i == 0 else None)
     write_job(root / "2", solver="minnorm", n_dips=16, snr_db=None, seed=0, metrics=None, error="ValueError: boom")
     return root
 
@@ -64,9 +64,20 @@ def test_run_page_holds_meshes_sinogram_loss_and_metrics(sweep):
         assert f'id="{div}"' in text, div
     assert '"type":"mesh3d"' in text.replace(" ", "") and text.count('"name":"truth"') == 2   # cut open and whole
     assert "<th class=l>intersection over union (1 = identical)</th><td class=l>0.75</td>" in text
-    assert "solver=minnorm" in text
+    assert "solver=voxel" in text
     # without history.json and without loss.png the page says why there is no curve
     assert "no loss history" in report.write_run_report(sweep / "1").read_text()
+
+
+def test_a_direct_solver_run_does_not_show_an_earlier_runs_loss(tmp_path):
+    """A minnorm run into the folder of an optimiser's run: its reconstruction records no iterations, so the
+    history.json and loss.png left there are named as the earlier run's, not drawn as this run's curves."""
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=8, snr_db=None, seed=0, metrics={"iou": 0.7})
+    (job / "history.json").write_text(json.dumps({"data": [1.0, 0.5]}))
+    (job / "loss.png").write_bytes(b"\x89PNG")
+    text = report.write_run_report(job).read_text()
+    assert 'id="loss"' not in text
+    assert "no loss history (direct solver); history.json and loss.png in this folder are an earlier run's" in text
 
 
 def test_2d_run_page_shows_images(tmp_path):
@@ -209,8 +220,9 @@ def test_the_page_shows_only_the_figures_the_run_drew(tmp_path):
     slices, uncertainty and loss figures on its page, as its own."""
     from omegaconf import OmegaConf
 
-    job = write_job(tmp_path / "job", solver="minnorm", n_dips=8, snr_db=None, seed=0, ndim=3, resolution=20,
-                    metrics={"iou": 0.9})
+    job = write_job(tmp_path / "job", solver="voxel", n_dips=8, snr_db=None, seed=0, ndim=3, resolution=20,
+                    metrics={"iou": 0.9}, history={"data": [1.0, 0.5]})
+    (job / "history.json").unlink()  # the loss curves as a PNG only
     names = [name for name, _ in report.RUN_FIGURES] + ["loss.png"]
     for name in names:  # an earlier run's figures
         (job / name).write_bytes(b"\x89PNG\r\n\x1a\n")
