@@ -193,13 +193,18 @@ def calibration_by_decile(p_wrong: np.ndarray, binary: np.ndarray, truth: np.nda
 
     Support voxels are ranked by ``p_wrong`` and split into ``n_bins`` groups of equal size; each
     group's value is the fraction of its voxels whose binary call differs from ``truth`` (bool).
+    Voxels of equal ``p_wrong`` share one rank: a group holding part of such a tie counts each of
+    them at the tie's own error rate (the mean over every order of the tie), so the deciles do not
+    depend on the voxels' order in the volume (hard votes leave most ``p_wrong`` at exactly 0).
     A calibrated uncertainty gives a rising sequence.
     """
     binary, truth = np.asarray(binary, bool), np.asarray(truth, bool)
     where = support(binary) | truth
-    order = np.argsort(np.asarray(p_wrong)[where], kind="stable")
-    wrong = (binary != truth)[where][order]
-    return np.array([part.mean() if part.size else float("nan") for part in np.array_split(wrong, n_bins)])
+    p = np.asarray(p_wrong)[where]
+    order = np.argsort(p, kind="stable")
+    _, tie, count = np.unique(p[order], return_inverse=True, return_counts=True)
+    wrong = np.bincount(tie, weights=(binary != truth)[where][order]) / count  # error rate of each tie
+    return np.array([part.mean() if part.size else float("nan") for part in np.array_split(wrong[tie], n_bins)])
 
 
 def uncertainty(reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator | None = None,

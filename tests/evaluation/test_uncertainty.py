@@ -79,3 +79,26 @@ def test_fit_posterior_refuses_a_negative_band(box_problem):
     exact = Reconstruction(occupancy=torch.from_numpy(truth).float(), grid=grid)
     with pytest.raises(ValueError, match=r"band_voxels must be >= 0 .*, got -1.0"):
         fit_posterior(exact, dips(fibonacci_hemisphere(4)), resolution=10, band_voxels=-1.0)
+
+
+def test_deciles_count_tied_voxels_at_their_ties_error_rate():
+    """Hard votes leave most p_wrong at exactly 0. Before, a decile holding part of such a tie took the voxels in
+    their order in the volume, so the same maps transposed gave other deciles. Now a tie counts at its own error
+    rate: 20 voxels of p 0, 5 of them wrong (rate 1/4), ranked into 4 bins of 5 at 0.25 each, in any order."""
+    rng = np.random.default_rng(0)
+    binary = np.zeros((6, 6, 6), bool)
+    binary[1:5, 1:5, 1:5] = True
+    truth = binary.copy()
+    truth[1, 1:5, 1:5] = rng.random((4, 4)) < 0.5  # some wrong calls on one face
+    p_wrong = np.where(rng.random(binary.shape) < 0.3, 0.0, rng.integers(1, 4, binary.shape) / 4)
+    for axes in ((0, 1, 2), (2, 1, 0), (1, 2, 0)):
+        rates = calibration_by_decile(p_wrong.transpose(axes), binary.transpose(axes), truth.transpose(axes))
+        if axes == (0, 1, 2):
+            first = rates
+        np.testing.assert_allclose(rates, first, atol=1e-12)
+    p = np.zeros(20)
+    wrong = np.zeros(20, bool)
+    wrong[[0, 7, 8, 9, 19]] = True
+    where = np.ones((20, 1, 1), bool)  # every voxel in the support
+    np.testing.assert_allclose(calibration_by_decile(p[:, None, None], where, where ^ wrong[:, None, None], 4),
+                               [0.25] * 4)
