@@ -85,7 +85,9 @@ def main(argv: list[str] | None = None) -> int:
     tables.write_csv(groups, out / "summary.csv")
     table = tables.markdown_table(groups, args.by, metrics)
     pooled = tables.pooled_note(collect.pooled_options(runs, rows, args.by), args.by, {k for r in rows for k in r})
-    (out / "summary.md").write_text(table + ("\n" + pooled[:1].upper() + pooled[1:] if pooled else "") + ("\n" + problems if problems else ""))
+    (out / "summary.md").write_text(table + ("\n" + pooled[:1].upper() + pooled[1:] if pooled else "")
+                                    + ("\n" + note[:1].upper() + note[1:] + "\n" if note else "")
+                                    + ("\n" + problems if problems else ""))
     print(table, end="")
     if pooled:
         print(f"warning: {pooled}", end="", file=sys.stderr)

@@ -199,6 +199,17 @@ def test_runs_without_a_truth_are_compared_on_what_they_record():
     assert collect.truth_note([truth, recorded]).startswith("1 of 2 finished runs have no ground truth")
 
 
+def test_runs_whose_iou_reference_is_approximate_are_named():
+    """The chamber box at 25^3: no level makes its binary reference hold the exact volume (19.5 % off); the job's
+    log warned, the comparison's tables showed its IoU like any other. Now the note says which runs and how far."""
+    exact = {"status": "ok", "iou": 0.9, "truth_binary_volume_error": 0.001}
+    faces = {"status": "ok", "iou": 0.8, "truth_binary_volume_error": -0.195}
+    empty = {"status": "ok", "iou": float("nan"), "truth_binary_volume_error": -1.0}  # IoU undefined, warned apart
+    assert collect.truth_note([exact, empty]) == ""
+    note = collect.truth_note([exact, faces, {"status": "failed", "truth_binary_volume_error": 0.3}])
+    assert note.startswith("1 of 2 runs with a ground truth have an approximate IoU") and "up to 19.5% off" in note
+
+
 def test_null_metrics_of_strict_json_are_read_as_no_value(tmp_path):
     """metrics.json writes a non-finite number as null (dipnet.core.strict_json): rows and groups skip it."""
     for i, iou in enumerate((0.5, None, 0.7)):
