@@ -174,3 +174,26 @@ def test_a_marlin_that_does_not_report_its_steps_per_unit_says_once_that_arrival
     warnings = [r.getMessage() for r in caplog.records if "not checking" in r.getMessage()]
     assert warnings == ["not checking that the machine arrives where the scan sends it: the controller reports no steps "
                         "per unit (M92 answers only 'ok' in Marlin 1.x; M503 may be compiled out)"]
+
+
+def test_steps_per_unit_changed_after_connect_stop_the_marlin_scan(world, tmp_path, monkeypatch):
+    """Z's steps per unit become 200 (M92 Z200 from another terminal, or M501 loading other EEPROM values) before the
+    5th move, the lowering from 0 to 10 mm: the motor turns 2000 steps, 5 mm on a screw of 400 steps/mm, and Marlin
+    counts -2000 (its logical position still says 10 mm). Before: nothing compared, every later reading was taken at
+    half the recorded depth. Now the move stops the scan: -2000 steps are -5 mm at the 400 steps/mm read at connect."""
+    from dipnet.rig.runner import ScanAborted
+
+    world.reset()
+    real = world.on_motion
+
+    def m92_changes():
+        if world.motion_count == 4:
+            monkeypatch.setitem(world.marlin_steps, "Z", 200.0)
+        return real()
+
+    monkeypatch.setattr(world, "on_motion", m92_changes)
+    with pytest.raises(ScanAborted) as info:
+        scan(world, "marlin", "level", plan_for(1, step=10.0), tmp_path / "m92.jsonl")
+    assert ("reading 1 at 10 mm: PositionMismatch: idle after the move, the controller counts lower 5.000 mm "
+            "(commanded 10, Z count -2000 at 400 steps/unit)") in str(info.value)
+    assert world.position().lower_mm == pytest.approx(0.0)  # lifted: the controller's 0 mm is the stage's 0 mm

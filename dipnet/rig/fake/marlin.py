@@ -3,7 +3,8 @@
 Its planner keeps the machine position it last commanded (:attr:`MarlinDevice.planned`, by axis letter): ``M114``
 reports it in logical coordinates (plus the workspace offset: ``FakeRig.marlin_offset``, changed by ``G92``) and,
 after ``Count``, in steps (``FakeRig.marlin_steps``, which ``M92`` reports and sets), as Marlin 2.x's
-``report_current_position_projected`` does; moves take logical coordinates. A ``stall`` fault stops the stage
+``report_current_position_projected`` does; moves take logical coordinates, and the motors turn by the steps counted
+(an ``M92`` other than ``FakeRig.marlin_motor_steps`` moves them too far or not far enough). A ``stall`` fault stops the stage
 half-way while the planner keeps the target, and says ``echo:endstops hit:``."""
 
 from __future__ import annotations
@@ -133,11 +134,13 @@ class MarlinDevice(Device):
 
     def move(self, words: dict[str, float], stall: bool) -> list[str]:
         """Plan a move to logical coordinates ``words`` (by axis letter): the steppers move the stage by the change
-        of the planned machine position (all of it, or half if they ``stall``). Returns the letters moved."""
+        of the planned machine position in steps over the steps the motors need per unit (all of it, or half if
+        they ``stall``). Returns the letters moved."""
         w = self.world
         native = {a: v - self.shift.get(a, 0.0) for a, v in words.items() if a in self.planned}
         here, share = w.machine_position(), 0.5 if stall else 1.0
-        w.start_move(w.target_from_words({a: here[a] + share * (v - self.planned[a]) for a, v in native.items()}))
+        w.start_move(w.target_from_words({a: here[a] + share * (v - self.planned[a]) * w.marlin_steps[a]
+                                          / w.marlin_motor_steps[a] for a, v in native.items()}))
         self.planned.update(native)
         return list(native)
 

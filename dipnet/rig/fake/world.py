@@ -108,7 +108,9 @@ class FakeRig:
         grbl_settings: ``$$`` values overriding :data:`GRBL_SETTINGS` (e.g. ``{22: 0}``: no homing).
         grbl_startup: a startup block (``$N0``) the GRBL board runs after every reset; only its units word is
             modelled: ``"G20"`` makes the moves that follow it inches until a ``G21``.
-        marlin_steps: Marlin's steps per unit by axis letter, overriding :data:`MARLIN_STEPS`.
+        marlin_steps: Marlin's steps per unit by axis letter, overriding :data:`MARLIN_STEPS`; the motors move by the
+            steps counted divided by :attr:`marlin_motor_steps` (these values at creation): changing
+            ``marlin_steps`` later models a wrong ``M92``.
         marlin_offset: Marlin's workspace offset (logical minus machine position) by axis letter, kept over resets:
             an ``M206`` home offset saved in its EEPROM.
         marlin_reports_steps: whether Marlin reports its steps per unit (``False``: ``M92`` answers only ``ok``,
@@ -157,6 +159,7 @@ class FakeRig:
             **{int(k): v for k, v in dict(grbl_settings or {}).items()}}
         self.grbl_startup = str(grbl_startup).upper()
         self.marlin_steps = {**MARLIN_STEPS, **{str(k).upper(): float(v) for k, v in dict(marlin_steps or {}).items()}}
+        self.marlin_motor_steps = dict(self.marlin_steps)  # what the mechanics need: an M92 that differs is wrong
         self.marlin_offset = {str(k).upper(): float(v) for k, v in dict(marlin_offset or {}).items()}
         self.marlin_reports_steps = bool(marlin_reports_steps)
         self.lock = threading.RLock()
