@@ -310,8 +310,9 @@ class MarlinController(Controller):
                 unknown.append(letter)
             elif not self._counted_at(axis, counts[letter], steps, commanded):
                 unit = "mm" if name == "lower" else "deg"
-                off.append(f"{name} {axis.from_machine(counts[letter] / steps):.3f} {unit} (commanded {commanded:g}, "
-                           f"{letter} count {counts[letter]} at {steps:g} steps/unit)")
+                here = round(axis.from_machine(counts[letter] / steps), 3) + 0.0  # no "-0.000"
+                off.append(f"{name} {here:.3f} {unit} (commanded {commanded:g}, {letter} count {counts[letter]} at "
+                           f"{steps:g} steps/unit)")
         if unknown and not self._unchecked_said:
             self._unchecked_said = True
             log.warning("not checking that the machine arrives where the scan sends it: the controller reports %s",

@@ -197,3 +197,20 @@ def test_steps_per_unit_changed_after_connect_stop_the_marlin_scan(world, tmp_pa
     assert ("reading 1 at 10 mm: PositionMismatch: idle after the move, the controller counts lower 5.000 mm "
             "(commanded 10, Z count -2000 at 400 steps/unit)") in str(info.value)
     assert world.position().lower_mm == pytest.approx(0.0)  # lifted: the controller's 0 mm is the stage's 0 mm
+
+
+def test_a_marlin_software_endstop_that_clamps_the_lowering_stops_the_scan(meshes_dir, tmp_path):
+    """Stock Marlin keeps Z in [Z_MIN_POS, Z_MAX_POS] = [0, 200] mm (software endstops on), and the rig lowers towards
+    -Z: ``G0 Z-10`` is clamped to Z0 without a word, and ``M114`` reports the clamped position. Before: the stage
+    never left 0 mm while the scan recorded 11 readings "at" 0 to 100 mm, all 150 mm, and stopped at the end of the dip
+    blaming the sensor (``SensorError: all 11 readings of orientation 0 are 150 mm``). Now the first lowering, to
+    10 mm, stops it with the clamped count and the advice (M211)."""
+    from dipnet.rig.runner import ScanAborted
+
+    clamped = make_world(meshes_dir, "softlimits", marlin_soft_limits={"Z": (0.0, 200.0)})
+    with pytest.raises(ScanAborted) as info:
+        scan(clamped, "marlin", "level", plan_for(1, step=10.0), tmp_path / "clamped.jsonl")
+    message = str(info.value)
+    assert ("reading 1 at 10 mm: PositionMismatch: idle after the move, the controller counts lower 0.000 mm "
+            "(commanded 10, Z count 0 at 400 steps/unit)") in message
+    assert "inside the software endstops (M211)" in message and "kept 1 readings" in message

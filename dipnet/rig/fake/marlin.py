@@ -9,6 +9,7 @@ half-way while the planner keeps the target, and says ``echo:endstops hit:``."""
 
 from __future__ import annotations
 
+import math
 import re
 import time
 
@@ -133,11 +134,13 @@ class MarlinDevice(Device):
             self.emit("ok")
 
     def move(self, words: dict[str, float], stall: bool) -> list[str]:
-        """Plan a move to logical coordinates ``words`` (by axis letter): the steppers move the stage by the change
-        of the planned machine position in steps over the steps the motors need per unit (all of it, or half if
-        they ``stall``). Returns the letters moved."""
+        """Plan a move to logical coordinates ``words`` (by axis letter), clamped to the software endstops in machine
+        coordinates (``FakeRig.marlin_soft_limits``): the steppers move the stage by the change of the planned
+        machine position in steps over the steps the motors need per unit (all of it, or half if they ``stall``).
+        Returns the letters moved."""
         w = self.world
-        native = {a: v - self.shift.get(a, 0.0) for a, v in words.items() if a in self.planned}
+        native = {a: min(max(v - self.shift.get(a, 0.0), low), high) for a, v in words.items() if a in self.planned
+                  for low, high in [w.marlin_soft_limits.get(a, (-math.inf, math.inf))]}
         here, share = w.machine_position(), 0.5 if stall else 1.0
         w.start_move(w.target_from_words({a: here[a] + share * (v - self.planned[a]) * w.marlin_steps[a]
                                           / w.marlin_motor_steps[a] for a, v in native.items()}))

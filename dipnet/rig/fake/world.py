@@ -113,6 +113,8 @@ class FakeRig:
             ``marlin_steps`` later models a wrong ``M92``.
         marlin_offset: Marlin's workspace offset (logical minus machine position) by axis letter, kept over resets:
             an ``M206`` home offset saved in its EEPROM.
+        marlin_soft_limits: Marlin's software endstops, ``{letter: (min, max)}`` in machine coordinates: moves are
+            clamped to them (``apply_motion_limits``), silently. Stock Marlin has ``Z: (0, 200)``.
         marlin_reports_steps: whether Marlin reports its steps per unit (``False``: ``M92`` answers only ``ok``,
             as Marlin 1.x, and ``M503`` is compiled out).
     """
@@ -126,7 +128,7 @@ class FakeRig:
                  faults: list[Fault | dict] | None = None, sensor_format: SensorFormat | dict | None = None,
                  seed: int = 0, name: str = "fakerig", grbl_settings: dict | None = None,
                  grbl_startup: str = "", marlin_steps: dict | None = None, marlin_offset: dict | None = None,
-                 marlin_reports_steps: bool = True) -> None:
+                 marlin_soft_limits: dict | None = None, marlin_reports_steps: bool = True) -> None:
         if isinstance(shape, str):
             from dipnet.shapes import load_mesh
 
@@ -161,6 +163,8 @@ class FakeRig:
         self.marlin_steps = {**MARLIN_STEPS, **{str(k).upper(): float(v) for k, v in dict(marlin_steps or {}).items()}}
         self.marlin_motor_steps = dict(self.marlin_steps)  # what the mechanics need: an M92 that differs is wrong
         self.marlin_offset = {str(k).upper(): float(v) for k, v in dict(marlin_offset or {}).items()}
+        self.marlin_soft_limits = {str(k).upper(): (float(lo), float(hi))
+                                   for k, (lo, hi) in dict(marlin_soft_limits or {}).items()}
         self.marlin_reports_steps = bool(marlin_reports_steps)
         self.lock = threading.RLock()
         self._tables: dict[tuple[float, float], tuple[np.ndarray, np.ndarray, float]] = {}
