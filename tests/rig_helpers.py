@@ -34,8 +34,10 @@ def make_sensor(world: FakeRig, kind: str):
     return BalanceSensor(url, style=kind)
 
 
-def make_runner(world, dialect, sensor, plan, path, move_timeout: float = 2.0, **options) -> ScanRunner:
-    ctl = CONTROLLERS[dialect](world.url(dialect), timeout=0.3, move_timeout=move_timeout)
+def make_runner(world, dialect, sensor, plan, path, move_timeout: float = 2.0, axes=None, **options) -> ScanRunner:
+    """A scan runner on ``world`` through the real driver of ``dialect`` (``axes``: its axis mapping, as the
+    world's for a world with other axes)."""
+    ctl = CONTROLLERS[dialect](world.url(dialect), axes, timeout=0.3, move_timeout=move_timeout)
     sensor = sensor if not isinstance(sensor, str) else make_sensor(world, sensor)
     header = ScanHeader(quantity=sensor.quantity, tank_cross_section_mm2=AREA, step_mm=plan.step_mm,
                         resolution=0.001, rig=f"fake-{dialect}")

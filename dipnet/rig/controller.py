@@ -497,8 +497,10 @@ class Controller(SerialDevice):
 
     def check_arrived(self) -> None:
         """After :meth:`wait_idle`: check that the machine stands where the moves since connecting (or homing)
-        commanded each axis (the rig values of :meth:`move_to`, the short way round included). Dialects whose
-        position report echoes the commanded position (Marlin's ``M114``) have nothing to compare and return.
+        commanded each axis (the rig values of :meth:`move_to`, the short way round included), in the controller's
+        own frame: GRBL's ``MPos``, Marlin's step counts (``M114``'s ``Count``: its logical position only echoes the
+        moves). The base class has nothing to compare and returns; so does a dialect whose firmware does not report
+        what is needed (it warns once).
 
         Raises:
             PositionMismatch: the controller reports another position (the message names both and the causes).

@@ -9,8 +9,14 @@ Protocol facts (Marlin 2.x)
   before ``*``); ``M110 N0`` sets the expected number. A bad line is answered by
   ``Error:checksum mismatch, Last Line: 11`` / ``Error:Line Number is not Last Line Number+1``,
   then ``Resend: 12`` and ``ok``: the host resends from that line.
-* ``M114`` reports ``X:0.00 Y:0.00 Z:10.00 E:0.00 Count X:0 Y:0 Z:4000``; ``M400`` returns when
-  every move has finished; ``M410`` quick-stops; ``G28`` homes.
+* ``M114`` reports ``X:0.00 Y:0.00 Z:10.00 E:0.00 Count X:0 Y:0 Z:4000``: the logical position (what the
+  moves commanded, ``G92`` / ``M206`` offsets included), then, after ``Count``, the position in steps in the
+  machine's own frame (Marlin 2.x: the planner's, ``report_current_position_projected``; with ``M114_LEGACY``
+  the steppers' counts). ``M92`` with no arguments answers ``  M92 X80.00 Y80.00 Z400.00 E500.00`` (steps per
+  unit; older 2.0 versions print ``echo:`` first, Marlin 1.x only ``ok``), ``M503`` the same line after
+  ``echo:``. ``M400`` returns when every move has finished; ``M410`` quick-stops; ``G28`` homes.
+* A move cut short by an endstop (a crash, or a stall that stall detection wired as an endstop caught, with
+  endstops on during moves) is reported by ``echo:endstops hit:  Z:-5.00``; the planner keeps the target.
 * ``start`` is printed after a reset; ``Error:Printer halted. kill() called!`` means halted.
 """
 
@@ -18,14 +24,22 @@ from __future__ import annotations
 
 import re
 import time
+import logging
+from collections.abc import Iterable
 from dataclasses import dataclass
 
-from dipnet.rig.controller import (AlarmError, Controller, ControllerError, Position, PositionUnknown, ResetError,
-                                   RigTimeout, require_link)
+from dipnet.rig.controller import (AlarmError, Axis, Controller, ControllerError, Position, PositionMismatch,
+                                   PositionUnknown, ResetError, RigTimeout, require_link)
+
+log = logging.getLogger(__name__)
 
 _RESEND = re.compile(r"^(?:Resend:|rs)\s*N?(?P<n>\d+)", re.IGNORECASE)
 _AXIS = re.compile(r"(?P<axis>[A-Z]):\s*(?P<value>[-+]?\d+(?:\.\d*)?)")
 _FATAL = ("halted", "kill()", "stopped")
+_M92 = re.compile(r"\bM92((?:\s+[A-Z][-+]?\d+(?:\.\d*)?)+)\s*$")
+_WORD = re.compile(r"(?P<axis>[A-Z])(?P<value>[-+]?\d+(?:\.\d*)?)")
+#: Decimals of Marlin's ``M92`` report: the steps per unit it prints are within half of their last digit.
+M92_ROUNDING = 0.005
 
 
 @dataclass(frozen=True)
@@ -102,6 +116,25 @@ def parse_position(line: str) -> dict[str, float]:
     return {m["axis"]: float(m["value"]) for m in _AXIS.finditer(head)}
 
 
+def parse_counts(line: str) -> dict[str, int]:
+    """Step counts of an ``M114`` reply, the part after ``Count``: ``{"X": 0, "Y": 0, "Z": 4000}``; ``{}`` if the
+    line is not a position report or has no counts (pure)."""
+    if "Count" not in line or not parse_position(line):
+        return {}
+    return {m["axis"]: round(float(m["value"])) for m in _AXIS.finditer(line.split("Count", 1)[1])}
+
+
+def parse_steps_per_unit(lines: Iterable[str]) -> dict[str, float]:
+    """Steps per unit (per mm, or per degree of a rotary axis) of the first ``M92`` report among ``lines``
+    (``M92``'s own ``  M92 X80.00 Y80.00 Z400.00 E500.00``, or ``M503``'s, after ``echo:``), by axis letter;
+    ``{}`` if none (pure)."""
+    for line in lines:
+        m = _M92.search(line)
+        if m:
+            return {w["axis"]: float(w["value"]) for w in _WORD.finditer(m[1])}
+    return {}
+
+
 class MarlinController(Controller):
     """Marlin 2.x driver (see the module docstring).
 
@@ -125,9 +158,12 @@ class MarlinController(Controller):
         self._next = 1
         self._sent: dict[int, str] = {}
         self.resends = 0
+        self.steps_per_unit: dict[str, float] = {}  # M92, read at connect
+        self._heard = 0  # messages already searched for endstop hits
+        self._unchecked_said = False
 
     def identity(self) -> dict:
-        return {**super().identity(), "line_numbers": self.line_numbers}
+        return {**super().identity(), "line_numbers": self.line_numbers, "steps_per_unit": self.steps_per_unit}
 
     # ------------------------------------------------------------------ lines
     def _frame(self, line: str) -> str:
@@ -196,6 +232,17 @@ class MarlinController(Controller):
         link.discard_input()
         self._reset_numbers()
         self.absolute_mm()
+        self.steps_per_unit = self._read_steps_per_unit()
+        self._heard, self._unchecked_said = len(self.messages), False
+
+    def _read_steps_per_unit(self) -> dict[str, float]:
+        """``M92`` (no arguments), else ``M503``: the steps per unit, ``{}`` when the firmware reports neither
+        (``M92`` answering only ``ok`` in Marlin 1.x, ``M503`` compiled out by ``DISABLE_M503``)."""
+        for line in ("M92", "M503"):
+            steps = parse_steps_per_unit(self.command(line))
+            if steps:
+                return steps
+        return {}
 
     def _reset_numbers(self) -> None:
         if self.line_numbers:
@@ -227,16 +274,80 @@ class MarlinController(Controller):
         self.command(self.home_command, timeout=self.home_timeout)
         self.position_lost, self._target = None, {}
         self.absolute_mm()
+        self._heard = len(self.messages)
 
     def wait_idle(self, timeout: float | None = None) -> None:
         self.command("M400", timeout=self.move_timeout if timeout is None else timeout)
 
     def position(self) -> Position:
+        return self.axes.rig_position(parse_position(self._report()))
+
+    def _report(self) -> str:
+        """The position line of an ``M114`` reply."""
         for text in self.command("M114"):
-            pos = parse_position(text)
-            if pos:
-                return self.axes.rig_position(pos)
+            if parse_position(text):
+                return text
         raise ControllerError("M114 gave no position line")
+
+    def check_arrived(self) -> None:
+        """See :meth:`Controller.check_arrived`. An ``endstops hit`` message since the last check (a crash, or a
+        stall that stall detection caught: the axis stopped short, while the planner keeps the target) loses the
+        position. Then the ``M114`` counts against the commanded rig values, per axis within one step plus the
+        rounding of the printed steps per unit (``M92``, read at connect), modulo
+        :attr:`~dipnet.rig.controller.Axis.wrap` for a free axis. The counts are in the machine's frame and the
+        moves in the logical one: a work offset (``G92``), a home offset (``M206``), inch moves (``G20``), a move
+        clamped by a software endstop, or steps per unit changed since connect put the machine elsewhere.
+        A firmware that reports no steps per unit or no counts is not checked (a warning says so, once per
+        connection). Steps lost without the firmware noticing (no stall detection) are counted all the same:
+        only an encoder would see them. Cartesian kinematics only (a CoreXY's or delta's counts are per motor)."""
+        counts = parse_counts(self._report())
+        self._check_endstop_hits()
+        off, unknown = [], []
+        for name, commanded in self._target.items():
+            axis = getattr(self.axes, name)
+            letter, steps = axis.letter.upper(), self.steps_per_unit.get(axis.letter.upper())
+            if not steps or letter not in counts:
+                unknown.append(letter)
+            elif not self._counted_at(axis, counts[letter], steps, commanded):
+                unit = "mm" if name == "lower" else "deg"
+                here = round(axis.from_machine(counts[letter] / steps), 3) + 0.0  # no "-0.000"
+                off.append(f"{name} {here:.3f} {unit} (commanded {commanded:g}, {letter} count {counts[letter]} at "
+                           f"{steps:g} steps/unit)")
+        if unknown and not self._unchecked_said:
+            self._unchecked_said = True
+            log.warning("not checking that the machine arrives where the scan sends it: the controller reports %s",
+                        "no steps per unit (M92 answers only 'ok' in Marlin 1.x; M503 may be compiled out)"
+                        if not self.steps_per_unit else f"no steps per unit (M92) or no step count (M114 'Count') for "
+                        f"axis {', '.join(unknown)}")
+        if off:
+            raise PositionMismatch(
+                f"idle after the move, the controller counts {', '.join(off)}: the machine is not where the scan sent "
+                f"it, and no reading is recorded there. Marlin moves in logical coordinates and counts steps in its "
+                f"own: clear a work offset (G92; homing with G28 clears it) and a home offset (M206 with zeros, then "
+                f"M500), keep mm (G21), keep the moves inside the software endstops (M211), check that the steps per "
+                f"unit (M92) did not change since connect and rig.controller.axes (scale, sign, offset)")
+
+    def _check_endstop_hits(self) -> None:
+        """Raise :class:`PositionMismatch`, and lose the position, if an ``endstops hit`` message came since the
+        last check."""
+        hits = [text for text in self.messages[self._heard:] if "endstops hit" in text.lower()]
+        self._heard = len(self.messages)
+        if hits:
+            self.lose_position(f"the controller reported {hits[-1]!r} during a move")
+            raise PositionMismatch(
+                f"the controller reported {hits[-1]!r} during the move: an axis stopped short (a crash, a stall or a "
+                f"driver fault; steps were lost) while the controller counts the full move, and no reading is recorded "
+                f"there. Free the axis, check the driver and its current, then home (home=true)")
+
+    @staticmethod
+    def _counted_at(axis: Axis, count: int, steps: float, commanded: float) -> bool:
+        """Whether ``count`` steps at ``steps`` per machine unit (as printed, to :data:`M92_ROUNDING`) stand at rig
+        value ``commanded`` of ``axis``: within one step plus the printing's rounding, modulo a free axis's wrap."""
+        tolerance = (1.0 + M92_ROUNDING * abs(count) / steps) / steps / axis.scale  # rig units
+        difference = axis.from_machine(count / steps) - commanded
+        if axis.wrap is not None:
+            difference = (difference + axis.wrap / 2) % axis.wrap - axis.wrap / 2
+        return abs(difference) <= tolerance
 
     def stop(self) -> None:
         """Wait for the queue to empty (``M400``); ``M410`` would stop without deceleration and lose steps."""

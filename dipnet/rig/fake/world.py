@@ -16,12 +16,15 @@ from dipnet.simulator.physics import Tank
 
 DEVICES = ("grbl", "marlin", "level", "modbus", "ad", "sics")
 FAULTS = ("drop", "error", "alarm", "reset", "disconnect", "resend", "unstable", "hold", "door", "late_ok",
-          "corrupt_status", "split_status")
+          "corrupt_status", "split_status", "stall")
 #: Stock GRBL 1.1 settings (as read from the firmware, ``tests/data/grbl-traces/t1.log``) with
 #: homing enabled; per-axis ``$10N``..``$13N`` are repeated for every status axis.
 GRBL_SETTINGS = {0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0, 20: 0, 21: 0,
                  22: 1, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0}
 _GRBL_AXIS_SETTINGS = {100: 250.0, 110: 500.0, 120: 10.0, 130: 200.0}
+#: Marlin's steps per unit (``M92``): its defaults for X, Y, Z and E; 1/16 microsteps of a 1.8 degree motor driving
+#: a rotary axis directly, 8.888... steps per degree (printed ``8.89``), for A, B and C.
+MARLIN_STEPS = {"X": 80.0, "Y": 80.0, "Z": 400.0, "A": 3200 / 360, "B": 3200 / 360, "C": 3200 / 360, "E": 500.0}
 WORLDS: dict[str, "FakeRig"] = {}
 
 _TABLE_STEP_MM = 0.05
@@ -37,6 +40,9 @@ class Fault:
         code: the GRBL error / alarm number.
         count: for ``unstable``: how many sensor readings are affected.
         delay_s: for ``late_ok``: how late the acknowledgement comes (s).
+
+    ``stall`` (Marlin; GRBL moves on): the move stops half-way, as a crash or a stall that stall detection caught
+    stops it; the firmware says ``echo:endstops hit:`` and its planner keeps the target.
     """
 
     kind: str
@@ -102,6 +108,15 @@ class FakeRig:
         grbl_settings: ``$$`` values overriding :data:`GRBL_SETTINGS` (e.g. ``{22: 0}``: no homing).
         grbl_startup: a startup block (``$N0``) the GRBL board runs after every reset; only its units word is
             modelled: ``"G20"`` makes the moves that follow it inches until a ``G21``.
+        marlin_steps: Marlin's steps per unit by axis letter, overriding :data:`MARLIN_STEPS`; the motors move by the
+            steps counted divided by :attr:`marlin_motor_steps` (these values at creation): changing
+            ``marlin_steps`` later models a wrong ``M92``.
+        marlin_offset: Marlin's workspace offset (logical minus machine position) by axis letter, kept over resets:
+            an ``M206`` home offset saved in its EEPROM.
+        marlin_soft_limits: Marlin's software endstops, ``{letter: (min, max)}`` in machine coordinates: moves are
+            clamped to them (``apply_motion_limits``), silently. Stock Marlin has ``Z: (0, 200)``.
+        marlin_reports_steps: whether Marlin reports its steps per unit (``False``: ``M92`` answers only ``ok``,
+            as Marlin 1.x, and ``M503`` is compiled out).
     """
 
     def __init__(self, shape, *, radius: float | None = None, tank: Tank | None = None,
@@ -112,7 +127,8 @@ class FakeRig:
                  unstable_sigma: float = 0.5, latency_s: float = 0.0, move_s: float = 0.0, keepalive_s: float = 2.0,
                  faults: list[Fault | dict] | None = None, sensor_format: SensorFormat | dict | None = None,
                  seed: int = 0, name: str = "fakerig", grbl_settings: dict | None = None,
-                 grbl_startup: str = "") -> None:
+                 grbl_startup: str = "", marlin_steps: dict | None = None, marlin_offset: dict | None = None,
+                 marlin_soft_limits: dict | None = None, marlin_reports_steps: bool = True) -> None:
         if isinstance(shape, str):
             from dipnet.shapes import load_mesh
 
@@ -144,6 +160,12 @@ class FakeRig:
             base + i: value for i in range(len(self.status_axes)) for base, value in _GRBL_AXIS_SETTINGS.items()},
             **{int(k): v for k, v in dict(grbl_settings or {}).items()}}
         self.grbl_startup = str(grbl_startup).upper()
+        self.marlin_steps = {**MARLIN_STEPS, **{str(k).upper(): float(v) for k, v in dict(marlin_steps or {}).items()}}
+        self.marlin_motor_steps = dict(self.marlin_steps)  # what the mechanics need: an M92 that differs is wrong
+        self.marlin_offset = {str(k).upper(): float(v) for k, v in dict(marlin_offset or {}).items()}
+        self.marlin_soft_limits = {str(k).upper(): (float(lo), float(hi))
+                                   for k, (lo, hi) in dict(marlin_soft_limits or {}).items()}
+        self.marlin_reports_steps = bool(marlin_reports_steps)
         self.lock = threading.RLock()
         self._tables: dict[tuple[float, float], tuple[np.ndarray, np.ndarray, float]] = {}
         self.reset(self.faults)
@@ -211,8 +233,9 @@ class FakeRig:
             here = self.position()
             self._move = (here, here, 0.0, 0.0)
 
-    def machine_position(self) -> dict[str, float]:
-        pos = self.position()
+    def machine_position(self, pos: Position | None = None) -> dict[str, float]:
+        """Machine coordinates by status axis letter of ``pos`` (default: where the stage is now)."""
+        pos = self.position() if pos is None else pos
         out = {a: 0.0 for a in self.status_axes}
         for axis, value in ((self.axes.lower, pos.lower_mm), (self.axes.tilt, pos.tilt_deg),
                             (self.axes.spin, pos.spin_deg)):
