@@ -48,6 +48,19 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   profile loses volume alike; the readings after the object is under fall instead of staying put
   (:mod:`dipnet.preprocessing.level_trend`, from the measurement's ``tail_slope`` metadata): the share
   of the measured volume such a fall takes over a dip, and its standard errors (NaN without the metadata).
+* ``reading_noise_mm3``, ``reading_noise_ratio``: the noise of one reading (as a volume) that the readings
+  themselves show, and the stated noise over it (preprocessing's ``reading_noise_volume`` and
+  ``reading_noise_ratio`` metadata, :func:`~dipnet.preprocessing.validation.reading_noise`; NaN without raw
+  readings, the ratio also without a stated noise). A stated noise (the sensor's ``noise_sigma`` or SNR) too
+  large sets the solvers' prior weights too large (an over-smoothed shape) and the residual limit too
+  generous, so the residual check passes what it should not: above ``NOISE_RATIO_MAX`` it is named. On
+  correct simulations with 1 mm steps (the 16 bundled meshes at 32^3 and 64^3, 41 and 123 dips, slabs of
+  0.78-3.1 mm, 10-40 dB or noise-free with a reading quantum; a balance: 0.82-1.15) the ratio lies in
+  0.86-1.30, so a factor 3 leaves a margin of 2.3 and flags a 5-fold overstatement. Coarser steps and cleaner
+  readings let the rise's own curvature into the estimate and lower the ratio (0.46 at 40 dB with 3 mm
+  steps), which only makes the check more lenient; for the same reason a stated noise too small is not
+  named (a lower limit would name clean data read at coarse steps), and the residual check names it only
+  when the result's residual exceeds the floor ``residual_floor``.
 
 The verdict is ``"consistent"`` unless the residual exceeds ``residual_factor`` times what
 the noise explains (and the discretisation floor ``residual_floor``), the volume ratio or the grid's
@@ -58,7 +71,8 @@ fill is below ``hull_fill_min`` or above ``HULL_FILL_MAX`` (or the dips bound no
 height trend exceeds half a slab and 3 of its standard errors, the profile floor exceeds ``FLOOR_SIGMAS``
 noise sigmas (or its standard errors, when the dips' floors agree: :func:`floor_limit`) and carries more
 than ``volume_tol`` of the measured volume, or the level
-falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0. Each
+falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0, or the stated
+noise exceeds ``NOISE_RATIO_MAX`` times the readings' own. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
 """
@@ -94,6 +108,9 @@ FLOOR_SIGMAS = 3.0  # a profile floor within this many noise sigmas of 0 is nois
 FLOOR_SPREAD = 0.25  # the dips' floors agree (a drift's floor) when their robust spread is at most this share
 FLOOR_BEYOND_MATERIAL = 0.01  # a drift of the floor that puts less than this share of the volume beyond the slabs: untested
 FLOOR_BEYOND_MIN = 0.25  # readings beyond the slabs holding less than this share of a drift's: the floor is no drift
+#: A stated noise above this many times the readings' own is named (correct simulations: 0.86-1.30 at 1 mm steps,
+#: see the module docstring)
+NOISE_RATIO_MAX = 3.0
 
 
 class DataConsistencyWarning(UserWarning):
@@ -135,6 +152,8 @@ class Consistency:
     mean_slab_mm3: float = float("nan")
     level_fall_share: float = float("nan")
     level_fall_sigmas: float = float("nan")
+    reading_noise_mm3: float = float("nan")
+    reading_noise_ratio: float = float("nan")
     volume_unit: str = "mm^3"
     verdict: str = "consistent"
     warnings: list[str] = field(default_factory=list)
@@ -326,6 +345,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     if result.outside_share > 0:  # NaN compares False
         result.grid_volume_fraction *= 1.0 - result.outside_share
     metadata = measurement.metadata or {}
+    result.reading_noise_mm3, result.reading_noise_ratio = (
+        _metadata_number(metadata, key) for key in ("reading_noise_volume", "reading_noise_ratio"))
     if "tail_slope" in metadata and "readings_per_dip" in metadata:
         result.level_fall_share, result.level_fall_sigmas = level_fall(
             metadata["tail_slope"], metadata["readings_per_dip"], measured)
@@ -336,6 +357,12 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
             log.warning(message)
             warnings.warn(message, DataConsistencyWarning, stacklevel=2)
     return result
+
+
+def _metadata_number(metadata: dict, key: str) -> float:
+    """``metadata[key]`` as a float; NaN when it is missing or ``None``."""
+    value = metadata.get(key)
+    return float("nan") if value is None else float(value)
 
 
 def _slab_sigma(measurement: DipMeasurement) -> float:
@@ -406,6 +433,11 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    "and the monotone slabs hide it, so every profile, the measured volume and the shape are too small "
                    "by about that much. A leak, evaporation or a level sensor drifting down does this: check the tank "
                    "and the sensor, or fit the drift (calibration=self)")
+    if c.reading_noise_ratio > NOISE_RATIO_MAX:  # NaN compares False
+        out.append(f"the stated noise is {c.reading_noise_ratio:.1f} times what the readings scatter by (one reading: "
+                   f"{c.reading_noise_mm3:.3g} {c.volume_unit}): the solvers' prior weights, set from it, over-smooth "
+                   f"the shape, and the residual limit ({c.residual_limit:.3f}) it sets is too generous to show it. "
+                   "Correct the sensor's noise_sigma or snr_db (or leave the noise unstated to have it estimated)")
     if math.isnan(c.hull_fill) and not coarse:
         out.append("the dips bound no region on the grid (each dip's non-empty slabs exclude the others'): the "
                    "directions, start heights or slab thickness do not belong to these profiles")

@@ -77,6 +77,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "profile_floor_limit_mm3": ("how consistent with the data", "floor limit (mm³)"),
     "level_fall_share": ("how consistent with the data", "share of the volume a falling level takes over a dip"),
     "level_fall_sigmas": ("how consistent with the data", "the fall in standard errors"),
+    "reading_noise_mm3": ("how consistent with the data", "noise of one reading the readings show (mm³)"),
+    "reading_noise_ratio": ("how consistent with the data", "stated noise / the readings' own (flagged above 3)"),
     "outside_share": ("how consistent with the data", "largest share of a dip's volume beyond the slabs"),
     "outside_limit": ("how consistent with the data", "limit of that share"),
     "floor_beyond_ratio": ("how consistent with the data", "readings beyond the slabs over what a drift of the floor puts there"),

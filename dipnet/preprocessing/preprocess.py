@@ -33,7 +33,11 @@ header) the cumulative volume at each edge is modelled with independent errors o
 deviation ``c = k sqrt(sigma_r^2 + q^2 / 12)`` (``k`` = ``A`` or ``1 / density``, ``q`` = the
 header's ``resolution``); slab sigma is ``c sqrt(diag(S D D^T S^T))`` with ``D`` the
 difference and ``S`` the smoothing matrix (approximate: it ignores the monotone fit and
-correlations when slabs are thinner than a stage step).
+correlations when slabs are thinner than a stage step). The readings' own noise (their third
+differences, :func:`~dipnet.preprocessing.validation.reading_noise`) goes into
+``metadata["reading_noise_volume"]`` (``k`` times it, the volume of one reading's noise) and the stated
+noise over it into ``metadata["reading_noise_ratio"]`` (``None`` when no noise is stated), which the
+consistency check compares.
 """
 
 from __future__ import annotations
@@ -52,9 +56,11 @@ from scipy.interpolate import PchipInterpolator
 from dipnet.core.geometry import CROSS_SECTION_RANGE_MM2
 from dipnet.core.grid import Grid, slab_count
 from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
+from dipnet.core.strict_json import finite_or_none
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
 from dipnet.preprocessing.level_trend import tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
+from dipnet.preprocessing.validation import reading_noise
 
 log = logging.getLogger(__name__)
 
@@ -148,9 +154,12 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     centre = np.zeros(header.ndim) if object_centre is None else np.asarray(object_centre, dtype=np.float64)
 
     profiles, starts, sigmas, slopes, counts, outside, outside_mm = [], [], [], [], [], [], []
+    readings, stated = [], []
     for o in scans:
         stage, values = _clean_readings(o, drop_flags)
         noise = o.meta.get("noise_sigma", header.noise_sigma)
+        readings.append(values)
+        stated.append(noise)
         quantum = header.resolution or 0.0
         tol = onset_tol if onset_tol is not None else _default_tol(values, noise, quantum)
         onset = onset_index(values, tol)
@@ -169,6 +178,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         starts.append(t0)
         sigmas.append(None if noise is None else scale * float(np.hypot(noise, quantum / np.sqrt(12.0))))
     _warn_outside(outside, [o.k for o in scans], sigmas, [float(p.sum()) for p in profiles], edges)
+    read_sigma, read_ratio = reading_noise(readings, stated, header.resolution or 0.0)
 
     prof = np.stack(profiles)
     if smooth:
@@ -188,6 +198,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "outside_share": outside, "outside_mm": [float(v) for v in outside_mm],
                   "reading_quantum": header.resolution, "reading_quantum_volume":
                       None if header.resolution is None else scale * float(header.resolution),
+                  "reading_noise_volume": finite_or_none(scale * read_sigma),
+                  "reading_noise_ratio": finite_or_none(read_ratio),
                   "readings": report.to_json()})
 
 

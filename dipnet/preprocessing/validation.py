@@ -61,6 +61,47 @@ def estimate_slab_sigma(profiles: torch.Tensor) -> float:
     return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
 
 
+#: Gain of the third difference ``[-1, 3, -3, 1]`` on white noise: ``sqrt(1 + 9 + 9 + 1)``.
+_THIRD_DIFFERENCE_GAIN = math.sqrt(20.0)
+
+
+def reading_noise(readings: list[np.ndarray], stated: list[float | None], quantum: float = 0.0
+                  ) -> tuple[float, float]:
+    """The readings' own noise and the stated noise over it: ``(sigma, stated / sigma)``.
+
+    A dip's readings (level or balance, one per stage step) are a smooth rise plus white noise, so
+    their third differences along the stage hold the noise alone (the rise's own third difference
+    over a 1 mm step is far below it); the robust sigma (MAD) of all dips' third differences over
+    their white-noise gain estimates the noise per reading. The slab profiles cannot give it: they
+    interpolate the readings (slabs thinner than a step hold almost none of their noise) and the
+    monotone fit flattens it where the level barely rises, while at a few mm per slab the
+    profiles' own shape outweighs a 30 dB noise. Rounding to ``quantum`` leaves ``quantum / sqrt(12)``
+    at least, which bounds the estimate from below (readings that stay on one level for several steps
+    show no scatter).
+
+    Args:
+        readings: each dip's readings ``(n_k,)`` in their unit (mm or g), by stage position.
+        stated: each dip's stated noise sigma (same unit; 0 for a noise-free sensor, whose
+            rounding alone is then stated), ``None`` when not stated.
+        quantum: the readings' resolution (same unit; 0: none).
+
+    Returns:
+        ``sigma`` (reading unit; NaN without a dip of 4 readings) and the median stated sigma
+        (with the rounding's, as preprocessing states the slab noise) over ``sigma``; NaN when no
+        dip states its noise.
+    """
+    third = [np.diff(np.asarray(v, dtype=np.float64), 3) for v in readings if len(v) >= 4]
+    if not third:
+        return float("nan"), float("nan")
+    d = np.concatenate(third)
+    rounding = quantum / math.sqrt(12.0)
+    sigma = max(_MAD * float(np.median(np.abs(d - np.median(d)))) / _THIRD_DIFFERENCE_GAIN, rounding)
+    given = [math.hypot(s, rounding) for s in stated if s is not None]
+    if not given or not sigma > 0 or not float(np.median(given)) > 0:
+        return sigma, float("nan")
+    return sigma, float(np.median(given)) / sigma
+
+
 class MeasurementValidationError(ValueError):
     """The measurement cannot describe an object in the grid (negative, huge, non-finite...)."""
 

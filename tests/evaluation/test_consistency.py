@@ -6,12 +6,18 @@ import warnings
 import pytest
 import torch
 
-from dipnet.evaluation.consistency import DataConsistencyWarning, check_consistency, estimate_slab_sigma
+from dipnet.core.strict_json import dumps
+from dipnet.evaluation.consistency import NOISE_RATIO_MAX, DataConsistencyWarning, check_consistency, estimate_slab_sigma
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import make_operator
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.preprocessing.datasets import data_path
+from dipnet.preprocessing.preprocess import preprocess
+from dipnet.shapes import load_mesh
+from dipnet.simulator.physics import LevelSensor
+from dipnet.simulator.simulate import simulate_measurement
 
 GRID = Grid(20, 3, 100.0)
 
@@ -419,3 +425,43 @@ def test_a_coarse_level_sensor_is_named_and_not_blamed_on_the_rig():
     assert coarse.volume_ratio_noise == pytest.approx(30000.0 / math.sqrt(6) / coarse.measured_volume_mm3, rel=0.01)
     assert 0.5 * grid.voxel_size < coarse.height_trend_pivot_mm < coarse.height_trend_limit_mm  # within the rounding
     assert "levels in cm" in " ".join(_findings(coarse))  # the same numbers without the quantum: the unit blamed
+
+
+def _dipped_mesh(name: str, seed: int, overstate: float) -> tuple:
+    """A 30 dB simulation of a bundled mesh at 32^3 (41 dips) whose sensor states ``overstate`` times its
+    true noise; with its operator and the mesh's own occupancy as the reconstruction."""
+    grid = Grid(32, 3, 100.0)
+    shape = load_mesh(data_path(f"meshes/{name}.ply"), radius=0.9 * grid.radius)
+    raw, _ = simulate_measurement(shape, fibonacci_hemisphere(41), grid=grid, sensor=LevelSensor(snr_db=30.0),
+                                  seed=seed, progress=False)
+    for dip in raw.orientations:
+        dip.meta["noise_sigma"] *= overstate
+    measurement = preprocess(raw, grid=grid)
+    return measurement, make_operator(grid, measurement.directions), Reconstruction(shape.occupancy(grid), grid=grid)
+
+
+def _noise_named(result) -> bool:
+    return any("the stated noise is" in message for message in result.warnings)
+
+
+@pytest.mark.parametrize("name,seed", [("bunny", 0),
+                                       pytest.param("hand", 1, marks=pytest.mark.slow),
+                                       pytest.param("penguin", 2, marks=pytest.mark.slow),
+                                       pytest.param("torus", 3, marks=pytest.mark.slow)])
+def test_a_stated_noise_five_times_the_readings_is_named_and_the_true_one_is_not(name, seed):
+    for overstate in (1.0, 5.0):
+        measurement, operator, recon = _dipped_mesh(name, seed, overstate)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DataConsistencyWarning)
+            result = check_consistency(measurement, operator, recon)
+        assert result.reading_noise_ratio == pytest.approx(overstate, rel=0.3)  # the readings' noise is the true one
+        assert _noise_named(result) == (overstate > NOISE_RATIO_MAX)
+        assert result.verdict == ("inconsistent" if overstate > NOISE_RATIO_MAX else "consistent")
+
+
+def test_without_raw_readings_the_noise_is_not_compared_and_the_json_stays_strict(problem):
+    operator, ball, measurement = problem
+    result, _ = _check(measurement, operator, ball)
+    assert math.isnan(result.reading_noise_mm3) and math.isnan(result.reading_noise_ratio)
+    assert not _noise_named(result)
+    assert '"reading_noise_ratio": null' in dumps(result.metrics())

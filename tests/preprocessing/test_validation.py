@@ -10,7 +10,8 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators.analytic import ball_profiles
-from dipnet.preprocessing.validation import MeasurementValidationError, validate_measurement, working_ball_volume
+from dipnet.preprocessing.validation import (MeasurementValidationError, reading_noise, validate_measurement,
+                                            working_ball_volume)
 
 GRID = Grid(16, 3, 100.0)
 EDGES = torch.linspace(-50, 50, 17, dtype=torch.float64)
@@ -73,3 +74,30 @@ def test_a_mislabelled_direction_is_named_by_its_profile_not_its_total():
     report = validate_measurement(repeated, GRID)
     assert report.stats["duplicate_direction_pairs"] == 1 and report.warnings == []
     assert report.stats["duplicate_max_discrepancy"] < 0.02
+
+
+def _readings(sigma: float, seed: int, n: int = 80) -> np.ndarray:
+    """A dip's level readings (mm) at 1 mm steps: a smooth 30 mm rise plus white noise of ``sigma``."""
+    rise = 30.0 * (1 - np.cos(np.pi * np.clip(np.arange(n) / (n - 1), 0, 1))) / 2
+    return 150.0 + rise + np.random.default_rng(seed).normal(0.0, sigma, n)
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.1])
+def test_the_readings_noise_is_their_white_noise_and_the_stated_one_is_compared_to_it(sigma):
+    dips = [_readings(sigma, seed) for seed in range(40)]
+    found, ratio = reading_noise(dips, [sigma] * 40)
+    assert found == pytest.approx(sigma, rel=0.1)
+    assert ratio == pytest.approx(1.0, rel=0.1)
+    _, overstated = reading_noise(dips, [5 * sigma] * 40)
+    assert overstated == pytest.approx(5.0, rel=0.1)
+    assert math.isnan(reading_noise(dips, [None] * 40)[1])  # nothing stated: nothing to compare
+
+
+def test_rounded_noise_free_readings_show_the_rounding():
+    quantum = 0.05
+    dips = [np.round(_readings(0.0, 0) / quantum) * quantum, np.full(20, 150.0)]  # a rise, and a level that never moves
+    found, ratio = reading_noise(dips, [0.0, 0.0], quantum)
+    rounding = quantum / math.sqrt(12)
+    assert found >= rounding and ratio == pytest.approx(rounding / found)
+    assert ratio > 0.7
+    assert math.isnan(reading_noise([np.arange(3.0)], [0.1])[0])  # no third difference
