@@ -119,6 +119,10 @@ class VoxelSolver(OptimisationSolver):
             merged[name] = {**merged.get(name, {}), **prior_options(value)}
         return merged
 
+    def prior_specs(self) -> list[Mapping[str, Mapping]]:
+        """:attr:`priors` and, when set, :attr:`later_priors` (rounds 2 and on)."""
+        return [self.priors] + ([self.later_priors] if self.later_priors is not None else [])
+
     def temperature(self, fraction: float) -> float:
         """Temperature after ``fraction`` (0..1) of the whole run."""
         return self.temperature_start * (self.temperature_end / self.temperature_start) ** fraction
