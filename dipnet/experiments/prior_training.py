@@ -92,6 +92,11 @@ class TrainConfig:
         """Raise :class:`TrainConfigError` for an option out of range, before any pair is made."""
         _seed_range("train_seeds", self.train_seeds)
         _seed_range("val_seeds", self.val_seeds)
+        (a, b), (c, d) = self.train_seeds, self.val_seeds
+        if max(a, c) < min(b, d):
+            raise TrainConfigError(f"val_seeds {c} {d} share the seeds {max(a, c)}..{min(b, d) - 1} with train_seeds "
+                                   f"{a} {b}: the validation loss would score shapes trained on, not held-out ones; "
+                                   "give seed ranges that do not overlap")
         for family, seeds in self.family_seeds.items():
             _seed_range(f"family_seeds {family}", seeds)
         if self.meshes:

@@ -187,6 +187,17 @@ def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, arg
     assert not (tmp_path / "w.pt").exists() and not (tmp_path / "pairs").exists()
 
 
+def test_validation_seeds_that_overlap_the_training_seeds_are_refused():
+    """A validation loss on shapes trained on is no held-out score: overlapping ranges are refused (touching ones,
+    [1000, 1004) and [1004, 1006), share no seed)."""
+    with pytest.raises(TrainConfigError, match=r"val_seeds 1003 1005 share the seeds 1003\.\.1003 with train_seeds "
+                                               r"1000 1004: the validation loss would score shapes trained on"):
+        TrainConfig(train_seeds=(1000, 1004), val_seeds=(1003, 1005))
+    with pytest.raises(TrainConfigError, match=r"share the seeds 1000\.\.1001"):
+        TrainConfig(train_seeds=(1000, 1004), val_seeds=(990, 1002))
+    TrainConfig(train_seeds=(1000, 1004), val_seeds=(1004, 1006))
+
+
 def test_a_diverging_training_writes_nothing_and_says_to_lower_the_learning_rate(tmp_path, shared_pairs, capsys):
     """``--lr 1e12``: the validation loss becomes 2.6e+23 (a NaN or infinite one with more channels); one
     ``error:`` line naming the step and ``--lr``, exit 2, and neither weights nor a checkpoint of the diverged
