@@ -36,7 +36,7 @@ from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, checked_threshold, filled_slabs, measured_profiles
+from dipnet.solvers.base import Solver, checked_flag, checked_threshold, filled_slabs, measured_profiles
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
@@ -528,7 +528,7 @@ class OptimisationSolver(Solver):
             raise ValueError(f"hull_margin must be >= 0 voxels, got {hull_margin}")
         self.hull_margin = float(hull_margin)
         self.checkpoint = checkpoint
-        self.fit_gain = bool(fit_gain)
+        self.fit_gain = checked_flag("fit_gain", fit_gain)
         self.noise_model, self.white_share = noise_model, float(white_share)
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,

@@ -129,6 +129,18 @@ def test_mismatched_weights_are_refused_before_the_warm_start_runs(weights16, tm
     assert calls == []
 
 
+@pytest.mark.parametrize("options, message", [({"flips": "no"}, "flips must be true or false, got 'no'"),
+                                             ({"flips": "maybe"}, "flips must be true or false"),
+                                             ({"refresh": 2.7}, "refresh must be a whole number >= 1"),
+                                             ({"refresh": "3"}, "refresh must be a whole number >= 1")])
+def test_odd_learned_prior_options_are_refused(weights16, options, message):
+    """``flips: no`` was read as on (``bool("no")``), ``refresh: 2.7`` as 2."""
+    with pytest.raises(ValueError, match=message):
+        LearnedPrior(weights16, **options)
+    with pytest.raises(ValueError, match=message):
+        VoxelSolver(progress=False, priors={"learned": {"weight": 1.0, "weights": str(weights16), **options}})
+
+
 def test_a_hallucinating_prior_fails_the_consistency_check(tmp_path):
     """A denoiser that empties every volume, anchored with a weight that overrules the data: the
     result no longer explains its dips, and the consistency check says so."""
