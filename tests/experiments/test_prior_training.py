@@ -39,6 +39,20 @@ def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path, s
         assert torch.equal(p, q), name
 
 
+def test_a_stopped_run_started_again_without_resume_is_refused_before_its_checkpoint_is_replaced(tmp_path,
+                                                                                                  shared_pairs):
+    """The same command without ``--resume`` after a ``max_minutes`` stop (or a kill) trained from step 0 and
+    replaced the checkpoint's steps at its first one; now it is refused, the checkpoint left as it was."""
+    cache, out = tmp_path / "pairs", tmp_path / "w.pt"
+    train(dataclasses.replace(TINY, max_minutes=0.0), out, cache, progress=False)
+    before = out.with_suffix(".ckpt").read_bytes()
+    with pytest.raises(TrainConfigError, match=r"holds this run stopped at step 3 of 6: .*add --resume"):
+        train(TINY, out, cache, progress=False)
+    assert out.with_suffix(".ckpt").read_bytes() == before
+    assert train(TINY, out, cache, resume=True, progress=False)["steps_done"] == 6
+    assert train(TINY, out, cache, progress=False)["steps_done"] == 6  # a finished run may be made again
+
+
 def test_a_checkpoint_older_than_a_config_field_resumes_with_its_default():
     """A checkpoint written before ``noise_model`` existed was an ``independent`` run."""
     saved = dataclasses.asdict(TINY)
