@@ -7,7 +7,8 @@ sensor at ``--snr`` dB, for every seed), and the shape's partial-volume occupanc
 trains :class:`dipnet.solvers.denoiser.OccupancyDenoiser` and writes the weights with their
 config (``.pt`` + ``.json``). The bundled meshes are never used. A checkpoint (``.ckpt`` next to
 the weights) is written every ``--checkpoint-every`` steps; ``--resume`` continues from it (also
-to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint.
+to more ``--steps``), and ``--max-minutes`` stops a session early with a checkpoint (the same run started
+again without ``--resume`` is refused while that checkpoint is unfinished, rather than replacing it).
 
 ``--noise-model correlated`` solves the noisy pairs as ``solver=voxel_learned``'s voxel start does
 (the slabs' errors as differences of cumulative readings; the shipped weights were trained with

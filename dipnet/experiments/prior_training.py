@@ -92,6 +92,11 @@ class TrainConfig:
         """Raise :class:`TrainConfigError` for an option out of range, before any pair is made."""
         _seed_range("train_seeds", self.train_seeds)
         _seed_range("val_seeds", self.val_seeds)
+        (a, b), (c, d) = self.train_seeds, self.val_seeds
+        if max(a, c) < min(b, d):
+            raise TrainConfigError(f"val_seeds {c} {d} share the seeds {max(a, c)}..{min(b, d) - 1} with train_seeds "
+                                   f"{a} {b}: the validation loss would score shapes trained on, not held-out ones; "
+                                   "give seed ranges that do not overlap")
         for family, seeds in self.family_seeds.items():
             _seed_range(f"family_seeds {family}", seeds)
         if self.meshes:
@@ -270,6 +275,22 @@ def resumable_checkpoint(path: Path, config: TrainConfig) -> dict | None:
     return saved
 
 
+def refuse_unfinished(path: Path, config: TrainConfig) -> None:
+    """Raise :class:`TrainConfigError` when ``path`` holds an unfinished checkpoint of ``config``'s own run (stopped
+    by ``max_minutes`` or killed): training afresh without ``resume`` would replace it at its first checkpoint and
+    lose the steps it holds. A missing, damaged or other run's checkpoint is left to be replaced."""
+    if not path.is_file():
+        return
+    saved, problem = read_state(path)
+    if problem is not None or not isinstance(saved, dict) or not isinstance(saved.get("config"), dict):
+        return
+    step, steps = saved.get("step"), saved["config"].get("steps")
+    if same_run(saved["config"], config) and isinstance(step, int) and isinstance(steps, int) and step < steps:
+        raise TrainConfigError(f"checkpoint {path} holds this run stopped at step {step} of {steps}: training afresh "
+                               "would replace it and lose those steps; add --resume to continue it, or delete it or "
+                               "give another --out to start again")
+
+
 def _plain(value):
     """``value`` with tuples as lists (as a checkpoint's config holds them)."""
     if isinstance(value, (list, tuple)):
@@ -334,6 +355,8 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")
     saved = resumable_checkpoint(ckpt_path, config) if resume else None  # another run's: refused before the pairs
+    if not resume:
+        refuse_unfinished(ckpt_path, config)
     made_by = pairs_made_by(config)
     x_np, y_np = training_pairs(config, cache, progress, workers)
     xv_np, yv_np = _pairs(config, config.val_seeds, cache, progress, workers)

@@ -39,6 +39,7 @@ own small decoder inside the shared loop and adds no dependency.
 from __future__ import annotations
 
 import math
+import numbers
 import time
 
 import torch
@@ -70,9 +71,13 @@ class DeepDecoder(nn.Module):
         ndim = len(shape)
         if ndim not in (2, 3) or len(set(shape)) != 1:
             raise ValueError(f"the decoder makes square 2D or cubic 3D volumes, got shape {shape}")
-        if channels < 1 or levels < 1 or kernel_size < 1 or kernel_size % 2 == 0:
-            raise ValueError(f"need channels >= 1, levels >= 1 and an odd kernel_size, got {channels}, {levels}, "
-                             f"{kernel_size}")
+        sizes = (channels, levels, kernel_size, fine_kernel)
+        if (any(isinstance(v, bool) or not isinstance(v, numbers.Integral) for v in sizes) or channels < 1
+                or levels < 1 or kernel_size < 1 or kernel_size % 2 == 0 or fine_kernel < 0
+                or (fine_kernel and fine_kernel % 2 == 0)):
+            raise ValueError(f"need whole numbers channels >= 1, levels >= 1, an odd kernel_size and a fine_kernel "
+                             f"that is 0 (no full-resolution layer) or odd (an even kernel shifts the grid by half a "
+                             f"voxel), got {channels!r}, {levels!r}, {kernel_size!r}, {fine_kernel!r}")
         n = shape[0]
         self.sizes = [max(2, math.ceil(n / 2 ** (levels - i))) for i in range(levels)] + [n]  # input .. output
         conv = nn.Conv3d if ndim == 3 else nn.Conv2d

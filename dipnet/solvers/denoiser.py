@@ -12,6 +12,8 @@ weights were trained for, and how they were made); a JSON copy of ``meta`` sits 
 
 from __future__ import annotations
 
+import math
+import numbers
 import pickle
 from pathlib import Path
 
@@ -145,6 +147,11 @@ def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dic
     if missing:
         raise PriorWeightsError(f"learned-prior weights {path}: their meta lacks {', '.join(missing)} (the grid, "
                                 "operator and network they were trained for): not a complete dipnet denoiser file")
+    bad = _bad_meta(meta)
+    if bad:
+        raise PriorWeightsError(f"learned-prior weights {path}: their meta gives {bad} (a weights file holds n a "
+                                "positive multiple of 4, ndim 2 or 3, a positive n_slabs_per_voxel and channels): "
+                                "a damaged or hand-edited file; retrain them (scripts/train_prior.py)")
     try:
         model = OccupancyDenoiser(int(meta["channels"]))
         model.load_state_dict(saved["state_dict"])
@@ -156,6 +163,20 @@ def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dic
                                 f"{f' (and {len(bad) - 1} more)' if len(bad) > 1 else ''}: damaged, or saved from a "
                                 "diverged training; retrain them (scripts/train_prior.py, a lower --lr)")
     return model.eval(), meta
+
+
+def _bad_meta(meta: dict) -> str:
+    """The first of :data:`META_KEYS` whose value a weights file cannot hold (``key=value``), or ``""``: ``n`` a
+    positive multiple of 4 (the U-Net's two poolings), ``ndim`` 2 or 3, ``n_slabs_per_voxel`` finite and positive,
+    ``channels`` a positive integer."""
+    def whole(value) -> bool:
+        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+    checks = {"n": lambda v: whole(v) and v > 0 and v % 4 == 0, "ndim": lambda v: whole(v) and v in (2, 3),
+              "n_slabs_per_voxel": lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool)
+              and math.isfinite(v) and v > 0,
+              "channels": lambda v: whole(v) and v > 0}
+    return next((f"{key}={meta[key]!r}" for key, ok in checks.items() if not ok(meta[key])), "")
 
 
 def nonfinite_tensors(model: nn.Module) -> list[str]:

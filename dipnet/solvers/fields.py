@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dipnet.solvers.priors import symmetry_maps
+from dipnet.solvers.priors import rotation_order, symmetry_maps
 
 
 
@@ -150,7 +150,7 @@ class OccupancyField(nn.Module):
 
     def _setup_symmetry(self, symmetry: Mapping | None) -> None:
         sym = dict(symmetry or {})
-        normal, axis, order = sym.get("plane_normal"), sym.get("axis"), int(sym.get("order", 1))
+        normal, axis, order = sym.get("plane_normal"), sym.get("axis"), rotation_order(sym.get("order", 1))
         unknown = set(sym) - {"plane_normal", "axis", "order"}
         if unknown:
             raise ValueError(f"unknown symmetry options {sorted(unknown)}; use plane_normal, axis, order")

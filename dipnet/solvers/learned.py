@@ -25,12 +25,14 @@ resolution, dimension or slab spacing raises :class:`~dipnet.solvers.denoiser.Pr
 from __future__ import annotations
 
 import itertools
+import numbers
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dipnet.solvers.base import checked_flag
 from dipnet.solvers.denoiser import PriorMismatchError, load_weights
 
 #: The spatial dims of a ``(B, C, N, N, N)`` volume to flip for each of its 8 axis reflections.
@@ -54,11 +56,11 @@ class LearnedPrior(nn.Module):
     def __init__(self, weights: str | Path | None = None, refresh: int = 10, mode: str = "red",
                  flips: bool = False) -> None:
         super().__init__()
-        if int(refresh) < 1:
-            raise ValueError(f"refresh must be >= 1, got {refresh}")
+        if isinstance(refresh, bool) or not isinstance(refresh, numbers.Integral) or refresh < 1:
+            raise ValueError(f"refresh must be a whole number >= 1 (calls between denoiser evaluations), got {refresh!r}")
         if mode not in self.MODES:
             raise ValueError(f"unknown learned-prior mode {mode!r}; choose one of {self.MODES}")
-        self.mode, self.flips = mode, bool(flips)
+        self.mode, self.flips = mode, checked_flag("the learned prior's flips", flips)
         self.denoiser, self.meta = load_weights(weights)
         for p in self.denoiser.parameters():
             p.requires_grad_(False)

@@ -36,7 +36,7 @@ from dipnet.core.measurement import DipMeasurement, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, checked_threshold, filled_slabs, measured_profiles
+from dipnet.solvers.base import Solver, checked_flag, checked_threshold, filled_slabs, measured_profiles
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import build_priors
@@ -301,6 +301,13 @@ def volume_fraction(measurement: DipMeasurement, operator: DipOperator) -> float
     return max(measurement.volume_estimate(), 0.0) / operator.grid.extent ** operator.grid.ndim
 
 
+def _refuse_other_operators(priors: Priors, operator: DipOperator) -> None:
+    """Priors made for one grid / operator (the learned prior) refuse others (their ``check_operator``)."""
+    for _, _, module in priors:
+        if hasattr(module, "check_operator"):
+            module.check_operator(operator)
+
+
 def plain(value):
     """``value`` with every mapping turned into a dict and every non-string sequence into a
     list, recursively (Hydra passes ``DictConfig`` / ``ListConfig``)."""
@@ -521,7 +528,7 @@ class OptimisationSolver(Solver):
             raise ValueError(f"hull_margin must be >= 0 voxels, got {hull_margin}")
         self.hull_margin = float(hull_margin)
         self.checkpoint = checkpoint
-        self.fit_gain = bool(fit_gain)
+        self.fit_gain = checked_flag("fit_gain", fit_gain)
         self.noise_model, self.white_share = noise_model, float(white_share)
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
@@ -580,10 +587,22 @@ class OptimisationSolver(Solver):
         if data.expected_noise is not None:  # the correlated model's own expectation of the noise's term
             noise = (data.expected_noise, noise[1])
         built = build_priors(with_weight(spec, self.weight_rule.start), fraction)
-        for _, _, module in built:  # priors made for one grid / operator (the learned prior) refuse others
-            if hasattr(module, "check_operator"):
-                module.check_operator(operator)
+        _refuse_other_operators(built, operator)
         return Problem(data, built, fraction, support, noise, spec)
+
+    def prior_specs(self) -> list[Mapping[str, Mapping]]:
+        """Every priors spec a solve uses: :attr:`priors` (the voxel solver adds its later rounds')."""
+        return [self.priors]
+
+    def check_priors(self, operator: DipOperator) -> None:
+        """Refuse ``operator`` when a prior of any of :meth:`prior_specs` was made for another grid or operator
+        (the learned prior's weights), before a warm start or a first round spends minutes on it.
+
+        Raises:
+            PriorMismatchError: see :meth:`~dipnet.solvers.learned.LearnedPrior.check_operator`.
+        """
+        for spec in self.prior_specs():
+            _refuse_other_operators(build_priors(with_weight(spec, self.weight_rule.start), 1.0), operator)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),
@@ -594,6 +613,7 @@ class OptimisationSolver(Solver):
 
     def _initial_occupancy(self, measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor | None:
         """The warm-start occupancy on ``operator.grid`` (float32, in [0, 1]) or ``None``."""
+        self.check_priors(operator)
         start = self.warm_start
         if start is None:
             return None

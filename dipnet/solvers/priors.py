@@ -24,6 +24,7 @@ modules (weight 0 = off), e.g. ``{"tv": {"weight": 0.01}, "symmetry": {"weight":
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -97,6 +98,15 @@ def _rotation_matrix(axis: torch.Tensor, angle: float) -> torch.Tensor:
     return torch.eye(3, dtype=torch.float64) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross
 
 
+def rotation_order(order) -> int:
+    """``order`` (the ``n`` of an ``n``-fold rotation) as an int; a ``ValueError`` unless it is a whole number >= 1
+    (``3.0`` is 3; ``2.5`` or ``True`` are refused rather than read as a 2- or 1-fold rotation)."""
+    if isinstance(order, bool) or not isinstance(order, numbers.Real) or not math.isfinite(order) \
+            or int(order) != order or order < 1:
+        raise ValueError(f"rotation order must be a whole number >= 1 (the n of an n-fold rotation), got {order!r}")
+    return int(order)
+
+
 def symmetry_maps(ndim: int, plane_normal: Sequence[float] | None = None, axis: Sequence[float] | None = None,
                   order: int = 1) -> list[torch.Tensor]:
     """The generators of a symmetry group as ``(d, d)`` float64 matrices acting on ``(x, y[, z])``.
@@ -115,9 +125,7 @@ def symmetry_maps(ndim: int, plane_normal: Sequence[float] | None = None, axis: 
             raise ValueError(f"plane_normal must be a non-zero {ndim}-vector, got {plane_normal!r}")
         n = n / n.norm()
         maps.append(torch.eye(ndim, dtype=torch.float64) - 2 * torch.outer(n, n))
-    order = int(order)
-    if order < 1:
-        raise ValueError(f"rotation order must be >= 1, got {order}")
+    order = rotation_order(order)
     if order > 1:
         angle = 2 * math.pi / order
         if ndim == 2:
@@ -148,7 +156,7 @@ class SymmetryPrior(nn.Module):
     def __init__(self, plane_normal: Sequence[float] | None = None, axis: Sequence[float] | None = None,
                  order: int = 1) -> None:
         super().__init__()
-        self.plane_normal, self.axis, self.order = plane_normal, axis, int(order)
+        self.plane_normal, self.axis, self.order = plane_normal, axis, rotation_order(order)
         if plane_normal is None and self.order == 1:
             raise ValueError("the symmetry prior needs a plane_normal and/or a rotation order > 1")
         self._cache: dict = {}

@@ -46,7 +46,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.solvers.base import on_operator_slabs
+from dipnet.solvers.base import checked_flag, on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.weights import prior_options, with_weight
@@ -109,7 +109,7 @@ class VoxelSolver(OptimisationSolver):
         if self.later_priors is not None:
             build_priors(with_weight(self.later_priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.temperature_start, self.temperature_end = float(temperature_start), float(temperature_end)
-        self.coarse_to_fine, self.coarse_fraction = bool(coarse_to_fine), float(coarse_fraction)
+        self.coarse_to_fine, self.coarse_fraction = checked_flag("coarse_to_fine", coarse_to_fine), float(coarse_fraction)
         self.rounds, self.rounds_tau = int(rounds), None if rounds_tau is None else float(rounds_tau)
 
     def _merged(self, later: Mapping[str, Mapping]) -> dict[str, dict]:
@@ -118,6 +118,10 @@ class VoxelSolver(OptimisationSolver):
         for name, value in later.items():
             merged[name] = {**merged.get(name, {}), **prior_options(value)}
         return merged
+
+    def prior_specs(self) -> list[Mapping[str, Mapping]]:
+        """:attr:`priors` and, when set, :attr:`later_priors` (rounds 2 and on)."""
+        return [self.priors] + ([self.later_priors] if self.later_priors is not None else [])
 
     def temperature(self, fraction: float) -> float:
         """Temperature after ``fraction`` (0..1) of the whole run."""

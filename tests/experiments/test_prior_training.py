@@ -39,6 +39,20 @@ def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path, s
         assert torch.equal(p, q), name
 
 
+def test_a_stopped_run_started_again_without_resume_is_refused_before_its_checkpoint_is_replaced(tmp_path,
+                                                                                                  shared_pairs):
+    """The same command without ``--resume`` after a ``max_minutes`` stop (or a kill) trained from step 0 and
+    replaced the checkpoint's steps at its first one; now it is refused, the checkpoint left as it was."""
+    cache, out = tmp_path / "pairs", tmp_path / "w.pt"
+    train(dataclasses.replace(TINY, max_minutes=0.0), out, cache, progress=False)
+    before = out.with_suffix(".ckpt").read_bytes()
+    with pytest.raises(TrainConfigError, match=r"holds this run stopped at step 3 of 6: .*add --resume"):
+        train(TINY, out, cache, progress=False)
+    assert out.with_suffix(".ckpt").read_bytes() == before
+    assert train(TINY, out, cache, resume=True, progress=False)["steps_done"] == 6
+    assert train(TINY, out, cache, progress=False)["steps_done"] == 6  # a finished run may be made again
+
+
 def test_a_checkpoint_older_than_a_config_field_resumes_with_its_default():
     """A checkpoint written before ``noise_model`` existed was an ``independent`` run."""
     saved = dataclasses.asdict(TINY)
@@ -185,6 +199,17 @@ def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, arg
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
     assert not (tmp_path / "w.pt").exists() and not (tmp_path / "pairs").exists()
+
+
+def test_validation_seeds_that_overlap_the_training_seeds_are_refused():
+    """A validation loss on shapes trained on is no held-out score: overlapping ranges are refused (touching ones,
+    [1000, 1004) and [1004, 1006), share no seed)."""
+    with pytest.raises(TrainConfigError, match=r"val_seeds 1003 1005 share the seeds 1003\.\.1003 with train_seeds "
+                                               r"1000 1004: the validation loss would score shapes trained on"):
+        TrainConfig(train_seeds=(1000, 1004), val_seeds=(1003, 1005))
+    with pytest.raises(TrainConfigError, match=r"share the seeds 1000\.\.1001"):
+        TrainConfig(train_seeds=(1000, 1004), val_seeds=(990, 1002))
+    TrainConfig(train_seeds=(1000, 1004), val_seeds=(1004, 1006))
 
 
 def test_a_diverging_training_writes_nothing_and_says_to_lower_the_learning_rate(tmp_path, shared_pairs, capsys):

@@ -64,3 +64,12 @@ def test_bad_options_are_named():
         DeepImagePriorSolver(temperature_start=0.1, temperature_end=1.0)
     with pytest.raises(ValueError, match="cubic"):
         DeepDecoder((8, 9))
+
+
+@pytest.mark.parametrize("options", [{"fine_kernel": 2}, {"fine_kernel": -1}, {"fine_kernel": 1.5},
+                                     {"channels": 1.5}, {"levels": True}])
+def test_network_sizes_that_cannot_make_the_grid_are_named(options):
+    """An even ``fine_kernel`` made a 17^3 output for a 16^3 grid (a size-mismatch traceback at the first step),
+    a negative or fractional one a tensor-size traceback."""
+    with pytest.raises(ValueError, match="need whole numbers channels >= 1, levels >= 1, an odd kernel_size"):
+        DeepImagePriorSolver(**options)

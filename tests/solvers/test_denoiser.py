@@ -119,6 +119,19 @@ def test_weights_meta_without_its_grid_names_the_file(tmp_path):
         load_weights(path)
 
 
+@pytest.mark.parametrize("key, value", [("n", "abc"), ("n", 30), ("n", 0), ("ndim", 4),
+                                        ("n_slabs_per_voxel", float("nan")), ("n_slabs_per_voxel", -1), ("channels", 2.5)])
+def test_weights_meta_with_an_impossible_grid_names_the_key(tmp_path, key, value):
+    """A meta value no weights file can hold (a U-Net grid that is not a positive multiple of 4, a NaN slab
+    spacing, which passed the slab check as no mismatch) is one named error when the file is read."""
+    path = save_weights(OccupancyDenoiser(2), tmp_path / "edited.pt", META)
+    saved = torch.load(path, weights_only=True)
+    saved["meta"][key] = value
+    torch.save(saved, path)
+    with pytest.raises(PriorWeightsError, match=rf"edited\.pt: their meta gives {key}="):
+        load_weights(path)
+
+
 def test_a_folder_given_as_weights_is_named_a_folder(tmp_path):
     """``weights=<a folder>`` (the folder of a training run, the .pt left off) said "weights not found: <folder>",
     though the folder is there; now it says it is a folder and names the weights files in it."""

@@ -105,6 +105,42 @@ def test_solver_refuses_mismatched_or_missing_weights(weights16, tmp_path):
     assert build_priors({"learned": {"weight": 0.0, "weights": str(tmp_path / "none.pt")}}) == []
 
 
+def test_mismatched_weights_are_refused_before_the_warm_start_runs(weights16, tmp_path):
+    """solver=voxel_learned on another grid: the refusal comes before the warm start's solve (minutes at
+    the grids a user would try), for the first round's weights and the later rounds' alike."""
+    op, m = small_problem()  # 16^3: the weights' grid
+    other = make_operator(Grid(24, 3), op.directions, 24)
+    calls = []
+
+    def warm_start(measurement, operator):
+        calls.append(operator.grid.n)
+        return torch.full(operator.grid.shape, 0.5)
+
+    learned = {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}
+    solver = VoxelSolver(progress=False, iterations=5, warm_start=warm_start, priors={"learned": learned})
+    with pytest.raises(PriorMismatchError, match=r"trained for a 16\^3 grid"):
+        solver.solve(m, other)
+    assert calls == []
+    d2 = save_weights(perturbed_denoiser(0.2), tmp_path / "d2_24.pt", {"n": 24, "ndim": 3, "n_slabs_per_voxel": 1})
+    later = VoxelSolver(progress=False, iterations=5, warm_start=warm_start, rounds=2, priors={"learned": learned},
+                        later_priors={"learned": {"weights": str(d2)}})
+    with pytest.raises(PriorMismatchError, match="trained for a 24\\^3 grid"):
+        later.solve(m, op)
+    assert calls == []
+
+
+@pytest.mark.parametrize("options, message", [({"flips": "no"}, "flips must be true or false, got 'no'"),
+                                             ({"flips": "maybe"}, "flips must be true or false"),
+                                             ({"refresh": 2.7}, "refresh must be a whole number >= 1"),
+                                             ({"refresh": "3"}, "refresh must be a whole number >= 1")])
+def test_odd_learned_prior_options_are_refused(weights16, options, message):
+    """``flips: no`` was read as on (``bool("no")``), ``refresh: 2.7`` as 2."""
+    with pytest.raises(ValueError, match=message):
+        LearnedPrior(weights16, **options)
+    with pytest.raises(ValueError, match=message):
+        VoxelSolver(progress=False, priors={"learned": {"weight": 1.0, "weights": str(weights16), **options}})
+
+
 def test_a_hallucinating_prior_fails_the_consistency_check(tmp_path):
     """A denoiser that empties every volume, anchored with a weight that overrules the data: the
     result no longer explains its dips, and the consistency check says so."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from dipnet.solvers.fields import OccupancyField
 from dipnet.solvers.priors import (BinaryPrior, GradientPenalty, L1Prior, SymmetryPrior, TotalVariation,
                                    TransformL1Prior, VolumePrior, build_priors, dct_matrix, haar_matrix)
 
@@ -76,6 +77,22 @@ def test_symmetry_prior_needs_a_symmetry():
         SymmetryPrior()
     with pytest.raises(ValueError, match="axis"):
         SymmetryPrior(order=3)(torch.zeros(4, 4, 4))
+
+
+@pytest.mark.parametrize("order", [2.5, True, float("nan"), 0, "3"])
+def test_a_rotation_order_that_is_no_whole_number_is_refused(order):
+    """``order: 2.5`` was read as a 2-fold rotation (int), ``true`` as none; the prior and the implicit field's
+    built-in symmetry refuse them, naming the value."""
+    with pytest.raises(ValueError, match="rotation order must be a whole number >= 1"):
+        SymmetryPrior(axis=[0.0, 0.0, 1.0], order=order)
+    with pytest.raises(ValueError, match="rotation order must be a whole number >= 1"):
+        OccupancyField(3, {"type": "fourier", "n_features": 4, "scale": 1.0}, 4, 1,
+                       {"axis": [0.0, 0.0, 1.0], "order": order})
+
+
+def test_a_whole_float_rotation_order_is_that_order():
+    box = _box(16, 3, [5, 5, 5], [14, 11, 11])  # stretched along z (the first axis): 4-fold about z
+    assert float(SymmetryPrior(axis=[0.0, 0.0, 1.0], order=4.0)(box)) == pytest.approx(0.0, abs=1e-12)
 
 
 def test_l1_binary_and_volume_values():
