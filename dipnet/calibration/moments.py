@@ -225,14 +225,26 @@ def _rise(values: np.ndarray) -> np.ndarray:
     noise = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / np.sqrt(6.0) if second.size else 0.0
     tol = max(3.0 * noise, 1e-9 * spread)
     onset = onset_index(values, tol)
-    rise = scipy.optimize.isotonic_regression(values - values[: max(1, onset - 1)].mean()).x
+    level = values - values[: max(1, onset - 1)].mean()
+    rise = scipy.optimize.isotonic_regression(level).x
     final = float(rise[-max(1, min(3, len(rise) // 10)):].mean())
     inside = (rise > tol) & (rise < final - tol)
     if inside.any():
         first, last = np.flatnonzero(inside)[[0, -1]]
         rise[: max(first - 1, 0)] = 0.0  # one reading either side of the span keeps its partial rise
+        final = _final_level(level[last + 2:], final)
         rise[last + 2:] = final
     return np.clip(rise, 0.0, final)
+
+
+def _final_level(plateau: np.ndarray, fallback: float) -> float:
+    """The level ``plateau`` ``(n,)`` mm (the readings once the object is under water, rest level removed) holds:
+    their mean, ``fallback`` when there are none.
+
+    Not the isotonic fit's last value: that is the largest of the tail's running means, high by about half a
+    noise sigma (0.46 sigma over 160 dips of a 30 mm ball at 30 dB), which put a reference's cross-section and step
+    scale about one standard error low on a 16-dip plan."""
+    return float(plateau.mean()) if plateau.size else fallback
 
 
 # ------------------------------------------------------------------------------------ the model

@@ -1,11 +1,13 @@
 """Shared scenes of the calibration tests: a reference ball dipped on a fake GRBL rig of known geometry, ideal ball
-dips and a ball in a tank smaller than assumed."""
+dips, a ball in a tank smaller than assumed and an off-axis ball on the grid plan of random rigs."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from dipnet.calibration.moments import dip_moments
 from dipnet.core.geometry import RigGeometry
-from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.orientations import fibonacci_hemisphere, rig_to_direction
 from dipnet.core.rawscan import ScanHeader
 from dipnet.rig.fake.world import FakeRig
 from dipnet.rig.grbl import GrblController
@@ -46,3 +48,22 @@ def ball_in_smaller_tank():
     return simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), sensor=LevelSensor(snr_db=40.0),
                          geometry=RigGeometry(cross_section_mm2=0.92 * 60000.0), protocol=DipProtocol(step_mm=1.0),
                          progress=False)
+
+
+def grid_ball_scans(seeds):
+    """A 30 mm ball 25 mm off the spin axis dipped on the documented 16-dip grid plan (tilts 0/25/50/70 deg x spins
+    0/90/180/270 deg; tilt 0 a hair above 0 so that its spins stay four dips) at 30 dB, one rig per seed drawn over
+    the calibrated range (pivot +-60 mm, offset +-40 mm, zeros +-5 deg, step scale and section +-3 % and +-20 %):
+    ``[(true geometry, raw scan)]``."""
+    tilts, spins = [1e-6, 25.0, 50.0, 70.0], [0.0, 90.0, 180.0, 270.0]
+    directions = rig_to_direction([t for t in tilts for _ in spins], [s for _ in tilts for s in spins])
+    out = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        true = RigGeometry(pivot_mm=rng.uniform(-60, 60), tilt_axis_offset_mm=rng.uniform(-40, 40),
+                           tilt_zero_deg=rng.uniform(-5, 5), spin_zero_deg=rng.uniform(-5, 5),
+                           step_scale=1 + rng.uniform(-0.03, 0.03), cross_section_mm2=60000.0 * rng.uniform(0.8, 1.2))
+        out.append((true, simulate_scan(Ball(30.0, center=(25.0, 0.0, 0.0)), directions, tank=Tank(60000.0),
+                                        geometry=true, sensor=LevelSensor(snr_db=30.0, seed=seed), progress=False)))
+    return out
+

@@ -134,11 +134,13 @@ def test_self_calibration_recovers_pivot_offset_and_tilt_zero():
 
 
 def test_small_tilts_leave_the_pivot_loosely_determined():
-    """Tilts of at most 10 deg: the pivot barely moves a dip (p (cos r - 1) < 0.02 p): its interval is
+    """Tilts of at most 6 deg: the pivot barely moves a dip (p (cos r - 1) < 0.006 p): its interval is
     wider than its tolerance, so it is named with a warning, shrunk toward the configured 0 by the
     configuration's own uncertainty, and its interval holds the truth; the spin zero (the object's own
-    rotation) is kept at its start."""
-    tilts, spins = np.meshgrid([0.0, 5.0, 10.0], [0.0, 90.0, 180.0, 270.0])
+    rotation) is kept at its start. (At tilts of 10 deg the interval was +-2.51 mm against the tolerance 2.5,
+    +-1.5 to +-3.3 over noise seeds 0-5 since the dips' final levels are the mean of the readings under water:
+    not reliably loose; at 6 deg +-2.9 to +-12.8.)"""
+    tilts, spins = np.meshgrid([0.0, 3.0, 6.0], [0.0, 90.0, 180.0, 270.0])
     raw = simulate_scan(Box((20.0, 12.0, 16.0), (4.0, -3.0, 2.0)), rig_to_direction(tilts.ravel(), spins.ravel()),
                         sensor=LevelSensor(snr_db=30.0), progress=False)
     params = ("pivot_mm", "tilt_axis_offset_mm", "spin_zero_deg")
