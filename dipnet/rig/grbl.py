@@ -338,10 +338,7 @@ class GrblController(Controller):
             axis, commanded, letter = getattr(self.axes, name), self._target[name], getattr(self.axes, name).letter
             steps = self.settings.get(100 + "XYZABC".find(letter.upper())) if letter.upper() in "XYZABC" else None
             tolerance = ((1.0 / steps if steps else 0.01) + 0.002) / axis.scale  # rig units
-            difference = reported - commanded
-            if axis.wrap is not None:
-                difference = (difference + axis.wrap / 2) % axis.wrap - axis.wrap / 2
-            if not abs(difference) <= tolerance:
+            if not abs(axis.nearest(reported, commanded) - commanded) <= tolerance:  # a free axis: modulo its wrap
                 unit = "mm" if name == "lower" else "deg"
                 off.append(f"{name} {reported:.3f} {unit} (commanded {commanded:g}, {letter.upper()} "
                            f"{st.mpos[letter.upper()]:g} in MPos)")

@@ -344,10 +344,7 @@ class MarlinController(Controller):
         """Whether ``count`` steps at ``steps`` per machine unit (as printed, to :data:`M92_ROUNDING`) stand at rig
         value ``commanded`` of ``axis``: within one step plus the printing's rounding, modulo a free axis's wrap."""
         tolerance = (1.0 + M92_ROUNDING * abs(count) / steps) / steps / axis.scale  # rig units
-        difference = axis.from_machine(count / steps) - commanded
-        if axis.wrap is not None:
-            difference = (difference + axis.wrap / 2) % axis.wrap - axis.wrap / 2
-        return abs(difference) <= tolerance
+        return abs(axis.nearest(axis.from_machine(count / steps), commanded) - commanded) <= tolerance
 
     def stop(self) -> None:
         """Wait for the queue to empty (``M400``); ``M410`` would stop without deceleration and lose steps."""
