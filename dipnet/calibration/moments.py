@@ -47,7 +47,7 @@ import scipy.optimize
 import torch
 
 from dipnet.core.geometry import RigGeometry, scan_geometry
-from dipnet.core.rawscan import RawScan, complete_dips
+from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips
 from dipnet.preprocessing.preprocess import onset_index
 from dipnet.preprocessing.readings import repair_readings
 
@@ -136,13 +136,9 @@ def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[
     for o in complete_dips(raw):
         if o.time_s.size < 3:
             continue
-        values = o.values
-        rise = values - values[0]
-        spread = max(float(np.ptp(values)), 1e-300)
-        before = np.flatnonzero(np.cumsum(rise > 0.02 * spread) == 0)  # readings before contact
-        before = before[: max(1, len(before) - 1)]
+        before = _rest_readings(o)
         times.extend(o.time_s[before])
-        levels.extend(values[before])
+        levels.extend(o.values[before])
         dip.extend([len(set(dip))] * len(before))
     if len(set(dip)) < 2 or np.ptp(times) <= 0 or raw.header.quantity != "level_mm":
         return 0.0, (0.0, 0.0)
@@ -156,6 +152,34 @@ def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[
         if np.ptp(t[rows]) > 0:
             draws.append(_robust_slope(t[rows], y[rows]))
     return slope, (float(np.percentile(draws, 5)), float(np.percentile(draws, 95)))
+
+
+#: The first rise of a dip, as shares of its range: the readings between these show where contact began.
+FIRST_RISE = (0.02, 0.2)
+
+
+def _rest_readings(o: OrientationScan) -> np.ndarray:
+    """Indices ``(m,)`` of a dip's readings at rest level, before the object touched the water (at least one).
+
+    The object is in once the level has risen the first share of :data:`FIRST_RISE` of the dip's range, but
+    the readings just before hold its first touch: near contact a smooth surface's wetted volume grows as the
+    square of the depth, so the square root of the rise is a line in the stage position (mm), and its zero,
+    fitted to the readings up to the second share, is where contact began. Readings from one stage step
+    before it on are dropped. A flat face, whose volume grows linearly, puts that zero early, so more are
+    dropped; a vertex, growing as the cube, puts it late and leaves a tenth of the first share. Without a
+    usable line only the last reading below the first share is dropped.
+    """
+    spread = max(float(np.ptp(o.values)), 1e-300)
+    onset, risen = (onset_index(o.values, share * spread) for share in FIRST_RISE)
+    before = np.arange(onset)
+    kept = max(1, onset - 1)
+    stage, first = o.stage_mm[onset:risen], o.values[onset:risen] - o.values[0]
+    if first.size >= 2 and np.ptp(stage) > 0:
+        slope, intercept = np.polyfit(stage, np.sqrt(np.maximum(first, 0.0)), 1)
+        if slope > 0:
+            step = float(np.median(np.diff(o.stage_mm)))
+            kept = min(kept, max(1, int(np.sum(o.stage_mm[before] < -intercept / slope - step))))
+    return before[:kept]
 
 
 def _robust_slope(t: np.ndarray, y: np.ndarray) -> float:

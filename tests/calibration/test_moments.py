@@ -3,13 +3,17 @@ level gives the drift."""
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 
+from dipnet.calibration.model import MODEL_FLOOR
 from dipnet.calibration.moments import KnownObject, dip_moments, fit_drift, fit_moments
 from dipnet.core.geometry import RigGeometry
-from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.shapes import Ball
-from dipnet.simulator.physics import DipProtocol, Tank, simulate_scan
+from dipnet.core.orientations import fibonacci_hemisphere, rig_to_direction
+from dipnet.shapes import Ball, Box
+from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank, simulate_scan
 
 from calibration_helpers import grid_ball_scans, ideal_ball_moments
 
@@ -43,11 +47,35 @@ def test_coarse_stage_steps_leave_the_step_scale_unbiased():
 
 
 def test_drift_is_read_from_the_rest_level():
-    """A level drift of 0.5 mm over the session: the rest level before every dip's contact gives it."""
-    true = RigGeometry(level_drift_mm_per_s=2e-5)
-    raw, _ = ideal_ball_moments(true, snr_db=30.0)
+    """A level drift of 0.5 mm over the session (2e-5 mm/s), 60 dips at 30 dB in 10 noise draws: the rest level
+    before every dip's contact gives each within 0.5 %, and their errors centre on zero in units of the standard
+    errors the reference calibration reports (the bootstrap's and the model floor's; the mean of 10 is within
+    +-1). Over 200 draws the 90 % intervals so widened covered 0.92."""
+    true, z = RigGeometry(level_drift_mm_per_s=2e-5), []
+    for seed in range(10):
+        raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(60), tank=Tank(60000.0), geometry=true,
+                            sensor=LevelSensor(snr_db=30.0, seed=seed), progress=False)
+        drift, (low, high) = fit_drift(raw)
+        assert drift == pytest.approx(2e-5, rel=0.005)
+        z.append((drift - 2e-5) / math.hypot((high - low) / 3.29, MODEL_FLOOR["reference"]["level_drift_mm_per_s"] / 1.645))
+    assert abs(float(np.mean(z))) < 1.0
+
+
+@pytest.mark.parametrize("shape", [Ball(30.0), Box((40.0, 30.0, 20.0))], ids=["ball", "box"])
+@pytest.mark.parametrize("step_mm", [1.0, 2.5])
+def test_the_rest_level_holds_none_of_the_objects_first_touch(shape, step_mm):
+    """Noise-free dips on the 16-dip grid plan: the readings taken as rest level hold nothing of the object, so the
+    drift comes out exact with a bootstrap interval of zero width. Before, the readings up to a 2 % rise were rest
+    level, the ball's and the box's first touch with them: the drift was up to 4e-4 of itself off, its interval
+    1.4e-3 of it wide."""
+    tilts, spins = [1e-6, 25.0, 50.0, 70.0], [0.0, 90.0, 180.0, 270.0]
+    directions = rig_to_direction([t for t in tilts for _ in spins], [s for _ in tilts for s in spins])
+    true = RigGeometry(pivot_mm=40.0, tilt_axis_offset_mm=-20.0, level_drift_mm_per_s=1e-4)
+    raw = simulate_scan(shape, directions, tank=Tank(60000.0), geometry=true, protocol=DipProtocol(step_mm=step_mm),
+                        progress=False)
     drift, (low, high) = fit_drift(raw)
-    assert drift == pytest.approx(2e-5, rel=0.02) and low <= 2e-5 <= high
+    assert drift == pytest.approx(1e-4, rel=1e-9)
+    assert high - low < 1e-9 * 1e-4
 
 
 def test_too_few_dips_leave_the_rig_undetermined_instead_of_exact():
