@@ -51,7 +51,8 @@ class TrainConfig:
             (voxels), learning rate (cosine decay to 5%).
         seed: the run's random seed.
         checkpoint_every: steps between checkpoints.
-        max_minutes: stop (with a checkpoint) after this wall time; resume continues.
+        max_minutes: the session's minutes of training: the first step past them stops it, with a checkpoint;
+            resume continues.
         init_weights: weights to start from (a file or shipped name, see
             :func:`~dipnet.solvers.denoiser.weights_path`); ``None``: a new network (its output the input).
         refine: :class:`~dipnet.solvers.voxel.VoxelSolver` options that turn each pair's input into a
@@ -118,7 +119,7 @@ class TrainConfig:
         if not 0 < self.lr < math.inf:
             raise TrainConfigError(f"lr must be a positive, finite learning rate, got {self.lr!r}")
         if not self.max_minutes >= 0:
-            raise TrainConfigError(f"max_minutes must be a number >= 0 (0: stop at the first checkpoint; inf: no "
+            raise TrainConfigError(f"max_minutes must be a number >= 0 (0: stop after the first step; inf: no "
                                    f"limit), got {self.max_minutes!r}")
         if self.noise_model not in NOISE_MODELS:
             raise TrainConfigError(f"noise_model must be one of {', '.join(NOISE_MODELS)}, got {self.noise_model!r}")
@@ -397,18 +398,21 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
             step += 1
             history["train"].append(value)
             bar.update()
-            if step % config.checkpoint_every == 0 or step == config.steps:
+            due = step % config.checkpoint_every == 0 or step == config.steps
+            over = (time.perf_counter() - session_start) / 60 > config.max_minutes
+            if due:
                 model.eval()
                 val, baseline = validation_loss(model, val_in, val_target)
                 check_diverged("validation", val, step, config, largest=1.0)  # worse than any volume in [0, 1]
                 model.train()
                 history["val"].append([step, val, baseline])
-                seconds = time.perf_counter() - started
-                checkpoint()
                 bar.set_postfix(train=f"{np.mean(history['train'][-50:]):.4f}", val=f"{val:.4f}",
                                 input=f"{baseline:.4f}", refresh=False)
-                if (time.perf_counter() - session_start) / 60 > config.max_minutes:
-                    break
+            if due or over:  # out of time: a checkpoint here, so that --resume loses no step
+                seconds = time.perf_counter() - started
+                checkpoint()
+            if over:
+                break
     seconds = time.perf_counter() - started
     if step < config.steps:  # weights written like a finished run's: say they are not
         _warn(f"training stopped by max_minutes={config.max_minutes:g} (--max-minutes: the session's minutes of "

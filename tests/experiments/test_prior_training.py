@@ -30,7 +30,7 @@ def test_training_is_deterministic_and_resume_continues_the_same_run(tmp_path, s
     meta = train(TINY, tmp_path / "a.pt", cache, progress=False)
     assert meta["steps_done"] == 6 and meta["config"]["seed"] == 0
     stopped = train(dataclasses.replace(TINY, max_minutes=0.0), tmp_path / "b.pt", cache, progress=False)
-    assert stopped["steps_done"] == 3  # stopped at its first checkpoint
+    assert stopped["steps_done"] == 1  # out of time after its first step, between checkpoints (every 3)
     resumed = train(TINY, tmp_path / "b.pt", cache, resume=True, progress=False)
     assert resumed["steps_done"] == 6
     a, _ = load_weights(tmp_path / "a.pt")
@@ -46,7 +46,7 @@ def test_a_stopped_run_started_again_without_resume_is_refused_before_its_checkp
     cache, out = tmp_path / "pairs", tmp_path / "w.pt"
     train(dataclasses.replace(TINY, max_minutes=0.0), out, cache, progress=False)
     before = out.with_suffix(".ckpt").read_bytes()
-    with pytest.raises(TrainConfigError, match=r"holds this run stopped at step 3 of 6: .*add --resume"):
+    with pytest.raises(TrainConfigError, match=r"holds this run stopped at step 1 of 6: .*add --resume"):
         train(TINY, out, cache, progress=False)
     assert out.with_suffix(".ckpt").read_bytes() == before
     assert train(TINY, out, cache, resume=True, progress=False)["steps_done"] == 6
@@ -280,13 +280,15 @@ def test_the_second_stage_rounds_weights_are_checked_before_any_pair(tmp_path, w
 
 
 def test_a_session_stopped_by_max_minutes_says_its_weights_are_unfinished(tmp_path, shared_pairs):
-    """``--max-minutes`` (90 by default) ends a session at a checkpoint and writes the weights as a finished run
-    does, exit 0, ``RESULT steps=3``: now a warning says they are those of step 3 of 6 and how to continue."""
-    with pytest.warns(UserWarning, match=r"training stopped by max_minutes=0 \(--max-minutes: .*\) after 3 of 6 "
-                                         r"steps: the weights written to .*w\.pt are those of step 3; the same command "
+    """``--max-minutes`` (90 by default) ends a session and writes the weights as a finished run does, exit 0: a
+    warning says they are those of step 1 of 6 and how to continue. The time is checked after every step: it was
+    checked only at checkpoints, so a session ran up to ``checkpoint_every`` steps past its minutes (250 steps,
+    about 3 minutes at 64^3) and ``max_minutes=0`` stopped at step 3."""
+    with pytest.warns(UserWarning, match=r"training stopped by max_minutes=0 \(--max-minutes: .*\) after 1 of 6 "
+                                         r"steps: the weights written to .*w\.pt are those of step 1; the same command "
                                          r"with --resume continues to step 6"):
         meta = train(dataclasses.replace(TINY, max_minutes=0.0), tmp_path / "w.pt", tmp_path / "pairs", progress=False)
-    assert meta["steps_done"] == 3
+    assert meta["steps_done"] == 1
 
 
 def test_a_meshes_file_that_is_not_a_mesh_is_refused_before_any_pair(tmp_path, capsys):
