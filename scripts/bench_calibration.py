@@ -50,7 +50,8 @@ import numpy as np
 import torch
 
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.calibration.reference import calibrate_reference
+from dipnet.experiments.random_rigs import (BALL_POSITION_SD_MM, START_HEIGHT_SD_MM, covered, draw_rig,
+                                           reference_ball)
 from dipnet.calibration.self_calibration import self_calibrate
 from dipnet.preprocessing.datasets import mesh_path
 from dipnet.core.grid import Grid
@@ -60,15 +61,12 @@ from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank, simulate_scan
 from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.geometry import RigGeometry, invert_scan
-from dipnet.shapes import Ball, load_mesh
+from dipnet.shapes import load_mesh
 from dipnet.shapes.mesh import MeshShape
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
 
 MESHES = ("bunny", "hammer", "part_B13", "spot")
-BALL_RADIUS = 30.0
-BALL_POSITION_SD_MM = 0.3  # how far off its assumed position the ball is held (normal standard deviation per axis)
-START_HEIGHT_SD_MM = 0.3  # how far off the water line the ball's recorded stage zero is (normal standard deviation)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -91,25 +89,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def draw_rig(rng: np.random.Generator, area: float, session_s: float) -> RigGeometry:
-    """One rig geometry drawn uniformly over the calibrated range (module docstring)."""
-    return RigGeometry(pivot_mm=rng.uniform(-60, 60), tilt_axis_offset_mm=rng.uniform(-40, 40),
-                       tilt_zero_deg=rng.uniform(-5, 5), spin_zero_deg=rng.uniform(-5, 5),
-                       step_scale=1 + rng.uniform(-0.03, 0.03), cross_section_mm2=area * (1 + rng.uniform(-0.2, 0.2)),
-                       level_drift_mm_per_s=rng.uniform(-0.5, 0.5) / session_s, sensor_lag_s=rng.uniform(0.0, 0.5))
-
-
-def reference_ball(offset_mm: float, held_at: tuple[float, float, float], raw_kwargs: dict, seed: int,
-                   start_error_mm: float = 0.0):
-    """``(geometry, report)``: the reference calibration from a ball assumed at ``(offset_mm, 0, 0)`` and
-    dipped at ``held_at`` (mm, object frame) with :func:`simulate_scan`'s ``raw_kwargs``, its recorded start
-    height ``start_error_mm`` off the true one."""
-    raw = simulate_scan(Ball(BALL_RADIUS, center=held_at), progress=False, **raw_kwargs)
-    raw.header.t_start_mm += start_error_mm
-    grid = Grid(48, 3, extent=2.0 * (BALL_RADIUS + offset_mm) + 20.0)
-    return calibrate_reference(raw, Ball(BALL_RADIUS, center=(offset_mm, 0.0, 0.0)), grid, seed=seed)
-
-
 def gauged_truth(shape: MeshShape, true: RigGeometry, t0: float) -> MeshShape:
     """The truth as self-calibration sees it with spin zero 0 and step scale 1: turned about the spin
     axis by the spin zero and scaled by 1 / step scale about the stage-0 water line ``(0, 0, t0)``."""
@@ -128,16 +107,6 @@ def self_truth(true: RigGeometry, t0: float) -> dict[str, float]:
     return {"pivot_mm": (1 - lam) * t0 + lam * true.pivot_mm, "tilt_axis_offset_mm": lam * true.tilt_axis_offset_mm,
             "tilt_zero_deg": true.tilt_zero_deg, "level_drift_mm_per_s": true.level_drift_mm_per_s,
             "cross_section_mm2": lam**3 * true.cross_section_mm2}
-
-
-def covered(report, truth: dict[str, float]) -> list[tuple[str, bool]]:
-    """(parameter, whether its 90% interval holds the truth) for every determined parameter."""
-    out = []
-    for name in report.determined:
-        if name in truth:
-            low, high = report.intervals[name]
-            out.append((name, bool(low <= truth[name] <= high)))
-    return out
 
 
 def main(argv=None) -> list[dict]:
