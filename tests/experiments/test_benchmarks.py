@@ -9,6 +9,7 @@ import re
 
 import pytest
 
+from dipnet.calibration.model import CalibrationReport
 from dipnet.preprocessing.datasets import MESHES_DIR
 from script_modules import SCRIPTS, load_script
 
@@ -276,3 +277,29 @@ def test_bad_options_of_the_planning_bench_are_refused_before_any_mesh(capsys, a
         load_script("bench_planning").parse_args(["--quick", "--meshes", "torus", *argv])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and re.search(f"error: {message}", err), err
+
+
+def test_the_reference_plans_table_and_result_line(capsys):
+    """Coverage per (plan, ball) over its determined pairs; the worst parameter among those determined on at least
+    5 rigs (a parameter determined on fewer does not count), from hand-made rows."""
+    bench = load_script("bench_reference_plans")
+    args = bench.parse_args(["--rigs", "6"])
+    found = {("grid16", "ball"): {"pivot_mm": [(True, 0.1)] * 5 + [(False, 2.5)], "tilt_zero_deg": [(False, 3.0)]},
+             ("grid16", "offball"): {"pivot_mm": [(True, -0.2)] * 6},
+             ("fibonacci41", "ball"): {"step_scale": [(True, 0.0)] * 4 + [(False, 1.9)] * 2},
+             ("fibonacci41", "offball"): {}}
+    bench.print_table(found, args)
+    out = capsys.readouterr().out
+    assert "| grid16 | ball | pivot_mm | 6/6 | 5/6 | +0.50 | 0.89 |" in out
+    assert "| grid16 | ball | tilt_zero_deg | 1/6 | 0/1 |" in out
+    assert out.strip().splitlines()[-1] == (
+        "RESULT grid16_ball_coverage90=0.714 grid16_offball_coverage90=1.000 fibonacci41_ball_coverage90=0.667 "
+        "fibonacci41_offball_coverage90=nan worst_parameter_coverage90=0.667 worst_parameter=fibonacci41:ball:step_scale")
+
+
+def test_the_reference_plans_standard_errors_are_of_determined_parameters():
+    bench = load_script("bench_reference_plans")
+    report = CalibrationReport(estimates={"pivot_mm": 2.0, "spin_zero_deg": 0.0}, standard_errors={"pivot_mm": 0.5,
+                               "spin_zero_deg": 1.0}, correlations={}, undetermined={"spin_zero_deg": "symmetric"},
+                               intervals={"pivot_mm": (1.0, 3.0)})
+    assert bench.standard_errors(report, {"pivot_mm": 1.5, "spin_zero_deg": 2.0}) == {"pivot_mm": 1.0}
