@@ -40,6 +40,7 @@ white noise; a parameter is *determined* when its interval is narrower than its 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -130,13 +131,15 @@ class DipMoments:
 
 def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[float, tuple[float, float]]:
     """Level drift (mm/s) from the rest level before contact: a robust line through every dip's
-    first readings over the session, and its 90% interval from a bootstrap over dips
-    (``(0, (0, 0))`` for a balance or when the readings span no time)."""
+    first readings over the session, and its 90% interval from a bootstrap over dips, at least +-1.645
+    standard errors of the line under white noise (:func:`_slope_standard_error`: over 16 dips, where a few at
+    the session's end carry the slope, the bootstrap alone came out up to 20 % narrower than the estimates
+    scatter) (``(0, (0, 0))`` for a balance or when the readings span no time)."""
     times, levels, dip = [], [], []
     for o in complete_dips(raw):
         if o.time_s.size < 3:
             continue
-        before = _rest_readings(o)
+        before = rest_readings(o)
         times.extend(o.time_s[before])
         levels.extend(o.values[before])
         dip.extend([len(set(dip))] * len(before))
@@ -151,14 +154,24 @@ def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[
         rows = np.concatenate([np.flatnonzero(dip == d) for d in rng.integers(0, n, n)])
         if np.ptp(t[rows]) > 0:
             draws.append(_robust_slope(t[rows], y[rows]))
-    return slope, (float(np.percentile(draws, 5)), float(np.percentile(draws, 95)))
+    half = 1.645 * _slope_standard_error(t, y, slope)
+    return slope, (float(min(np.percentile(draws, 5), slope - half)), float(max(np.percentile(draws, 95), slope + half)))
+
+
+def _slope_standard_error(t: np.ndarray, y: np.ndarray, slope: float) -> float:
+    """Standard error (mm/s) of the slope of a line through levels ``y`` (mm) at times ``t`` (s) under white
+    noise, its sigma from the residuals' median absolute deviation (spikes do not count)."""
+    centred = t - t.mean()
+    r = y - slope * centred
+    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    return sigma / math.sqrt(float(np.dot(centred, centred)))
 
 
 #: The first rise of a dip, as shares of its range: the readings between these show where contact began.
 FIRST_RISE = (0.02, 0.2)
 
 
-def _rest_readings(o: OrientationScan) -> np.ndarray:
+def rest_readings(o: OrientationScan) -> np.ndarray:
     """Indices ``(m,)`` of a dip's readings at rest level, before the object touched the water (at least one).
 
     The object is in once the level has risen the first share of :data:`FIRST_RISE` of the dip's range, but
