@@ -5,7 +5,7 @@ along fewer: this benchmark takes the guide's 16-dip grid plan (``grid16``: tilt
 0/90/180/270 deg; tilt 0 a hair above 0, so that its spins stay four dips) and 41 Fibonacci directions
 (``fibonacci41``, the few-dip budget of ``bench_quality.py``). ``--rigs`` rig geometries are drawn as in
 ``bench_calibration.py`` (:func:`dipnet.experiments.random_rigs.draw_rig`: pivot +-60 mm, offset +-40 mm, zeros
-+-5 deg, step scale +-3 %, section +-20 %, a drift of up to +-0.5 mm over the session, a lag of 0-0.5 s; fixed
++-5 deg, step scale +-3 %, section +-20 %, a drift of up to +-0.5 mm over a 16-dip session, a lag of 0-0.5 s; fixed
 ``--seed``), and on each a 30 mm ball is dipped along both plans at ``--snr`` dB, twice: centred on the spin axis
 (``ball``) and ``--ball-offset`` mm off it (``offball``), held off its assumed place by a normal error of sd
 0.3 mm along every axis and its recorded start height off the water line by another.
