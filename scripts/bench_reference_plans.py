@@ -15,7 +15,8 @@ intervals hold the true value, and the mean and spread of the standardised error
 standard error: about 0 and 1 when the report is honest). Last line ``RESULT grid16_ball_coverage90=<>
 grid16_offball_coverage90=<> fibonacci41_ball_coverage90=<> fibonacci41_offball_coverage90=<>
 worst_parameter_coverage90=<> worst_parameter=<>`` (coverage over the determined (rig, parameter) pairs of
-each case; the worst single parameter of any case that is determined on at least 5 rigs).
+each case; the worst single parameter of any case that is determined on at least 5 rigs, ``none`` when every
+interval held).
 
     python scripts/bench_reference_plans.py           # 24 rigs
     python scripts/bench_reference_plans.py --quick   # 5 rigs
@@ -110,6 +111,8 @@ def print_table(found: dict[tuple[str, str], dict[str, list]], args: argparse.Na
                   f"{np.nanmean(z):+.2f} | {np.nanstd(z):.2f} |")
             if len(rows) >= MIN_DETERMINED and ok.mean() < worst[0]:
                 worst = (float(ok.mean()), f"{plan}:{ball}:{name}")
+    if worst[0] >= 1.0:  # every interval held: no parameter is the worst
+        worst = (1.0, "none")
     print("RESULT " + " ".join(f"{key}_coverage90={value:.3f}" for key, value in coverage.items())
           + f" worst_parameter_coverage90={worst[0]:.3f} worst_parameter={worst[1]}")
 

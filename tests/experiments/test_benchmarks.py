@@ -295,6 +295,8 @@ def test_the_reference_plans_table_and_result_line(capsys):
     assert out.strip().splitlines()[-1] == (
         "RESULT grid16_ball_coverage90=0.714 grid16_offball_coverage90=1.000 fibonacci41_ball_coverage90=0.667 "
         "fibonacci41_offball_coverage90=nan worst_parameter_coverage90=0.667 worst_parameter=fibonacci41:ball:step_scale")
+    bench.print_table({("grid16", "ball"): {"pivot_mm": [(True, 0.1)] * 6}}, args)
+    assert capsys.readouterr().out.strip().endswith("worst_parameter_coverage90=1.000 worst_parameter=none")
 
 
 def test_the_reference_plans_standard_errors_are_of_determined_parameters():
