@@ -3,10 +3,11 @@
 ``scripts/bench_calibration.py`` calibrates with 123 Fibonacci dips. A user with a rig dips a reference ball
 along fewer: this benchmark takes the guide's 16-dip grid plan (``grid16``: tilts 0/25/50/70 deg x spins
 0/90/180/270 deg; tilt 0 a hair above 0, so that its spins stay four dips) and 41 Fibonacci directions
-(``fibonacci41``, the few-dip budget of ``bench_quality.py``). ``--rigs`` rig geometries are drawn as in
+(``fibonacci41``, the few-dip budget of ``bench_quality.py``); ``--plans grid16_35`` adds a rig that tilts no further
+than 35 deg, as the authors' did (tilts 0/12/24/35 deg x the same spins). ``--rigs`` rig geometries are drawn as in
 ``bench_calibration.py`` (:func:`dipnet.experiments.random_rigs.draw_rig`: pivot +-60 mm, offset +-40 mm, zeros
 +-5 deg, step scale +-3 %, section +-20 %, a drift of up to +-0.5 mm over a 16-dip session, a lag of 0-0.5 s; fixed
-``--seed``), and on each a 30 mm ball is dipped along both plans at ``--snr`` dB, twice: centred on the spin axis
+``--seed``), and on each a 30 mm ball is dipped along each plan at ``--snr`` dB, twice: centred on the spin axis
 (``ball``) and ``--ball-offset`` mm off it (``offball``), held off its assumed place by a normal error of sd
 0.3 mm along every axis and its recorded start height off the water line by another.
 
@@ -20,6 +21,7 @@ interval held).
 
     python scripts/bench_reference_plans.py           # 24 rigs
     python scripts/bench_reference_plans.py --quick   # 5 rigs
+    python scripts/bench_reference_plans.py --plans grid16_35   # a rig that tilts to 35 deg
 """
 
 from __future__ import annotations
@@ -38,10 +40,17 @@ from dipnet.experiments.random_rigs import (BALL_POSITION_SD_MM, BALL_RADIUS, ST
                                            reference_ball)
 from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank
 
-GRID_TILTS, GRID_SPINS = (1e-6, 25.0, 50.0, 70.0), (0.0, 90.0, 180.0, 270.0)
-PLANS = {"grid16": rig_to_direction([t for t in GRID_TILTS for _ in GRID_SPINS],
-                                    [s for _ in GRID_TILTS for s in GRID_SPINS]),
-         "fibonacci41": fibonacci_hemisphere(41)}
+GRID_SPINS = (0.0, 90.0, 180.0, 270.0)
+
+
+def grid_plan(tilts: tuple[float, ...]) -> np.ndarray:
+    """Unit directions ``(len(tilts) * 4, 3)`` of a grid plan: each tilt (deg) at spins 0/90/180/270 deg."""
+    return rig_to_direction([t for t in tilts for _ in GRID_SPINS], [s for _ in tilts for s in GRID_SPINS])
+
+
+PLANS = {"grid16": grid_plan((1e-6, 25.0, 50.0, 70.0)), "fibonacci41": fibonacci_hemisphere(41),
+         "grid16_35": grid_plan((1e-6, 12.0, 24.0, 35.0))}
+SESSION_DIPS = 16  # the drift is drawn over a session of this many dips, whatever the plan
 MIN_DETERMINED = 5  # a parameter determined on fewer rigs does not count for worst_parameter_coverage90
 
 
@@ -52,6 +61,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--ball-offset", type=float, default=25.0, metavar="MM",
                    help="the second ball's centre off the spin axis (along x, mm)")
+    p.add_argument("--plans", nargs="+", choices=list(PLANS), default=["grid16", "fibonacci41"],
+                   help="the plans to dip the ball along")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--quick", action="store_true", help="5 rigs")
     args = p.parse_args(argv)
@@ -74,19 +85,19 @@ def main(argv=None) -> dict[tuple[str, str], dict[str, list]]:
     tank, protocol = Tank.default(3), DipProtocol()
     rng = np.random.default_rng(args.seed)
     offsets = {"ball": 0.0, "offball": args.ball_offset}
-    found: dict[tuple[str, str], dict[str, list]] = {(p, b): {} for p in PLANS for b in offsets}
+    found: dict[tuple[str, str], dict[str, list]] = {(p, b): {} for p in args.plans for b in offsets}
     for i in tqdm(range(args.rigs), desc="rigs"):
         reach = BALL_RADIUS + args.ball_offset + 60.0  # the stage travel of a dip (mm), as bench_calibration's
         true = draw_rig(rng, tank.cross_section_mm2,
-                        len(PLANS["grid16"]) * (protocol.n_readings(reach) * protocol.settle_s + protocol.reorient_s))
+                        SESSION_DIPS * (protocol.n_readings(reach) * protocol.settle_s + protocol.reorient_s))
         held = np.random.default_rng(args.seed + 1000 + i).normal(0.0, BALL_POSITION_SD_MM, 3)
         start_error = float(np.random.default_rng(args.seed + 9000 + i).normal(0.0, START_HEIGHT_SD_MM))
-        for plan, directions in PLANS.items():
+        for plan in args.plans:
             for ball, offset in offsets.items():
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", UserWarning)
                     _, report = reference_ball(offset, (offset + held[0], held[1], held[2]), raw_kwargs=dict(
-                        directions=directions, tank=tank, protocol=protocol, geometry=true,
+                        directions=PLANS[plan], tank=tank, protocol=protocol, geometry=true,
                         sensor=LevelSensor(snr_db=args.snr, seed=1000 + i)), seed=i, start_error_mm=start_error)
                 z = standard_errors(report, true.to_dict())
                 for name, ok in covered(report, true.to_dict()):

@@ -7,6 +7,7 @@ import argparse
 import json
 import re
 
+import numpy as np
 import pytest
 
 from dipnet.calibration.model import CalibrationReport
@@ -305,3 +306,12 @@ def test_the_reference_plans_standard_errors_are_of_determined_parameters():
                                "spin_zero_deg": 1.0}, correlations={}, undetermined={"spin_zero_deg": "symmetric"},
                                intervals={"pivot_mm": (1.0, 3.0)})
     assert bench.standard_errors(report, {"pivot_mm": 1.5, "spin_zero_deg": 2.0}) == {"pivot_mm": 1.0}
+
+
+def test_the_reference_plans_grid_plans_tilt_as_named():
+    """``grid16`` reaches 70 deg, ``grid16_35`` (a rig like the authors') 35 deg, both at four spins per tilt."""
+    bench = load_script("bench_reference_plans")
+    for name, top in (("grid16", 70.0), ("grid16_35", 35.0)):
+        tilt = np.degrees(np.arccos(bench.PLANS[name][:, 2]))
+        assert bench.PLANS[name].shape == (16, 3) and np.isclose(tilt.max(), top) and tilt.min() < 1e-3
+    assert bench.parse_args([]).plans == ["grid16", "fibonacci41"]

@@ -41,7 +41,7 @@ def test_quick_settings_fill_only_the_options_left_out():
     ("bench_uncertainty", ["--quick", "--noise", "snr"], {"n": 24, "noise": ["snr"], "meshes": ["bunny", "torus"]}),
     ("bench_calibration", ["--quick", "--rigs", "5"], {"rigs": 5, "n": 32, "iterations": 80}),
     ("bench_reference_plans", ["--quick", "--seed", "3"], {"rigs": 5, "seed": 3}),
-    ("bench_reference_plans", ["--quick", "--rigs", "8"], {"rigs": 8}),
+    ("bench_reference_plans", ["--quick", "--rigs", "8", "--plans", "grid16_35"], {"rigs": 8, "plans": ["grid16_35"]}),
     ("bench_scale", ["--quick", "--meshes", "torus"], {"n": [128], "meshes": ["torus"], "fractions": [0.03]}),
 ])
 def test_a_benchmark_run_with_quick_keeps_the_options_given_beside_it(name, argv, expected):
