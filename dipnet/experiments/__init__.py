@@ -10,4 +10,8 @@ Pipeline (:mod:`~dipnet.experiments.collect`): ``collect_runs`` (directories -> 
 (:mod:`~dipnet.experiments.tables`) and figures (:mod:`~dipnet.experiments.figures`).
 :class:`dipnet.jobs.sweep_jobs.JobLogCallback` logs one line per finished job and lists the failures
 at the end of a sweep.
+
+The benchmark scripts' shared parts live here too: their ``--quick`` mode (:mod:`~dipnet.experiments.quick_mode`),
+the calibration benchmarks' random rigs and reference balls (:mod:`~dipnet.experiments.random_rigs`) and the learned
+prior's training pairs and training (:mod:`~dipnet.experiments.prior_pairs`, :mod:`~dipnet.experiments.prior_training`).
 """
