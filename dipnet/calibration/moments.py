@@ -21,7 +21,8 @@ enough for a global search and a bootstrap:
 * for a reference object ``c`` and ``S`` are known (a ball of radius ``R`` centred at ``c``:
   ``S = R^2 / 5 I``) and the object's volume gives the tank's cross-section;
 * level drift is fitted first, from the baselines (:func:`fit_drift`): the level before
-  contact is the same rest level in every dip, so its trend over the session is the drift.
+  contact (:func:`rest_readings`) is the same rest level in every dip, so its trend over the
+  session is the drift.
 
 What the data cannot tell, the fit finds flat or degenerate (:data:`GAUGE_REASONS`):
 
