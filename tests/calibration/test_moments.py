@@ -67,8 +67,8 @@ def test_drift_is_read_from_the_rest_level():
 def test_the_rest_level_holds_none_of_the_objects_first_touch(shape, step_mm):
     """Noise-free dips on the 16-dip grid plan: the readings taken as rest level hold nothing of the object, so the
     drift comes out exact with a bootstrap interval of zero width. Before, the readings up to a 2 % rise were rest
-    level, the ball's and the box's first touch with them: the drift was up to 4e-4 of itself off, its interval
-    1.4e-3 of it wide."""
+    level, the ball's and the box's first touch with them: the drift was up to 4e-4 of itself off, its interval up to
+    2.7e-3 of it wide."""
     tilts, spins = [1e-6, 25.0, 50.0, 70.0], [0.0, 90.0, 180.0, 270.0]
     directions = rig_to_direction([t for t in tilts for _ in spins], [s for _ in tilts for s in spins])
     true = RigGeometry(pivot_mm=40.0, tilt_axis_offset_mm=-20.0, level_drift_mm_per_s=1e-4)
