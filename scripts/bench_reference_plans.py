@@ -86,10 +86,10 @@ def main(argv=None) -> dict[tuple[str, str], dict[str, list]]:
     rng = np.random.default_rng(args.seed)
     offsets = {"ball": 0.0, "offball": args.ball_offset}
     found: dict[tuple[str, str], dict[str, list]] = {(p, b): {} for p in args.plans for b in offsets}
+    reach = BALL_RADIUS + args.ball_offset + 60.0  # the stage travel of a dip (mm), as bench_calibration's
+    session_s = SESSION_DIPS * (protocol.n_readings(reach) * protocol.settle_s + protocol.reorient_s)
     for i in tqdm(range(args.rigs), desc="rigs"):
-        reach = BALL_RADIUS + args.ball_offset + 60.0  # the stage travel of a dip (mm), as bench_calibration's
-        true = draw_rig(rng, tank.cross_section_mm2,
-                        SESSION_DIPS * (protocol.n_readings(reach) * protocol.settle_s + protocol.reorient_s))
+        true = draw_rig(rng, tank.cross_section_mm2, session_s)
         held = np.random.default_rng(args.seed + 1000 + i).normal(0.0, BALL_POSITION_SD_MM, 3)
         start_error = float(np.random.default_rng(args.seed + 9000 + i).normal(0.0, START_HEIGHT_SD_MM))
         for plan in args.plans:

@@ -51,7 +51,7 @@ import torch
 from dipnet.core.geometry import RigGeometry, scan_geometry
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips
 from dipnet.preprocessing.preprocess import onset_index
-from dipnet.preprocessing.readings import repair_readings
+from dipnet.preprocessing.readings import MAD_TO_SIGMA, repair_readings
 
 log = logging.getLogger(__name__)
 
@@ -163,9 +163,12 @@ def _slope_standard_error(t: np.ndarray, y: np.ndarray, slope: float) -> float:
     """Standard error (mm/s) of the slope of a line through levels ``y`` (mm) at times ``t`` (s) under white
     noise, its sigma from the residuals' median absolute deviation (spikes do not count)."""
     centred = t - t.mean()
-    r = y - slope * centred
-    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    return sigma / math.sqrt(float(np.dot(centred, centred)))
+    return _mad_sigma(y - slope * centred) / math.sqrt(float(np.dot(centred, centred)))
+
+
+def _mad_sigma(x: np.ndarray) -> float:
+    """The standard deviation of Gaussian values ``x`` from their median absolute deviation (outliers do not count)."""
+    return MAD_TO_SIGMA * float(np.median(np.abs(x - np.median(x))))
 
 
 #: The first rise of a dip, as shares of its range: the readings between these show where contact began.
@@ -207,7 +210,7 @@ def _robust_slope(t: np.ndarray, y: np.ndarray) -> float:
             break
         slope = float(np.dot(centred, y - y.mean()) / spread)
         r = y - y.mean() - slope * centred
-        mad = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-12
+        mad = _mad_sigma(r) + 1e-12
         keep = np.abs(r) <= 4 * mad
         if keep.all() or keep.sum() < 3:
             break
@@ -260,7 +263,7 @@ def _rise(values: np.ndarray) -> np.ndarray:
     """
     spread = max(float(np.ptp(values)), 1e-300)
     second = np.diff(values, 2)  # white noise of sigma gives second differences of sigma sqrt(6)
-    noise = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / np.sqrt(6.0) if second.size else 0.0
+    noise = _mad_sigma(second) / np.sqrt(6.0) if second.size else 0.0
     tol = max(3.0 * noise, 1e-9 * spread)
     onset = onset_index(values, tol)
     level = values - values[: max(1, onset - 1)].mean()
