@@ -17,6 +17,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from dipnet.core.measurement import DipMeasurement
+from dipnet.core.strict_json import finite_or_none
+from dipnet.preprocessing.symmetry_moments import symmetry_fit
 
 
 def symmetry_group(n_fold: int = 1, mirror: bool = False, mirror_azimuth_deg: float = 0.0) -> np.ndarray:
@@ -64,13 +66,18 @@ def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: flo
 
     ``metadata["measured_orientations"]`` counts the dips measured: those of ``measurement``, or the count its
     metadata already holds when it was expanded before (a job's ``measurement.npz`` read back with the symmetry
-    declared again: its images were not dipped).
+    declared again: its images were not dipped). ``metadata["symmetry_fit"]`` holds how well the group fits the
+    measured dips' moments (:func:`~dipnet.preprocessing.symmetry_moments.symmetry_fit`, NaNs as ``None``; kept
+    from the earlier expansion when there was one), which the consistency check reads.
     """
     m = measurement
     if m.ndim != 3:
         raise ValueError("symmetry expansion is for 3D measurements")
     if not np.allclose(m.offsets.numpy(), m.offsets[0].item()):
         raise ValueError("symmetry expansion needs profiles on common slabs (equal offsets)")
+    fit = m.metadata.get("symmetry_fit") if "symmetry_group_order" in m.metadata else None
+    if fit is None:
+        fit = finite_or_none(symmetry_fit(m, np.asarray(group, dtype=np.float64)).metrics())
     d = m.directions.numpy() / np.linalg.norm(m.directions.numpy(), axis=1, keepdims=True)
     images = np.einsum("gij,kj->gki", np.asarray(group, dtype=np.float64), d).reshape(-1, 3)
     profiles = np.tile(m.profiles.numpy(), (len(group), 1))
@@ -82,7 +89,7 @@ def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: flo
     return DipMeasurement(dirs, prof, m.slab_thickness, np.full(len(dirs), m.offsets[0].item()), sigma,
                           {**m.metadata, "symmetry_group_order": int(len(group)),
                            "measured_orientations": int(m.metadata.get("measured_orientations", m.n_orientations)),
-                           "symmetry_orientations": int(len(dirs))})
+                           "symmetry_orientations": int(len(dirs)), "symmetry_fit": fit})
 
 
 def apply_symmetry(measurement: DipMeasurement, spec: Mapping | None) -> DipMeasurement:

@@ -34,6 +34,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.fields import OccupancyField
 from dipnet.solvers.base import on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
+from dipnet.solvers.priors import symmetry_spec
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP]
 _SAMPLE_CHUNK = 1 << 18  # points per forward pass when sampling a fine grid
@@ -125,6 +126,7 @@ class ImplicitSolver(OptimisationSolver):
         n_params = sum(p.numel() for p in field.parameters())
         recon = self._result(occ, operator, history, started, data=data, priors=priors, weights=weights,
                              parameters=n_params,
+                             symmetries=[symmetry_spec(**self.symmetry)] if self.symmetry else [],
                              output_upsample=self.output_upsample, support_voxels=int(index.numel()))
         recon.fine = None
         if self.output_upsample > 1:

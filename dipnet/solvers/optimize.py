@@ -39,7 +39,7 @@ from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
 from dipnet.solvers.base import Solver, checked_flag, checked_threshold, filled_slabs, measured_profiles
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
-from dipnet.solvers.priors import build_priors
+from dipnet.solvers.priors import SymmetryPrior, build_priors
 from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
 
 log = logging.getLogger(__name__)
@@ -638,13 +638,17 @@ class OptimisationSolver(Solver):
                 data: DataTerm | None = None, priors: Priors | None = None, weights: dict | None = None,
                 **info) -> Reconstruction:
         """The reconstruction with ``info`` (and ``info["gain"]`` when ``data`` fitted one); with
-        ``priors`` (those of the result), ``info["prior_weights"]`` (``{name: weight}``), and
-        ``info["weight_rule"]``, the record of :meth:`choose_weights`."""
+        ``priors`` (those of the result), ``info["prior_weights"]`` (``{name: weight}``) and ``info["symmetries"]``
+        (the symmetries declared, as :meth:`~dipnet.solvers.priors.SymmetryPrior.spec` gives them: those of
+        symmetry priors with a weight, after any in ``info``), and ``info["weight_rule"]``, the record of
+        :meth:`choose_weights`."""
         steps = len(history.get("loss", []))
         if data is not None and data.log_gain is not None:
             info["gain"] = data.gain
         if priors is not None:
             info["prior_weights"] = {name: weight for name, weight, _ in priors}
+            info["symmetries"] = info.get("symmetries", []) + [
+                module.spec() for _, weight, module in priors if isinstance(module, SymmetryPrior) and weight > 0]
         if weights is not None:
             info["weight_rule"] = weights
         info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,

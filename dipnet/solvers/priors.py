@@ -141,6 +141,16 @@ def symmetry_maps(ndim: int, plane_normal: Sequence[float] | None = None, axis: 
     return maps
 
 
+def symmetry_spec(plane_normal: Sequence[float] | None = None, axis: Sequence[float] | None = None,
+                  order: int = 1) -> dict:
+    """``{"plane_normal", "axis", "order"}`` with plain lists of floats (or ``None``) and an int: a declared
+    symmetry as :func:`symmetry_maps` takes it, JSON-serialisable."""
+    def vector(v):
+        return None if v is None else [float(x) for x in v]
+
+    return {"plane_normal": vector(plane_normal), "axis": vector(axis), "order": rotation_order(order)}
+
+
 class SymmetryPrior(nn.Module):
     """Mean squared difference between the volume and its mirrored / rotated copies.
 
@@ -172,6 +182,11 @@ class SymmetryPrior(nn.Module):
             inside = (pts.norm(dim=-1) <= 1 - 1.0 / n).to(dtype)
             self._cache[key] = (grids.to(dtype=dtype, device=device), inside.to(device))
         return self._cache[key]
+
+    def spec(self) -> dict:
+        """The declared symmetry as ``{"plane_normal", "axis", "order"}`` (lists of floats or ``None``, an int):
+        what :func:`symmetry_maps` takes, and what a result records (``info["symmetries"]``)."""
+        return symmetry_spec(self.plane_normal, self.axis, self.order)
 
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
         _spatial_dims(occupancy)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 from hydra import compose, initialize_config_module
 
@@ -20,6 +22,8 @@ def test_simulated_job_duplicates_profiles_under_the_declared_group(tmp_path):
     assert plain.measurement.n_orientations == 6
     assert sym.measurement.n_orientations == 24 and sym.measurement.metadata["symmetry_group_order"] == 4
     assert sym.metrics["n_dips"] == 24 and sym.metrics["iou"] >= plain.metrics["iou"] - 0.01
+    assert sym.metrics["symmetry_declared"] == "images" and not sym.metrics["symmetry_rejected"]  # a ball has it
+    assert plain.metrics["symmetry_declared"] == "" and math.isnan(plain.metrics["symmetry_misfit"])
     assert apply_symmetry(plain.measurement, None) is plain.measurement
     with pytest.raises(ValueError, match="unknown symmetry option"):
         apply_symmetry(plain.measurement, {"nfold": 3})
@@ -39,3 +43,5 @@ def test_a_measurement_expanded_again_counts_the_dips_measured_once():
     twice = apply_symmetry(once, {"n_fold": 4})
     assert (once.n_orientations, twice.n_orientations) == (40, 40)
     assert once.metadata["measured_orientations"] == twice.metadata["measured_orientations"] == 10
+    assert twice.metadata["symmetry_fit"] == once.metadata["symmetry_fit"]  # tested on the 10 dips, not the images
+    assert once.metadata["symmetry_fit"]["dips"] == 10
