@@ -315,3 +315,33 @@ def test_the_reference_plans_grid_plans_tilt_as_named():
         tilt = np.degrees(np.arccos(bench.PLANS[name][:, 2]))
         assert bench.PLANS[name].shape == (16, 3) and np.isclose(tilt.max(), top) and tilt.min() < 1e-3
     assert bench.parse_args([]).plans == ["grid16", "fibonacci41"]
+
+
+def _symmetry_row(cls, misfit, p_value, rejected, shape="disk_2d", declared="mirror_x"):
+    return {"shape": shape, "declared": declared, "class": cls, "reference_misfit": 0.0, "dips": 12, "snr_db": None,
+            "misfit": misfit, "p_value": p_value, "rejected": rejected}
+
+
+def test_the_symmetry_check_table_and_result_line(capsys):
+    """Per class the share rejected, the largest significant misfit and the smallest rejected one, from hand-made
+    rows; the declarations an asymmetric class kept and a symmetric one lost are named."""
+    bench = load_script("bench_symmetry_check")
+    rows = [_symmetry_row("symmetric", 0.0012, 0.5, False), _symmetry_row("symmetric", 0.0008, 1e-5, False),
+            _symmetry_row("asymmetric", 0.2, 1e-9, True, "elephant_2d"),
+            _symmetry_row("asymmetric", 0.03, 0.01, False, "fish", "rotation2_z"),
+            _symmetry_row("near", 0.02, 1e-4, True, "penguin")]
+    bench.print_table(rows, bench.parse_args(["--trials", "1"]))
+    out = capsys.readouterr().out
+    assert "| symmetric | 1 | 2 | 0 | 0.000 | 0.0010 | 0.0008 | nan |" in out
+    assert "| asymmetric | 2 | 2 | 1 | 0.500 | 0.1150 | 0.2000 | 0.2000 |" in out
+    assert "declarations kept: fish:rotation2_z (12 dips)" in out and "symmetric declarations rejected: none" in out
+    assert "near declarations (noise-free misfit, rejected / trials): penguin:mirror_x 0.0000 1/1" in out
+    assert out.strip().splitlines()[-1] == (
+        "RESULT false_rejections=0.000 detected_asymmetric=0.500 detected_near=1.000 trials=5")
+
+
+def test_the_symmetry_check_declares_each_shape_its_own_groups_and_classes_by_misfit():
+    bench = load_script("bench_symmetry_check")
+    ball, disk = bench.declarations("ball", 3), bench.declarations("disk_2d", 2)
+    assert len(ball["dihedral4_z"]) == 8 and len(ball["rotation4_z"]) == 4 and len(disk["rotation3"]) == 3
+    assert [bench.classify(m) for m in (0.001, 0.01, 0.06)] == ["symmetric", "near", "asymmetric"]
