@@ -37,7 +37,8 @@ correlations when slabs are thinner than a stage step). The readings' own noise 
 differences, :func:`~dipnet.preprocessing.validation.reading_noise`) goes into
 ``metadata["reading_noise_volume"]`` (``k`` times it, the volume of one reading's noise) and the stated
 noise over it into ``metadata["reading_noise_ratio"]`` (``None`` when no noise is stated), which the
-consistency check compares.
+consistency check compares; ``metadata["reading_noise_leak"]``
+(:func:`~dipnet.preprocessing.validation.reading_noise_leak`) says whether that estimate holds the rise too.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ from dipnet.core.strict_json import finite_or_none
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
 from dipnet.preprocessing.level_trend import tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
-from dipnet.preprocessing.validation import reading_noise
+from dipnet.preprocessing.validation import reading_noise, reading_noise_leak
 
 log = logging.getLogger(__name__)
 
@@ -179,6 +180,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         sigmas.append(None if noise is None else scale * float(np.hypot(noise, quantum / np.sqrt(12.0))))
     _warn_outside(outside, [o.k for o in scans], sigmas, [float(p.sum()) for p in profiles], edges)
     read_sigma, read_ratio = reading_noise(readings, stated, header.resolution or 0.0)
+    leak = reading_noise_leak(readings)
 
     prof = np.stack(profiles)
     if smooth:
@@ -199,7 +201,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "reading_quantum": header.resolution, "reading_quantum_volume":
                       None if header.resolution is None else scale * float(header.resolution),
                   "reading_noise_volume": finite_or_none(scale * read_sigma),
-                  "reading_noise_ratio": finite_or_none(read_ratio),
+                  "reading_noise_ratio": finite_or_none(read_ratio), "reading_noise_leak": finite_or_none(leak),
                   "readings": report.to_json()})
 
 

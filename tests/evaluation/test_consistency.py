@@ -488,20 +488,25 @@ def _noise_named(result) -> bool:
                                        pytest.param("hand", 1, marks=pytest.mark.slow),
                                        pytest.param("penguin", 2, marks=pytest.mark.slow),
                                        pytest.param("torus", 3, marks=pytest.mark.slow)])
-def test_a_stated_noise_five_times_the_readings_is_named_and_the_true_one_is_not(name, seed):
-    for overstate in (1.0, 5.0):
+def test_a_stated_noise_five_times_the_readings_or_a_fifth_is_named_and_the_true_one_is_not(name, seed):
+    """A fifth: before, `consistent` (the bunny at 20 dB under the voxel solver: IoU 0.861 -> 0.803, the TV weight
+    at its floor); the readings' estimate holds their noise alone here (leak about 1), so it is named."""
+    for overstate in (1.0, 5.0, 0.2):
         measurement, operator, recon = _dipped_mesh(name, seed, overstate)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DataConsistencyWarning)
             result = check_consistency(measurement, operator, recon)
         assert result.reading_noise_ratio == pytest.approx(overstate, rel=0.3)  # the readings' noise is the true one
-        assert _noise_named(result) == (overstate > NOISE_RATIO_MAX)
-        assert result.verdict == ("inconsistent" if overstate > NOISE_RATIO_MAX else "consistent")
+        assert result.reading_noise_leak < 1.5
+        wrong = not 1 / NOISE_RATIO_MAX <= overstate <= NOISE_RATIO_MAX
+        assert _noise_named(result) == wrong
+        assert result.verdict == ("inconsistent" if wrong else "consistent")
 
 
 def test_without_raw_readings_the_noise_is_not_compared_and_the_json_stays_strict(problem):
     operator, ball, measurement = problem
     result, _ = _check(measurement, operator, ball)
     assert math.isnan(result.reading_noise_mm3) and math.isnan(result.reading_noise_ratio)
+    assert math.isnan(result.reading_noise_leak)
     assert not _noise_named(result)
     assert '"reading_noise_ratio": null' in dumps(result.metrics())

@@ -10,7 +10,8 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators.analytic import ball_profiles
-from dipnet.preprocessing.validation import (MeasurementValidationError, reading_noise, validate_measurement,
+from dipnet.preprocessing.validation import (MeasurementValidationError, reading_noise, reading_noise_leak,
+                                            validate_measurement,
                                             working_ball_volume)
 
 GRID = Grid(16, 3, 100.0)
@@ -91,6 +92,16 @@ def test_the_readings_noise_is_their_white_noise_and_the_stated_one_is_compared_
     _, overstated = reading_noise(dips, [5 * sigma] * 40)
     assert overstated == pytest.approx(5.0, rel=0.1)
     assert math.isnan(reading_noise(dips, [None] * 40)[1])  # nothing stated: nothing to compare
+
+
+def test_the_leak_tells_white_noise_from_a_rise_the_estimate_takes_for_noise():
+    """White noise has the same third-difference sigma at twice the step (ratio 1); a sharp rise read at a coarse
+    step (the 30 mm rise over 20 readings) has third differences that grow with the step's cube, and the
+    estimate holds it (a correct statement reads as a quarter of it): the ratio is far above 1."""
+    assert reading_noise_leak([_readings(0.1, seed) for seed in range(40)]) == pytest.approx(1.0, abs=0.15)
+    coarse = [_readings(1e-3, seed, n=20) for seed in range(40)]
+    assert reading_noise(coarse, [1e-3] * 40)[1] < 0.3 and reading_noise_leak(coarse) > 4
+    assert math.isnan(reading_noise_leak([np.arange(7.0)]))  # no dip of 8 readings
 
 
 def test_rounded_noise_free_readings_show_the_rounding():
