@@ -395,9 +395,8 @@ def declared_symmetry_fit(measurement: DipMeasurement, reconstruction: Reconstru
     nothing was declared."""
     meta = measurement.metadata or {}
     fits = []
-    if meta.get("symmetry_fit"):
-        stored = {key: (float("nan") if value is None else value) for key, value in meta["symmetry_fit"].items()}
-        fits.append((SymmetryFit(**stored), "images"))
+    if isinstance(meta.get("symmetry_fit"), dict):
+        fits.append((SymmetryFit.from_metadata(meta["symmetry_fit"]), "images"))
     if "symmetry_group_order" not in meta:
         for spec in (reconstruction.info or {}).get("symmetries", []):
             maps = [m.numpy() for m in symmetry_maps(measurement.ndim, **spec)]

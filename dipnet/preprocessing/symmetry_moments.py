@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 from scipy import stats
@@ -67,6 +67,17 @@ class SymmetryFit:
     def metrics(self) -> dict:
         """The fields as a JSON-serialisable dict."""
         return asdict(self)
+
+    @classmethod
+    def from_metadata(cls, stored: Mapping) -> SymmetryFit:
+        """The fit as :meth:`metrics` left it in a measurement's metadata (``None`` for NaN); other keys are
+        ignored and missing ones keep their defaults (a hand-edited file)."""
+        fit = cls()
+        for name in (f.name for f in fields(cls)):
+            if name in stored:
+                value = stored[name]
+                setattr(fit, name, float("nan") if value is None else type(getattr(fit, name))(value))
+        return fit
 
 
 def group_closure(generators: Sequence[np.ndarray], max_order: int = 240) -> np.ndarray:

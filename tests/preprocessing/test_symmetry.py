@@ -45,3 +45,7 @@ def test_a_measurement_expanded_again_counts_the_dips_measured_once():
     assert once.metadata["measured_orientations"] == twice.metadata["measured_orientations"] == 10
     assert twice.metadata["symmetry_fit"] == once.metadata["symmetry_fit"]  # tested on the 10 dips, not the images
     assert once.metadata["symmetry_fit"]["dips"] == 10
+    from dipnet.preprocessing.symmetry_moments import SymmetryFit
+
+    edited = SymmetryFit.from_metadata({"misfit": None, "rejected": True, "order": 2, "note": "by hand"})
+    assert math.isnan(edited.misfit) and edited.rejected and edited.order == 2 and edited.dips == 0
