@@ -63,7 +63,7 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   0.803, `consistent`): below ``1 / NOISE_RATIO_MAX`` it is named, but only when ``reading_noise_leak``
   (:func:`~dipnet.preprocessing.validation.reading_noise_leak`: the estimate from every other reading over
   the estimate from every reading) is below ``NOISE_LEAK_MAX``, so that the readings' estimate holds their
-  noise alone. On the bundled meshes at 0.5-5 mm steps and 10-60 dB, a correct statement with a leak
+  noise alone. On five bundled meshes and the built-in box at 0.5-5 mm steps and 10-60 dB, a correct statement with a leak
   below 2 had a ratio of 0.70-1.0, and every ratio below 0.5 came with a leak of 2.5 or more.
 * ``symmetry_misfit``, ``symmetry_misfit_p``, ``symmetry_misfit_order``, ``symmetry_declared``,
   ``symmetry_rejected``: a symmetry the result assumed (the images of the top-level ``symmetry`` option:
