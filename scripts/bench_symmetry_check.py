@@ -6,8 +6,9 @@ against the dips' moments (:mod:`dipnet.preprocessing.symmetry_moments`) and nam
 This benchmark dips the 2D built-in shapes (disk, chamber box, elephant), the 3D ones (ball, box, torus, chamber
 box) and the 16 bundled meshes (scaled to 45 mm, on a 32-voxel grid of 100 mm), each under declarations it has
 and lacks: 2D a mirror across x, across y and a 2- or 3-fold rotation; 3D mirrors across x and y and 2- and
-4-fold rotations about z; the ball and the torus also their own groups, and the chamber box a mirror across z
-(its chamber lies off that plane).
+4-fold rotations about z; the ball and the tori (the built-in one and the bundled mesh) also their own groups,
+and the chamber box a mirror across z (its chamber lies off that plane). ``--shapes`` picks some of them
+(``disk_2d``, ``ball_3d``, ``bunny``...).
 
 Each (shape, declaration) is first classed by its misfit on 123 noise-free dips (80 in 2D): **symmetric** (below
 0.002: the object has the symmetry), **asymmetric** (above 0.05) or **near** (between: nearly symmetric objects
@@ -48,9 +49,10 @@ DECLARATIONS = {
     3: {"mirror_x": {"plane_normal": [1, 0, 0]}, "mirror_y": {"plane_normal": [0, 1, 0]},
         "rotation2_z": {"axis": [0, 0, 1], "order": 2}, "rotation4_z": {"axis": [0, 0, 1], "order": 4}},
 }
-EXTRA_DECLARATIONS = {"ball": {"dihedral4_z": {"plane_normal": [1, 0, 0], "axis": [0, 0, 1], "order": 4}},
-                      "torus": {"rotation6_z": {"axis": [0, 0, 1], "order": 6}, "mirror_z": {"plane_normal": [0, 0, 1]}},
-                      "chamber_box": {"mirror_z": {"plane_normal": [0, 0, 1]}}}
+TORUS = {"rotation6_z": {"axis": [0, 0, 1], "order": 6}, "mirror_z": {"plane_normal": [0, 0, 1]}}
+EXTRA_DECLARATIONS = {"ball_3d": {"dihedral4_z": {"plane_normal": [1, 0, 0], "axis": [0, 0, 1], "order": 4}},
+                      "torus_3d": TORUS, "torus": TORUS,  # the built-in torus and the bundled mesh, both about z
+                      "chamber_box_3d": {"mirror_z": {"plane_normal": [0, 0, 1]}}}
 SYMMETRIC_BELOW, ASYMMETRIC_ABOVE = 0.002, 0.05
 REFERENCE_DIPS = {2: 80, 3: 123}
 
@@ -58,6 +60,8 @@ REFERENCE_DIPS = {2: 80, 3: 123}
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--trials", type=int, default=8, help="random scans per shape")
+    p.add_argument("--shapes", nargs="+", metavar="NAME", help="the shapes to dip (default: all; names as in the table, "
+                   "e.g. elephant_2d ball_3d bunny)")
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--quick", action="store_true", help="2 scans per shape")
@@ -67,12 +71,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def shapes() -> list[tuple[str, int, object]]:
-    """``(name, ndim, shape)`` of every shape the benchmark dips."""
-    out = [(f"{name}_2d", 2, builtin_shape(name, 2, RADIUS_MM)) for name in ("disk", "chamber_box", "elephant")]
-    out += [(name, 3, builtin_shape(name, 3, RADIUS_MM)) for name in ("ball", "box", "torus", "chamber_box")]
-    out += [(path.stem, 3, shape_from_file(str(path), 3, radius=RADIUS_MM)) for path in sorted(MESHES_DIR.glob("*.ply"))]
-    return out
+def shapes(names: list[str] | None = None) -> list[tuple[str, int, object]]:
+    """``(name, ndim, shape)`` of the shapes the benchmark dips: all, or those called ``names`` (a ``ValueError``
+    naming the known ones for any other)."""
+    makers = {f"{name}_2d": (2, lambda name=name: builtin_shape(name, 2, RADIUS_MM))
+              for name in ("disk", "chamber_box", "elephant")}
+    makers.update({f"{name}_3d": (3, lambda name=name: builtin_shape(name, 3, RADIUS_MM))
+                   for name in ("ball", "box", "torus", "chamber_box")})
+    makers.update({path.stem: (3, lambda path=path: shape_from_file(str(path), 3, radius=RADIUS_MM))
+                   for path in sorted(MESHES_DIR.glob("*.ply"))})
+    unknown = sorted(set(names or ()) - set(makers))
+    if unknown:
+        raise ValueError(f"--shapes: no shape named {', '.join(unknown)} (known: {', '.join(makers)})")
+    return [(name, ndim, make()) for name, (ndim, make) in makers.items() if names is None or name in names]
 
 
 def declarations(name: str, ndim: int) -> dict[str, np.ndarray]:
@@ -101,7 +112,7 @@ def main(argv=None) -> list[dict]:
     logging.getLogger("dipnet").setLevel(logging.ERROR)
     rng = np.random.default_rng(args.seed)
     rows = []
-    for name, ndim, shape in tqdm(shapes(), desc="shapes"):
+    for name, ndim, shape in tqdm(shapes(args.shapes), desc="shapes"):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             groups = declarations(name, ndim)

@@ -342,6 +342,19 @@ def test_the_symmetry_check_table_and_result_line(capsys):
 
 def test_the_symmetry_check_declares_each_shape_its_own_groups_and_classes_by_misfit():
     bench = load_script("bench_symmetry_check")
-    ball, disk = bench.declarations("ball", 3), bench.declarations("disk_2d", 2)
+    ball, disk = bench.declarations("ball_3d", 3), bench.declarations("disk_2d", 2)
     assert len(ball["dihedral4_z"]) == 8 and len(ball["rotation4_z"]) == 4 and len(disk["rotation3"]) == 3
     assert [bench.classify(m) for m in (0.001, 0.01, 0.06)] == ["symmetric", "near", "asymmetric"]
+
+
+def test_the_symmetry_check_runs_end_to_end_on_chosen_shapes(capsys):
+    """The 2D disk and elephant, one random scan each: the disk keeps its mirrors and rotations, the elephant loses
+    its mirrors; an unknown shape is named."""
+    bench = load_script("bench_symmetry_check")
+    rows = bench.main(["--trials", "1", "--shapes", "disk_2d", "elephant_2d", "--threads", "1"])
+    assert {r["shape"] for r in rows} == {"disk_2d", "elephant_2d"} and len(rows) == 8
+    assert not any(r["rejected"] for r in rows if r["shape"] == "disk_2d")
+    assert all(r["rejected"] for r in rows if r["shape"] == "elephant_2d" and r["declared"].startswith("mirror"))
+    assert capsys.readouterr().out.strip().splitlines()[-1].startswith("RESULT false_rejections=0.000 ")
+    with pytest.raises(ValueError, match="no shape named teapot"):
+        bench.shapes(["teapot"])
