@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import re
 
 import numpy as np
 import pytest
+import torch
 
 from dipnet.calibration.model import CalibrationReport
 from dipnet.preprocessing.datasets import MESHES_DIR
@@ -351,7 +353,12 @@ def test_the_symmetry_check_runs_end_to_end_on_chosen_shapes(capsys):
     """The 2D disk and elephant, one random scan each: the disk keeps its mirrors and rotations, the elephant loses
     its mirrors; an unknown shape is named."""
     bench = load_script("bench_symmetry_check")
-    rows = bench.main(["--trials", "1", "--shapes", "disk_2d", "elephant_2d", "--threads", "1"])
+    log, level, threads = logging.getLogger("dipnet"), logging.getLogger("dipnet").level, torch.get_num_threads()
+    try:
+        rows = bench.main(["--trials", "1", "--shapes", "disk_2d", "elephant_2d", "--threads", "1"])
+    finally:  # the script quiets dipnet's log and sets torch's threads for its whole process: not for later tests
+        log.setLevel(level)
+        torch.set_num_threads(threads)
     assert {r["shape"] for r in rows} == {"disk_2d", "elephant_2d"} and len(rows) == 8
     assert not any(r["rejected"] for r in rows if r["shape"] == "disk_2d")
     assert all(r["rejected"] for r in rows if r["shape"] == "elephant_2d" and r["declared"].startswith("mirror"))
