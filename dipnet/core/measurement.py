@@ -127,6 +127,11 @@ class DipMeasurement:
             raise MeasurementFileError(f"measurement array 'sigma' holds {int((self.sigma < 0).sum())} negative "
                                        "value(s): noise standard deviations are >= 0")
 
+    def slab_centres(self) -> torch.Tensor:
+        """Each slab's centre height along its dip's direction, ``(K, M)`` float64, mm from the frame's origin."""
+        steps = (torch.arange(self.n_slabs, dtype=torch.float64) + 0.5) * self.slab_thickness
+        return self.offsets.double()[:, None] + steps[None, :]
+
     def volume_estimate(self) -> float:
         """Object volume (mm^3): the median over orientations of each profile's sum."""
         return float(self.profiles.sum(1).median())

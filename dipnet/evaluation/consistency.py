@@ -207,8 +207,7 @@ def height_trend(measurement: DipMeasurement) -> tuple[float, float, float]:
     if d.shape[1] != 3 or len(d) < 8 or not (totals > 0).all():
         return float("nan"), float("nan"), float("nan")
     h = measurement.slab_thickness
-    centres = measurement.offsets.double().numpy()[:, None] + h * (np.arange(p.shape[1]) + 0.5)[None, :]
-    centroid = (p * centres).sum(1) / totals
+    centroid = (p * measurement.slab_centres().numpy()).sum(1) / totals
     r = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
     design = np.column_stack([d, np.cos(r) - 1.0, np.sin(r)])
     if np.linalg.matrix_rank(design, tol=1e-6) < design.shape[1]:

@@ -152,8 +152,7 @@ def symmetry_fit(measurement: DipMeasurement, group: np.ndarray) -> SymmetryFit:
     totals = p.sum(1)
     if len(index) == 0 or not (totals > 0).all():
         return SymmetryFit(dips=len(index))
-    h = measurement.slab_thickness
-    t = measurement.offsets.double().numpy()[index][:, None] + h * (np.arange(p.shape[1]) + 0.5)[None, :]
+    t = measurement.slab_centres().numpy()[index]
     centroid = (p * t).sum(1) / totals
     radius = math.sqrt(float(np.mean((p * (t - centroid[:, None]) ** 2).sum(1) / totals)))
     if not radius > 0:

@@ -128,3 +128,9 @@ def test_a_measurement_without_dips_is_refused(tmp_path):
     np.savez(path, **arrays)
     with pytest.raises(MeasurementFileError, match=r"m.npz.*at least 1 dip.*got 0"):
         DipMeasurement.load(path)
+
+
+def test_slab_centres_are_the_offsets_plus_half_a_slab_per_step():
+    m = DipMeasurement(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), torch.ones(2, 3, dtype=torch.float64), 2.0,
+                       torch.tensor([-3.0, 1.0], dtype=torch.float64))
+    assert m.slab_centres().tolist() == [[-2.0, 0.0, 2.0], [2.0, 4.0, 6.0]]
