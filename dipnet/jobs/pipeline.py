@@ -92,6 +92,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     check_config(cfg, overrides, groups)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    check_recording_not_overwritten(cfg, out)
     earlier = output_files(out)
     torch.manual_seed(int(cfg.seed))
     configure_threads(cfg.get("threads"))
@@ -198,13 +199,34 @@ def output_files(out: Path, names: Collection[str] | None = None) -> dict[str, t
     return found
 
 
+def recording_path(cfg: DictConfig) -> Path | None:
+    """The recording a job reads (``source.reader.path``, resolved), ``None`` for a simulated source."""
+    recording = OmegaConf.select(cfg, "source.reader.path", default=None)
+    return Path(str(recording)).resolve() if isinstance(recording, str) and recording != "???" else None
+
+
+def check_recording_not_overwritten(cfg: DictConfig, out: Path) -> None:
+    """Refuse a job that reads its recording from the file its own output would replace, ``out/measurement.npz``:
+    a re-binned or symmetry-expanded copy would take the place of the data read, and a later run would solve the copy
+    as if it were the recording. (A raw scan read from ``out/rawscan.jsonl`` is not written again.)
+
+    Raises:
+        ConfigError: ``source.reader.path`` is ``out/measurement.npz``.
+    """
+    source = recording_path(cfg)
+    if source is not None and (out / "measurement.npz").resolve() == source:
+        raise ConfigError(f"source.reader.path={source} lies in this run's output folder {out}, where the run writes "
+                          f"its own {source.name}: the recording would be replaced by this run's copy of it "
+                          "(re-binned to this grid's slabs, symmetry images added); give the run another "
+                          "hydra.run.dir, or copy the recording elsewhere first")
+
+
 def warn_earlier_outputs(out: Path, earlier: dict[str, tuple[int, int]], cfg: DictConfig) -> list[str]:
     """Warn about the output files an earlier job left in ``out`` that this job did not write again (``earlier``:
     :func:`output_files` before it ran): a mesh format or figure no longer asked for, a truth a recording does not
     have, a reconstruction too empty to mesh. They lie beside this job's results as if they were its own. The
     job's own input (a recording in ``out``) is not named. Returns their names."""
-    recording = OmegaConf.select(cfg, "source.reader.path", default=None)
-    source = Path(str(recording)).resolve() if isinstance(recording, str) and recording != "???" else None
+    source = recording_path(cfg)
     stale = [name for name in not_rewritten(out, earlier) if (out / name).resolve() != source]
     if stale:
         message = (f"{out} holds {len(stale)} file(s) of an earlier run that this run did not write: "

@@ -282,3 +282,20 @@ def test_the_uncertainty_calibration_scores_the_truth_that_iou_scores(tmp_path):
     assert metrics["error_rate_by_uncertainty_decile"] == [
         round(float(v), 5) for v in calibration_by_decile(p_wrong, binary, reference)]
     assert (binary & ~reference).sum() / reference.sum() == pytest.approx(metrics["false_positive"])
+
+
+def test_a_measurement_read_from_the_run_folder_it_would_be_replaced_in_is_refused(tmp_path, cli):
+    """Before: a run's measurement.npz re-solved into the same folder at 16 slabs replaced the file with its re-binned
+    copy, without a word; a later run at 32 slabs solved that copy (IoU 0.932 -> 0.641) and said ``consistent``.
+    Now the run is refused before anything is written, and the recording stays as it was."""
+    quick = ["output.figures=false", "output.uncertainty=false", "output.resolvability=false"]
+    assert cli(tmp_path, *quick, "resolution=24", "n_dips=8").returncode == 0
+    recording = tmp_path / "measurement.npz"
+    before = recording.read_bytes()
+    again = cli(tmp_path, *quick, "resolution=16", "source=recorded", f"source.reader.path={recording}")
+    assert again.returncode == 2 and "Traceback" not in again.stderr
+    assert "lies in this run's output folder" in again.stderr and "another hydra.run.dir" in again.stderr
+    assert recording.read_bytes() == before
+    elsewhere = cli(tmp_path / "elsewhere", *quick, "resolution=16", "source=recorded",
+                    f"source.reader.path={recording}")
+    assert elsewhere.returncode == 0 and recording.read_bytes() == before
