@@ -28,6 +28,7 @@ from dipnet.calibration.self_calibration import SelfCalibrator
 from dipnet.core.keywords import accepted_keywords
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.preprocessing.sources import RecordedSource
+from dipnet.preprocessing.symmetry import MAX_MERGE_DEG
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import check_snr_db
 from dipnet.solvers.implicit import ImplicitSolver
@@ -252,6 +253,10 @@ def check_symmetry(cfg: DictConfig) -> None:
         _number(cfg, "symmetry.mirror_azimuth_deg", meaning=" (deg)")
     if "tol_deg" in spec:
         _number(cfg, "symmetry.tol_deg", 0, meaning=" (deg)")
+        if spec.tol_deg > MAX_MERGE_DEG:
+            raise ConfigError(f"symmetry.tol_deg must be at most {MAX_MERGE_DEG:g} (deg), got {spec.tol_deg!r}: "
+                              "directions further apart have different profiles, and merging them would average "
+                              "distinct dips into one")
 
 
 def check_grid_options(cfg: DictConfig) -> None:

@@ -119,6 +119,7 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("symmetry={n_fold:2.5}", r"symmetry.n_fold must be a positive integer \(rotations about z\), got 2.5"),
     ("symmetry={n_fold:3,mirorr:true}", "unknown option symmetry.mirorr: .*did you mean symmetry.mirror"),
     ("symmetry={tol_deg:-1}", r"symmetry.tol_deg must be a number >= 0 \(deg\), got -1"),
+    ("symmetry={n_fold:4,tol_deg:15}", r"symmetry.tol_deg must be at most 2 \(deg\), got 15: .*distinct dips"),
     ("calibration=self calibration.dip_offset_sigma_mm=-1",
      r"calibration.dip_offset_sigma_mm must be a positive number or null \(mm, .*got -1"),
     ("calibration=self calibration.iterations=0", "calibration.iterations must be a positive integer .*got 0"),

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
+import torch
+from analytic_profiles import ball_measurement
 from hydra import compose, initialize_config_module
 
+from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.jobs.pipeline import run
-from dipnet.preprocessing.symmetry import apply_symmetry
+from dipnet.preprocessing.symmetry import MAX_MERGE_DEG, apply_symmetry
 
 
 def _cfg(*overrides):
@@ -32,9 +36,6 @@ def test_simulated_job_duplicates_profiles_under_the_declared_group(tmp_path):
 def test_a_measurement_expanded_again_counts_the_dips_measured_once():
     """Before: a job's ``measurement.npz`` (10 dips x a 4-fold group = 40) read back with ``symmetry={n_fold: 4}``
     again reported ``n_dips_measured`` 40 in ``metrics.json``: the images counted as measured dips."""
-    import torch
-
-    from dipnet.core.orientations import fibonacci_hemisphere
     from dipnet.core.measurement import DipMeasurement
 
     measured = DipMeasurement(fibonacci_hemisphere(10), torch.ones(10, 8, dtype=torch.float64), 1.0,
@@ -49,3 +50,41 @@ def test_a_measurement_expanded_again_counts_the_dips_measured_once():
 
     edited = SymmetryFit.from_metadata({"misfit": None, "rejected": True, "order": 2, "note": "by hand"})
     assert math.isnan(edited.misfit) and edited.rejected and edited.order == 2 and edited.dips == 0
+
+
+def test_merging_is_limited_to_directions_a_dip_repeats_at():
+    """Before: ``tol_deg: 15`` averaged the profiles of distinct dips into one (a torus under ``n_fold: 4``: 34 of 120
+    directions kept, IoU 0.963 -> 0.893, ``consistent``, no word). Now a tolerance above ``MAX_MERGE_DEG`` is refused."""
+    measured = ball_measurement([0.0, 0.0, 0.0], 20.0, fibonacci_hemisphere(10).numpy())
+    assert apply_symmetry(measured, {"n_fold": 4, "tol_deg": MAX_MERGE_DEG}).n_orientations >= 37
+    with pytest.raises(ValueError, match=r"tol_deg must lie in \[0, 2\] deg, got 15.*average distinct dips"):
+        apply_symmetry(measured, {"n_fold": 4, "tol_deg": 15})
+
+
+def test_a_merged_direction_counts_its_distinct_measured_dips_in_its_noise():
+    """Before: a dip along the axis of an 8-fold group merged with its 7 images to sigma / sqrt(8), as if dipped 8
+    times; a measurement expanded before, read back with its group, divided its sigma again (10 dB: the residual
+    limit 0.377 -> 0.189, the TV weight to its floor). Now a merge divides by the number of distinct measured dips."""
+    directions = np.array([[0.0, 0.0, 1.0], [math.sin(0.5), 0.0, math.cos(0.5)], [0.0, math.sin(0.5), math.cos(0.5)]])
+    measured = ball_measurement([0.0, 0.0, 0.0], 20.0, directions)
+    measured.sigma = torch.full_like(measured.profiles, 2.0)
+    once = apply_symmetry(measured, {"n_fold": 4})
+    up = np.argmax(once.directions.numpy()[:, 2])
+    assert once.n_orientations == 5  # the axis, and 4 tilted directions each reached by dips 2 and 3
+    assert once.sigma[up].unique().tolist() == [2.0]  # one dip and its own images
+    tilted = [k for k in range(5) if k != up]
+    assert torch.allclose(once.sigma[tilted], torch.tensor(2.0 / math.sqrt(2), dtype=torch.float64))
+    twice = apply_symmetry(once, {"n_fold": 4})
+    assert torch.equal(twice.sigma, once.sigma) and torch.equal(twice.profiles, once.profiles)
+
+
+def test_a_measurement_read_back_under_another_group_is_tested_again():
+    """Before: a ``measurement.npz`` expanded under a mirror the object has, read back with a 4-fold group it lacks,
+    reused the first group's passing fit (misfit 0.0022, ``consistent``; the same 4-fold declared on the dips
+    themselves: 0.023, rejected). Now the stored fit serves the same group only."""
+    ball = ball_measurement([5.0, 0.0, 0.0], 20.0, fibonacci_hemisphere(41).numpy())  # off the z axis, on the xz plane
+    mirrored = apply_symmetry(ball, {"mirror": True})
+    assert not mirrored.metadata["symmetry_fit"]["rejected"]
+    assert apply_symmetry(mirrored, {"mirror": True}).metadata["symmetry_fit"] == mirrored.metadata["symmetry_fit"]
+    assert apply_symmetry(ball, {"n_fold": 4}).metadata["symmetry_fit"]["rejected"]
+    assert apply_symmetry(mirrored, {"n_fold": 4, "mirror": True}).metadata["symmetry_fit"]["rejected"]

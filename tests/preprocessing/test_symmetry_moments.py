@@ -5,10 +5,9 @@ import math
 
 import numpy as np
 import pytest
-import torch
+from analytic_profiles import ball_measurement
 
 from dipnet.core.grid import Grid
-from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 from dipnet.preprocessing.symmetry_moments import MISFIT_LIMIT, group_closure, symmetry_fit, whole_dips
 from dipnet.shapes import builtin_shape
@@ -19,21 +18,6 @@ from dipnet.solvers.priors import symmetry_maps
 
 def _group(ndim, **spec):
     return group_closure([m.numpy() for m in symmetry_maps(ndim, **spec)])
-
-
-def _ball_measurement(centre, radius, directions, h=1.0, half_span=60.0):
-    """Exact slab volumes of a ball (mm^3) along ``directions``: ``pi (r^2 t - t^3 / 3)`` between the slab bounds,
-    ``t`` from the ball's centre, whose height along a direction is ``centre . theta``."""
-    directions = np.asarray(directions, dtype=np.float64)
-    edges = np.arange(-half_span, half_span + h / 2, h)
-
-    def below(t):
-        t = np.clip(t, -radius, radius)
-        return math.pi * (radius**2 * t - t**3 / 3) + 2 * math.pi * radius**3 / 3
-
-    profiles = np.stack([np.diff(below(edges - float(np.dot(centre, d)))) for d in directions])
-    return DipMeasurement(torch.from_numpy(directions), torch.from_numpy(profiles), h,
-                          torch.full((len(directions),), edges[0], dtype=torch.float64))
 
 
 def test_the_closure_of_generators_is_the_whole_group_identity_first():
@@ -51,11 +35,11 @@ def test_a_ball_off_a_mirror_plane_misfits_as_the_centroid_says():
     Order 3 (``3 (c . theta) r_g^2`` over ``3 r_g^3``) says the same, up to terms in ``(x0 / r_g)^3``."""
     directions = fibonacci_hemisphere(41).numpy()
     x0, radius, h = 0.5, 20.0, 1.0
-    fit = symmetry_fit(_ball_measurement([x0, 0.0, 0.0], radius, directions, h), _group(3, plane_normal=[1, 0, 0]))
+    fit = symmetry_fit(ball_measurement([x0, 0.0, 0.0], radius, directions, h), _group(3, plane_normal=[1, 0, 0]))
     expected = x0 * directions[:, 0].std() / math.sqrt(radius**2 / 5 + h**2 / 12)
     assert fit.order in (1, 3) and fit.misfit == pytest.approx(expected, rel=2e-3) and fit.rejected
     for spec in ({"plane_normal": [0, 1, 0]}, {"axis": [1, 0, 0], "order": 4}):  # symmetries it has
-        kept = symmetry_fit(_ball_measurement([x0, 0.0, 0.0], radius, directions, h), _group(3, **spec))
+        kept = symmetry_fit(ball_measurement([x0, 0.0, 0.0], radius, directions, h), _group(3, **spec))
         assert not kept.rejected and kept.misfit < 1e-4, (spec, kept)
 
 
@@ -75,7 +59,7 @@ def test_the_elephants_mirrors_are_rejected_and_the_disks_are_not(snr_db):
 
 def test_only_whole_dips_count():
     directions = fibonacci_hemisphere(20).numpy()
-    measurement = _ball_measurement([0.0, 0.0, 0.0], 20.0, directions)
+    measurement = ball_measurement([0.0, 0.0, 0.0], 20.0, directions)
     measurement.metadata.update(recorded={"truncated": [0, 3], "truncated_policy": "keep"},
                                 interpolated_orientations=5)
     assert list(whole_dips(measurement)) == [1, 2] + list(range(4, 15))
@@ -86,9 +70,9 @@ def test_only_whole_dips_count():
 def test_too_few_dips_leave_an_order_untested_and_nothing_rejected():
     """3D order 3 has 10 coefficients and a constant: 12 dips leave 1 degree of freedom, so orders 1 and 2 alone
     are tested; 4 dips test nothing."""
-    off = _ball_measurement([4.0, 0.0, 0.0], 20.0, fibonacci_hemisphere(12).numpy())
+    off = ball_measurement([4.0, 0.0, 0.0], 20.0, fibonacci_hemisphere(12).numpy())
     fit = symmetry_fit(off, _group(3, plane_normal=[1, 0, 0]))
     assert fit.order in (1, 2) and fit.rejected
-    none = symmetry_fit(_ball_measurement([4.0, 0.0, 0.0], 20.0, fibonacci_hemisphere(4).numpy()),
+    none = symmetry_fit(ball_measurement([4.0, 0.0, 0.0], 20.0, fibonacci_hemisphere(4).numpy()),
                         _group(3, plane_normal=[1, 0, 0]))
     assert none.order == 0 and math.isnan(none.misfit) and not none.rejected and none.dips == 4
