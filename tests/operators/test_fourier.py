@@ -10,6 +10,7 @@ import torch
 
 from dipnet.core.grid import Grid
 from dipnet.operators import FourierOperator
+from dipnet.operators.fourier import MAX_EPS
 from dipnet.operators.box_model import box_voxel_profiles
 
 from operator_problems import generic_directions, random_problem, rel_error
@@ -54,6 +55,18 @@ def test_bandwidths_below_the_slab_nyquist_are_refused(option):
     grid = Grid(8, 3)
     with pytest.raises(ValueError, match="bandwidth and axis_boost must be >= 1"):
         FourierOperator(grid, generic_directions(2, 3), **option)
+
+
+def test_the_tolerance_is_limited_to_where_the_operator_stays_accurate():
+    """Before: ``operator.eps=0.1`` was accepted and ruined the operator silently (profiles 18 % off, their sums
+    24 %; a ball's reconstruction IoU 0.70 instead of 0.945, named only by its volume ratio). The largest eps
+    accepted keeps a random volume's profiles within 0.5 % of a tight tolerance's."""
+    grid, dirs, x, _ = random_problem(3, seed=7)
+    tight = FourierOperator(grid, dirs, 20, eps=1e-9)(x)
+    assert rel_error(FourierOperator(grid, dirs, 20, eps=MAX_EPS)(x), tight) < 5e-3
+    for eps in (0.1, 0.0, -1e-6, float("nan")):
+        with pytest.raises(ValueError, match=r"eps \(the NUFFT's relative tolerance\) must lie in \(0, 0.01\]"):
+            FourierOperator(grid, dirs, 20, eps=eps)
 
 
 def test_a_pickled_operator_rebuilds_its_plan_and_gives_the_same_profiles():
