@@ -33,7 +33,7 @@ def measurement_extent(path: str | Path) -> float | None:
     """The extent (mm) of the slabs of a saved ``.npz`` measurement (twice the largest ``|t|``
     its slabs reach), or ``None`` for other files (raw recordings need ``extent_mm``)."""
     path = Path(path)
-    if path.suffix != ".npz":
+    if path.suffix.lower() != ".npz":
         return None
     m = DipMeasurement.load(path)  # a clear error when missing or malformed
     misplaced = misplaced_dips(m)

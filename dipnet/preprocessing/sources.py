@@ -103,7 +103,7 @@ def read_recorded(path: str, grid: Grid, n_slabs: int | None = None, **options) 
     p = Path(path)
     if not p.is_file():
         raise MeasurementFileError(f"measurement file not found: {p}")
-    if p.suffix == ".npz":
+    if p.suffix.lower() == ".npz":
         edges = torch.linspace(-grid.extent / 2, grid.extent / 2, (n_slabs or grid.n) + 1, dtype=torch.float64)
         measurement = DipMeasurement.load(p).rebinned(edges)
         measurement.metadata = {**measurement.metadata, "path": str(p)}  # validation messages name the file
@@ -123,7 +123,7 @@ def check_measurement_suffix(path: Path) -> None:
     Raises:
         MeasurementFileError: another file type (e.g. a mesh given as a recording).
     """
-    if path.suffix not in MEASUREMENT_SUFFIXES:
+    if path.suffix.lower() not in MEASUREMENT_SUFFIXES:
         raise MeasurementFileError(f"{path}: unknown measurement file type {path.suffix!r} (expected "
                                    f"{', '.join(MEASUREMENT_SUFFIXES)}; a mesh is read with shape=mesh shape.path=...)")
 
@@ -170,7 +170,7 @@ class RecordedSource:
         """The raw recording made ready for self-calibration (:func:`~dipnet.preprocessing.recorded.prepare_recording`
         with the reader's options); every trial measurement is symmetrised and interpolated as the reader would."""
         options = dict(self.reader.keywords)
-        if self.path.suffix not in (".jsonl", ".csv"):
+        if self.path.suffix.lower() not in (".jsonl", ".csv"):
             raise ValueError(f"self-calibration needs a raw recording (.jsonl or .csv), not {self.path}")
         if options.get("t_start", "geometry") != "geometry":
             raise ValueError("self-calibration places the dips with the rig geometry: set the reader's t_start to "

@@ -24,4 +24,4 @@ def shape_spec(header_config: dict) -> dict | None:
 def recorded_shape_spec(path: str | Path) -> dict | None:
     """The shape spec a raw scan (``.jsonl``) names in its header, or ``None`` (other files, real rigs)."""
     path = Path(path)
-    return shape_spec(read_rawscan(path).header.config) if path.suffix == ".jsonl" else None
+    return shape_spec(read_rawscan(path).header.config) if path.suffix.lower() == ".jsonl" else None

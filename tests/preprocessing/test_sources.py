@@ -55,6 +55,20 @@ def test_unknown_and_missing_files_are_named(tmp_path):
         read_recorded(str(tmp_path / "m.txt"), GRID)
 
 
+def test_file_types_are_told_by_their_suffix_in_any_case(tmp_path):
+    """Before: a recording named ``.CSV`` (or ``.NPZ``) was refused as an unknown file type."""
+    path = tmp_path / "M.NPZ"
+    _ball_measurement(m=32).save(path)
+    source = RecordedSource(partial(read_recorded, path=str(path)))
+    assert source.extent_mm() == pytest.approx(100.0)
+    assert source.measure(None, GRID, 16).measurement.n_slabs == 16
+    upper = tmp_path / "CATS.CSV"
+    upper.write_bytes(CATS_CSV.read_bytes())
+    options = {"grid": Grid(16, 3, 360.0), "n_slabs": 16, "cross_section_mm2": 183600.0}
+    read = read_recorded(str(upper), **options)
+    assert torch.equal(read.profiles, read_recorded(str(CATS_CSV), **options).profiles)
+
+
 def test_the_recorded_source_needs_a_reader_with_its_path():
     with pytest.raises(TypeError, match="path bound"):
         RecordedSource(read_recorded)
