@@ -122,6 +122,12 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     a = np.asarray(data)
     change = np.flatnonzero(np.any(np.diff(a[:, 1:3], axis=0) != 0, axis=1)) + 1
     blocks = np.split(np.arange(len(a)), change)
+    steps_up = [bool((np.diff(a[idx, 3]) > 0).all()) for idx in blocks if len(idx) > 1]
+    if steps_up and all(steps_up):
+        raise RawScanFileError(f"{path}: Height_mm rises within every dip ({a[blocks[0][0], 3]:g}, "
+                               f"{a[blocks[0][1], 3]:g}, ...), where the authors' robot records the stage height, "
+                               "which falls as the object is lowered (0, -3, -6, ...): this file counts depth as "
+                               "positive; negate its Height_mm column")
     for idx in blocks:  # the object only goes down within a dip: Height_mm never increases
         up = np.flatnonzero(np.diff(a[idx, 3]) > 0)
         if up.size:

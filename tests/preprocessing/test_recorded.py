@@ -300,3 +300,16 @@ def test_a_recording_on_a_grid_of_the_other_dimension_is_refused_before_its_read
         with pytest.raises(ValueError, match=r"ball.jsonl: a 3D recording \(its header's ndim\) for a 2D grid: "
                                              r"set ndim=3"):
             read_raw_recording(path, Grid(16, ndim=2, extent=80.0))
+
+
+def test_a_csv_counting_depth_as_positive_is_named_so(tmp_path):
+    """Before: the authors' CSV with its Height_mm negated (depth counted as positive) was refused as a stage that
+    "moved backwards within a dip (rows out of order? ...)", which every dip does alike. Now the sign is named."""
+    lines = CSV.read_text().splitlines()
+    flipped = [lines[0]] + [",".join(f[:3] + [str(-float(f[3])), f[4]]) for f in (line.split(",") for line in lines[1:])]
+    path = tmp_path / "depth.csv"
+    path.write_text("\n".join(flipped) + "\n")
+    with pytest.raises(RawScanFileError, match=r"depth.csv: Height_mm rises within every dip \(25, 28, \.\.\.\).*"
+                                               r"counts depth as positive; negate its Height_mm column"):
+        read_scan(path)
+    assert len(read_scan(CSV).orientations) == 32
