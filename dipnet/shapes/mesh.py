@@ -4,8 +4,9 @@
   stays sensible on meshes with holes, loose shells and flipped faces.
 * ``volume_below``: closed form from the triangles by the divergence theorem
   (:mod:`dipnet.shapes.divergence`); exact for a watertight mesh.
-* Sealed voids: a closed shell nested inside another shell bounds a cavity that water never
+* Sealed voids: a closed shell lying wholly inside another shell bounds a cavity that water never
   reaches, so by default such inner shells are dropped (the void is filled) and a note says so.
+  Shells that touch, overlap or stick out of one another are all solid: their union.
 """
 
 from __future__ import annotations
@@ -126,7 +127,9 @@ def load_mesh(
         path: the file. A scene (e.g. GLB) is flattened into one mesh.
         radius: scale so the farthest vertex is ``radius`` mm from the centre; ``None`` keeps
             the file's units (taken as mm, times ``scale``).
-        fill_sealed_voids: fill cavities bounded by closed inner shells (water cannot reach them).
+        fill_sealed_voids: fill cavities bounded by closed inner shells, those lying wholly inside
+            another shell (water cannot reach them). Shells that touch, overlap or stick out of
+            one another are solid either way: their union.
         center: move the volume centroid (bounding-box centre if the volume is not meaningful)
             to the origin (the shape's ``frame_offset`` keeps the move).
         name: label (default: the file stem).
@@ -309,11 +312,14 @@ def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> tuple[trimesh.Trimesh
 def _orient_shells(
     mesh: trimesh.Trimesh, fill_sealed_voids: bool, problems: list[str]
 ) -> tuple[trimesh.Trimesh, list[str]]:
-    """Orient every shell by its nesting depth and fill (drop) the sealed voids.
+    """Orient every shell by its nesting depth, fill (drop) the sealed voids, merge the solid.
 
+    A shell's depth is the number of other shells it lies wholly inside (:func:`_nesting_depths`).
     A shell at even depth (0: outermost) bounds solid and must enclose positive volume; at odd
     depth it bounds a sealed void and must enclose negative volume. With ``fill_sealed_voids``
     every nested shell is dropped (voids filled, and solid islands inside them become redundant).
+    The outermost shells (those separate, touching, overlapping or sticking out of one another)
+    are merged into their union (:func:`_union_overlapping`), so overlaps count once.
     """
     shells = [s for s in mesh.split(only_watertight=False) if s.area > 0]
     if len(shells) <= 1:
@@ -325,14 +331,14 @@ def _orient_shells(
     depth = _nesting_depths(shells)
     notes: list[str] = []
     inverted = 0
-    kept = []
+    outer, nested = [], []
     for shell, k in zip(shells, depth):
         if fill_sealed_voids and k > 0:
             continue
         if (_enclosed_volume(shell) < 0) != (k % 2 == 1):
             shell.invert()
             inverted += 1
-        kept.append(shell)
+        (nested if k > 0 else outer).append(shell)
     if inverted:
         problems.append(f"inverted {inverted} of {len(shells)} shells to match their nesting")
     voids = [abs(s.volume) for s, k in zip(shells, depth) if k % 2 == 1]
@@ -348,10 +354,10 @@ def _orient_shells(
                 f"kept {len(voids)} sealed inner void(s) of total volume {total:.6g} mm^3 "
                 "(fill_sealed_voids=False: they are counted as water, which is unphysical)"
             )
-    merged = trimesh.util.concatenate(kept)
-    if fill_sealed_voids and len(kept) > 1:
-        merged = _union_overlapping(kept, merged, problems)
-    return merged, notes
+    solid = trimesh.util.concatenate(outer)
+    if len(outer) > 1:
+        solid = _union_overlapping(outer, solid, problems)
+    return (trimesh.util.concatenate([solid, *nested]) if nested else solid), notes
 
 
 def _enclosed_volume(shell: trimesh.Trimesh) -> float:
@@ -387,21 +393,38 @@ def _union_overlapping(
     return union
 
 
-def _nesting_depths(shells: list[trimesh.Trimesh], n_probe: int = 16) -> np.ndarray:
-    """Number of other shells that contain each shell (majority vote over probe vertices)."""
-    picks = [np.linspace(0, len(s.vertices) - 1, n_probe).astype(int) for s in shells]
-    probes = np.ascontiguousarray(
-        np.concatenate([s.vertices[i] for s, i in zip(shells, picks)]), dtype=np.float64
-    )
-    depth = np.zeros(len(shells), dtype=int)
+def _nesting_depths(shells: list[trimesh.Trimesh], n_samples: int = 1000, seed: int = 0) -> np.ndarray:
+    """Number of other shells that wholly contain each shell.
+
+    Shell ``B`` lies inside shell ``A`` when its bounding box lies within ``A``'s and every vertex of
+    ``B`` and ``n_samples`` points drawn on its surface (area-weighted, by ``seed``) have a winding
+    number of magnitude at least 0.5 about ``A`` (either orientation: shells are oriented after
+    this). A shell that touches ``A`` from outside (a box standing on another's face), overlaps it
+    or sticks out of it (a pin pressed into a block) has points outside ``A``: it is not nested in
+    ``A`` but part of the solid with it. A point on ``A``'s own surface has an undecided winding
+    number (0.125 at a box's corner), so a shell touching ``A``'s wall from within may count as not
+    nested; it then joins the solid, which fills it just the same. Two shells found inside each
+    other (one surface meshed twice) are nested in neither: both join the solid.
+    """
+    lows = np.array([s.bounds[0] for s in shells])
+    highs = np.array([s.bounds[1] for s in shells])
+    slack = 1e-9 * float(np.ptp(np.concatenate([lows, highs]), axis=0).max())
+    probes = [np.concatenate([s.vertices, trimesh.sample.sample_surface(s, n_samples, seed=seed)[0]])
+              for s in shells]
+    within = np.zeros((len(shells), len(shells)), dtype=bool)  # within[i, j]: shell i lies inside shell j
     for j, outer in enumerate(shells):
+        fits = np.all((lows >= lows[j] - slack) & (highs <= highs[j] + slack), axis=1)
+        fits[j] = False
+        candidates = np.flatnonzero(fits)
+        if len(candidates) == 0:
+            continue
+        q = np.ascontiguousarray(np.concatenate([probes[i] for i in candidates]), dtype=np.float64)
         v = np.ascontiguousarray(outer.vertices, dtype=np.float64)
         f = np.ascontiguousarray(outer.faces, dtype=np.int64)
-        w = np.abs(igl.fast_winding_number(v, f, probes)).reshape(len(shells), n_probe)
-        inside = np.median(w, axis=1) >= 0.5
-        inside[j] = False
-        depth += inside
-    return depth
+        inside = np.abs(igl.fast_winding_number(v, f, q)) >= 0.5
+        ends = np.cumsum([len(probes[i]) for i in candidates])
+        within[candidates, j] = np.logical_and.reduceat(inside, np.concatenate([[0], ends[:-1]]))
+    return (within & ~within.T).sum(axis=1)  # two shells inside each other bound the same solid
 
 
 def _centre(mesh: trimesh.Trimesh) -> np.ndarray:

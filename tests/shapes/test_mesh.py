@@ -83,6 +83,81 @@ def test_overlapping_shells_are_merged():
     assert shape.volume == pytest.approx(16.0 - 3.0)
 
 
+def block_with(piece: str) -> tuple[trimesh.Trimesh, float]:
+    """A 40 x 40 x 20 mm block (z -10..10) and a second closed piece that touches it, is pressed into it or
+    sticks out of it, saved as two shells of one mesh; returns the mesh and its union's exact volume (mm^3)."""
+    block = trimesh.creation.box(extents=[40.0, 40.0, 20.0])
+    if piece == "stacked box":  # 20 mm box standing on the top face
+        other = trimesh.creation.box(extents=[20.0, 20.0, 20.0]).apply_translation([0.0, 0.0, 20.0])
+        union = 32000.0 + 8000.0
+    elif piece == "half-sunk box":  # 20 mm box, its lower half inside the block
+        other = trimesh.creation.box(extents=[20.0, 20.0, 20.0]).apply_translation([0.0, 0.0, 10.0])
+        union = 32000.0 + 4000.0
+    elif piece == "pin":  # radius 5 mm, 3 mm inside the block, 60 mm sticking out (vertices only at its ends)
+        other = trimesh.creation.cylinder(radius=5.0, height=63.0).apply_translation([0.0, 0.0, 7.0 + 31.5])
+        union = 32000.0 + 0.5 * 32 * 5.0**2 * np.sin(2 * np.pi / 32) * 60.0  # the 32-gon prism outside
+    else:  # "side sphere": centred on the side face x = 20; the icosphere is symmetric, so half of it sticks out
+        other = trimesh.creation.icosphere(subdivisions=3, radius=10.0).apply_translation([20.0, 0.0, 0.0])
+        union = 32000.0 + other.volume / 2
+    return trimesh.util.concatenate([block, other]), union
+
+
+@pytest.mark.parametrize("fill", [True, False], ids=["filled", "kept"])
+@pytest.mark.parametrize("piece", ["stacked box", "half-sunk box", "pin", "side sphere"])
+def test_touching_or_protruding_pieces_are_solid_not_sealed_voids(piece, fill):
+    """Before: a piece whose probe vertices mostly lay inside the block was taken for a sealed void and dropped
+    (32000 mm^3 instead of 40000 for the stacked boxes, the pin lost entirely), or with fill_sealed_voids=False
+    cut out as a void (the stacked boxes: 24000 mm^3, refused as a failed repair). A piece that is not wholly
+    inside another is solid: the shape is their union, in its volume, its dips and its occupancy."""
+    mesh, union = block_with(piece)
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always", ShapeWarning)
+        shape = from_trimesh(mesh, center=False, fill_sealed_voids=fill)
+    assert not any("sealed" in str(w.message) for w in record)
+    assert shape.volume == pytest.approx(union, rel=1e-9)
+    assert shape.bounds()[1][2] == pytest.approx(mesh.bounds[1][2])
+    out = torch.tensor([[1.0, 0.0, 0.0] if piece == "side sphere" else [0.0, 0.0, 1.0]], dtype=torch.float64)
+    heights = torch.tensor([20.0 if piece == "side sphere" else 10.0, 100.0], dtype=torch.float64)
+    below, total = shape.volume_below(out, heights)[0].tolist()
+    assert total == pytest.approx(union, rel=1e-9)  # the dips hold the union, the overlap once
+    assert total - below == pytest.approx(union - 32000.0, abs=1e-9 * union)  # beyond the block's face: its part
+    grid = Grid(32, 3, 140.0)
+    merged = MeshShape(trimesh.boolean.union(mesh.split(), engine="manifold"))  # one closed surface
+    assert merged.volume == pytest.approx(union, rel=1e-9)
+    torch.testing.assert_close(shape.occupancy(grid, supersample=2), merged.occupancy(grid, supersample=2))
+
+
+def test_a_bar_whose_vertices_all_lie_in_a_notched_block_is_not_a_void():
+    """A block with a 10 mm wide, 5 mm deep notch across its top, and a bar bridging the notch: every corner of
+    the bar lies in the block's walls, but its middle crosses the notch. Only points on the bar's faces show
+    it is not wholly inside; before, its vertices' vote dropped it as a sealed void (30000 mm^3, not 30080)."""
+    block = trimesh.creation.box(extents=[40.0, 40.0, 20.0])
+    notch = trimesh.creation.box(extents=[10.0, 60.0, 10.0]).apply_translation([0.0, 0.0, 10.0])
+    notched = trimesh.boolean.difference([block, notch], engine="manifold")
+    bar = trimesh.creation.box(extents=[30.0, 4.0, 4.0]).apply_translation([0.0, 0.0, 5.0])  # z 3..7, notch z 5..10
+    assert MeshShape(notched).contains(bar.vertices).all()
+    with pytest.warns(ShapeWarning, match="merged 2 overlapping"):
+        shape = from_trimesh(trimesh.util.concatenate([notched, bar]), center=False)
+    assert shape.volume == pytest.approx(32000.0 - 10 * 40 * 5 + 10 * 4 * 2, rel=1e-9)
+
+
+@pytest.mark.parametrize("inner_inverted", [True, False], ids=["inverted", "same-oriented"])
+def test_hollow_ball_and_island_stay_nested(inner_inverted):
+    """A ball of radius 20 mm with a cavity of radius 10 mm and an island of radius 5 mm in the cavity: the
+    inner shells lie wholly inside the outer one, so they stay a sealed void (filled by default) and an
+    island, however the inner sphere is oriented."""
+    outer, cavity, island = (trimesh.creation.icosphere(subdivisions=3, radius=r) for r in (20.0, 10.0, 5.0))
+    if inner_inverted:
+        cavity.invert()
+    volumes = [abs(m.volume) for m in (outer, cavity, island)]
+    with pytest.warns(ShapeWarning, match="filled 1 sealed inner void"):
+        assert from_trimesh(trimesh.util.concatenate([outer, cavity])).volume == pytest.approx(volumes[0])
+    with pytest.warns(ShapeWarning) as record:  # and, for the same-oriented cavity, "inverted 1 of 3 shells"
+        kept = from_trimesh(trimesh.util.concatenate([outer, cavity, island]), fill_sealed_voids=False)
+    assert any("kept 1 sealed inner void" in str(w.message) for w in record)
+    assert kept.volume == pytest.approx(volumes[0] - volumes[1] + volumes[2])
+
+
 def broken_icosphere(extra_hole: bool) -> trimesh.Trimesh:
     """An icosphere with 5 deleted faces, one flipped face and, optionally, a pentagonal hole."""
     m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
