@@ -365,3 +365,76 @@ def test_the_symmetry_check_runs_end_to_end_on_chosen_shapes(capsys):
     assert capsys.readouterr().out.strip().splitlines()[-1].startswith("RESULT false_rejections=0.000 ")
     with pytest.raises(ValueError, match="no shape named teapot"):
         bench.shapes(["teapot"])
+
+
+def _consistency_row(kind, iou, residual, expected, snr_db=None, shape="ball_3d", seed=1):
+    limit = max(3 * expected, 0.05)
+    return {"shape": shape, "ndim": 3, "dips": 30, "snr_db": snr_db, "noise_seed": seed, "shift_axis": 0,
+            "shift_sign": 1, "other": "box_3d", "kind": kind, "iou": iou, "residual": residual, "expected": expected,
+            "ratio": residual / expected, "limit": limit, "noise_source": "sigma" if snr_db else "estimated",
+            "verdict": "inconsistent" if residual > limit else "consistent", "residual_flagged": residual > limit}
+
+
+def test_the_consistency_bench_counts_false_alarms_and_detections_per_rule(capsys):
+    """From hand-made rows: a correct result at 10 dB with residual 1.8 x expected is a false alarm of f1.5 and
+    f1.25 only; a wrong ball at 2.5 x expected is detected by f2 and below, not by the current f3; the truth and a
+    reconstruction between the IoU classes count in neither."""
+    bench = load_script("bench_consistency")
+    rows = [_consistency_row("reconstruction", 0.9, 0.18, 0.1, 10.0), _consistency_row("ball", 0.6, 0.25, 0.1, 10.0),
+            _consistency_row("truth", 1.0, 0.3, 0.1, 10.0), _consistency_row("reconstruction", 0.82, 0.5, 0.1, 20.0,
+                                                                           seed=2)]
+    bench.print_table(rows, bench.parse_args(["--trials", "1"]))
+    out = capsys.readouterr().out
+    assert "| 5-15 dB | 1 | 1 | 0 | 0 | 1.80 | 1.80 | 1.80 | 0.000 | 0.000 | 1 | 2.50 | 2.50 | 2.50 |" in out
+    assert "| 15-30 dB | 1 | 0 | 1 | 0 |" in out
+    result = dict(item.split("=") for item in out.strip().splitlines()[-1].split()[1:])
+    assert (result["false_alarms_current"], result["detected_current"]) == ("0.000", "0.000")
+    assert (result["false_alarms_f2"], result["detected_f2"]) == ("0.000", "1.000")
+    assert (result["false_alarms_f1.5"], result["detected_f1.5"]) == ("1.000", "1.000")
+    assert result["cases"] == "2" and "f3" not in {key.rpartition("_")[2] for key in result}
+    assert "rules without a false alarm: current, f2, hypot2, hypot3; the most detections among them: f2" in out
+    assert "wrong candidates the current rule passes (1): ball_3d:ball (5-15 dB, IoU 0.60" in out
+
+
+def test_the_consistency_bench_candidates_keep_the_volume_and_move_as_asked():
+    """The ball and the other shape hold as many voxels as asked, about the centre asked; a shift moves the voxels by
+    two along the array axis and loses what leaves the grid."""
+    bench = load_script("bench_consistency")
+    grid = bench.Grid(16, 3, 100.0)
+    centre = np.array([12.5, 0.0, -6.25])
+    ball = bench.ball_candidate(grid, 200, centre)
+    assert ball.sum() == 200 and np.allclose(grid.centers().numpy()[ball].mean(0), centre, atol=grid.voxel_size / 2)
+    other = bench.other_shape_candidate(bench.shape_makers()["torus_3d"][1], grid, 300, centre)
+    assert other.sum() == 300 and np.allclose(grid.centers().numpy()[other].mean(0), centre, atol=grid.voxel_size)
+    line = np.zeros((6, 4), dtype=bool)
+    line[0, 1] = line[5, 2] = True
+    moved = bench.shifted(line, 0, 2)
+    assert moved[2, 1] and moved.sum() == 1 and bench.shifted(line, 0, -2)[3, 2]
+    assert [bench.band(s) for s in (None, 40.0, 30.0, 15.0, 5.0)] == ["noise-free", "30-40 dB", "30-40 dB",
+                                                                      "15-30 dB", "5-15 dB"]
+
+
+def test_the_consistency_bench_runs_end_to_end_on_chosen_shapes(capsys):
+    """The 2D disk and the 3D ball, one random scan each: every case checks its reconstruction, its truth and three
+    wrong candidates; the RESULT line holds every rule's rates, in [0, 1] (or NaN when no case of the class came
+    up); an unknown shape is named."""
+    bench = load_script("bench_consistency")
+    log, level, threads = logging.getLogger("dipnet"), logging.getLogger("dipnet").level, torch.get_num_threads()
+    try:
+        rows = bench.main(["--trials", "1", "--shapes", "disk_2d", "ball_3d", "--threads", "1"])
+    finally:  # the script quiets dipnet's log and sets torch's threads for its whole process: not for later tests
+        log.setLevel(level)
+        torch.set_num_threads(threads)
+    assert {r["shape"] for r in rows} == {"disk_2d", "ball_3d"} and len(rows) == 10
+    assert {r["kind"] for r in rows} == {"reconstruction", "truth", "ball", "shifted", "other"}
+    recons = [r for r in rows if r["kind"] == "reconstruction"]
+    assert all(np.isfinite(r["ratio"]) and r["ratio"] > 0 and r["iou"] > 0.5 for r in recons)
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("RESULT false_alarms_current=")
+    result = dict(item.split("=") for item in last.split()[1:])
+    rates = [key for key in result if key != "cases"]
+    assert len(rates) == 2 * len(bench.rules()) and {"false_alarms_f1.5", "detected_f1.5"} <= set(rates)
+    assert all(0.0 <= float(result[key]) <= 1.0 or np.isnan(float(result[key])) for key in rates)
+    assert result["cases"] == "2"
+    with pytest.raises(ValueError, match="no shape named teapot"):
+        bench.shape_names(["teapot"])
