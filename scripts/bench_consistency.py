@@ -31,14 +31,17 @@ alarms) and of wrong candidates flagged (detected). Only measured: the rule in d
 
     python scripts/bench_consistency.py --threads 1     # 10 scans per shape (230 cases)
     python scripts/bench_consistency.py --quick         # 2 scans of 8 shapes (16 cases)
+    python scripts/bench_consistency.py --shapes ball_3d bunny --trials 4 --json rows.json   # some shapes, the rows
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -92,6 +95,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    "rows, e.g. ball_3d elephant_2d bunny)")
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--json", type=Path, help="also write every checked result's row to this JSON file")
     p.add_argument("--quick", action="store_true", help=f"2 scans of {len(QUICK_SHAPES)} shapes")
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
@@ -253,6 +257,8 @@ def main(argv=None) -> list[dict]:
         for case in tqdm(cases, desc="cases"):
             rows.extend(run_case(case, cfg, makers))
     print_table(rows, args)
+    if args.json:
+        args.json.write_text(json.dumps([{k: v for k, v in r.items() if k != "flags"} for r in rows], indent=1))
     return rows
 
 
