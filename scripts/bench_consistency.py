@@ -227,7 +227,8 @@ def run_case(case: dict, cfg, makers: dict) -> list[dict]:
         rows.append({**case, "kind": kind, "iou": iou(result.binary, truth), "residual": c.profile_residual,
                      "expected": c.profile_residual_expected, "ratio": c.profile_residual / c.profile_residual_expected,
                      "limit": c.residual_limit, "noise_source": c.noise_source, "verdict": c.verdict,
-                     "residual_flagged": c.profile_residual > c.residual_limit})
+                     "residual_flagged": c.profile_residual > c.residual_limit,
+                     "findings": [w[:60] for w in c.warnings]})
     return rows
 
 
