@@ -8,7 +8,7 @@ profiles. This benchmark measures that rule's false alarms and misses, and those
 
 Random cases, seeded by ``--seed``: ``--trials`` scans per shape of the 3D built-ins (ball, box, torus, chamber box),
 the 16 bundled meshes and the 2D built-ins (disk, chamber box, elephant), 45 mm in radius on the job's grid around
-the object (``fill`` 0.9; 24^3 in 3D, 48^2 in 2D), with a random number of dips (3D 20-80 on the Fibonacci
+the object (``fill`` 0.9; 24^3 in 3D, 48^2 in 2D, or ``--resolution``), with a random number of dips (3D 20-80 on the Fibonacci
 hemisphere, 2D 10-40 equal angles) and a random noise: noise-free one time in five (the noise then estimated),
 else an SNR uniform in 5-40 dB that the sensor states. Each scan is solved by the job's default optimisation
 solver (``solver=voxel`` of ``conf/config.yaml`` and its ``operator``, via Hydra's compose) and checked as the job
@@ -63,7 +63,6 @@ from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.base import measured_profiles
 
 RADIUS_MM, FILL = 45.0, 0.9
-RESOLUTION = {2: 48, 3: 24}
 DIPS = {2: (10, 40), 3: (20, 80)}
 SNR_DB, NOISE_FREE_SHARE = (5.0, 40.0), 0.2
 CORRECT_IOU, WRONG_IOU = 0.85, 0.8
@@ -93,6 +92,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--trials", type=int, default=10, help="random scans per shape")
     p.add_argument("--shapes", nargs="+", metavar="NAME", help="the shapes to dip (default: all; names as in the "
                    "rows, e.g. ball_3d elephant_2d bunny)")
+    p.add_argument("--resolution", type=int, default=24, help="voxels per axis of the 3D grid (2D: twice as many "
+                   "pixels)")
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--json", type=Path, help="also write every checked result's row to this JSON file")
@@ -195,12 +196,13 @@ def as_reconstruction(binary: np.ndarray, grid: Grid) -> Reconstruction:
     return Reconstruction(torch.from_numpy(binary.astype(np.float32)), grid, threshold=0.5)
 
 
-def run_case(case: dict, cfg, makers: dict) -> list[dict]:
-    """Simulate, solve and check one case, then check its wrong candidates; one row per checked result."""
+def run_case(case: dict, cfg, makers: dict, resolution: int = 24) -> list[dict]:
+    """Simulate, solve and check one case on a grid of ``resolution`` voxels per axis (3D; 2D twice as many pixels),
+    then check its wrong candidates; one row per checked result."""
     ndim = case["ndim"]
     make = makers[case["shape"]][1]
     shape = make(RADIUS_MM)
-    n = RESOLUTION[ndim]
+    n = resolution * (2 if ndim == 2 else 1)
     grid = Grid(n, ndim, extent_around(shape.radius(), n, FILL))
     directions = directions_2d(angles_2d(case["dips"])) if ndim == 2 else fibonacci_hemisphere(case["dips"])
     sensor = LevelSensor(snr_db=case["snr_db"], seed=case["noise_seed"])
@@ -256,7 +258,7 @@ def main(argv=None) -> list[dict]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         for case in tqdm(cases, desc="cases"):
-            rows.extend(run_case(case, cfg, makers))
+            rows.extend(run_case(case, cfg, makers, args.resolution))
     print_table(rows, args)
     if args.json:
         args.json.write_text(json.dumps([{k: v for k, v in r.items() if k != "flags"} for r in rows], indent=1))
