@@ -8,7 +8,7 @@ A small scripting API (see README.md and docs/getting-started.md)::
     op = dipnet.make_operator(grid, dirs)                         # forward / adjoint
     shape = dipnet.builtin_shape("chamber_box", 3, 0.9 * grid.radius)
     raw, meas = dipnet.simulate_measurement(shape, dirs, grid=grid)
-    dipnet.validate_measurement(meas, grid)                       # refuses wrong units, NaN, ...
+    dipnet.validate_measurement(meas, grid)                       # refuses wrong units, NaN, too small a grid, ...
     recon = dipnet.make_solver("minnorm").solve(meas, op)
     check = dipnet.check_consistency(meas, op, recon)             # does recon explain the dips?
 """

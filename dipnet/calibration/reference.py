@@ -19,7 +19,7 @@ from dipnet.calibration.moments import (GAUGE_REASONS, MIN_SPARE_CONDITIONS, TOL
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
-from dipnet.preprocessing.validation import estimate_slab_sigma
+from dipnet.core.measurement import estimate_slab_sigma
 
 log = logging.getLogger(__name__)
 

@@ -27,6 +27,10 @@ FORMAT_VERSION = 1
 _MAD = 1.4826  # MAD -> standard deviation for Gaussian data
 #: A share of a dip's volume beyond the reconstruction's slabs above this is named: the object does not fit the grid.
 BEYOND_SLABS_TOL = 0.01
+#: How far the object reaches (:meth:`DipMeasurement.reach`) counts only volume above this many noise sigmas.
+REACH_SIGMAS = 5.0
+#: A slab holding at most this share of its profile's largest volume is empty (:func:`filled_slabs`).
+FILLED_REL_TOL = 0.005
 
 
 class MeasurementFileError(ValueError):
@@ -39,6 +43,40 @@ def _float64(values) -> torch.Tensor:
     if isinstance(values, np.ndarray):
         values = np.ascontiguousarray(values)
     return torch.as_tensor(values, dtype=torch.float64)
+
+
+def filled_slabs(target: torch.Tensor, rel_tol: float = FILLED_REL_TOL) -> torch.Tensor:
+    """Boolean ``(K, M)``: the slabs of each profile ``target`` (``(K, M)``, mm^3) holding more than
+    ``rel_tol`` x the profile's largest volume."""
+    return target > rel_tol * target.abs().amax(dim=-1, keepdim=True)
+
+
+def _per_dip(values, k: int, default: float) -> np.ndarray:
+    """A per-dip metadata list as ``(k,)`` float64: itself when it has ``k`` entries (``None`` read as NaN), else
+    its largest finite entry for every dip (the list of the measured dips of a measurement with symmetry images
+    or interpolated directions), else ``default``."""
+    array = np.asarray([np.nan if v is None else v for v in (values or [])], dtype=np.float64).reshape(-1)
+    if array.size == k:
+        return array
+    finite = array[np.isfinite(array)]
+    return np.full(k, float(finite.max()) if finite.size else default)
+
+
+_HIGHPASS_GAIN = math.sqrt(3.0 / 8.0)  # rms of (1 - [1, 2, 1] / 4) applied to white noise
+
+
+def estimate_slab_sigma(profiles: torch.Tensor) -> float:
+    """A per-slab noise sigma (mm^3) estimated from the profiles ``(K, M)`` themselves: the
+    high-pass residual ``g - [1, 2, 1] / 4 * g`` along the slabs, robust sigma (MAD) divided
+    by the filter's white-noise gain. Smooth signal leaks a little into it (more noise, fewer
+    warnings); smoothing in preprocessing hides some noise from it. The spread of the
+    profiles' totals is not used: on real rigs it is dominated by systematic errors
+    (truncated dips, drift), which are exactly what the consistency check
+    (:mod:`dipnet.evaluation.consistency`, which uses this estimate) should expose.
+    """
+    p = profiles.double().numpy()
+    high = p[:, 1:-1] - 0.25 * (p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:])
+    return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
 
 
 def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
@@ -132,6 +170,41 @@ class DipMeasurement:
         steps = (torch.arange(self.n_slabs, dtype=torch.float64) + 0.5) * self.slab_thickness
         return self.offsets.double()[:, None] + steps[None, :]
 
+    def reach(self) -> np.ndarray:
+        """How far the object certainly reaches along each dip: ``(K', 2)`` float64 heights ``[low, high]`` (mm,
+        the object frame, whose origin is the grid's centre) with some of its volume below ``low`` and some
+        above ``high``, beyond noise; a row of NaN for a dip that shows no volume.
+
+        From the readings when preprocessing recorded them (``metadata["reach_mm"]``, one row per dip read:
+        ``K'`` may be fewer than the profiles when symmetry images or interpolated directions were added, whose
+        reach is a measured dip's or within theirs; :func:`dipnet.preprocessing.preprocess.preprocess`).
+        Else from the slabs: a dip's first and last slab holding more than :data:`FILLED_REL_TOL` of its largest
+        and :data:`REACH_SIGMAS` noise sigmas (its ``sigma``, and at least ``sqrt(2)`` times the readings' own
+        noise, ``metadata["reading_noise_volume"]``, when recorded; without either, :func:`estimate_slab_sigma`)
+        put ``low`` at the first one's upper edge and
+        ``high`` at the last one's lower edge, each moved two slabs inward when the profiles were smoothed (the
+        5-tap filter spreads a slab's volume two slabs on).
+        """
+        recorded = self.metadata.get("reach_mm")
+        if recorded:
+            return np.asarray([[np.nan if v is None else v for v in row] for row in recorded], dtype=np.float64)
+        p = self.profiles
+        reading = self.metadata.get("reading_noise_volume")
+        if self.sigma is None and reading is None:
+            noise = torch.full_like(p, estimate_slab_sigma(p))
+        else:
+            noise = torch.zeros_like(p) if self.sigma is None else self.sigma.clone()
+            noise = noise.clamp(min=0.0 if reading is None else math.sqrt(2.0) * float(reading))
+        full = filled_slabs(p) & (p > REACH_SIGMAS * noise)
+        edges = self.offsets[:, None] + self.slab_thickness * torch.arange(self.n_slabs + 1, dtype=torch.float64)
+        rows = torch.arange(self.n_orientations)
+        first = torch.argmax(full.to(torch.int8), dim=1)
+        last = self.n_slabs - 1 - torch.argmax(full.flip(1).to(torch.int8), dim=1)
+        spread = 2.0 * self.slab_thickness if self.metadata.get("smoothed") else 0.0
+        out = torch.stack([edges[rows, first + 1] + spread, edges[rows, last] - spread], dim=1).numpy()
+        out[~full.any(1).numpy()] = np.nan
+        return out
+
     def volume_estimate(self) -> float:
         """Object volume (mm^3): the median over orientations of each profile's sum."""
         return float(self.profiles.sum(1).median())
@@ -176,7 +249,12 @@ class DipMeasurement:
         variance (independent slabs), metadata noting the source slabs.
 
         Volume outside ``[edges[0], edges[-1]]`` is lost; a loss above ``rel_tol`` of the
-        object's volume is logged and warned about (the grid is too small for the object).
+        object's volume is logged and warned about (the grid is too small for the object). What the
+        metadata says of the slabs is made the new slabs': ``outside_share`` (each dip's share of its volume
+        beyond the slabs: what the source slabs held beyond the new ones joins what they left out), and
+        ``outside_mm`` (the height the dip's readings span beyond the slabs: the source slabs' width and
+        ``outside_mm`` less the new slabs' width); ``reach_mm`` (:meth:`reach`) is set from the source slabs
+        when the readings did not record it, so that re-binning does not spread it.
         """
         edges = torch.as_tensor(edges, dtype=torch.float64)
         steps = torch.diff(edges)
@@ -189,9 +267,24 @@ class DipMeasurement:
         if self.sigma is not None:
             variance = replace(self, profiles=self.sigma.pow(2), sigma=None)
             sigma = variance.resampled(edges).clamp(min=0).sqrt()
-        metadata = {**self.metadata, "rebinned_from": {"n_slabs": self.n_slabs, "slab_thickness": self.slab_thickness}}
+        metadata = {**self.metadata, "rebinned_from": {"n_slabs": self.n_slabs, "slab_thickness": self.slab_thickness},
+                    "reach_mm": [[None if not math.isfinite(v) else float(v) for v in row] for row in self.reach()],
+                    **self._beyond_new_slabs(profiles, edges)}
         return DipMeasurement(self.directions, profiles, float(steps[0]), edges[:1].expand(self.n_orientations).clone(),
                               sigma, metadata)
+
+    def _beyond_new_slabs(self, profiles: torch.Tensor, edges: torch.Tensor) -> dict:
+        """``outside_share`` and (when the metadata has it) ``outside_mm`` per dip for this measurement re-binned to
+        ``profiles`` ``(K, M')`` on ``edges`` ``(M' + 1,)`` mm (see :meth:`rebinned`)."""
+        k = self.n_orientations
+        before = np.nan_to_num(_per_dip(self.metadata.get("outside_share"), k, 0.0))
+        held = profiles.sum(1).numpy() / self.profiles.sum(1).clamp(min=1e-300).numpy()  # of the source's volume
+        out = {"outside_share": [float(max(0.0, 1.0 - (1.0 - s) * h)) for s, h in zip(before, held)]}
+        if self.metadata.get("outside_mm") is not None:
+            spans = np.nan_to_num(_per_dip(self.metadata["outside_mm"], k, 0.0))
+            width = self.n_slabs * self.slab_thickness - float(edges[-1] - edges[0])
+            out["outside_mm"] = [float(max(0.0, m + width)) for m in spans]
+        return out
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> Path:

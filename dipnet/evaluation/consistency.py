@@ -8,7 +8,7 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
 * ``profile_residual_expected``: what the noise alone explains, ``||n|| / ||g||`` with
   ``||n|| = sqrt(sum sigma^2)`` from the measurement's per-slab ``sigma`` when it has one, else
   from a per-slab sigma estimated from the profiles
-  (:func:`~dipnet.preprocessing.validation.estimate_slab_sigma`);
+  (:func:`~dipnet.core.measurement.estimate_slab_sigma`);
 * ``volume_ratio`` = reconstructed (binary) volume / measured volume, the measured volume
   being a robust mean (:func:`~dipnet.core.measurement.robust_volume`) of every profile's total, with
   ``volume_ratio_noise`` the relative spread of that mean.
@@ -38,6 +38,12 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   their ends, a floor the drift check would read as a drift; a drift puts as much volume per mm of
   readings outside the slabs as it puts under them, so a share that the floor explains so is set to 0.
   It joins ``grid_volume_fraction`` (the share of the dips' volume the operator's slabs hold).
+* ``object_reach_mm``, ``working_radius_mm``: how far from the grid's centre the dips show the object reaching
+  (:func:`~dipnet.preprocessing.validation.object_reach`, from the readings or the non-empty slabs) and the
+  working ball's radius. No voxel beyond the ball can hold the object's parts there, while the slabs, which
+  reach half a voxel or more past it, may hold nearly all its volume (a torus reaching 8 % beyond: 99.9 %), so
+  the "beyond the slabs" share does not show it. Validation refuses such a measurement before any solver runs;
+  called on its own, this check names it (and the full end slabs are not blamed on a drift).
 * ``quantum_volume_mm3``, ``mean_slab_mm3``: the volume of one step of the sensor's reading, when the
   measurement records it (:mod:`dipnet.evaluation.quantisation`), and the mean slab the object fills.
   The rounding's error joins the noise of the residual (when ``sigma`` is estimated), of the
@@ -77,7 +83,7 @@ The verdict is ``"consistent"`` unless the residual exceeds ``residual_factor`` 
 the noise explains (and the discretisation floor ``residual_floor``), the volume ratio or the grid's
 share of the volume is further from 1 than ``volume_tol`` (or 3 noise spreads, whichever is larger), a
 dip holds more than :data:`~dipnet.core.measurement.BEYOND_SLABS_TOL` of its volume (and 3 noise sigmas)
-beyond the slabs (and then the profile floor is not blamed on a drift), the hull
+beyond the slabs or reaches beyond the working ball (and then the profile floor is not blamed on a drift), the hull
 fill is below ``hull_fill_min`` or above ``HULL_FILL_MAX`` (or the dips bound no region at all), the
 height trend exceeds half a slab and 3 of its standard errors, the profile floor exceeds ``FLOOR_SIGMAS``
 noise sigmas (or its standard errors, when the dips' floors agree: :func:`floor_limit`) and carries more
@@ -98,14 +104,15 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement, robust_volume
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement, estimate_slab_sigma, robust_volume
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allowance, coarse_quantum_message,
                                             object_slabs, reading_quantum)
 from dipnet.preprocessing.level_trend import level_fall
 from dipnet.preprocessing.symmetry_moments import MISFIT_LIMIT, P_LIMIT, SymmetryFit, group_closure, symmetry_fit
-from dipnet.preprocessing.validation import estimate_slab_sigma
+from dipnet.preprocessing.validation import beyond_ball_message, object_reach
 from dipnet.solvers.base import measured_profiles
 from dipnet.solvers.optimize import EmptySupportError, support_hull
 from dipnet.solvers.priors import symmetry_maps
@@ -162,6 +169,8 @@ class Consistency:
     profile_floor_limit_mm3: float = float("nan")
     outside_share: float = float("nan")
     outside_limit: float = float("nan")
+    object_reach_mm: float = float("nan")
+    working_radius_mm: float = float("nan")
     floor_beyond_ratio: float = float("nan")
     quantum_volume_mm3: float = float("nan")
     mean_slab_mm3: float = float("nan")
@@ -365,6 +374,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     result.outside_limit = max(BEYOND_SLABS_TOL, FLOOR_SIGMAS * slab_sigma / measured)
     if result.outside_share > 0:  # NaN compares False
         result.grid_volume_fraction *= 1.0 - result.outside_share
+    result.object_reach_mm, _ = object_reach(measurement)
+    result.working_radius_mm = operator.grid.radius
     metadata = measurement.metadata or {}
     result.reading_noise_mm3, result.reading_noise_ratio, result.reading_noise_leak = (
         _metadata_number(metadata, key) for key in ("reading_noise_volume", "reading_noise_ratio",
@@ -375,7 +386,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     fit, result.symmetry_declared = declared_symmetry_fit(measurement, reconstruction)
     result.symmetry_misfit, result.symmetry_misfit_p = fit.misfit, fit.p_value
     result.symmetry_misfit_order, result.symmetry_rejected = fit.order, fit.rejected
-    result.warnings = _findings(result, metadata.get("symmetry_group_order", 1), quantum)
+    result.warnings = _findings(result, metadata.get("symmetry_group_order", 1), quantum, operator.grid)
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
         for message in result.warnings:
@@ -428,11 +439,13 @@ def _hull_fill(measured: float, target: torch.Tensor, operator: DipOperator) -> 
     return measured / (float(hull.sum()) * operator.grid.voxel_volume)
 
 
-def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None = None) -> list[str]:
+def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None = None,
+              grid: Grid | None = None) -> list[str]:
     """One plain message per failed check; ``symmetry_order``: the order of a declared symmetry group whose
     images of the dips the data hold (:func:`~dipnet.preprocessing.symmetry.expand_symmetry`), named as a cause;
     ``quantum``: the sensor's reading quantum, named as the cause when it is coarse against a slab (and then the
-    rig-geometry and unit hints, which its rounding alone sets off, are left out)."""
+    rig-geometry and unit hints, which its rounding alone sets off, are left out); ``grid``: the reconstruction's,
+    whose working ball an object reaching beyond is named."""
     out = []
     coarse = quantum is not None and c.quantum_volume_mm3 >= COARSE_SHARE * c.mean_slab_mm3
     if coarse:
@@ -442,6 +455,9 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
         suspects = (f"the declared symmetry (order {symmetry_order}: every dip copied to its images) may not be the "
                     f"object's (run without symmetry to check), or {suspects}")
     beyond = c.outside_share > c.outside_limit  # NaN compares False
+    over_ball = c.object_reach_mm >= c.working_radius_mm * (1 - 1e-9)  # NaN compares False
+    if over_ball and grid is not None:
+        out.append(beyond_ball_message(c.object_reach_mm, grid))
     if c.grid_volume_fraction < 1 - c.volume_limit or beyond:
         readings = (f" (a dip's readings hold up to {c.outside_share:.1%} of its volume beyond the slabs, which its "
                     "profile leaves out, and fill its slabs to their ends)") if beyond else ""
@@ -467,7 +483,7 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    "scripts/calibrate.py)")
     drift_free = c.floor_beyond_ratio < FLOOR_BEYOND_MIN  # NaN compares False: no readings to tell by
     if abs(c.profile_floor_mm3) > c.profile_floor_limit_mm3 and abs(c.profile_floor_share) > c.volume_limit \
-            and not beyond and not drift_free:  # an object beyond the slabs fills them to their ends: no drift's floor
+            and not beyond and not over_ball and not drift_free:  # an object beyond fills the slabs to their ends
         out.append(f"every dip holds {c.profile_floor_mm3:+.4g} {c.volume_unit} per slab where its slabs should be empty (before "
                    f"the object touches the water and after it is under): {c.profile_floor_share:+.1%} of the "
                    "measured volume, which the reconstruction takes for object. A level that drifts in time (the "

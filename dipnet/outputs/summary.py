@@ -88,6 +88,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "symmetry_rejected": ("how consistent with the data", "the dips reject the declared symmetry"),
     "outside_share": ("how consistent with the data", "largest share of a dip's volume beyond the slabs"),
     "outside_limit": ("how consistent with the data", "limit of that share"),
+    "object_reach_mm": ("how consistent with the data", "how far from the grid's centre the dips show the object reaching (mm)"),
+    "working_radius_mm": ("how consistent with the data", "the working ball's radius, which that reach must not pass (mm)"),
     "floor_beyond_ratio": ("how consistent with the data", "readings beyond the slabs over what a drift of the floor puts there"),
     "quantum_volume_mm3": ("how consistent with the data", "volume of one step of the sensor's reading (mm³)"),
     "mean_slab_mm3": ("how consistent with the data", "mean slab the object fills (mm³)"),

@@ -25,6 +25,10 @@ Per orientation:
    the profiles: the object reaches beyond the grid, or the level drifts) goes into
    ``metadata["outside_share"]``, the height the readings span there (mm) into ``metadata["outside_mm"]``,
    and a share above :data:`~dipnet.core.measurement.BEYOND_SLABS_TOL` (and the noise's) is warned about;
+   how far the object reaches goes into ``metadata["reach_mm"]`` (:func:`reach_from_readings`: per dip the
+   heights ``[low, high]`` with some of its volume below ``low`` and above ``high``, from the readings
+   themselves, so neither the slabs nor the interpolation between readings widen it), which validation
+   compares with the grid's working ball;
 7. optional smoothing with the paper's normalised 5-tap ``gausswin`` (alpha = 2.5), with
    half-sample symmetric reflection at the ends so no volume is lost.
 
@@ -56,10 +60,10 @@ from scipy.interpolate import PchipInterpolator
 
 from dipnet.core.geometry import CROSS_SECTION_RANGE_MM2
 from dipnet.core.grid import Grid, slab_count
-from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
+from dipnet.core.measurement import BEYOND_SLABS_TOL, REACH_SIGMAS, DipMeasurement
 from dipnet.core.strict_json import finite_or_none
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
-from dipnet.preprocessing.level_trend import tail_slope
+from dipnet.preprocessing.level_trend import MIN_TAIL_READINGS, tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
 from dipnet.preprocessing.validation import reading_noise, reading_noise_leak
 
@@ -127,7 +131,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         per-slab ``sigma`` when the reading noise is known, and provenance metadata
         (``orientation_k``, ``t_start_mm``, ``tail_slope`` (volume per reading) and ``readings_per_dip``
         per orientation, ``outside_share`` and ``outside_mm`` per orientation (the share of its volume beyond
-        the slab edges and the height its readings span there), ``reading_quantum`` (reading units) and ``reading_quantum_volume`` (mm^3) when
+        the slab edges and the height its readings span there), ``reach_mm`` per orientation
+        (:func:`reach_from_readings`), ``reading_quantum`` (reading units) and ``reading_quantum_volume`` (mm^3) when
         the scan records its resolution, ``readings``: the outlier report, ...).
     """
     report = ReadingsReport()
@@ -155,7 +160,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     centre = np.zeros(header.ndim) if object_centre is None else np.asarray(object_centre, dtype=np.float64)
 
     profiles, starts, sigmas, slopes, counts, outside, outside_mm = [], [], [], [], [], [], []
-    readings, stated = [], []
+    readings, stated, curves = [], [], []
     for o in scans:
         stage, values = _clean_readings(o, drop_flags)
         noise = o.meta.get("noise_sigma", header.noise_sigma)
@@ -177,9 +182,13 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         outside.append(_outside_share(cum, volume))
         outside_mm.append(max(edges[0] - t0 - u[0], 0.0) + max(t0 + u[-1] - edges[-1], 0.0))
         starts.append(t0)
+        curves.append((t0 + u, volume))
         sigmas.append(None if noise is None else scale * float(np.hypot(noise, quantum / np.sqrt(12.0))))
     _warn_outside(outside, [o.k for o in scans], sigmas, [float(p.sum()) for p in profiles], edges)
     read_sigma, read_ratio = reading_noise(readings, stated, header.resolution or 0.0)
+    reach = [reach_from_readings(t, v, REACH_SIGMAS * max(s or 0.0, scale * np.nan_to_num(read_sigma)),
+                                 slope if np.isfinite(slope) else _end_slope(v))
+             for (t, v), s, slope in zip(curves, sigmas, slopes)]
     leak = reading_noise_leak(readings)
 
     prof = np.stack(profiles)
@@ -198,6 +207,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "orientation_k": [o.k for o in scans], "scan_metadata": header.metadata,
                   "tail_slope": [float(v) for v in slopes], "readings_per_dip": counts,
                   "outside_share": outside, "outside_mm": [float(v) for v in outside_mm],
+                  "reach_mm": [[finite_or_none(v) for v in row] for row in reach],
                   "reading_quantum": header.resolution, "reading_quantum_volume":
                       None if header.resolution is None else scale * float(header.resolution),
                   "reading_noise_volume": finite_or_none(scale * read_sigma),
@@ -235,6 +245,44 @@ def _check_step(step_mm: float | None, slab_mm: float) -> None:
     message = f"{found}: the profiles between readings are interpolated"
     log.warning("%s", message)
     warnings.warn(message, stacklevel=3)
+
+
+def reach_from_readings(heights: np.ndarray, volume: np.ndarray, tol: float, drift: float = 0.0
+                        ) -> tuple[float, float]:
+    """How far one dip's object certainly reaches: ``(low, high)`` heights (mm, object frame) of the first reading
+    whose submerged volume exceeds ``tol`` (some of the object lies below it) and of the last whose volume falls
+    short of the final one by more than ``tol`` (some lies above it); NaN for either when no reading does. A level
+    rising in time adds ``drift`` per reading before the object touches and after it is under, which an object
+    beyond would add too: twice what it adds over the readings before (after) a reading joins ``tol`` there.
+
+    A slab's volume cannot say this as well: the cumulative volume is interpolated between readings, so a slab
+    beyond the object's end may hold part of the last step's rise (a ball as large as the working ball, read at
+    5 mm steps onto 4.1 mm slabs, put 2 % of its largest slab beyond the ball).
+
+    Args:
+        heights: the water line's heights at the readings ``(R,)``, mm, increasing.
+        volume: the submerged volume there ``(R,)`` (the monotone fit over the level before contact, mm^3; mm^2
+            in 2D).
+        tol: the volume (same unit) a difference must exceed: a few noise sigmas of a reading.
+        drift: the level's rise per reading once the object is under (same unit;
+            :func:`~dipnet.preprocessing.level_trend.tail_slope`); a fall or NaN counts as none.
+    """
+    count = np.arange(volume.size, dtype=np.float64)
+    rising = 2.0 * max(float(np.nan_to_num(drift)), 0.0)
+    below = np.flatnonzero(volume > tol + rising * count)
+    above = np.flatnonzero(volume < volume[-1] - tol - rising * count[::-1])
+    return (float(heights[below[0]]) if below.size else float("nan"),
+            float(heights[above[-1]]) if above.size else float("nan"))
+
+
+def _end_slope(volume: np.ndarray, n: int = MIN_TAIL_READINGS) -> float:
+    """The least-squares slope (volume per reading) of the last ``n`` of one dip's ``volume`` ``(R,)``: a level
+    still rising where the monotone fit never levels off (a fast drift, or a dip ended before the object is under);
+    NaN with fewer than 2 readings."""
+    tail = np.asarray(volume, dtype=np.float64)[-n:]
+    if tail.size < 2:
+        return float("nan")
+    return float(np.polyfit(np.arange(tail.size, dtype=np.float64), tail, 1)[0])
 
 
 def _outside_share(cum: np.ndarray, volume: np.ndarray) -> float:

@@ -11,6 +11,16 @@ when the measurement carries ``sigma``, else 0):
   ``|V_k|`` or slab above ``V_ball (1 + size_tol)``: error (wrong units, a scaled file, a grid
   too small for the object). A largest ``V_k`` below one voxel's volume: error too (an object the grid
   cannot hold a voxel of: litres or m^2 where mm^3 or mm^2 are meant, or an extent far too large).
+* **reach**: an object beyond the working ball (radius ``extent/2 - voxel``, the frame's origin its centre) has
+  parts no voxel holds: the operators ignore every voxel outside it, so the volume there is put inside or
+  lost. Each dip shows heights below and above which some of the object lies
+  (:meth:`~dipnet.core.measurement.DipMeasurement.reach`: from the readings when preprocessing recorded them,
+  else from the first and last non-empty slab, beyond :data:`~dipnet.core.measurement.REACH_SIGMAS` noise
+  sigmas); one beyond the ball's radius: error, naming the ``extent_mm`` that would hold it, as a simulated
+  shape larger than the ball is refused (:class:`dipnet.simulator.source.SimulatedSource`). Truncated dips kept
+  with a flat tail are left out: where the recording has no start heights (the authors' CSV) theirs are the
+  rig geometry's extrapolation from the complete dips (the authors' 35 deg dips lie ~16 mm off). The slabs' share
+  beyond the grid (``outside_share``) does not show it: slabs reach half a voxel or more past the ball.
 * **sign**: slab volumes are non-negative. A profile whose total is not positive: error.
   Negative slabs below ``-max(4 sigma_kj, neg_tol max_j |p_kj|)`` are beyond noise: error when
   their magnitude exceeds ``neg_tol`` of the positive volume, else a warning.
@@ -35,31 +45,15 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 from scipy.spatial import cKDTree
 
+from dipnet.core.framing import extent_around
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 
 log = logging.getLogger(__name__)
 
-_HIGHPASS_GAIN = math.sqrt(3.0 / 8.0)  # rms of (1 - [1, 2, 1] / 4) applied to white noise
 _MAD = 1.4826  # MAD -> standard deviation for Gaussian data
-
-
-def estimate_slab_sigma(profiles: torch.Tensor) -> float:
-    """A per-slab noise sigma (mm^3) estimated from the profiles ``(K, M)`` themselves: the
-    high-pass residual ``g - [1, 2, 1] / 4 * g`` along the slabs, robust sigma (MAD) divided
-    by the filter's white-noise gain. Smooth signal leaks a little into it (more noise, fewer
-    warnings); smoothing in preprocessing hides some noise from it. The spread of the
-    profiles' totals is not used: on real rigs it is dominated by systematic errors
-    (truncated dips, drift), which are exactly what the consistency check
-    (:mod:`dipnet.evaluation.consistency`, which uses this estimate) should expose.
-    """
-    p = profiles.double().numpy()
-    high = p[:, 1:-1] - 0.25 * (p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:])
-    return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
-
 
 #: Gain of the third difference ``[-1, 3, -3, 1]`` on white noise: ``sqrt(1 + 9 + 9 + 1)``.
 _THIRD_DIFFERENCE_GAIN = math.sqrt(20.0)
@@ -185,6 +179,7 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     noise = np.zeros(len(prof)) if sigma is None else np.sqrt((sigma**2).sum(axis=1))
     _check_signs(prof, totals, sigma, neg_tol, source, report)
     _check_not_tiny(totals, grid, source)
+    _check_reach(measurement, grid, source)
     _check_totals(totals, noise, total_tol, source, report)
     _check_duplicates(measurement, totals, noise, total_tol, dup_deg, source, report)
     for message in report.warnings:
@@ -209,6 +204,45 @@ def _check_not_tiny(totals: np.ndarray, grid: Grid, source: str) -> None:
             f"{source}: the largest profile holds {total:.4g} mm^3, less than one voxel's {grid.voxel_volume:.4g} mm^3 "
             f"(extent_mm={grid.extent:g}, resolution {grid.n}): wrong units or scale (litres for mm^3, a cross-section "
             "in m^2), or an extent far too large for the object")
+
+
+#: The share of the working ball an object fills when the grid is chosen around it (``fill``, conf/config.yaml).
+_DEFAULT_FILL = 0.9
+
+
+def _check_reach(measurement: DipMeasurement, grid: Grid, source: str) -> None:
+    """Refuse a measurement whose object reaches beyond ``grid``'s working ball (see the module docstring)."""
+    far, dip = object_reach(measurement)
+    if far >= grid.radius * (1 - 1e-9):  # NaN compares False
+        raise MeasurementValidationError(f"{source}: {beyond_ball_message(far, grid, dip)}")
+
+
+def object_reach(measurement: DipMeasurement) -> tuple[float, str]:
+    """``(reach, dip)``: how far (mm) from the frame's origin, the grid's centre, the dips show the object
+    reaching (the largest over the dips of :meth:`~dipnet.core.measurement.DipMeasurement.reach`; NaN when no dip
+    shows volume) and the dip that shows it (``"orientation k"``). Truncated dips kept with a flat tail are left
+    out (see the module docstring)."""
+    reach = measurement.reach()  # (K', 2) heights [low, high], mm
+    far = np.fmax(-reach[:, 0], reach[:, 1])  # NaN only for a dip with no volume
+    ks = measurement.metadata.get("orientation_k") or []
+    recorded = measurement.metadata.get("recorded") or {}
+    if recorded.get("truncated_policy") == "keep" and len(ks) == len(far):
+        far[np.isin(ks, recorded.get("truncated", []))] = np.nan  # placed by the complete dips' geometry, not their own
+    if not np.isfinite(far).any():
+        return float("nan"), ""
+    worst = int(np.nanargmax(far))
+    return float(far[worst]), f"orientation {ks[worst]}" if len(ks) == len(far) else f"dip {worst}"
+
+
+def beyond_ball_message(reach: float, grid: Grid, dip: str = "") -> str:
+    """The finding for an object that reaches ``reach`` mm from the centre of ``grid``, beyond its working ball
+    (shown by ``dip``), naming the ``extent_mm`` that puts ``reach`` at :data:`_DEFAULT_FILL` of the ball."""
+    needed = math.ceil(extent_around(reach, grid.n, _DEFAULT_FILL))
+    return (f"the object reaches beyond the working ball of radius {grid.radius:.1f} mm (extent_mm={grid.extent:g} "
+            f"at resolution {grid.n}): the dips hold volume at least {reach:.1f} mm from the grid's centre"
+            f"{f' ({dip})' if dip else ''}, where no voxel can hold it: increase extent_mm to {needed} or more "
+            f"(which puts {reach:.1f} mm at {_DEFAULT_FILL:.0%} of the ball's radius, as a grid chosen around a "
+            "shape does)")
 
 
 def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: ValidationReport) -> None:

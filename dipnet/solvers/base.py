@@ -97,9 +97,3 @@ def on_operator_slabs(measurement: DipMeasurement, operator: DipOperator) -> Dip
     return replace(measurement, profiles=profiles, slab_thickness=operator.slab_thickness,
                    offsets=operator.slab_edges()[:1].to(measurement.offsets).expand(operator.n_orientations).clone(),
                    sigma=None)
-
-
-def filled_slabs(target: torch.Tensor, rel_tol: float = 0.005) -> torch.Tensor:
-    """Boolean ``(K, M)``: the slabs of each profile ``target`` (``(K, M)``, mm^3) holding more than
-    ``rel_tol`` x the profile's largest volume."""
-    return target > rel_tol * target.abs().amax(dim=-1, keepdim=True)

@@ -32,11 +32,11 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from dipnet.core.grid import Grid
-from dipnet.core.measurement import DipMeasurement, robust_volume
+from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, checked_flag, checked_threshold, filled_slabs, measured_profiles
+from dipnet.solvers.base import Solver, checked_flag, checked_threshold, measured_profiles
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors

@@ -30,7 +30,7 @@ largest): the preprocessing's monotone fit of each dip's volume curve leaves the
 at exactly 0, so they hold no noise, and counting their sigma would set the target at about
 twice the residual of the true shape. With no per-slab sigma the noise is estimated from the
 profiles as the consistency check does
-(:func:`~dipnet.preprocessing.validation.estimate_slab_sigma`, a high-pass of each profile),
+(:func:`~dipnet.core.measurement.estimate_slab_sigma`, a high-pass of each profile),
 which sees white noise but underestimates the smooth, correlated noise of interpolated level
 readings, so such data get smaller weights than their noise deserves.
 """
@@ -43,8 +43,7 @@ from dataclasses import dataclass
 
 import torch
 
-from dipnet.preprocessing.validation import estimate_slab_sigma
-from dipnet.solvers.base import filled_slabs
+from dipnet.core.measurement import estimate_slab_sigma, filled_slabs
 
 AUTO = "auto"
 RULES = ("discrepancy",)

@@ -134,3 +134,37 @@ def test_slab_centres_are_the_offsets_plus_half_a_slab_per_step():
     m = DipMeasurement(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), torch.ones(2, 3, dtype=torch.float64), 2.0,
                        torch.tensor([-3.0, 1.0], dtype=torch.float64))
     assert m.slab_centres().tolist() == [[-2.0, 0.0, 2.0], [2.0, 4.0, 6.0]]
+
+
+def test_re_binning_recomputes_the_volume_beyond_the_slabs():
+    """Before: a measurement re-binned onto narrower slabs (an .npz read on a smaller grid) kept the
+    ``outside_share`` of its original slabs (0), so the consistency check read the volume the new slabs left out,
+    which filled them to their ends, as a drifting level. Now it holds what the new slabs leave out, and
+    ``outside_mm`` the readings' span beyond them."""
+    profiles = torch.ones(2, 10)  # 10 mm slabs over [-50, 50] mm, 10 mm^3 each
+    m = DipMeasurement(torch.eye(3)[:2], profiles, 10.0, torch.full((2,), -50.0),
+                       metadata={"outside_share": [0.0, 0.5], "outside_mm": [0.0, 20.0]})
+    narrow = m.rebinned(torch.linspace(-30.0, 30.0, 7, dtype=torch.float64), rel_tol=1.0)
+    np.testing.assert_allclose(narrow.metadata["outside_share"], [0.4, 1 - 0.5 * 0.6])  # 4 of 10 slabs dropped
+    np.testing.assert_allclose(narrow.metadata["outside_mm"], [40.0, 60.0])  # 100 mm of slabs, 60 mm kept
+    wide = m.rebinned(torch.linspace(-60.0, 60.0, 13, dtype=torch.float64))
+    np.testing.assert_allclose(wide.metadata["outside_share"], [0.0, 0.5])
+    np.testing.assert_allclose(wide.metadata["outside_mm"], [0.0, 0.0])
+
+
+def test_the_reach_is_read_from_the_slabs_and_kept_through_re_binning():
+    """Without readings, the object reaches below the first non-empty slab's upper edge and above the last one's
+    lower edge; re-binning keeps that rather than the wider span its interpolation spreads the volume over."""
+    profiles = torch.zeros(1, 10)
+    profiles[0, 2:7] = 5.0  # volume in [-30, 20] mm
+    quiet = {"reading_noise_volume": 0.0}  # noise-free readings (unknown noise is estimated from the profiles)
+    m = DipMeasurement(torch.eye(3)[2:], profiles, 10.0, torch.full((1,), -50.0), metadata=quiet)
+    np.testing.assert_allclose(m.reach(), [[-20.0, 10.0]])
+    smoothed = DipMeasurement(m.directions, m.profiles, 10.0, m.offsets, metadata={**quiet, "smoothed": True})
+    np.testing.assert_allclose(smoothed.reach(), [[0.0, -10.0]])  # the 5-tap filter spreads two slabs on
+    noisy = DipMeasurement(m.directions, m.profiles, 10.0, m.offsets, metadata={"reading_noise_volume": 1.0})
+    np.testing.assert_allclose(noisy.reach(), [[np.nan, np.nan]])  # 5 mm^3 is within 5 sigmas of sqrt(2) mm^3
+    coarse = m.rebinned(torch.linspace(-50.0, 50.0, 4, dtype=torch.float64))
+    np.testing.assert_allclose(coarse.reach(), [[-20.0, 10.0]])
+    np.testing.assert_allclose(DipMeasurement(m.directions, torch.zeros(1, 10), 10.0, m.offsets).reach(),
+                               [[np.nan, np.nan]])

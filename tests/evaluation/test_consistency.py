@@ -1,6 +1,7 @@
 """Data consistency: residual and volume ratio of a reconstruction against its own measurement."""
 
 import math
+import re
 import warnings
 
 import pytest
@@ -510,3 +511,28 @@ def test_without_raw_readings_the_noise_is_not_compared_and_the_json_stays_stric
     assert math.isnan(result.reading_noise_leak)
     assert not _noise_named(result)
     assert '"reading_noise_ratio": null' in dumps(result.metrics())
+
+
+def test_an_object_beyond_the_working_ball_is_named_when_checked_on_its_own():
+    """The chamber box (corners 45 mm from its centre) measured on slabs over [-55.6, 55.6] mm and read onto a grid
+    whose working ball has a radius of 36 mm. Before: its full end slabs were blamed on a drifting level ("every dip
+    holds +1002 mm^3 per slab ... drifts in time"); the re-binned copy's ``outside_share`` was its source's (0).
+    Now the object beyond the ball is named, with the extent it needs, and no drift."""
+    from dipnet.shapes.builtin import builtin_shape
+    from dipnet.simulator.simulate import simulate_measurement
+    from dipnet.solvers.voxel import VoxelSolver
+
+    _, measured = simulate_measurement(builtin_shape("chamber_box", 3, 45.0), fibonacci_hemisphere(8),
+                                       grid=Grid(20, 3, 111.2), progress=False)
+    grid = Grid(20, 3, 80.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the re-binning's own warning of the volume it drops
+        small = measured.rebinned(torch.linspace(-40.0, 40.0, 21, dtype=torch.float64))
+    assert max(small.metadata["outside_share"]) > 0.001  # what the new slabs leave out, not the source's 0
+    operator = make_operator(grid, small.directions, grid.n)
+    recon = VoxelSolver(progress=False).solve(small, operator)
+    result, messages = _checked(small, operator, recon)
+    assert result.object_reach_mm > result.working_radius_mm == pytest.approx(36.0)
+    assert result.verdict == "inconsistent" and not any("drifts in time" in m for m in messages)
+    assert any(re.search(r"reaches beyond the working ball of radius 36\.0 mm .* increase extent_mm to \d+", m)
+               for m in messages)

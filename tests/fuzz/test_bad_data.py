@@ -299,11 +299,13 @@ def test_csv_saved_by_a_spreadsheet_is_read_as_the_original(tmp_path, cli, encod
     """Before: the byte-order mark spreadsheet programs write first was refused as a header "���SN,..."."""
     path = tmp_path / "cats.csv"
     path.write_bytes(CATS_CSV.read_text().replace("\n", "\r\n").encode(encoding))
-    proc = cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=360", "resolution=16",
+    # 450 mm: placed by their centroids on the ideal rig, the cats reach 175 mm from the centre (a 360 mm grid's
+    # working ball at 16^3 has a radius of 157.5 mm, and is refused)
+    proc = cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=450", "resolution=16",
                 "+source.reader.t_start=centroid", "+source.reader.truncated=keep", "output.figures=false",
                 "output.uncertainty=false", "output.resolvability=false")
     assert proc.returncode == 0, proc.stderr[-2000:]
-    original = read_recorded(str(CATS_CSV), CATS_GRID, t_start="centroid", truncated="keep")
+    original = read_recorded(str(CATS_CSV), Grid(16, 3, 450.0), t_start="centroid", truncated="keep")
     torch.testing.assert_close(DipMeasurement.load(tmp_path / "run" / "measurement.npz").profiles, original.profiles)
 
 

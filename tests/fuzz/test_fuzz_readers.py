@@ -45,7 +45,7 @@ from dipnet.simulator.simulate import simulate_measurement
 from dipnet.preprocessing.validation import validate_measurement
 
 GRID = Grid(16, 3, 100.0)
-CSV_GRID = Grid(16, 3, 360.0)  # the cats recording needs the larger working ball
+CSV_GRID = Grid(16, 3, 450.0)  # the cats placed by their centroids need a larger working ball than 360 mm gives at 16^3
 DIRECTIONS = make_directions("fibonacci", 4, 3, 0)
 SEEDS = range(2)
 NUMBER = re.compile(rb"-?\d+\.?\d*(?:[eE][-+]?\d+)?")

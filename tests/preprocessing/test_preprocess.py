@@ -231,3 +231,22 @@ def test_volume_beyond_the_slab_edges_is_recorded_and_warned_about():
         warnings.simplefilter("error")
         whole = preprocess(_scan(k=2), edges=EDGES)
     assert whole.metadata["outside_share"] == [0.0, 0.0] and whole.metadata["outside_mm"] == [0.0, 0.0]
+
+
+def test_the_reach_comes_from_the_readings():
+    """How far the object reaches, from the readings: some volume below the first reading beyond the tolerance
+    and above the last short of the final volume by more, whatever the slabs (a ball of radius 30 mm, 1 mm
+    steps: within a step of its ends); no rise gives NaN. Preprocessing records it per dip (the prism: 30 mm)."""
+    from dipnet.preprocessing.preprocess import reach_from_readings
+
+    heights = np.arange(-40.0, 41.0, 1.0)
+    cap = np.clip(heights + 30.0, 0.0, 60.0)  # the ball's height under the water line
+    low, high = reach_from_readings(heights, np.pi * (30.0 * cap**2 - cap**3 / 3), tol=1.0)
+    assert -30.0 < low <= -29.0 and 29.0 <= high < 30.0
+    assert np.isnan(reach_from_readings(heights, np.zeros_like(heights), tol=1.0)).all()
+    for edges in (EDGES, np.linspace(-25.0, 25.0, 21)):  # the slabs play no part
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            reach = np.asarray(preprocess(_scan(k=2), edges=edges).metadata["reach_mm"], dtype=float)
+        assert reach.shape == (2, 2) and (reach[:, 0] > -30.0).all() and (reach[:, 0] <= -28.0).all()
+        assert (reach[:, 1] >= 28.0).all() and (reach[:, 1] < 30.0).all()

@@ -1,6 +1,7 @@
 """Measurement validation: consistent dips pass, impossible ones are refused, disagreeing ones named."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -112,3 +113,79 @@ def test_rounded_noise_free_readings_show_the_rounding():
     assert found >= rounding and ratio == pytest.approx(rounding / found)
     assert ratio > 0.7
     assert math.isnan(reading_noise([np.arange(3.0)], [0.1])[0])  # no third difference
+
+
+# ----------------------------------------------------------------------------- the object beyond the working ball
+def _simulated(shape, grid: Grid, snr_db=None, k=12):
+    """A simulated raw scan of ``shape`` (1 mm steps) and its measurement on ``grid``'s slabs."""
+    from dipnet.simulator.physics import LevelSensor
+    from dipnet.simulator.simulate import simulate_measurement
+
+    return simulate_measurement(shape, fibonacci_hemisphere(k), grid=grid, step_mm=1.0, seed=3, progress=False,
+                                sensor=LevelSensor(snr_db=snr_db))
+
+
+def test_an_object_beyond_the_working_ball_is_refused_naming_the_extent_it_needs():
+    """Before: a torus of radius 40 mm on a grid whose working ball has a radius of 36.9 mm (extent 82 mm at 20^3)
+    passed validation, and the run was `consistent` (IoU 0.756 against 0.916 at 100 mm): the slabs still held 99.9 %
+    of its volume, so the "beyond the slabs" check had nothing to say. Its readings show it reaches 39 mm."""
+    from dipnet.shapes.builtin import builtin_shape
+
+    torus = builtin_shape("torus", 3, 40.0)
+    small = Grid(20, 3, 82.0)
+    _, measured = _simulated(torus, small)
+    with pytest.raises(MeasurementValidationError, match=r"reaches beyond the working ball of radius 36\.9 mm "
+                                                         r"\(extent_mm=82 at resolution 20\).*increase extent_mm to "
+                                                         r"(\d+) or more") as refused:
+        validate_measurement(measured, small)
+    needed = int(re.search(r"extent_mm to (\d+)", str(refused.value)).group(1))
+    assert 95 <= needed <= 100  # puts the reach found (39-40 mm) at 90 % of the ball, whose radius grows past 40 mm
+    validate_measurement(_simulated(torus, Grid(20, 3, needed))[1], Grid(20, 3, needed))
+    # the same profiles without what the readings showed (a file written before reach_mm): their slabs tell it too
+    slabs = DipMeasurement(measured.directions, measured.profiles, measured.slab_thickness, measured.offsets,
+                           metadata={"reading_noise_volume": measured.metadata["reading_noise_volume"]})
+    with pytest.raises(MeasurementValidationError, match="reaches beyond the working ball"):
+        validate_measurement(slabs, small)
+
+
+@pytest.mark.parametrize("name", ["ball", "torus", "chamber_box"])
+@pytest.mark.parametrize("snr_db", [None, 20.0])
+def test_an_object_just_inside_the_working_ball_passes(name, snr_db):
+    """A shape as large as the working ball: neither the interpolation between readings (the last step's rise
+    spread past the object's end) nor the noise makes it reach beyond (noise-free, at most 0.98 of the radius)."""
+    from dipnet.shapes.builtin import builtin_shape
+
+    grid = Grid(20, 3, 82.0)
+    _, measured = _simulated(builtin_shape(name, 3, grid.radius), grid, snr_db, k=30)
+    validate_measurement(measured, grid)
+    reach = measured.reach()
+    assert np.nanmax(np.fmax(-reach[:, 0], reach[:, 1])) < grid.radius
+
+
+def test_a_re_binned_measurement_keeps_what_its_own_slabs_showed(tmp_path):
+    """The chamber box's measurement (a 45 mm corner radius) read from a file onto a grid whose working ball has
+    a radius of 36 mm: the slabs it was saved on show where the object reaches, before re-binning spreads it."""
+    from dipnet.preprocessing.sources import read_recorded
+    from dipnet.shapes.builtin import builtin_shape
+
+    _, measured = _simulated(builtin_shape("chamber_box", 3, 45.0), Grid(20, 3, 111.2), k=30)
+    bare = DipMeasurement(measured.directions, measured.profiles, measured.slab_thickness, measured.offsets,
+                          metadata={"reading_noise_volume": measured.metadata["reading_noise_volume"]})
+    path = bare.save(tmp_path / "measurement.npz")  # as a file written before reach_mm was recorded
+    small = Grid(20, 3, 80.0)
+    with pytest.raises(MeasurementValidationError, match=r"radius 36\.0 mm"):
+        validate_measurement(read_recorded(str(path), small), small)
+    validate_measurement(read_recorded(str(path), Grid(20, 3, 111.2)), Grid(20, 3, 111.2))
+
+
+def test_the_bundled_recording_of_the_cats_is_not_refused():
+    """The authors' cats as `experiment=cats_real` reads them: no dip reaches beyond the 360 mm grid's working
+    ball at 40^3 (radius 171 mm; the complete dips reach 163 mm) nor at 24^3 (165 mm)."""
+    from dipnet.preprocessing.datasets import CATS_CSV
+    from dipnet.preprocessing.sources import read_recorded
+
+    options = dict(cross_section_mm2=183600.0, geometry={"pivot_mm": 188.0, "tilt_axis_offset_mm": -18.0},
+                   centre="extent", truncated="keep", tail_fraction=0.1, tail_tol=0.04, smooth=True)
+    for n in (40, 24):
+        grid = Grid(n, 3, 360.0)
+        validate_measurement(read_recorded(str(CATS_CSV), grid, **options), grid)
