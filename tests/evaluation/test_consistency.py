@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from dipnet.core.strict_json import dumps
-from dipnet.evaluation.consistency import NOISE_RATIO_MAX, DataConsistencyWarning, check_consistency, estimate_slab_sigma
+from dipnet.evaluation.consistency import (NOISE_RATIO_MAX, RESIDUAL_FLOOR, DataConsistencyWarning, allowed_residual,
+                                          check_consistency, estimate_slab_sigma)
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import make_operator
@@ -536,3 +537,43 @@ def test_an_object_beyond_the_working_ball_is_named_when_checked_on_its_own():
     assert result.verdict == "inconsistent" and not any("drifts in time" in m for m in messages)
     assert any(re.search(r"reaches beyond the working ball of radius 36\.0 mm .* increase extent_mm to \d+", m)
                for m in messages)
+
+
+def test_the_residual_limit_adds_the_noise_and_the_grids_own_error_in_quadrature():
+    """``hypot(f expected, floor_n)``: f 1.25 for a stated noise, 3 for an estimated one; the floor 3 / n on a coarse
+    grid, never below 0.05."""
+    assert allowed_residual(0.0, 24, stated=True) == pytest.approx(0.125)
+    assert allowed_residual(0.0, 64, stated=True) == pytest.approx(RESIDUAL_FLOOR)
+    assert allowed_residual(0.12, 48, stated=True) == pytest.approx(math.hypot(0.15, 0.0625))
+    assert allowed_residual(0.12, 48, stated=False) == pytest.approx(math.hypot(0.36, 0.0625))
+    assert allowed_residual(0.12, 48, stated=True, factor=2.0) == pytest.approx(math.hypot(0.24, 0.0625))
+
+
+def test_a_wrong_shape_at_a_high_stated_noise_is_flagged_and_the_true_one_is_not():
+    """Before: at 10 dB (stated), the limit ``max(3 x expected, 0.05)`` let a ball of the chamber box's volume pass
+    for the chamber box (24^3, 30 dips: residual 0.207 under 0.359, IoU 0.618 against the truth), and a box of that
+    volume too. Now the noise's share counts 1.25 times in quadrature with the grid's floor: the ball, the box and
+    the shape shifted by two voxels are flagged, the truth's own voxels are not."""
+    from dipnet.core.framing import extent_around
+    from dipnet.shapes import builtin_shape
+
+    shape = builtin_shape("chamber_box", 3, 45.0)
+    grid = Grid(24, 3, extent_around(shape.radius(), 24, 0.9))
+    _, measurement = simulate_measurement(shape, fibonacci_hemisphere(30), grid=grid,
+                                          sensor=LevelSensor(snr_db=10.0, seed=3), seed=3, progress=False)
+    operator = make_operator(grid, measurement.directions, grid.n)
+    occupancy = shape.occupancy(grid, supersample=3)
+    truth = occupancy > 0.5
+    voxels = int(truth.sum())
+    distance = (grid.centers() - grid.centers()[truth].mean(0)).norm(dim=-1)
+    ball = distance <= distance.flatten().kthvalue(voxels).values
+    box = (grid.centers() - grid.centers()[truth].mean(0)).abs().amax(-1)
+    cube = box <= box.flatten().kthvalue(voxels).values
+    def checked(volume):
+        return check_consistency(measurement, operator, Reconstruction(volume.float(), grid, threshold=0.5), warn=False)
+
+    for wrong in (ball, cube, torch.roll(truth, 2, dims=0)):
+        result = checked(wrong)
+        assert result.noise_source == "sigma" and result.profile_residual > result.residual_limit, result
+    right = checked(truth)
+    assert right.profile_residual < right.residual_limit
