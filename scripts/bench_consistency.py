@@ -1,15 +1,18 @@
 """How often does the consistency check's residual rule flag a correct result, and how often a wrong one? Random cases.
 
 :func:`~dipnet.evaluation.consistency.check_consistency` calls a result ``inconsistent`` when (among other checks)
-the relative profile residual of its binary shape exceeds ``max(RESIDUAL_FACTOR * expected, RESIDUAL_FLOOR)``
-(3 and 0.05), ``expected`` being what the noise explains: ``||sigma|| / ||g||`` with the noise the measurement
-states (a simulated :class:`~dipnet.simulator.physics.LevelSensor` with an SNR states it), else estimated from the
-profiles. This benchmark measures that rule's false alarms and misses, and those of other factors.
+the relative profile residual of its binary shape exceeds its limit
+(:func:`~dipnet.evaluation.consistency.allowed_residual`): ``hypot(f * expected, floor_n)``, ``expected`` being what
+the noise explains (``||sigma|| / ||g||`` with the noise the measurement states, as a simulated
+:class:`~dipnet.simulator.physics.LevelSensor` with an SNR does, else estimated from the profiles), ``f`` 1.25 for a
+stated noise and 3 for an estimated one, ``floor_n = max(0.05, 3 / n)`` on ``n`` voxels per axis. Before
+2026-11-29 it was ``max(3 * expected, 0.05)``. This benchmark measures the rule's false alarms and misses, and
+those of other rules.
 
 Random cases, seeded by ``--seed``: ``--trials`` scans per shape of the 3D built-ins (ball, box, torus, chamber box),
 the 16 bundled meshes and the 2D built-ins (disk, chamber box, elephant), 45 mm in radius on the job's grid around
-the object (``fill`` 0.9; 24^3 in 3D, 48^2 in 2D, or ``--resolution``), with a random number of dips (3D 20-80 on the Fibonacci
-hemisphere, 2D 10-40 equal angles) and a random noise: noise-free one time in five (the noise then estimated),
+the object (``fill`` 0.9; 24^3 in 3D, 48^2 in 2D, or ``--resolution``), with a random number of dips (3D 20-80
+on the Fibonacci hemisphere, 2D 10-40 equal angles) and a random noise: noise-free one time in five (the noise then estimated),
 else an SNR uniform in 5-40 dB that the sensor states. Each scan is solved by the job's default optimisation
 solver (``solver=voxel`` of ``conf/config.yaml`` and its ``operator``, via Hydra's compose) and checked as the job
 checks it. Then WRONG candidates are checked against the same measurement with the same operator: (a) a ball of
@@ -23,11 +26,11 @@ A reconstruction with IoU >= 0.85 is **correct**: flagging it is a false alarm. 
 with IoU < 0.8 is **wrong**: flagging it is a detection (the ones in between count as neither). Per SNR band
 (noise-free, 30-40, 15-30, 5-15 dB) the table gives the quantiles of residual / expected of the correct results,
 their share the current rule flags (the residual check alone, and the whole verdict), the wrong candidates'
-residual / expected, and, for the current rule and for the candidate rules ``max(f * expected, 0.05)`` (f in 1.25,
-1.5, 2) and ``hypot(f * expected, 0.05)`` (f in 1.25, 1.5, 2, 3), the share of correct results flagged (false
-alarms) and of wrong candidates flagged (detected). Only measured: the rule in dipnet is not changed. Last line
-``RESULT false_alarms_current=<> detected_current=<> false_alarms_f1.25=<> detected_f1.25=<> ... cases=<>``
-(over all bands; ``current`` is ``f3``).
+residual / expected, and, for the current rule, the rule before (``before``) and other rules: ``max(f * expected,
+0.05)`` (``fN``, f in 1.25, 1.5, 2) and ``hypot(f * expected, floor_n)`` (``hypotN``, f in 1.25, 1.5, 2, 3), the share
+of correct results flagged (false alarms) and of wrong candidates flagged (detected). Last line
+``RESULT false_alarms_current=<> detected_current=<> false_alarms_before=<> detected_before=<> ... cases=<>`` (over
+all bands).
 
     python scripts/bench_consistency.py --threads 1     # 10 scans per shape (230 cases)
     python scripts/bench_consistency.py --quick         # 2 scans of 8 shapes (16 cases)
@@ -40,6 +43,7 @@ import argparse
 import json
 import logging
 import math
+from collections.abc import Callable
 import warnings
 from pathlib import Path
 
@@ -52,7 +56,7 @@ from dipnet.core.framing import extent_around
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.evaluation.consistency import RESIDUAL_FACTOR, RESIDUAL_FLOOR, check_consistency
+from dipnet.evaluation.consistency import RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.jobs.tuning import compose_job
@@ -74,17 +78,21 @@ QUICK_SHAPES = ["ball_3d", "torus_3d", "chamber_box_3d", "bunny", "hammer", "fis
 JOB = ["solver=voxel", "output.progress=false"]
 
 
-def rules() -> dict[str, tuple[str, float]]:
-    """The residual rules compared, by name: ``(form, f)``, form ``max`` (``max(f e, floor)``) or ``hypot``."""
-    out = {"current": ("max", RESIDUAL_FACTOR)}
-    out.update({f"f{f:g}": ("max", f) for f in FACTORS if f != RESIDUAL_FACTOR})  # f3 is the current rule
-    out.update({f"hypot{f:g}": ("hypot", f) for f in FACTORS})
+def grid_floor(n: int) -> float:
+    """The residual floor of a grid of ``n`` voxels (pixels) per axis, as the check sets it."""
+    return max(RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS / n)
+
+
+def rules() -> dict[str, Callable[[dict], float]]:
+    """The residual rules compared, by name: the limit above which each flags a row. ``current``: the check's own
+    (``row["limit"]``: :func:`~dipnet.evaluation.consistency.allowed_residual`); ``before``: ``max(3 e, 0.05)``, the
+    rule before 2026-11-29; ``fX``: ``max(X e, 0.05)``; ``hypotX``: ``hypot(X e, floor_n)`` with the grid's floor
+    (:func:`grid_floor`)."""
+    out: dict[str, Callable[[dict], float]] = {"current": lambda r: r["limit"],
+                                               "before": lambda r: max(3.0 * r["expected"], RESIDUAL_FLOOR)}
+    out.update({f"f{f:g}": (lambda r, f=f: max(f * r["expected"], RESIDUAL_FLOOR)) for f in FACTORS if f != 3.0})
+    out.update({f"hypot{f:g}": (lambda r, f=f: math.hypot(f * r["expected"], grid_floor(r["n"]))) for f in FACTORS})
     return out
-
-
-def limit(form: str, factor: float, expected: float, floor: float = RESIDUAL_FLOOR) -> float:
-    """The residual above which a rule flags a result."""
-    return math.hypot(factor * expected, floor) if form == "hypot" else max(factor * expected, floor)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -226,7 +234,7 @@ def run_case(case: dict, cfg, makers: dict, resolution: int = 24) -> list[dict]:
     rows = []
     for kind, result in candidates.items():
         c = check_consistency(measurement, operator, result, warn=False)
-        rows.append({**case, "kind": kind, "iou": iou(result.binary, truth), "residual": c.profile_residual,
+        rows.append({**case, "n": grid.n, "kind": kind, "iou": iou(result.binary, truth), "residual": c.profile_residual,
                      "expected": c.profile_residual_expected, "ratio": c.profile_residual / c.profile_residual_expected,
                      "limit": c.residual_limit, "noise_source": c.noise_source, "verdict": c.verdict,
                      "residual_flagged": c.profile_residual > c.residual_limit,
@@ -294,12 +302,13 @@ def print_table(rows: list[dict], args: argparse.Namespace) -> None:
     named = rules()
     for r in rows:
         r["band"] = band(r["snr_db"])
-        r["flags"] = {key: r["residual"] > limit(form, f, r["expected"]) for key, (form, f) in named.items()}
+        r["flags"] = {key: r["residual"] > rule(r) for key, rule in named.items()}
     cases = len({(r["shape"], r["noise_seed"]) for r in rows})
     print(f"\n{args.trials} random scans per shape (seed {args.seed}), {cases} cases; solver=voxel. Correct: a "
           f"reconstruction with IoU >= {CORRECT_IOU:g}; wrong: a candidate ({', '.join(CANDIDATES)}) with IoU < "
-          f"{WRONG_IOU:g}. Rules flag residual > max(f * expected, {RESIDUAL_FLOOR:g}) (fN) or hypot(f * expected, "
-          f"{RESIDUAL_FLOOR:g}) (hypotN); current = f{RESIDUAL_FACTOR:g}\n")
+          f"{WRONG_IOU:g}. Rules flag residual > the check's own limit (current), max(3 * expected, "
+          f"{RESIDUAL_FLOOR:g}) (before), max(f * expected, {RESIDUAL_FLOOR:g}) (fN) or hypot(f * expected, "
+          f"max({RESIDUAL_FLOOR:g}, {RESIDUAL_FLOOR_VOXELS:g} / n)) (hypotN)\n")
     recons = [r for r in rows if r["kind"] == "reconstruction"]
     groups = [*(name for name, *_ in BANDS), "all"]
 

@@ -369,16 +369,17 @@ def test_the_symmetry_check_runs_end_to_end_on_chosen_shapes(capsys):
 
 def _consistency_row(kind, iou, residual, expected, snr_db=None, shape="ball_3d", seed=1):
     limit = max(3 * expected, 0.05)
-    return {"shape": shape, "ndim": 3, "dips": 30, "snr_db": snr_db, "noise_seed": seed, "shift_axis": 0,
+    return {"shape": shape, "ndim": 3, "n": 48, "dips": 30, "snr_db": snr_db, "noise_seed": seed, "shift_axis": 0,
             "shift_sign": 1, "other": "box_3d", "kind": kind, "iou": iou, "residual": residual, "expected": expected,
             "ratio": residual / expected, "limit": limit, "noise_source": "sigma" if snr_db else "estimated",
             "verdict": "inconsistent" if residual > limit else "consistent", "residual_flagged": residual > limit}
 
 
 def test_the_consistency_bench_counts_false_alarms_and_detections_per_rule(capsys):
-    """From hand-made rows: a correct result at 10 dB with residual 1.8 x expected is a false alarm of f1.5 and
-    f1.25 only; a wrong ball at 2.5 x expected is detected by f2 and below, not by the current f3; the truth and a
-    reconstruction between the IoU classes count in neither."""
+    """From hand-made rows (48 voxels per axis: the floor 0.05): a correct result at 10 dB with residual 1.8 x
+    expected is a false alarm of f1.5, f1.25, hypot1.5 and hypot1.25 only; a wrong ball at 2.5 x expected is detected
+    by f2, hypot2 and below, not by the row's own limit (current, here 3 x expected) or the rule before; the truth and
+    a reconstruction between the IoU classes count in neither."""
     bench = load_script("bench_consistency")
     rows = [_consistency_row("reconstruction", 0.9, 0.18, 0.1, 10.0), _consistency_row("ball", 0.6, 0.25, 0.1, 10.0),
             _consistency_row("truth", 1.0, 0.3, 0.1, 10.0), _consistency_row("reconstruction", 0.82, 0.5, 0.1, 20.0,
@@ -391,8 +392,10 @@ def test_the_consistency_bench_counts_false_alarms_and_detections_per_rule(capsy
     assert (result["false_alarms_current"], result["detected_current"]) == ("0.000", "0.000")
     assert (result["false_alarms_f2"], result["detected_f2"]) == ("0.000", "1.000")
     assert (result["false_alarms_f1.5"], result["detected_f1.5"]) == ("1.000", "1.000")
+    assert (result["false_alarms_before"], result["detected_before"]) == ("0.000", "0.000")
+    assert (result["false_alarms_hypot1.5"], result["detected_hypot1.5"]) == ("1.000", "1.000")
     assert result["cases"] == "2" and "f3" not in {key.rpartition("_")[2] for key in result}
-    assert "rules without a false alarm: current, f2, hypot2, hypot3; the most detections among them: f2" in out
+    assert "rules without a false alarm: current, before, f2, hypot2, hypot3; the most detections among them: f2" in out
     assert "wrong candidates the current rule passes (1): ball_3d:ball (5-15 dB, IoU 0.60" in out
 
 
