@@ -349,16 +349,22 @@ def test_the_symmetry_check_declares_each_shape_its_own_groups_and_classes_by_mi
     assert [bench.classify(m) for m in (0.001, 0.01, 0.06)] == ["symmetric", "near", "asymmetric"]
 
 
+def _main_in_this_process(bench, argv: list[str]):
+    """``bench.main(argv)``, then dipnet's log level and torch's threads restored: the scripts quiet dipnet's log and
+    set torch's threads for their whole process, not for the tests run after them in this one."""
+    log, level, threads = logging.getLogger("dipnet"), logging.getLogger("dipnet").level, torch.get_num_threads()
+    try:
+        return bench.main(argv)
+    finally:
+        log.setLevel(level)
+        torch.set_num_threads(threads)
+
+
 def test_the_symmetry_check_runs_end_to_end_on_chosen_shapes(capsys):
     """The 2D disk and elephant, one random scan each: the disk keeps its mirrors and rotations, the elephant loses
     its mirrors; an unknown shape is named."""
     bench = load_script("bench_symmetry_check")
-    log, level, threads = logging.getLogger("dipnet"), logging.getLogger("dipnet").level, torch.get_num_threads()
-    try:
-        rows = bench.main(["--trials", "1", "--shapes", "disk_2d", "elephant_2d", "--threads", "1"])
-    finally:  # the script quiets dipnet's log and sets torch's threads for its whole process: not for later tests
-        log.setLevel(level)
-        torch.set_num_threads(threads)
+    rows = _main_in_this_process(bench, ["--trials", "1", "--shapes", "disk_2d", "elephant_2d", "--threads", "1"])
     assert {r["shape"] for r in rows} == {"disk_2d", "elephant_2d"} and len(rows) == 8
     assert not any(r["rejected"] for r in rows if r["shape"] == "disk_2d")
     assert all(r["rejected"] for r in rows if r["shape"] == "elephant_2d" and r["declared"].startswith("mirror"))
@@ -422,12 +428,7 @@ def test_the_consistency_bench_runs_end_to_end_on_chosen_shapes(capsys):
     wrong candidates; the RESULT line holds every rule's rates, in [0, 1] (or NaN when no case of the class came
     up); an unknown shape is named."""
     bench = load_script("bench_consistency")
-    log, level, threads = logging.getLogger("dipnet"), logging.getLogger("dipnet").level, torch.get_num_threads()
-    try:
-        rows = bench.main(["--trials", "1", "--shapes", "disk_2d", "ball_3d", "--threads", "1"])
-    finally:  # the script quiets dipnet's log and sets torch's threads for its whole process: not for later tests
-        log.setLevel(level)
-        torch.set_num_threads(threads)
+    rows = _main_in_this_process(bench, ["--trials", "1", "--shapes", "disk_2d", "ball_3d", "--threads", "1"])
     assert {r["shape"] for r in rows} == {"disk_2d", "ball_3d"} and len(rows) == 10
     assert {r["kind"] for r in rows} == {"reconstruction", "truth", "ball", "shifted", "other"}
     recons = [r for r in rows if r["kind"] == "reconstruction"]
