@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 from collections.abc import Callable
 import warnings
 from pathlib import Path
@@ -56,7 +55,7 @@ from dipnet.core.framing import extent_around
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.evaluation.consistency import RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS, check_consistency
+from dipnet.evaluation.consistency import RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS, allowed_residual, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.jobs.tuning import compose_job
@@ -78,20 +77,15 @@ QUICK_SHAPES = ["ball_3d", "torus_3d", "chamber_box_3d", "bunny", "hammer", "fis
 JOB = ["solver=voxel", "output.progress=false"]
 
 
-def grid_floor(n: int) -> float:
-    """The residual floor of a grid of ``n`` voxels (pixels) per axis, as the check sets it."""
-    return max(RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS / n)
-
-
 def rules() -> dict[str, Callable[[dict], float]]:
     """The residual rules compared, by name: the limit above which each flags a row. ``current``: the check's own
     (``row["limit"]``: :func:`~dipnet.evaluation.consistency.allowed_residual`); ``before``: ``max(3 e, 0.05)``, the
     rule before 2026-11-29; ``fX``: ``max(X e, 0.05)``; ``hypotX``: ``hypot(X e, floor_n)`` with the grid's floor
-    (:func:`grid_floor`)."""
+    (the check's limit with one factor for both noise sources)."""
     out: dict[str, Callable[[dict], float]] = {"current": lambda r: r["limit"],
                                                "before": lambda r: max(3.0 * r["expected"], RESIDUAL_FLOOR)}
     out.update({f"f{f:g}": (lambda r, f=f: max(f * r["expected"], RESIDUAL_FLOOR)) for f in FACTORS if f != 3.0})
-    out.update({f"hypot{f:g}": (lambda r, f=f: math.hypot(f * r["expected"], grid_floor(r["n"]))) for f in FACTORS})
+    out.update({f"hypot{f:g}": (lambda r, f=f: allowed_residual(r["expected"], r["n"], True, factor=f)) for f in FACTORS})
     return out
 
 

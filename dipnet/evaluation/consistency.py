@@ -321,7 +321,7 @@ def allowed_residual(expected: float, n: int, stated: bool, factor: float | None
     noise's share ``expected`` (times ``f``: ``factor``, else :data:`STATED_RESIDUAL_FACTOR` for a stated noise,
     :data:`RESIDUAL_FACTOR` for one estimated from the profiles) and the grid's own error in quadrature, the latter
     ``floor_n = max(floor, RESIDUAL_FLOOR_VOXELS / n)`` for ``n`` voxels per axis. On 230 random cases
-    (docs/benchmarks/consistency.md; measured before the change, from the same rows) it flagged 1.8 % of the correct
+    (docs/benchmarks/consistency.md, whose rows chose its two constants) it flagged 1.8 % of the correct
     results at 24^3 and none at 32^3, where ``max(3 expected, 0.05)`` flagged 9.8 % and 5.8 %, and detected 95 % and
     93 % of wrong shapes instead of 87 % and 81 % (at 5-15 dB: 85 % and 66 % instead of 40 % and 20 %)."""
     f = factor if factor is not None else STATED_RESIDUAL_FACTOR if stated else RESIDUAL_FACTOR
