@@ -47,8 +47,17 @@ def tail_slope(volume: np.ndarray, fitted: np.ndarray, min_readings: int = MIN_T
     tail = volume[start:]
     if tail.size < max(2, int(min_readings)):
         return float("nan")
-    index = np.arange(tail.size, dtype=np.float64) - (tail.size - 1) / 2
-    return float(np.dot(index, tail - tail.mean()) / np.dot(index, index))
+    return least_squares_slope(tail)
+
+
+def least_squares_slope(values: np.ndarray) -> float:
+    """The least-squares slope of ``values`` ``(R,)`` against their index (value unit per reading); NaN with
+    fewer than 2."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.size < 2:
+        return float("nan")
+    index = np.arange(values.size, dtype=np.float64) - (values.size - 1) / 2
+    return float(np.dot(index, values - values.mean()) / np.dot(index, index))
 
 
 def level_fall(slopes: np.ndarray, readings: np.ndarray, measured_volume: float) -> tuple[float, float]:

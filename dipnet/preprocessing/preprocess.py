@@ -63,7 +63,7 @@ from dipnet.core.grid import Grid, slab_count
 from dipnet.core.measurement import BEYOND_SLABS_TOL, REACH_SIGMAS, DipMeasurement
 from dipnet.core.strict_json import finite_or_none
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
-from dipnet.preprocessing.level_trend import MIN_TAIL_READINGS, tail_slope
+from dipnet.preprocessing.level_trend import MIN_TAIL_READINGS, least_squares_slope, tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
 from dipnet.preprocessing.validation import reading_noise, reading_noise_leak
 
@@ -279,10 +279,7 @@ def _end_slope(volume: np.ndarray, n: int = MIN_TAIL_READINGS) -> float:
     """The least-squares slope (volume per reading) of the last ``n`` of one dip's ``volume`` ``(R,)``: a level
     still rising where the monotone fit never levels off (a fast drift, or a dip ended before the object is under);
     NaN with fewer than 2 readings."""
-    tail = np.asarray(volume, dtype=np.float64)[-n:]
-    if tail.size < 2:
-        return float("nan")
-    return float(np.polyfit(np.arange(tail.size, dtype=np.float64), tail, 1)[0])
+    return least_squares_slope(np.asarray(volume, dtype=np.float64)[-n:])
 
 
 def _outside_share(cum: np.ndarray, volume: np.ndarray) -> float:

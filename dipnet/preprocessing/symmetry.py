@@ -44,23 +44,25 @@ def symmetry_group(n_fold: int = 1, mirror: bool = False, mirror_azimuth_deg: fl
 MAX_MERGE_DEG = 2.0
 
 
-def _merge(directions: np.ndarray, profiles: np.ndarray, tol_deg: float) -> tuple[np.ndarray, np.ndarray, list[list[int]]]:
-    """Merge directions ``(I, 3)`` closer than ``tol_deg`` (deg), averaging their profiles ``(I, M)``; returns the
-    kept directions ``(J, 3)``, their mean profiles ``(J, M)`` and, per kept direction, the indices merged into it."""
-    keep_dirs, keep_prof, members = [], [], []
+def _merge(directions: np.ndarray, tol_deg: float) -> tuple[np.ndarray, list[list[int]]]:
+    """Group directions ``(I, 3)`` closer than ``tol_deg`` (deg) to a kept one; returns the kept directions
+    ``(J, 3)`` and, per kept direction, the indices merged into it."""
+    keep_dirs, members = [], []
     cos_tol = math.cos(math.radians(tol_deg))
-    for i, (d, p) in enumerate(zip(directions, profiles)):
+    for i, d in enumerate(directions):
         for j, e in enumerate(keep_dirs):
             if float(d @ e) >= cos_tol:
-                keep_prof[j] = keep_prof[j] + p
                 members[j].append(i)
                 break
         else:
             keep_dirs.append(d)
-            keep_prof.append(p.copy())
             members.append([i])
-    counts = np.asarray([len(m) for m in members], dtype=np.float64)
-    return np.stack(keep_dirs), np.stack(keep_prof) / counts[:, None], members
+    return np.stack(keep_dirs), members
+
+
+def _member_means(values: np.ndarray, members: list[list[int]]) -> np.ndarray:
+    """The mean of ``values`` ``(I, M)`` over each merged direction's ``members``: ``(J, M)``."""
+    return np.stack([values[merged].mean(axis=0) for merged in members])
 
 
 def _same_group(a: np.ndarray, b: np.ndarray) -> bool:
@@ -106,10 +108,11 @@ def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: flo
         fit = finite_or_none(symmetry_fit(m, group).metrics())
     d = m.directions.numpy() / np.linalg.norm(m.directions.numpy(), axis=1, keepdims=True)
     images = np.einsum("gij,kj->gki", group, d).reshape(-1, 3)  # image g * K + k of dip k
-    dirs, prof, members = _merge(images, np.tile(m.profiles.numpy(), (len(group), 1)), tol_deg)
+    dirs, members = _merge(images, tol_deg)
+    prof = _member_means(np.tile(m.profiles.numpy(), (len(group), 1)), members)
     sigma = None
     if m.sigma is not None:
-        _, sig, _ = _merge(images, np.tile(m.sigma.numpy(), (len(group), 1)), tol_deg)
+        sig = _member_means(np.tile(m.sigma.numpy(), (len(group), 1)), members)
         dips = np.ones(len(members)) if expanded_before else np.asarray(
             [len({i % m.n_orientations for i in merged}) for merged in members], dtype=np.float64)
         sigma = sig / np.sqrt(dips)[:, None]
