@@ -46,6 +46,7 @@ from dipnet.core.rawscan import WATER_DENSITY_G_PER_MM3, OrientationScan, RawSca
 from dipnet.simulator.size import check_simulation
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.orientations import direction_to_rig, unit_directions
+from dipnet.simulator.pockets import CavityGrid, CurveWithCavities, Pockets, as_pockets
 from dipnet.simulator.volume_curve import dip_volume_curve
 
 _NEWTON_STEPS = 60  # most dips converge in 3-5 steps; the rest bisect inside the bracket
@@ -256,7 +257,8 @@ class DipState:
         stage_mm: stage positions ``s_i`` (mm).
         rise_mm: water rise ``delta_i`` (mm).
         waterline_mm: water line height in the object frame ``t_i = t_start + s_i + delta_i``.
-        submerged: submerged volume ``V(t_i) = A delta_i`` (mm^3; mm^2 in 2D).
+        submerged: displaced volume ``A delta_i`` (mm^3; mm^2 in 2D): the submerged volume ``V(t_i)``, plus
+            trapped air and dry vessels with :class:`~dipnet.simulator.pockets.Pockets`.
         residual: ``max |A delta_i - V(t_i)|`` with the exact ``V`` (mm^3).
     """
 
@@ -267,7 +269,8 @@ class DipState:
     residual: float
 
 
-def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: float) -> DipState:
+def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: float,
+              cavities: CavityGrid | None = None) -> DipState:
     """Solve ``A delta = V(t_start + s + delta)`` for every stage position (see module docstring).
 
     Args:
@@ -276,9 +279,13 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
         tank: the tank (``A`` = ``tank.cross_section_mm2``).
         stage_mm: stage positions ``(n,)`` mm (increasing = lowered).
         t_start_mm: water line height (object frame) at stage 0 before any rise, mm.
+        cavities: the shape's cavity grid (:class:`~dipnet.simulator.pockets.CavityGrid`): air trapped in its
+            pockets and its dry vessels displace water too (``V + P``); ``None``: water reaches everywhere.
     """
     area = float(tank.cross_section_mm2)
     curve = dip_volume_curve(shape, np.asarray(direction, dtype=np.float64))
+    if cavities is not None:
+        curve = CurveWithCavities(curve, cavities.curve(np.asarray(direction, dtype=np.float64)))
     largest = curve.max_area or 0.0  # largest cross-section seen, mm^2
     s = np.asarray(stage_mm, dtype=np.float64)
     base = t_start_mm + s
@@ -350,7 +357,7 @@ def _check_quantum(sensor: SensorModel, tank: Tank, volume: float) -> None:
 
 def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: SensorModel | None = None,
                   protocol: DipProtocol | None = None, geometry: RigGeometry | None = None,
-                  seed: int | None = None, progress: bool = True) -> RawScan:
+                  pockets: Pockets | bool | None = None, seed: int | None = None, progress: bool = True) -> RawScan:
     """Dip ``shape`` along every direction and record what the rig would: a :class:`RawScan`.
 
     Args:
@@ -366,6 +373,9 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
             level drift and sensor lag. Default: the ideal rig. The scan records what the rig
             is told (commanded angles and stage, the nominal tank, ``t_start_mm = t0``), and
             the true geometry in ``header.config["simulated_geometry"]``.
+        pockets: trap air in the shape's cavities that open downward and keep those that open upward dry
+            until the water reaches their rim (:class:`~dipnet.simulator.pockets.Pockets`; ``True`` its
+            defaults). Default: water reaches every cavity at once, as the dip transform assumes.
         seed: noise seed (default the sensor's); orientation ``k`` uses the stream ``(seed, k)``.
         progress: show a progress bar over orientations.
 
@@ -389,6 +399,8 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
     n = int(np.ceil((radius - t_start.min()) / (protocol.step_mm * geometry.step_scale) - 1e-9)) + 1 \
         + protocol.extra_steps
     check_simulation(shape, len(dirs), n, protocol.step_mm)
+    pockets = as_pockets(pockets)
+    cavities = None if pockets is None else CavityGrid(shape, pockets.resolution)
     stage = np.arange(n) * protocol.step_mm
     per_dip_s = n * protocol.settle_s + protocol.reorient_s
     header = ScanHeader(
@@ -397,11 +409,11 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
         density_g_per_mm3=getattr(sensor, "density_g_per_mm3", WATER_DENSITY_G_PER_MM3),
         rig="dipnet.simulator",
         config={"tank": asdict(tank), "sensor": sensor.to_dict(), "protocol": asdict(protocol), "seed": seed,
-                "simulated_geometry": geometry.to_dict()},
+                "simulated_geometry": geometry.to_dict(), "pockets": None if pockets is None else asdict(pockets)},
         metadata={"shape": getattr(shape, "name", type(shape).__name__), "volume": float(shape.volume)})
     scan = RawScan(header=header)
     for k in tqdm(range(len(dirs)), desc="dipping", unit="dip", disable=not progress):
-        state = solve_dip(shape, true_dirs[k], true_tank, geometry.true_stage(stage), float(t_start[k]))
+        state = solve_dip(shape, true_dirs[k], true_tank, geometry.true_stage(stage), float(t_start[k]), cavities)
         time_s = k * per_dip_s + (np.arange(n) + 1) * protocol.settle_s
         rng = np.random.default_rng([int(seed), k])
         ideal = sensor.ideal(true_tank, state.submerged)

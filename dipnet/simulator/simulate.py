@@ -23,6 +23,7 @@ import numpy as np
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.simulator.physics import DipProtocol, SensorModel, Tank, simulate_scan
+from dipnet.simulator.pockets import Pockets
 from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.rawscan import RawScan
 from dipnet.core.geometry import RigGeometry, as_geometry, invert_scan
@@ -32,7 +33,8 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
                          edges=None, tank: Tank | None = None, sensor: SensorModel | None = None,
                          step_mm: float | None = None, protocol: DipProtocol | None = None,
                          geometry: RigGeometry | None = None, reader_geometry: RigGeometry | None = None,
-                         smooth: bool = False, t_start: str | float = "metadata", seed: int | None = None,
+                         pockets: Pockets | bool | None = None, smooth: bool = False,
+                         t_start: str | float = "metadata", seed: int | None = None,
                          progress: bool = True) -> tuple[RawScan, DipMeasurement]:
     """Simulate dipping ``shape`` along ``directions`` and preprocess the raw scan.
 
@@ -49,6 +51,9 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
             (default: the ideal rig).
         reader_geometry: the geometry preprocessing assumes (:func:`~dipnet.core.geometry.invert_scan`);
             default the ideal (nominal) rig. Equal to ``geometry``, the profiles are the ideal ones.
+        pockets: trap air in cavities that open downward and keep those that open upward dry until the
+            water reaches their rim (:class:`~dipnet.simulator.pockets.Pockets`; ``True`` its defaults).
+            Default: water reaches every cavity at once, as the dip transform assumes.
         smooth: apply the paper's 5-tap Gaussian to the profiles.
         t_start: how preprocessing places the profiles (default: the simulator's known start).
         seed: noise seed (default the sensor's).
@@ -66,7 +71,7 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
         r = float(shape.radius())
         edges = np.linspace(-r, r, (64 if n_slabs is None else int(n_slabs)) + 1)
     raw = simulate_scan(shape, directions, tank=tank, sensor=sensor, protocol=protocol,
-                        geometry=as_geometry(geometry), seed=seed, progress=progress)
+                        geometry=as_geometry(geometry), pockets=pockets, seed=seed, progress=progress)
     read = raw if reader_geometry is None else invert_scan(raw, as_geometry(reader_geometry))
     measurement = preprocess(read, edges=edges, grid=grid, n_slabs=n_slabs, smooth=smooth, t_start=t_start)
     return raw, measurement
