@@ -54,6 +54,13 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   profile loses volume alike; the readings after the object is under fall instead of staying put
   (:mod:`dipnet.preprocessing.level_trend`, from the measurement's ``tail_slope`` metadata): the share
   of the measured volume such a fall takes over a dip, and its standard errors (NaN without the metadata).
+* ``level_drop_share``, ``level_drop_dips``: while the object goes down the level only rises, unless water
+  pours into a cavity that stayed dry until the water reached its rim (a vessel, the paper's "cap";
+  :mod:`dipnet.simulator.pockets` simulates it): the largest such fall of any dip's readings that lasts
+  (preprocessing's ``level_drop`` metadata, :func:`~dipnet.preprocessing.level_trend.level_drop`), as a share of
+  the measured volume, and how many dips show one (NaN and 0 without the metadata). The built-in chamber box,
+  whose chamber opens through one channel, falls by up to 10 % in three dips of four over a hemisphere; no
+  bundled mesh shows one.
 * ``reading_noise_mm3``, ``reading_noise_ratio``: the noise of one reading (as a volume) that the readings
   themselves show, and the stated noise over it (preprocessing's ``reading_noise_volume`` and
   ``reading_noise_ratio`` metadata, :func:`~dipnet.preprocessing.validation.reading_noise`; NaN without raw
@@ -90,7 +97,8 @@ height trend exceeds half a slab and 3 of its standard errors, the profile floor
 noise sigmas (or its standard errors, when the dips' floors agree: :func:`floor_limit`) and carries more
 than ``volume_tol`` of the measured volume, or the level
 falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0, the stated
-noise exceeds ``NOISE_RATIO_MAX`` times the readings' own, or the dips reject a declared symmetry. Each
+noise exceeds ``NOISE_RATIO_MAX`` times the readings' own, a dip's level falls by more than
+``LEVEL_DROP_TOL`` of the volume while the object goes down, or the dips reject a declared symmetry. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
 """
@@ -131,6 +139,7 @@ RESIDUAL_FLOOR = 0.05  # relative residual below which no result is flagged at a
 #: residual (its surface voxels), measured on the correct results of docs/benchmarks/consistency.md
 RESIDUAL_FLOOR_VOXELS = 3.0
 VOLUME_TOL = 0.05  # |volume ratio - 1| allowed at the least
+LEVEL_DROP_TOL = 0.01  # a dip's level falling by more than this share of the volume (and its noise): a cavity flooding
 HULL_FILL_MIN = 0.04  # measured volume / the dips' support hull below which the volume's unit is suspect
 HULL_FILL_MAX = 1.1  # above it the dips measure more than the region they bound can hold (a box fills ~1)
 FLOOR_SIGMAS = 3.0  # a profile floor within this many noise sigmas of 0 is noise
@@ -185,6 +194,8 @@ class Consistency:
     mean_slab_mm3: float = float("nan")
     level_fall_share: float = float("nan")
     level_fall_sigmas: float = float("nan")
+    level_drop_share: float = float("nan")
+    level_drop_dips: int = 0
     reading_noise_mm3: float = float("nan")
     reading_noise_ratio: float = float("nan")
     reading_noise_leak: float = float("nan")
@@ -408,6 +419,10 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     if "tail_slope" in metadata and "readings_per_dip" in metadata:
         result.level_fall_share, result.level_fall_sigmas = level_fall(
             metadata["tail_slope"], metadata["readings_per_dip"], measured)
+    if "level_drop" in metadata:
+        drops = [float(row[0]) for row in metadata["level_drop"]]
+        result.level_drop_share = max(drops, default=0.0) / measured
+        result.level_drop_dips = sum(d > 0 for d in drops)
     fit, result.symmetry_declared = declared_symmetry_fit(measurement, reconstruction)
     result.symmetry_misfit, result.symmetry_misfit_p = fit.misfit, fit.p_value
     result.symmetry_misfit_order, result.symmetry_rejected = fit.order, fit.rejected
@@ -476,6 +491,15 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
     if coarse:
         out.append(coarse_quantum_message(quantum, c.mean_slab_mm3, c.volume_unit))
     suspects = "the rig model (start heights, geometry, cross-section) or the priors disagree with the data"
+    flooding = c.level_drop_share > LEVEL_DROP_TOL  # NaN compares False
+    if flooding:
+        suspects = f"the cavities that fill while the object is under (below) make the dips disagree, or {suspects}"
+        out.append(f"{c.level_drop_dips} dip(s) show the water level falling while the object went down, by up to "
+                   f"{c.level_drop_share:.1%} of the measured volume: water pouring into a cavity of the object that "
+                   "stayed dry until the water reached its rim (a vessel). The dip transform assumes water reaches "
+                   "every cavity as soon as the water line passes it; a vessel's dips, and the dips of a cavity that "
+                   "opens downward and traps its air, measure more than the object. Vent the cavity (a second "
+                   "opening lets the air out), or fill or seal it and measure the object without it")
     if symmetry_order > 1:
         suspects = (f"the declared symmetry (order {symmetry_order}: every dip copied to its images) may not be the "
                     f"object's (run without symmetry to check), or {suspects}")

@@ -95,3 +95,35 @@ def reading_noise(volume: np.ndarray) -> float:
     if volume.size < 3:
         return 0.0
     return 1.4826 * float(np.median(np.abs(np.diff(volume, 2)))) / np.sqrt(6.0)
+
+
+#: Readings on each side of a fall whose medians are compared (:func:`level_drop`): a fall must last this long.
+FALL_WINDOW = 3
+#: A fall counts when it exceeds this many noise sigmas (and the reading quantum).
+FALL_SIGMAS = 6.0
+
+
+def level_drop(values: np.ndarray, sigma: float = 0.0, quantum: float = 0.0) -> tuple[float, int]:
+    """``(drop, index)``: the largest fall of one dip's readings that lasts, and the last reading before it;
+    ``(0.0, -1)`` when no fall exceeds :data:`FALL_SIGMAS` noise sigmas plus the quantum.
+
+    The fall at ``i`` is the median of the :data:`FALL_WINDOW` readings up to ``i`` minus the median of the
+    :data:`FALL_WINDOW` after it, so a single glitch moves neither median. While the object goes down the level
+    only rises, unless water pours into a cavity of the object that was dry (a vessel reaching its rim:
+    :mod:`dipnet.simulator.pockets`), the object is lifted, or the tank loses water quickly.
+
+    Args:
+        values: one dip's readings in stage order ``(R,)`` (reading units, e.g. mm of level).
+        sigma: the readings' stated noise (same unit); the larger of it and :func:`reading_noise` is used.
+        quantum: the sensor's reading step (same unit).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if values.size < 2 * FALL_WINDOW:
+        return 0.0, -1
+    medians = np.median(np.lib.stride_tricks.sliding_window_view(values, FALL_WINDOW), axis=1)
+    falls = medians[: values.size - 2 * FALL_WINDOW + 1] - medians[FALL_WINDOW:]
+    at = int(np.argmax(falls))
+    noise = max(float(sigma), reading_noise(values))
+    if not falls[at] > FALL_SIGMAS * noise + quantum:
+        return 0.0, -1
+    return float(falls[at]), at + FALL_WINDOW - 1

@@ -11,7 +11,9 @@ Per orientation:
 4. make ``C`` monotone (isotonic regression, the least-squares monotone fit); the slope of the
    readings after the fit reached its final value (the object under, where the level must stay put)
    goes into ``metadata["tail_slope"]`` (:func:`dipnet.preprocessing.level_trend.tail_slope`), since
-   the fit hides a falling level (a leak) from the profiles;
+   the fit hides a falling level (a leak) from the profiles, and so does a fall that lasts while the object
+   goes down (a cavity flooding): ``metadata["level_drop"]`` per dip ``[volume (mm^3), stage (mm)]``
+   (:func:`~dipnet.preprocessing.level_trend.level_drop`; ``[0, None]`` without one);
 5. water line height in the object frame ``t_i = t_start + s_i + delta_i`` (``s_i`` = stage
    position). ``t_start`` (the water line at stage 0) comes from the scan's metadata
    (simulated scans, calibrated rigs), or is estimated: ``"centroid"`` puts the profile's
@@ -63,7 +65,7 @@ from dipnet.core.grid import Grid, slab_count
 from dipnet.core.measurement import BEYOND_SLABS_TOL, REACH_SIGMAS, DipMeasurement
 from dipnet.core.strict_json import finite_or_none
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
-from dipnet.preprocessing.level_trend import MIN_TAIL_READINGS, least_squares_slope, tail_slope
+from dipnet.preprocessing.level_trend import MIN_TAIL_READINGS, least_squares_slope, level_drop, tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
 from dipnet.preprocessing.validation import reading_noise, reading_noise_leak
 
@@ -160,13 +162,15 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     centre = np.zeros(header.ndim) if object_centre is None else np.asarray(object_centre, dtype=np.float64)
 
     profiles, starts, sigmas, slopes, counts, outside, outside_mm = [], [], [], [], [], [], []
-    readings, stated, curves = [], [], []
+    readings, stated, curves, drops = [], [], [], []
     for o in scans:
         stage, values = _clean_readings(o, drop_flags)
         noise = o.meta.get("noise_sigma", header.noise_sigma)
         readings.append(values)
         stated.append(noise)
         quantum = header.resolution or 0.0
+        drop, at = level_drop(values, noise or 0.0, quantum)
+        drops.append([scale * drop, float(stage[at]) if drop > 0 else None])
         tol = onset_tol if onset_tol is not None else _default_tol(values, noise, quantum)
         onset = onset_index(values, tol)
         baseline = values[: max(1, onset - 1)].mean()
@@ -205,7 +209,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                   "t_start": t_start if isinstance(t_start, str) else "given",
                   "t_start_mm": [float(t) for t in starts], "smoothed": bool(smooth),
                   "orientation_k": [o.k for o in scans], "scan_metadata": header.metadata,
-                  "tail_slope": [float(v) for v in slopes], "readings_per_dip": counts,
+                  "tail_slope": [float(v) for v in slopes], "readings_per_dip": counts, "level_drop": drops,
                   "outside_share": outside, "outside_mm": [float(v) for v in outside_mm],
                   "reach_mm": [[finite_or_none(v) for v in row] for row in reach],
                   "reading_quantum": header.resolution, "reading_quantum_volume":

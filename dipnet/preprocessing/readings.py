@@ -42,6 +42,7 @@ import numpy as np
 import scipy.ndimage
 
 from dipnet.core.rawscan import RawScan
+from dipnet.preprocessing.level_trend import FALL_WINDOW, level_drop
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +70,12 @@ class ReadingsReport:
 
 
 def outlier_mask(stage: np.ndarray, values: np.ndarray, sigma_model: float = 0.0, rho_max: float = math.inf,
-                 k: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+                 k: float = 6.0, quantum: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Outliers of one dip by the module's rule: ``(mask (n,) bool, tolerance (n,))``.
+
+    A fall of the level that lasts (:func:`~dipnet.preprocessing.level_trend.level_drop`: a cavity flooding) is
+    physics, not glitches: the readings next to it are not tested, and the readings before it are not held to
+    the end's level (the range test's upper bound applies after the fall only).
 
     Args:
         stage: stage positions ``(n,)`` mm, non-decreasing.
@@ -78,6 +83,7 @@ def outlier_mask(stage: np.ndarray, values: np.ndarray, sigma_model: float = 0.0
         sigma_model: model reading noise (reading units), see the module docstring.
         rho_max: physical bound on the rise per mm of stage (reading units / mm).
         k: threshold in noise standard deviations.
+        quantum: the sensor's reading step (reading units), for the fall's test.
     """
     n = len(values)
     if n < 2 * HALF_WINDOW + 1:
@@ -102,7 +108,11 @@ def outlier_mask(stage: np.ndarray, values: np.ndarray, sigma_model: float = 0.0
     w = 2 * HALF_WINDOW + 1
     low = np.median(values[:w]) - k * sigma - rho * (stage[w - 1] - stage[0])
     high = np.median(values[-w:]) + k * sigma + rho * (stage[-1] - stage[-w])
-    mask |= (values < low) | (values > high)
+    drop, at = level_drop(values, sigma_model, quantum)
+    after = idx > at if drop > 0 else np.ones(n, dtype=bool)
+    mask |= (values < low) | ((values > high) & after)
+    if drop > 0:
+        mask[max(at - FALL_WINDOW + 1 - HALF_WINDOW, 0): at + FALL_WINDOW + HALF_WINDOW + 1] = False
     return mask, tolerance
 
 
@@ -134,7 +144,7 @@ def repair_readings(raw: RawScan, *, max_cross_section: float | None = None, k: 
         usable = np.flatnonzero([not set(f) & set(ignore_flags) for f in o.flags])
         order = usable[np.argsort(o.stage_mm[usable], kind="stable")]
         stage, values = o.stage_mm[order], o.values[order]
-        mask, tolerance = outlier_mask(stage, values, sigma_model, rho_max, k)
+        mask, tolerance = outlier_mask(stage, values, sigma_model, rho_max, k, header.resolution or 0.0)
         n_bad = int(mask.sum())
         if n_bad and (n_bad > max_fraction * len(values) or len(values) - n_bad < 3):
             reason = (f"{n_bad} of {len(values)} readings are outliers (more than {max_fraction:.0%}), "

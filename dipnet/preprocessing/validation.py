@@ -26,7 +26,8 @@ when the measurement carries ``sigma``, else 0):
   their magnitude exceeds ``neg_tol`` of the positive volume, else a warning.
 * **totals**: every dip measures the same object, so the totals agree within noise. The spread
   (``(max - min) / median``) is reported; totals off the median by more than
-  ``max(5 s_k, total_tol median)`` give a warning naming them (truncated dips do this too).
+  ``max(5 s_k, total_tol median)`` give a warning naming them (truncated dips do this too, and air trapped
+  in a cavity that opens downward along some dips: :mod:`dipnet.simulator.pockets`).
 * **duplicates**: directions within ``dup_deg`` of each other are reported. Such pairs measure
   the same profile at the same heights: when their cumulative profiles (the volume below each
   height, on the slabs' own heights) differ anywhere by more than ``max(5 noise, total_tol V)``, a
@@ -277,7 +278,8 @@ def _check_totals(totals, noise, total_tol: float, source: str, report: Validati
         report.warnings.append(
             f"{source}: {off.size} of {len(totals)} dip total(s) differ from the median {median:.4g} mm^3 by more "
             f"than noise explains (range {totals.min():.4g}..{totals.max():.4g}; dips {off[:8].tolist()}"
-            f"{'...' if off.size > 8 else ''}): truncated dips, leaks or bad readings?")
+            f"{'...' if off.size > 8 else ''}): truncated dips, leaks or bad readings? Totals above the rest also come "
+            "from air trapped in a cavity that opens downward along those dips (it displaces water as the object does)")
 
 
 def _cumulative_gap(measurement: DipMeasurement, i: int, j: int) -> float:

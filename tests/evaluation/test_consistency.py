@@ -577,3 +577,30 @@ def test_a_wrong_shape_at_a_high_stated_noise_is_flagged_and_the_true_one_is_not
         assert result.noise_source == "sigma" and result.profile_residual > result.residual_limit, result
     right = checked(truth)
     assert right.profile_residual < right.residual_limit
+
+
+def test_a_cavity_flooding_while_the_object_goes_down_is_named():
+    """The chamber box's chamber opens through one channel: dipped with the simulator's pockets, it stays dry in
+    most dips of a hemisphere until the water reaches the channel's mouth, then floods, and the level falls. The
+    fall is recorded per dip and named with its cause; the same dips without pockets show none."""
+    from dipnet.shapes.builtin import builtin_shape
+    from dipnet.simulator.pockets import Pockets
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    grid = Grid(24, extent=110.0)
+    found = {}
+    for pockets in (False, True):
+        with warnings.catch_warnings(record=True):
+            warnings.simplefilter("always")
+            _, measurement = simulate_measurement(builtin_shape("chamber_box", 3, 45.0), fibonacci_hemisphere(24),
+                                                  grid=grid, sensor=LevelSensor(snr_db=40.0),
+                                                  pockets=Pockets(32) if pockets else None,
+                                                  progress=False)
+        operator = make_operator(grid, measurement.directions, grid.n)
+        found[pockets] = _checked(measurement, operator, MinNormSolver(progress=False).solve(measurement, operator))
+    dry, messages = found[False]
+    assert dry.level_drop_dips == 0 and dry.level_drop_share == 0.0 and not any("falling" in m for m in messages)
+    flooding, messages = found[True]
+    assert flooding.level_drop_dips >= 12 and 0.05 < flooding.level_drop_share < 0.2  # the chamber: 14 % of it
+    assert flooding.verdict == "inconsistent" and any("level falling while the object went down" in m
+                                                      for m in messages)

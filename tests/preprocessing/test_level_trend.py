@@ -68,3 +68,20 @@ def test_the_summary_of_agreeing_slopes_and_too_few():
     assert level_fall(np.zeros(5), np.full(5, 100), 1000.0) == (0.0, 0.0)
     share, sigmas = level_fall(np.array([-1.0, np.nan, np.nan, -1.0]), np.full(4, 10), 100.0)
     assert math.isnan(share) and math.isnan(sigmas)
+
+
+def test_a_fall_that_lasts_is_found_with_its_size_and_place():
+    """A fall of 300 after reading 30 that lasts (a cavity flooding) is found at its size (within the rise between
+    the two medians) and place; the same dip without it, one glitch of 300, and noise alone show none."""
+    from dipnet.preprocessing.level_trend import level_drop
+
+    flooding = _dip()
+    flooding[31:] -= 300.0
+    drop, at = level_drop(flooding)
+    assert drop == pytest.approx(300.0, abs=3 * 25.0) and at == 30
+    glitch = _dip()
+    glitch[31] -= 300.0
+    assert level_drop(_dip()) == level_drop(glitch) == (0.0, -1)
+    for seed in range(5):
+        assert level_drop(_dip(sigma=5.0, seed=seed), sigma=5.0) == (0.0, -1)
+    assert level_drop(_dip(sigma=5.0) - np.where(np.arange(80) > 60, 60.0, 0.0), sigma=5.0)[1] in (59, 60, 61)  # 12 sigmas

@@ -42,3 +42,16 @@ def test_a_dip_with_too_many_outliers_is_rejected():
     assert [r["k"] for r in report.rejected] == [1]
     assert [o.k for o in repaired.orientations] == [0]
     assert report.to_json()["dips_rejected"] == 1
+
+
+@pytest.mark.parametrize("at", [25, 33])
+def test_a_fall_that_lasts_is_kept_and_a_spike_beside_it_still_repaired(at):
+    """A level falling by 5 mm after stage ``at`` and staying down (water pouring into a cavity; at 33, on the
+    plateau, the readings before it lie above the end's level) is physics, not a glitch: its readings are kept as
+    read, while a spike elsewhere in the dip is still repaired."""
+    flooding = CURVE - np.where(STAGE > at, 5.0, 0.0)
+    flooding[12] += 5.0
+    with pytest.warns(UserWarning, match=r"repaired 1 outlier reading\(s\)"):
+        repaired, report = repair_readings(_scan(flooding))
+    assert [r["index"] for r in report.repaired] == [12] and not report.rejected
+    np.testing.assert_array_equal(repaired.orientations[0].values[13:], flooding[13:])
