@@ -260,6 +260,8 @@ class DipState:
         submerged: displaced volume ``A delta_i`` (mm^3; mm^2 in 2D): the submerged volume ``V(t_i)``, plus
             trapped air and dry vessels with :class:`~dipnet.simulator.pockets.Pockets`.
         residual: ``max |A delta_i - V(t_i)|`` with the exact ``V`` (mm^3).
+        pocket_mm3, vessel_mm3: the volume of the cavities that trap air along this dip, and of those that stay
+            dry until the water reaches their rim (:class:`~dipnet.simulator.pockets.CavityGrid`; 0 without pockets).
     """
 
     stage_mm: np.ndarray
@@ -267,6 +269,8 @@ class DipState:
     waterline_mm: np.ndarray
     submerged: np.ndarray
     residual: float
+    pocket_mm3: float = 0.0
+    vessel_mm3: float = 0.0
 
 
 def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: float,
@@ -284,8 +288,9 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
     """
     area = float(tank.cross_section_mm2)
     curve = dip_volume_curve(shape, np.asarray(direction, dtype=np.float64))
-    if cavities is not None:
-        curve = CurveWithCavities(curve, cavities.curve(np.asarray(direction, dtype=np.float64)))
+    trapped = None if cavities is None else cavities.curve(np.asarray(direction, dtype=np.float64))
+    if trapped is not None:
+        curve = CurveWithCavities(curve, trapped)
     largest = curve.max_area or 0.0  # largest cross-section seen, mm^2
     s = np.asarray(stage_mm, dtype=np.float64)
     base = t_start_mm + s
@@ -311,7 +316,8 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
         submerged = curve.volume(base + delta)
     residual = float(np.abs(area * delta - submerged).max(initial=0.0))
     return DipState(stage_mm=s, rise_mm=delta, waterline_mm=base + delta, submerged=area * delta,
-                    residual=residual)
+                    residual=residual, pocket_mm3=0.0 if trapped is None else trapped.pocket_volume,
+                    vessel_mm3=0.0 if trapped is None else trapped.vessel_volume)
 
 
 def _bracket(curve, base: np.ndarray, area: float, below: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -381,7 +387,8 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
 
     Returns:
         The raw scan in memory; every orientation is complete and its ``meta`` holds the
-        ``noise_sigma`` (reading units) and the solver ``residual_mm3``. ``t0`` lies
+        ``noise_sigma`` (reading units) and the solver ``residual_mm3`` (with ``pockets`` also the volume of the
+        dip's air pockets and vessels, ``pocket_mm3`` and ``vessel_mm3``). ``t0`` lies
         ``clearance_mm`` below the bounding sphere for the highest start of any dip.
     """
     dirs = unit_directions(directions, shape.ndim).detach().cpu().numpy()
@@ -423,7 +430,8 @@ def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: Sensor
         scan.orientations.append(OrientationScan(
             k=k, direction=dirs[k], tilt_deg=None if tilt is None else float(tilt[k]),
             spin_deg=None if spin is None else float(spin[k]),
-            meta={"noise_sigma": sigma, "residual_mm3": state.residual},
+            meta={"noise_sigma": sigma, "residual_mm3": state.residual,
+                  **({} if cavities is None else {"pocket_mm3": state.pocket_mm3, "vessel_mm3": state.vessel_mm3})},
             stage_mm=stage, values=values, time_s=time_s, complete=True))
     return scan
 

@@ -55,6 +55,8 @@ def test_pockets_leave_the_dips_of_a_ball_as_they_were():
     for a, b in zip(plain.orientations, trapped.orientations):
         np.testing.assert_array_equal(a.values, b.values)
     assert trapped.header.config["pockets"] == {"resolution": 64}
+    assert all(o.meta["pocket_mm3"] == o.meta["vessel_mm3"] == 0.0 for o in trapped.orientations)
+    assert "pocket_mm3" not in plain.orientations[0].meta
 
 
 def test_dips_displace_the_trapped_air_and_the_dry_vessel_until_it_floods(grid):
@@ -69,6 +71,9 @@ def test_dips_displace_the_trapped_air_and_the_dry_vessel_until_it_floods(grid):
     assert up.max() - up[-1] == pytest.approx(grid.shares(UP)[1], rel=0.02)
     assert up[-1] == pytest.approx(BOX.volume, rel=1e-6)
     assert max(o.meta["residual_mm3"] for o in scan.orientations) < 1e-6 * BOX.volume
+    # each dip records what it trapped
+    assert [o.meta["pocket_mm3"] for o in scan.orientations] == [grid.shares(DOWN)[0], 0.0]
+    assert [o.meta["vessel_mm3"] for o in scan.orientations] == [0.0, grid.shares(UP)[1]]
 
 
 def test_a_2d_chamber_traps_its_air_too():
