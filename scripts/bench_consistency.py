@@ -58,9 +58,8 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.consistency import RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS, allowed_residual, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
 from dipnet.experiments.quick_mode import apply_quick, given_options
+from dipnet.experiments.shape_pool import shape_makers, shape_names
 from dipnet.jobs.tuning import compose_job
-from dipnet.preprocessing.datasets import MESHES_DIR
-from dipnet.shapes import builtin_shape, shape_from_file
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.base import measured_profiles
@@ -104,26 +103,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), trials=2, shapes=QUICK_SHAPES)
     return args
-
-
-def shape_makers() -> dict[str, tuple[int, object]]:
-    """``name -> (ndim, make(radius))`` of every shape the benchmark may dip."""
-    makers = {f"{name}_2d": (2, lambda r, name=name: builtin_shape(name, 2, r)) for name in ("disk", "chamber_box",
-                                                                                              "elephant")}
-    makers.update({f"{name}_3d": (3, lambda r, name=name: builtin_shape(name, 3, r))
-                   for name in ("ball", "box", "torus", "chamber_box")})
-    makers.update({path.stem: (3, lambda r, path=path: shape_from_file(str(path), 3, radius=r))
-                   for path in sorted(MESHES_DIR.glob("*.ply"))})
-    return makers
-
-
-def shape_names(names: list[str] | None = None) -> list[str]:
-    """The names of the shapes to dip: all, or ``names`` (a ``ValueError`` naming the known ones for any other)."""
-    makers = shape_makers()
-    unknown = sorted(set(names or ()) - set(makers))
-    if unknown:
-        raise ValueError(f"--shapes: no shape named {', '.join(unknown)} (known: {', '.join(makers)})")
-    return [name for name in makers if names is None or name in names]
 
 
 def sample_case(rng: np.random.Generator, name: str, ndim: int, pool: list[str]) -> dict:

@@ -35,9 +35,8 @@ from tqdm.auto import tqdm
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.preprocessing.datasets import MESHES_DIR
+from dipnet.experiments.shape_pool import shape_makers, shape_names
 from dipnet.preprocessing.symmetry_moments import P_LIMIT, group_closure, symmetry_fit
-from dipnet.shapes import builtin_shape, shape_from_file
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.priors import symmetry_maps
@@ -74,16 +73,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 def shapes(names: list[str] | None = None) -> list[tuple[str, int, object]]:
     """``(name, ndim, shape)`` of the shapes the benchmark dips: all, or those called ``names`` (a ``ValueError``
     naming the known ones for any other)."""
-    makers = {f"{name}_2d": (2, lambda name=name: builtin_shape(name, 2, RADIUS_MM))
-              for name in ("disk", "chamber_box", "elephant")}
-    makers.update({f"{name}_3d": (3, lambda name=name: builtin_shape(name, 3, RADIUS_MM))
-                   for name in ("ball", "box", "torus", "chamber_box")})
-    makers.update({path.stem: (3, lambda path=path: shape_from_file(str(path), 3, radius=RADIUS_MM))
-                   for path in sorted(MESHES_DIR.glob("*.ply"))})
-    unknown = sorted(set(names or ()) - set(makers))
-    if unknown:
-        raise ValueError(f"--shapes: no shape named {', '.join(unknown)} (known: {', '.join(makers)})")
-    return [(name, ndim, make()) for name, (ndim, make) in makers.items() if names is None or name in names]
+    makers = shape_makers()
+    return [(name, makers[name][0], makers[name][1](RADIUS_MM)) for name in shape_names(names)]
 
 
 def declarations(name: str, ndim: int) -> dict[str, np.ndarray]:

@@ -1,0 +1,38 @@
+"""The pool of shapes the random-case benchmarks dip: the 3D built-ins, the bundled meshes and the 2D built-ins.
+
+Names as the benchmarks' rows show them: ``ball_3d``, ``box_3d``, ``torus_3d``, ``chamber_box_3d``, each bundled
+mesh by its stem (``bunny``, ``hammer``, ...), ``disk_2d``, ``chamber_box_2d``, ``elephant_2d``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from dipnet.preprocessing.datasets import MESHES_DIR
+from dipnet.shapes import builtin_shape, shape_from_file
+from dipnet.shapes.base import Shape
+
+BUILTINS = {2: ("disk", "chamber_box", "elephant"), 3: ("ball", "box", "torus", "chamber_box")}
+
+
+def shape_makers() -> dict[str, tuple[int, Callable[[float], Shape]]]:
+    """``name -> (ndim, make(radius in mm))`` of every shape in the pool (2D built-ins, 3D built-ins, meshes)."""
+    makers: dict[str, tuple[int, Callable[[float], Shape]]] = {
+        f"{name}_{ndim}d": (ndim, lambda r, name=name, ndim=ndim: builtin_shape(name, ndim, r))
+        for ndim in (2, 3) for name in BUILTINS[ndim]}
+    makers.update({path.stem: (3, lambda r, path=path: shape_from_file(str(path), 3, radius=r))
+                   for path in sorted(MESHES_DIR.glob("*.ply"))})
+    return makers
+
+
+def shape_names(names: list[str] | None = None, ndim: int | None = None) -> list[str]:
+    """The pool's names in its order: all (of dimension ``ndim``, if given), or ``names``.
+
+    Raises:
+        ValueError: naming every one of ``names`` the pool lacks (or of another dimension), and the known ones.
+    """
+    makers = {name: item for name, item in shape_makers().items() if ndim is None or item[0] == ndim}
+    unknown = sorted(set(names or ()) - set(makers))
+    if unknown:
+        raise ValueError(f"--shapes: no shape named {', '.join(unknown)} (known: {', '.join(makers)})")
+    return [name for name in makers if names is None or name in names]

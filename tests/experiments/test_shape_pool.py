@@ -1,0 +1,28 @@
+"""The benchmarks' shape pool: every built-in and bundled mesh by name, each made at the radius asked for."""
+
+import pytest
+
+from dipnet.experiments.shape_pool import shape_makers, shape_names
+from dipnet.preprocessing.datasets import mesh_names
+
+
+def test_the_pool_holds_the_built_ins_and_every_bundled_mesh_in_order():
+    names = shape_names()
+    assert names[:7] == ["disk_2d", "chamber_box_2d", "elephant_2d", "ball_3d", "box_3d", "torus_3d", "chamber_box_3d"]
+    assert names[7:] == mesh_names()
+    assert shape_names(ndim=2) == names[:3] and shape_names(ndim=3) == names[3:]
+
+
+@pytest.mark.parametrize("name, ndim", [("ball_3d", 3), ("elephant_2d", 2), ("bunny", 3)])
+def test_a_shape_is_made_at_the_radius_asked_for(name, ndim):
+    made_ndim, make = shape_makers()[name]
+    shape = make(30.0)
+    assert made_ndim == shape.ndim == ndim and shape.radius() == pytest.approx(30.0, rel=1e-6)
+
+
+def test_an_unknown_name_or_one_of_another_dimension_is_named_with_the_known_ones():
+    with pytest.raises(ValueError, match="no shape named teapot .*known: disk_2d"):
+        shape_names(["teapot", "ball_3d"])
+    with pytest.raises(ValueError, match="no shape named disk_2d"):
+        shape_names(["disk_2d"], ndim=3)
+    assert shape_names(["bunny", "ball_3d"]) == ["ball_3d", "bunny"]
