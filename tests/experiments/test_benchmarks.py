@@ -442,3 +442,22 @@ def test_the_consistency_bench_runs_end_to_end_on_chosen_shapes(capsys):
     assert result["cases"] == "2"
     with pytest.raises(ValueError, match="no shape named teapot"):
         bench.shape_names(["teapot"])
+
+
+@pytest.mark.slow
+def test_the_pockets_bench_runs_end_to_end_and_finds_the_chamber_boxs_flooding(capsys):
+    """The chamber box (its chamber opens through one channel) and the ball, one scan each of 10 dips: the chamber
+    box traps air or keeps a vessel in most dips, preprocessing finds the level falling in vessel dips and nowhere
+    else, and the ball traps nothing; a 2D shape is refused by name."""
+    bench = load_script("bench_pockets")
+    rows = _main_in_this_process(bench, ["--shapes", "chamber_box_3d", "ball_3d", "--dips", "10", "10",
+                                         "--resolution", "16", "--threads", "1"])
+    box, ball = sorted(rows, key=lambda r: r["shape"] != "chamber_box_3d")
+    assert max(box["pocket_share"]) + max(box["vessel_share"]) > 0.1
+    assert max(ball["pocket_share"]) == max(ball["vessel_share"]) == 0.0 and ball["iou_plain"] == ball["iou_pockets"]
+    vessels, found, clean, false_falls = bench.dip_counts(box)
+    assert found >= 1 and false_falls == 0 and bench.dip_counts(ball) == (0, 0, 10, 0)
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("RESULT affected=") and last.endswith("cases=2")
+    with pytest.raises(ValueError, match="no shape named disk_2d"):
+        bench.shape_names(["disk_2d"], ndim=3)
