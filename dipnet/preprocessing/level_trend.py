@@ -105,7 +105,8 @@ FALL_SIGMAS = 6.0
 
 def level_drop(values: np.ndarray, sigma: float = 0.0, quantum: float = 0.0) -> tuple[float, int]:
     """``(drop, index)``: the largest fall of one dip's readings that lasts, and the last reading before it;
-    ``(0.0, -1)`` when no fall exceeds :data:`FALL_SIGMAS` noise sigmas plus the quantum.
+    ``(0.0, -1)`` when no fall exceeds :data:`FALL_SIGMAS` noise sigmas plus the quantum (and a billionth of the
+    readings' size, their rounding when noise-free).
 
     The fall at ``i`` is the median of the :data:`FALL_WINDOW` readings up to ``i`` minus the median of the
     :data:`FALL_WINDOW` after it, so a single glitch moves neither median. While the object goes down the level
@@ -124,6 +125,7 @@ def level_drop(values: np.ndarray, sigma: float = 0.0, quantum: float = 0.0) -> 
     falls = medians[: values.size - 2 * FALL_WINDOW + 1] - medians[FALL_WINDOW:]
     at = int(np.argmax(falls))
     noise = max(float(sigma), reading_noise(values))
-    if not falls[at] > FALL_SIGMAS * noise + quantum:
+    rounding = 1e-9 * float(np.abs(values).max())  # noise-free readings still differ in their last bits
+    if not falls[at] > FALL_SIGMAS * noise + quantum + rounding:
         return 0.0, -1
     return float(falls[at]), at + FALL_WINDOW - 1

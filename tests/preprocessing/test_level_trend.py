@@ -82,6 +82,9 @@ def test_a_fall_that_lasts_is_found_with_its_size_and_place():
     glitch = _dip()
     glitch[31] -= 300.0
     assert level_drop(_dip()) == level_drop(glitch) == (0.0, -1)
+    rounded = 150.0 + _dip() / 6e4  # levels in mm, noise-free
+    rounded[60:] -= 3e-14  # a last-bit difference of the simulator's fixed point, not a fall
+    assert level_drop(rounded) == (0.0, -1)
     for seed in range(5):
         assert level_drop(_dip(sigma=5.0, seed=seed), sigma=5.0) == (0.0, -1)
     assert level_drop(_dip(sigma=5.0) - np.where(np.arange(80) > 60, 60.0, 0.0), sigma=5.0)[1] in (59, 60, 61)  # 12 sigmas
