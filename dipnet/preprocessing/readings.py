@@ -108,12 +108,30 @@ def outlier_mask(stage: np.ndarray, values: np.ndarray, sigma_model: float = 0.0
     w = 2 * HALF_WINDOW + 1
     low = np.median(values[:w]) - k * sigma - rho * (stage[w - 1] - stage[0])
     high = np.median(values[-w:]) + k * sigma + rho * (stage[-1] - stage[-w])
-    drop, at = level_drop(values, sigma_model, quantum)
-    after = idx > at if drop > 0 else np.ones(n, dtype=bool)
+    flood = _physical_fall(stage, values, sigma_model, quantum, k * sigma, rho)
+    after = idx > flood if flood >= 0 else np.ones(n, dtype=bool)
     mask |= (values < low) | ((values > high) & after)
-    if drop > 0:
-        mask[max(at - FALL_WINDOW + 1 - HALF_WINDOW, 0): at + FALL_WINDOW + HALF_WINDOW + 1] = False
+    if flood >= 0:
+        mask[max(flood - FALL_WINDOW + 1 - HALF_WINDOW, 0): flood + FALL_WINDOW + HALF_WINDOW + 1] = False
     return mask, tolerance
+
+
+def _physical_fall(stage: np.ndarray, values: np.ndarray, sigma_model: float, quantum: float, tol: float,
+                   rho: float) -> int:
+    """The last reading before a fall that lasts (:func:`~dipnet.preprocessing.level_trend.level_drop`) when the
+    readings rose to it as a level can (by at most ``tol + rho * stage travel`` between the :data:`FALL_WINDOW`
+    readings before it and the ones before those), else -1: a burst of high readings falls back too, but jumped
+    up first."""
+    drop, at = level_drop(values, sigma_model, quantum)
+    if not drop > 0:
+        return -1
+    first = at - 2 * FALL_WINDOW + 1
+    if first < 0:
+        return at
+    before, earlier = values[at - FALL_WINDOW + 1: at + 1], values[first: at - FALL_WINDOW + 1]
+    rise = float(np.median(before) - np.median(earlier))
+    travel = float(np.median(stage[at - FALL_WINDOW + 1: at + 1]) - np.median(stage[first: at - FALL_WINDOW + 1]))
+    return at if rise <= tol + rho * travel else -1
 
 
 def repair_readings(raw: RawScan, *, max_cross_section: float | None = None, k: float = 6.0,

@@ -604,3 +604,23 @@ def test_a_cavity_flooding_while_the_object_goes_down_is_named():
     assert flooding.level_drop_dips >= 12 and 0.05 < flooding.level_drop_share < 0.2  # the chamber: 14 % of it
     assert flooding.verdict == "inconsistent" and any("level falling while the object went down" in m
                                                       for m in messages)
+
+
+def test_dips_that_measure_more_than_the_rest_are_named_as_trapped_air(problem):
+    """Three of 30 exact dips of a ball hold 3 % more volume in one slab (air trapped along them): named, with
+    the share; three that hold 3 % less (dips cut short) are not this check's; the exact dips show no excess."""
+    from dipnet.evaluation.consistency import excess_totals
+
+    operator, ball, exact = problem
+    assert excess_totals(exact) == (pytest.approx(0.0, abs=1e-12), 0)
+    for sign, named in ((1.0, True), (-1.0, False)):
+        profiles = exact.profiles.clone()
+        for k in (3, 11, 20):
+            middle = int(profiles[k].argmax())
+            profiles[k, middle] += sign * 0.03 * float(profiles[k].sum())
+        trapped = DipMeasurement(exact.directions, profiles, exact.slab_thickness, exact.offsets)
+        result, caught = _check(trapped, operator, ball)
+        messages = [str(w.message) for w in caught]
+        assert (result.excess_total_dips == 3) == named
+        assert any("measure more than the median dip, by up to 3.0%" in m for m in messages) == named
+    assert result.excess_total_share == pytest.approx(0.0, abs=1e-12)
