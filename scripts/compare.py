@@ -93,16 +93,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warning: {pooled}", end="", file=sys.stderr)
     written = [out / "runs.csv", out / "summary.csv", out / "summary.md"]
 
-    labelled = collect.label_series(rows)
     try:
-        written.append(figures.plot_vs_dips(collect.aggregate(labelled, ("series", args.x), metrics),
+        written.append(figures.plot_vs_dips(collect.curve_groups(rows, args.x, metrics),
                                             out / "vs_dips.png", metrics=collect.curve_metrics(metrics),
                                             line="series", x=args.x))
     except ValueError as exc:
         print(f"skipping vs_dips.png: {exc}")
     if any(isinstance(r.get("snr_db"), float) for r in rows if r["status"] == "ok"):
-        written.append(figures.plot_vs_snr(collect.aggregate(rows, ("solver", "snr_db")),
-                                               out / "vs_snr.png"))
+        written.append(figures.plot_vs_snr(collect.curve_groups(rows, "snr_db"), out / "vs_snr.png", line="series"))
     else:
         print("no noise levels in these runs: skipping vs_snr.png (see experiment=snr_sweep)")
     try:

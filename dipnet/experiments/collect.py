@@ -421,18 +421,29 @@ def pooled_options(runs: Sequence[Run], rows: Sequence[dict], by: Sequence[str] 
     return {k: sorted(v, key=_sort_key) for k, v in sorted(varying.items())}
 
 
-def label_series(rows: Sequence[dict]) -> list[dict]:
-    """Copies of the rows with a ``series`` label for plotting: the solver, and the noise level
-    too (``"lsmr @ 30 dB"``, ``"lsmr @ no noise"``) when the ok rows hold more than one."""
-    levels = {r.get("snr_db") for r in rows if r.get("status") == "ok"}
+def label_series(rows: Sequence[dict], also: str = "snr_db") -> list[dict]:
+    """Copies of the rows with a ``series`` label for plotting: the solver, and the value of ``also`` too when
+    the ok rows hold more than one: the noise level (``"lsmr @ 30 dB"``, ``"lsmr @ no noise"``) for curves
+    against dips, the dips measured (``"lsmr, 41 dips"``) for curves against noise."""
+    values = {r.get(also) for r in rows if r.get("status") == "ok"}
 
     def label(r: dict) -> str:
-        if len(levels) < 2:
+        value = r.get(also)
+        if len(values) < 2:
             return str(r.get("solver"))
-        snr = r.get("snr_db")
-        return f"{r.get('solver')} @ " + ("no noise" if snr is None else f"{snr:g} dB")
+        if also == "snr_db":
+            return f"{r.get('solver')} @ " + ("no noise" if value is None else f"{value:g} dB")
+        return f"{r.get('solver')}, {value} {LABELS.get(also, also)}"
 
     return [{**r, "series": label(r)} for r in rows]
+
+
+def curve_groups(rows: Sequence[dict], x: str, metrics: Sequence[str] = METRICS) -> list[dict[str, Any]]:
+    """:func:`aggregate` of ``rows`` for a curve of ``metrics`` against ``x``: one ``series`` per solver and,
+    when the rows hold several, per value of the other axis (the noise level for ``x`` ``n_dips`` or
+    ``dips_percent``, the dips for ``x`` ``snr_db``), so no point pools runs that the summary table keeps apart
+    (a 6-dip and a 40-dip run at one SNR are two points, not their mean)."""
+    return aggregate(label_series(rows, "n_dips" if x == "snr_db" else "snr_db"), ("series", x), metrics)
 
 
 def compared_metrics(rows: Sequence[dict]) -> tuple[str, ...]:

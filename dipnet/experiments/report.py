@@ -396,7 +396,7 @@ def curves_figure(groups: Sequence[dict], x: str, metrics: Sequence[str], line: 
                                      name=tables.format_cell(key), legendgroup=str(key), showlegend=col == 1,
                                      line={"color": palette[i % len(palette)]}), row=1, col=col)
         fig.update_xaxes(title_text=collect.LABELS.get(x, x), type="log" if log_x else "linear", row=1, col=col)
-    fig.update_layout(height=400, margin={"l": 50, "r": 10, "t": 40, "b": 40}, legend_title_text=line)
+    fig.update_layout(height=400, margin={"l": 50, "r": 10, "t": 40, "b": 40}, legend_title_text=collect.LABELS.get(line, line))
     return fig
 
 
@@ -437,11 +437,14 @@ def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Pat
     sections = [("summary", f"<p>{n_ok} of {len(runs)} jobs finished.</p>"
                  + (f"<p class=note>{html.escape(note)}</p>" if note else "") + _groups_table(groups, by, metrics))]
     if any("n_dips" in g for g in groups) and "n_dips" in by:
-        sections.append(("error vs number of dips",
-                         _figure_html(curves_figure(groups, "n_dips", collect.curve_metrics(metrics)), "vs-dips")))
+        curves = collect.curve_groups(rows, "n_dips", metrics)
+        sections.append(("error vs number of dips", _figure_html(
+            curves_figure(curves, "n_dips", collect.curve_metrics(metrics), line="series"), "vs-dips")))
     if "snr_db" in by and any(isinstance(g.get("snr_db"), (int, float)) for g in groups):
-        metrics = [m for m in ("false_positive", "false_negative") if any(f"{m}_mean" in g for g in groups)] or ["iou"]
-        sections.append(("error vs SNR", _figure_html(curves_figure(groups, "snr_db", metrics, log_x=False), "vs-snr")))
+        curves = collect.curve_groups(rows, "snr_db", metrics)
+        metrics = [m for m in ("false_positive", "false_negative") if any(f"{m}_mean" in g for g in curves)] or ["iou"]
+        sections.append(("error vs SNR", _figure_html(curves_figure(curves, "snr_db", metrics, line="series",
+                                                                    log_x=False), "vs-snr")))
     for image in images:
         image = Path(image)
         if image.is_file():

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from dipnet.experiments import collect
+from dipnet.experiments import collect, figures
 
 from script_modules import load_script
 from sweep_fixtures import DIPS, SNRS, SOLVERS, is_png, write_job, write_sweep
@@ -181,3 +181,32 @@ def test_files_of_an_earlier_comparison_in_the_output_folder_are_named(sweep, tm
         "not this comparison's results: delete them, or give each comparison its own -o\n")
     assert _load_compare().main([str(quiet), "-o", str(out)]) == 0  # the same comparison again: vs_snr.png still
     assert "vs_snr.png" in capsys.readouterr().err
+
+
+def test_the_noise_curves_keep_runs_of_other_dip_counts_apart(tmp_path, monkeypatch):
+    """A sweep ``snr_db=10,30 n_dips=6,40`` (16^3, minnorm, measured: false positives 0.508 / 0.473 at 6 dips,
+    0.157 / 0.190 at 40): before, ``vs_snr.png`` drew one point per solver x SNR, the mean of the 6-dip and the
+    40-dip run (0.333 at 10 dB, its error bar their spread), while the table kept them apart; now one line per
+    dip count."""
+    sweep = tmp_path / "sw"
+    fp = {(6, 10.0): 0.508, (6, 30.0): 0.473, (40, 10.0): 0.157, (40, 30.0): 0.190}
+    for i, ((n, snr), value) in enumerate(fp.items()):
+        write_job(sweep / str(i), solver="minnorm", n_dips=n, snr_db=snr, seed=0,
+                  metrics={"iou": 0.8, "false_positive": value, "false_negative": 0.0})
+    drawn = {}
+
+    def plot(groups, path, **kwargs):
+        drawn[Path(path).name] = (groups, kwargs.get("line", "solver"))
+        return Path(path)
+
+    monkeypatch.setattr(figures, "plot_vs_snr", plot)
+    monkeypatch.setattr(figures, "plot_vs_dips", plot)
+    assert _load_compare().main([str(sweep), "-o", str(tmp_path / "cmp")]) == 0
+    for name, x in (("vs_snr.png", "snr_db"), ("vs_dips.png", "n_dips")):
+        groups, line = drawn[name]
+        points = {(g[line], g[x]): g["false_positive_mean"] for g in groups}
+        assert len(points) == 4 and all(g["runs"] == 1 for g in groups), (name, points)
+    assert {k: round(v, 3) for k, v in points.items()} == {
+        ("minnorm @ 10 dB", 6): 0.508, ("minnorm @ 30 dB", 6): 0.473, ("minnorm @ 10 dB", 40): 0.157,
+        ("minnorm @ 30 dB", 40): 0.19}
+    assert {g[drawn["vs_snr.png"][1]] for g in drawn["vs_snr.png"][0]} == {"minnorm, 6 dips", "minnorm, 40 dips"}
