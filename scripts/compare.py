@@ -56,10 +56,15 @@ def main(argv: list[str] | None = None) -> int:
     for w in caught:  # e.g. a job given twice: one line each, as the pooled-options warning below
         print(f"warning: {w.message}", file=sys.stderr)
     root = args.dirs[0] if len(args.dirs) == 1 else None
+    rows = collect.run_rows(runs, root)
+    for flag, columns in (("--by", args.by), ("--rows", args.rows or ())):
+        message = collect.unknown_column_error(rows, columns, flag)
+        if message:  # a typo (--by solvr): one group of every run, with no word
+            print(f"error: {message}", file=sys.stderr)
+            return 2
     out = args.out or args.dirs[0] / "compare"
     out.mkdir(parents=True, exist_ok=True)
     earlier = output_files(out, COMPARE_OUTPUTS)
-    rows = collect.run_rows(runs, root)
     metrics = collect.compared_metrics(rows)
     groups = collect.aggregate(rows, args.by, metrics)
     tables.write_csv(rows, out / "runs.csv")

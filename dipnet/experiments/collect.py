@@ -326,6 +326,26 @@ def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
     return row
 
 
+#: The columns every row of :func:`run_row` has besides the metrics (the axes a comparison groups by).
+ROW_AXES = ("solver", "shape", "ndim", "resolution", "n_dips", "dips_percent", "snr_db", "seed")
+
+
+def unknown_column_error(rows: Sequence[dict], columns: Sequence[str], flag: str) -> str | None:
+    """A message naming the ``columns`` (given with ``flag``, e.g. ``--by``) that no row holds, or ``None``.
+
+    A column no run records is ``None`` in every row: grouping by it pools every run into one row, and a
+    montage by it keeps one run per column, with no word. Names what may be given instead: the axes, the
+    options the runs set on the command line, and the other columns of ``runs.csv``."""
+    known = {k for r in rows for k in r}
+    unknown = [c for c in columns if c not in known]
+    if not unknown:
+        return None
+    swept = sorted({k for r in rows for k in override_values(str(r.get("overrides") or "").split())})
+    return (f"{flag} {' '.join(unknown)}: no run records {', '.join(map(repr, unknown))}, so every run would fall in "
+            f"one group; choose among the axes ({', '.join(ROW_AXES)}), the options the runs set "
+            f"({', '.join(swept) or 'none'}) or another column of runs.csv (a metric of metrics.json)")
+
+
 def run_rows(runs: Sequence[Run], root: str | Path | None = None) -> list[dict[str, Any]]:
     """:func:`run_row` of every run (job paths relative to ``root`` when given)."""
     return [run_row(r, None if root is None else Path(root)) for r in runs]

@@ -210,3 +210,18 @@ def test_the_noise_curves_keep_runs_of_other_dip_counts_apart(tmp_path, monkeypa
         ("minnorm @ 10 dB", 6): 0.508, ("minnorm @ 30 dB", 6): 0.473, ("minnorm @ 10 dB", 40): 0.157,
         ("minnorm @ 30 dB", 40): 0.19}
     assert {g[drawn["vs_snr.png"][1]] for g in drawn["vs_snr.png"][0]} == {"minnorm, 6 dips", "minnorm, 40 dips"}
+
+
+@pytest.mark.parametrize("flag", ["--by", "--rows"])
+def test_a_column_no_run_records_is_refused(sweep, tmp_path, capsys, flag):
+    """``compare.py SWEEP --by solvr`` (a typo): before, exit 0 with one row pooling every run of the sweep (the
+    minnorm and voxel runs of two shapes, 4 jobs, as one mean) and a warning listing every option; ``--rows shap``
+    drew a montage of one row, one run per column. Now one ``error:`` line naming the column, exit 2, nothing
+    written."""
+    out = tmp_path / "cmp"
+    assert _load_compare().main([str(sweep), "-o", str(out), flag, "solver", "solvr"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {flag} solvr: no run records 'solvr', so every run would fall in one group; "
+                          "choose among the axes (solver, shape, ndim, resolution, n_dips, dips_percent, snr_db, seed), "
+                          "the options the runs set (n_dips, seed, solver)") and err.count("\n") == 1, err
+    assert not out.exists()
