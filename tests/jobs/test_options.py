@@ -157,8 +157,14 @@ def test_reach_is_refused_in_2d():
                                        ["symmetry={n_fold:3,mirror:true,mirror_azimuth_deg:-30,tol_deg:0}"],
                                        ["calibration=self", "calibration.dip_offset_sigma_mm=0.5"],
                                        ["solver=implicit", "solver.hidden_layers=0"],
-                                       ["shape=generated", "shape.seed=7", "shape.mesh_resolution=16"]])
+                                       ["shape=generated", "shape.seed=7", "shape.mesh_resolution=16"],
+                                       ["solver=voxel", "solver.threshold=volume"],
+                                       ["solver=implicit", "solver.threshold=volume"],
+                                       ["solver=dip", "solver.threshold=0.4"]])
 def test_occupancy_levels_and_named_threshold_rules_are_accepted(overrides):
+    """The solvers guide's ``solver=voxel solver.threshold=volume`` (an option of every optimisation solver) was
+    refused by Hydra ("Could not override 'solver.threshold' ... use +solver.threshold=volume", exit 2): the voxel,
+    implicit and dip configs had no ``threshold``."""
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
         check_config(compose(config_name="config", overrides=overrides))
 
