@@ -75,7 +75,8 @@ def _sweep_overrides(multirun_yaml: Path) -> list[str] | None:
 
 class JobLogCallback(Callback):
     """Hydra callback: a sweep into the folder of an earlier sweep is refused before any job
-    (:func:`check_sweep_dir`), one log line per finished job of a sweep, and the failures listed after it.
+    (:func:`check_sweep_dir`), one log line per finished job of a sweep, and the failures listed after it; a
+    sweep with a failed or unfinished job ends with an ``error:`` line and exit code 1.
 
     Enable with ``hydra/callbacks: job_log`` (``conf/hydra/callbacks/job_log.yaml``). A job whose
     task raised (without :func:`guarded_job`) also gets its ``error.txt`` here.
@@ -118,5 +119,10 @@ class JobLogCallback(Callback):
         log.info("sweep finished: %d of %d jobs ok in %s", len(runs) - len(bad), len(runs), sweep_dir)
         for line in markdown_problems(runs, sweep_dir).splitlines()[2:]:
             log.warning("%s", line)
-        if bad:
+        if not bad:
+            return
+        if len(bad) < len(runs):
             log.warning("compare the finished ones with: python scripts/compare.py %s", sweep_dir)
+        report(f"error: {len(bad)} of {len(runs)} jobs of the sweep in {sweep_dir} failed or did not finish "
+               "(listed above, each with its error.txt): the sweep exits 1")
+        raise SystemExit(1)  # a script or cluster job that chains the sweep must not take it for a success

@@ -12,6 +12,7 @@ from dipnet.experiments import collect
 from dipnet.jobs import sweep_jobs
 from dipnet.jobs.sweep_jobs import ERROR_FILE, guarded_job
 
+from script_runs import run_script
 from sweep_fixtures import chamfer_of, write_sweep
 
 
@@ -101,10 +102,10 @@ def test_callback_logs_one_line_per_job_and_the_failures(sweep, tmp_path, caplog
     assert (out / "error.txt").read_text().startswith("RuntimeError: solver diverged")
 
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="dipnet.jobs.sweep_jobs"):
+    with caplog.at_level(logging.INFO, logger="dipnet.jobs.sweep_jobs"), pytest.raises(SystemExit) as exit_:
         callback.on_multirun_end(_hydra_cfg(sweep / "0", 0, sweep))
     n = len(collect.collect_runs(sweep))
-    assert f"sweep finished: {n - 3} of {n} jobs ok" in caplog.text
+    assert f"sweep finished: {n - 3} of {n} jobs ok" in caplog.text and exit_.value.code == 1
     assert "ValueError: n_dips too large" in caplog.text and "scripts/compare.py" in caplog.text
 
 
@@ -144,3 +145,25 @@ def test_the_same_sweep_run_again_goes_into_its_own_folder(tmp_path):
     other = OmegaConf.merge(again, {"hydra": {"overrides": {"task": ["solver=lsqr", "n_dips=8"]}}})
     with pytest.raises(SystemExit):
         callback.on_multirun_start(other)
+
+
+def test_a_sweep_with_a_failed_job_exits_1(tmp_path, monkeypatch, capsys):
+    """``reconstruct.py -m solver=voxel_learned,minnorm resolution=16 n_dips=8`` (the learned prior's weights are
+    for 64^3, so that job fails): before, exit 0 after "sweep finished: 1 of 2 jobs ok", and exit 0 when every job
+    failed ("0 of 2", then "compare the finished ones with ..."); a script chaining the sweep took it for a
+    success. Now the failures are listed as before, then one ``error:`` line and exit 1; a sweep whose jobs all
+    finish still exits 0."""
+    quick = ["resolution=16", "n_dips=8", "threads=1", "output.progress=false", "output.figures=false",
+             "output.uncertainty=false", "output.resolvability=false", "output.mesh_formats=[]"]
+    mixed = run_script("reconstruct", "-m", "solver=voxel_learned,minnorm", *quick,
+                       f"hydra.sweep.dir={tmp_path / 'mixed'}", monkeypatch=monkeypatch, capsys=capsys)
+    assert mixed.returncode == 1 and "sweep finished: 1 of 2 jobs ok" in mixed.stdout, mixed.stderr[-2000:]
+    assert mixed.stderr.rstrip().splitlines()[-1] == (
+        f"error: 1 of 2 jobs of the sweep in {tmp_path / 'mixed'} failed or did not finish (listed above, each with "
+        "its error.txt): the sweep exits 1")
+    failed = run_script("reconstruct", "-m", "solver=voxel_learned", "seed=0,1", *quick,
+                        f"hydra.sweep.dir={tmp_path / 'failed'}", monkeypatch=monkeypatch, capsys=capsys)
+    assert failed.returncode == 1 and "compare the finished ones" not in failed.stdout + failed.stderr
+    ok = run_script("reconstruct", "-m", "solver=minnorm", "seed=0,1", *quick, f"hydra.sweep.dir={tmp_path / 'ok'}",
+                    monkeypatch=monkeypatch, capsys=capsys)
+    assert ok.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in ok.stdout, ok.stderr[-2000:]
