@@ -69,12 +69,39 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if any(x <= 0 for x in args.percent) or any(n < 8 for n in args.n):
         p.error("--percent must be positive and --n at least 8")
+    for n in args.n:
+        for percent in args.percent:
+            message = budget_error(n, percent)
+            if message:
+                p.error(message)
     return args
 
 
+#: How far above the asked share the rounded-up dip count may lie (relative) and still be tabled as that share.
+BUDGET_TOLERANCE = 0.05
+
+
+def dip_budget(n: int, percent: float) -> int:
+    """The dips of a job at ``N^3`` asked ``percent`` % of ``N^2``: ``ceil(percent/100 N^2)``."""
+    return math.ceil(percent / 100 * n * n)
+
+
+def budget_error(n: int, percent: float) -> str | None:
+    """A message when ``percent`` % of ``N^2`` is so few dips that rounding up to a whole dip moves the share by more
+    than :data:`BUDGET_TOLERANCE` (the table, ``fig13a.png`` and ``RESULT`` name the asked share), else ``None``."""
+    asked = percent / 100 * n * n
+    n_dips = dip_budget(n, percent)
+    if n_dips <= asked * (1 + BUDGET_TOLERANCE):
+        return None
+    return (f"--percent {percent:g} at --n {n} asks {asked:.3g} dips: the job would run {n_dips} "
+            f"({100 * n_dips / n / n:.3g} % of N^2), tabled as {percent:g} %; give a larger --n or --percent "
+            f"({100 * round(1 / BUDGET_TOLERANCE) / n / n:.3g} % or more at --n {n} rounds within "
+            f"{100 * BUDGET_TOLERANCE:g} %)")
+
+
 def job_overrides(mesh: str, n: int, percent: float, extra: list[str]) -> list[str]:
-    """The pipeline overrides of one job: ``ceil(percent/100 N^2)`` dips of ``mesh`` at ``N^3``."""
-    n_dips = math.ceil(percent / 100 * n * n)
+    """The pipeline overrides of one job: :func:`dip_budget` dips of ``mesh`` at ``N^3``."""
+    n_dips = dip_budget(n, percent)
     return [*JOB_DEFAULTS, f"shape.path=${{dipnet_data:meshes/{mesh}.ply}}", f"resolution={n}",
             f"n_dips={n_dips}", "ndim=3", *extra]
 

@@ -22,6 +22,23 @@ def test_job_overrides_take_the_percent_of_n_squared(paper_figures):
     assert overrides[-1] == "solver=voxel"  # the command line wins
 
 
+@pytest.mark.parametrize("argv,message", [
+    (["--n", "16", "--percent", "0.1"], r"--percent 0.1 at --n 16 asks 0.256 dips: the job would run 1 \(0.391 % of "
+                                        r"N\^2\), tabled as 0.1 %; give a larger --n or --percent \(7.81 % or more"),
+    (["--n", "8"], r"--percent 1 at --n 8 asks 0.64 dips: the job would run 1 \(1.56 % of N\^2\), tabled as 1 %"),
+])
+def test_a_share_that_rounds_to_another_budget_is_refused(paper_figures, capsys, argv, message):
+    """``paper_figures.py --n 16 --percent 0.1`` (and ``--n 8`` with the default 1/3/10 %): before, exit 0 with
+    1 dip (0.39 % of 16^2; 1.56 % and 3.1 % of 8^2) tabled, drawn and printed (``RESULT chamfer_0.1=0.1655``) as the
+    asked share. A count rounded up by more than 5 % is refused before any job; the paper's sizes and the other
+    tests' (13 dips for 5 % of 16^2, 15 for 10 % of 12^2) run."""
+    with pytest.raises(SystemExit) as exit_:
+        paper_figures.parse_args([*argv, "--out", "unused"])
+    assert exit_.value.code == 2 and re.search(message, capsys.readouterr().err)
+    for ok in (["--n", "64", "128"], ["--n", "16", "--percent", "5", "20"], ["--n", "12", "--percent", "10"]):
+        paper_figures.parse_args(ok)
+
+
 def test_figures_and_table_from_a_tiny_sweep(paper_figures, tmp_path, capsys):
     out = tmp_path / "figs"
     # 5 and 20 % of 16^2 (13 and 52 dips a mesh; 10 and 40 % before, twice the simulated dips): measured
