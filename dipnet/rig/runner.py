@@ -311,11 +311,20 @@ class ScanRunner:
 
     # ------------------------------------------------------------------ scanning
     def _check_resume(self, scan: RawScan) -> None:
+        """Raise :class:`RawScanFileError` when a recorded orientation is not this run's plan's: the orientation
+        options changed (a Fibonacci set of another size is another set of directions, not more of them)."""
+        planned = self.plan.orientations
+        recorded = (scan.header.config.get("plan") or {}).get("orientations")
         for o in scan.orientations:
-            if o.k >= len(self.plan.orientations) or \
-                    not np.allclose((o.tilt_deg, o.spin_deg), self.plan.orientations[o.k], atol=1e-6):
-                raise RawScanFileError(f"{self.path}: orientation {o.k} was recorded at (tilt, spin) = "
-                                       f"({o.tilt_deg}, {o.spin_deg}), not as planned: use another file")
+            if o.k >= len(planned) or not np.allclose((o.tilt_deg, o.spin_deg), planned[o.k], atol=1e-6):
+                now = f"({planned[o.k][0]:g}, {planned[o.k][1]:g})" if o.k < len(planned) else "no orientation"
+                size = f"{len(recorded)} orientations" if recorded else "its orientations"
+                raise RawScanFileError(
+                    f"{self.path}: orientation {o.k} was recorded at (tilt, spin) = ({o.tilt_deg}, {o.spin_deg}), "
+                    f"where this run plans {now} ({len(planned)} orientations; the file's plan holds {size}): the "
+                    "orientation options (n_dips, orientations, seed, tilts, spins, max_tilt_deg) differ from the "
+                    "recorded scan's, and another set's directions are not more of the same: resume with the "
+                    "recorded options, or scan into another file")
 
     def _scan(self, writer: RawScanWriter, first: int) -> None:
         plan, ctl = self.plan, self.controller

@@ -3,12 +3,14 @@ sensor, faults that stop safely and keep the readings, a killed scan resumed to 
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
 
 from dipnet.core.grid import Grid
-from dipnet.core.rawscan import read_rawscan
+from dipnet.core.rawscan import RawScanFileError, read_rawscan
 from dipnet.evaluation.metrics import iou
 from dipnet.operators import make_operator
 from dipnet.preprocessing.preprocess import preprocess
@@ -92,6 +94,20 @@ def test_kill_and_resume_equals_uninterrupted(world, tmp_path):
     # a finished scan run again does nothing
     again = scan(world, "grbl", "modbus", plan, tmp_path / "resumed.jsonl")
     assert sum(o.n_readings for o in again.orientations) == sum(o.n_readings for o in clean.orientations)
+
+
+def test_a_resume_with_another_orientation_plan_names_the_options(world, tmp_path):
+    """``scan.py n_dips=10`` over a finished 6-dip scan (to add dips): before, "orientation 0 was recorded at (tilt,
+    spin) = (23.556464, 0.0), not as planned: use another file", which named neither the cause nor what to do."""
+    world.reset()
+    scan(world, "grbl", "level", plan_for(3, step=10.0), tmp_path / "scan.jsonl")
+    with pytest.raises(RawScanFileError) as info:
+        scan(world, "grbl", "level", plan_for(5, step=10.0), tmp_path / "scan.jsonl")
+    message = str(info.value)
+    assert re.search(r"orientation 0 was recorded at \(tilt, spin\) = \([\d.]+, 0.0\), where this run plans "
+                     r"\([\d.]+, 0\) \(5 orientations; the file's plan holds 3 orientations\): the orientation options "
+                     r"\(n_dips, orientations, seed, tilts, spins, max_tilt_deg\) differ", message), message
+    assert message.endswith("resume with the recorded options, or scan into another file")
 
 
 @pytest.mark.parametrize("protocol, message", [
