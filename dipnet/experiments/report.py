@@ -267,6 +267,10 @@ def run_mesh(job_dir: Path, name: str, formats: Sequence[str]) -> trimesh.Trimes
     return None
 
 
+#: Why a run's page has no result to show when its folder holds no ``reconstruction.npz``.
+NO_RESULT = "the run wrote no reconstruction.npz: it failed or did not finish"
+
+
 def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, metrics: dict[str, Any],
                 formats: Sequence[str] = ("ply",)) -> str:
     """The interactive view of the result: images (2D) or meshes cut open (3D), read in the run's mesh
@@ -288,7 +292,7 @@ def _shape_view(job_dir: Path, volume: dict[str, np.ndarray] | None, ndim: Any, 
         grid = Grid(int(volume["grid_n"]), 3, float(volume["grid_extent"]))
         recon = volume_to_mesh(volume["occupancy"], grid, float(volume["threshold"])).apply_translation(origin)
     if truth is None and recon is None:
-        return "<p class=note>no mesh in this run (empty reconstruction)</p>"
+        return f"<p class=note>no mesh in this run ({'empty reconstruction' if volume is not None else NO_RESULT})</p>"
     return _figure_html(mesh_figure(truth, recon, origin), "meshes")
 
 
@@ -362,7 +366,7 @@ def _loss_html(job_dir: Path, page_dir: Path, volume: dict[str, np.ndarray] | No
         return _figure_html(history_figure(history), "loss")
     if drawn and (job_dir / "loss.png").is_file():
         return _png(job_dir / "loss.png", "loss curves", page_dir)
-    return "<p class=note>no loss history (direct solver)</p>"
+    return f"<p class=note>no loss history ({'direct solver' if volume is not None else NO_RESULT})</p>"
 
 
 def write_run_report(job_dir: str | Path, path: str | Path | None = None) -> Path:

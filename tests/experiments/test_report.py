@@ -80,6 +80,17 @@ def test_a_direct_solver_run_does_not_show_an_earlier_runs_loss(tmp_path):
     assert "no loss history (direct solver); history.json and loss.png in this folder are an earlier run's" in text
 
 
+def test_a_failed_runs_page_says_it_failed_not_empty_or_direct(tmp_path):
+    """``python -m dipnet.report`` on a failed sweep job (``solver=voxel_learned resolution=16``: no
+    reconstruction.npz): before, its page said "no mesh in this run (empty reconstruction)" and "no loss history
+    (direct solver)", neither of which the run was."""
+    job = write_job(tmp_path / "job", solver="voxel_learned", n_dips=8, snr_db=None, seed=0, ndim=3, metrics=None,
+                    error="PriorMismatchError: the learned prior's weights were trained for a 64^3 grid")
+    text = report.write_run_report(job).read_text()
+    assert "empty reconstruction" not in text and "direct solver" not in text
+    assert text.count("the run wrote no reconstruction.npz: it failed or did not finish") == 2
+
+
 def test_2d_run_page_shows_images(tmp_path):
     job = write_job(tmp_path / "job", solver="lsmr", n_dips=6, snr_db=20.0, seed=1, ndim=2, resolution=16,
                     metrics={"iou": 0.7})
