@@ -322,6 +322,8 @@ def build_priors(spec: Mapping[str, Mapping] | None, volume_fraction: float | No
         weight = float(options.pop("weight", 0.0))
         if weight < 0:
             raise ValueError(f"prior {name!r} has a negative weight {weight}")
+        if not math.isfinite(weight):  # NaN passed the test above and ended as "the loss became nan: lower solver.lr"
+            raise ValueError(f"prior {name!r} has weight {weight}: a weight is a finite number >= 0 (0 = off) or 'auto'")
         if weight == 0:
             continue
         if name == "volume" and "fraction" not in options:

@@ -144,3 +144,8 @@ def test_build_priors_from_config():
         build_priors({"volume": 1.0})
     with pytest.raises(ValueError, match="negative"):
         build_priors({"tv": -1.0})
+    # solver.priors.tv.weight=nan (or inf): before, "voxel 8^3: the loss became nan at step 1 of 120 (learning
+    # rate 0.1): the optimisation diverged; try a lower solver.lr", blaming the learning rate
+    for weight in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"prior 'tv' has weight (nan|inf): a weight is a finite number >= 0"):
+            build_priors({"tv": {"weight": weight}})
