@@ -23,11 +23,20 @@ from dipnet.core.console import report
 from dipnet.jobs.tuning import DEFAULT_PARAMS, NoBestTrialError, Param, best_trial, check_study, tune
 
 
+def parse_param(text: str) -> Param:
+    """:meth:`Param.parse` for argparse: its reason in the error (argparse shows a ``ValueError`` as "invalid parse
+    value" alone)."""
+    try:
+        return Param.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of every job, e.g. solver=implicit n_dips=80")
     parser.add_argument("--trials", type=int, default=20, help="number of trials")
-    parser.add_argument("--param", action="append", type=Param.parse, metavar="KEY=LOW:HIGH[:log|linear]",
+    parser.add_argument("--param", action="append", type=parse_param, metavar="KEY=LOW:HIGH[:log|linear]",
                         help="a tuned option (repeat; default: the tv and binary prior weights in [1e-4, 1], log)")
     parser.add_argument("--out", type=Path, help="study directory (default: tune/<study name>)")
     parser.add_argument("--study-name", default="dipnet_prior_weights")

@@ -33,6 +33,7 @@ from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import check_snr_db
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.optimize import OptimisationSolver
+from dipnet.solvers.priors import prior_weight
 
 #: Hydra's own keys of a ``_target_`` node (not arguments of the target).
 HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_convert_"})
@@ -288,10 +289,27 @@ def check_thresholds(cfg: DictConfig) -> None:
                               f"(otsu, volume), got {level!r}")
 
 
+def check_prior_weights(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for a numeric prior weight of the solver (or of a solver it nests) that is negative,
+    NaN or infinite (:func:`~dipnet.solvers.priors.prior_weight`), before any work: ``tune.py --param
+    solver.priors.tv.weight=-1:1:linear`` would fail every trial that draws a negative weight."""
+    solver = cfg.get("solver")
+    for path, node in _target_nodes(solver, "solver") if isinstance(solver, DictConfig) else ():
+        priors = node.get("priors")
+        for name, options in (priors.items() if isinstance(priors, DictConfig) else ()):
+            weight = options.get("weight") if isinstance(options, DictConfig) else options
+            if isinstance(weight, (int, float)) and not isinstance(weight, bool):
+                try:
+                    prior_weight(str(name), weight)
+                except ValueError as exc:
+                    raise ConfigError(f"{path}.priors.{name}.weight: {exc}") from None
+
+
 def check_values(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for an option of :file:`conf/config.yaml` out of its range."""
     check_grid_options(cfg)
     check_thresholds(cfg)
+    check_prior_weights(cfg)
     check_target_counts(cfg)
     check_self_calibration(cfg)
     check_symmetry(cfg)

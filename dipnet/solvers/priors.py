@@ -304,6 +304,17 @@ PRIORS: dict[str, type[nn.Module]] = {
 }
 
 
+def prior_weight(name: str, weight: float) -> float:
+    """The numeric weight of prior ``name`` as a float; ``ValueError`` for a negative, NaN or infinite one (a NaN
+    passed a sign test and ended as "the loss became nan ... try a lower solver.lr")."""
+    weight = float(weight)
+    if weight < 0:
+        raise ValueError(f"prior {name!r} has a negative weight {weight}")
+    if not math.isfinite(weight):
+        raise ValueError(f"prior {name!r} has weight {weight}: a weight is a finite number >= 0 (0 = off) or 'auto'")
+    return weight
+
+
 def build_priors(spec: Mapping[str, Mapping] | None, volume_fraction: float | None = None
                  ) -> list[tuple[str, float, nn.Module]]:
     """``[(name, weight, module)]`` for the priors of ``spec`` with a non-zero weight.
@@ -319,11 +330,7 @@ def build_priors(spec: Mapping[str, Mapping] | None, volume_fraction: float | No
         if name not in PRIORS:
             raise ValueError(f"unknown prior {name!r}; choose from {sorted(PRIORS)}")
         options = {"weight": options} if isinstance(options, (int, float)) else dict(options)
-        weight = float(options.pop("weight", 0.0))
-        if weight < 0:
-            raise ValueError(f"prior {name!r} has a negative weight {weight}")
-        if not math.isfinite(weight):  # NaN passed the test above and ended as "the loss became nan: lower solver.lr"
-            raise ValueError(f"prior {name!r} has weight {weight}: a weight is a finite number >= 0 (0 = off) or 'auto'")
+        weight = prior_weight(name, options.pop("weight", 0.0))
         if weight == 0:
             continue
         if name == "volume" and "fraction" not in options:

@@ -115,6 +115,10 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
                              r"\(otsu, volume\), got 2.0"),
     ("solver.threshold=0", r"solver.threshold must be an occupancy level in \(0, 1\).*got 0"),
     ("solver=implicit_learned solver.warm_start.threshold=-1", r"solver.warm_start.threshold must be .*got -1"),
+    # a NaN weight ran, and ended as "the loss became nan ... try a lower solver.lr"
+    ("solver=voxel solver.priors.tv.weight=nan", r"solver.priors.tv.weight: prior 'tv' has weight nan: a weight is a "
+                                                 r"finite number >= 0 \(0 = off\) or 'auto'"),
+    ("solver=implicit solver.priors.l1.weight=-2", r"solver.priors.l1.weight: prior 'l1' has a negative weight -2.0"),
     ("symmetry={n_fold:3,mirror:maybe}", "symmetry.mirror must be true or false, got 'maybe'"),
     ("symmetry={n_fold:2.5}", r"symmetry.n_fold must be a positive integer \(rotations about z\), got 2.5"),
     ("symmetry={n_fold:3,mirorr:true}", "unknown option symmetry.mirorr: .*did you mean symmetry.mirror"),

@@ -102,6 +102,23 @@ def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, 
         tuning.tune(tmp_path / "study", n_trials=int(argv[1]), overrides=argv[2:])
 
 
+def test_a_range_of_negative_prior_weights_or_a_bad_range_is_refused_with_its_reason(tmp_path, capsys, tune_script):
+    """``--param solver.priors.tv.weight=-1:1:linear``: before, the study ran, every trial drawing a negative weight
+    failing alike; ``--param solver.lr=1:0.1`` (or ``=0:1`` on the log scale) said only "invalid parse value"."""
+    argv = ["--trials", "2", "--out", str(tmp_path / "study")]
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main([*argv, "--param", "solver.priors.tv.weight=-1:1:linear"])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == "error: solver.priors.tv.weight: prior 'tv' has a negative weight -1.0\n"
+    for text in ("solver.lr=1:0.1", "solver.priors.tv.weight=0:1"):
+        with pytest.raises(SystemExit) as exit_:
+            tune_script.main([*argv, "--param", text])
+        assert exit_.value.code == 2
+        assert capsys.readouterr().err.endswith(f"error: argument --param: {text!r}: need LOW < HIGH (and LOW > 0 on a "
+                                                "log scale)\n")
+    assert not (tmp_path / "study").exists()
+
+
 def test_a_negative_number_of_random_trials_is_refused_before_any_trial(tmp_path, capsys, tune_script):
     """``--startup-trials -1`` was accepted and the study ran (Optuna took it for none)."""
     with pytest.raises(SystemExit) as exit_:
