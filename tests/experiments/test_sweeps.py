@@ -18,10 +18,10 @@ SCRIPT = ROOT / "scripts" / "reconstruct.py"
 TINY = ["ndim=2", "resolution=24", "output.figures=false", "output.progress=false"]
 
 
-def reconstruct(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+def reconstruct(*args: str, cwd: Path, returncode: int = 0) -> subprocess.CompletedProcess:
     proc = subprocess.run([sys.executable, str(SCRIPT), *args], cwd=cwd, capture_output=True, text=True,
                           timeout=240)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.returncode == returncode, proc.stderr[-3000:]
     return proc
 
 
@@ -42,10 +42,11 @@ def check_runs(runs: list[collect.Run], n_dips: list[int]) -> None:
 
 def test_basic_sweeper_runs_every_job_and_a_failing_one_does_not_stop_the_sweep(tmp_path):
     """One sweep (one subprocess, ~6 s of importing torch) of a failing job then two good ones: the
-    basic sweeper runs each, the job log says which finished, and the failure stops nothing."""
+    basic sweeper runs each, the job log says which finished, and the failure stops nothing; the sweep then exits 1
+    (the failed job named)."""
     sweep = tmp_path / "sweep"
     proc = reconstruct("-m", *TINY, "n_dips=0,6,12", "hydra/callbacks=job_log", f"hydra.sweep.dir={sweep}",
-                       cwd=tmp_path)
+                       cwd=tmp_path, returncode=1)
     runs = collect.collect_runs(sweep)
     log = proc.stdout + proc.stderr
     assert [r.status for r in runs] == ["failed", "ok", "ok"], [r.error for r in runs]
@@ -53,6 +54,8 @@ def test_basic_sweeper_runs_every_job_and_a_failing_one_does_not_stop_the_sweep(
     check_runs(runs[1:], [6, 12])  # the jobs after the failed one ran to the end
     assert "job 0 failed" in log and "job 1 done" in log and "job 2 done" in log, log[-3000:]
     assert "sweep finished: 2 of 3 jobs ok" in log, log[-3000:]
+    assert proc.stderr.rstrip().endswith(f"error: 1 of 3 jobs of the sweep in {sweep} failed or did not finish "
+                                         "(listed above, each with its error.txt): the sweep exits 1")
 
 
 @pytest.mark.skipif(importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None,
