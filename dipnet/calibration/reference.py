@@ -14,7 +14,7 @@ import torch
 
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
                                       State, _check_params, _warn_undetermined)
-from dipnet.calibration.moments import (GAUGE_REASONS, MIN_SPARE_CONDITIONS, TOLERANCE, DipMoments, KnownObject,
+from dipnet.calibration.moments import (BALANCE_SECTION_SD, GAUGE_REASONS, MIN_SPARE_CONDITIONS, TOLERANCE, DipMoments, KnownObject,
                                        confounded_heights, dip_moments, fit_drift, fit_moments, spare_conditions)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
@@ -287,6 +287,11 @@ def _name_the_size_trade(report: CalibrationReport, configured: float, known: Kn
 
 
 # ---------------------------------------------------------------------------- reference object
+BALANCE_SECTION = ("not estimated: a balance reads the displaced volume, which needs no section; the water line's "
+                   "rise (volume over section) uses the nominal one, and the other parameters' intervals carry its "
+                   f"error (sd {100 * BALANCE_SECTION_SD:.1f} %: the calibrated range +-20 %)")
+
+
 def _warn_misplaced(given: np.ndarray, fitted: list[float] | None, tolerance_mm: float) -> None:
     """Warn when a reference's fitted centre ``(3,)`` (mm, ``None``: on the spin axis, not fitted) is farther than
     ``tolerance_mm`` from the ``given`` one ``(3,)``: it is not mounted where stated."""
@@ -367,11 +372,14 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
                                            t0_sd_mm=start_height_tolerance_mm / 1.645,
                                            position_sd_mm=position_tolerance_mm / 1.645)
     _warn_misplaced(known.centroid, report.reference_centroid_mm, position_tolerance_mm)
-    _name_the_size_trade(report, initial.step_scale, known, "cross_section_mm2" in params)
+    levels = raw.header.quantity == "level_mm"  # a balance reads volumes: the section is neither needed nor shown
+    _name_the_size_trade(report, initial.step_scale, known, "cross_section_mm2" in params and levels)
+    if "cross_section_mm2" in params and not levels:
+        report.not_estimated["cross_section_mm2"] = BALANCE_SECTION
     if "cross_section_mm2" in params:
         rng = np.random.default_rng(seed)
         rises = np.asarray(moments.rise)  # mm of level per dip, drift removed
-        section = known.volume / rises.mean() if raw.header.quantity == "level_mm" else None
+        section = known.volume / rises.mean() if levels else None
         if section is not None:
             draws = [known.volume / rises[rng.integers(0, len(rises), len(rises))].mean() for _ in range(200)]
             state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=float(section)))
