@@ -53,7 +53,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "mm: its mounting); a ball mounted higher is a longer pivot, a ball off the spin axis shows "
                         "the spin zero to about this over its distance from the axis")
     p.add_argument("--max-residual", type=float, default=0.05,
-                   help="refuse when the ball's relative profile residual exceeds this")
+                   help="refuse when the ball's relative profile residual exceeds this and 1.5 times what the "
+                        "readings' own noise gives")
     p.add_argument("--output", type=Path, default=Path("rig_calibration.yaml"), help="calibration file (.yaml/.json)")
     return p.parse_args(argv)
 

@@ -181,6 +181,14 @@ def _slope_standard_error(t: np.ndarray, y: np.ndarray, slope: float) -> float:
     return _mad_sigma(y - slope * centred) / math.sqrt(float(np.dot(centred, centred)))
 
 
+def reading_sigma(values: np.ndarray) -> float:
+    """The white noise ``sigma`` of one dip's readings ``values`` ``(n,)`` (reading units), from the median absolute
+    deviation of their second differences (white noise of ``sigma`` gives ``sigma sqrt(6)``; the smooth rise and a
+    few spikes barely move the median); 0 with fewer than 3 readings."""
+    second = np.diff(np.asarray(values, dtype=np.float64), 2)
+    return _mad_sigma(second) / math.sqrt(6.0) if second.size else 0.0
+
+
 def _mad_sigma(x: np.ndarray) -> float:
     """The standard deviation of Gaussian values ``x`` from their median absolute deviation (outliers do not count)."""
     return MAD_TO_SIGMA * float(np.median(np.abs(x - np.median(x))))
@@ -278,8 +286,7 @@ def _rise(values: np.ndarray) -> np.ndarray:
     (the noise from the readings' own second differences, MAD).
     """
     spread = max(float(np.ptp(values)), 1e-300)
-    second = np.diff(values, 2)  # white noise of sigma gives second differences of sigma sqrt(6)
-    noise = _mad_sigma(second) / np.sqrt(6.0) if second.size else 0.0
+    noise = reading_sigma(values)
     tol = max(3.0 * noise, 1e-9 * spread)
     onset = onset_index(values, tol)
     level = values - values[: max(1, onset - 1)].mean()
