@@ -15,7 +15,8 @@ those the dips cannot determine (a centred ball's spin zero, by its symmetry) ar
 the reason and written under ``not_estimated`` with their configured values. A ball off the spin
 axis has its distance from the axis fitted: its fitted centre is printed and written as
 ``reference_centroid_mm``, with a warning when it is farther than ``--position-tolerance`` from
-``--centre`` (the ball is not mounted where stated).
+``--centre`` (the ball is not mounted where stated). The level sensor's lag is never estimated: a known one
+(``--sensor-lag``, s) is undone in every dip and written to the file.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from dipnet.calibration.model import DEFAULT_REFERENCE, PARAMETERS, to_calibrati
 from dipnet.calibration.reference import calibrate_reference, check_reference_options
 from dipnet.jobs.cli import user_errors
 from dipnet.jobs.warnings_once import log_warnings_once
+from dipnet.core.geometry import MAX_SENSOR_LAG_S, RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.preprocessing.recorded import read_scan
 from dipnet.core.calibration_file import save_calibration, scan_tank
@@ -52,6 +54,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="how well the ball's centre is known along each axis of the object frame (90%% half-width, "
                         "mm: its mounting); a ball mounted higher is a longer pivot, a ball off the spin axis shows "
                         "the spin zero to about this over its distance from the axis")
+    p.add_argument("--sensor-lag", type=float, default=0.0, metavar="S",
+                   help="the level sensor's time constant (s), undone in every dip and written to the file: never "
+                        "estimated, and a lag above about half the time per reading biases the step scale low")
     p.add_argument("--max-residual", type=float, default=0.05,
                    help="refuse when the ball's relative profile residual exceeds this and 1.5 times what the "
                         "readings' own noise gives")
@@ -62,11 +67,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 def check_options(args: argparse.Namespace) -> Ball:
     """The reference ball of ``args`` (``--ball-radius``, ``--centre``, mm) after refusing, with a
     ``ValueError`` naming the option, the numbers no calibration can use: a radius or centre not finite and
-    positive, ``--max-residual`` not above 0, a tolerance negative or NaN."""
+    positive, ``--max-residual`` not above 0, a tolerance negative or NaN, a sensor lag outside [0, 600] s."""
     if not all(math.isfinite(c) for c in args.centre):
         raise ValueError(f"--centre must be 3 finite coordinates (mm), got {' '.join(f'{c:g}' for c in args.centre)}")
     ball = Ball(args.ball_radius, center=tuple(args.centre))
     check_reference_options(args.max_residual, args.height_tolerance, args.position_tolerance)
+    if not 0 <= args.sensor_lag <= MAX_SENSOR_LAG_S:  # NaN fails too
+        raise ValueError(f"--sensor-lag must be a time constant in [0, {MAX_SENSOR_LAG_S:g}] s, got {args.sensor_lag:g}")
     return ball
 
 
@@ -84,7 +91,8 @@ def main(argv=None) -> int:
             raise ValueError(f"{args.scan} does not name its tank: pass --tank")
         reach = args.ball_radius + max(abs(c) for c in args.centre)
         grid = Grid(args.n, 3, extent=2.0 * (reach + 10.0))  # the check runs at the calibrated heights
-        geometry, report = calibrate_reference(raw, ball, grid, args.params, max_relative_residual=args.max_residual,
+        geometry, report = calibrate_reference(raw, ball, grid, args.params, initial=RigGeometry(sensor_lag_s=args.sensor_lag),
+                                               max_relative_residual=args.max_residual,
                                                start_height_tolerance_mm=args.height_tolerance,
                                                position_tolerance_mm=args.position_tolerance)
         fitted = report.reference_centroid_mm

@@ -325,6 +325,19 @@ def check_reference_options(max_relative_residual: float, start_height_tolerance
             raise CalibrationError(f"{name} must be >= 0 (mm), got {tolerance!r} (calibrate.py {flag})")
 
 
+def _lag_note(raw: RawScan, lag_s: float) -> str:
+    """Why the sensor lag is not estimated, and what an unknown one does to a reference's intervals, for a level
+    scan whose readings are ``dt`` s apart (the median over its dips) and a configured lag ``lag_s`` (s)."""
+    if lag_s > 0:
+        return f"not estimated: the configured {lag_s:g} s is undone in every dip (calibrate.py --sensor-lag)"
+    gaps = np.concatenate([np.diff(o.time_s) for o in raw.orientations])
+    dt = float(np.median(gaps)) if gaps.size else float("nan")
+    return ("not estimated, taken as 0: a lag delays every dip's rise alike, which the start height's tolerance "
+            f"carries, and spreads it, which no interval carries: above about half of this scan's {dt:.3g} s per "
+            "reading it puts the step scale low (a 1.5 s lag at 2 s per reading: 0.16 %, 4 standard errors). Give a "
+            "known lag (calibrate.py --sensor-lag), or let every reading settle longer")
+
+
 #: A reference's profile residual above ``max_relative_residual`` is still accepted within this factor of what the
 #: readings' own noise gives (:func:`noise_residual`): at 10 dB a 30 mm ball's profiles miss their true geometry by
 #: 0.06-0.10 (24 dips, 32^3-48^3), and the noise copy's residual was within 0.9-1.1 of the true geometry's from
@@ -399,6 +412,8 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
     _name_the_size_trade(report, initial.step_scale, known, "cross_section_mm2" in params and levels)
     if "cross_section_mm2" in params and not levels:
         report.not_estimated["cross_section_mm2"] = BALANCE_SECTION
+    if levels:
+        report.not_estimated["sensor_lag_s"] = _lag_note(raw, initial.sensor_lag_s)
     if "cross_section_mm2" in params:
         rng = np.random.default_rng(seed)
         rises = np.asarray(moments.rise)  # mm of level per dip, drift removed

@@ -349,7 +349,8 @@ def test_a_reference_of_another_size_than_given_is_named_with_the_step_scale():
     (["--centre", "nan", "0", "0"], "--centre must be 3 finite coordinates (mm), got nan 0 0"),
     (["--centre", "0", "inf", "0"], "--centre must be 3 finite coordinates (mm), got 0 inf 0"),
     (["--height-tolerance", "nan"], "start_height_tolerance_mm must be >= 0 (mm), got nan (calibrate.py --height-"),
-    (["--position-tolerance", "-1"], "position_tolerance_mm must be >= 0 (mm), got -1.0 (calibrate.py --position-")])
+    (["--position-tolerance", "-1"], "position_tolerance_mm must be >= 0 (mm), got -1.0 (calibrate.py --position-"),
+    (["--sensor-lag", "-1"], "--sensor-lag must be a time constant in [0, 600] s, got -1")])
 def test_calibrate_refuses_an_option_slip_before_reading_the_scan(tmp_path, monkeypatch, capsys, option, message):
     """The audit's cases: ``--max-residual -1`` failed after the whole fit ("residual 0.002 > -1.0"), ``--centre
     nan 0 0`` said "grid extent must be positive (mm), got nan". Now one ``error:`` line, exit 2, before the scan is
@@ -428,3 +429,29 @@ def test_a_noisy_balls_residual_is_judged_against_what_its_readings_noise_gives(
         assert report.residual_rms > 0.05
         with pytest.raises(CalibrationError, match=r"does not fit the dips.*readings' own noise gives about 0\.0[5-9]"):
             calibrate_reference(raw, Ball(24.0, center=(25.0, 0.0, 0.0)), grid)
+
+
+def test_calibrate_undoes_a_known_sensor_lag_and_names_an_unknown_one(tmp_path):
+    """The thirteenth audit's case: a level sensor with a 2 s time constant at 2 s per reading spreads every dip's
+    rise, which reads as a ball larger in stage steps: the step scale came out 0.30 % low, 7 standard errors off its
+    interval, and the report said a ball's intervals carry the lag. ``calibrate.py --sensor-lag 2`` now undoes it
+    (the step scale inside its interval, the lag written to the file); without it the report says what an unknown
+    lag does at this scan's time per reading."""
+    true = RigGeometry(pivot_mm=40.0, tilt_axis_offset_mm=-15.0, tilt_zero_deg=2.0, step_scale=1.01,
+                       sensor_lag_s=2.0)
+    raw = simulate_scan(Ball(30.0, center=(25.0, 0.0, 0.0)), fibonacci_hemisphere(40), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=30.0, seed=2), progress=False)
+    scan = raw.save(tmp_path / "ball.jsonl")
+    calibrate = load_script("calibrate")
+    cals = {}
+    for lag in ("0", "2"):
+        cals[lag] = tmp_path / f"cal{lag}.yaml"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            assert calibrate.main([str(scan), "--ball-radius", "30", "--centre", "25", "0", "0", "--tank", "t",
+                                   "--sensor-lag", lag, "--output", str(cals[lag])]) == 0
+    unknown, known = load_calibration(cals["0"]), load_calibration(cals["2"])
+    assert not unknown.intervals["step_scale"][1] >= 1.01  # the lag's spread, which no interval carries
+    assert "half of this scan's 2 s per reading" in unknown.not_estimated["sensor_lag_s"]
+    low, high = known.intervals["step_scale"]
+    assert low <= 1.01 <= high and known.geometry.sensor_lag_s == 2.0
