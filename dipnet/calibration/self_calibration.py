@@ -50,6 +50,20 @@ SECTION_MIN_RESOLUTION = 32
 SECTION_MIN_DIPS = 100
 
 
+def check_section_change(max_section_change: float | None) -> None:
+    """Raise :class:`CalibrationError` unless ``max_section_change`` is ``None`` or a fraction in (0, 1): a relative
+    change of 1 or more lets the section fall to nothing, so the guard is gone (``20`` meant as 20 % accepted any
+    section without a word)."""
+    if max_section_change is None:
+        return
+    value = max_section_change
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:  # NaN fails too
+        hint = (f" ({value:g} would accept any section; for {value:g} % give {value / 100:g})"
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and 1 <= value < math.inf else "")
+        raise CalibrationError(f"max_section_change must be a fraction in (0, 1) or null (the relative change of the "
+                               f"cross-section beyond which it is kept, e.g. 0.2), got {value!r}{hint}")
+
+
 def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_slabs: int | None = None,
                    operator_factory: Callable | None = None, smooth: bool = False, finish=None,
                    initial: RigGeometry | None = None, iterations: int = 1, dip_offset_sigma_mm: float | None = None,
@@ -103,8 +117,7 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     """
     if shape not in ("occupancy", "binary"):
         raise CalibrationError(f"shape must be 'occupancy' or 'binary', got {shape!r}")
-    if max_section_change is not None and not max_section_change > 0:
-        raise CalibrationError(f"max_section_change must be positive (relative), got {max_section_change!r}")
+    check_section_change(max_section_change)
     params = _check_params(params)
     initial = initial or RigGeometry()
     volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params else ()
@@ -182,6 +195,7 @@ class SelfCalibrator:
                  section_min_dips: int = SECTION_MIN_DIPS,
                  shape: str = "binary", dip_offset_sigma_mm: float | None = None, tank: str | None = None) -> None:
         self.params, self.iterations, self.gain_solver = tuple(params), int(iterations), gain_solver
+        check_section_change(max_section_change)
         self.max_section_change = None if max_section_change is None else float(max_section_change)
         self.section_min_resolution, self.section_min_dips = int(section_min_resolution), int(section_min_dips)
         self.shape = str(shape)

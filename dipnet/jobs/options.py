@@ -24,7 +24,8 @@ from typing import Any, NamedTuple
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from dipnet.calibration.self_calibration import SelfCalibrator
+from dipnet.calibration.model import CalibrationError
+from dipnet.calibration.self_calibration import SelfCalibrator, check_section_change
 from dipnet.core.keywords import accepted_keywords
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.preprocessing.sources import RecordedSource
@@ -229,6 +230,10 @@ def check_self_calibration(cfg: DictConfig) -> None:
             meaning=" (mm, the prior of each dip's height offset; null: no offsets)")
     _number(cfg, "calibration.max_section_change", positive=True, nullable=True,
             meaning=" (relative change of the cross-section)")
+    try:
+        check_section_change(OmegaConf.select(cfg, "calibration.max_section_change"))
+    except CalibrationError as exc:
+        raise ConfigError(f"calibration.{exc}") from None
     for key in ("section_min_resolution", "section_min_dips"):
         if OmegaConf.select(cfg, f"calibration.{key}", default=_UNSET) is not _UNSET:
             _integer(cfg, f"calibration.{key}", 0, meaning=" (0: trust the section at any grid and number of dips)")

@@ -204,9 +204,17 @@ def test_an_implausible_cross_section_is_named_and_kept():
         result = self_calibrate(raw, Grid(24, extent=80.0), VoxelSolver(iterations=60, progress=False),
                                 ("cross_section_mm2",), max_section_change=0.02)
     assert result.geometry.cross_section_mm2 is None and result.report.estimates["cross_section_mm2"] == 60000.0
-    with pytest.raises(CalibrationError, match="max_section_change must be positive"):
+    with pytest.raises(CalibrationError, match=r"max_section_change must be a fraction in \(0, 1\)"):
         self_calibrate(raw, Grid(16, extent=80.0), VoxelSolver(progress=False), ("cross_section_mm2",),
                        max_section_change=0.0)
+
+
+def test_a_section_change_given_in_percent_is_refused():
+    """The thirteenth audit's case: ``calibration.max_section_change=20`` meant as 20 % was taken as a relative
+    change of 2000 %, so the guard on the self-calibrated section (20-50 % by default) was gone without a word. A
+    change of 1 or more is refused, naming the fraction to give."""
+    with pytest.raises(CalibrationError, match=r"got 20 \(20 would accept any section; for 20 % give 0.2\)"):
+        SelfCalibrator(max_section_change=20)
 
 
 def test_the_gain_step_fixes_auto_prior_weights_at_the_rules_start():

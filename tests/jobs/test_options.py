@@ -128,6 +128,8 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
      r"calibration.dip_offset_sigma_mm must be a positive number or null \(mm, .*got -1"),
     ("calibration=self calibration.iterations=0", "calibration.iterations must be a positive integer .*got 0"),
     ("calibration=self calibration.max_section_change=0", "calibration.max_section_change must be a positive number"),
+    ("calibration=self calibration.max_section_change=20",
+     r"calibration.max_section_change must be a fraction in \(0, 1\) or null .*got 20 \(20 would accept any section"),
     ("solver=implicit solver.hidden_width=0",
      r"solver.hidden_width must be a positive integer \(neurons per hidden layer\), got 0"),
     ("solver=implicit solver.hidden_layers=-1", "solver.hidden_layers must be an integer >= 0 .*got -1"),
