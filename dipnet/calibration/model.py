@@ -21,8 +21,8 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
 from dipnet.operators import make_operator
-from dipnet.preprocessing.preprocess import preprocess
-from dipnet.preprocessing.readings import max_object_section, repair_readings
+from dipnet.preprocessing.preprocess import preprocess, repair_without_drift
+from dipnet.preprocessing.readings import max_object_section
 
 log = logging.getLogger(__name__)
 
@@ -173,11 +173,16 @@ class ProfileModel:
             :func:`~dipnet.operators.make_operator`, auto backend).
         smooth: the paper's 5-tap smoothing in preprocessing.
         finish: applied to every preprocessed measurement (e.g. the readers' symmetry expansion).
+        drift_mm_per_s: the level drift (mm/s) taken out of the readings while they are repaired (the moment
+            stage's estimate: :func:`~dipnet.preprocessing.preprocess.repair_without_drift`).
     """
 
     def __init__(self, raw: RawScan, grid: Grid, n_slabs: int | None = None,
-                 operator_factory: Callable | None = None, smooth: bool = False, finish: Callable[[DipMeasurement], DipMeasurement] | None = None) -> None:
-        self.raw, self.readings = repair_readings(raw, max_cross_section=max_object_section(grid))  # once, not per trial
+                 operator_factory: Callable | None = None, smooth: bool = False, finish: Callable[[DipMeasurement], DipMeasurement] | None = None,
+                 drift_mm_per_s: float = 0.0) -> None:
+        self.raw, self.readings = repair_without_drift(raw, drift_mm_per_s,  # once, not per trial
+                                                       max_cross_section=max_object_section(grid))
+        self.drift_mm_per_s = float(drift_mm_per_s)
         self.grid, self.finish = grid, finish
         self.n_slabs = grid.n if n_slabs is None else int(n_slabs)
         self.operator_factory, self.smooth = operator_factory or make_operator, smooth

@@ -50,8 +50,8 @@ import torch
 
 from dipnet.core.geometry import RigGeometry, scan_geometry
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips
-from dipnet.preprocessing.preprocess import onset_index
-from dipnet.preprocessing.readings import MAD_TO_SIGMA, repair_readings
+from dipnet.preprocessing.preprocess import onset_index, repair_without_drift
+from dipnet.preprocessing.readings import MAD_TO_SIGMA
 
 log = logging.getLogger(__name__)
 
@@ -242,12 +242,14 @@ def _robust_slope(t: np.ndarray, y: np.ndarray) -> float:
 
 
 def dip_moments(raw: RawScan, geometry: RigGeometry) -> DipMoments:
-    """The moment sums of every complete dip, with drift and lag of ``geometry`` undone.
+    """The moment sums of every complete dip, with drift and lag of ``geometry`` undone (its outlier readings
+    repaired with the drift taken out,
+    :func:`~dipnet.preprocessing.preprocess.repair_without_drift`).
 
     Raises ``ValueError`` naming a dip whose level never rises or that has no rig angles.
     """
     applied = scan_geometry(raw.header)
-    repaired, _ = repair_readings(raw)
+    repaired, _ = repair_without_drift(raw, geometry.level_drift_mm_per_s)
     nominal = float(raw.header.tank_cross_section_mm2 or 1.0)
     rows = []
     for o in complete_dips(repaired):

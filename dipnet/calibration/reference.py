@@ -340,8 +340,8 @@ def _lag_note(raw: RawScan, lag_s: float) -> str:
 
 #: A reference's profile residual above ``max_relative_residual`` is still accepted within this factor of what the
 #: readings' own noise gives (:func:`noise_residual`): at 10 dB a 30 mm ball's profiles miss their true geometry by
-#: 0.06-0.10 (24 dips, 32^3-48^3), and the noise copy's residual was within 0.9-1.1 of the true geometry's from
-#: 10 to 40 dB (the profiles' own estimate under-read it 2-4 times).
+#: 0.06-0.10 (24 dips, 32^3-48^3), and the noise copy's residual was 0.83-1.12 times the true geometry's from
+#: 10 to 40 dB (16-60 dips, 48^3; the profiles' own estimate under-read it up to 4 times).
 NOISE_FACTOR = 1.5
 
 
@@ -356,7 +356,8 @@ def noise_residual(model: ProfileModel, state: State, seed: int = 0) -> float:
         replace(o, values=o.values + rng.normal(0.0, reading_sigma(o.values), o.values.shape))
         for o in model.raw.orientations])
     measured = model.measurement(state).profiles.numpy().reshape(-1)
-    again = ProfileModel(noisy, model.grid, model.n_slabs, model.operator_factory, model.smooth).measurement(state)
+    again = ProfileModel(noisy, model.grid, model.n_slabs, model.operator_factory, model.smooth,
+                         drift_mm_per_s=model.drift_mm_per_s).measurement(state)
     return float(np.linalg.norm(again.profiles.numpy().reshape(-1) - measured) / max(np.linalg.norm(measured), 1e-300))
 
 
@@ -423,7 +424,7 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
             state = replace(state, geometry=state.geometry.with_values(cross_section_mm2=float(section)))
             _record(report, "cross_section_mm2", float(section), tuple(np.percentile(draws, [5, 95])),
                     float(np.std(draws)), MODEL_FLOOR["reference"]["cross_section_mm2"] * section)
-    model = ProfileModel(raw, grid, n_slabs, operator_factory)
+    model = ProfileModel(raw, grid, n_slabs, operator_factory, drift_mm_per_s=state.geometry.level_drift_mm_per_s)
     occupancy = _placed_occupancy(shape, known, report.reference_centroid_mm, grid, supersample)
     measured = model.measurement(state).profiles.numpy().reshape(-1)
     fit = float(np.linalg.norm(model.residual(state, occupancy, 1.0)) / max(np.linalg.norm(measured), 1e-300))

@@ -53,6 +53,7 @@ import logging
 import math
 import numbers
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -98,6 +99,28 @@ def slab_edges(grid: Grid, n_slabs: int | None = None) -> np.ndarray:
     """The operator's slab edges for ``grid``: ``[-L/2, L/2]`` in ``M`` slabs, ``(M + 1,)`` mm
     (``M`` = ``n_slabs``, default ``grid.n``; :func:`~dipnet.core.grid.slab_count` checks it)."""
     return np.linspace(-grid.extent / 2, grid.extent / 2, slab_count(grid, n_slabs) + 1)
+
+
+def level_drift_removed(raw: RawScan, drift_mm_per_s: float) -> RawScan:
+    """A copy of a level scan ``raw`` whose readings drift ``drift_mm_per_s`` (mm/s) less (its readings' time from
+    the session start); ``raw`` itself for a balance or no drift."""
+    if not drift_mm_per_s or raw.header.quantity != "level_mm":
+        return raw
+    return replace(raw, orientations=[replace(o, values=o.values - drift_mm_per_s * o.time_s)
+                                      for o in raw.orientations])
+
+
+def repair_without_drift(raw: RawScan, drift_mm_per_s: float, **options) -> tuple[RawScan, ReadingsReport]:
+    """:func:`~dipnet.preprocessing.readings.repair_readings` (``options``) on a level scan's readings with the level
+    drift ``drift_mm_per_s`` (mm/s) taken out, which is then put back: the copy and the report.
+
+    A level that drifts by more than the noise over a dip's rest readings leaves the dip's first readings below
+    its start, which the range test takes for outliers: a hammer of 2,000 mm^3 in a tank of 84,000 mm^2 with a
+    drift of -3e-5 mm/s (1.4 mm over the session) had 86 of its 100 dips rejected and 103 readings repaired, and
+    calibration went on from the other 14.
+    """
+    repaired, report = repair_readings(level_drift_removed(raw, drift_mm_per_s), **options)
+    return level_drift_removed(repaired, -drift_mm_per_s), report
 
 
 def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: int | None = None,

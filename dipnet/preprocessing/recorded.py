@@ -46,10 +46,10 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.preprocessing.preprocess import preprocess
+from dipnet.preprocessing.preprocess import level_drift_removed, preprocess, repair_without_drift
 from dipnet.core.rawscan import (OrientationScan, RawScan, RawScanFileError, ScanHeader, check_level_unit,
                                  complete_dips, read_rawscan)
-from dipnet.preprocessing.readings import max_object_section, repair_readings
+from dipnet.preprocessing.readings import max_object_section
 from dipnet.core.calibration_file import scan_calibration
 from dipnet.core.geometry import RigGeometry, as_geometry, invert_scan, scan_geometry
 from dipnet.preprocessing.symmetry import apply_symmetry, expand_symmetry, symmetry_group  # noqa: F401 (re-exported)
@@ -364,9 +364,10 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     """A recording made ready for :func:`~dipnet.core.geometry.invert_scan` and preprocessing.
 
     Reads the file, keeps complete dips (:func:`dipnet.core.rawscan.complete_dips`, with a warning
-    for the others), repairs outlier readings or rejects their dips
-    (:func:`dipnet.preprocessing.readings.repair_readings`, with ``max_cross_section`` mm^2 capping the physical
-    rise per step; reported in ``info["readings"]``), resolves the geometry (``geometry`` values or a ``calibration`` file),
+    for the others), resolves the geometry (``geometry`` values or a ``calibration`` file), repairs outlier readings
+    or rejects their dips with its level drift taken out (:func:`~dipnet.preprocessing.preprocess.
+    repair_without_drift`, with ``max_cross_section`` mm^2 capping the physical rise per step; reported in
+    ``info["readings"]``; the truncated dips are found with that drift taken out too),
     subtracts a fixture recording (in the rig's commanded coordinates with the geometry's
     cross-section), keeps complete dips, drops or keeps truncated ones and, when the recording
     does not know its start height (the authors' CSV), gives every dip ``t_start_mm = t0``
@@ -383,7 +384,6 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
         raise ValueError(f"{path}: a {raw.header.ndim}D recording (its header's ndim) for a {ndim}D grid: "
                          f"set ndim={raw.header.ndim}")
     raw.orientations = complete_dips(raw)
-    raw, readings = repair_readings(raw, max_cross_section=max_cross_section)
     if calibration is not None and as_geometry(geometry) != RigGeometry():
         raise ValueError("give the rig geometry either as a calibration file or as values, not both")
     if calibration is not None:
@@ -391,6 +391,8 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
         if cross_section_mm2 is not None:
             geometry = geometry.with_values(cross_section_mm2=float(cross_section_mm2))
     geometry = as_geometry(geometry)
+    # with the level drift taken out: a drift over a dip's rest readings passes for outliers
+    raw, readings = repair_without_drift(raw, geometry.level_drift_mm_per_s, max_cross_section=max_cross_section)
     if calibration is None and geometry.is_ideal:
         _warn_recorded_geometry_unused(raw, path)
     area = geometry.area(raw.header.tank_cross_section_mm2 or 0.0)
@@ -398,7 +400,7 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
         raise ValueError(f"{path}: the tank cross-section is unknown: set cross_section_mm2")
     if fixture is not None:
         raw = subtract_fixture(raw, read_scan(fixture, cross_section_mm2), area)
-    cut = truncated_orientations(raw, tail_fraction, tail_tol)
+    cut = truncated_orientations(level_drift_removed(raw, geometry.level_drift_mm_per_s), tail_fraction, tail_tol)
     info: dict = {"truncated": cut, "truncated_policy": truncated, "geometry": geometry.to_dict(),
                   "readings": readings.to_json()}
     if truncated == "drop":

@@ -67,3 +67,17 @@ def grid_ball_scans(seeds):
                                         geometry=true, sensor=LevelSensor(snr_db=30.0, seed=seed), progress=False)))
     return out
 
+
+
+#: A level drift over a small object's rise (the thirteenth audit's hammer): 1.4 mm over its 13-hour session of 100
+#: dips, where the hammer (2,000 mm^3 in an 84,000 mm^2 tank) rises the level by 0.024 mm.
+DRIFTING = RigGeometry(pivot_mm=-120.0, tilt_axis_offset_mm=30.0, tilt_zero_deg=-8.0, level_drift_mm_per_s=-3e-5)
+
+
+def drifting_hammer_scan(n_dips: int):
+    """The bundled hammer (radius 40 mm) dipped ``n_dips`` times at 30 dB on the rig :data:`DRIFTING`."""
+    from dipnet.preprocessing.datasets import mesh_path
+    from dipnet.shapes import load_mesh
+
+    return simulate_scan(load_mesh(mesh_path("hammer"), radius=40.0), fibonacci_hemisphere(n_dips),
+                         tank=Tank(84000.0), geometry=DRIFTING, sensor=LevelSensor(snr_db=30.0, seed=1), progress=False)
