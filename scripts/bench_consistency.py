@@ -44,7 +44,6 @@ import json
 import logging
 from collections.abc import Callable
 import warnings
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -58,7 +57,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.consistency import RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS, allowed_residual, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.experiments.shape_pool import shape_makers, shape_names
+from dipnet.experiments.shape_pool import add_pool_options, shape_makers, shape_names
 from dipnet.jobs.tuning import compose_job
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
@@ -90,14 +89,9 @@ def rules() -> dict[str, Callable[[dict], float]]:
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--trials", type=int, default=10, help="random scans per shape")
-    p.add_argument("--shapes", nargs="+", metavar="NAME", help="the shapes to dip (default: all; names as in the "
-                   "rows, e.g. ball_3d elephant_2d bunny)")
-    p.add_argument("--resolution", type=int, default=24, help="voxels per axis of the 3D grid (2D: twice as many "
-                   "pixels)")
-    p.add_argument("--seed", type=int, default=2026)
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--json", type=Path, help="also write every checked result's row to this JSON file")
+    add_pool_options(p, trials=10, resolution=24, shapes_help="the shapes to dip (default: all; names as in the rows, "
+                     "e.g. ball_3d elephant_2d bunny)", resolution_help="voxels per axis of the 3D grid (2D: twice as "
+                     "many pixels)", json_help="also write every checked result's row to this JSON file")
     p.add_argument("--quick", action="store_true", help=f"2 scans of {len(QUICK_SHAPES)} shapes")
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values

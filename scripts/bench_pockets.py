@@ -29,7 +29,6 @@ import argparse
 import json
 import logging
 import warnings
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -41,7 +40,7 @@ from dipnet.core.grid import Grid
 from dipnet.evaluation.consistency import LEVEL_DROP_TOL, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.experiments.shape_pool import shape_makers, shape_names
+from dipnet.experiments.shape_pool import add_pool_options, shape_makers, shape_names
 from dipnet.jobs.tuning import compose_job
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.pockets import Pockets
@@ -58,15 +57,10 @@ JOB = ["solver=voxel", "output.progress=false"]
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--trials", type=int, default=1, help="random scans per shape")
-    p.add_argument("--shapes", nargs="+", metavar="NAME", help="the 3D shapes to dip (default: all; e.g. "
-                   "chamber_box_3d boot)")
+    add_pool_options(p, trials=1, resolution=32, shapes_help="the 3D shapes to dip (default: all; e.g. chamber_box_3d "
+                     "boot)", json_help="also write every case's row to this JSON file")
     p.add_argument("--dips", type=int, nargs=2, default=list(DIPS), metavar=("LOW", "HIGH"),
                    help="the range of the number of dips")
-    p.add_argument("--resolution", type=int, default=32, help="voxels per axis of the grid")
-    p.add_argument("--seed", type=int, default=2026)
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
-    p.add_argument("--json", type=Path, help="also write every case's row to this JSON file")
     p.add_argument("--quick", action="store_true", help=f"{len(QUICK_SHAPES)} shapes at 24^3, 20-30 dips")
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values

@@ -6,7 +6,9 @@ mesh by its stem (``bunny``, ``hammer``, ...), ``disk_2d``, ``chamber_box_2d``, 
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable
+from pathlib import Path
 
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.shapes import builtin_shape, shape_from_file
@@ -36,3 +38,16 @@ def shape_names(names: list[str] | None = None, ndim: int | None = None) -> list
     if unknown:
         raise ValueError(f"--shapes: no shape named {', '.join(unknown)} (known: {', '.join(makers)})")
     return [name for name in makers if names is None or name in names]
+
+
+def add_pool_options(parser: argparse.ArgumentParser, *, trials: int, resolution: int, shapes_help: str,
+                     resolution_help: str = "voxels per axis of the grid",
+                     json_help: str = "also write every row to this JSON file") -> None:
+    """Add the options of a benchmark over random scans of the pool to ``parser``: ``--trials`` (scans per shape),
+    ``--shapes``, ``--resolution``, ``--seed`` (2026), ``--threads`` (2) and ``--json``."""
+    parser.add_argument("--trials", type=int, default=trials, help="random scans per shape")
+    parser.add_argument("--shapes", nargs="+", metavar="NAME", help=shapes_help)
+    parser.add_argument("--resolution", type=int, default=resolution, help=resolution_help)
+    parser.add_argument("--seed", type=int, default=2026)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--json", type=Path, help=json_help)

@@ -26,3 +26,15 @@ def test_an_unknown_name_or_one_of_another_dimension_is_named_with_the_known_one
     with pytest.raises(ValueError, match="no shape named disk_2d"):
         shape_names(["disk_2d"], ndim=3)
     assert shape_names(["bunny", "ball_3d"]) == ["ball_3d", "bunny"]
+
+
+def test_the_pool_options_parse_with_their_defaults():
+    import argparse
+
+    from dipnet.experiments.shape_pool import add_pool_options
+
+    parser = argparse.ArgumentParser()
+    add_pool_options(parser, trials=3, resolution=24, shapes_help="shapes")
+    args = parser.parse_args(["--shapes", "bunny", "ball_3d", "--json", "rows.json"])
+    assert (args.trials, args.resolution, args.seed, args.threads) == (3, 24, 2026, 2)
+    assert args.shapes == ["bunny", "ball_3d"] and str(args.json) == "rows.json"
