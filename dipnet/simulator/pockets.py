@@ -33,10 +33,10 @@ Empty cells the grid cannot reach from the border at all (a channel narrower tha
 voxels; a truly sealed void is solid in every dipnet shape already) are taken as wet, with a warning to
 raise ``resolution``.
 
-Objects without such cavities are unchanged (a ball, a box, a torus; the bundled animals trap at most
-0.03 % of their volume). The built-in chamber box, whose chamber opens through one channel, traps 5 % of its
-volume as air on average over random directions, up to 17 %, and its chamber is a vessel in others
-(measured at 64 cells: :func:`cavity_shares`).
+Objects without such cavities are unchanged (a ball, a box, a torus, through-holes; the bundled animals trap at
+most 0.01 % of their volume). The built-in chamber box, whose chamber opens through one channel, traps 5 % of its
+volume as air on average over random directions (up to 14 %), and holds a vessel of 6 % on average (up to 14 %);
+the bundled boot up to 2.3 % (64 cells; ``scripts/bench_pockets.py``, docs/benchmarks/pockets.md).
 """
 
 from __future__ import annotations
