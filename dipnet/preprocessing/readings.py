@@ -121,13 +121,12 @@ def _physical_fall(stage: np.ndarray, values: np.ndarray, sigma_model: float, qu
     """The last reading before a fall that lasts (:func:`~dipnet.preprocessing.level_trend.level_drop`) when the
     readings rose to it as a level can (by at most ``tol + rho * stage travel`` between the :data:`FALL_WINDOW`
     readings before it and the ones before those), else -1: a burst of high readings falls back too, but jumped
-    up first."""
+    up first. A fall within the first ``2 FALL_WINDOW`` readings is a burst: the object is still above the water
+    there (it starts a clearance above it), so no cavity of it can flood."""
     drop, at = level_drop(values, sigma_model, quantum)
-    if not drop > 0:
-        return -1
     first = at - 2 * FALL_WINDOW + 1
-    if first < 0:
-        return at
+    if not drop > 0 or first < 0:
+        return -1
     before, earlier = values[at - FALL_WINDOW + 1: at + 1], values[first: at - FALL_WINDOW + 1]
     rise = float(np.median(before) - np.median(earlier))
     travel = float(np.median(stage[at - FALL_WINDOW + 1: at + 1]) - np.median(stage[first: at - FALL_WINDOW + 1]))

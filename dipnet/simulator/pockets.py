@@ -42,7 +42,8 @@ the bundled boot up to 2.3 % (64 cells; ``scripts/bench_pockets.py``, docs/bench
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy import ndimage
@@ -70,15 +71,22 @@ class Pockets:
         self.resolution = int(self.resolution)
 
 
-def as_pockets(pockets: Pockets | bool | None) -> Pockets | None:
-    """``pockets`` as a :class:`Pockets` or ``None`` (off): ``True`` is the default model, ``False`` / ``None`` off."""
+def as_pockets(pockets: Pockets | Mapping | bool | None) -> Pockets | None:
+    """``pockets`` as a :class:`Pockets` or ``None`` (off): ``True`` is the default model, a mapping its fields
+    (``{resolution: 96}`` in a config), ``False`` / ``None`` off."""
     if pockets is None or pockets is False:
         return None
     if pockets is True:
         return Pockets()
     if isinstance(pockets, Pockets):
         return pockets
-    raise ValueError(f"pockets must be true, false, null or a Pockets, got {type(pockets).__name__} {pockets!r}")
+    if isinstance(pockets, Mapping):
+        unknown = sorted(set(pockets) - {f.name for f in fields(Pockets)})
+        if unknown:
+            raise ValueError(f"pockets: unknown option(s) {', '.join(map(str, unknown))} (it takes resolution)")
+        return Pockets(**dict(pockets))
+    raise ValueError(f"pockets must be true, false, null or {{resolution: cells per axis}}, got "
+                     f"{type(pockets).__name__} {pockets!r}")
 
 
 class CavityGrid:

@@ -100,5 +100,8 @@ def test_the_pockets_option_takes_a_flag_or_a_model():
     assert as_pockets(None) is None and as_pockets(False) is None
     assert as_pockets(True) == Pockets()
     assert as_pockets(Pockets(32)).resolution == 32
-    with pytest.raises(ValueError, match="pockets must be true, false, null or a Pockets"):
+    assert as_pockets({"resolution": 96}) == Pockets(96)  # a config's {resolution: 96}
+    with pytest.raises(ValueError, match="unknown option\\(s\\) cells"):
+        as_pockets({"cells": 96})
+    with pytest.raises(ValueError, match="pockets must be true, false, null or \\{resolution"):
         as_pockets("yes")
