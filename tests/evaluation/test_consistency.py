@@ -9,7 +9,7 @@ import torch
 
 from dipnet.core.strict_json import dumps
 from dipnet.evaluation.consistency import (NOISE_RATIO_MAX, RESIDUAL_FLOOR, DataConsistencyWarning, allowed_residual,
-                                          check_consistency, estimate_slab_sigma)
+                                          check_consistency, estimate_slab_sigma, estimated_slab_noise)
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import make_operator
@@ -458,7 +458,7 @@ def test_a_coarse_level_sensor_is_named_and_not_blamed_on_the_rig():
             result = check_consistency(measurement, operator, truth)
         results[quantum] = result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
     plain, messages = results[0.0]
-    assert math.isnan(plain.quantum_volume_mm3) and not any("resolution" in m for m in messages)
+    assert math.isnan(plain.quantum_volume_mm3) and not any("level sensor's resolution" in m for m in messages)
     coarse, messages = results[0.5]
     assert coarse.quantum_volume_mm3 == pytest.approx(30000.0) and coarse.verdict == "inconsistent"
     assert sum("the level sensor's resolution (0.5 mm = 3e+04 mm^3 per reading) is coarse against a mean slab"
@@ -624,3 +624,49 @@ def test_dips_that_measure_more_than_the_rest_are_named_as_trapped_air(problem):
         assert (result.excess_total_dips == 3) == named
         assert any("measure more than the median dip, by up to 3.0%" in m for m in messages) == named
     assert result.excess_total_share == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_readings_noise_bounds_an_estimate_that_holds_the_profiles_signal():
+    """Coarse slabs of a noise-free object: the profiles' own noise estimate is mostly their curvature, and sqrt(2)
+    times one reading's noise (a slab is the difference of two readings) is the smaller bound; without readings,
+    or with readings noisier than the profiles, the profiles' estimate stays."""
+    heights = torch.linspace(-1.0, 1.0, 9, dtype=torch.float64)
+    profiles = (100.0 * (1.0 - heights ** 2) * (1.0 + heights ** 3)).clamp(min=0.0).repeat(4, 1)  # lumpy, noise-free
+    curvature = estimate_slab_sigma(profiles)
+    assert curvature > 1.0
+    assert estimated_slab_noise(profiles, {"reading_noise_volume": 0.5}) == (pytest.approx(math.sqrt(2) * 0.5),
+                                                                              "readings")
+    assert estimated_slab_noise(profiles, {}) == (curvature, "estimated")
+    assert estimated_slab_noise(profiles, {"reading_noise_volume": None}) == (curvature, "estimated")
+    assert estimated_slab_noise(profiles, {"reading_noise_volume": curvature}) == (curvature, "estimated")
+
+
+def test_a_sparsity_prior_that_wrecks_the_shape_is_inconsistent_by_its_residual():
+    """The chamber box at 24^3 from 30 noise-free dips, solved by the job's voxel solver with a sparsity prior of
+    weight 5: IoU 0.58, binary residual 0.165. Its profiles' own noise estimate (0.04 of their norm, their
+    curvature on 4 mm slabs) set the limit to 0.177, and the result passed as consistent; the readings' noise
+    (0.0005) leaves the grid's own error, 0.125, and the residual is named. Without the prior (IoU 0.88) the
+    residual, 0.073, stays below it."""
+    from hydra.utils import instantiate
+
+    from dipnet.evaluation.metrics import iou
+    from dipnet.jobs.tuning import compose_job
+    from dipnet.shapes import builtin_shape
+
+    grid = Grid(24, 3, 100.0)
+    directions = fibonacci_hemisphere(30)
+    operator = make_operator(grid, directions)
+    shape = builtin_shape("chamber_box", 3, radius=0.9 * grid.radius)
+    _, measurement = simulate_measurement(shape, directions, grid=grid, progress=False)
+    truth = shape.occupancy(grid, supersample=3).numpy() > 0.5
+    results = {}
+    for weight in (0, 5):
+        cfg = compose_job(["solver=voxel", f"solver.priors.transform_l1.weight={weight}", "output.progress=false"])
+        recon = instantiate(cfg.solver, seed=0).solve(measurement, operator)
+        results[weight] = iou(recon.binary, truth), check_consistency(measurement, operator, recon, warn=False)
+    (good_iou, good), (bad_iou, bad) = results[0], results[5]
+    assert bad_iou < 0.7 < 0.85 < good_iou
+    assert bad.noise_source == good.noise_source == "readings" and bad.profile_residual_expected < 0.002
+    assert bad.residual_limit == pytest.approx(0.125, rel=1e-3)
+    assert good.profile_residual < bad.residual_limit < bad.profile_residual
+    assert any(m.startswith("the binary shape misses its data") for m in bad.warnings)
