@@ -6,8 +6,9 @@
     python scripts/tune.py --storage sqlite:///optuna.db      # resume or share a study
     python scripts/compare.py tune/dipnet_prior_weights       # tabulate the trials
 
-Trial ``i`` runs in ``<out>/<i>``; the best values go to ``<out>/best.yaml``
-(:mod:`dipnet.jobs.tuning`). An ``--out`` that already holds a study is refused (exit 2) unless
+Trial ``i`` runs in ``<out>/<i>``; the best values go to ``<out>/best.yaml`` with the best trial's consistency
+verdict: a trial whose result is ``inconsistent`` with its dips ranks behind every consistent one, and a best
+trial that is inconsistent is named with a warning (:mod:`dipnet.jobs.tuning`). An ``--out`` that already holds a study is refused (exit 2) unless
 ``--storage`` continues that study.
 """
 
@@ -61,7 +62,9 @@ def main(argv: list[str] | None = None) -> int:
         report(f"error: {exc}")
         return 1
     best = best_trial(study, out)
-    print(f"best chamfer {best.value:.5f} (trial {best.number}): {best.params}; written to {out / 'best.yaml'}")
+    verdict = best.user_attrs.get("consistency") or "no consistency verdict"
+    print(f"best chamfer {best.value:.5f} (trial {best.number}, {verdict}): {best.params}; "
+          f"written to {out / 'best.yaml'}")
     return 0
 
 

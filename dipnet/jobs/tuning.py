@@ -5,7 +5,12 @@ config (``conf/config.yaml`` with the base overrides and the trial's values, Hyd
 API), runs it (:func:`dipnet.jobs.pipeline.run`) into ``<out>/<trial number>``, and tells the
 study its Chamfer distance (truth bounding-box diagonals). A job that raises is a failed trial
 (its message in ``error.txt``) and the study goes on; a job whose reconstruction is empty is scored
-(Chamfer 1, so the sampler avoids its values) but is never the best. Each trial directory holds
+(Chamfer 1, so the sampler avoids its values) but is never the best. Each trial records the job's
+consistency verdict (:mod:`dipnet.evaluation.consistency`: does the result explain its own dips?), and
+the best trial is the consistent one of lowest Chamfer: a trial that is ``inconsistent`` with its dips
+ranks behind every consistent one (on real data, without a truth, that check is all a user has), and
+``best.yaml`` names its verdict, and the lowest-Chamfer trial when ranking passed it over
+(:func:`best_trial`). Each trial directory holds
 ``.hydra/config.yaml`` and ``.hydra/overrides.yaml`` like a Hydra sweep job, so
 ``scripts/compare.py <out>`` tabulates a study. An ``<out>`` that already holds a study is refused
 unless this run continues it (:func:`check_out`). Needs the ``sweeps`` extra (``optuna>=3``).
@@ -75,22 +80,34 @@ def _save_job_config(cfg: DictConfig, overrides: list[str], out: Path) -> None:
     OmegaConf.save(OmegaConf.create(list(overrides)), out / ".hydra" / "overrides.yaml")
 
 
-def run_trial(overrides: list[str], out: Path) -> tuple[float, bool]:
-    """Run one job and return its Chamfer distance (``nan`` when it has none: no truth, or a truth
-    too small for the grid) and whether its reconstruction is empty (scored Chamfer 1)."""
+@dataclass(frozen=True)
+class TrialResult:
+    """What a trial's job gave: its Chamfer distance (``nan`` when it has none: no truth, or a truth too small
+    for the grid), whether its reconstruction is empty (scored Chamfer 1), and its consistency verdict
+    (``"consistent"``, ``"inconsistent"``; ``None`` when the job records none) with the check's findings."""
+
+    chamfer: float
+    empty: bool
+    consistency: str | None = None
+    findings: tuple[str, ...] = ()
+
+
+def run_trial(overrides: list[str], out: Path) -> TrialResult:
+    """Run one job into ``out`` and return what the study needs of it (:class:`TrialResult`)."""
     cfg = compose_job(overrides)
     _save_job_config(cfg, overrides, out)
     metrics = run(cfg, out).metrics
     chamfer = metrics.get("chamfer")
-    return (math.nan if chamfer is None else float(chamfer)), bool(metrics.get("empty"))
+    return TrialResult(math.nan if chamfer is None else float(chamfer), bool(metrics.get("empty")),
+                       metrics.get("consistency"), tuple(str(w) for w in metrics.get("consistency_warnings") or ()))
 
 
 class NoBestTrialError(RuntimeError):
     """A study has no trial to recommend: every trial failed or reconstructed nothing."""
 
 
-def best_trial(study: Any, out: Path) -> Any:
-    """The finished trial of lowest Chamfer distance whose reconstruction is not empty (an ``optuna`` ``FrozenTrial``).
+def scored_trials(study: Any, out: Path) -> list[Any]:
+    """The finished trials whose reconstruction is not empty (``optuna`` ``FrozenTrial`` objects).
 
     Raises:
         NoBestTrialError: every trial failed (``error.txt`` in its folder) or reconstructed nothing.
@@ -102,7 +119,76 @@ def best_trial(study: Any, out: Path) -> Any:
     if not scored:
         raise NoBestTrialError(f"no best options: every trial's reconstruction is empty (Chamfer 1.0 by convention) "
                                f"or failed; widen or move the tuned ranges (--param) and see the trials in {out}")
-    return min(scored, key=lambda t: t.value)
+    return scored
+
+
+def inconsistent(trial: Any) -> bool:
+    """Whether a trial's result does not explain its own dips (its job's consistency verdict; a trial that
+    records none, e.g. of a study stored before verdicts were kept, is not held against)."""
+    return trial.user_attrs.get("consistency") == "inconsistent"
+
+
+def best_trial(study: Any, out: Path) -> Any:
+    """The best finished trial whose reconstruction is not empty: the consistent trial of lowest Chamfer distance,
+    or, when every such trial is ``inconsistent`` with its dips, the one of lowest Chamfer (an ``optuna``
+    ``FrozenTrial``).
+
+    A trial inconsistent with its dips ranks behind every consistent one, whatever its Chamfer: a study on a
+    simulation picks settings for real data, where no truth scores the result and the consistency check is the
+    only judge; options whose result fails it on the simulation of the object give results that fail it there
+    too, which no one can tell from wrong ones (:func:`lowest_chamfer_trial` is the trial ranking passed over).
+
+    Raises:
+        NoBestTrialError: every trial failed (``error.txt`` in its folder) or reconstructed nothing.
+    """
+    return min(scored_trials(study, out), key=lambda t: (inconsistent(t), t.value))
+
+
+def lowest_chamfer_trial(study: Any, out: Path) -> Any:
+    """The finished, non-empty trial of lowest Chamfer distance, whatever its consistency verdict."""
+    return min(scored_trials(study, out), key=lambda t: t.value)
+
+
+def trial_summary(trial: Any) -> dict[str, Any]:
+    """A trial for ``best.yaml``: its number, Chamfer distance, options, consistency verdict and findings."""
+    return {"trial": trial.number, "chamfer": float(trial.value), "params": dict(trial.params),
+            "consistency": trial.user_attrs.get("consistency"),
+            "consistency_warnings": list(trial.user_attrs.get("consistency_warnings") or [])}
+
+
+def best_summary(study: Any, out: Path, overrides: Sequence[str]) -> dict[str, Any]:
+    """The contents of ``best.yaml``: the best trial (:func:`best_trial`: :func:`trial_summary`), the study's
+    overrides, how many trials ran, failed and were consistent, and ``lowest_chamfer`` (that trial's summary)
+    when ranking by the consistency verdict passed over a trial of lower Chamfer."""
+    best, lowest = best_trial(study, out), lowest_chamfer_trial(study, out)
+    failed = sum(t.state.name != "COMPLETE" for t in study.trials)
+    summary = {**trial_summary(best), "overrides": [*overrides], "trials": len(study.trials), "failed": failed,
+               "consistent_trials": sum(t.user_attrs.get("consistency") == "consistent" for t in study.trials),
+               "ranking": "consistent trials first, then the lowest Chamfer distance"}
+    if lowest.number != best.number:
+        summary["lowest_chamfer"] = trial_summary(lowest)
+    return summary
+
+
+def verdict_messages(summary: dict[str, Any], out: Path) -> list[str]:
+    """What a user must hear of the best trial's verdict (:func:`best_summary`), one message each: the best trial
+    is inconsistent with its dips (no trial was consistent), or a trial of lower Chamfer was ranked behind it for
+    being inconsistent."""
+    messages = []
+    if summary["consistency"] == "inconsistent":
+        finding = summary["consistency_warnings"][0] if summary["consistency_warnings"] else "no finding recorded"
+        messages.append(f"the best trial {summary['trial']} is inconsistent with its dips ({finding}); no trial of "
+                        f"the study is consistent, so on real data these options may give a result that the data "
+                        f"check flags too: see {out / str(summary['trial']) / 'metrics.json'}, and tune further "
+                        f"(more trials, other --param ranges)")
+    lowest = summary.get("lowest_chamfer")
+    if lowest is not None:
+        messages.append(f"trial {lowest['trial']} has a lower Chamfer distance ({lowest['chamfer']:.5f} against "
+                        f"{summary['chamfer']:.5f}) but is inconsistent with its dips, so it ranks behind trial "
+                        f"{summary['trial']} ({summary['consistency'] or 'no verdict recorded'}); its options are "
+                        f"under lowest_chamfer in "
+                        f"{out / 'best.yaml'}")
+    return messages
 
 
 def study_trial_numbers(out: Path) -> list[int]:
@@ -207,24 +293,36 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
         trial_dir = out / str(trial.number)
         trial_dir.mkdir(parents=True, exist_ok=True)
         try:
-            chamfer, empty = run_trial(job, trial_dir)
+            result = run_trial(job, trial_dir)
         except Exception as exc:  # noqa: BLE001 - a failed job is a failed trial, not the end of the study
             (trial_dir / "error.txt").write_text(f"{type(exc).__name__}: {exc}\n")
             log.warning("trial %d failed: %s: %s", trial.number, type(exc).__name__, exc)
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
-        if math.isnan(chamfer):  # no ground truth to score against (see run_trial)
+        if math.isnan(result.chamfer):  # no ground truth to score against (see run_trial)
             (trial_dir / "error.txt").write_text("no Chamfer distance: the job has no ground truth, or one smaller "
                                                  "than its grid resolves (see its log)\n")
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             continue
-        trial.set_user_attr("empty", empty)
-        study.tell(trial, chamfer)
-        log.info("trial %d: chamfer %.5f%s with %s", trial.number, chamfer, " (empty reconstruction)" * empty, values)
-    best = best_trial(study, out)
-    failed = sum(t.state != optuna.trial.TrialState.COMPLETE for t in study.trials)
-    OmegaConf.save(OmegaConf.create(
-        {"chamfer": float(best.value), "trial": best.number, "params": dict(best.params),
-         "overrides": [*overrides], "trials": len(study.trials), "failed": failed}),
-        out / "best.yaml")
+        record_trial(trial, result)
+        study.tell(trial, result.chamfer)
+        log.info("trial %d: chamfer %.5f%s with %s", trial.number, result.chamfer, trial_note(result), values)
+    summary = best_summary(study, out, overrides)
+    OmegaConf.save(OmegaConf.create(summary), out / "best.yaml")
+    for message in verdict_messages(summary, out):
+        (log.warning if summary["consistency"] == "inconsistent" else log.info)("%s", message)
     return study
+
+
+def record_trial(trial: Any, result: TrialResult) -> None:
+    """Keep a trial's emptiness and consistency verdict in the study (``user_attrs``: stored with ``--storage``)."""
+    trial.set_user_attr("empty", result.empty)
+    trial.set_user_attr("consistency", result.consistency)
+    trial.set_user_attr("consistency_warnings", list(result.findings))
+
+
+def trial_note(result: TrialResult) -> str:
+    """The words after a trial's Chamfer distance in its log line: empty, or its consistency verdict."""
+    if result.empty:
+        return " (empty reconstruction)"
+    return f" ({result.consistency})" if result.consistency else ""

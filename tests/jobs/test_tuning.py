@@ -53,9 +53,13 @@ def test_a_study_runs_its_trials_and_keeps_the_best(tmp_path, monkeypatch, tune_
     assert tune_script.main(["--trials", "3", "--startup-trials", "2", "--out", str(out),
                              "--param", "solver.priors.tv.weight=1e-3:1e-1", *TINY]) == 0
     best = OmegaConf.load(out / "best.yaml")
-    chamfers = {i: json.loads((out / str(i) / "metrics.json").read_text())["chamfer"] for i in range(3)}
+    metrics = {i: json.loads((out / str(i) / "metrics.json").read_text()) for i in range(3)}
+    chamfers = {i: m["chamfer"] for i, m in metrics.items()}
     assert best.trials == 3 and best.failed == 0
-    assert best.chamfer == pytest.approx(min(chamfers.values())) and chamfers[best.trial] == best.chamfer
+    # the consistent trials first, then the lowest Chamfer
+    ranked = min(metrics, key=lambda i: (metrics[i]["consistency"] == "inconsistent", chamfers[i]))
+    assert best.trial == ranked and chamfers[best.trial] == best.chamfer
+    assert best.consistency == metrics[ranked]["consistency"]
     assert len(set(received)) == 3 and all(1e-3 <= w <= 1e-1 for w in received)
     assert best.params["solver.priors.tv.weight"] == received[best.trial]
     # each trial directory is a sweep job that scripts/compare.py reads
@@ -212,3 +216,55 @@ def test_an_empty_reconstruction_is_never_the_best(tmp_path, capsys, fake_jobs, 
     fake_jobs.extend([{"chamfer": 1.0, "empty": True}, {"chamfer": 1.0, "empty": False}])
     assert tune_script.main(["--trials", "2", "--out", str(tmp_path / "mixed"), *TINY]) == 0
     assert OmegaConf.load(tmp_path / "mixed" / "best.yaml").trial == 1
+
+
+def _verdict(chamfer: float, verdict: str, finding: str = "") -> dict:
+    """A fake job's metrics with its consistency verdict (and one finding when inconsistent)."""
+    return {"chamfer": chamfer, "empty": False, "consistency": verdict,
+            "consistency_warnings": [finding] if finding else []}
+
+
+RATIO = "the reconstruction holds 1.426e+05 mm^3, the dips measure 1.22e+05 mm^3 (ratio 1.168, noise explains +-0.000)"
+
+
+def test_an_inconsistent_trial_ranks_behind_a_consistent_one_and_best_yaml_says_so(tmp_path, capsys, caplog,
+                                                                                   fake_jobs, tune_script):
+    """Before: the trial of lowest Chamfer was the best whatever its verdict, and best.yaml said nothing of it (trial
+    0 of a 16^3 study: volume ratio 1.168, inconsistent)."""
+    fake_jobs.extend([_verdict(0.0075, "inconsistent", RATIO), _verdict(0.0140, "consistent"),
+                      _verdict(0.0120, "inconsistent", RATIO)])
+    out = tmp_path / "study"
+    with caplog.at_level("INFO", logger="dipnet.jobs.tuning"):
+        assert tune_script.main(["--trials", "3", "--out", str(out), *TINY]) == 0
+    best = OmegaConf.load(out / "best.yaml")
+    assert (best.trial, best.chamfer, best.consistency, best.consistent_trials) == (1, 0.014, "consistent", 1)
+    assert best.lowest_chamfer.trial == 0 and best.lowest_chamfer.consistency == "inconsistent"
+    assert list(best.lowest_chamfer.consistency_warnings) == [RATIO] and "consistent trials first" in best.ranking
+    assert "best chamfer 0.01400 (trial 1, consistent)" in capsys.readouterr().out
+    assert "trial 0 has a lower Chamfer distance (0.00750 against 0.01400) but is inconsistent with its dips, so it " \
+           "ranks behind trial 1 (consistent)" in caplog.text
+    assert "trial 0: chamfer 0.00750 (inconsistent)" in caplog.text
+
+
+def test_a_best_trial_inconsistent_with_its_dips_is_named_with_a_warning(tmp_path, capsys, caplog, fake_jobs,
+                                                                         tune_script):
+    fake_jobs.extend([_verdict(0.02, "inconsistent", "a finding"), _verdict(0.01, "inconsistent", RATIO)])
+    out = tmp_path / "study"
+    with caplog.at_level("INFO", logger="dipnet.jobs.tuning"):
+        assert tune_script.main(["--trials", "2", "--out", str(out), *TINY]) == 0
+    best = OmegaConf.load(out / "best.yaml")
+    assert (best.trial, best.consistency, list(best.consistency_warnings)) == (1, "inconsistent", [RATIO])
+    assert "lowest_chamfer" not in best and best.consistent_trials == 0
+    assert "(trial 1, inconsistent)" in capsys.readouterr().out
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and warned[0].startswith(f"the best trial 1 is inconsistent with its dips ({RATIO}); no "
+                                                     "trial of the study is consistent"), warned
+
+
+def test_a_study_stored_without_verdicts_keeps_ranking_by_chamfer(tmp_path, fake_jobs):
+    """Trials that record no verdict (a job without one, a study stored before verdicts were kept) are not held
+    against: the lowest Chamfer is the best."""
+    fake_jobs.extend([{"chamfer": 0.05, "empty": False}, _verdict(0.08, "consistent")])
+    tuning.tune(tmp_path, n_trials=2, overrides=TINY)
+    best = OmegaConf.load(tmp_path / "best.yaml")
+    assert (best.trial, best.consistency) == (0, None) and "lowest_chamfer" not in best
