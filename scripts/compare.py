@@ -7,7 +7,9 @@
 Writes into the output directory: ``runs.csv`` (one row per job, failed and unfinished ones
 included), ``summary.csv`` and ``summary.md`` (mean ± std per solver x n_dips x snr_db, or ``--by``; a warning and a note
 under the table name any other config option, seeds aside, that differs within a row, such as
-``resolution``, with the ``--by`` that splits it; then the failed/unfinished jobs), ``vs_dips.png`` (IoU and Chamfer vs dips, paper Fig. 13a),
+``resolution``, with the ``--by`` that splits it; runs whose reconstruction is empty are counted in an ``empty``
+column, their Chamfer and Hausdorff, a stand-in of one truth diagonal, left out of the means; then the
+failed/unfinished jobs), ``vs_dips.png`` (IoU and Chamfer vs dips, paper Fig. 13a),
 ``vs_snr.png`` (false positives / negatives vs SNR, Fig. 13b; only when a sweep has noise
 levels), ``montage.png`` (reconstructions vs dips, Figs. 10/11) and with ``--html``
 ``report.html`` (plus each job's own ``report.html``). Runs without a ground truth (recorded
@@ -84,14 +86,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: the finished jobs record none of {', '.join(metrics)} in their metrics.json: "
               f"nothing to compare; see {out / 'runs.csv'}", file=sys.stderr)
         return 1
-    note = collect.truth_note(rows)
+    note = "\n".join(line for line in (collect.truth_note(rows), collect.empty_note(rows)) if line)
     if note:
         print(note)
     tables.write_csv(groups, out / "summary.csv")
     table = tables.markdown_table(groups, args.by, metrics)
     pooled = tables.pooled_note(collect.pooled_options(runs, rows, args.by), args.by, {k for r in rows for k in r})
     (out / "summary.md").write_text(table + ("\n" + pooled[:1].upper() + pooled[1:] if pooled else "")
-                                    + ("\n" + note[:1].upper() + note[1:] + "\n" if note else "")
+                                    + "".join(f"\n{line[:1].upper()}{line[1:]}\n" for line in note.splitlines())
                                     + ("\n" + problems if problems else ""))
     print(table, end="")
     if pooled:

@@ -17,7 +17,8 @@ with at most 60 LSMR iterations; an override of what each job sets itself, ``res
   METRO errors at 10 % (0.0125-0.043) drawn as a band;
 * ``summary.md`` / ``runs.csv``: the table printed at the end.
 
-Ends with ``RESULT chamfer_<p>=<mean> hausdorff_<p>=<mean> ...`` per budget ``p``.
+Ends with ``RESULT chamfer_<p>=<mean> hausdorff_<p>=<mean> ...`` per budget ``p`` (and ``empty_<p>=<jobs>`` when
+jobs of that budget reconstructed nothing: their distances, a stand-in of one truth diagonal, are not in the means).
 
     python scripts/paper_figures.py                              # 64 and 128^3, 3 meshes, 1/3/10 %, minnorm
     python scripts/paper_figures.py solver=voxel --n 64          # any Hydra override of reconstruct.py
@@ -205,13 +206,20 @@ def _cell(value: float | None, spec: str) -> str:
     return "-" if value is None or not math.isfinite(value) else format(value, spec)
 
 
+def _distance_cell(row: dict, metric: str) -> str:
+    """A run's Chamfer or Hausdorff distance; ``empty`` for a run that reconstructed nothing (its 1.0 is a
+    stand-in of one truth diagonal, :data:`~dipnet.experiments.collect.EMPTY_STANDINS`)."""
+    return "empty" if collect.is_empty(row) else _cell(row.get(metric), ".4f")
+
+
 def summary(rows: list[dict], groups: list[dict]) -> str:
     """Markdown: per mesh x N rows, then the mean over them per budget, next to the paper's numbers
-    (``-`` for a metric a run leaves undefined)."""
+    (``-`` for a metric a run leaves undefined; ``empty`` for the distances of a run that reconstructed nothing,
+    which the means leave out and the ``jobs`` column counts)."""
     ok = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: (r["shape"], r["resolution"], r["percent"]))
     lines = ["| mesh | N | dips | % of N^2 | IoU | Chamfer | Hausdorff | solve s |", "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['shape']} | {r['resolution']} | {r['n_dips']} | {r['percent']:g} | {_cell(r.get('iou'), '.3f')} | "
-              f"{_cell(r.get('chamfer'), '.4f')} | {_cell(r.get('hausdorff'), '.4f')} | {r['seconds']:.1f} |"
+              f"{_distance_cell(r, 'chamfer')} | {_distance_cell(r, 'hausdorff')} | {r['seconds']:.1f} |"
               for r in ok]
     lines += ["", "| % of N^2 | jobs | Chamfer (mean +- std) | Hausdorff (mean +- std) | paper METRO |",
               "|---|---|---|---|---|"]
@@ -219,7 +227,8 @@ def summary(rows: list[dict], groups: list[dict]) -> str:
         paper = f"{PAPER_METRO_10[0]}-{PAPER_METRO_10[1]}" if g["percent"] == 10 else ""
         spread = [f"{_cell(g.get(f'{m}_mean'), '.4f')} +- {_cell(g.get(f'{m}_std'), '.4f')}"
                   for m in ("chamfer", "hausdorff")]
-        lines.append(f"| {g['percent']:g} | {g['runs']} | {spread[0]} | {spread[1]} | {paper} |")
+        jobs = f"{g['runs']} ({g['empty']} empty, not in the means)" if g.get("empty") else str(g["runs"])
+        lines.append(f"| {g['percent']:g} | {jobs} | {spread[0]} | {spread[1]} | {paper} |")
     return "\n".join(lines) + "\n"
 
 
@@ -253,7 +262,8 @@ def main(argv=None) -> int:
                                             col_key="n_dips"))
     print("figures: " + ", ".join(map(str, written)))
     print("RESULT " + " ".join(f"{m}_{g['percent']:g}={g.get(f'{m}_mean', math.nan):.4f}"
-                               for g in groups for m in ("chamfer", "hausdorff")))
+                               for g in groups for m in ("chamfer", "hausdorff"))
+          + "".join(f" empty_{g['percent']:g}={g['empty']}" for g in groups if g.get("empty")))
     return 0
 
 

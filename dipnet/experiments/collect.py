@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
-from dipnet.evaluation.metrics import REFERENCE_VOLUME_TOL
+from dipnet.evaluation.metrics import EMPTY_DISTANCE, REFERENCE_VOLUME_TOL
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +32,10 @@ GROUP_BY = ("solver", "n_dips", "snr_db")
 #: Metrics summarised by default, in table order (Chamfer/Hausdorff: truth bbox diagonals;
 #: false_positive/false_negative: fractions of voxels; seconds: solver wall time).
 METRICS = ("iou", "chamfer", "hausdorff", "volume_error", "false_positive", "false_negative", "seconds")
+#: The metrics an empty reconstruction has by convention only: its Chamfer and Hausdorff distances are
+#: :data:`~dipnet.evaluation.metrics.EMPTY_DISTANCE` (one truth diagonal), a stand-in for "no surface", not a
+#: distance; :func:`aggregate` leaves them out of the means and counts the empty runs instead.
+EMPTY_STANDINS = ("chamfer", "hausdorff")
 #: Metrics of runs without a ground truth (recorded sources), in table order: the profile residual
 #: (relative), the reconstructed / measured volume and the solver wall time.
 DATA_METRICS = ("profile_residual", "volume_ratio", "seconds")
@@ -365,10 +369,11 @@ def aggregate(rows: Sequence[dict], by: Sequence[str] = GROUP_BY,
     """Mean, standard deviation (``ddof=1``; 0 for one run) and count per group of ``ok`` rows.
 
     Returns one dict per group, sorted by ``by``: the ``by`` keys, ``runs`` (number of ok jobs),
-    ``consistent`` (how many of them passed their consistency check, when the rows record it)
-    and ``<metric>_mean``, ``<metric>_std`` for each metric present in the group (non-finite
-    values are left out of that metric's statistics; a metric absent from every row of a group
-    is absent from the group's dict).
+    ``consistent`` (how many of them passed their consistency check, when the rows record it),
+    ``empty`` (how many reconstructed nothing, when any did) and ``<metric>_mean``, ``<metric>_std`` for
+    each metric present in the group (non-finite values are left out of that metric's statistics, and so
+    are the :data:`EMPTY_STANDINS` of the empty runs; a metric absent from every row of a group is absent
+    from the group's dict).
     """
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
@@ -382,15 +387,37 @@ def aggregate(rows: Sequence[dict], by: Sequence[str] = GROUP_BY,
         verdicts = [r.get("consistency") for r in members if r.get("consistency") is not None]
         if verdicts:  # how many runs explain their own data (metrics.json's consistency verdict)
             entry["consistent"] = sum(v == "consistent" for v in verdicts)
+        empty = sum(is_empty(r) for r in members)
+        if empty:  # shown as a count, not as a Chamfer of 1 in the mean
+            entry["empty"] = empty
         for name in metrics:
             values = np.array([float(r[name]) for r in members
-                               if isinstance(r.get(name), (int, float)) and not isinstance(r.get(name), bool)])
+                               if isinstance(r.get(name), (int, float)) and not isinstance(r.get(name), bool)
+                               and not (name in EMPTY_STANDINS and is_empty(r))])
             values = values[np.isfinite(values)]
             if values.size:
                 entry[f"{name}_mean"] = float(values.mean())
                 entry[f"{name}_std"] = float(values.std(ddof=1)) if values.size > 1 else 0.0
         out.append(entry)
     return out
+
+
+def is_empty(row: dict) -> bool:
+    """Whether a row's run reconstructed nothing (``empty`` in its ``metrics.json``)."""
+    return row.get("empty") is True
+
+
+def empty_note(rows: Sequence[dict]) -> str:
+    """A line on the ok rows whose reconstruction is empty (``""`` when none is): how many, that their Chamfer and
+    Hausdorff (:data:`EMPTY_STANDINS`) are left out of the means, and which metrics keep them."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    empty = sum(is_empty(r) for r in ok)
+    if not empty:
+        return ""
+    which = "every finished run" if empty == len(ok) else f"{empty} of {len(ok)} finished runs"
+    return (f"{which} reconstructed nothing (the empty column): no shape came out of the solve, so their Chamfer and "
+            f"Hausdorff ({EMPTY_DISTANCE:.1f} by convention, one truth diagonal) are a stand-in, not a distance, and "
+            f"are left out of those means; their IoU (0), volume error (-1) and false rates are in")
 
 
 #: Last parts of the config options that do not make runs unlike: seeds (replicates of one setting;

@@ -437,9 +437,10 @@ def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Pat
     metrics = collect.compared_metrics(rows)
     groups = collect.aggregate(rows, by, metrics)
     n_ok = sum(r.status == "ok" for r in runs)
-    note = collect.truth_note(rows)
+    notes = [line for line in (collect.truth_note(rows), collect.empty_note(rows)) if line]
     sections = [("summary", f"<p>{n_ok} of {len(runs)} jobs finished.</p>"
-                 + (f"<p class=note>{html.escape(note)}</p>" if note else "") + _groups_table(groups, by, metrics))]
+                 + "".join(f"<p class=note>{html.escape(line)}</p>" for line in notes)
+                 + _groups_table(groups, by, metrics))]
     if any("n_dips" in g for g in groups) and "n_dips" in by:
         curves = collect.curve_groups(rows, "n_dips", metrics)
         sections.append(("error vs number of dips", _figure_html(
@@ -462,14 +463,15 @@ def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Pat
 
 def _groups_table(groups: Sequence[dict], by: Sequence[str], metrics: Sequence[str] = METRICS) -> str:
     present = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
+    empties = any("empty" in g for g in groups)  # runs that reconstructed nothing: counted, not in the means
     head = "".join(f"<th class=l>{collect.LABELS.get(k, k)}</th>" for k in by) + "<th>runs</th>" + \
-        "".join(f"<th>{collect.LABELS.get(m, m)}</th>" for m in present)
+        ("<th>empty</th>" if empties else "") + "".join(f"<th>{collect.LABELS.get(m, m)}</th>" for m in present)
     body = []
     for g in groups:
         cells = "".join(f"<td class=l>{html.escape(tables.format_cell(g.get(k)))}</td>" for k in by)
-        cells += f"<td>{g['runs']}</td>"
-        cells += "".join(f"<td>{g[f'{m}_mean']:.4g} ± {g[f'{m}_std']:.2g}</td>" if f"{m}_mean" in g else "<td></td>"
-                         for m in present)
+        cells += f"<td>{g['runs']}</td>" + (f"<td>{g.get('empty', 0)} of {g['runs']}</td>" if empties else "")
+        cells += "".join(f"<td>{g[f'{m}_mean']:.4g} ± {g[f'{m}_std']:.2g}</td>" if f"{m}_mean" in g else
+                         f"<td>{html.escape(tables.metric_cell(g, m))}</td>" for m in present)
         body.append(f"<tr>{cells}</tr>")
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 

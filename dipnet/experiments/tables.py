@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dipnet.experiments.collect import GROUP_BY, LABELS, METRICS, Run, problems, run_rows
+from dipnet.experiments.collect import EMPTY_STANDINS, GROUP_BY, LABELS, METRICS, Run, problems, run_rows
 
 
 def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
@@ -41,19 +41,30 @@ def markdown_table(groups: Sequence[dict], by: Sequence[str] = GROUP_BY,
     """A Markdown table of :func:`aggregate`'s output: one row per group, ``mean ± std`` cells.
 
     Metrics absent from every group are left out; ``snr_db = none`` means noise-free; ``consistent``: how many
-    of a row's runs passed their consistency check (when the runs record it).
+    of a row's runs passed their consistency check (when the runs record it); ``empty``: how many reconstructed
+    nothing (when any did: their Chamfer and Hausdorff, a stand-in, are not in the means).
     """
     present = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
     verdicts = any("consistent" in g for g in groups)
+    empties = any("empty" in g for g in groups)
     header = [LABELS.get(k, k) for k in by] + ["runs"] + (["consistent"] if verdicts else []) + \
-        [LABELS.get(m, m) for m in present]
+        (["empty"] if empties else []) + [LABELS.get(m, m) for m in present]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for g in groups:
         cells = [format_cell(g.get(k)) for k in by] + [str(g["runs"])]
         cells += [f"{g['consistent']} of {g['runs']}" if "consistent" in g else ""] if verdicts else []
-        cells += [f"{_fmt(g[f'{m}_mean'])} ± {_fmt(g[f'{m}_std'])}" if f"{m}_mean" in g else "" for m in present]
+        cells += [f"{g.get('empty', 0)} of {g['runs']}"] if empties else []
+        cells += [metric_cell(g, m) for m in present]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def metric_cell(group: dict, metric: str) -> str:
+    """A group's ``mean ± std`` of ``metric``; ``none (empty)`` for a stand-in (:data:`EMPTY_STANDINS`) of a group
+    whose every run with that metric is empty, ``""`` for a metric the group lacks."""
+    if f"{metric}_mean" in group:
+        return f"{_fmt(group[f'{metric}_mean'])} ± {_fmt(group[f'{metric}_std'])}"
+    return "none (empty)" if metric in EMPTY_STANDINS and group.get("empty") else ""
 
 
 def _setting(value: Any) -> str:

@@ -124,6 +124,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         recon = solver.solve(measurement, operator)
     seconds = time.perf_counter() - t0
     recon.save(out / "reconstruction.npz")
+    empty = warn_empty(recon)
 
     scores: dict[str, Any] = {"solver": recon.info.get("solver", type(solver).__name__),
                               "operator": recon.info.get("operator", backend_name(operator)),
@@ -131,7 +132,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                               "n_dips_measured": (measurement.metadata or {}).get("measured_orientations",
                                                                                   measurement.n_orientations),
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
-                              **prior_weight_metrics(recon.info),
+                              "empty": empty, **prior_weight_metrics(recon.info),
                               **run_overrides()}
     stages = planned_stages(cfg.output, truth=shape is not None)
     stage = OutputStages(bool(cfg.output.progress), stages)
@@ -172,6 +173,23 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     warn_earlier_outputs(out, earlier, cfg)
     log.info("done: %s (every metric: %s)", headline(scores), out / "metrics.json")
     return JobResult(measurement, recon, scores, out)
+
+
+def warn_empty(recon: Reconstruction) -> bool:
+    """Say once, as the solve ends, that ``recon`` is empty (no voxel reaches its threshold), and what follows from
+    it: no mesh, Chamfer and Hausdorff that are a stand-in, no calibration of the uncertainty (the later stages say
+    no more of it). Returns whether it is empty."""
+    if recon.binary.any():
+        return False
+    peak = float(recon.occupancy.max()) if recon.occupancy.numel() else float("nan")
+    message = (f"the reconstruction is empty: no voxel of its occupancy reaches its threshold {recon.threshold:.6g} "
+               f"(the largest is {peak:.3g}), so no shape came out of the solve: no mesh is written, its Chamfer and "
+               f"Hausdorff are {metrics.EMPTY_DISTANCE:.1f} by convention (one truth diagonal, a stand-in that "
+               "compare.py counts as an empty run, not a distance), and its uncertainty is not judged against the "
+               "truth; look at the solver's settings (prior weights, iterations, threshold) and its log above")
+    log.warning("%s", message)
+    warnings.warn(message, stacklevel=2)
+    return True
 
 
 #: The files a reconstruction job may write into its run directory (meshes: :data:`MESH_NAMES` x any format).
@@ -303,8 +321,11 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
                 placed = mesh if offset is None else mesh.copy().apply_translation(offset)
                 for fmt in cfg.output.mesh_formats:
                     export.save_mesh(placed, out / f"{name}.{fmt}")
+            elif name == "reconstruction" and not recon.binary.any():  # warned once as the solve ended
+                log.info("the reconstruction is empty, so %s was not written",
+                         ", ".join(f"{name}.{fmt}" for fmt in cfg.output.mesh_formats))
             else:
-                why = ("the reconstruction is empty (no voxel of its occupancy reaches its threshold "
+                why = ("its surface is empty (no point of the solver's finer sampling reaches the threshold "
                        f"{recon.threshold:.6g})" if name == "reconstruction" else
                        "the true shape has no surface on this grid (no voxel more than half inside)")
                 log.warning("%s, so %s was not written", why,

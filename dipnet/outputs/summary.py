@@ -143,7 +143,11 @@ def answers(metrics: dict[str, Any]) -> list[Answer]:
     ratio), how sure (uncertain share, expected error), from a run's ``metrics.json``."""
     out = []
     iou, chamfer = _num(metrics, "iou"), _num(metrics, "chamfer")
-    if iou is not None:
+    if iou is not None and metrics.get("empty") is True:
+        out.append(Answer("How close to the truth?", "empty reconstruction",
+                          "no shape came out of the solve: no surface to measure (its Chamfer distance of one "
+                          "diagonal is a stand-in)"))
+    elif iou is not None:
         out.append(Answer("How close to the truth?", f"IoU {iou:.3f}",
                           f"Chamfer distance {100 * chamfer:.2f}% of the object's diagonal" if chamfer is not None
                           else "no surface distance"))
@@ -170,12 +174,16 @@ def answers(metrics: dict[str, Any]) -> list[Answer]:
 
 
 def headline(metrics: dict[str, Any]) -> str:
-    """The few numbers of :func:`answers` (and the solve time) for a short log line."""
-    parts = []
+    """The few numbers of :func:`answers` (and the solve time) for a short log line; an empty reconstruction is
+    named first, without its stand-in Chamfer distance."""
+    empty = metrics.get("empty") is True
+    parts = ["empty reconstruction"] if empty else []
     for key, fmt in (("iou", "IoU {:.3f}"), ("chamfer", "Chamfer {:.4f}"), ("profile_residual", "residual {:.3f}"),
                      ("volume_ratio", "volume ratio {:.3f}"), ("uncertain_fraction", "uncertain {:.2f}"),
                      ("seconds", "{:.1f} s")):
         value = _num(metrics, key)
+        if empty and key == "chamfer":
+            continue
         if value is not None:
             parts.append(fmt.format(value))
         elif key == "iou" and metrics.get("overlap_undefined"):

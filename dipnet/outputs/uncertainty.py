@@ -57,7 +57,9 @@ def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: Di
         deciles = calibration_by_decile(maps["p_wrong"], reconstruction.binary, np.asarray(truth) > 0.5)
         scores["error_rate_by_uncertainty_decile"] = [round(float(v), 5) for v in deciles]
         scores["uncertainty_brier"] = brier_score(probability, reconstruction.binary, np.asarray(truth) > 0.5)
-        if np.any(deciles > 0) and not deciles[-1] > deciles[0]:  # no wrong call or voxel: nothing to calibrate
+        # no wrong call or voxel: nothing to calibrate; an empty reconstruction calls every true voxel wrong, so its
+        # deciles all read 1 whatever the uncertainty (the job said it is empty)
+        if np.any(deciles > 0) and not deciles[-1] > deciles[0] and reconstruction.binary.any():
             message = (f"uncertainty is not calibrated on this run: error rate {deciles[-1]:.3f} in the most "
                        f"uncertain decile vs {deciles[0]:.3f} in the least")
             log.warning(message)

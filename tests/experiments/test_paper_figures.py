@@ -115,3 +115,16 @@ def test_settings_the_jobs_cannot_run_with_are_one_line_and_exit_2(paper_figures
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
     assert not out.exists()
+
+
+def test_an_empty_reconstruction_is_shown_as_such_and_kept_out_of_the_means(paper_figures):
+    """Before: an empty result's Chamfer and Hausdorff of 1.0 (a stand-in, one truth diagonal) were tabled as its
+    distances and entered the budget's mean (0.5060 from 0.012 and the empty run's 1.0)."""
+    rows = [{"shape": "hand", "resolution": 16, "n_dips": 26, "percent": 10.0, "status": "ok", "iou": 0.0,
+             "chamfer": 1.0, "hausdorff": 1.0, "empty": True, "seconds": 1.5},
+            {"shape": "bunny", "resolution": 16, "n_dips": 26, "percent": 10.0, "status": "ok", "iou": 0.9,
+             "chamfer": 0.012, "hausdorff": 0.05, "empty": False, "seconds": 2.0}]
+    groups = paper_figures.collect.aggregate(rows, ("percent",), metrics=("iou", "chamfer", "hausdorff"))
+    table = paper_figures.summary(rows, groups)
+    assert "| hand | 16 | 26 | 10 | 0.000 | empty | empty | 1.5 |" in table
+    assert "| 10 | 2 (1 empty, not in the means) | 0.0120 +- 0.0000 | 0.0500 +- 0.0000 |" in table

@@ -117,6 +117,17 @@ def test_sweep_page_of_recordings_shows_what_they_record(tmp_path):
     assert "<th>profile residual</th><th>volume ratio</th><th>seconds</th>" in text and 'id="vs-dips"' in text
 
 
+def test_sweep_page_counts_the_empty_runs_and_keeps_their_stand_in_out_of_the_means(tmp_path):
+    """Before: the summary's Chamfer 0.505 ± 0.700 held an empty run's 1.0 (a stand-in, one truth diagonal)."""
+    for i, (chamfer, empty) in enumerate(((0.01, False), (1.0, True))):
+        write_job(tmp_path / "sw" / str(i), solver="minnorm", n_dips=8, snr_db=None, seed=i,
+                  metrics={"iou": 0.0 if empty else 0.9, "chamfer": chamfer, "empty": empty})
+    text = report.write_sweep_report(collect.collect_runs(tmp_path / "sw"), tmp_path / "report.html").read_text()
+    assert "1 of 2 finished runs reconstructed nothing (the empty column)" in text
+    assert "<th>runs</th><th>empty</th>" in text and "<td>2</td><td>1 of 2</td>" in text
+    assert "<td>0.01 ± 0</td>" in text
+
+
 def _render(page: Path, tmp_path: Path) -> dict:
     """Load a probed copy of ``page`` in headless Chromium; the probe's JSON."""
     probed = page.parent / f"probed_{page.name}"                      # beside the page: its plotly.min.js loads

@@ -62,3 +62,23 @@ def test_the_table_counts_the_runs_that_explain_their_data():
     assert "| runs | consistent |" in table and "| 3 | 1 of 3 |" in table
     plain = [{k: v for k, v in row.items() if k != "consistency"} for row in rows]
     assert "consistent" not in tables.markdown_table(collect.aggregate(plain), metrics=("iou",))
+
+
+def test_an_empty_reconstruction_is_counted_not_averaged_as_a_chamfer_of_1():
+    """Before: an empty run's Chamfer of 1.0 (a stand-in, one truth diagonal) entered its row's mean: 0.34 ± 0.57
+    from 0.01, 0.02 and the empty run's 1.0."""
+    rows = [{"status": "ok", "solver": "voxel", "n_dips": 20, "snr_db": None, "iou": iou, "chamfer": chamfer,
+             "hausdorff": chamfer, "empty": chamfer == 1.0} for iou, chamfer in ((0.9, 0.01), (0.8, 0.02), (0.0, 1.0))]
+    (g,) = collect.aggregate(rows, metrics=("iou", "chamfer", "hausdorff"))
+    assert g["runs"] == 3 and g["empty"] == 1
+    assert g["chamfer_mean"] == pytest.approx(0.015) and g["hausdorff_mean"] == pytest.approx(0.015)
+    assert g["iou_mean"] == pytest.approx(0.5667, abs=1e-4)  # IoU 0 is a score: it stays in
+    table = tables.markdown_table([g], metrics=("iou", "chamfer"))
+    assert "| runs | empty | IoU | Chamfer |" in table and "| 3 | 1 of 3 | 0.567 ± 0.493 | 0.015 ± 0.00707 |" in table
+    assert collect.empty_note(rows).startswith("1 of 3 finished runs reconstructed nothing (the empty column)")
+    (only,) = collect.aggregate([{**rows[2], "solver": "dip"}], metrics=("iou", "chamfer"))
+    assert "chamfer_mean" not in only
+    assert "| dip | 20 | none | 1 | 1 of 1 | 0 ± 0 | none (empty) |" in tables.markdown_table(
+        [g, only], metrics=("iou", "chamfer"))
+    assert "empty" not in tables.markdown_table(collect.aggregate(rows[:2]), metrics=("iou",))
+    assert collect.empty_note(rows[:2]) == ""

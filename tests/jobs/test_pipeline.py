@@ -182,17 +182,35 @@ def test_metrics_count_the_measured_dips_apart_from_their_symmetry_images(tmp_pa
 
 
 def test_an_empty_reconstruction_or_truth_mesh_is_not_written_and_the_log_says_why(tmp_path, caplog):
-    """Before: reconstruction.ply / truth.ply were silently missing."""
+    """Before: reconstruction.ply / truth.ply were silently missing. An empty reconstruction's missing mesh is a line
+    of the log (the job warned once, as the solve ended: test_an_empty_reconstruction_says_what_it_is_once)."""
     grid = Grid(12, 3, 200.0)
     cfg = OmegaConf.create({"output": {"mesh_formats": ["ply"], "figures": False}})
-    with caplog.at_level("WARNING", logger="dipnet.jobs.pipeline"):
+    with caplog.at_level("INFO", logger="dipnet.jobs.pipeline"):
         write_outputs(cfg, tmp_path, None, None, Reconstruction(torch.zeros(grid.shape), grid, 0.5),
                       np.full(grid.shape, 0.3))
     assert not list(tmp_path.iterdir())
-    assert [r.getMessage() for r in caplog.records] == [
-        "the true shape has no surface on this grid (no voxel more than half inside), so truth.ply was not written",
-        "the reconstruction is empty (no voxel of its occupancy reaches its threshold 0.5), "
-        "so reconstruction.ply was not written"]
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [
+        ("WARNING", "the true shape has no surface on this grid (no voxel more than half inside), so truth.ply was "
+                    "not written"),
+        ("INFO", "the reconstruction is empty, so reconstruction.ply was not written")]
+
+
+def test_an_empty_reconstruction_says_what_it_is_once(tmp_path, caplog):
+    """Before: an empty result (a volume prior of weight 1e6, one step) logged "uncertainty is not calibrated on this
+    run: error rate 1.000 in the most uncertain decile vs 1.000 in the least", a missing mesh, and "done: IoU 0.000,
+    Chamfer 1.0000, ...": the Chamfer of an empty result is a stand-in (one truth diagonal), not a distance."""
+    with caplog.at_level("INFO"):
+        result = run(_cfg("resolution=16", "n_dips=12", "solver=voxel", "solver.priors.volume.weight=1e6",
+                          "solver.iterations=1", "output.figures=false", "output.resolvability=false"), tmp_path)
+    assert result.metrics["empty"] is True and result.metrics["chamfer"] == 1.0  # the stand-in stays in metrics.json
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "empty" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("the reconstruction is empty: no voxel of its occupancy reaches "
+                                                     "its threshold 0.5 (the largest is "), warned
+    assert "Chamfer and Hausdorff are 1.0 by convention (one truth diagonal, a stand-in" in warned[0]
+    assert "not calibrated" not in caplog.text and "error_rate_by_uncertainty_decile" in result.metrics
+    done = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("done: "))
+    assert done.startswith("done: empty reconstruction, IoU 0.000, ") and "Chamfer" not in done, done
 
 
 def test_the_outputs_bar_counts_to_the_stages_the_job_runs(tmp_path, monkeypatch):

@@ -76,3 +76,14 @@ def test_a_reconstruction_without_a_wrong_voxel_has_nothing_to_calibrate(solved,
         warnings.simplefilter("error", UserWarning)
         scores = write_uncertainty(tmp_path, recon, measurement, operator, truth=recon.binary, figure=False)
     assert scores["error_rate_by_uncertainty_decile"] == [0.0] * 10
+
+
+def test_an_empty_reconstruction_is_not_called_uncalibrated(solved, tmp_path):
+    """Before: 'uncertainty is not calibrated on this run: error rate 1.000 ... vs 1.000' on an empty result, whose
+    every true voxel is a wrong call whatever the map says (the job says once that it is empty)."""
+    grid, measurement, operator, recon, truth = solved
+    empty = type(recon)(recon.occupancy * 0, grid, recon.threshold)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        scores = write_uncertainty(tmp_path, empty, measurement, operator, truth=truth > 0.5, figure=False)
+    assert scores["error_rate_by_uncertainty_decile"] == [1.0] * 10

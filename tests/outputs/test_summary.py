@@ -78,3 +78,14 @@ def test_a_2d_runs_volumes_are_labelled_as_areas():
     assert rows["measured_volume_mm3"] == "volume the dips measure (mm²)"
     rows = {key: label for rows in summary.grouped({"measured_volume_mm3": 3156.0}).values() for label, key, _ in rows}
     assert rows["measured_volume_mm3"] == "volume the dips measure (mm³)"
+
+
+def test_an_empty_reconstruction_is_named_not_scored_by_its_stand_in_chamfer():
+    """Before: 'done: IoU 0.000, Chamfer 1.0000, ...' and 'Chamfer distance 100.00% of the object's diagonal': the
+    Chamfer of an empty result is one truth diagonal by convention, not a distance."""
+    metrics = {"iou": 0.0, "chamfer": 1.0, "empty": True, "profile_residual": 1.0, "volume_ratio": 0.0, "seconds": 1.3,
+               "consistency": "inconsistent"}
+    assert headline(metrics) == "empty reconstruction, IoU 0.000, residual 1.000, volume ratio 0.000, 1.3 s, inconsistent"
+    close = {a.question: a for a in summary.answers(metrics)}["How close to the truth?"]
+    assert close.headline == "empty reconstruction" and "stand-in" in close.detail
+    assert headline({**metrics, "empty": False}).startswith("IoU 0.000, Chamfer 1.0000")
