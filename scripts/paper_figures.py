@@ -7,8 +7,12 @@ of the ``N^2`` dips a square system needs, Fibonacci hemisphere), one job direct
 ``overrides.json``, and a job made with other overrides is refused before anything runs: use one ``--out``
 per solver or setting; every job uses the fast
 ``fourier`` operator, ``eps=1e-3, upsampfac=1.25``, single precision, and by default ``minnorm``
-with at most 60 LSMR iterations; an override of what each job sets itself, ``resolution``, ``n_dips``, ``ndim`` or
-``shape``, is refused: ``--n``, ``--percent`` and ``--meshes`` set them), then writes there
+with at most 60 LSMR iterations. The command line's overrides add to these defaults (``threads=1`` keeps them
+all); an override of a default's option replaces that default, and another ``solver=`` or ``operator=`` choice
+drops the defaults' options of that group (``solver=voxel``: ``solver.iter_lim=60`` is minnorm's), which a
+``note:`` line names before the jobs run (:func:`replaced`). An override of what each job sets itself,
+``resolution``, ``n_dips``, ``ndim`` or ``shape``, is refused: ``--n``, ``--percent`` and ``--meshes`` set them), then
+writes there
 
 * ``fig11_n<N>.png``: per resolution, one row per mesh, one column per budget (depth-shaded
   renders of the binary reconstructions, as the paper's Fig. 11 rows);
@@ -52,6 +56,9 @@ JOB_DEFAULTS = ["output.figures=false", "output.uncertainty=false", "output.reso
                 "shape.radius=45",  # mm: the bundled meshes come in mixed units; the grid follows them
                 "operator=fourier", "operator.eps=1e-3", "operator.upsampfac=1.25", "operator.single=true"]
 SOLVER_DEFAULTS = ["solver=minnorm", "solver.iter_lim=60"]  # LSMR at these sizes, as in bench_scale
+#: The config groups whose defaults' options belong to the default's choice: another choice of the group on the
+#: command line drops them, as an override of one of them replaces it (:func:`replaced`).
+CHOICE_GROUPS = ("operator", "solver")
 OVERRIDES_FILE = "overrides.json"  # a job's overrides, beside its metrics.json
 #: The options each job's overrides set from the command line's own flags (:func:`job_overrides`), and the flag:
 #: an override of one would run every job at one value under names, N and % that say another.
@@ -61,8 +68,9 @@ PER_JOB_OPTIONS = {"resolution": "--n", "n_dips": "--percent", "ndim": None, "sh
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("overrides", nargs="*", default=SOLVER_DEFAULTS,
-                   help=f"Hydra overrides for every job (default: {' '.join(SOLVER_DEFAULTS)}; e.g. solver=voxel)")
+    p.add_argument("overrides", nargs="*", default=[],
+                   help=f"Hydra overrides for every job, added to the defaults {' '.join(SOLVER_DEFAULTS)} "
+                        "(another solver= or operator= drops that group's defaults; e.g. solver=voxel, threads=1)")
     p.add_argument("--meshes", nargs="+", default=["bunny", "hand", "spot"], help="bundled mesh names")
     p.add_argument("--n", type=int, nargs="+", default=[64, 128], help="grid resolutions N")
     p.add_argument("--percent", type=float, nargs="+", default=[1.0, 3.0, 10.0], help="dips in %% of N^2")
@@ -100,11 +108,50 @@ def budget_error(n: int, percent: float) -> str | None:
             f"{100 * BUDGET_TOLERANCE:g} %)")
 
 
+def _key(override: str) -> str:
+    """The option an override sets or deletes (``+``, ``++`` and ``~`` prefixes dropped)."""
+    return override.lstrip("+~").partition("=")[0]
+
+
+def replaced(default: str, overrides: list[str]) -> bool:
+    """Whether the command line's ``overrides`` replace ``default``, one of the operator's or solver's defaults
+    (:data:`CHOICE_GROUPS`): an override of the same option (``solver.iter_lim=300``), or another choice of its
+    group (``solver=voxel`` replaces ``solver=minnorm`` and ``solver.iter_lim=60``, an option voxel has not). The
+    other defaults stay, an override of them coming after them."""
+    group = _key(default).split(".")[0]
+    if group not in CHOICE_GROUPS:
+        return False
+    choice = next((d.partition("=")[2] for d in [*JOB_DEFAULTS, *SOLVER_DEFAULTS] if _key(d) == group), None)
+    return any((_key(o) == _key(default) and o != default) or (_key(o) == group and o.partition("=")[2] != choice)
+               for o in overrides)
+
+
+def kept(defaults: list[str], overrides: list[str]) -> list[str]:
+    """``defaults`` less those the command line's ``overrides`` replace (:func:`replaced`) or repeat."""
+    return [d for d in defaults if not replaced(d, overrides) and d not in overrides]
+
+
+def replaced_note(overrides: list[str]) -> str | None:
+    """A ``note:`` line naming the defaults the command line's ``overrides`` replace and the overrides that do,
+    ``None`` when they replace none (before, any override dropped ``solver=minnorm solver.iter_lim=60`` without
+    a word)."""
+    defaults = [*JOB_DEFAULTS, *SOLVER_DEFAULTS]
+    dropped = [d for d in defaults if replaced(d, overrides)]
+    if not dropped:
+        return None
+    by = [o for o in overrides if any(_key(o) in (_key(d), _key(d).split(".")[0]) for d in dropped)]
+    still = [d for d in defaults if _key(d).split(".")[0] in CHOICE_GROUPS and d not in dropped]
+    return (f"note: {' '.join(by)} replace{'s' * (len(by) == 1)} the default{'s' * (len(dropped) > 1)} "
+            f"{' '.join(dropped)}" + (f"; {' '.join(still)} still appl{'ies' if len(still) == 1 else 'y'}"
+                                      if still else ""))
+
+
 def job_overrides(mesh: str, n: int, percent: float, extra: list[str]) -> list[str]:
-    """The pipeline overrides of one job: :func:`dip_budget` dips of ``mesh`` at ``N^3``."""
+    """The pipeline overrides of one job: :func:`dip_budget` dips of ``mesh`` at ``N^3``, the defaults that the
+    command line's ``extra`` does not replace (:func:`kept`), then ``extra``."""
     n_dips = dip_budget(n, percent)
-    return [*JOB_DEFAULTS, f"shape.path=${{dipnet_data:meshes/{mesh}.ply}}", f"resolution={n}",
-            f"n_dips={n_dips}", "ndim=3", *extra]
+    return [*kept(JOB_DEFAULTS, extra), f"shape.path=${{dipnet_data:meshes/{mesh}.ply}}", f"resolution={n}",
+            f"n_dips={n_dips}", "ndim=3", *kept(SOLVER_DEFAULTS, extra), *extra]
 
 
 def check_settings(args) -> None:
@@ -236,6 +283,9 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     with user_errors():  # a bad mesh name or override: one line and exit 2, before any job
         check_settings(args)
+    note = replaced_note(args.overrides)
+    if note:  # an override that replaced a default used to do so without a word
+        print(note)
     other = other_settings(args)
     if other:
         print(f"error: {args.out} holds finished jobs of another setting ({'; '.join(other[:3])}"

@@ -22,6 +22,41 @@ def test_job_overrides_take_the_percent_of_n_squared(paper_figures):
     assert overrides[-1] == "solver=voxel"  # the command line wins
 
 
+def test_overrides_add_to_the_default_solver_and_say_which_defaults_they_replace(paper_figures):
+    """Before: any override replaced the default ``solver=minnorm solver.iter_lim=60`` without a word (``threads=1``
+    ran minnorm with its config's 300 LSMR iterations)."""
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        threads = compose(config_name="config", overrides=paper_figures.job_overrides("bunny", 16, 5.0, ["threads=1"]))
+        longer = compose(config_name="config",
+                         overrides=paper_figures.job_overrides("bunny", 16, 5.0, ["solver.iter_lim=300"]))
+    assert (threads.solver.iter_lim, threads.threads, threads.operator.backend) == (60, 1, "fourier")
+    assert longer.solver.iter_lim == 300 and longer.solver._target_.endswith("MinNormSolver")
+    assert paper_figures.replaced_note(["threads=1"]) is None
+    assert paper_figures.replaced_note(["solver=minnorm"]) is None  # the default's own choice replaces nothing
+    assert paper_figures.replaced_note(["solver=voxel", "threads=1"]) == (
+        "note: solver=voxel replaces the defaults solver=minnorm solver.iter_lim=60; operator=fourier "
+        "operator.eps=1e-3 operator.upsampfac=1.25 operator.single=true still apply")
+    assert paper_figures.replaced_note(["solver.iter_lim=300"]).startswith(
+        "note: solver.iter_lim=300 replaces the default solver.iter_lim=60; ")
+
+
+def test_another_operator_drops_the_default_operators_options(paper_figures, tmp_path, capsys):
+    """Before: ``operator=splat`` ended in Hydra's "Could not override 'operator.eps'. To append to your config use
+    +operator.eps=1e-3", exit 2: the default fourier operator's options stayed."""
+    out = tmp_path / "figs"
+    assert paper_figures.main(["operator=splat", "--n", "12", "--percent", "10", "--meshes", "bunny",
+                               "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith("note: operator=splat replaces the defaults operator=fourier operator.eps=1e-3 "
+                              "operator.upsampfac=1.25 operator.single=true; solver=minnorm solver.iter_lim=60 "
+                              "still apply\n"), printed
+    recorded = json.loads((out / "bunny_n12_p10" / "overrides.json").read_text())
+    assert recorded[-3:] == ["solver=minnorm", "solver.iter_lim=60", "operator=splat"]
+    assert json.loads((out / "bunny_n12_p10" / "metrics.json").read_text())["operator"] == "splat"
+
+
 @pytest.mark.parametrize("argv,message", [
     (["--n", "16", "--percent", "0.1"], r"--percent 0.1 at --n 16 asks 0.256 dips: the job would run 1 \(0.391 % of "
                                         r"N\^2\), tabled as 0.1 %; give a larger --n or --percent \(7.81 % or more"),
