@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 
 from dipnet.core.console import interrupted
 from dipnet.jobs.cli import require_options, run_hydra, user_errors
-from dipnet.jobs.sweep_jobs import guarded_job
+from dipnet.jobs.sweep_jobs import guarded_job, sweep_resume_hint
 from dipnet.core.locks import run_directory_lock
 from dipnet.jobs.pipeline import JobResult, run
 
@@ -35,7 +35,11 @@ def locked_run(cfg: DictConfig, out: Path) -> JobResult:
 
 
 def resume_hint(cfg: DictConfig, out: Path) -> str:
-    """How to go on after Ctrl-C: rerun into the same run directory (with a checkpoint the solve resumes)."""
+    """How to go on after Ctrl-C: rerun into the same run directory (with a checkpoint the solve resumes); a sweep
+    job: the single run that resumes it and the command that finishes the sweep
+    (:func:`~dipnet.jobs.sweep_jobs.sweep_resume_hint`)."""
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        return sweep_resume_hint(HydraConfig.get(), bool(cfg.output.get("checkpoint")))
     if cfg.output.get("checkpoint"):
         return (f"rerun the same command with hydra.run.dir={out} to resume the solve from its checkpoint "
                 f"(output.checkpoint)")

@@ -5,8 +5,11 @@ stop the sweep, and the experiment presets composing."""
 from __future__ import annotations
 
 import importlib.util
+import shlex
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -83,3 +86,33 @@ def test_experiment_presets_compose(preset, tmp_path):
         assert cfg.shape.path == "/meshes/bunny.ply" and "mesh" in params
     else:
         assert str(cfg.hydra.sweep.dir) == f"sweeps/{preset}" and len(params) == 2
+
+
+@pytest.mark.slow
+def test_the_hint_of_a_cut_sweep_resumes_the_cut_job_alone(tmp_path):
+    """Ctrl-C in job 1 of 3 (checkpointed voxel solves): the hint's single run resumes job 1 from its checkpoint into
+    its folder and runs nothing else (before, the hint's "rerun the same command with hydra.run.dir=SWEEP/1" reran the
+    sweep, every job of it)."""
+    sweep = tmp_path / "sweep"
+    args = ["-m", f"hydra.sweep.dir={sweep}", "resolution=16", "n_dips=12", "solver=voxel", "solver.tol=0",
+            "output.checkpoint=true", "output.figures=false", "output.uncertainty=false",
+            "output.resolvability=false", "output.progress=false", "threads=1", "solver.iterations=20,3000,20"]
+    proc = subprocess.Popen([sys.executable, str(SCRIPT), *args], cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 120  # job 1's solve (3000 steps a stage) has saved its first checkpoint
+    while not list((sweep / "1" / "checkpoints").glob("*.pt")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    hint = next(line for line in stderr.splitlines() if line.startswith("interrupted: "))
+    assert proc.returncode == 130 and "Job 2 of the sweep's 3 did not start" in hint, stderr[-2000:]
+    single = hint.split("run it once into its folder: ")[1].split(". Job 2")[0]
+    words = shlex.split(single)
+    assert words[:2] == ["python", "scripts/reconstruct.py"] and words[-1] == f"hydra.run.dir={sweep / '1'}"
+    resumed = reconstruct(*words[2:], cwd=tmp_path)
+    assert "resumed 'voxel" in resumed.stdout + resumed.stderr
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", "1", "multirun.yaml"]  # job 2 did not run
+    runs = collect.collect_runs(sweep)
+    assert [r.status for r in runs] == ["ok", "ok"] and runs[1].metrics["n_dips"] == 12
+    assert runs[1].config["solver"]["iterations"] == 3000

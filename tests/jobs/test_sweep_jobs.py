@@ -167,3 +167,56 @@ def test_a_sweep_with_a_failed_job_exits_1(tmp_path, monkeypatch, capsys):
     ok = run_script("reconstruct", "-m", "solver=minnorm", "seed=0,1", *quick, f"hydra.sweep.dir={tmp_path / 'ok'}",
                     monkeypatch=monkeypatch, capsys=capsys)
     assert ok.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in ok.stdout, ok.stderr[-2000:]
+
+
+def _cut_job(sweep: Path, num: int, task: list[str], sweep_task: list[str], launch: tuple[str, ...] = ()):
+    """The Hydra config of sweep job ``num`` (``HydraConfig.get()`` in the job) and the sweep's ``multirun.yaml``."""
+    hydra = {"mode": "MULTIRUN", "sweep": {"dir": str(sweep), "subdir": "${hydra.job.num}"},
+             "sweeper": {"_target_": "hydra._internal.core_plugins.basic_sweeper.BasicSweeper", "params": None},
+             "launcher": {"_target_": "hydra._internal.core_plugins.basic_launcher.BasicLauncher"},
+             "runtime": {"output_dir": str(sweep / str(num))}, "job": {"num": num, "config_name": "config"},
+             "overrides": {"task": task, "hydra": [f"hydra.sweep.dir={sweep}", "hydra.mode=MULTIRUN", *launch]}}
+    sweep.mkdir(parents=True, exist_ok=True)
+    saved = {"hydra": {**hydra, "overrides": {**hydra["overrides"], "task": sweep_task}}}
+    OmegaConf.save(OmegaConf.create(saved), sweep / "multirun.yaml")
+    return OmegaConf.create(hydra)
+
+
+def test_a_cut_sweep_job_says_how_to_resume_it_alone_and_how_to_finish_the_sweep(tmp_path, monkeypatch):
+    """Before: "rerun the same command with hydra.run.dir=SWEEP/1 to resume the solve from its checkpoint"; a sweep
+    ignores hydra.run.dir, so that reran the whole sweep (and without hydra.sweep.dir, into a new dated folder)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    from script_modules import load_script
+
+    sweep = tmp_path / "my sweep"
+    hydra_cfg = _cut_job(sweep, 1, ["solver=voxel", "n_dips=12", "shape.path=${dipnet_data:meshes/hand.ply}"],
+                         ["solver=voxel", "n_dips=6,12,18", "shape.path=${dipnet_data:meshes/hand.ply}"],
+                         ("hydra/job_logging=disabled",))
+    reconstruct = load_script("reconstruct")
+    monkeypatch.setattr(HydraConfig, "initialized", staticmethod(lambda: True))
+    monkeypatch.setattr(HydraConfig, "get", staticmethod(lambda: OmegaConf.merge(hydra_cfg, {"mode": RunMode.MULTIRUN})))
+    cfg = OmegaConf.create({"output": {"checkpoint": True}})
+    hint = reconstruct.resume_hint(cfg, sweep / "1")
+    single = (f"python scripts/reconstruct.py solver=voxel n_dips=12 'shape.path=${{dipnet_data:meshes/hand.ply}}' "
+              f"hydra/job_logging=disabled 'hydra.run.dir={sweep}/1'")
+    again = (f"python scripts/reconstruct.py -m solver=voxel n_dips=6,12,18 "
+             f"'shape.path=${{dipnet_data:meshes/hand.ply}}' hydra/job_logging=disabled 'hydra.sweep.dir={sweep}'")
+    assert hint == (f"sweep job 1 ({sweep}/1) was cut: its solve resumes from its checkpoint (output.checkpoint). A "
+                    f"sweep ignores hydra.run.dir; to rerun this job alone, run it once into its folder: {single}. "
+                    f"Job 2 of the sweep's 3 did not start: to finish the sweep, run it again into its folder: "
+                    f"{again} (it runs every job again, the finished ones and this one from their checkpoints)")
+    no_checkpoint = reconstruct.resume_hint(OmegaConf.create({"output": {"checkpoint": None}}), sweep / "1")
+    assert "nothing of its solve was kept" in no_checkpoint and no_checkpoint.endswith("each from the start)")
+    # the last job: that run finishes the sweep; a parallel launcher: which jobs finished is not known
+    last = sweep_jobs.sweep_resume_hint(_cut_job(sweep, 2, ["n_dips=18"], ["n_dips=6,12,18"]), True)
+    assert last.endswith(f"hydra.run.dir={sweep}/2'. It is the sweep's last job (of 3): that run finishes the sweep")
+    parallel = _cut_job(sweep, 0, ["n_dips=6"], ["n_dips=6,12,18"], ("hydra/launcher=joblib",))
+    OmegaConf.save(OmegaConf.merge(OmegaConf.load(sweep / "multirun.yaml"),
+                                   {"hydra": {"launcher": {"_target_": "hydra_plugins.JoblibLauncher"}}}),
+                   sweep / "multirun.yaml")
+    assert ". To finish the sweep (its jobs after this one, or those that had not finished), run it again into its " \
+           f"folder: python scripts/reconstruct.py -m n_dips=6,12,18 hydra/launcher=joblib 'hydra.sweep.dir={sweep}'" \
+           in sweep_jobs.sweep_resume_hint(parallel, True)
+    (sweep / "multirun.yaml").unlink()  # no record of the sweep: the single run alone
+    assert sweep_jobs.sweep_resume_hint(hydra_cfg, True).endswith(single)
