@@ -7,8 +7,8 @@ the noise explains (``||sigma|| / ||g||`` with the noise the measurement states,
 :class:`~dipnet.simulator.physics.LevelSensor` with an SNR does, else estimated: the smaller of the profiles' own
 estimate and ``sqrt(2)`` times the readings' noise, :func:`~dipnet.evaluation.consistency.estimated_slab_noise`),
 ``f`` 1.25 for a stated noise and 3 for an estimated one, ``floor_n = max(0.05, 3 / n)`` on ``n`` voxels per axis.
-Until 2026-11-30 an unstated noise was estimated from the profiles alone (``profiles``); before 2026-11-29 the rule
-was ``max(3 * expected, 0.05)`` (``before``). This benchmark measures the rule's false alarms and misses, and
+Before commit 6f0ebf7 an unstated noise was estimated from the profiles alone (``profiles``); before 2026-11-29
+the rule was ``max(3 * expected, 0.05)`` (``before``). This benchmark measures the rule's false alarms and misses, and
 those of other rules.
 
 Random cases, seeded by ``--seed``: ``--trials`` scans per shape of the 3D built-ins (ball, box, torus, chamber box),
@@ -82,8 +82,8 @@ JOB = ["solver=voxel", "output.progress=false"]
 def rules() -> dict[str, Callable[[dict], float]]:
     """The residual rules compared, by name: the limit above which each flags a row. ``current``: the check's own
     (``row["limit"]``: :func:`~dipnet.evaluation.consistency.allowed_residual`); ``profiles``: the same with an
-    unstated noise estimated from the profiles alone (the rule until 2026-11-30, before the readings' noise
-    bounded it); ``before``: ``max(3 e, 0.05)`` with that estimate, the rule before 2026-11-29; ``fX``: ``max(X e,
+    unstated noise estimated from the profiles alone (the rule before commit 6f0ebf7, which bounds that estimate by
+    the readings' noise); ``before``: ``max(3 e, 0.05)`` with it, the rule before 2026-11-29; ``fX``: ``max(X e,
     0.05)``; ``hypotX``: ``hypot(X e, floor_n)`` with the grid's floor (the check's limit with one factor for both
     noise sources)."""
     out: dict[str, Callable[[dict], float]] = {
@@ -96,7 +96,7 @@ def rules() -> dict[str, Callable[[dict], float]]:
 
 
 def _profiles_expected(row: dict) -> float:
-    """What the noise explains in ``row`` as the check took it until 2026-11-30: the stated noise, else the noise
+    """What the noise explains in ``row`` as the check took it before commit 6f0ebf7: the stated noise, else the noise
     estimated from the profiles alone."""
     return row["expected"] if row["noise_source"] == "sigma" else row["expected_profiles"]
 

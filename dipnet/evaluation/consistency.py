@@ -7,8 +7,9 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   (same for the occupancy): 0 for a shape that reproduces every slab volume;
 * ``profile_residual_expected``: what the noise alone explains, ``||n|| / ||g||`` with
   ``||n|| = sqrt(sum sigma^2)`` from the measurement's per-slab ``sigma`` when it has one, else
-  from a per-slab sigma estimated from the profiles
-  (:func:`~dipnet.core.measurement.estimate_slab_sigma`);
+  from a per-slab sigma estimated (:func:`estimated_slab_noise`: the smaller of the profiles' own estimate,
+  :func:`~dipnet.core.measurement.estimate_slab_sigma`, and ``sqrt(2)`` times the noise of one reading when
+  the readings were recorded; ``noise_source`` says which: ``sigma``, ``readings`` or ``estimated``);
 * ``volume_ratio`` = reconstructed (binary) volume / measured volume, the measured volume
   being a robust mean (:func:`~dipnet.core.measurement.robust_volume`) of every profile's total, with
   ``volume_ratio_noise`` the relative spread of that mean.

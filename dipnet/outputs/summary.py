@@ -58,7 +58,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "profile_residual_continuous": ("how consistent with the data", "profile residual of the continuous occupancy"),
     "profile_residual_expected": ("how consistent with the data", "residual that noise and voxels explain"),
     "residual_limit": ("how consistent with the data", "residual limit of the check"),
-    "noise_source": ("how consistent with the data", "where the noise level comes from"),
+    "noise_source": ("how consistent with the data", "where the noise level comes from: sigma (stated), readings "
+                     "(the readings' own scatter) or estimated (from the profiles)"),
     "measured_volume_mm3": ("how consistent with the data", "volume the dips measure (mm³)"),
     "reconstructed_volume_mm3": ("how consistent with the data", "volume of the reconstruction (mm³)"),
     "continuous_volume_mm3": ("how consistent with the data", "volume of the continuous occupancy (mm³)"),
