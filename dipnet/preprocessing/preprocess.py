@@ -330,7 +330,7 @@ def _warn_outside(shares: list[float], ks: list[int], sigmas: list[float | None]
     message = (f"{len(over)} of {len(shares)} dips hold more than {BEYOND_SLABS_TOL:.0%} of their volume outside the "
                f"slabs [{edges[0]:.1f}, {edges[-1]:.1f}] mm (up to {shares[worst]:.1%}, orientation {ks[worst]}), "
                "which the profiles leave out: the object reaches beyond the grid, and extent_mm must grow to hold "
-               "it (or a level drifting in time rises there)")
+               "it (or a level drifting in time rises there, or a wrong rig geometry misplaces the dips' heights)")
     log.warning("%s", message)
     warnings.warn(message, stacklevel=3)
 

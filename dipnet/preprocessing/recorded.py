@@ -377,7 +377,8 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     ``ndim``: the grid's dimension, which the recording's must match (checked before its readings are
     repaired: a 3D recording's rises exceed a 2D grid's physical cap, and were "repaired" before the refusal).
 
-    Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``.
+    Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``; ``info["calibration"]`` names the
+    calibration file (path, rig, tank, method, created) when the geometry is one's.
     """
     raw = read_scan(path, cross_section_mm2)
     if ndim is not None and raw.header.ndim != ndim:
@@ -386,8 +387,9 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     raw.orientations = complete_dips(raw)
     if calibration is not None and as_geometry(geometry) != RigGeometry():
         raise ValueError("give the rig geometry either as a calibration file or as values, not both")
-    if calibration is not None:
-        geometry = scan_calibration(calibration, raw.header).geometry
+    calibrated = None if calibration is None else scan_calibration(calibration, raw.header)
+    if calibrated is not None:
+        geometry = calibrated.geometry
         if cross_section_mm2 is not None:
             geometry = geometry.with_values(cross_section_mm2=float(cross_section_mm2))
     geometry = as_geometry(geometry)
@@ -403,6 +405,9 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     cut = truncated_orientations(level_drift_removed(raw, geometry.level_drift_mm_per_s), tail_fraction, tail_tol)
     info: dict = {"truncated": cut, "truncated_policy": truncated, "geometry": geometry.to_dict(),
                   "readings": readings.to_json()}
+    if calibrated is not None:  # which file placed the dips: the validation names it when they do not fit
+        info["calibration"] = {"path": str(calibration), "rig": calibrated.rig, "tank": calibrated.tank,
+                               "method": calibrated.method, "created": calibrated.created}
     if truncated == "drop":
         if len(cut) == len(raw.orientations):
             raise ValueError(f"{path}: every dip is truncated; use truncated='keep'")

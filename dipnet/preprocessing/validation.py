@@ -21,6 +21,12 @@ when the measurement carries ``sigma``, else 0):
   with a flat tail are left out: where the recording has no start heights (the authors' CSV) theirs are the
   rig geometry's extrapolation from the complete dips (the authors' 35 deg dips lie ~16 mm off). The slabs' share
   beyond the grid (``outside_share``) does not show it: slabs reach half a voxel or more past the ball.
+  A wrong rig geometry (another rig's calibration file) shifts every dip's heights and reads as an object far off
+  the centre, so the refusal first asks whether the dips place one object at all (:func:`dip_placement`: the
+  dips of a rigid object fit, about one of its points, within its widest dip); when they do not, it names the
+  geometry (the calibration file the reader was given, or the values) instead of the grid. A geometry from a
+  calibration file is named in either case. The check runs before the signs: a dip misplaced wholly off the
+  slabs sums to 0.
 * **sign**: slab volumes are non-negative. A profile whose total is not positive: error.
   Negative slabs below ``-max(4 sigma_kj, neg_tol max_j |p_kj|)`` are beyond noise: error when
   their magnitude exceeds ``neg_tol`` of the positive volume, else a warning.
@@ -46,9 +52,11 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import linprog
 from scipy.spatial import cKDTree
 
 from dipnet.core.framing import extent_around
+from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 
@@ -178,9 +186,9 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     _check_magnitude(prof, grid, size_tol, source)
     totals = prof.sum(axis=1)
     noise = np.zeros(len(prof)) if sigma is None else np.sqrt((sigma**2).sum(axis=1))
+    _check_reach(measurement, grid, source)  # before the signs: a dip misplaced off the slabs sums to 0
     _check_signs(prof, totals, sigma, neg_tol, source, report)
     _check_not_tiny(totals, grid, source)
-    _check_reach(measurement, grid, source)
     _check_totals(totals, noise, total_tol, source, report)
     _check_duplicates(measurement, totals, noise, total_tol, dup_deg, source, report)
     for message in report.warnings:
@@ -215,7 +223,20 @@ def _check_reach(measurement: DipMeasurement, grid: Grid, source: str) -> None:
     """Refuse a measurement whose object reaches beyond ``grid``'s working ball (see the module docstring)."""
     far, dip = object_reach(measurement)
     if far >= grid.radius * (1 - 1e-9):  # NaN compares False
-        raise MeasurementValidationError(f"{source}: {beyond_ball_message(far, grid, dip)}")
+        message = beyond_ball_message(far, grid, dip, placement=dip_placement(measurement),
+                                      geometry=geometry_origin(measurement))
+        raise MeasurementValidationError(f"{source}: {message}")
+
+
+def _reach_rows(measurement: DipMeasurement) -> np.ndarray:
+    """Each measured dip's :meth:`~dipnet.core.measurement.DipMeasurement.reach` ``(K', 2)`` (mm), with the
+    truncated dips kept with a flat tail set to NaN (see the module docstring)."""
+    reach = measurement.reach().copy()  # (K', 2) heights [low, high], mm
+    ks = measurement.metadata.get("orientation_k") or []
+    recorded = measurement.metadata.get("recorded") or {}
+    if recorded.get("truncated_policy") == "keep" and len(ks) == len(reach):
+        reach[np.isin(ks, recorded.get("truncated", []))] = np.nan  # placed by the complete dips' geometry
+    return reach
 
 
 def object_reach(measurement: DipMeasurement) -> tuple[float, str]:
@@ -223,27 +244,144 @@ def object_reach(measurement: DipMeasurement) -> tuple[float, str]:
     reaching (the largest over the dips of :meth:`~dipnet.core.measurement.DipMeasurement.reach`; NaN when no dip
     shows volume) and the dip that shows it (``"orientation k"``). Truncated dips kept with a flat tail are left
     out (see the module docstring)."""
-    reach = measurement.reach()  # (K', 2) heights [low, high], mm
+    reach = _reach_rows(measurement)
     far = np.fmax(-reach[:, 0], reach[:, 1])  # NaN only for a dip with no volume
     ks = measurement.metadata.get("orientation_k") or []
-    recorded = measurement.metadata.get("recorded") or {}
-    if recorded.get("truncated_policy") == "keep" and len(ks) == len(far):
-        far[np.isin(ks, recorded.get("truncated", []))] = np.nan  # placed by the complete dips' geometry, not their own
     if not np.isfinite(far).any():
         return float("nan"), ""
     worst = int(np.nanargmax(far))
     return float(far[worst]), f"orientation {ks[worst]}" if len(ks) == len(far) else f"dip {worst}"
 
 
-def beyond_ball_message(reach: float, grid: Grid, dip: str = "") -> str:
+#: The dips of one rigid object fit within its widest dip about any of its points (below); the reaches found fall
+#: short of the object's by their noise, so a placement is implausible only beyond this factor of the widest dip.
+#: Dips placed by their own rig geometry need 0.50 of it (four bundled meshes at 10-40 dB, a ball, the authors'
+#: cats); another rig's geometry (pivot, offset 40-90 mm off) 1.3-2.8, a pivot 40 mm off alone 0.65-1.2.
+PLACEMENT_FACTOR = 1.2
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Whether the dips' heights place one rigid object (:func:`dip_placement`).
+
+    Attributes:
+        radius_mm: the smallest radius of a ball, about one centre, along whose every dip direction the dip's
+            reach ``[low, high]`` lies within the ball's (mm).
+        width_mm: the widest dip's ``high - low`` (mm): the object is at least this wide.
+        centre_mm: that ball's centre (mm, object frame).
+    """
+
+    radius_mm: float
+    width_mm: float
+    centre_mm: tuple[float, ...]
+
+    @property
+    def implausible(self) -> bool:
+        """More than :data:`PLACEMENT_FACTOR` widest dips: no one object is placed so."""
+        return self.radius_mm > PLACEMENT_FACTOR * self.width_mm
+
+
+def dip_placement(measurement: DipMeasurement) -> Placement | None:
+    """How well one rigid object explains where the dips show volume.
+
+    Dip ``k`` shows some of the object below ``low_k`` and above ``high_k`` along its direction ``theta_k``
+    (:meth:`~dipnet.core.measurement.DipMeasurement.reach`). For an object ``O`` and any of its points ``p``,
+    ``high_k - p . theta_k`` and ``p . theta_k - low_k`` are at most the dip's width ``high_k - low_k``, so the
+    smallest radius ``R`` with ``[low_k, high_k]`` inside ``c . theta_k +- R`` for one centre ``c`` (a linear
+    programme) is at most the widest dip ``W`` (about ``W / 2`` for compact objects). Heights shifted by a wrong
+    rig geometry (``a (cos r - 1) + b sin r``, which no ``c . theta`` takes up) make ``R`` exceed ``W``.
+
+    Returns:
+        The :class:`Placement`, or ``None`` with fewer than ``ndim + 2`` dips that show volume, or when symmetry
+        images were merged into the dips (their reach rows no longer pair with the directions).
+    """
+    reach = _reach_rows(measurement)
+    if len(reach) != measurement.n_orientations and "symmetry_group_order" in measurement.metadata:
+        return None
+    directions = measurement.directions.double().numpy()[:len(reach)]  # interpolated directions follow the dips
+    use = np.isfinite(reach).all(axis=1)
+    reach, directions = reach[use], directions[use]
+    k, d = directions.shape
+    if k < d + 2:
+        return None
+    ones = np.ones((k, 1))
+    bounds = np.vstack([np.hstack([-directions, -ones]), np.hstack([directions, -ones])])  # over (c, R)
+    fit = linprog(np.r_[np.zeros(d), 1.0], A_ub=bounds, b_ub=np.concatenate([-reach[:, 1], reach[:, 0]]),
+                  bounds=[(None, None)] * d + [(0.0, None)], method="highs")
+    if not fit.success:
+        return None
+    return Placement(float(fit.x[-1]), float((reach[:, 1] - reach[:, 0]).max()), tuple(float(v) for v in fit.x[:d]))
+
+
+def geometry_origin(measurement: DipMeasurement) -> dict:
+    """Where the rig geometry that placed the dips came from, from what the reader recorded
+    (``metadata["recorded"]``): ``{"calibration": {path, rig, tank, method, created}}`` for a calibration file,
+    ``{"values": {field: value}}`` for geometry values off the ideal rig, ``{"ideal": True}`` for the ideal rig;
+    empty when the measurement does not say (a simulation, a saved ``.npz``)."""
+    recorded = measurement.metadata.get("recorded") or {}
+    if recorded.get("calibration"):
+        return {"calibration": recorded["calibration"]}
+    geometry = recorded.get("geometry")
+    if not isinstance(geometry, dict):
+        return {}
+    ideal = RigGeometry().to_dict()
+    values = {name: value for name, value in geometry.items()
+              if name != "cross_section_mm2" and value is not None and value != ideal.get(name)}
+    return {"values": values} if values else {"ideal": True}
+
+
+def beyond_ball_message(reach: float, grid: Grid, dip: str = "", *, placement: Placement | None = None,
+                        geometry: dict | None = None) -> str:
     """The finding for an object that reaches ``reach`` mm from the centre of ``grid``, beyond its working ball
-    (shown by ``dip``), naming the ``extent_mm`` that puts ``reach`` at :data:`_DEFAULT_FILL` of the ball."""
+    (shown by ``dip``), naming the ``extent_mm`` that puts ``reach`` at :data:`_DEFAULT_FILL` of the ball.
+
+    With the dips' ``placement`` (:func:`dip_placement`) implausible for one object, the rig geometry is named
+    as the cause instead (what to do depends on ``geometry``, :func:`geometry_origin`); a geometry from a
+    calibration file is named in either case."""
     needed = math.ceil(extent_around(reach, grid.n, _DEFAULT_FILL))
-    return (f"the object reaches beyond the working ball of radius {grid.radius:.1f} mm (extent_mm={grid.extent:g} "
-            f"at resolution {grid.n}): the dips hold volume at least {reach:.1f} mm from the grid's centre"
-            f"{f' ({dip})' if dip else ''}, where no voxel can hold it: increase extent_mm to {needed} or more "
-            f"(which puts {reach:.1f} mm at {_DEFAULT_FILL:.0%} of the ball's radius, as a grid chosen around a "
-            "shape does)")
+    found = (f"the object reaches beyond the working ball of radius {grid.radius:.1f} mm (extent_mm={grid.extent:g} "
+             f"at resolution {grid.n}): the dips hold volume at least {reach:.1f} mm from the grid's centre"
+             f"{f' ({dip})' if dip else ''}")
+    if placement is not None and placement.implausible:
+        return f"{found}, {_misplaced(placement, geometry or {}, needed)}"
+    message = (f"{found}, where no voxel can hold it: increase extent_mm to {needed} or more (which puts "
+               f"{reach:.1f} mm at {_DEFAULT_FILL:.0%} of the ball's radius, as a grid chosen around a shape does)")
+    file = (geometry or {}).get("calibration")
+    if file:
+        width = f" (no dip shows it wider than {placement.width_mm:.1f} mm)" if placement is not None else ""
+        message += (f". The rig geometry comes from the calibration file {_calibration_name(file)}: if the object is "
+                    f"not that far off the spin axis{width}, check that the file is this rig's, or recalibrate this rig")
+    return message
+
+
+def _misplaced(placement: Placement, geometry: dict, needed: int) -> str:
+    """Why dips that place no one object are not the grid's fault, and what to do about the geometry."""
+    finding = (f"yet no dip shows it wider than {placement.width_mm:.1f} mm and their heights place no one object "
+               f"(about any centre they need a radius of {placement.radius_mm:.1f} mm, where one object's dips fit "
+               f"within its widest): the rig geometry misplaces the dips' heights, not the grid")
+    recalibrate = ("recalibrate this rig (scripts/calibrate.py on a reference ball, or calibration=self), then read "
+                   "the scan with the new file")
+    if geometry.get("calibration"):
+        cause = (f"; it comes from the calibration file {_calibration_name(geometry['calibration'])}: check that the "
+                 f"file is this rig's current calibration (not another rig's of the same name, nor an old one), or "
+                 f"{recalibrate}")
+    elif geometry.get("values"):
+        values = ", ".join(f"{name}={value:.6g}" for name, value in geometry["values"].items())
+        cause = f"; the geometry given ({values}) is likely wrong: check the values, or {recalibrate}"
+    elif geometry.get("ideal"):
+        cause = ("; the scan is read on the ideal rig (no geometry given): give the reader this rig's calibration "
+                 "file (source.reader.calibration=FILE) or geometry, or calibrate it (calibrate.py, calibration=self)")
+    else:
+        cause = "; check the rig geometry and the dips' start heights"
+    return f"{finding}{cause}. A larger extent_mm ({needed}) would only hold a misplaced object"
+
+
+def _calibration_name(file: dict) -> str:
+    """A calibration file as ``path (rig 'r', tank 't', method, created ...)`` from :func:`geometry_origin`."""
+    details = [f"rig {file['rig']!r}" if file.get("rig") else "", f"tank {file['tank']!r}" if file.get("tank") else "",
+               str(file.get("method") or ""), f"created {file['created']}" if file.get("created") else ""]
+    listed = ", ".join(d for d in details if d)
+    return f"{file.get('path', '?')}{f' ({listed})' if listed else ''}"
 
 
 def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: ValidationReport) -> None:

@@ -191,6 +191,82 @@ def test_the_bundled_recording_of_the_cats_is_not_refused():
         validate_measurement(read_recorded(str(CATS_CSV), grid, **options), grid)
 
 
+#: The thirteenth audit's slip: a scan read with another rig's calibration file (same rig name and tank).
+_OWN_RIG = {"pivot_mm": 100.0, "tilt_axis_offset_mm": -20.0, "tilt_zero_deg": 6.0}
+_OTHER_RIG = {"pivot_mm": 12.0, "tilt_axis_offset_mm": 16.0, "tilt_zero_deg": 1.0}
+
+
+def _scan_with_calibrations(tmp_path):
+    """A 25 mm ball 10 mm off the spin axis dipped 24 times (30 dB) on the rig :data:`_OWN_RIG` (rig 'lab-rig',
+    tank 'tank-1'), and two calibration files of that rig and tank: its own and :data:`_OTHER_RIG`'s."""
+    from dipnet.core.calibration_file import Calibration, save_calibration
+    from dipnet.core.geometry import RigGeometry
+    from dipnet.shapes import Ball
+    from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank, simulate_scan
+
+    raw = simulate_scan(Ball(25.0, center=(10.0, 0.0, 0.0)), fibonacci_hemisphere(24), tank=Tank(60000.0),
+                        geometry=RigGeometry(**_OWN_RIG), sensor=LevelSensor(snr_db=30.0, seed=1),
+                        protocol=DipProtocol(extra_steps=8), progress=False)
+    raw.header.rig, raw.header.config["tank_id"] = "lab-rig", "tank-1"
+    files = [save_calibration(Calibration(RigGeometry(**values), "lab-rig", "tank-1", method="reference"),
+                              tmp_path / name) for name, values in (("own.yaml", _OWN_RIG), ("other.yaml", _OTHER_RIG))]
+    return raw.save(tmp_path / "scan.jsonl"), *files
+
+
+def test_another_rigs_calibration_file_is_named_not_the_grid(tmp_path):
+    """Before: the scan read with another rig's calibration file was refused by the reach check with "increase
+    extent_mm to 381", which names the grid where the geometry is at fault (on a grid for the ball, 100 mm: "profile
+    15 sums to 0 mm^3: a dip cannot displace a negative or zero volume"). Now the dips are tested for one placement
+    of one object (their heights need a radius of 145 mm about any centre, no dip is wider than 46 mm) before their
+    signs, and the refusal names the calibration file and what to do; the rig's own file passes. A geometry given
+    as values is named the same way."""
+    import warnings
+
+    from dipnet.preprocessing import validation
+    from dipnet.preprocessing.recorded import read_raw_recording
+
+    scan, own, other = _scan_with_calibrations(tmp_path)
+    for extent in (100.0, 200.0):
+        grid = Grid(24, 3, extent)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the volume outside the slabs
+            misplaced = read_raw_recording(scan, grid, calibration=other)
+        with pytest.raises(MeasurementValidationError,
+                           match=r"reaches beyond the working ball .* yet no dip shows it wider than \d+\.\d mm and "
+                                 r"their heights place no one object .* comes from the calibration file .*other\.yaml "
+                                 r"\(rig 'lab-rig', tank 'tank-1', reference, .*recalibrate this rig .*A larger "
+                                 r"extent_mm \(\d+\) would only hold a misplaced object"):
+            validate_measurement(misplaced, grid)
+        placement = validation.dip_placement(misplaced)
+        assert placement.implausible and placement.radius_mm > 2 * placement.width_mm
+        right = read_raw_recording(scan, grid, calibration=own)
+        validate_measurement(right, grid)
+        fits = validation.dip_placement(right)
+        assert fits.radius_mm == pytest.approx(0.5 * fits.width_mm, rel=0.05) and not fits.implausible
+    grid = Grid(24, 3, 200.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        given = read_raw_recording(scan, grid, geometry=_OTHER_RIG)
+    with pytest.raises(MeasurementValidationError, match=r"the geometry given \(pivot_mm=12, tilt_axis_offset_mm=16, "
+                                                         r"tilt_zero_deg=1\) is likely wrong: check the values"):
+        validate_measurement(given, grid)
+
+
+def test_an_object_beyond_the_grid_read_with_a_calibration_file_names_both(tmp_path):
+    """The rig's own file on a grid too small for the ball (which is 35 mm from the centre): the dips place one
+    object, so the grid is at fault (extent_mm named) and the file is named as the other possibility."""
+    from dipnet.preprocessing.recorded import read_raw_recording
+
+    scan, own, _ = _scan_with_calibrations(tmp_path)
+    grid = Grid(24, 3, 60.0)
+    with pytest.warns(UserWarning, match="outside the slabs"):
+        measurement = read_raw_recording(scan, grid, calibration=own)
+    with pytest.raises(MeasurementValidationError, match=r"increase extent_mm to \d+ or more .* comes from the "
+                                                         r"calibration file .*own\.yaml .*: if the object is not that "
+                                                         r"far off the spin axis \(no dip shows it wider than"):
+        validate_measurement(measurement, grid)
+
+
 def test_dips_that_trap_air_in_a_cavity_are_named_by_their_totals():
     """The chamber box dipped with its channel's mouth pointing down keeps its chamber's air (the simulator's
     pockets): those dips measure the box and the chamber, 14 % more than the dips that let the air out, and the
