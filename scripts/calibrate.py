@@ -16,7 +16,10 @@ the reason and written under ``not_estimated`` with their configured values. A b
 axis has its distance from the axis fitted: its fitted centre is printed and written as
 ``reference_centroid_mm``, with a warning when it is farther than ``--position-tolerance`` from
 ``--centre`` (the ball is not mounted where stated). The level sensor's lag is never estimated: a known one
-(``--sensor-lag``, s) is undone in every dip and written to the file.
+(``--sensor-lag``, s) is undone in every dip and written to the file. A balance reads the displaced volume, and
+the water line's rise is that volume over the tank's section, which a ball's dips cannot tell from the step scale:
+how well the section is known (``--section-tolerance``, relative; the section the scan records, or
+``--cross-section``) bounds the step scale's interval (+-0.8 % with the default, the calibrated range +-20 %).
 """
 
 from __future__ import annotations
@@ -57,6 +60,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--sensor-lag", type=float, default=0.0, metavar="S",
                    help="the level sensor's time constant (s), undone in every dip and written to the file: never "
                         "estimated, and a lag above about half the time per reading biases the step scale low")
+    p.add_argument("--section-tolerance", type=float, default=None, metavar="FRACTION",
+                   help="a balance's scan only: how well the tank's free section is known (90%% half-width of its "
+                        "relative error: 0.02 for +-2 %%; default the calibrated range +-20 %%), which bounds the "
+                        "step scale's interval")
+    p.add_argument("--cross-section", type=float, default=None, metavar="MM2",
+                   help="the tank's free section (mm^2) when better known than the scan records it; written to the "
+                        "file (a balance's rises use it; a level scan's section is estimated from the ball)")
     p.add_argument("--max-residual", type=float, default=0.05,
                    help="refuse when the ball's relative profile residual exceeds this and 1.5 times what the "
                         "readings' own noise gives")
@@ -67,14 +77,21 @@ def parse_args(argv=None) -> argparse.Namespace:
 def check_options(args: argparse.Namespace) -> Ball:
     """The reference ball of ``args`` (``--ball-radius``, ``--centre``, mm) after refusing, with a
     ``ValueError`` naming the option, the numbers no calibration can use: a radius or centre not finite and
-    positive, ``--max-residual`` not above 0, a tolerance negative or NaN, a sensor lag outside [0, 600] s."""
+    positive, ``--max-residual`` not above 0, a tolerance negative or NaN, a ``--section-tolerance`` outside [0, 1)
+    (2 meant as 2 %), a sensor lag outside [0, 600] s, an unphysical ``--cross-section``."""
     if not all(math.isfinite(c) for c in args.centre):
         raise ValueError(f"--centre must be 3 finite coordinates (mm), got {' '.join(f'{c:g}' for c in args.centre)}")
     ball = Ball(args.ball_radius, center=tuple(args.centre))
-    check_reference_options(args.max_residual, args.height_tolerance, args.position_tolerance)
+    check_reference_options(args.max_residual, args.height_tolerance, args.position_tolerance, args.section_tolerance)
     if not 0 <= args.sensor_lag <= MAX_SENSOR_LAG_S:  # NaN fails too
         raise ValueError(f"--sensor-lag must be a time constant in [0, {MAX_SENSOR_LAG_S:g}] s, got {args.sensor_lag:g}")
+    initial_geometry(args)  # an unphysical --cross-section is named before the scan is read
     return ball
+
+
+def initial_geometry(args: argparse.Namespace) -> RigGeometry:
+    """The configured geometry of ``args``: the known sensor lag (s) and, when given, the tank's section (mm^2)."""
+    return RigGeometry(sensor_lag_s=args.sensor_lag, cross_section_mm2=args.cross_section)
 
 
 def main(argv=None) -> int:
@@ -91,10 +108,11 @@ def main(argv=None) -> int:
             raise ValueError(f"{args.scan} does not name its tank: pass --tank")
         reach = args.ball_radius + max(abs(c) for c in args.centre)
         grid = Grid(args.n, 3, extent=2.0 * (reach + 10.0))  # the check runs at the calibrated heights
-        geometry, report = calibrate_reference(raw, ball, grid, args.params, initial=RigGeometry(sensor_lag_s=args.sensor_lag),
+        geometry, report = calibrate_reference(raw, ball, grid, args.params, initial=initial_geometry(args),
                                                max_relative_residual=args.max_residual,
                                                start_height_tolerance_mm=args.height_tolerance,
-                                               position_tolerance_mm=args.position_tolerance)
+                                               position_tolerance_mm=args.position_tolerance,
+                                               section_tolerance=args.section_tolerance)
         fitted = report.reference_centroid_mm
         notes = f"ball r={args.ball_radius:g} mm, given centre {list(args.centre)} mm" + \
             (f", fitted centre {[round(v, 3) for v in fitted]} mm" if fitted is not None else "") + f", from {args.scan}"

@@ -94,9 +94,10 @@ GAUGE_REASONS = {
 BOOTSTRAP = 200
 #: A balance's rises are its displaced volumes over the tank's nominal section, which a reference's dips cannot
 #: tell from the step scale (a ball's every dip has the same spread): the true section's relative standard
-#: deviation about the nominal one, that of a uniform draw over the calibrated range +-20 %. Drawn in the
-#: bootstrap (:func:`fit_moments`): held at the nominal section, a ball's step scale came out 0.39 % low with an
-#: interval of +-0.07 % in a tank 10 % larger than nominal (0.70 % low, 17 standard errors, at 20 %).
+#: deviation about the nominal one, that of a uniform draw over the calibrated range +-20 %, unless a better one is
+#: given (:func:`dip_moments`' ``section_sd``). Drawn in the bootstrap (:func:`fit_moments`): held at the nominal
+#: section, a ball's step scale came out 0.39 % low with an interval of +-0.07 % in a tank 10 % larger than nominal
+#: (0.70 % low, 17 standard errors, at 20 %).
 BALANCE_SECTION_SD = 0.2 / math.sqrt(3.0)
 
 
@@ -111,8 +112,9 @@ class DipMoments:
         a1, b1: rise-weighted means of the stage and of the rise.
         ss, sd, dd: rise-weighted means of stage^2, stage x rise and rise^2 (midpoints of each step).
         rise_scale_sd: how far the rises' scale may be off (relative standard deviation): 0 for a level sensor,
-            which reads the rise itself; :data:`BALANCE_SECTION_SD` for a balance, whose rise is the displaced
-            volume over the tank's *nominal* section (:func:`fit_moments` draws it in its bootstrap).
+            which reads the rise itself; for a balance, whose rise is the displaced volume over the tank's
+            *nominal* section, how well that section is known (by default :data:`BALANCE_SECTION_SD`;
+            :func:`fit_moments` draws it in its bootstrap).
     """
 
     tilt_deg: np.ndarray
@@ -241,16 +243,22 @@ def _robust_slope(t: np.ndarray, y: np.ndarray) -> float:
     return slope
 
 
-def dip_moments(raw: RawScan, geometry: RigGeometry) -> DipMoments:
+def dip_moments(raw: RawScan, geometry: RigGeometry, section_sd: float | None = None) -> DipMoments:
     """The moment sums of every complete dip, with drift and lag of ``geometry`` undone (its outlier readings
     repaired with the drift taken out,
     :func:`~dipnet.preprocessing.preprocess.repair_without_drift`).
+
+    A balance's readings (g) become the water line's rise over the tank's section: ``geometry``'s
+    ``cross_section_mm2`` when it holds one, else the scan's nominal one; ``section_sd`` is how well that section
+    is known (relative standard deviation; ``None``: :data:`BALANCE_SECTION_SD`, the calibrated range +-20 %; 0:
+    exactly), which the bootstrap draws (:attr:`DipMoments.rise_scale_sd`). A level sensor reads the rise itself:
+    ``section_sd`` plays no part.
 
     Raises ``ValueError`` naming a dip whose level never rises or that has no rig angles.
     """
     applied = scan_geometry(raw.header)
     repaired, _ = repair_without_drift(raw, geometry.level_drift_mm_per_s)
-    nominal = float(raw.header.tank_cross_section_mm2 or 1.0)
+    nominal = geometry.area(float(raw.header.tank_cross_section_mm2 or 1.0))
     rows = []
     for o in complete_dips(repaired):
         if o.tilt_deg is None or o.spin_deg is None:
@@ -275,8 +283,9 @@ def dip_moments(raw: RawScan, geometry: RigGeometry) -> DipMoments:
     if len(rows) < 3:
         raise ValueError(f"calibration needs at least 3 complete dips, the scan has {len(rows)}")
     cols = list(zip(*rows))
+    balance_sd = BALANCE_SECTION_SD if section_sd is None else float(section_sd)
     return DipMoments(*(np.asarray(c, dtype=np.float64) for c in cols[:9]), k=list(cols[9]),
-                      rise_scale_sd=0.0 if raw.header.quantity == "level_mm" else BALANCE_SECTION_SD)
+                      rise_scale_sd=0.0 if raw.header.quantity == "level_mm" else balance_sd)
 
 
 def _rise(values: np.ndarray) -> np.ndarray:

@@ -38,13 +38,14 @@ SHAPE_MOTION = {
 
 
 def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: KnownObject | None,
-                  seed: int = 0, t0_sd_mm: float = 0.0,
-                  position_sd_mm: float = 0.0) -> tuple[State, CalibrationReport, DipMoments]:
+                  seed: int = 0, t0_sd_mm: float = 0.0, position_sd_mm: float = 0.0,
+                  section_sd: float | None = None) -> tuple[State, CalibrationReport, DipMoments]:
     """Stage 1 (module docstring): the drift, then the heights and angles from the dips' moments.
 
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
     ``"reference"`` (``known`` moments; ``t0_sd_mm`` and ``position_sd_mm``: how well the start height and the
-    object's mounting are known, see :func:`fit_moments`). The parameters the dips do not pin to their
+    object's mounting are known, see :func:`fit_moments`). ``section_sd``: how well a balance's tank section is
+    known (relative standard deviation, :func:`~dipnet.calibration.moments.dip_moments`). The parameters the dips do not pin to their
     tolerance are settled by :func:`_hold_undetermined`; the others are refitted around them, their intervals widened to the joint
     fit's. Returns the state (its ``t0_mm`` the reference object's fitted start height: for its profile check
     only, never part of the geometry), the report and the dips' moments (drift removed:
@@ -69,7 +70,7 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
             del report.intervals["level_drift_mm_per_s"]
         else:
             geometry = geometry.with_values(level_drift_mm_per_s=drift)
-    moments = dip_moments(raw, geometry)
+    moments = dip_moments(raw, geometry, section_sd)
     if kind == "self":
         gauges = {p: GAUGE_REASONS[(kind, p)] for p in ("spin_zero_deg", "step_scale") if p in params}
     else:  # a reference object centred on the spin axis looks alike at every spin
@@ -287,9 +288,24 @@ def _name_the_size_trade(report: CalibrationReport, configured: float, known: Kn
 
 
 # ---------------------------------------------------------------------------- reference object
-BALANCE_SECTION = ("not estimated: a balance reads the displaced volume, which needs no section; the water line's "
-                   "rise (volume over section) uses the nominal one, and the other parameters' intervals carry its "
-                   f"error (sd {100 * BALANCE_SECTION_SD:.1f} %: the calibrated range +-20 %)")
+#: How a balance's tank section is known when no tolerance is given: the calibrated range.
+BALANCE_SECTION_RANGE = "the calibrated range +-20 %"
+
+
+def balance_section_note(section_tolerance: float | None) -> str:
+    """Why a balance's section is not estimated, and how well the intervals take it as known: the given
+    ``section_tolerance`` (a relative 90 % half-width) or, for ``None``, :data:`BALANCE_SECTION_RANGE`."""
+    if section_tolerance is None:
+        known = (f"sd {100 * BALANCE_SECTION_SD:.1f} %: {BALANCE_SECTION_RANGE}; a section known better narrows the "
+                 "step scale's interval (calibrate.py --section-tolerance)")
+    else:
+        known = f"sd {100 * section_tolerance / 1.645:.2g} %: the given tolerance +-{100 * section_tolerance:.3g} %"
+    return ("not estimated: a balance reads the displaced volume, which needs no section; the water line's rise "
+            f"(volume over section) uses the configured one, and the other parameters' intervals carry its error ({known})")
+
+
+#: A tolerance of the section at or above this is taken for a percentage (20 meant as 20 %).
+_SECTION_TOLERANCE_LIMIT = 1.0
 
 
 def _warn_misplaced(given: np.ndarray, fitted: list[float] | None, tolerance_mm: float) -> None:
@@ -312,10 +328,11 @@ def _warn_misplaced(given: np.ndarray, fitted: list[float] | None, tolerance_mm:
 
 
 def check_reference_options(max_relative_residual: float, start_height_tolerance_mm: float,
-                            position_tolerance_mm: float) -> None:
+                            position_tolerance_mm: float, section_tolerance: float | None = None) -> None:
     """Raise :class:`CalibrationError` (a ``ValueError``) for options of :func:`calibrate_reference` no fit can
     honour, before any work: ``max_relative_residual`` (a fraction) not above 0 or NaN (every fit refused, after
-    the fit), a tolerance (mm) negative or NaN. Each message names the option and ``calibrate.py``'s flag."""
+    the fit), a tolerance (mm) negative or NaN, a ``section_tolerance`` (a fraction) outside ``[0, 1)`` (2 meant as
+    2 %). Each message names the option and ``calibrate.py``'s flag."""
     if not max_relative_residual > 0:  # NaN fails too; inf accepts any fit
         raise CalibrationError(f"max_relative_residual must be a positive fraction (the default 0.05: a 5 % relative "
                                f"profile residual), got {max_relative_residual!r} (calibrate.py --max-residual)")
@@ -323,6 +340,12 @@ def check_reference_options(max_relative_residual: float, start_height_tolerance
                                   ("position_tolerance_mm", "--position-tolerance", position_tolerance_mm)):
         if not tolerance >= 0:
             raise CalibrationError(f"{name} must be >= 0 (mm), got {tolerance!r} (calibrate.py {flag})")
+    if section_tolerance is not None and not 0 <= section_tolerance < _SECTION_TOLERANCE_LIMIT:  # NaN fails too
+        hint = (f" ({section_tolerance:g} would be {100 * section_tolerance:g} %; for {section_tolerance:g} % give "
+                f"{section_tolerance / 100:g})" if section_tolerance >= _SECTION_TOLERANCE_LIMIT else "")
+        raise CalibrationError(f"section_tolerance must be a fraction in [0, 1) (the 90 % half-width of the tank "
+                               f"section's relative error: 0.02 for +-2 %), got {section_tolerance!r}{hint} "
+                               "(calibrate.py --section-tolerance)")
 
 
 def _lag_note(raw: RawScan, lag_s: float) -> str:
@@ -364,7 +387,8 @@ def noise_residual(model: ProfileModel, state: State, seed: int = 0) -> float:
 def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
                         n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
                         max_relative_residual: float = 0.05, start_height_tolerance_mm: float = 0.5,
-                        position_tolerance_mm: float = 0.5, seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
+                        position_tolerance_mm: float = 0.5, section_tolerance: float | None = None,
+                        seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:
     """The rig geometry from dips of a reference object of known geometry and pose.
 
     The moment stage (module docstring) estimates the drift, pivot, offset, tilt zero, spin zero
@@ -395,6 +419,13 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
             tolerances enter the moment fit as Gaussian priors on the start height and the object's position
             (:func:`~dipnet.calibration.moments.fit_moments`), so the intervals carry them and the dips
             decide what they determine.
+        section_tolerance: for a balance's scan, how well the tank's free section is known (the 90% half-width
+            of its relative error, e.g. 0.02 for +-2 %; the section is ``initial``'s ``cross_section_mm2``, else
+            the scan's nominal one). A balance reads the displaced volume, and the water line's rise is that
+            volume over the section, which the dips cannot tell from the step scale: the moment bootstrap draws
+            it (a normal error of sd ``section_tolerance / 1.645``; ``None``: the calibrated range +-20 %, sd
+            11.5 %, which leaves the step scale known to about +-0.8 %). A level sensor reads the rise itself
+            and its section is estimated from the object's volume: a tolerance is refused for it.
 
     Returns ``(geometry, report)``. Raises :class:`CalibrationError` when the object does not fit.
     """
@@ -404,15 +435,21 @@ def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENC
         raise CalibrationError("the scan does not record its dips' start heights (the authors' CSV does not), which "
                                "a reference calibration measures the rig by: record the ball with scripts/scan.py")
     known = known_object(shape)
-    check_reference_options(max_relative_residual, start_height_tolerance_mm, position_tolerance_mm)
+    check_reference_options(max_relative_residual, start_height_tolerance_mm, position_tolerance_mm,
+                            section_tolerance)
+    levels = raw.header.quantity == "level_mm"  # a balance reads volumes: the section is neither needed nor shown
+    if levels and section_tolerance is not None:
+        raise CalibrationError(f"section_tolerance={section_tolerance:g} is for a balance's scan: this scan reads the "
+                               "water level, whose rise needs no section, and the section is estimated from the "
+                               "reference's volume; leave it out (calibrate.py --section-tolerance)")
     state, report, moments = _moment_stage(raw, params, initial, "reference", known, seed,
                                            t0_sd_mm=start_height_tolerance_mm / 1.645,
-                                           position_sd_mm=position_tolerance_mm / 1.645)
+                                           position_sd_mm=position_tolerance_mm / 1.645,
+                                           section_sd=None if section_tolerance is None else section_tolerance / 1.645)
     _warn_misplaced(known.centroid, report.reference_centroid_mm, position_tolerance_mm)
-    levels = raw.header.quantity == "level_mm"  # a balance reads volumes: the section is neither needed nor shown
     _name_the_size_trade(report, initial.step_scale, known, "cross_section_mm2" in params and levels)
     if "cross_section_mm2" in params and not levels:
-        report.not_estimated["cross_section_mm2"] = BALANCE_SECTION
+        report.not_estimated["cross_section_mm2"] = balance_section_note(section_tolerance)
     if levels:
         report.not_estimated["sensor_lag_s"] = _lag_note(raw, initial.sensor_lag_s)
     if "cross_section_mm2" in params:

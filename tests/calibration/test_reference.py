@@ -350,7 +350,12 @@ def test_a_reference_of_another_size_than_given_is_named_with_the_step_scale():
     (["--centre", "0", "inf", "0"], "--centre must be 3 finite coordinates (mm), got 0 inf 0"),
     (["--height-tolerance", "nan"], "start_height_tolerance_mm must be >= 0 (mm), got nan (calibrate.py --height-"),
     (["--position-tolerance", "-1"], "position_tolerance_mm must be >= 0 (mm), got -1.0 (calibrate.py --position-"),
-    (["--sensor-lag", "-1"], "--sensor-lag must be a time constant in [0, 600] s, got -1")])
+    (["--sensor-lag", "-1"], "--sensor-lag must be a time constant in [0, 600] s, got -1"),
+    (["--section-tolerance", "2"], "section_tolerance must be a fraction in [0, 1) (the 90 % half-width of the tank "
+                                   "section's relative error: 0.02 for +-2 %), got 2.0 (2 would be 200 %; for 2 % give "
+                                   "0.02) (calibrate.py --section-tolerance)"),
+    (["--section-tolerance", "nan"], "got nan (calibrate.py --section-tolerance)"),
+    (["--cross-section", "-5"], "cross_section_mm2 must be positive, got -5.0")])
 def test_calibrate_refuses_an_option_slip_before_reading_the_scan(tmp_path, monkeypatch, capsys, option, message):
     """The audit's cases: ``--max-residual -1`` failed after the whole fit ("residual 0.002 > -1.0"), ``--centre
     nan 0 0`` said "grid extent must be positive (mm), got nan". Now one ``error:`` line, exit 2, before the scan is
@@ -455,3 +460,63 @@ def test_calibrate_undoes_a_known_sensor_lag_and_names_an_unknown_one(tmp_path):
     assert "half of this scan's 2 s per reading" in unknown.not_estimated["sensor_lag_s"]
     low, high = known.intervals["step_scale"]
     assert low <= 1.01 <= high and known.geometry.sensor_lag_s == 2.0
+
+
+def _balance_scan(tmp_path, section_mm2: float):
+    """A 30 mm ball 25 mm off the axis, 60 dips at 30 dB under a balance, in a tank of ``section_mm2`` whose scan
+    records the nominal 60,000 mm^2 (rig: pivot 40 mm, offset -15 mm, tilt zero 2 deg, step scale 1.01)."""
+    from dipnet.simulator.physics import Balance
+
+    true = RigGeometry(pivot_mm=40.0, tilt_axis_offset_mm=-15.0, tilt_zero_deg=2.0, step_scale=1.01,
+                       cross_section_mm2=section_mm2)
+    raw = simulate_scan(Ball(30.0, center=(25.0, 0.0, 0.0)), fibonacci_hemisphere(60), tank=Tank(60000.0),
+                        geometry=true, sensor=Balance(snr_db=30.0, seed=4), progress=False)
+    return raw.save(tmp_path / "balance.jsonl")
+
+
+def test_a_balances_known_section_narrows_the_step_scale(tmp_path, capsys):
+    """The thirteenth audit's leftover: a balance's step scale was known only to about +-0.8 % from a ball, since
+    the bootstrap drew the tank's section over the calibrated range (+-20 %), and a section known better could not
+    be given. ``calibrate.py --section-tolerance 0.02`` (the section known to +-2 %, 90 % half-width) draws it over
+    that: in a tank 1.5 % larger than recorded the step scale's interval narrows from +-0.78 % to +-0.11 % and still
+    holds the truth, and the file says how the section was taken; a level scan refuses the option (its section is
+    estimated from the ball)."""
+    scan = _balance_scan(tmp_path, 1.015 * 60000.0)
+    calibrate = load_script("calibrate")
+    files, printed = {}, {}
+    for name, option in (("default", []), ("known", ["--section-tolerance", "0.02"])):
+        files[name] = tmp_path / f"{name}.yaml"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            assert calibrate.main([str(scan), "--ball-radius", "30", "--centre", "25", "0", "0", "--tank", "t", "--n",
+                                   "32", *option, "--output", str(files[name])]) == 0
+        printed[name] = capsys.readouterr().out
+    default, known = load_calibration(files["default"]), load_calibration(files["known"])
+    wide, narrow = (0.5 * (c.intervals["step_scale"][1] - c.intervals["step_scale"][0]) for c in (default, known))
+    assert wide > 0.006 and narrow < 0.002
+    low, high = known.intervals["step_scale"]
+    assert low <= 1.01 <= high and "step_scale" not in known.not_estimated
+    assert "the given tolerance +-2 %" in printed["known"] and "--section-tolerance" in printed["default"]
+    level = simulate_scan(Ball(30.0), fibonacci_hemisphere(8), tank=Tank(60000.0), progress=False)
+    with pytest.raises(CalibrationError, match=r"section_tolerance=0.02 is for a balance's scan: this scan reads the "
+                                               r"water level"):
+        calibrate_reference(level, Ball(30.0), Grid(16, extent=80.0), section_tolerance=0.02)
+
+
+def test_a_balances_section_given_is_the_one_its_rises_use(tmp_path):
+    """``calibrate.py --cross-section``: a tank measured at 66,000 mm^2 after a scan that recorded 60,000. The rises
+    use the section given, so with it known to +-1 % the step scale comes out right (1.0099 [1.0091, 1.0107]; over
+    the recorded one, 10 % off, the same tolerance claimed 1.0061 [1.0052, 1.0069]), and the file holds the section
+    for later scans with how it was taken."""
+    scan = _balance_scan(tmp_path, 66000.0)
+    calibrate = load_script("calibrate")
+    out = tmp_path / "cal.yaml"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        assert calibrate.main([str(scan), "--ball-radius", "30", "--centre", "25", "0", "0", "--tank", "t", "--n",
+                               "32", "--section-tolerance", "0.01", "--cross-section", "66000",
+                               "--output", str(out)]) == 0
+    cal = load_calibration(out)
+    low, high = cal.intervals["step_scale"]
+    assert low <= 1.01 <= high and cal.geometry.cross_section_mm2 == 66000.0
+    assert "the given tolerance +-1 %" in cal.not_estimated["cross_section_mm2"]
