@@ -292,12 +292,13 @@ def _name_the_size_trade(report: CalibrationReport, configured: float, known: Kn
 BALANCE_SECTION_RANGE = "the calibrated range +-20 %"
 
 
-def balance_section_note(section_tolerance: float | None) -> str:
+def balance_section_note(section_tolerance: float | None, reference: bool = True) -> str:
     """Why a balance's section is not estimated, and how well the intervals take it as known: the given
-    ``section_tolerance`` (a relative 90 % half-width) or, for ``None``, :data:`BALANCE_SECTION_RANGE`."""
+    ``section_tolerance`` (a relative 90 % half-width) or, for ``None``, :data:`BALANCE_SECTION_RANGE` (for a
+    ``reference`` calibration, with the option that narrows it)."""
     if section_tolerance is None:
-        known = (f"sd {100 * BALANCE_SECTION_SD:.1f} %: {BALANCE_SECTION_RANGE}; a section known better narrows the "
-                 "step scale's interval (calibrate.py --section-tolerance)")
+        better = "; a section known better narrows the step scale's interval (calibrate.py --section-tolerance)"
+        known = f"sd {100 * BALANCE_SECTION_SD:.1f} %: {BALANCE_SECTION_RANGE}{better if reference else ''}"
     else:
         known = f"sd {100 * section_tolerance / 1.645:.2g} %: the given tolerance +-{100 * section_tolerance:.3g} %"
     return ("not estimated: a balance reads the displaced volume, which needs no section; the water line's rise "

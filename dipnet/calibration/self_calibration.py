@@ -16,7 +16,7 @@ from dipnet.calibration.model import (DEFAULT_SELF, PARTIAL_VOLUME_GAIN, SELF_SE
                                       CalibrationReport, ProfileModel, State, _check_params, _get, _warn_undetermined,
                                       _with, fit_geometry, identifiability, self_section_bias)
 from dipnet.calibration.moments import TOLERANCE
-from dipnet.calibration.reference import SHAPE_MOTION, _moment_stage, _record
+from dipnet.calibration.reference import SHAPE_MOTION, _moment_stage, _record, balance_section_note
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.orientations import unmeasured_band_deg
 from dipnet.core.grid import Grid
@@ -75,7 +75,10 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     1. The moment stage (module docstring): drift, pivot, offset and tilt zero from the dips'
        first two moments, with no grid and no shape. The spin zero and the step scale are
        gauges of an unknown object: named, with how far the shape could move, and kept.
-    2. The cross-section jointly with the shape: the shape step (``gain_solver`` or ``solver``
+    2. The cross-section jointly with the shape (a level sensor's scan: a balance reads the displaced volume,
+       which does not depend on the section, so its section is named not estimated and kept; the joint step
+       fitted a gain to the shape's partly filled voxels and claimed a section near the configured one, 20 %
+       off the tank's with an interval that missed it): the shape step (``gain_solver`` or ``solver``
        with ``fit_gain``) fits one gain ``a`` on every predicted volume together with the shape;
        the calibrated cross-section is ``assumed / a``, corrected for the field's volume deficit in
        partly filled voxels (:func:`~dipnet.calibration.model.self_section_bias`). Fitted jointly, the gain and the shape's
@@ -120,9 +123,12 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     check_section_change(max_section_change)
     params = _check_params(params)
     initial = initial or RigGeometry()
-    volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params else ()
+    levels = raw.header.quantity == "level_mm"  # a balance's volumes do not depend on the section
+    volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params and levels else ()
     shape_solver = _with_gain(gain_solver or solver) if volume_params else (gain_solver or solver)
     state, report, _ = _moment_stage(raw, params, initial, "self", None, seed)
+    if "cross_section_mm2" in params and not levels:
+        report.not_estimated["cross_section_mm2"] = balance_section_note(None, reference=False)
     model = ProfileModel(raw, grid, n_slabs, operator_factory, smooth, finish, state.geometry.level_drift_mm_per_s)
     history: list[dict] = [{"stage": "moments", **{p: _get(state, p, model.nominal_area) for p in params}}]
     sigma, implausible, occupancy, partial = None, None, None, 0.0
