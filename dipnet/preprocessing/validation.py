@@ -256,7 +256,7 @@ def object_reach(measurement: DipMeasurement) -> tuple[float, str]:
 #: The dips of one rigid object fit within its widest dip about any of its points (below); the reaches found fall
 #: short of the object's by their noise, so a placement is implausible only beyond this factor of the widest dip.
 #: Dips placed by their own rig geometry need 0.50 of it (four bundled meshes at 10-40 dB, a ball, the authors'
-#: cats); another rig's geometry (pivot, offset 40-90 mm off) 1.3-2.8, a pivot 40 mm off alone 0.65-1.2.
+#: cats); another rig's geometry (pivot and offset 40-90 mm off) 1.3-3.1, a pivot 40 mm off alone 0.65-1.2.
 PLACEMENT_FACTOR = 1.2
 
 
