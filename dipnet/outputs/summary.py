@@ -63,6 +63,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "measured_volume_mm3": ("how consistent with the data", "volume the dips measure (mm³)"),
     "reconstructed_volume_mm3": ("how consistent with the data", "volume of the reconstruction (mm³)"),
     "continuous_volume_mm3": ("how consistent with the data", "volume of the continuous occupancy (mm³)"),
+    "threshold_change_depth": ("how consistent with the data",
+                               "share of the threshold's change deeper than a voxel (above 0.04: a smeared occupancy)"),
     "volume_ratio": ("how consistent with the data", "reconstructed / measured volume"),
     "volume_ratio_noise": ("how consistent with the data", "volume ratio that noise explains (±)"),
     "volume_limit": ("how consistent with the data", "volume-ratio limit of the check"),

@@ -9,7 +9,8 @@ import torch
 
 from dipnet.core.strict_json import dumps
 from dipnet.evaluation.consistency import (NOISE_RATIO_MAX, RESIDUAL_FLOOR, DataConsistencyWarning, allowed_residual,
-                                          check_consistency, estimate_slab_sigma, estimated_slab_noise)
+                                          check_consistency, estimate_slab_sigma, estimated_slab_noise,
+                                          threshold_change_depth)
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import make_operator
@@ -17,7 +18,7 @@ from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.preprocessing.datasets import data_path
 from dipnet.preprocessing.preprocess import preprocess
-from dipnet.shapes import load_mesh
+from dipnet.shapes import builtin_shape, load_mesh
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 
@@ -89,6 +90,23 @@ def test_a_plate_thinner_than_a_voxel_is_blamed_on_the_threshold(problem):
     shifted, caught = _check(measurement, operator, torch.roll(plate, shifts=3, dims=0) * 2.5)
     assert shifted.profile_residual_continuous > shifted.residual_limit  # the occupancy misses too: no such hint
     assert not any("thinner than" in str(w.message) for w in caught)
+
+
+def test_the_threshold_change_depth_tells_partial_voxels_from_a_smear():
+    """A shape's partial voxels (a plate's, a ball's surface) make a layer a voxel thick that the erosion removes; a
+    field smeared over a thick region keeps most of its change; a threshold that changes nothing gives NaN."""
+    plate = torch.zeros(GRID.shape, dtype=torch.float64)
+    plate[4:16, 4:16, 10] = 0.4
+    assert threshold_change_depth(plate.numpy(), plate.numpy() > 0.5) == 0.0
+    ball = builtin_shape("ball", radius=30.0, ndim=3).occupancy(GRID, supersample=3).double().numpy()
+    assert threshold_change_depth(ball, ball > 0.5) < 0.01
+    smear = 0.3 * (ball > 0.5)
+    assert threshold_change_depth(smear, smear > 0.5) > 0.5
+    assert math.isnan(threshold_change_depth(ball > 0.5, ball > 0.5))
+    line = torch.zeros(20, 20, dtype=torch.float64)
+    line[4:16, 10] = 0.4  # 2D: a bar thinner than a pixel, and a smeared disk
+    assert threshold_change_depth(line.numpy(), line.numpy() > 0.5) == 0.0
+    assert threshold_change_depth(smear[10], smear[10] > 0.5) > 0.5
 
 
 @pytest.mark.parametrize("give_sigma", [True, False])
