@@ -90,7 +90,10 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   changed deep inside them too, and more resolution does not help it. The share of the change deeper than one voxel
   was at most 0.004 for the true partial-volume occupancies of the built-in chamber box and ten bundled meshes at 16^3
   and 24^3 (and 0 for the voxel and implicit solvers' hammer, thinner than a voxel), 0.14-0.42 for min-norm with 12
-  dips and 0.66-0.68 for empty solves.
+  dips and 0.66-0.68 for empty solves (docs/guide/bad-data.md, "A fourteenth audit: the threshold's blame"). Above
+  ``SMEAR_DEPTH_MAX``, or when the binary shape holds more than ``THRESHOLD_GAIN_MAX`` times the occupancy's volume
+  (a threshold of 0.5 at most doubles a partial voxel; min-norm's ringing field of the hammer, thresholded by Otsu at
+  0.01-0.11: 3-50 times), the hint names the occupancy as smeared instead of blaming the voxel size.
 * ``symmetry_misfit``, ``symmetry_misfit_p``, ``symmetry_misfit_order``, ``symmetry_declared``,
   ``symmetry_rejected``: a symmetry the result assumed (the images of the top-level ``symmetry`` option:
   ``"images"``; a solver's symmetry prior or built-in symmetry: ``"prior"``) tested against the dips' moments
@@ -162,8 +165,15 @@ FLOOR_SIGMAS = 3.0  # a profile floor within this many noise sigmas of 0 is nois
 FLOOR_SPREAD = 0.25  # the dips' floors agree (a drift's floor) when their robust spread is at most this share
 FLOOR_BEYOND_MATERIAL = 0.01  # a drift of the floor that puts less than this share of the volume beyond the slabs: untested
 FLOOR_BEYOND_MIN = 0.25  # readings beyond the slabs holding less than this share of a drift's: the floor is no drift
+#: The share of what the threshold adds or removes that lies more than one voxel deep inside the regions it changes,
+#: above which the occupancy is a smeared field, not a shape's partial voxels (:func:`threshold_change_depth`; true
+#: partial volumes: at most 0.0043, nine times below it; min-norm from 12 dips: 0.14-0.42; empty solves: 0.66-0.68)
+SMEAR_DEPTH_MAX = 0.04
 #: Changes of the threshold below this share of a voxel (a solver's tails) are left out of that share
 SMEAR_CHANGE_MIN = 0.05
+#: A binary shape holding more than this many times its occupancy's volume: no threshold of 0.5 makes that of a
+#: shape's partial voxels (each at most doubles)
+THRESHOLD_GAIN_MAX = 2.0
 #: A stated noise above this many times the readings' own is named (correct simulations: 0.86-1.30 at 1 mm steps,
 #: see the module docstring), and one below its inverse when the readings' estimate holds their noise alone
 NOISE_RATIO_MAX = 3.0
@@ -624,14 +634,9 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
         out.append(f"the occupancy misses its data: relative profile residual {c.profile_residual_continuous:.3f}, "
                    f"noise explains {c.profile_residual_expected:.3f} ({c.noise_source}): {suspects}")
     if c.profile_residual > c.residual_limit:
-        hint = ""
-        if c.profile_residual_continuous <= c.residual_limit:
-            hint = (": the occupancy explains the data and its thresholded shape does not, so the threshold loses "
-                    "or adds the material (as it does for parts thinner than about a voxel): raise resolution, "
-                    "or use the occupancy in reconstruction.npz")
         out.append(f"the binary shape misses its data: relative profile residual {c.profile_residual:.3f} "
                    f"(occupancy: {c.profile_residual_continuous:.3f}), noise explains "
-                   f"{c.profile_residual_expected:.3f} ({c.noise_source}){hint}")
+                   f"{c.profile_residual_expected:.3f} ({c.noise_source}){_binary_hint(c)}")
     trend = max(abs(c.height_trend_pivot_mm), abs(c.height_trend_offset_mm))
     if trend > c.height_trend_limit_mm and not coarse:  # NaN compares False
         out.append(f"the dips' heights trend with their tilt as a wrong rig geometry leaves them: the pivot looks "
@@ -692,3 +697,33 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    f"+-{c.volume_ratio_noise:.3f}; continuous occupancy: {c.continuous_volume_mm3:.4g} {c.volume_unit})")
     return out
 
+
+def _binary_hint(c: Consistency) -> str:
+    """Why a binary shape misses its data, as the tail of its finding, when its occupancy explains the data (else
+    ``""``): the threshold lost or added a shape's partial voxels (raise resolution), or it cut a smeared field
+    (:func:`_smear_evidence`: more resolution would not help)."""
+    if c.profile_residual_continuous > c.residual_limit:
+        return ""
+    evidence = _smear_evidence(c)
+    if not evidence:
+        return (": the occupancy explains the data and its thresholded shape does not, so the threshold loses or adds "
+                "the material (as it does for parts thinner than about a voxel): raise resolution, or use the "
+                "occupancy in reconstruction.npz")
+    return (f": the occupancy explains the data as a smeared field, not as a shape's partial voxels "
+            f"({'; '.join(evidence)}), so more resolution would not help: the dips are too few to pin a shape down "
+            "without priors, or the solve stopped short of one: add dips, use a solver whose priors drive the "
+            "occupancy to 0 or 1 (solver=voxel), or check the solver's settings (prior weights, iterations)")
+
+
+def _smear_evidence(c: Consistency) -> list[str]:
+    """What shows an occupancy to be a smeared field rather than a shape's partial voxels, in words: the threshold's
+    change deep inside the regions it changes (above :data:`SMEAR_DEPTH_MAX`), a binary volume more than
+    :data:`THRESHOLD_GAIN_MAX` times the occupancy's; empty when neither."""
+    out = []
+    if c.threshold_change_depth > SMEAR_DEPTH_MAX:  # NaN compares False
+        out.append(f"{c.threshold_change_depth:.0%} of what its threshold changes lies more than a voxel deep, where "
+                   "a shape's partial voxels make a layer about one voxel thick")
+    if c.continuous_volume_mm3 > 0 and c.reconstructed_volume_mm3 > THRESHOLD_GAIN_MAX * c.continuous_volume_mm3:
+        out.append(f"its thresholded shape holds {c.reconstructed_volume_mm3 / c.continuous_volume_mm3:.1f} times "
+                   "its volume, where a threshold of 0.5 at most doubles a shape's partial voxels")
+    return out

@@ -109,6 +109,74 @@ def test_the_threshold_change_depth_tells_partial_voxels_from_a_smear():
     assert threshold_change_depth(smear[10], smear[10] > 0.5) > 0.5
 
 
+def _solved(grid: Grid, solver, n_dips: int = 12):
+    """The chamber box's exact profiles on ``grid`` (no readings: the noise is estimated from the profiles), ``solver``'s
+    result on them and its data check's findings."""
+    truth = builtin_shape("chamber_box", radius=45.0, ndim=3).occupancy(grid, supersample=3).double()
+    operator = make_operator(grid, fibonacci_hemisphere(n_dips))
+    measurement = _exact_measurement(operator, truth)
+    recon = solver.solve(measurement, operator)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = check_consistency(measurement, operator, recon)
+    return result, [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+
+
+def _binary_finding(messages: list[str]) -> str:
+    found = [m for m in messages if m.startswith("the binary shape misses its data: relative profile residual ")]
+    assert len(found) == 1, messages
+    return found[0]
+
+
+def test_a_min_norm_field_from_few_dips_is_not_blamed_on_the_voxel_size():
+    """Min-norm from 12 dips fits its data with a field far from 0 and 1 (chamber box, 20^3: occupancy residual
+    0.015); its threshold gives a shape 1.3 times the volume. More resolution would not help (the same at 24^3 misses
+    by more): the finding names the smeared field and more dips or priors, not parts thinner than a voxel."""
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    result, caught = _solved(GRID, MinNormSolver(progress=False))
+    assert result.profile_residual_continuous < result.residual_limit < result.profile_residual
+    assert result.threshold_change_depth > 0.2  # 0.37: a smear, not a layer of partial voxels
+    finding = _binary_finding(caught)
+    assert "thinner than" not in finding and "raise resolution" not in finding
+    assert "smeared field" in finding and "more resolution would not help" in finding and "add dips" in finding
+
+
+def test_an_empty_solve_is_not_blamed_on_the_voxel_size():
+    """One step of the voxel solver (16^3, 12 dips) leaves a faint field under the threshold: the shape is empty, and
+    the occupancy (residual 0.21 under the limit 0.32 of a noise estimated from the profiles) is smeared, so the
+    finding points at the dips and the solver's settings, not at the voxel size (the volume's finding says 0 mm^3)."""
+    from dipnet.solvers.voxel import VoxelSolver
+
+    result, caught = _solved(Grid(16, 3, 100.0), VoxelSolver(iterations=1, progress=False))
+    assert result.reconstructed_volume_mm3 == 0
+    assert result.profile_residual_continuous < result.residual_limit < result.profile_residual
+    assert result.threshold_change_depth > 0.5  # 0.68
+    finding = _binary_finding(caught)
+    assert "thinner than" not in finding and "raise resolution" not in finding
+    assert "smeared field" in finding and "solver's settings" in finding
+
+
+def test_a_threshold_that_multiplies_the_volume_is_not_blamed_on_the_voxel_size(problem):
+    """A ball and a faint checkerboard ripple of +-0.06 around it (as min-norm rings around a thin object), thresholded
+    at 0.05 as Otsu's rule may: the ripple cancels in every slab, so the occupancy explains the dips, but its
+    threshold fills every positive ripple voxel, a shape several times the occupancy's volume. No partial voxel
+    thresholded at 0.5 more than doubles: the finding names the gain, not parts thinner than a voxel."""
+    operator, ball, measurement = problem
+    index = torch.stack(torch.meshgrid(*[torch.arange(n) for n in GRID.shape], indexing="ij")).sum(0)
+    ripple = torch.where(ball > 0, ball, 0.06 * (1 - 2 * (index % 2)).double())
+    recon = Reconstruction(occupancy=ripple.float(), grid=GRID, threshold=0.05)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = check_consistency(measurement, operator, recon)
+    assert result.profile_residual_continuous < result.residual_limit < result.profile_residual
+    assert result.reconstructed_volume_mm3 > 2 * result.continuous_volume_mm3
+    assert result.threshold_change_depth < 0.01  # the ripple's voxels are single: no depth
+    finding = _binary_finding([str(w.message) for w in caught])
+    assert "thinner than" not in finding and "smeared field" in finding
+    assert re.search(r"its thresholded shape holds \d+\.\d times its volume", finding)
+
+
 @pytest.mark.parametrize("give_sigma", [True, False])
 def test_noisy_measurement_with_the_true_answer_does_not_warn(problem, give_sigma):
     operator, ball, measurement = problem
