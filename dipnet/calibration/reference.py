@@ -37,6 +37,18 @@ SHAPE_MOTION = {
 }
 
 
+def shape_motion(param: str, radius_mm: float) -> str:
+    """How far an error of ``param`` moves the shape (:data:`SHAPE_MOTION`), at the object's radius ``radius_mm``;
+    without that radius (NaN: the dips gave no fit of the object's moments) the motion is said without its size."""
+    text = SHAPE_MOTION[param]
+    if math.isfinite(radius_mm):
+        return text.format(arc=np.radians(radius_mm), pct=0.01 * radius_mm)
+    if "{" not in text:
+        return text
+    return (text.split(":")[0] + " (how far that moves the surface needs the object's size, which the dips' moments "
+            "did not give)")
+
+
 def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: KnownObject | None,
                   seed: int = 0, t0_sd_mm: float = 0.0, position_sd_mm: float = 0.0,
                   section_sd: float | None = None) -> tuple[State, CalibrationReport, DipMoments]:
@@ -128,7 +140,7 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
     for p, why in undetermined.items():
         report.estimates[p] = float(getattr(initial, p))
         report.undetermined[p] = why
-        report.shape_motion[p] = SHAPE_MOTION[p].format(arc=np.radians(radius), pct=0.01 * radius)
+        report.shape_motion[p] = shape_motion(p, radius)
     if known is not None and known.radial() is not None and placed is not None:
         report.reference_centroid_mm = [float(v) for v in placed.centroid]
     height = float(placed.values["t0_mm"]) if placed is not None else 0.0  # a reference's fitted start height

@@ -122,6 +122,8 @@ def test_too_few_dips_leave_the_rig_undetermined_instead_of_exact():
         if held:
             assert all("12 moment conditions for 12 unknowns" in r and "dip at least 8" in r for r in reasons)
             assert all(report.estimates[p] == 0.0 for p in free)
+            assert "nan" not in report.shape_motion["tilt_zero_deg"]  # no moments fitted: no object size to give
+            assert "needs the object's size" in report.shape_motion["tilt_zero_deg"]
         else:
             assert not any("moment conditions" in r for r in reasons)
             assert report.estimates["pivot_mm"] != 0.0
