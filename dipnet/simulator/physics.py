@@ -356,9 +356,11 @@ def _check_quantum(sensor: SensorModel, tank: Tank, volume: float) -> None:
     rise = float(np.ptp(sensor.ideal(tank, np.array([0.0, volume]))))
     if sensor.quantum > 0 and sensor.quantum >= rise:
         unit = sensor.quantity.rsplit("_", 1)[-1]
+        what = "its volume over the tank's section" if sensor.quantity == "level_mm" else "the mass of water it displaces"
+        fix = "use a smaller tank" if sensor.quantity == "level_mm" else "dip a larger object"
         raise ValueError(f"the sensor's quantum ({sensor.quantum:g} {unit}) is at least the whole change the object "
-                         f"makes in its reading ({rise:.3g} {unit}, its volume over the tank's section): every dip "
-                         "would read one level; lower the sensor's quantum or use a smaller tank")
+                         f"makes in its reading ({rise:.3g} {unit}, {what}): every dip would read one level; lower "
+                         f"the sensor's quantum or {fix}")
 
 
 def simulate_scan(shape, directions, *, tank: Tank | None = None, sensor: SensorModel | None = None,

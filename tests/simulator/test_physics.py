@@ -196,3 +196,11 @@ def test_a_quantum_as_large_as_the_whole_rise_is_refused():
         simulate_scan(BALL, DIRS[:2], sensor=LevelSensor(quantum_mm=2 * rise), progress=False)
     coarse = simulate_scan(BALL, DIRS[:2], sensor=LevelSensor(quantum_mm=0.1 * rise), progress=False)
     assert np.ptp(coarse.orientations[0].values) > 0.5 * rise
+
+
+def test_a_balance_quantum_as_large_as_the_displaced_mass_is_refused_naming_the_mass():
+    """A balance reads the displaced water's mass (268 g for the 40 mm ball), which no tank section divides: its
+    refusal says so, and the remedy is not a smaller tank (the level sensor's)."""
+    mass = BALL.volume * 1e-3
+    with pytest.raises(ValueError, match=rf"\({mass:.3g} g, the mass of water it displaces\).*or dip a larger object"):
+        simulate_scan(BALL, DIRS[:2], sensor=Balance(quantum_g=2 * mass), progress=False)
