@@ -369,21 +369,30 @@ def aggregate(rows: Sequence[dict], by: Sequence[str] = GROUP_BY,
     """Mean, standard deviation (``ddof=1``; 0 for one run) and count per group of ``ok`` rows.
 
     Returns one dict per group, sorted by ``by``: the ``by`` keys, ``runs`` (number of ok jobs),
-    ``consistent`` (how many of them passed their consistency check, when the rows record it),
+    ``failed`` (how many jobs of the group failed or did not finish, when any did: the means are over the ok jobs
+    alone, so a setting that fails on the hard cases would look better than it is without it; a group whose every
+    job failed has no row, and the list of failures names it), ``consistent`` (how many of them passed their
+    consistency check, when the rows record it),
     ``empty`` (how many reconstructed nothing, when any did) and ``<metric>_mean``, ``<metric>_std`` for
     each metric present in the group (non-finite values are left out of that metric's statistics, and so
     are the :data:`EMPTY_STANDINS` of the empty runs; a metric absent from every row of a group is absent
     from the group's dict).
     """
     groups: dict[tuple, list[dict]] = {}
+    failed: dict[tuple, int] = {}
     for row in rows:
+        key = tuple(row.get(k) for k in by)
         if row.get("status") == "ok":
-            groups.setdefault(tuple(row.get(k) for k in by), []).append(row)
+            groups.setdefault(key, []).append(row)
+        else:
+            failed[key] = failed.get(key, 0) + 1
     out = []
     for key in sorted(groups, key=lambda k: tuple(_sort_key(v) for v in k)):
         members = groups[key]
         entry: dict[str, Any] = dict(zip(by, key))
         entry["runs"] = len(members)
+        if failed.get(key):  # not in the means: shown beside them
+            entry["failed"] = failed[key]
         verdicts = [r.get("consistency") for r in members if r.get("consistency") is not None]
         if verdicts:  # how many runs explain their own data (metrics.json's consistency verdict)
             entry["consistent"] = sum(v == "consistent" for v in verdicts)

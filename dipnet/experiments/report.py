@@ -464,12 +464,15 @@ def write_sweep_report(runs: Sequence[Run], path: str | Path, *, root: str | Pat
 def _groups_table(groups: Sequence[dict], by: Sequence[str], metrics: Sequence[str] = METRICS) -> str:
     present = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
     empties = any("empty" in g for g in groups)  # runs that reconstructed nothing: counted, not in the means
+    failures = any("failed" in g for g in groups)  # jobs that failed: counted, not in the means
     head = "".join(f"<th class=l>{collect.LABELS.get(k, k)}</th>" for k in by) + "<th>runs</th>" + \
-        ("<th>empty</th>" if empties else "") + "".join(f"<th>{collect.LABELS.get(m, m)}</th>" for m in present)
+        ("<th>failed</th>" if failures else "") + ("<th>empty</th>" if empties else "") + \
+        "".join(f"<th>{collect.LABELS.get(m, m)}</th>" for m in present)
     body = []
     for g in groups:
         cells = "".join(f"<td class=l>{html.escape(tables.format_cell(g.get(k)))}</td>" for k in by)
-        cells += f"<td>{g['runs']}</td>" + (f"<td>{g.get('empty', 0)} of {g['runs']}</td>" if empties else "")
+        cells += f"<td>{g['runs']}</td>" + (f"<td>{g.get('failed', 0)}</td>" if failures else "")
+        cells += f"<td>{g.get('empty', 0)} of {g['runs']}</td>" if empties else ""
         cells += "".join(f"<td>{g[f'{m}_mean']:.4g} ± {g[f'{m}_std']:.2g}</td>" if f"{m}_mean" in g else
                          f"<td>{html.escape(tables.metric_cell(g, m))}</td>" for m in present)
         body.append(f"<tr>{cells}</tr>")

@@ -41,17 +41,20 @@ def markdown_table(groups: Sequence[dict], by: Sequence[str] = GROUP_BY,
     """A Markdown table of :func:`aggregate`'s output: one row per group, ``mean ± std`` cells.
 
     Metrics absent from every group are left out; ``snr_db = none`` means noise-free; ``consistent``: how many
-    of a row's runs passed their consistency check (when the runs record it); ``empty``: how many reconstructed
+    of a row's runs passed their consistency check (when the runs record it); ``failed``: how many of the row's jobs
+    failed or did not finish (when any did: not in the means); ``empty``: how many reconstructed
     nothing (when any did: their Chamfer and Hausdorff, a stand-in, are not in the means).
     """
     present = [m for m in metrics if any(f"{m}_mean" in g for g in groups)]
     verdicts = any("consistent" in g for g in groups)
     empties = any("empty" in g for g in groups)
-    header = [LABELS.get(k, k) for k in by] + ["runs"] + (["consistent"] if verdicts else []) + \
-        (["empty"] if empties else []) + [LABELS.get(m, m) for m in present]
+    failures = any("failed" in g for g in groups)
+    header = [LABELS.get(k, k) for k in by] + ["runs"] + (["failed"] if failures else []) + \
+        (["consistent"] if verdicts else []) + (["empty"] if empties else []) + [LABELS.get(m, m) for m in present]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for g in groups:
         cells = [format_cell(g.get(k)) for k in by] + [str(g["runs"])]
+        cells += [str(g.get("failed", 0))] if failures else []
         cells += [f"{g['consistent']} of {g['runs']}" if "consistent" in g else ""] if verdicts else []
         cells += [f"{g.get('empty', 0)} of {g['runs']}"] if empties else []
         cells += [metric_cell(g, m) for m in present]

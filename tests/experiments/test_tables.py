@@ -64,6 +64,20 @@ def test_the_table_counts_the_runs_that_explain_their_data():
     assert "consistent" not in tables.markdown_table(collect.aggregate(plain), metrics=("iou",))
 
 
+def test_a_rows_failed_jobs_are_counted_beside_its_means():
+    """A row's mean is over its finished runs: a setting whose hard cases fail looked as good as its easy ones
+    (IoU 0.95 from 2 of 3 jobs, the third failed, with only a smaller runs count to show it). Now a failed column
+    counts them (absent when no job failed; a row whose every job failed stays out, in the failures list)."""
+    rows = [{"status": "ok", "solver": "voxel", "n_dips": 20, "snr_db": None, "iou": iou} for iou in (0.94, 0.96)]
+    rows += [{"status": "failed", "solver": "voxel", "n_dips": 20, "snr_db": None},
+             {"status": "unfinished", "solver": "minnorm", "n_dips": 20, "snr_db": None}]
+    (g,) = collect.aggregate(rows, metrics=("iou",))
+    assert g["solver"] == "voxel" and g["runs"] == 2 and g["failed"] == 1 and g["iou_mean"] == pytest.approx(0.95)
+    table = tables.markdown_table([g], metrics=("iou",))
+    assert "| runs | failed | IoU |" in table and "| 2 | 1 | 0.95 ± 0.0141 |" in table
+    assert "failed" not in tables.markdown_table(collect.aggregate(rows[:2]), metrics=("iou",))
+
+
 def test_an_empty_reconstruction_is_counted_not_averaged_as_a_chamfer_of_1():
     """Before: an empty run's Chamfer of 1.0 (a stand-in, one truth diagonal) entered its row's mean: 0.34 ± 0.57
     from 0.01, 0.02 and the empty run's 1.0."""
