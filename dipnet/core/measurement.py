@@ -79,6 +79,14 @@ def estimate_slab_sigma(profiles: torch.Tensor) -> float:
     return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
 
 
+def reading_slab_sigma(metadata: dict) -> float | None:
+    """The per-slab noise sigma (mm^3) that the readings' own scatter gives: ``sqrt(2)`` times the noise of one reading
+    (preprocessing's ``metadata["reading_noise_volume"]``), a slab being the difference of two cumulative readings;
+    ``None`` when the readings' noise was not recorded."""
+    reading = metadata.get("reading_noise_volume")
+    return None if reading is None else math.sqrt(2.0) * float(reading)
+
+
 def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
     """``(volume, spread)``: a robust mean of the profiles' totals (the mean of those within
     3 MAD-sigmas of the median) and its standard error (robust sigma / sqrt(K)), mm^3.
@@ -189,12 +197,12 @@ class DipMeasurement:
         if recorded:
             return np.asarray([[np.nan if v is None else v for v in row] for row in recorded], dtype=np.float64)
         p = self.profiles
-        reading = self.metadata.get("reading_noise_volume")
+        reading = reading_slab_sigma(self.metadata)
         if self.sigma is None and reading is None:
             noise = torch.full_like(p, estimate_slab_sigma(p))
         else:
             noise = torch.zeros_like(p) if self.sigma is None else self.sigma.clone()
-            noise = noise.clamp(min=0.0 if reading is None else math.sqrt(2.0) * float(reading))
+            noise = noise.clamp(min=0.0 if reading is None else reading)
         full = filled_slabs(p) & (p > REACH_SIGMAS * noise)
         edges = self.offsets[:, None] + self.slab_thickness * torch.arange(self.n_slabs + 1, dtype=torch.float64)
         rows = torch.arange(self.n_orientations)

@@ -132,7 +132,8 @@ import scipy.ndimage
 import torch
 
 from dipnet.core.grid import Grid
-from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement, estimate_slab_sigma, robust_volume
+from dipnet.core.measurement import (BEYOND_SLABS_TOL, DipMeasurement, estimate_slab_sigma, reading_slab_sigma,
+                                     robust_volume)
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allowance, coarse_quantum_message,
@@ -395,10 +396,9 @@ def estimated_slab_noise(target: torch.Tensor, metadata: dict) -> tuple[float, s
     metadata, itself an upper bound: the rise's curvature leaks into it) bounds its noise from above too: the smaller
     of the two is used (``source`` ``"readings"``), the profiles' own estimate without readings (``"estimated"``).
     """
-    sigma = estimate_slab_sigma(target)
-    reading = metadata.get("reading_noise_volume")
-    if reading is not None and math.sqrt(2.0) * float(reading) < sigma:
-        return math.sqrt(2.0) * float(reading), "readings"
+    sigma, reading = estimate_slab_sigma(target), reading_slab_sigma(metadata)
+    if reading is not None and reading < sigma:
+        return reading, "readings"
     return sigma, "estimated"
 
 
