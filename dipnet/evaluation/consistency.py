@@ -90,7 +90,7 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   changed deep inside them too, and more resolution does not help it. The share of the change deeper than one voxel
   was at most 0.004 for the true partial-volume occupancies of the built-in chamber box and ten bundled meshes at 16^3
   and 24^3 (and 0 for the voxel and implicit solvers' hammer, thinner than a voxel), 0.14-0.42 for min-norm with 12
-  dips and 0.66-0.68 for empty solves (docs/guide/bad-data.md, "A fourteenth audit: the threshold's blame"). Above
+  dips and 0.66-0.68 for empty solves (docs/guide/bad-data.md, "The threshold's blame"). Above
   ``SMEAR_DEPTH_MAX``, or when the binary shape holds more than ``THRESHOLD_GAIN_MAX`` times the occupancy's volume
   (a threshold of 0.5 at most doubles a partial voxel; min-norm's ringing field of the hammer, thresholded by Otsu at
   0.01-0.11: 3-50 times), the hint names the occupancy as smeared instead of blaming the voxel size.

@@ -69,7 +69,7 @@ def grid_ball_scans(seeds):
 
 
 
-#: A level drift over a small object's rise (the thirteenth audit's hammer): 1.4 mm over its 13-hour session of 100
+#: A level drift over a small object's rise (a hammer): 1.4 mm over its 13-hour session of 100
 #: dips, where the hammer (2,000 mm^3 in an 84,000 mm^2 tank) rises the level by 0.024 mm.
 DRIFTING = RigGeometry(pivot_mm=-120.0, tilt_axis_offset_mm=30.0, tilt_zero_deg=-8.0, level_drift_mm_per_s=-3e-5)
 

@@ -241,7 +241,7 @@ def test_a_dips_total_rise_is_not_read_high_from_the_noise_under_water():
 
 
 def test_a_level_drift_over_a_small_objects_rise_rejects_no_dip():
-    """The thirteenth audit's case: the readings were repaired before the drift was taken out, and a drift over the
+    """The readings were repaired before the drift was taken out, and a drift over the
     rest readings larger than the noise passed for outliers: of 30 dips of a hammer (2,000 mm^3 in an 84,000 mm^2
     tank, drift -3e-5 mm/s) 24 were rejected (86 of 100 in the audit, whose moments then missed by 0.19 mm and 10
     mm^2 rms and held the -8 deg tilt zero at 0). Now every dip is kept and the moments give the rig."""

@@ -391,7 +391,7 @@ def test_the_grid_plans_off_axis_ball_gives_the_section_and_step_scale_without_b
 
 
 def test_a_balance_carries_the_tanks_unknown_section_into_the_intervals():
-    """The thirteenth audit's case: a balance reads the displaced volume, and the moments turn it into the water
+    """A balance reads the displaced volume, and the moments turn it into the water
     line's rise over the tank's *nominal* section. In a tank 20 % larger than nominal a ball off the axis gave a step
     scale of 1.0030 with the interval [1.0023, 1.0037] for a true 1.01 (17 standard errors) and a tilt-axis offset
     0.1 mm off (14 standard errors), each named determined. The bootstrap now draws the section over the calibrated
@@ -415,7 +415,7 @@ def test_a_balance_carries_the_tanks_unknown_section_into_the_intervals():
 
 
 def test_a_noisy_balls_residual_is_judged_against_what_its_readings_noise_gives():
-    """The thirteenth audit's case: at 10 dB a ball's profiles miss even the true geometry by more than the 5 %
+    """At 10 dB a ball's profiles miss even the true geometry by more than the 5 %
     bound (24 dips: 0.062 at 32^3, 0.097 at calibrate.py's 48^3), so every such scan was refused, with a message that
     the noise explained 0.025 of it (the profiles' own estimate, which the monotone fit hides). Now a residual within
     1.5 times what the readings' own noise gives is accepted, and the geometry is inside its intervals; another
@@ -437,7 +437,7 @@ def test_a_noisy_balls_residual_is_judged_against_what_its_readings_noise_gives(
 
 
 def test_calibrate_undoes_a_known_sensor_lag_and_names_an_unknown_one(tmp_path):
-    """The thirteenth audit's case: a level sensor with a 2 s time constant at 2 s per reading spreads every dip's
+    """A level sensor with a 2 s time constant at 2 s per reading spreads every dip's
     rise, which reads as a ball larger in stage steps: the step scale came out 0.30 % low, 7 standard errors off its
     interval, and the report said a ball's intervals carry the lag. ``calibrate.py --sensor-lag 2`` now undoes it
     (the step scale inside its interval, the lag written to the file); without it the report says what an unknown
@@ -475,7 +475,7 @@ def _balance_scan(tmp_path, section_mm2: float):
 
 
 def test_a_balances_known_section_narrows_the_step_scale(tmp_path, capsys):
-    """The thirteenth audit's leftover: a balance's step scale was known only to about +-0.8 % from a ball, since
+    """A balance's step scale was known only to about +-0.8 % from a ball, since
     the bootstrap drew the tank's section over the calibrated range (+-20 %), and a section known better could not
     be given. ``calibrate.py --section-tolerance 0.02`` (the section known to +-2 %, 90 % half-width) draws it over
     that: in a tank 1.5 % larger than recorded the step scale's interval narrows from +-0.78 % to +-0.11 % and still

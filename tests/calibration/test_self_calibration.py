@@ -210,7 +210,7 @@ def test_an_implausible_cross_section_is_named_and_kept():
 
 
 def test_a_section_change_given_in_percent_is_refused():
-    """The thirteenth audit's case: ``calibration.max_section_change=20`` meant as 20 % was taken as a relative
+    """``calibration.max_section_change=20`` meant as 20 % was taken as a relative
     change of 2000 %, so the guard on the self-calibrated section (20-50 % by default) was gone without a word. A
     change of 1 or more is refused, naming the fraction to give."""
     with pytest.raises(CalibrationError, match=r"got 20 \(20 would accept any section; for 20 % give 0.2\)"):
@@ -230,7 +230,7 @@ def test_the_gain_step_fixes_auto_prior_weights_at_the_rules_start():
 
 
 def test_a_section_on_a_coarse_grid_or_from_few_dips_is_named_and_kept():
-    """The fifth audit: at 20^3-32^3 with 40-80 dips the shape absorbed about half a wrong section and 13 of 17
+    """At 20^3-32^3 with 40-80 dips the shape absorbed about half a wrong section and 13 of 17
     intervals missed the truth (a correctly configured tank came back 7 % off, written to the calibration file).
     Below 32^3 or 100 dips the section is named undetermined with that cause and kept."""
     raw = ball_in_smaller_tank()
@@ -329,7 +329,7 @@ def test_a_section_configured_too_small_is_found_through_the_shapes_dilution():
 
 @pytest.mark.parametrize("max_tilt", [35.0, 65.0])
 def test_the_shapes_spread_into_a_wide_cone_stays_in_the_sections_interval(max_tilt):
-    """The second audit's case: a ball dipped at tilts up to 35 deg (a 55 deg band no dip reaches) came out with
+    """A ball dipped at tilts up to 35 deg (a 55 deg band no dip reaches) came out with
     a section 17 % high and an interval that missed the truth, and so did every band from 15 deg on (the shape
     prior spreads the ball into the band; this ball comes out 4.7 % low at 25 deg). The interval now carries
     CONE_SECTION_ERROR_PER_DEG x band: at 55 deg it is wider than the tolerance and the section is kept (here the

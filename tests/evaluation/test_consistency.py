@@ -474,7 +474,7 @@ def test_a_declared_symmetry_the_object_lacks_is_named(problem):
 
 @pytest.mark.parametrize("solver", ["voxel", "implicit"])
 def test_a_symmetry_prior_the_object_lacks_is_named_though_the_residual_passes(solver):
-    """The ninth audit's case: the 2D elephant (32^2, 12 dips, noise-free) under a mirror prior across x came out
+    """The 2D elephant (32^2, 12 dips, noise-free) under a mirror prior across x came out
     `consistent` (residual 0.121 under its limit 0.142; IoU 0.939 -> 0.790); the dips' moments reject the mirror
     (misfit 0.039 of the elephant's radius of gyration). The disk keeps it, and no symmetry declared tests none."""
     from dipnet.core.orientations import angles_2d, directions_2d

@@ -357,5 +357,5 @@ def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path, cli):
     line = one_line_error(cli(tmp_path / "run", "experiment=cats_real", f"source.reader.path={path}"))
     assert line.startswith(f"error: {path}: column WaterLevel_mm: the water levels are at most 0.199 mm"), line
     # levels in metres are no multiples of the recording's 0.04 mm steps, so the reader claims no sensor resolution
-    # for them (it did before the eighth audit: "below the sensor resolution 0.04 mm")
+    # for them (it once did: "below the sensor resolution 0.04 mm")
     assert "look like metres (199 mm)" in line and "sensor resolution" not in line, line

@@ -316,7 +316,7 @@ def test_a_csv_counting_depth_as_positive_is_named_so(tmp_path):
 
 
 def test_readings_are_repaired_with_the_geometrys_drift_taken_out(tmp_path):
-    """The thirteenth audit's case: a recording's readings were repaired (and its truncated dips found) before its
+    """A recording's readings were repaired (and its truncated dips found) before its
     geometry's level drift was taken out, so a drift over the rest readings larger than the noise passed for
     outliers: of 8 dips of a hammer (2,000 mm^3 in an 84,000 mm^2 tank, -3e-5 mm/s) read with that drift, 3 were
     kept, where the same scan without the drift keeps 7. Now the drifting scan keeps the same 7."""

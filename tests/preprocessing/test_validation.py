@@ -191,7 +191,7 @@ def test_the_bundled_recording_of_the_cats_is_not_refused():
         validate_measurement(read_recorded(str(CATS_CSV), grid, **options), grid)
 
 
-#: The thirteenth audit's slip: a scan read with another rig's calibration file (same rig name and tank).
+#: A scan read with another rig's calibration file (same rig name and tank).
 _OWN_RIG = {"pivot_mm": 100.0, "tilt_axis_offset_mm": -20.0, "tilt_zero_deg": 6.0}
 _OTHER_RIG = {"pivot_mm": 12.0, "tilt_axis_offset_mm": 16.0, "tilt_zero_deg": 1.0}
 
