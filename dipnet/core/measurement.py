@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import warnings
 import zipfile
 from dataclasses import dataclass, field, replace
@@ -43,6 +44,21 @@ def _float64(values) -> torch.Tensor:
     if isinstance(values, np.ndarray):
         values = np.ascontiguousarray(values)
     return torch.as_tensor(values, dtype=torch.float64)
+
+
+def _thickness(value) -> float:
+    """``slab_thickness`` (a number, or a tensor or array holding one) as a float in mm; anything else (a string,
+    one value per dip) raises :class:`MeasurementFileError`: every slab of a measurement has the same thickness."""
+    message = f"slab_thickness must be one number of mm (the same for every slab and dip), got {value!r}"
+    if isinstance(value, (str, bytes, bool)):
+        raise MeasurementFileError(message)
+    try:
+        array = np.asarray(value.detach().cpu() if isinstance(value, torch.Tensor) else value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MeasurementFileError(message) from exc
+    if array.size != 1:
+        raise MeasurementFileError(message)
+    return float(array.reshape(()))
 
 
 def filled_slabs(target: torch.Tensor, rel_tol: float = FILLED_REL_TOL) -> torch.Tensor:
@@ -101,17 +117,40 @@ def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
     return float(totals[keep].mean()), sigma / math.sqrt(int(keep.sum()))
 
 
+
+def _json_ready(value, where: str):
+    """``value`` (metadata) with numpy and torch numbers and arrays as Python numbers and lists, and paths as strings,
+    for :func:`json.dumps`; any other value JSON cannot store raises :class:`MeasurementFileError` naming ``where``
+    (its key path, e.g. ``metadata['shape']``)."""
+    if isinstance(value, dict):
+        return {key: _json_ready(item, f"{where}[{key!r}]") for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(item, f"{where}[{i}]") for i, item in enumerate(value)]
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    if isinstance(value, (np.ndarray, np.generic)):
+        return _json_ready(value.tolist(), where)  # complex or object entries are refused below
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if value is None or isinstance(value, (str, int, float)):
+        return value
+    raise MeasurementFileError(f"{where} holds a {type(value).__name__} ({value!r:.60}), which the file's JSON cannot "
+                               "store: give it as a number, string, list or dict")
+
+
 @dataclass
 class DipMeasurement:
     """Uniform slab volumes per orientation.
 
     Attributes:
-        directions: unit "up" vectors in the object frame, ``(K, d)`` float64.
+        directions: unit "up" vectors in the object frame, ``(K, d)`` float64 (rows of other lengths are scaled to
+            unit length, as the operators do: the fitted heights and the placement checks read them as unit).
         profiles: slab volumes in mm^3 (mm^2 in 2D), ``(K, M)`` float64, ordered by height.
         slab_thickness: slab thickness in mm.
         offsets: height ``t`` (mm) of the lower edge of slab 0 per orientation, ``(K,)``.
         sigma: optional noise standard deviation per slab (mm^3), ``(K, M)``.
-        metadata: provenance (source, shape, noise settings, ...), JSON-serialisable.
+        metadata: provenance (source, shape, noise settings, ...), a dict, JSON-serialisable (numpy and torch
+            values are written as numbers and lists by :meth:`save`; ``None`` is an empty dict).
     """
 
     directions: torch.Tensor
@@ -125,11 +164,20 @@ class DipMeasurement:
         self.directions = _float64(self.directions)
         self.profiles = _float64(self.profiles)
         self.offsets = _float64(self.offsets).reshape(-1)
+        self.slab_thickness = _thickness(self.slab_thickness)
+        if self.metadata is None:
+            self.metadata = {}
+        if not isinstance(self.metadata, dict):
+            raise MeasurementFileError(f"metadata must be a dict (provenance, JSON-serialisable), got "
+                                       f"{type(self.metadata).__name__}")
         if self.sigma is not None:
             self.sigma = _float64(self.sigma)
             if self.sigma.numel() == 1:
                 self.sigma = self.sigma.reshape(1, 1).expand_as(self.profiles).clone()
         self.validate()
+        norms = self.directions.norm(dim=1, keepdim=True)
+        if not bool(((norms - 1.0).abs() <= 1e-12).all()):  # as the operators do: only the line counts, not its length
+            self.directions = self.directions / norms
 
     @property
     def n_orientations(self) -> int:
@@ -296,10 +344,19 @@ class DipMeasurement:
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> Path:
-        """Write the measurement to ``path`` (``.npz``); returns the path."""
+        """Write the measurement to ``path`` (``.npz``); returns the path.
+
+        Raises:
+            MeasurementFileError: metadata holding a value JSON cannot store (numpy and torch numbers and arrays,
+                and paths, are written as numbers, lists and strings), naming its key; nothing is written then.
+                A ``path`` that is a folder.
+        """
         path = Path(path)
+        if path.is_dir():
+            raise MeasurementFileError(f"{path} is a folder: give the measurement file's name, e.g. "
+                                       f"{path / 'measurement.npz'}")
         meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
-                "slab_thickness": float(self.slab_thickness), **{"provenance": self.metadata}}
+                "slab_thickness": float(self.slab_thickness), **{"provenance": _json_ready(self.metadata, "metadata")}}
         arrays = {"directions": self.directions.numpy(), "profiles": self.profiles.numpy(),
                   "offsets": self.offsets.numpy(), "metadata": np.array(json.dumps(meta))}
         if self.sigma is not None:

@@ -168,3 +168,41 @@ def test_the_reach_is_read_from_the_slabs_and_kept_through_re_binning():
     np.testing.assert_allclose(coarse.reach(), [[-20.0, 10.0]])
     np.testing.assert_allclose(DipMeasurement(m.directions, torch.zeros(1, 10), 10.0, m.offsets).reach(),
                                [[np.nan, np.nan]])
+
+
+def test_directions_of_any_length_are_stored_as_unit_vectors():
+    """A hand-built measurement's directions are lines, as the operators take them: rows scaled by 0.5 to 3 gave the
+    same solve but a height trend of -12 mm pivot (0 with unit rows) and a limit of 26.6 mm instead of 1.7."""
+    m = _measurement(k=6)
+    scaled = DipMeasurement(m.directions * torch.linspace(0.5, 3.0, 6)[:, None], m.profiles, m.slab_thickness,
+                            m.offsets, metadata={})
+    assert torch.allclose(scaled.directions, m.directions, atol=1e-15)
+    assert torch.equal(_measurement(k=6).directions, fibonacci_hemisphere(6))  # unit rows kept bit for bit
+
+
+def test_slab_thickness_is_one_number():
+    m = _measurement()
+    for value in (torch.tensor(2.5), np.array([2.5]), np.float32(2.5)):
+        same = DipMeasurement(m.directions, m.profiles, value, m.offsets)
+        assert type(same.slab_thickness) is float and same.slab_thickness == 2.5
+    for value in ("2.5", np.full(4, 2.5)):
+        with pytest.raises(MeasurementFileError, match="slab_thickness must be one number of mm"):
+            DipMeasurement(m.directions, m.profiles, value, m.offsets)
+
+
+def test_metadata_is_a_dict_and_numpy_values_are_saved(tmp_path):
+    m = _measurement()
+    assert DipMeasurement(m.directions, m.profiles, 2.5, m.offsets, metadata=None).metadata == {}
+    with pytest.raises(MeasurementFileError, match="metadata must be a dict"):
+        DipMeasurement(m.directions, m.profiles, 2.5, m.offsets, metadata=["source"])
+    m.metadata = {"snr_db": np.float32(20.0), "seed": np.int64(3), "centre": np.zeros(3), "scale": torch.tensor(2.0),
+                  "mesh": tmp_path / "bunny.ply", "runs": [{"k": np.int32(4)}]}
+    back = DipMeasurement.load(m.save(tmp_path / "m.npz")).metadata
+    assert back == {"snr_db": 20.0, "seed": 3, "centre": [0.0, 0.0, 0.0], "scale": 2.0,
+                    "mesh": str(tmp_path / "bunny.ply"), "runs": [{"k": 4}]}
+    m.metadata = {"runs": [{"when": object()}]}
+    with pytest.raises(MeasurementFileError, match=r"metadata\['runs'\]\[0\]\['when'\] holds a object"):
+        m.save(tmp_path / "bad.npz")
+    assert not (tmp_path / "bad.npz").exists()
+    with pytest.raises(MeasurementFileError, match="is a folder: give the measurement file's name"):
+        m.save(tmp_path)
