@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 
 
 @dataclass
@@ -33,8 +35,20 @@ class Reconstruction:
     fine: "Reconstruction | None" = None
 
     def __post_init__(self) -> None:
+        """Raises ``TypeError`` for a ``grid`` that is no :class:`Grid` and ``ValueError`` for an occupancy not of
+        ``grid.shape`` or a NaN (or non-numeric) threshold: each gave a result made by hand a wrong meaning, or a
+        torch size mismatch deep in :func:`~dipnet.evaluation.consistency.check_consistency`, or an empty
+        :attr:`binary` (``x > NaN`` is never true)."""
+        self.grid = as_grid(self.grid)
         if not isinstance(self.occupancy, torch.Tensor):  # a numpy array (a result made by hand) is taken as a tensor
             self.occupancy = torch.as_tensor(self.occupancy)
+        if tuple(self.occupancy.shape) != self.grid.shape:
+            raise ValueError(f"occupancy has shape {tuple(self.occupancy.shape)}, but {self.grid} holds "
+                             f"{self.grid.shape}: give the reconstruction the grid its volume was solved on")
+        if isinstance(self.threshold, (bool, str)) or not isinstance(self.threshold, numbers.Real) \
+                or math.isnan(self.threshold):
+            raise ValueError(f"threshold must be a number (the occupancy level between inside and outside), got "
+                             f"{self.threshold!r}: with NaN nothing is inside")
 
     @property
     def binary(self) -> np.ndarray:

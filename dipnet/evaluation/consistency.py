@@ -461,8 +461,9 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         hull_fill_min: flag a measured volume filling less than this share of the dips' support hull.
         warn: log and ``warnings.warn`` a :class:`DataConsistencyWarning` per failed check.
     """
-    if reconstruction.grid != operator.grid:
-        raise ValueError(f"the reconstruction's grid {reconstruction.grid} is not the operator's {operator.grid}")
+    if not reconstruction.grid.matches(operator.grid):  # not !=: extents equal to 1e-9 are the same voxels
+        raise ValueError(f"the reconstruction's grid {reconstruction.grid} is not the operator's {operator.grid}: "
+                         "check it with the operator its solver used")
     target = measured_profiles(measurement, operator)
     binary = torch.from_numpy(reconstruction.binary)
     occupancy = reconstruction.occupancy.detach().cpu()

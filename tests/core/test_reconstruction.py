@@ -1,6 +1,7 @@
 """Reconstructions: the binary volume is the occupancy above the threshold; the saved file holds both."""
 
 import numpy as np
+import pytest
 import torch
 
 from dipnet.core.grid import Grid
@@ -28,3 +29,17 @@ def test_a_numpy_occupancy_is_taken_as_a_tensor():
     recon = Reconstruction(occupancy, grid, threshold=0.5)
     assert isinstance(recon.occupancy, torch.Tensor) and recon.occupancy.dtype == torch.float32
     assert np.array_equal(recon.binary, occupancy > 0.5)
+
+
+def test_a_result_made_by_hand_must_lie_on_its_grid():
+    """Before: an occupancy of another shape was accepted and check_consistency failed with a torch RuntimeError ("The
+    size of tensor a (10) must match ..."); a NaN threshold gave an empty binary volume; a resolution was taken for a
+    grid."""
+    grid = Grid(8, 3, 40.0)
+    with pytest.raises(ValueError, match=r"occupancy has shape \(10, 10, 10\), but Grid\(n=8.*holds \(8, 8, 8\)"):
+        Reconstruction(torch.zeros(10, 10, 10), grid)
+    with pytest.raises(ValueError, match="threshold must be a number"):
+        Reconstruction(torch.zeros(grid.shape), grid, threshold=float("nan"))
+    with pytest.raises(TypeError, match="grid must be a dipnet.Grid"):
+        Reconstruction(torch.zeros(grid.shape), 8)
+    assert Reconstruction(torch.zeros(grid.shape), grid, threshold=np.float32(0.25)).threshold == 0.25

@@ -207,6 +207,14 @@ def test_a_reconstruction_on_another_grid_is_refused(problem):
         check_consistency(measurement, operator, other)
 
 
+def test_a_grid_whose_extent_differs_by_rounding_is_the_operators(problem):
+    """Before: ``!=`` refused a grid whose extent differed in the last digits, with a message naming two grids that
+    print alike ("Grid(n=.., extent=60.0) is not the operator's Grid(n=.., extent=60.0)")."""
+    operator, ball, measurement = problem
+    rounded = Reconstruction(ball.float(), Grid(GRID.n, GRID.ndim, GRID.extent * (1 + 1e-13)))
+    assert check_consistency(measurement, operator, rounded, warn=False).verdict == "consistent"
+
+
 def _cats(tmp_path, *overrides):
     from hydra import compose, initialize_config_module
 
