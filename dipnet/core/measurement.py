@@ -299,6 +299,14 @@ class DipMeasurement:
             warnings.warn(message, stacklevel=3)
         return out
 
+    def resampled_sigma(self, edges: torch.Tensor) -> torch.Tensor | None:
+        """The noise sigma on other slab boundaries ``edges`` ``(M' + 1,)`` (mm, increasing), ``(K, M')`` mm^3: the
+        cumulative variance resampled as :meth:`resampled` does the volumes (independent slabs); ``None`` without
+        ``sigma``."""
+        if self.sigma is None:
+            return None
+        return replace(self, profiles=self.sigma.pow(2), sigma=None).resampled(edges).clamp(min=0).sqrt()
+
     def rebinned(self, edges: torch.Tensor, rel_tol: float = 1e-3) -> "DipMeasurement":
         """This measurement on other uniform slabs ``edges`` ``(M' + 1,)`` (mm, the same for every
         orientation): volumes by :meth:`resampled`, noise sigma by resampling the cumulative
@@ -319,10 +327,7 @@ class DipMeasurement:
         if not torch.allclose(steps, steps.mean().expand_as(steps), rtol=1e-9):
             raise MeasurementFileError("re-binning needs uniform slab edges")
         profiles = self.resampled(edges, rel_tol)
-        sigma = None
-        if self.sigma is not None:
-            variance = replace(self, profiles=self.sigma.pow(2), sigma=None)
-            sigma = variance.resampled(edges).clamp(min=0).sqrt()
+        sigma = self.resampled_sigma(edges)
         metadata = {**self.metadata, "rebinned_from": {"n_slabs": self.n_slabs, "slab_thickness": self.slab_thickness},
                     "reach_mm": [[None if not math.isfinite(v) else float(v) for v in row] for row in self.reach()],
                     **self._beyond_new_slabs(profiles, edges)}

@@ -141,7 +141,7 @@ from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allo
 from dipnet.preprocessing.level_trend import level_fall
 from dipnet.preprocessing.symmetry_moments import MISFIT_LIMIT, P_LIMIT, SymmetryFit, group_closure, symmetry_fit
 from dipnet.preprocessing.validation import beyond_ball_message, object_reach
-from dipnet.solvers.base import measured_profiles
+from dipnet.solvers.base import measured_profiles, measured_sigma
 from dipnet.solvers.optimize import EmptySupportError, support_hull
 from dipnet.solvers.priors import symmetry_maps
 
@@ -475,7 +475,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     on_grid, _ = robust_volume(target)
     quantum = reading_quantum(measurement)
     rounding = quantum.slab_sigma if quantum is not None else 0.0  # a sigma of preprocess holds it already
-    sigma = measurement.sigma if measurement.sigma is not None and measurement.sigma.shape == target.shape else None
+    sigma = measured_sigma(measurement, operator)  # on the operator's slabs, as the target
     if sigma is not None:
         noise_norm, source = float(sigma.double().pow(2).sum().sqrt()), "sigma"
     else:

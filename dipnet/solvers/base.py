@@ -80,20 +80,35 @@ def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> tor
                          f"{len(dirs)} rows (first: row {rows[0] if rows else 0}, {angle:.3g} deg apart; the rows must "
                          f"be the same dips in the same order): {fix}")
     edges = operator.slab_edges()
-    same = (measurement.n_slabs == operator.n_slabs
+    return measurement.profiles.clone() if _same_slabs(measurement, operator) else \
+        measurement.resampled(edges, BEYOND_SLABS_TOL)
+
+
+def _same_slabs(measurement: DipMeasurement, operator: DipOperator) -> bool:
+    """Whether ``measurement``'s slabs are the operator's (count, thickness and offsets to 1e-9)."""
+    edges = operator.slab_edges()
+    return (measurement.n_slabs == operator.n_slabs
             and abs(measurement.slab_thickness - operator.slab_thickness) < 1e-9 * operator.slab_thickness
             and torch.allclose(measurement.offsets.double(), edges[:1].expand_as(measurement.offsets), atol=1e-9))
-    return measurement.profiles.clone() if same else measurement.resampled(edges, BEYOND_SLABS_TOL)
+
+
+def measured_sigma(measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor | None:
+    """The measurement's noise sigma on the operator's slabs, ``(K, M)`` float64 mm^3 (``None`` without one): its own
+    when the slabs are the operator's, else resampled with the profiles (:meth:`DipMeasurement.resampled_sigma`). Not
+    its own whenever the shapes agree: slabs of the same count at other offsets hold other volumes."""
+    if measurement.sigma is None or _same_slabs(measurement, operator):
+        return measurement.sigma
+    return measurement.resampled_sigma(operator.slab_edges())
 
 
 def on_operator_slabs(measurement: DipMeasurement, operator: DipOperator) -> DipMeasurement:
     """``measurement`` with its profiles on the operator's slabs (:func:`measured_profiles`): itself when
-    they are there already, else a copy resampled once (its per-slab ``sigma`` dropped: it was for the
-    other slabs). Solvers that read the profiles at every stage or round call this first, so a volume
+    they are there already, else a copy resampled once, its per-slab ``sigma`` with it (:func:`measured_sigma`).
+    Solvers that read the profiles at every stage or round call this first, so a volume
     lost beyond the operator's slabs is warned about once per solve."""
     profiles = measured_profiles(measurement, operator)
-    if torch.equal(profiles, measurement.profiles):
+    if torch.equal(profiles, measurement.profiles) and _same_slabs(measurement, operator):
         return measurement
     return replace(measurement, profiles=profiles, slab_thickness=operator.slab_thickness,
                    offsets=operator.slab_edges()[:1].to(measurement.offsets).expand(operator.n_orientations).clone(),
-                   sigma=None)
+                   sigma=measured_sigma(measurement, operator))

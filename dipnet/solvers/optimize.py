@@ -36,7 +36,7 @@ from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, checked_flag, checked_threshold, measured_profiles
+from dipnet.solvers.base import Solver, checked_flag, checked_threshold, measured_profiles, measured_sigma
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors
@@ -290,10 +290,8 @@ def slab_support(target: torch.Tensor, edges: torch.Tensor, rel_tol: float, slac
 
 def target_and_sigma(measurement: DipMeasurement, operator: DipOperator) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Measured slab volumes on the operator's slabs ``(K, M)`` and their noise sigma (``None``
-    when unknown, or when the slabs were resampled and the per-slab sigma no longer applies)."""
-    target = measured_profiles(measurement, operator)
-    same = measurement.sigma is not None and measurement.sigma.shape == target.shape
-    return target, measurement.sigma if same else None
+    when unknown; resampled with the profiles when the slabs are not the operator's: :func:`measured_sigma`)."""
+    return measured_profiles(measurement, operator), measured_sigma(measurement, operator)
 
 
 def volume_fraction(measurement: DipMeasurement, operator: DipOperator) -> float:

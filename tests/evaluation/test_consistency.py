@@ -207,6 +207,24 @@ def test_a_reconstruction_on_another_grid_is_refused(problem):
         check_consistency(measurement, operator, other)
 
 
+def test_a_stated_sigma_on_other_slabs_is_resampled_onto_the_operators(problem):
+    """Before: a sigma of the profiles' shape was used as it was though the profiles were resampled onto slabs at other
+    offsets, and one of another slab count was dropped for an estimate from the profiles."""
+    operator, ball, exact = problem
+    edges = operator.slab_edges()
+    half = 0.5 * operator.slab_thickness
+    for seed, slabs in enumerate((edges - half, torch.linspace(float(edges[0]), float(edges[-1]), 2 * len(edges) - 1,
+                                                              dtype=torch.float64))):  # the same count, twice as many
+        other = exact.rebinned(slabs)
+        other.sigma = torch.rand(other.profiles.shape, generator=torch.Generator().manual_seed(seed),
+                                 dtype=torch.float64)
+        recon = Reconstruction(ball.float(), GRID)
+        got = check_consistency(other, operator, recon, warn=False)
+        want = check_consistency(other.rebinned(edges), operator, recon, warn=False)
+        assert got.noise_source == "sigma"
+        assert got.profile_residual_expected == pytest.approx(want.profile_residual_expected, rel=1e-9)
+
+
 def test_a_grid_whose_extent_differs_by_rounding_is_the_operators(problem):
     """Before: ``!=`` refused a grid whose extent differed in the last digits, with a message naming two grids that
     print alike ("Grid(n=.., extent=60.0) is not the operator's Grid(n=.., extent=60.0)")."""

@@ -14,7 +14,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.operators import make_operator
 from dipnet.solvers import make_solver
-from dipnet.solvers.base import Solver, checked_flag, measured_profiles, on_operator_slabs
+from dipnet.solvers.base import Solver, checked_flag, measured_profiles, measured_sigma, on_operator_slabs
 
 
 def _measurement(k=4, m=10):
@@ -62,13 +62,17 @@ def test_resampling_onto_narrower_slabs_warns_of_the_volume_it_drops():
         measured_profiles(m, make_operator(Grid(16, 3, 40.0), fibonacci_hemisphere(4)))
 
 
-def test_on_operator_slabs_resamples_once_and_drops_the_other_slabs_sigma():
+def test_on_operator_slabs_resamples_once_and_the_sigma_with_the_profiles():
+    """The sigma was for the other slabs: it is resampled as ``rebinned`` does for a job reading the ``.npz`` (before,
+    it was dropped, and a solve from Python took its noise from the profiles while the job used the stated one)."""
     m = _measurement()
     m.sigma = torch.full_like(m.profiles, 0.1)
     op = make_operator(Grid(16, 3, 40.0), fibonacci_hemisphere(4))
     on_op = on_operator_slabs(m, op)
     torch.testing.assert_close(on_op.profiles, measured_profiles(m, op))
-    assert on_op.slab_thickness == op.slab_thickness and on_op.sigma is None  # the sigma was for the other slabs
+    assert on_op.slab_thickness == op.slab_thickness
+    torch.testing.assert_close(on_op.sigma, m.rebinned(op.slab_edges()).sigma)
+    assert torch.equal(measured_sigma(m, op), on_op.sigma) and measured_sigma(on_op, op) is on_op.sigma
     torch.testing.assert_close(on_op.offsets, torch.full((4,), -20.0, dtype=on_op.offsets.dtype))
     assert on_operator_slabs(on_op, op) is on_op  # already there: itself
     assert torch.equal(measured_profiles(on_op, op), on_op.profiles)
