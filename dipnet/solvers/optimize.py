@@ -21,6 +21,7 @@ the loss plateaus (:func:`plateaued`), shows the terms in a progress bar and ret
 from __future__ import annotations
 
 import logging
+import numbers
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -509,8 +510,12 @@ class OptimisationSolver(Solver):
             raise ValueError(f"unknown optimizer {optimizer!r}; choose one of {OPTIMIZERS}")
         if schedule not in SCHEDULES:
             raise ValueError(f"unknown schedule {schedule!r}; choose one of {SCHEDULES}")
-        if int(iterations) < 1 or not lr > 0 or int(window) < 1:
-            raise ValueError("iterations and window must be positive integers and lr positive")
+        for name, value in (("iterations", iterations), ("window", window)):
+            if isinstance(value, (bool, str)) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
+                    or value != int(value) or value < 1:
+                raise ValueError(f"{name} must be a whole number >= 1, got {value!r} (2.5 is not cut to 2)")
+        if isinstance(lr, (bool, str)) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf:
+            raise ValueError(f"lr must be a positive, finite learning rate, got {lr!r}")
         priors = plain(priors or {})
         self.weight_rule = WeightRule(**plain(weight_rule or {}))
         build_priors(with_weight(priors, self.weight_rule.start), volume_fraction=1.0)  # validate now

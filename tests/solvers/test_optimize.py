@@ -218,3 +218,14 @@ def test_a_warm_start_on_other_voxels_is_refused():
                                          r"operator's grid is Grid\(n=16, ndim=2, extent=100.0\)"):
         VoxelSolver(warm_start=Reconstruction(disk.occupancy(other), other), **opts).solve(meas, op)
     VoxelSolver(warm_start=Reconstruction(disk.occupancy(grid), Grid(16, 2, 100.0)), **opts).solve(meas, op)
+
+
+@pytest.mark.parametrize("option, value", [("iterations", 2.5), ("iterations", 0), ("window", "25"),
+                                           ("iterations", float("inf")), ("lr", "0.1"), ("lr", float("inf")),
+                                           ("lr", -0.05)])
+def test_counts_that_are_not_whole_and_learning_rates_that_are_not_numbers_are_refused(option, value):
+    """Before: ``iterations=2.5`` ran 2 iterations unsaid; ``lr="0.1"`` failed with "'>' not supported between
+    instances of 'str' and 'int'"; ``lr=inf`` diverged only once solving."""
+    with pytest.raises(ValueError, match=f"{option} must be a"):
+        VoxelSolver(**{option: value})
+    assert VoxelSolver(iterations=3.0, lr=np.float32(0.1)).iterations == 3
