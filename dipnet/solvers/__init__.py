@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
+
+from dipnet.core.keywords import accepted_keywords
 from dipnet.solvers.base import Solver, measured_profiles
 from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
@@ -20,9 +23,25 @@ SOLVERS: dict[str, type[Solver]] = {
 
 
 def make_solver(name: str, **options) -> Solver:
-    """The solver called ``name`` (a key of :data:`SOLVERS`) built with ``options``."""
+    """The solver called ``name`` (a key of :data:`SOLVERS`) built with ``options``.
+
+    Raises:
+        ValueError: an unknown ``name``.
+        TypeError: options the solver does not take, naming the closest it takes (a misspelling) or the solvers
+            that take them (an option of another solver), and its options."""
     if name not in SOLVERS:
         raise ValueError(f"unknown solver {name!r}; choose one of {sorted(SOLVERS)}")
+    takes = accepted_keywords(SOLVERS[name])
+    unknown = sorted(set(options) - (takes or set(options)))
+    if unknown:
+        hints = []
+        for option in unknown:
+            close = difflib.get_close_matches(option, sorted(takes), n=1)
+            owners = [other for other, cls in SOLVERS.items() if option in (accepted_keywords(cls) or ())]
+            hints.append(f"{option} (did you mean {close[0]}?)" if close else
+                         f"{option} (an option of {', '.join(owners)})" if owners else option)
+        raise TypeError(f"the {name} solver takes no option(s) {'; '.join(hints)}; its options: "
+                        f"{', '.join(sorted(takes))}")
     return SOLVERS[name](**options)
 
 

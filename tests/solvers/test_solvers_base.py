@@ -161,3 +161,13 @@ def test_a_solver_flag_that_is_not_true_or_false_is_refused(value):
 
 def test_true_false_and_their_integers_are_flags():
     assert [checked_flag("x", v) for v in (True, False, 1, 0)] == [True, False, True, False]
+
+
+def test_a_misspelt_option_or_another_solvers_is_named_with_the_fix():
+    """Before: "MinNormSolver.__init__() got an unexpected keyword argument 'tikonov'", naming neither the option meant
+    nor the solver that takes it."""
+    with pytest.raises(TypeError, match=r"the minnorm solver takes no option\(s\) tikonov \(did you mean tikhonov\?\); "
+                                        r"its options: atol, "):
+        make_solver("minnorm", tikonov=0.1)
+    with pytest.raises(TypeError, match=r"iterations \(an option of voxel, implicit, dip\)"):
+        make_solver("minnorm", iterations=10)
