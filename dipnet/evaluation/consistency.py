@@ -461,6 +461,10 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         hull_fill_min: flag a measured volume filling less than this share of the dips' support hull.
         warn: log and ``warnings.warn`` a :class:`DataConsistencyWarning` per failed check.
     """
+    got = (measurement, operator, reconstruction)
+    if not all(isinstance(a, cls) for a, cls in zip(got, (DipMeasurement, DipOperator, Reconstruction))):
+        raise TypeError(f"check_consistency(measurement, operator, reconstruction) takes a DipMeasurement, a DipOperator "
+                        f"and a Reconstruction (a solver's result), got {', '.join(type(a).__name__ for a in got)}")
     if not reconstruction.grid.matches(operator.grid):  # not !=: extents equal to 1e-9 are the same voxels
         raise ValueError(f"the reconstruction's grid {reconstruction.grid} is not the operator's {operator.grid}: "
                          "check it with the operator its solver used")

@@ -19,8 +19,9 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from dipnet.shapes.base import Shape
 from dipnet.shapes.isosurface import volume_to_contours, volume_to_mesh
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 from dipnet.core.reconstruction import Reconstruction
 
 log = logging.getLogger(__name__)
@@ -217,6 +218,11 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         object smaller than the grid resolves), ``volume_error`` (signed, relative), ``empty``
         (the reconstruction has no voxel inside).
     """
+    if not isinstance(reconstruction, Reconstruction) or isinstance(truth_occupancy, Shape):
+        raise TypeError(f"evaluate(reconstruction, truth_occupancy, grid) takes a Reconstruction (a solver's result) and "
+                        f"the true occupancy on its grid, got {type(reconstruction).__name__} and "
+                        f"{type(truth_occupancy).__name__}: voxelise a true shape with shape.occupancy(grid)")
+    grid = as_grid(grid)
     if not reconstruction.grid.matches(grid):
         raise ValueError(f"evaluate: the reconstruction is on {reconstruction.grid}, the truth on {grid}: their voxels "
                          "are not the same places; voxelise the truth on the reconstruction's grid "

@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 
 from dipnet.core.framing import extent_around
 from dipnet.core.geometry import RigGeometry
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 from dipnet.core.measurement import DipMeasurement
 
 log = logging.getLogger(__name__)
@@ -175,6 +175,7 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     """
     source = measurement.metadata.get("path") or measurement.metadata.get("rawscan") or "measurement"
     prof = measurement.profiles.numpy()
+    grid = as_grid(grid)
     if measurement.ndim != grid.ndim:
         raise MeasurementValidationError(f"{source}: {measurement.ndim}D directions for a {grid.ndim}D grid")
     if not np.isfinite(prof).all() or not np.isfinite(measurement.directions.numpy()).all():

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 import trimesh
 
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 from dipnet.shapes.base import Shape, ShapeError, check_dips
 from dipnet.shapes.divergence import boundary_volume_below
 
@@ -105,7 +105,7 @@ class _BoxAlgebra(Shape):
     def occupancy(self, grid: Grid, supersample: int = 1) -> torch.Tensor:
         """Exact fraction of each voxel inside (box overlaps are products of 1D overlaps, the
         holes are disjoint and inside the box), for any ``supersample`` (kept for the interface)."""
-        if grid.ndim != self.ndim:
+        if as_grid(grid).ndim != self.ndim:
             raise ShapeError(f"shape {self.name!r} is {self.ndim}D but the grid is {grid.ndim}D")
         axis, h = grid.axis().numpy(), grid.voxel_size
 

@@ -23,7 +23,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 import torch
 
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 
 
 class ShapeError(ValueError):
@@ -91,7 +91,7 @@ class Shape(ABC):
         Returns:
             float32 tensor of shape ``grid.shape`` with values in [0, 1].
         """
-        if grid.ndim != self.ndim:
+        if as_grid(grid).ndim != self.ndim:
             raise ShapeError(f"shape {self.name!r} is {self.ndim}D but the grid is {grid.ndim}D")
         if int(supersample) != supersample or supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {supersample!r}")

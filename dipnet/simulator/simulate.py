@@ -20,7 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from dipnet.core.grid import Grid
+from dipnet.core.grid import Grid, as_grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.simulator.physics import DipProtocol, SensorModel, Tank, simulate_scan
 from dipnet.simulator.pockets import Pockets
@@ -65,7 +65,7 @@ def simulate_measurement(shape, directions, *, grid: Grid | None = None, n_slabs
     protocol = protocol or DipProtocol()
     if step_mm is not None:
         protocol = replace(protocol, step_mm=float(step_mm))
-    if grid is not None and grid.ndim != shape.ndim:
+    if grid is not None and as_grid(grid).ndim != shape.ndim:
         raise ValueError(f"the shape is {shape.ndim}D but the grid is {grid.ndim}D")
     if edges is None and grid is None:
         r = float(shape.radius())

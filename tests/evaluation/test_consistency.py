@@ -225,6 +225,16 @@ def test_a_stated_sigma_on_other_slabs_is_resampled_onto_the_operators(problem):
         assert got.profile_residual_expected == pytest.approx(want.profile_residual_expected, rel=1e-9)
 
 
+def test_arguments_in_the_wrong_order_are_named(problem):
+    """Before: "AttributeError: 'DipMeasurement' object has no attribute 'grid'", or a message naming ``solve``."""
+    operator, ball, measurement = problem
+    recon = Reconstruction(ball.float(), GRID)
+    for args in ((operator, measurement, recon), (measurement, recon, operator), (measurement, operator, ball)):
+        with pytest.raises(TypeError, match=r"check_consistency\(measurement, operator, reconstruction\) takes a "
+                                            r"DipMeasurement, a DipOperator and a Reconstruction .* got "):
+            check_consistency(*args)
+
+
 def test_a_grid_whose_extent_differs_by_rounding_is_the_operators(problem):
     """Before: ``!=`` refused a grid whose extent differed in the last digits, with a message naming two grids that
     print alike ("Grid(n=.., extent=60.0) is not the operator's Grid(n=.., extent=60.0)")."""

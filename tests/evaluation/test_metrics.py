@@ -254,3 +254,19 @@ def test_reference_level_of_a_binary_truth_is_any_level_between_its_values():
     truth[2:6, 2:6, 2:6] = 1.0
     level = reference_level(truth, grid, 64 * grid.voxel_volume)
     assert 0.0 < level < 1.0 and (truth > level).sum() == 64
+
+
+def test_evaluate_names_arguments_in_the_wrong_order_or_a_shape_for_the_truth():
+    """Before: "AttributeError: 'Tensor' object has no attribute 'grid'" (the truth first) and "float() argument must be
+    a string or a real number, not 'Ball'" (a shape for the truth)."""
+    from dipnet.shapes import Ball
+
+    grid = Grid(8, 3, 40.0)
+    truth = Ball(10.0).occupancy(grid)
+    recon = Reconstruction(truth, grid)
+    with pytest.raises(TypeError, match=r"takes a Reconstruction .* got Tensor and Reconstruction: voxelise"):
+        evaluate(truth, recon, grid)
+    with pytest.raises(TypeError, match=r"got Reconstruction and Ball: voxelise a true shape with shape.occupancy"):
+        evaluate(recon, Ball(10.0), grid)
+    with pytest.raises(TypeError, match="grid must be a dipnet.Grid"):
+        evaluate(recon, truth, 8)

@@ -284,3 +284,9 @@ def test_dips_that_trap_air_in_a_cavity_are_named_by_their_totals():
     low = np.flatnonzero(directions[:, 2] < -0.5)
     assert set(low) <= set(report.stats["totals_off"]) and report.stats["total_spread"] > 0.1
     assert any("air trapped in a cavity that opens downward" in w for w in report.warnings)
+
+
+def test_a_grid_that_is_no_grid_is_named():
+    """Before: validate_measurement(measurement, 16) failed with "AttributeError: 'int' object has no attribute 'ndim'"."""
+    with pytest.raises(TypeError, match=r"grid must be a dipnet.Grid, e.g. Grid\(16, "):
+        validate_measurement(_measurement(_ball()), 16)

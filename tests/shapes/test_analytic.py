@@ -145,3 +145,10 @@ def test_a_centre_or_size_that_is_not_finite_is_refused():
         Ball(30.0, center=(float("nan"), 0.0, 0.0))
     with pytest.raises(ShapeError, match="half_sizes must be finite"):
         ChamberBox((10.0, float("inf"), 10.0), chamber_half_sizes=5.0, channel_half_width=2.0)
+
+
+def test_occupancy_on_a_resolution_instead_of_a_grid_is_named():
+    """Before: shape.occupancy(16) failed with "AttributeError: 'int' object has no attribute 'ndim'"."""
+    for shape in (Ball(10.0), ChamberBox([10.0] * 3, chamber_half_sizes=5.0, channel_half_width=1.0)):
+        with pytest.raises(TypeError, match=r"grid must be a dipnet.Grid, e.g. Grid\(16, "):
+            shape.occupancy(16)

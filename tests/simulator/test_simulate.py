@@ -106,3 +106,9 @@ def test_dimension_mismatch():
         simulate_measurement(SHAPES["ball"][0], DIRS3, grid=GRID2, progress=False)
     with pytest.raises(ValueError, match="directions must have shape"):
         simulate_measurement(SHAPES["ball"][0], DIRS2, grid=GRID3, progress=False)
+
+
+def test_a_grid_that_is_no_grid_is_named():
+    """Before: "AttributeError: 'int' object has no attribute 'ndim'"."""
+    with pytest.raises(TypeError, match=r"grid must be a dipnet.Grid, e.g. Grid\(16, "):
+        simulate_measurement(Ball(10.0), fibonacci_hemisphere(4), grid=16, progress=False)
