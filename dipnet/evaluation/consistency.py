@@ -459,7 +459,9 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         residual_floor: never flag a relative residual below this (voxel discretisation; raised on coarse grids).
         volume_tol: flag ``|volume_ratio - 1|`` above this (or 3 noise spreads, if larger).
         hull_fill_min: flag a measured volume filling less than this share of the dips' support hull.
-        warn: log and ``warnings.warn`` a :class:`DataConsistencyWarning` per failed check.
+        warn: log and ``warnings.warn`` a :class:`DataConsistencyWarning` per failed check, and a ``UserWarning``
+            (not part of the verdict) naming the band of directions no dip reaches when it is wider than
+            :data:`~dipnet.evaluation.resolvability.UNMEASURED_BAND_DEG` (the sides are then the priors' guess).
     """
     got = (measurement, operator, reconstruction)
     if not all(isinstance(a, cls) for a, cls in zip(got, (DipMeasurement, DipOperator, Reconstruction))):
@@ -538,6 +540,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         for message in result.warnings:
             log.warning(message)
             warnings.warn(message, DataConsistencyWarning, stacklevel=2)
+        from dipnet.evaluation.resolvability import warn_unmeasured_band  # (that module imports this one)
+        warn_unmeasured_band(measurement.directions)  # a property of the plan: the verdict above stands
     return result
 
 

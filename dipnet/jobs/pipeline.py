@@ -21,7 +21,6 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet.evaluation import consistency, metrics
-from dipnet.evaluation.resolvability import warn_unmeasured_band
 from dipnet.outputs import export, plots
 from dipnet.outputs.progress import OutputStages, planned_stages
 from dipnet.outputs.summary import headline, prior_weight_metrics
@@ -137,8 +136,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     stages = planned_stages(cfg.output, truth=shape is not None)
     stage = OutputStages(bool(cfg.output.progress), stages)
     stage("consistency")
-    scores.update(consistency.check_consistency(measurement, operator, recon).metrics())
-    warn_unmeasured_band(measurement.directions)  # a property of the plan: the verdict above stands
+    scores.update(consistency.check_consistency(measurement, operator, recon).metrics())  # warns of unmeasured bands
     if "resolvability" in stages:
         stage("resolvability")
         scores.update(write_resolvability(measurement, grid, out, figure=cfg.output.figures))

@@ -225,6 +225,21 @@ def test_a_stated_sigma_on_other_slabs_is_resampled_onto_the_operators(problem):
         assert got.profile_residual_expected == pytest.approx(want.profile_residual_expected, rel=1e-9)
 
 
+def test_a_plan_that_leaves_the_sides_unmeasured_is_named_from_python_too():
+    """Before: only a job warned (after its check); a check from Python said nothing of the 70 deg band no dip of a
+    0-20 deg tilt plan reaches, whose surfaces are the priors' guess."""
+    tilt, spin = torch.deg2rad(torch.tensor([0.0] + [20.0] * 11)), torch.deg2rad(torch.arange(12) * 30.0)
+    directions = torch.stack([tilt.sin() * spin.cos(), tilt.sin() * spin.sin(), tilt.cos()], dim=1).double()
+    operator = make_operator(GRID, directions)
+    ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
+    measurement, recon = _exact_measurement(operator, ball), Reconstruction(ball.float(), GRID)
+    with pytest.warns(UserWarning, match="no dip is tilted more than 20 deg from the vertical"):
+        check_consistency(measurement, operator, recon)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_consistency(measurement, operator, recon, warn=False)
+
+
 def test_arguments_in_the_wrong_order_are_named(problem):
     """Before: "AttributeError: 'DipMeasurement' object has no attribute 'grid'", or a message naming ``solve``."""
     operator, ball, measurement = problem
