@@ -117,7 +117,6 @@ def robust_volume(profiles: torch.Tensor) -> tuple[float, float]:
     return float(totals[keep].mean()), sigma / math.sqrt(int(keep.sum()))
 
 
-
 def _json_ready(value, where: str):
     """``value`` (metadata) with numpy and torch numbers and arrays as Python numbers and lists, and paths as strings,
     for :func:`json.dumps`; any other value JSON cannot store raises :class:`MeasurementFileError` naming ``where``

@@ -21,8 +21,8 @@ the loss plateaus (:func:`plateaued`), shows the terms in a progress bar and ret
 from __future__ import annotations
 
 import logging
-import numbers
 import math
+import numbers
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import contextmanager
