@@ -71,6 +71,11 @@ class Grid:
         return self.voxel_size**self.ndim
 
     @property
+    def volume_unit(self) -> str:
+        """The unit of a voxel's volume and of a slab's: ``"mm^3"``, or ``"mm^2"`` in 2D (slabs are areas)."""
+        return f"mm^{self.ndim}"
+
+    @property
     def radius(self) -> float:
         """Radius of the working region (mm)."""
         return self.extent / 2 - self.voxel_size

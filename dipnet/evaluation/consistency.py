@@ -477,7 +477,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     mask = operator.mask
     measured, spread = robust_volume(measurement.profiles)
     if not measured > 0:
-        raise ValueError(f"the measurement's profiles hold no volume ({measured:g} mm^3): nothing to check against")
+        raise ValueError(f"the measurement's profiles hold no volume ({measured:g} {operator.grid.volume_unit}): nothing to check against")
     on_grid, _ = robust_volume(target)
     quantum = reading_quantum(measurement)
     rounding = quantum.slab_sigma if quantum is not None else 0.0  # a sigma of preprocess holds it already
@@ -500,7 +500,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         volume_limit=max(volume_tol, 3 * math.hypot(spread, rounding) / measured),
         grid_volume_fraction=on_grid / measured,
         hull_fill=_hull_fill(measured, target, operator), hull_fill_min=hull_fill_min,
-        volume_unit="mm^2" if operator.grid.ndim == 2 else "mm^3")
+        volume_unit=operator.grid.volume_unit)
     result.threshold_change_depth = threshold_change_depth(occupancy.numpy(), reconstruction.binary,
                                                            mask.cpu().numpy())
     result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)

@@ -188,10 +188,11 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     totals = prof.sum(axis=1)
     noise = np.zeros(len(prof)) if sigma is None else np.sqrt((sigma**2).sum(axis=1))
     _check_reach(measurement, grid, source)  # before the signs: a dip misplaced off the slabs sums to 0
-    _check_signs(prof, totals, sigma, neg_tol, source, report)
+    unit = grid.volume_unit
+    _check_signs(prof, totals, sigma, neg_tol, source, report, unit)
     _check_not_tiny(totals, grid, source)
-    _check_totals(totals, noise, total_tol, source, report)
-    _check_duplicates(measurement, totals, noise, total_tol, dup_deg, source, report)
+    _check_totals(totals, noise, total_tol, source, report, unit)
+    _check_duplicates(measurement, totals, noise, total_tol, dup_deg, source, report, unit)
     for message in report.warnings:
         log.warning("%s", message)
         warnings.warn(message, stacklevel=2)
@@ -203,7 +204,8 @@ def _check_magnitude(prof: np.ndarray, grid: Grid, size_tol: float, source: str)
     largest = float(max(np.abs(prof).max(), np.abs(prof).sum(axis=1).max()))
     if largest > ball * (1 + size_tol):
         raise MeasurementValidationError(
-            f"{source}: a profile holds {largest:.4g} mm^3, more than the working ball's {ball:.4g} mm^3 "
+            f"{source}: a profile holds {largest:.4g} {grid.volume_unit}, more than the working ball's {ball:.4g} "
+            f"{grid.volume_unit} "
             f"(extent_mm={grid.extent:g}): wrong units or scale, or increase extent_mm")
 
 
@@ -211,10 +213,13 @@ def _check_not_tiny(totals: np.ndarray, grid: Grid, source: str) -> None:
     total = float(totals.max())
     if total < grid.voxel_volume:
         raise MeasurementValidationError(
-            f"{source}: the largest profile holds {total:.4g} mm^3, less than one voxel's {grid.voxel_volume:.4g} mm^3 "
-            f"(extent_mm={grid.extent:g}, resolution {grid.n}): wrong units or scale (litres for mm^3, a cross-section "
-            "in m^2), or an extent far too large for the object")
+            f"{source}: the largest profile holds {total:.4g} {grid.volume_unit}, less than one voxel's "
+            f"{grid.voxel_volume:.4g} {grid.volume_unit} (extent_mm={grid.extent:g}, resolution {grid.n}): wrong units or "
+            f"scale ({_UNIT_SLIPS[grid.ndim]}), or an extent far too large for the object")
 
+
+#: Unit slips that make a measurement too small to hold a voxel, by ``ndim``: named in the refusal.
+_UNIT_SLIPS = {3: "litres for mm^3, a cross-section in m^2", 2: "cm^2 or m^2 for mm^2, a slot width in m"}
 
 #: The share of the working ball an object fills when the grid is chosen around it (``fill``, conf/config.yaml).
 _DEFAULT_FILL = 0.9
@@ -385,10 +390,10 @@ def _calibration_name(file: dict) -> str:
     return f"{file.get('path', '?')}{f' ({listed})' if listed else ''}"
 
 
-def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: ValidationReport) -> None:
+def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: ValidationReport, unit: str) -> None:
     worst = int(np.argmin(totals))
     if totals[worst] <= 0:
-        raise MeasurementValidationError(f"{source}: profile {worst} sums to {totals[worst]:.4g} mm^3: "
+        raise MeasurementValidationError(f"{source}: profile {worst} sums to {totals[worst]:.4g} {unit}: "
                                          "a dip cannot displace a negative or zero volume")
     floor = neg_tol * np.abs(prof).max(axis=1, keepdims=True)
     if sigma is not None:
@@ -400,13 +405,13 @@ def _check_signs(prof, totals, sigma, neg_tol: float, source: str, report: Valid
                         negative_fraction=negative / positive)
     if beyond.any():
         message = (f"{source}: {int(beyond.sum())} slab volume(s) are negative beyond noise (down to "
-                   f"{prof.min():.4g} mm^3; {negative / positive:.1%} of the positive volume)")
+                   f"{prof.min():.4g} {unit}; {negative / positive:.1%} of the positive volume)")
         if negative > neg_tol * positive:
             raise MeasurementValidationError(message)
         report.warnings.append(message)
 
 
-def _check_totals(totals, noise, total_tol: float, source: str, report: ValidationReport) -> None:
+def _check_totals(totals, noise, total_tol: float, source: str, report: ValidationReport, unit: str) -> None:
     median = float(np.median(totals))
     allowed = np.maximum(5.0 * noise, total_tol * median)
     off = np.flatnonzero(np.abs(totals - median) > allowed)
@@ -415,7 +420,7 @@ def _check_totals(totals, noise, total_tol: float, source: str, report: Validati
                         total_noise_rel=float(np.median(noise) / median), totals_off=[int(k) for k in off])
     if off.size:
         report.warnings.append(
-            f"{source}: {off.size} of {len(totals)} dip total(s) differ from the median {median:.4g} mm^3 by more "
+            f"{source}: {off.size} of {len(totals)} dip total(s) differ from the median {median:.4g} {unit} by more "
             f"than noise explains (range {totals.min():.4g}..{totals.max():.4g}; dips {off[:8].tolist()}"
             f"{'...' if off.size > 8 else ''}): truncated dips, leaks or bad readings? Totals above the rest also come "
             "from air trapped in a cavity that opens downward along those dips (it displaces water as the object does)")
@@ -433,7 +438,7 @@ def _cumulative_gap(measurement: DipMeasurement, i: int, j: int) -> float:
 
 
 def _check_duplicates(measurement: DipMeasurement, totals, noise, total_tol: float, dup_deg: float, source: str,
-                      report: ValidationReport) -> None:
+                      report: ValidationReport, unit: str) -> None:
     directions = measurement.directions.double().numpy()
     unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     chord = 2.0 * math.sin(math.radians(dup_deg) / 2.0)
@@ -452,5 +457,5 @@ def _check_duplicates(measurement: DipMeasurement, totals, noise, total_tol: flo
         report.warnings.append(
             f"{source}: {int(disagree.sum())} of {len(pairs)} pair(s) of directions within {dup_deg:g} deg measure "
             f"different profiles (worst: dips {i[worst]} and {j[worst]}, whose volumes below a height differ by "
-            f"up to {gap[worst]:.4g} mm^3, {gap[worst] / scale[worst]:.1%} of {scale[worst]:.4g} mm^3): a direction "
+            f"up to {gap[worst]:.4g} {unit}, {gap[worst] / scale[worst]:.1%} of {scale[worst]:.4g} {unit}): a direction "
             "mislabelled, or the same direction recorded for different dips?")

@@ -290,3 +290,37 @@ def test_a_grid_that_is_no_grid_is_named():
     """Before: validate_measurement(measurement, 16) failed with "AttributeError: 'int' object has no attribute 'ndim'"."""
     with pytest.raises(TypeError, match=r"grid must be a dipnet.Grid, e.g. Grid\(16, "):
         validate_measurement(_measurement(_ball()), 16)
+
+
+def _disk_2d(k: int = 8) -> DipMeasurement:
+    """A 2D measurement: a disk of radius 20 mm at the centre on a 16^2 grid of 100 mm, slabs in mm^2."""
+    from dipnet.core.orientations import angles_2d, directions_2d
+    from dipnet.shapes.analytic import Disk
+
+    directions = directions_2d(angles_2d(k))
+    profiles = torch.diff(Disk(20.0).volume_below(directions, EDGES), dim=1)
+    return DipMeasurement(directions, profiles, 100.0 / 16, np.full(k, -50.0))
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda p: p * 1e3, r"holds [\d.e+]+ mm\^2, more than the working ball's [\d.e+]+ mm\^2"),
+    (lambda p: p * 1e-6, r"less than one voxel's [\d.]+ mm\^2 .*cm\^2 or m\^2 for mm\^2"),
+    (lambda p: -p, r"sums to -[\d.e+]+ mm\^2"),
+])
+def test_2d_refusals_name_areas_not_volumes(change, message):
+    """2D slabs are areas: a refusal of a 2D measurement says mm^2 (and the unit slips of areas), never mm^3."""
+    m = _disk_2d()
+    bad = DipMeasurement(m.directions, change(m.profiles), m.slab_thickness, m.offsets)
+    with pytest.raises(MeasurementValidationError, match=message) as info:
+        validate_measurement(bad, Grid(16, 2, 100.0))
+    assert "mm^3" not in str(info.value)
+
+
+def test_2d_warnings_name_areas_not_volumes():
+    m = _disk_2d()
+    profiles = m.profiles.clone()
+    profiles[3] *= 0.8  # a truncated dip
+    with pytest.warns(UserWarning, match=r"median [\d.]+ mm\^2"):
+        report = validate_measurement(DipMeasurement(m.directions, profiles, m.slab_thickness, m.offsets),
+                                      Grid(16, 2, 100.0))
+    assert not any("mm^3" in w for w in report.warnings)
