@@ -250,3 +250,27 @@ def test_the_reach_comes_from_the_readings():
             reach = np.asarray(preprocess(_scan(k=2), edges=edges).metadata["reach_mm"], dtype=float)
         assert reach.shape == (2, 2) and (reach[:, 0] > -30.0).all() and (reach[:, 0] <= -28.0).all()
         assert (reach[:, 1] >= 28.0).all() and (reach[:, 1] < 30.0).all()
+
+
+def test_round_off_is_not_reach():
+    """Noise-free readings give a tolerance of 0: a monotone fit that ends 5e-13 mm^2 short of its final volume
+    must not count as volume above the water line. A 2D square dipped edge-on (``ndim=2 n_dips=2``: 0 and 90 deg)
+    put its top 20 mm too high (51.6 for 31.6 mm) and was refused as reaching beyond the working ball."""
+    from dipnet.core.grid import Grid
+    from dipnet.core.orientations import directions_2d
+    from dipnet.preprocessing.preprocess import reach_from_readings
+    from dipnet.preprocessing.validation import validate_measurement
+    from dipnet.shapes.builtin import builtin_shape
+    from dipnet.simulator.simulate import simulate_measurement
+
+    heights = np.arange(-40.0, 41.0, 1.0)
+    volume = np.clip(heights + 30.0, 0.0, 60.0) * 50.0
+    volume[heights > 30.0] = volume[-1]
+    volume[-12:-6] -= 4.547e-13  # the round-off of the monotone fit
+    assert reach_from_readings(heights, volume, tol=0.0) == (-29.0, 29.0)
+    grid = Grid(24, 2, 109.091)
+    raw, m = simulate_measurement(builtin_shape("chamber_box", 2, radius=45.0), directions_2d([0.0, 90.0]),
+                                  grid=grid, progress=False)
+    reach = np.asarray(m.metadata["reach_mm"])
+    assert (np.abs(reach) < 32.0).all(), reach  # the square's half-diagonal along an axis: 31.8 mm
+    validate_measurement(m, grid)
