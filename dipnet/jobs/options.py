@@ -226,6 +226,10 @@ def check_self_calibration(cfg: DictConfig) -> None:
     :func:`check_target_counts`)."""
     if not instantiates(cfg, "calibration", SelfCalibrator):
         return
+    if cfg.get("ndim") == 2:
+        raise ConfigError("calibration=self fits the 3D rig's geometry (pivot, tilt axis, spin) from the dips' tilts "
+                          "and spins; 2D dips are angles in the plane, with no rig angles: set ndim=3, or drop "
+                          "calibration=self")
     _number(cfg, "calibration.dip_offset_sigma_mm", positive=True, nullable=True,
             meaning=" (mm, the prior of each dip's height offset; null: no offsets)")
     _number(cfg, "calibration.max_section_change", positive=True, nullable=True,
@@ -251,6 +255,12 @@ def check_symmetry(cfg: DictConfig) -> None:
     for key in spec.keys():
         if key not in SYMMETRY_KEYS:
             raise unknown_option(f"symmetry.{key}", SYMMETRY_KEYS, f"symmetry takes {', '.join(SYMMETRY_KEYS)}")
+    if cfg.get("ndim") == 2:
+        raise ConfigError(f"symmetry={OmegaConf.to_container(spec)} copies 3D dips to their images about the vertical "
+                          "axis z, which a 2D object does not have: set symmetry=null with ndim=2; a 2D object's mirror "
+                          "line or rotation is a solver prior (solver=voxel solver.priors.symmetry.weight=1 "
+                          "'solver.priors.symmetry.plane_normal=[1,0]', or solver=implicit "
+                          "'solver.symmetry={plane_normal: [1, 0]}')")
     if "n_fold" in spec:
         _integer(cfg, "symmetry.n_fold", 1, meaning=" (rotations about z)")
     if "mirror" in spec and not isinstance(spec.mirror, bool):

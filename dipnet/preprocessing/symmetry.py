@@ -94,7 +94,9 @@ def expand_symmetry(measurement: DipMeasurement, group: np.ndarray, tol_deg: flo
     """
     m = measurement
     if m.ndim != 3:
-        raise ValueError("symmetry expansion is for 3D measurements")
+        raise ValueError(f"symmetry expansion is for 3D measurements (images about the vertical axis z), got a "
+                         f"{m.ndim}D one: in 2D, declare the symmetry as a solver prior (VoxelSolver's "
+                         "priors={'symmetry': {'weight': 1, 'plane_normal': [1, 0]}}, ImplicitSolver's symmetry)")
     if not np.allclose(m.offsets.numpy(), m.offsets[0].item()):
         raise ValueError("symmetry expansion needs profiles on common slabs (equal offsets)")
     if not 0.0 <= float(tol_deg) <= MAX_MERGE_DEG:

@@ -124,6 +124,11 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("symmetry={n_fold:3,mirorr:true}", "unknown option symmetry.mirorr: .*did you mean symmetry.mirror"),
     ("symmetry={tol_deg:-1}", r"symmetry.tol_deg must be a number >= 0 \(deg\), got -1"),
     ("symmetry={n_fold:4,tol_deg:15}", r"symmetry.tol_deg must be at most 2 \(deg\), got 15: .*distinct dips"),
+    # 2D: refused after the dips were simulated ("symmetry expansion is for 3D measurements", no fix named)
+    ("ndim=2 symmetry={n_fold:4,mirror:true}", r"symmetry=\{'n_fold': 4, 'mirror': True\} copies 3D dips .* set "
+                                               r"symmetry=null with ndim=2; .*solver.priors.symmetry"),
+    # 2D: "dip 0 has no rig angles" (voxel), or a cross-section step that needs another solver (minnorm)
+    ("ndim=2 calibration=self", r"calibration=self fits the 3D rig's geometry .* set ndim=3, or drop calibration"),
     ("calibration=self calibration.dip_offset_sigma_mm=-1",
      r"calibration.dip_offset_sigma_mm must be a positive number or null \(mm, .*got -1"),
     ("calibration=self calibration.iterations=0", "calibration.iterations must be a positive integer .*got 0"),

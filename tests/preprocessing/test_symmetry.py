@@ -88,3 +88,14 @@ def test_a_measurement_read_back_under_another_group_is_tested_again():
     assert apply_symmetry(mirrored, {"mirror": True}).metadata["symmetry_fit"] == mirrored.metadata["symmetry_fit"]
     assert apply_symmetry(ball, {"n_fold": 4}).metadata["symmetry_fit"]["rejected"]
     assert apply_symmetry(mirrored, {"n_fold": 4, "mirror": True}).metadata["symmetry_fit"]["rejected"]
+
+
+def test_a_2d_measurement_is_refused_naming_the_solvers_prior():
+    """A 2D object has no vertical axis to copy dips about: the refusal names the 2D way to declare a symmetry."""
+    from dipnet.core.measurement import DipMeasurement
+    from dipnet.core.orientations import angles_2d, directions_2d
+
+    m = DipMeasurement(directions_2d(angles_2d(4)), torch.ones(4, 8), 1.0, torch.full((4,), -4.0))
+    with pytest.raises(ValueError, match=r"for 3D measurements .*got a 2D one: in 2D, declare the symmetry as a "
+                                         r"solver prior"):
+        apply_symmetry(m, {"n_fold": 2})
