@@ -191,6 +191,20 @@ def unmeasured_band_deg(directions) -> float:
     return float(np.degrees(np.arcsin(np.abs(d[:, -1]).min())))
 
 
+def unmeasured_wedge_deg(directions) -> tuple[float, float]:
+    """2D: ``(width, start)`` (deg) of the widest wedge of line angles in ``[0, 180)`` that no dip of ``directions``
+    ``(K, 2)`` lies in, from ``start`` to ``start + width`` (mod 180; ``d`` and ``-d`` are one line). ``K`` equal angles
+    leave ``180 / K``; no direction of the plane is special, so the wedge may lie anywhere (the 3D rig's band about
+    the horizontal, :func:`unmeasured_band_deg`, is one case)."""
+    d = np.asarray(torch.as_tensor(directions, dtype=torch.float64).numpy())
+    if d.ndim != 2 or d.shape[1] != 2 or len(d) < 1:
+        raise ValueError(f"unmeasured_wedge_deg takes 2D directions (K, 2), got shape {d.shape}")
+    angles = np.sort(np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 180.0)
+    gaps = np.diff(np.concatenate([angles, angles[:1] + 180.0]))
+    widest = int(np.argmax(gaps))
+    return float(gaps[widest]), float(angles[widest])
+
+
 #: The named orientation sets of :func:`make_directions`.
 DIRECTION_SETS = ("fibonacci", "random", "uniform")
 

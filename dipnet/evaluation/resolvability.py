@@ -44,7 +44,7 @@ import torch
 from dipnet.evaluation.consistency import estimate_slab_sigma
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
-from dipnet.core.orientations import fibonacci_hemisphere, unmeasured_band_deg
+from dipnet.core.orientations import fibonacci_hemisphere, unmeasured_band_deg, unmeasured_wedge_deg
 
 SPHERE_SAMPLES = 20_000  # directions on which the missing cone is evaluated (3D)
 BAND_DEG = 30.0  # polar / azimuthal frequency bands: within this angle of the axis / plane
@@ -138,7 +138,14 @@ def angle_to_plan(points: np.ndarray, directions: np.ndarray, chunk: int = 8192)
 def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> str | None:
     """Log and ``warnings.warn`` how wide the band no dip of ``directions`` ``(K, d)`` reaches is, when it is wider
     than ``limit_deg`` (:func:`~dipnet.core.orientations.unmeasured_band_deg`); returns the message, or ``None``. A property of the plan,
-    not a failed check of the result: surfaces whose normals lie in the band are the priors' guess."""
+    not a failed check of the result: surfaces whose normals lie in the band are the priors' guess.
+
+    2D dips ``(K, 2)`` have no rig and no special direction: the widest wedge of angles between their lines
+    (:func:`~dipnet.core.orientations.unmeasured_wedge_deg`) is warned wherever it lies, when its half-angle exceeds
+    ``limit_deg`` and twice an even spread's (``90 / K``): equal angles are never warned."""
+    d = torch.as_tensor(directions, dtype=torch.float64)
+    if d.ndim == 2 and d.shape[1] == 2:
+        return _warn_unmeasured_wedge(d, limit_deg)
     band = unmeasured_band_deg(directions)
     if not band > limit_deg:
         return None
@@ -149,6 +156,21 @@ def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> 
     log.warning(message)
     warnings.warn(message, stacklevel=2)
     return message
+
+def _warn_unmeasured_wedge(directions: torch.Tensor, limit_deg: float) -> str | None:
+    """:func:`warn_unmeasured_band` for 2D ``directions`` ``(K, 2)``."""
+    width, start = unmeasured_wedge_deg(directions)
+    even = 180.0 / len(directions)
+    if not (width / 2 > limit_deg and width > 2 * even):
+        return None
+    message = (f"the {len(directions)} dips leave the line angles from {start:.0f} to {(start + width):.0f} deg "
+               f"(mod 180) undipped, a wedge of {width:.0f} deg where equally spaced dips leave {even:.0f}: surfaces "
+               f"facing it (normals within {width / 2:.0f} deg of {(start + width / 2) % 180:.0f} deg) are guessed by "
+               f"the priors, not measured; dip at angles within it (orientations=uniform spreads them evenly)")
+    log.warning(message)
+    warnings.warn(message, stacklevel=3)
+    return message
+
 
 def object_diameter(measurement: DipMeasurement, rel_tol: float = 0.005) -> float:
     """The median over orientations of the extent (mm) between the first and last slab holding

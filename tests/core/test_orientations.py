@@ -168,3 +168,13 @@ def test_rig_angles_of_one_pose_are_kept_once():
     assert kept == [(30.0, 0.0), (30.0, 0.01), (90.0, 0.0), (90.0, 180.0)]  # 0.01 deg apart and d, -d are other dips
     assert repeats == [((30.0, 0.0001), (30.0, 0.0)), ((30.0, -360.0), (30.0, 0.0)), ((30.0, 359.9999), (30.0, 0.0))]
     assert o.distinct_rig_angles([]) == ([], [])
+
+
+def test_the_unmeasured_wedge_of_2d_lines():
+    """Line angles wrap at 180 deg (10 and 190 are one line); a 3D plan is refused."""
+    from dipnet.core.orientations import directions_2d, unmeasured_wedge_deg
+
+    assert unmeasured_wedge_deg(directions_2d([10.0, 190.0, 100.0])) == pytest.approx((90.0, 10.0))
+    assert unmeasured_wedge_deg(directions_2d([170.0, 20.0])) == pytest.approx((150.0, 20.0))
+    with pytest.raises(ValueError, match=r"takes 2D directions \(K, 2\)"):
+        unmeasured_wedge_deg(torch.eye(3))

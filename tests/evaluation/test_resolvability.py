@@ -111,3 +111,27 @@ def test_a_2d_plan_has_no_spin_rings():
     result = resolvability(measurement.directions, grid, measurement)
     assert result.azimuthal_signal_ratio is None and result.ring_rms.size == 0
     assert result.metrics()["azimuthal_signal_ratio"] is None
+
+
+@pytest.mark.parametrize("angles,warned", [
+    ([5.0, 10.0, 175.0], True),                 # a 165 deg wedge about the vertical, one dip near horizontal: was quiet
+    ([11.0, 40.0, 42.0], True),                 # orientations=random seed 1: a 149 deg wedge, was named 11 deg wide
+    (list(np.arange(8) * 22.5), False),          # equal angles: never warned, whatever their count
+    (list(np.arange(8) * 22.5 + 190.0), False),  # the same lines over 180-360 deg
+    ([83.0, 127.0, 175.0], False),              # 88 deg with 3 dips: under twice an even spread (120)
+])
+def test_a_2d_plan_is_warned_of_its_widest_wedge_wherever_it_lies(angles, warned):
+    """2D dips have no rig: the 3D band about the horizontal said nothing of a 165 deg gap about the vertical
+    when one dip lay near horizontal, and understated a gap that began near it. The widest wedge is named."""
+    import warnings as _warnings
+
+    from dipnet.evaluation.resolvability import warn_unmeasured_band
+
+    with _warnings.catch_warnings(record=True) as caught:
+        _warnings.simplefilter("always")
+        message = warn_unmeasured_band(directions_2d(angles))
+    assert (message is not None) == warned and len(caught) == int(warned)
+    if warned:
+        width = {5.0: 165, 11.0: 149}[angles[0]]
+        assert f"a wedge of {width} deg where equally spaced dips leave 60" in message
+        assert "tilted" not in message and "horizontal plane" not in message
