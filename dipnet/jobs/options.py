@@ -43,15 +43,16 @@ _UNSET = object()
 #: Mesh formats of ``output.mesh_formats`` (:func:`dipnet.outputs.export.save_mesh`).
 MESH_FORMATS = ("ply", "stl", "obj")
 #: Options (or config groups) a choice does not read: ``(the choice as typed, whether a config makes it,
-#: ignored options, why)``.
+#: ignored options (an option or a node, with every key below it), why)``.
 IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], ...] = (
     ("source=recorded", lambda cfg: instantiates(cfg, "source", RecordedSource),
      ("n_dips", "orientations", "snr_db", "shape", "reach"),
      "the recording fixes the dips, their directions, their noise and the object"),
     ("planner=adaptive", lambda cfg: instantiates(cfg, "planner", AdaptivePlan), ("n_dips", "orientations"),
      "the planner chooses the dips: set planner.budget"),
-    ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("reach",),
-     "a reach is the 3D rig's tilt and spin range; 2D dips are angles in the plane, set by n_dips and orientations"),
+    ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("reach", "output.mesh_formats"),
+     "a reach is the 3D rig's tilt and spin range; 2D dips are angles in the plane, set by n_dips and orientations; "
+     "a 2D job writes no mesh: its shape is in reconstruction.npz and slices.png"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")
@@ -168,7 +169,8 @@ def check_overrides(cfg: DictConfig, overrides: Sequence[str], groups: Sequence[
         if not chosen(cfg):
             continue
         for o in parsed:
-            if o.key_or_group.split(".")[0] in ignored and not o.is_delete():
+            if any(o.key_or_group == k or o.key_or_group.startswith(f"{k}.") for k in ignored) \
+                    and not o.is_delete():
                 raise ConfigError(f"option {o.key_or_group} is ignored with {choice} ({why}): remove it")
 
 

@@ -164,6 +164,16 @@ def test_reach_is_refused_in_2d():
         check_config(cfg, overrides, ["reach"])
     check_config(cfg, ["ndim=2"], ["reach"])  # the default reach (not typed) is fine
 
+
+def test_mesh_formats_are_refused_in_2d():
+    """A 2D job writes no mesh: ``output.mesh_formats=[stl]`` wrote nothing, exit 0, without a word."""
+    overrides = ["ndim=2", "output.mesh_formats=[stl]"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    with pytest.raises(ConfigError, match=r"option output.mesh_formats is ignored with ndim=2 \(.*writes no mesh"):
+        check_config(cfg, overrides, ["reach"])
+    check_config(cfg, ["ndim=2", "output.figures=false"], ["reach"])  # another output option is fine
+
 @pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"],
                                        ["symmetry={n_fold:3,mirror:true,mirror_azimuth_deg:-30,tol_deg:0}"],
                                        ["calibration=self", "calibration.dip_offset_sigma_mm=0.5"],
