@@ -597,6 +597,9 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
     rig-geometry and unit hints, which its rounding alone sets off, are left out); ``grid``: the reconstruction's,
     whose working ball an object reaching beyond is named."""
     out = []
+    # self-calibration fits a drift from 3D dips only (their tilts and spins): 2D's slabs are areas, mm^2
+    fit_drift = ("calibration=self fits the drift" if c.volume_unit != "mm^2" else
+                 "2D dips have no self-calibration (calibration=self is 3D): measure the drift and take it out")
     coarse = quantum is not None and c.quantum_volume_mm3 >= COARSE_SHARE * c.mean_slab_mm3
     if coarse:
         out.append(coarse_quantum_message(quantum, c.mean_slab_mm3, c.volume_unit))
@@ -648,14 +651,14 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
         out.append(f"every dip holds {c.profile_floor_mm3:+.4g} {c.volume_unit} per slab where its slabs should be empty (before "
                    f"the object touches the water and after it is under): {c.profile_floor_share:+.1%} of the "
                    "measured volume, which the reconstruction takes for object. A level that drifts in time (the "
-                   "sensor's drift, a leak or an inflow) does this: calibrate it (calibration=self fits the "
-                   "drift), or check the tank; or the object fills the working range to its ends (raise extent_mm)")
+                   f"sensor's drift, a leak or an inflow) does this: calibrate it ({fit_drift}), or check the tank; "
+                   "or the object fills the working range to its ends (raise extent_mm)")
     if c.level_fall_share > c.volume_limit and c.level_fall_sigmas > FLOOR_SIGMAS:  # NaN compares False
         out.append(f"the water level falls after the object is under, where it must stay put: over a dip the fall "
                    f"takes {c.level_fall_share:.1%} of the measured volume ({c.level_fall_sigmas:.0f} standard errors), "
                    "and the monotone slabs hide it, so every profile, the measured volume and the shape are too small "
                    "by about that much. A leak, evaporation or a level sensor drifting down does this: check the tank "
-                   "and the sensor, or fit the drift (calibration=self)")
+                   f"and the sensor, or fit the drift ({fit_drift})")
     if c.reading_noise_ratio < 1 / NOISE_RATIO_MAX and c.reading_noise_leak < NOISE_LEAK_MAX:  # NaN compares False
         out.append(f"the stated noise is only {c.reading_noise_ratio:.2f} of what the readings scatter by (one reading: "
                    f"{c.reading_noise_mm3:.3g} {c.volume_unit}): the solvers' prior weights, set from it, are too small "

@@ -807,3 +807,22 @@ def test_a_sparsity_prior_that_wrecks_the_shape_is_inconsistent_by_its_residual(
     assert bad.residual_limit == pytest.approx(0.125, rel=1e-3)
     assert good.profile_residual < bad.residual_limit < bad.profile_residual
     assert any(m.startswith("the binary shape misses its data") for m in bad.warnings)
+
+
+def test_a_2d_drift_is_named_without_the_3d_self_calibration():
+    """A drifting level in 2D is named as in 3D, but its cure is not calibration=self, which 2D dips cannot run
+    (it was the named fix, and the job then refused it)."""
+    from dipnet.core.orientations import angles_2d, directions_2d
+    from dipnet.solvers.minnorm import MinNormSolver
+
+    grid = Grid(24, 2, 109.0)
+    directions = directions_2d(angles_2d(12))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, measurement = simulate_measurement(builtin_shape("chamber_box", 2, 45.0), directions, grid=grid,
+                                              sensor=LevelSensor(drift_mm_per_s=0.01, seed=0), progress=False)
+    operator = make_operator(grid, directions)
+    result, messages = _checked(measurement, operator, MinNormSolver(progress=False).solve(measurement, operator))
+    drift = [m for m in messages if "drifts in time" in m]
+    assert result.verdict == "inconsistent" and len(drift) == 1, messages
+    assert "2D dips have no self-calibration" in drift[0] and "calibration=self fits" not in drift[0]
