@@ -87,7 +87,11 @@ class ImplicitSolver(OptimisationSolver):
         self.symmetry = plain(symmetry) if symmetry else None
         self.output_upsample, self.warm_iterations = int(output_upsample), int(warm_iterations)
         self.field_: OccupancyField | None = None
-        ndim = len(self.symmetry["plane_normal"]) if self.symmetry and self.symmetry.get("plane_normal") else 3
+        # the grid's dimension comes with the solve: a plane's normal has its length, a rotation axis exists in 3D
+        # only, and a rotation order alone is about the centre, as in 2D (3D asks for the axis when it solves)
+        sym = self.symmetry or {}
+        ndim = len(sym["plane_normal"]) if sym.get("plane_normal") else 3 if sym.get("axis") is not None or not sym \
+            else 2
         with seeded(self.seed):  # fail on bad encoding / symmetry options at construction
             OccupancyField(ndim, self._encoding_for(Grid(16, ndim)), self.hidden_width, self.hidden_layers,
                            self.symmetry)

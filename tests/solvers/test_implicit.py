@@ -103,3 +103,24 @@ def test_an_mlp_of_no_neurons_is_refused(option, message):
     with pytest.raises(ValueError, match=message):
         ImplicitSolver(**option)
     assert ImplicitSolver(hidden_layers=0).hidden_layers == 0
+
+
+def test_a_rotation_alone_is_a_2d_symmetry():
+    """A rotation order without an axis is about the centre, as a 2D grid has it: it was refused at construction
+    as a 3D rotation ("an n-fold rotation in 3D needs its axis"), so no 2D job could declare one. A 3D grid still
+    asks for the axis when it solves."""
+    from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisphere
+    from dipnet.core.measurement import DipMeasurement
+    from dipnet.operators import make_operator
+
+    solver = ImplicitSolver(symmetry={"order": 2}, iterations=3, warm_iterations=1, progress=False)
+    for grid, dirs in ((Grid(16, 2, 100.0), directions_2d(angles_2d(4))), (Grid(8, 3, 100.0), fibonacci_hemisphere(4))):
+        op = make_operator(grid, dirs)
+        with torch.no_grad():
+            profiles = op(torch.ones(grid.shape, dtype=torch.float64) * 0.5)
+        m = DipMeasurement(op.directions, profiles, op.slab_thickness, op.slab_edges()[:1].expand(4))
+        if grid.ndim == 2:
+            assert solver.solve(m, op).info["symmetries"] == [{"plane_normal": None, "axis": None, "order": 2}]
+        else:
+            with pytest.raises(ValueError, match="an n-fold rotation in 3D needs its axis"):
+                solver.solve(m, op)
