@@ -53,6 +53,8 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
     ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("reach", "output.mesh_formats"),
      "a reach is the 3D rig's tilt and spin range; 2D dips are angles in the plane, set by n_dips and orientations; "
      "a 2D job writes no mesh: its shape is in reconstruction.npz and slices.png"),
+    ("ndim=3", lambda cfg: cfg.get("ndim") == 3, ("shape.axis",),
+     "the axis a mesh is projected along makes its 2D silhouette, for ndim=2"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")

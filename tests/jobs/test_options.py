@@ -174,6 +174,16 @@ def test_mesh_formats_are_refused_in_2d():
         check_config(cfg, overrides, ["reach"])
     check_config(cfg, ["ndim=2", "output.figures=false"], ["reach"])  # another output option is fine
 
+
+def test_a_projection_axis_is_refused_in_3d():
+    """``shape.axis`` picks the 2D silhouette of a mesh: with ndim=3 it was ignored, exit 0, without a word."""
+    overrides = ["shape=mesh", "shape.path=m.ply", "shape.axis=x"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+        check_config(compose(config_name="config", overrides=[*overrides, "ndim=2"]), [*overrides, "ndim=2"], ["shape"])
+    with pytest.raises(ConfigError, match=r"option shape.axis is ignored with ndim=3 \(.*2D silhouette"):
+        check_config(cfg, overrides, ["shape"])
+
 @pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"],
                                        ["symmetry={n_fold:3,mirror:true,mirror_azimuth_deg:-30,tol_deg:0}"],
                                        ["calibration=self", "calibration.dip_offset_sigma_mm=0.5"],
