@@ -171,8 +171,8 @@ def check_overrides(cfg: DictConfig, overrides: Sequence[str], groups: Sequence[
         if not chosen(cfg):
             continue
         for o in parsed:
-            if any(o.key_or_group == k or o.key_or_group.startswith(f"{k}.") for k in ignored) \
-                    and not o.is_delete():
+            asks_nothing = o.is_delete() or (o.value_type is not None and o.value() == [])  # mesh_formats=[]
+            if any(o.key_or_group == k or o.key_or_group.startswith(f"{k}.") for k in ignored) and not asks_nothing:
                 raise ConfigError(f"option {o.key_or_group} is ignored with {choice} ({why}): remove it")
 
 

@@ -173,6 +173,7 @@ def test_mesh_formats_are_refused_in_2d():
     with pytest.raises(ConfigError, match=r"option output.mesh_formats is ignored with ndim=2 \(.*writes no mesh"):
         check_config(cfg, overrides, ["reach"])
     check_config(cfg, ["ndim=2", "output.figures=false"], ["reach"])  # another output option is fine
+    check_config(cfg, ["ndim=2", "output.mesh_formats=[]"], ["reach"])  # no mesh asked for (paper_figures.py's jobs)
 
 
 def test_a_projection_axis_is_refused_in_3d():
