@@ -477,7 +477,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     mask = operator.mask
     measured, spread = robust_volume(measurement.profiles)
     if not measured > 0:
-        raise ValueError(f"the measurement's profiles hold no volume ({measured:g} {operator.grid.volume_unit}): nothing to check against")
+        raise ValueError(f"the measurement's profiles hold no volume ({measured:g} {operator.grid.volume_unit}): "
+                         "nothing to check against")
     on_grid, _ = robust_volume(target)
     quantum = reading_quantum(measurement)
     rounding = quantum.slab_sigma if quantum is not None else 0.0  # a sigma of preprocess holds it already

@@ -157,6 +157,7 @@ def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> 
     warnings.warn(message, stacklevel=2)
     return message
 
+
 def _warn_unmeasured_wedge(directions: torch.Tensor, limit_deg: float) -> str | None:
     """:func:`warn_unmeasured_band` for 2D ``directions`` ``(K, 2)``."""
     width, start = unmeasured_wedge_deg(directions)
