@@ -144,33 +144,34 @@ def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> 
     (:func:`~dipnet.core.orientations.unmeasured_wedge_deg`) is warned wherever it lies, when its half-angle exceeds
     ``limit_deg`` and twice an even spread's (``90 / K``): equal angles are never warned."""
     d = torch.as_tensor(directions, dtype=torch.float64)
-    if d.ndim == 2 and d.shape[1] == 2:
-        return _warn_unmeasured_wedge(d, limit_deg)
-    band = unmeasured_band_deg(directions)
-    if not band > limit_deg:
-        return None
-    message = (f"no dip is tilted more than {90 - band:.0f} deg from the vertical: directions within {band:.0f} deg "
-               f"of the horizontal plane are unmeasured (a missing cone), so surfaces facing them (normals within "
-               f"{band:.0f} deg of horizontal: the sides) are guessed by the priors, not measured; dip at larger tilts "
-               f"to narrow it")
-    log.warning(message)
-    warnings.warn(message, stacklevel=2)
+    message = _wedge_message(d, limit_deg) if d.ndim == 2 and d.shape[1] == 2 else _band_message(d, limit_deg)
+    if message is not None:
+        log.warning(message)
+        warnings.warn(message, stacklevel=2)
     return message
 
 
-def _warn_unmeasured_wedge(directions: torch.Tensor, limit_deg: float) -> str | None:
-    """:func:`warn_unmeasured_band` for 2D ``directions`` ``(K, 2)``."""
+def _band_message(directions: torch.Tensor, limit_deg: float) -> str | None:
+    """:func:`warn_unmeasured_band`'s message for 3D ``directions`` ``(K, 3)``, or ``None``."""
+    band = unmeasured_band_deg(directions)
+    if not band > limit_deg:
+        return None
+    return (f"no dip is tilted more than {90 - band:.0f} deg from the vertical: directions within {band:.0f} deg "
+            f"of the horizontal plane are unmeasured (a missing cone), so surfaces facing them (normals within "
+            f"{band:.0f} deg of horizontal: the sides) are guessed by the priors, not measured; dip at larger tilts "
+            f"to narrow it")
+
+
+def _wedge_message(directions: torch.Tensor, limit_deg: float) -> str | None:
+    """:func:`warn_unmeasured_band`'s message for 2D ``directions`` ``(K, 2)``, or ``None``."""
     width, start = unmeasured_wedge_deg(directions)
     even = 180.0 / len(directions)
     if not (width / 2 > limit_deg and width > 2 * even):
         return None
-    message = (f"the {len(directions)} dips leave the line angles from {start:.0f} to {(start + width):.0f} deg "
-               f"(mod 180) undipped, a wedge of {width:.0f} deg where equally spaced dips leave {even:.0f}: surfaces "
-               f"facing it (normals within {width / 2:.0f} deg of {(start + width / 2) % 180:.0f} deg) are guessed by "
-               f"the priors, not measured; dip at angles within it (orientations=uniform spreads them evenly)")
-    log.warning(message)
-    warnings.warn(message, stacklevel=3)
-    return message
+    return (f"the {len(directions)} dips leave the line angles from {start:.0f} to {(start + width):.0f} deg "
+            f"(mod 180) undipped, a wedge of {width:.0f} deg where equally spaced dips leave {even:.0f}: surfaces "
+            f"facing it (normals within {width / 2:.0f} deg of {(start + width / 2) % 180:.0f} deg) are guessed by "
+            f"the priors, not measured; dip at angles within it (orientations=uniform spreads them evenly)")
 
 
 def object_diameter(measurement: DipMeasurement, rel_tol: float = 0.005) -> float:

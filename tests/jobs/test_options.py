@@ -155,35 +155,24 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
 
 
 
-def test_reach_is_refused_in_2d():
-    """A reach is the 3D rig's tilt and spin: in 2D it was ignored (directions over 0-180 deg, exit 0)."""
-    overrides = ["ndim=2", "reach=authors_rig"]
+@pytest.mark.parametrize("overrides,message,fine", [
+    # a reach is the 3D rig's tilt and spin: in 2D it was ignored (directions over 0-180 deg, exit 0)
+    (["ndim=2", "reach=authors_rig"], r"option reach is ignored with ndim=2 \(a reach is the 3D rig's tilt",
+     ["ndim=2"]),  # the default reach (not typed) is fine
+    # a 2D job writes no mesh: output.mesh_formats=[stl] wrote nothing, exit 0, without a word
+    (["ndim=2", "output.mesh_formats=[stl]"], r"option output.mesh_formats is ignored with ndim=2 \(.*writes no mesh",
+     ["ndim=2", "output.figures=false", "output.mesh_formats=[]"]),  # no mesh asked for (paper_figures.py's jobs)
+    # shape.axis picks the 2D silhouette of a mesh: with ndim=3 it was ignored, exit 0, without a word
+    (["shape=mesh", "shape.path=m.ply", "shape.axis=x"], r"option shape.axis is ignored with ndim=3 \(.*2D silhouette",
+     ["shape=mesh", "shape.path=m.ply", "shape.axis=x", "ndim=2"]),
+])
+def test_an_option_the_dimension_ignores_is_refused(overrides, message, fine):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
-    with pytest.raises(ConfigError, match=r"option reach is ignored with ndim=2 \(a reach is the 3D rig's tilt"):
-        check_config(cfg, overrides, ["reach"])
-    check_config(cfg, ["ndim=2"], ["reach"])  # the default reach (not typed) is fine
+        check_config(compose(config_name="config", overrides=fine), fine, ["reach", "shape"])
+    with pytest.raises(ConfigError, match=message):
+        check_config(cfg, overrides, ["reach", "shape"])
 
-
-def test_mesh_formats_are_refused_in_2d():
-    """A 2D job writes no mesh: ``output.mesh_formats=[stl]`` wrote nothing, exit 0, without a word."""
-    overrides = ["ndim=2", "output.mesh_formats=[stl]"]
-    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides)
-    with pytest.raises(ConfigError, match=r"option output.mesh_formats is ignored with ndim=2 \(.*writes no mesh"):
-        check_config(cfg, overrides, ["reach"])
-    check_config(cfg, ["ndim=2", "output.figures=false"], ["reach"])  # another output option is fine
-    check_config(cfg, ["ndim=2", "output.mesh_formats=[]"], ["reach"])  # no mesh asked for (paper_figures.py's jobs)
-
-
-def test_a_projection_axis_is_refused_in_3d():
-    """``shape.axis`` picks the 2D silhouette of a mesh: with ndim=3 it was ignored, exit 0, without a word."""
-    overrides = ["shape=mesh", "shape.path=m.ply", "shape.axis=x"]
-    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides)
-        check_config(compose(config_name="config", overrides=[*overrides, "ndim=2"]), [*overrides, "ndim=2"], ["shape"])
-    with pytest.raises(ConfigError, match=r"option shape.axis is ignored with ndim=3 \(.*2D silhouette"):
-        check_config(cfg, overrides, ["shape"])
 
 @pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"],
                                        ["symmetry={n_fold:3,mirror:true,mirror_azimuth_deg:-30,tol_deg:0}"],
