@@ -185,7 +185,7 @@ def from_trimesh(
     if len(mesh.faces) == 0:
         raise ShapeError(f"mesh {where} has only degenerate faces: no volume to fill")
     with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by zero volumes
-        mesh, notes = _orient_shells(mesh, fill_sealed_voids, problems)
+        mesh, notes, voids = _orient_shells(mesh, fill_sealed_voids, problems)
         volume = abs(mesh.volume)
     uncertain = ambiguous / volume if volume > 0 else 0.0
     if ambiguous > 0:
@@ -220,8 +220,8 @@ def from_trimesh(
                              "it again")
         tail = "" if mesh.is_watertight else "; volumes and dips are approximate"
         shape._warn(f"mesh {where}: " + "; ".join(problems) + tail)
-    for note in notes:
-        shape._warn(f"mesh {where}: {note}")
+    for note in notes:  # the voids' volume in mm^3 once scaled (the file's units before), and their share
+        shape._warn(f"mesh {where}: " + note.format(voids_mm3=voids * factor**3, share=voids / volume))
     return shape
 
 
@@ -311,8 +311,10 @@ def _repair(mesh: trimesh.Trimesh, problems: list[str]) -> tuple[trimesh.Trimesh
 
 def _orient_shells(
     mesh: trimesh.Trimesh, fill_sealed_voids: bool, problems: list[str]
-) -> tuple[trimesh.Trimesh, list[str]]:
-    """Orient every shell by its nesting depth, fill (drop) the sealed voids, merge the solid.
+) -> tuple[trimesh.Trimesh, list[str], float]:
+    """Orient every shell by its nesting depth, fill (drop) the sealed voids, merge the solid: ``(solid, notes,
+    the voids' volume in the file's units)``, the notes formatted by the caller with ``voids_mm3`` (that volume
+    scaled to mm^3) and ``share`` (of the solid's volume).
 
     A shell's depth is the number of other shells it lies wholly inside (:func:`_nesting_depths`).
     A shell at even depth (0: outermost) bounds solid and must enclose positive volume; at odd
@@ -327,7 +329,7 @@ def _orient_shells(
         if _enclosed_volume(shell) < 0:
             shell.invert()
             problems.append("the surface was inside out (inverted)")
-        return shell, []
+        return shell, [], 0.0
     depth = _nesting_depths(shells)
     notes: list[str] = []
     inverted = 0
@@ -343,21 +345,20 @@ def _orient_shells(
         problems.append(f"inverted {inverted} of {len(shells)} shells to match their nesting")
     voids = [abs(s.volume) for s, k in zip(shells, depth) if k % 2 == 1]
     if voids:
-        total = float(np.sum(voids))
         if fill_sealed_voids:
             notes.append(
-                f"filled {len(voids)} sealed inner void(s) of total volume {total:.6g} mm^3 "
-                "(water cannot reach them, so they displace water like solid)"
+                f"filled {len(voids)} sealed inner void(s) of total volume {{voids_mm3:.6g}} mm^3, {{share:.1%}} of "
+                "the solid (water cannot reach them, so they displace water like solid)"
             )
         else:
             notes.append(
-                f"kept {len(voids)} sealed inner void(s) of total volume {total:.6g} mm^3 "
-                "(fill_sealed_voids=False: they are counted as water, which is unphysical)"
+                f"kept {len(voids)} sealed inner void(s) of total volume {{voids_mm3:.6g}} mm^3, {{share:.1%}} of "
+                "the solid (fill_sealed_voids=False: they are counted as water, which is unphysical)"
             )
     solid = trimesh.util.concatenate(outer)
     if len(outer) > 1:
         solid = _union_overlapping(outer, solid, problems)
-    return (trimesh.util.concatenate([solid, *nested]) if nested else solid), notes
+    return (trimesh.util.concatenate([solid, *nested]) if nested else solid), notes, float(np.sum(voids))
 
 
 def _enclosed_volume(shell: trimesh.Trimesh) -> float:

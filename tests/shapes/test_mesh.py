@@ -262,3 +262,16 @@ def test_a_hole_bent_over_an_edge_is_refused_and_a_flat_one_filled():
         shape = from_trimesh(flat, name="flat")
     assert "uncertain" not in str(record[0].message)
     assert shape.volume == pytest.approx(24000.0, rel=1e-9)
+
+
+def test_a_sealed_void_is_named_in_mm3_once_scaled():
+    """A cube of side 2 (file units) with a sealed cavity of side 1, scaled to 45 mm: its void was named "1 mm^3"
+    (the file's units), where it holds 17,537 mm^3, 12.5 % of the solid."""
+    outer = trimesh.creation.box((2.0, 2.0, 2.0))
+    cavity = trimesh.creation.box((1.0, 1.0, 1.0))
+    cavity.invert()
+    with pytest.warns(ShapeWarning, match=r"filled 1 sealed inner void\(s\) of total volume 17537 mm\^3, 12.5% of "
+                                          r"the solid"):
+        from_trimesh(trimesh.util.concatenate([outer, cavity]), radius=45.0)
+    with pytest.warns(ShapeWarning, match=r"kept 1 sealed inner void\(s\) of total volume 1000 mm\^3, 14.3% of"):
+        from_trimesh(trimesh.util.concatenate([outer, cavity]), scale=10.0, fill_sealed_voids=False)
