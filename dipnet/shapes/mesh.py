@@ -389,7 +389,8 @@ def _union_overlapping(
     if overlap <= 1e-9 * merged.volume:
         return merged
     problems.append(
-        f"merged {len(shells)} overlapping outer shells (overlap {overlap:.6g} mm^3)"
+        f"merged {len(shells)} overlapping outer shells (overlap {overlap:.6g} mm^3 in the file's units, "
+        f"{overlap / merged.volume:.1%} of the shells' volume)"
     )
     return union
 

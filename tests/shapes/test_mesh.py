@@ -81,6 +81,9 @@ def test_overlapping_shells_are_merged():
     with pytest.warns(ShapeWarning, match="merged 2 overlapping"):
         shape = from_trimesh(trimesh.util.concatenate([a, b]))
     assert shape.volume == pytest.approx(16.0 - 3.0)
+    # scaled, the overlap is named in the file's units (it said "3 mm^3" as if in mm) and as a share
+    with pytest.warns(ShapeWarning, match=r"overlap 3 mm\^3 in the file's units, 18.8% of the shells' volume"):
+        from_trimesh(trimesh.util.concatenate([a, b]), scale=10.0)
 
 
 def block_with(piece: str) -> tuple[trimesh.Trimesh, float]:
