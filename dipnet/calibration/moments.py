@@ -254,8 +254,13 @@ def dip_moments(raw: RawScan, geometry: RigGeometry, section_sd: float | None = 
     exactly), which the bootstrap draws (:attr:`DipMoments.rise_scale_sd`). A level sensor reads the rise itself:
     ``section_sd`` plays no part.
 
-    Raises ``ValueError`` naming a dip whose level never rises or that has no rig angles.
+    Raises ``ValueError`` for a 2D scan (its dips are angles in a plane: no rig to calibrate), or naming a dip whose
+    level never rises or that has no rig angles.
     """
+    if raw.header.ndim != 3:
+        raise ValueError(f"the scan{'' if raw.path is None else ' ' + str(raw.path)} is {raw.header.ndim}D (its "
+                         "header's ndim): its dips are angles in a plane, with no tilt and spin, so no rig geometry "
+                         "can be calibrated from it; calibrate the rig on a 3D scan")
     applied = scan_geometry(raw.header)
     repaired, _ = repair_without_drift(raw, geometry.level_drift_mm_per_s)
     nominal = geometry.area(float(raw.header.tank_cross_section_mm2 or 1.0))

@@ -274,3 +274,15 @@ def test_readings_rounded_coarser_than_their_noise_keep_the_rise_cut():
         low, high = report.intervals[name]
         assert low <= getattr(true, name) <= high, name
     assert abs(report.estimates["tilt_zero_deg"] + 3.0) < 0.1
+
+
+def test_a_2d_scan_is_refused_as_2d():
+    """A 2D scan (``calibrate.py`` on a 2D job's rawscan.jsonl) was refused as "dip 0 has no rig angles", which
+    did not say why; now the scan's dimension is named."""
+    from dipnet.core.orientations import angles_2d, directions_2d
+    from dipnet.shapes import Disk
+
+    raw = simulate_scan(Disk(30.0), directions_2d(angles_2d(4)), tank=Tank(300.0), progress=False)
+    with pytest.raises(ValueError, match=r"is 2D \(its header's ndim\): its dips are angles in a plane, .*no rig "
+                                         r"geometry can be calibrated"):
+        dip_moments(raw, RigGeometry())
