@@ -285,9 +285,18 @@ def run_overrides() -> dict[str, list[str]]:
 def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:
     """The shift (3,) mm from the grid frame to the frame of the user's mesh file (``None``: no
     shift), stated in ``scores["frame_offset_mm"]`` and the log (the mesh files are written in
-    the file's frame; volumes and figures stay centred)."""
+    the file's frame, in mm; volumes and figures stay centred). A mesh the job scaled (``shape.radius``,
+    ``shape.scale``) also states ``scores["frame_scale"]``, the mm per unit of the file: a vertex ``v`` (mm)
+    of a mesh file is ``v / frame_scale`` in the file's own units."""
     offset = getattr(shape, "frame_offset", None)
-    if offset is None or grid.ndim != 3 or not np.any(offset != 0):
+    scale = float(getattr(shape, "frame_scale", 1.0))
+    if grid.ndim != 3 or offset is None:
+        return None
+    if scale != 1.0:
+        scores["frame_scale"] = scale
+        log.info("the mesh was scaled by %.6g (frame_scale, mm per unit of its file): divide the mesh files' "
+                 "vertices by it for the file's units", scale)
+    if not np.any(offset != 0):
         return None
     scores["frame_offset_mm"] = [float(v) for v in offset]
     log.info("mesh files are in the frame of the shape's file: grid frame + %s mm (frame_offset_mm); "

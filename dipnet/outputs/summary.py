@@ -31,6 +31,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "shape": ("run", "shape"),
     "snr_db": ("run", "level-sensor SNR (dB; none: noise-free)"),
     "frame_offset_mm": ("run", "mesh files: grid frame + this shift = your file's frame (mm)"),
+    "frame_scale": ("run", "mesh files: mm per unit of your file (divide their vertices by it for its units)"),
     "prior_weights": ("run", "prior weights used by the solver"),
     "prior_weight_rule": ("run", "how the prior weights were set (fixed: from the config)"),
     "prior_weight_reason": ("run", "why that weight"),

@@ -41,6 +41,9 @@ class MeshShape(Shape):
         frame_offset: (3,) mm; a point of the grid frame plus ``frame_offset`` is the same point
             in the frame of the file the mesh came from (its units times the scale): what
             :func:`from_trimesh` moved the mesh by when it centred it, so outputs can be moved back.
+        frame_scale: mm per unit of that file: what :func:`from_trimesh` scaled the mesh by (``scale``, or the
+            factor that brought it to ``radius``; 1 when kept as it was). A point ``p`` (mm) of the grid frame
+            is ``(p + frame_offset) / frame_scale`` in the file's own coordinates and units.
     """
 
     ndim = 3
@@ -56,6 +59,7 @@ class MeshShape(Shape):
         self.notes = list(notes or [])
         self.exact = exact
         self.frame_offset = np.zeros(3)
+        self.frame_scale = 1.0
         self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         self._triangles = self._vertices[self._faces]  # (F, 3, 3) mm, closed by caps below
@@ -126,7 +130,7 @@ def load_mesh(
     Args:
         path: the file. A scene (e.g. GLB) is flattened into one mesh.
         radius: scale so the farthest vertex is ``radius`` mm from the centre; ``None`` keeps
-            the file's units (taken as mm, times ``scale``).
+            the file's units (taken as mm, times ``scale``). The shape's ``frame_scale`` keeps the factor.
         fill_sealed_voids: fill cavities bounded by closed inner shells, those lying wholly inside
             another shell (water cannot reach them). Shells that touch, overlap or stick out of
             one another are solid either way: their union.
@@ -211,6 +215,7 @@ def from_trimesh(
         mesh.apply_scale(factor)
     shape = MeshShape(mesh, name=name, exact=mesh.is_watertight)
     shape.frame_offset = factor * shift
+    shape.frame_scale = factor
     if problems:
         _check_repair(shape, where)
         if uncertain > HOLE_VOLUME_TOL:

@@ -7,6 +7,7 @@ import os
 import numpy as np
 import pytest
 import torch
+import trimesh
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
@@ -317,3 +318,22 @@ def test_a_measurement_read_from_the_run_folder_it_would_be_replaced_in_is_refus
     elsewhere = cli(tmp_path / "elsewhere", *quick, "resolution=16", "source=recorded",
                     f"source.reader.path={recording}")
     assert elsewhere.returncode == 0 and recording.read_bytes() == before
+
+
+def test_mesh_files_of_a_scaled_mesh_map_back_onto_the_users_file(tmp_path):
+    """``shape.radius`` scales the user's mesh: metrics.json states the factor (``frame_scale``, mm per unit of
+    the file) beside the shift, and the written meshes divided by it lie on the file's mesh within a voxel."""
+    corners = [[x, y, z] for x in (0, 40) for y in (0, 20) for z in (0, 10)] + [[45, 25, 30]]  # no symmetry
+    source = trimesh.convex.convex_hull(np.array(corners, float)).apply_translation([100.0, -50.0, 20.0])
+    source.export(tmp_path / "part.stl")
+    run(_cfg("shape=mesh", f"shape.path={tmp_path / 'part.stl'}", "shape.radius=45", "resolution=16", "n_dips=24",
+             "output.figures=false", "output.uncertainty=false", "output.resolvability=false"), tmp_path / "job")
+    saved = json.loads((tmp_path / "job" / "metrics.json").read_text())
+    scale = saved["frame_scale"]
+    assert 45.0 / scale == pytest.approx(np.linalg.norm(source.vertices - source.center_mass, axis=1).max())
+    voxel = float(np.load(tmp_path / "job" / "reconstruction.npz")["grid_extent"]) / 16 / scale   # in file units
+    for name in ("truth.ply", "reconstruction.ply"):
+        mesh = trimesh.load(tmp_path / "job" / name)
+        back = mesh.copy().apply_scale(1.0 / scale)
+        np.testing.assert_allclose(back.bounds, source.bounds, atol=1.5 * voxel, err_msg=name)
+        assert back.volume == pytest.approx(mesh.volume / scale**3)

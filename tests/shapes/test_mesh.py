@@ -278,3 +278,16 @@ def test_a_sealed_void_is_named_in_mm3_once_scaled():
         from_trimesh(trimesh.util.concatenate([outer, cavity]), radius=45.0)
     with pytest.warns(ShapeWarning, match=r"kept 1 sealed inner void\(s\) of total volume 1000 mm\^3, 14.3% of"):
         from_trimesh(trimesh.util.concatenate([outer, cavity]), scale=10.0, fill_sealed_voids=False)
+
+
+def test_the_shape_remembers_its_scale_so_points_map_back_to_the_file(tmp_path):
+    """``frame_scale`` is the mm per unit of the file: ``(p + frame_offset) / frame_scale`` is a grid-frame point
+    ``p`` in the file's own coordinates, for a radius, a scale and neither."""
+    source = trimesh.creation.box(extents=(30.0, 20.0, 10.0)).apply_translation([40.0, -25.0, 12.0])
+    source.export(tmp_path / "box.stl")
+    for options, factor in (({}, 1.0), ({"scale": 1000.0}, 1000.0),
+                            ({"radius": 45.0}, 45.0 / np.linalg.norm([15.0, 10.0, 5.0]))):
+        shape = load_mesh(tmp_path / "box.stl", **options)
+        assert shape.frame_scale == pytest.approx(factor), options
+        lo, hi = ((b + shape.frame_offset) / shape.frame_scale for b in shape.bounds())
+        np.testing.assert_allclose(np.stack([lo, hi]), source.bounds, atol=1e-9, err_msg=str(options))
