@@ -105,6 +105,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     if calibration is None:
         acquired = source.measure(**options)
         measurement, validation = acquired.measurement, acquired.validation
+        measurement.metadata.update(mesh_frame(shape, measurement))  # a re-run from measurement.npz keeps the frame
         save_acquisition(out, acquired.raw, acquired.planning)
         measurement.save(out / "measurement.npz")
     else:  # the raw scan only: nothing is read with the uncalibrated geometry
@@ -150,7 +151,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                                        truth_volume=shape.volume, truth_level=level))
         scores.update(metrics.reference_check(truth, grid, shape.volume, level))
         scores.update(metrics.false_rates(recon.binary, truth > level))
-    frame = frame_offset(shape, grid, scores)
+    frame = frame_offset(mesh_frame(shape, measurement), grid, scores)
     scores.update(validation.metrics())
     if "uncertainty" in stages:
         stage("uncertainty")
@@ -282,26 +283,44 @@ def run_overrides() -> dict[str, list[str]]:
     return {"overrides": [str(o) for o in OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)]}
 
 
-def frame_offset(shape: Shape | None, grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:
-    """The shift (3,) mm from the grid frame to the frame of the user's mesh file (``None``: no
-    shift), stated in ``scores["frame_offset_mm"]`` and the log (the mesh files are written in
-    the file's frame, in mm; volumes and figures stay centred). A mesh the job scaled (``shape.radius``,
-    ``shape.scale``) also states ``scores["frame_scale"]``, the mm per unit of the file: a vertex ``v`` (mm)
-    of a mesh file is ``v / frame_scale`` in the file's own units."""
+#: The keys of a mesh file's frame in ``metrics.json`` and in the metadata of the job's ``measurement.npz``.
+FRAME_KEYS = ("frame_offset_mm", "frame_scale")
+
+
+def mesh_frame(shape: Shape | None, measurement: DipMeasurement | None = None) -> dict[str, Any]:
+    """The frame of the user's mesh file, as :data:`FRAME_KEYS` (only those that are not the identity):
+    ``frame_offset_mm`` (3,) mm, the shift from the grid frame, and ``frame_scale``, the mm per unit of the file
+    (``shape.radius``, ``shape.scale``). From the shape (``shape=mesh``), else from the metadata of a measurement
+    a mesh job saved (a run of ``source=recorded`` on its ``measurement.npz``); ``{}`` for neither."""
     offset = getattr(shape, "frame_offset", None)
-    scale = float(getattr(shape, "frame_scale", 1.0))
-    if grid.ndim != 3 or offset is None:
+    if offset is None:
+        saved = measurement.metadata if measurement is not None else {}
+        return {key: saved[key] for key in FRAME_KEYS if saved.get(key) is not None}
+    frame: dict[str, Any] = {}
+    if np.any(offset != 0):
+        frame["frame_offset_mm"] = [float(v) for v in offset]
+    if float(getattr(shape, "frame_scale", 1.0)) != 1.0:
+        frame["frame_scale"] = float(shape.frame_scale)
+    return frame
+
+
+def frame_offset(frame: dict[str, Any], grid: Grid, scores: dict[str, Any]) -> np.ndarray | None:
+    """The shift (3,) mm from the grid frame to the frame of the user's mesh file (``None``: no
+    shift), from ``frame`` (:func:`mesh_frame`), stated with the scale in ``scores`` and the log (the
+    mesh files are written in the file's frame, in mm; volumes and figures stay centred). A vertex ``v``
+    (mm) of a mesh file is ``v / frame_scale`` in the file's own units."""
+    if grid.ndim != 3 or not frame:
         return None
-    if scale != 1.0:
-        scores["frame_scale"] = scale
+    scores.update(frame)
+    if "frame_scale" in frame:
         log.info("the mesh was scaled by %.6g (frame_scale, mm per unit of its file): divide the mesh files' "
-                 "vertices by it for the file's units", scale)
-    if not np.any(offset != 0):
+                 "vertices by it for the file's units", frame["frame_scale"])
+    if "frame_offset_mm" not in frame:
         return None
-    scores["frame_offset_mm"] = [float(v) for v in offset]
+    offset = np.asarray(frame["frame_offset_mm"], dtype=np.float64)
     log.info("mesh files are in the frame of the shape's file: grid frame + %s mm (frame_offset_mm); "
              "volumes and figures are centred", [round(float(v), 4) for v in offset])
-    return np.asarray(offset, dtype=np.float64)
+    return offset
 
 
 def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, truth, level: float | None = None,
