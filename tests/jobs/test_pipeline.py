@@ -341,7 +341,7 @@ def test_mesh_files_of_a_scaled_mesh_map_back_onto_the_users_file(tmp_path):
 
 def test_a_rerun_from_the_measurement_of_a_mesh_job_writes_its_mesh_in_the_same_frame(tmp_path):
     """A mesh job's ``measurement.npz`` keeps the frame of the user's file: read back (``source=recorded``), its
-    reconstruction lies where the first run's did (it was 60 mm away, centred), and metrics.json says so again."""
+    reconstruction lies where the first run's did (it was 97 mm away, centred), and metrics.json says so again."""
     trimesh.creation.box(extents=(30.0, 20.0, 16.0)).apply_translation([40.0, -25.0, 12.0]).export(tmp_path / "p.stl")
     quiet = ("resolution=16", "output.figures=false", "output.uncertainty=false", "output.resolvability=false")
     first = run(_cfg("shape=mesh", f"shape.path={tmp_path / 'p.stl'}", "shape.scale=2", "n_dips=24", *quiet),
