@@ -294,13 +294,31 @@ def mesh_frame(shape: Shape | None, measurement: DipMeasurement | None = None) -
     a mesh job saved (a run of ``source=recorded`` on its ``measurement.npz``); ``{}`` for neither."""
     offset = getattr(shape, "frame_offset", None)
     if offset is None:
-        saved = measurement.metadata if measurement is not None else {}
-        return {key: saved[key] for key in FRAME_KEYS if saved.get(key) is not None}
+        return saved_frame(measurement.metadata if measurement is not None else {})
     frame: dict[str, Any] = {}
     if np.any(offset != 0):
         frame["frame_offset_mm"] = [float(v) for v in offset]
     if float(getattr(shape, "frame_scale", 1.0)) != 1.0:
         frame["frame_scale"] = float(shape.frame_scale)
+    return frame
+
+
+def saved_frame(metadata: dict[str, Any]) -> dict[str, Any]:
+    """The :data:`FRAME_KEYS` a measurement's ``metadata`` holds, those that are well formed (an offset of three
+    finite mm, a finite positive scale); another value (a hand-edited file) is left out with a warning."""
+    frame: dict[str, Any] = {}
+    for key, size in (("frame_offset_mm", 3), ("frame_scale", None)):
+        if metadata.get(key) is None:
+            continue
+        try:
+            value = np.asarray(metadata[key], dtype=np.float64)
+        except (TypeError, ValueError):
+            value = np.full(1, np.nan)
+        if value.shape == ((size,) if size else ()) and np.isfinite(value).all() and (size or value > 0):
+            frame[key] = value.tolist()
+        else:
+            log.warning("the measurement's %s=%r is not %s: left out, so the meshes of this run are not placed by it",
+                        key, metadata[key], "three finite mm" if size else "a finite positive number")
     return frame
 
 

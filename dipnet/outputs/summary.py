@@ -62,7 +62,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "noise_source": ("how consistent with the data", "where the noise level comes from: sigma (stated), readings "
                      "(the readings' own scatter) or estimated (from the profiles)"),
     "measured_volume_mm3": ("how consistent with the data", "volume the dips measure (mm³)"),
-    "reconstructed_volume_mm3": ("how consistent with the data", "volume of the reconstruction's inside voxels (mm³; its mesh rounds their corners)"),
+    "reconstructed_volume_mm3": ("how consistent with the data",
+                                 "volume of the reconstruction's inside voxels (mm³; its mesh rounds their corners)"),
     "continuous_volume_mm3": ("how consistent with the data", "volume of the continuous occupancy (mm³)"),
     "threshold_change_depth": ("how consistent with the data",
                                "share of the threshold's change deeper than a voxel (above 0.04: a smeared occupancy)"),

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.jobs.pipeline import run, write_outputs
+from dipnet.jobs.pipeline import run, saved_frame, write_outputs
 
 from planning_fixtures import reconstruct_cfg, tilt_spin
 
@@ -353,3 +353,11 @@ def test_a_rerun_from_the_measurement_of_a_mesh_job_writes_its_mesh_in_the_same_
     assert first.metrics["frame_scale"] == 2.0
     np.testing.assert_allclose(trimesh.load(tmp_path / "again" / "reconstruction.ply").bounds,
                                trimesh.load(tmp_path / "first" / "reconstruction.ply").bounds, atol=1e-6)
+
+
+def test_a_malformed_frame_in_a_measurements_metadata_is_left_out_with_a_warning(caplog):
+    assert saved_frame({"frame_offset_mm": [1, 2, 3], "frame_scale": 2}) == {"frame_offset_mm": [1.0, 2.0, 3.0],
+                                                                             "frame_scale": 2.0}
+    assert saved_frame({"frame_offset_mm": [1, 2, float("nan")], "frame_scale": 3.5}) == {"frame_scale": 3.5}
+    assert saved_frame({"frame_offset_mm": "abc", "frame_scale": -1}) == {}
+    assert "frame_offset_mm='abc' is not three finite mm" in caplog.text and "frame_scale=-1" in caplog.text
