@@ -31,5 +31,9 @@ result = run(cfg, out / "run")
 m = result.metrics
 print(f"ring of {ring.volume * 1000:,.0f} mm^3: IoU {m['iou']:.3f}, Chamfer {m['chamfer']:.4f} "
       f"(of the bounding-box diagonal), volume error {m['volume_error']:+.3f}")
+# the meshes are in mm; metrics.json's frame_scale (mm per unit of the file) takes them back to the file's cm
+back = trimesh.load(out / "run" / "reconstruction.ply").apply_scale(1 / m["frame_scale"])
+print(f"reconstruction.ply / frame_scale {m['frame_scale']:g}: x {back.bounds[0, 0]:.2f} to {back.bounds[1, 0]:.2f} cm "
+      f"(the part's file: {ring.bounds[0, 0]:.2f} to {ring.bounds[1, 0]:.2f} cm)")
 # the outputs; not the hidden, empty .rawscan.jsonl.lock the scan writer locks (it stays by design: dipnet/core/locks.py)
 print("files:", ", ".join(sorted(p.name for p in (out / "run").iterdir() if not p.name.startswith("."))))
