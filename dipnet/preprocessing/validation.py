@@ -440,9 +440,9 @@ def _cumulative_gap(measurement: DipMeasurement, i: int, j: int) -> float:
 def _check_duplicates(measurement: DipMeasurement, totals, noise, total_tol: float, dup_deg: float, source: str,
                       report: ValidationReport, unit: str) -> None:
     directions = measurement.directions.double().numpy()
-    unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    lines = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     chord = 2.0 * math.sin(math.radians(dup_deg) / 2.0)
-    pairs = np.array(sorted(cKDTree(unit).query_pairs(chord)), dtype=int).reshape(-1, 2)
+    pairs = np.array(sorted(cKDTree(lines).query_pairs(chord)), dtype=int).reshape(-1, 2)
     report.stats["duplicate_direction_pairs"] = int(len(pairs))
     if not len(pairs):
         return
