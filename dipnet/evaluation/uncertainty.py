@@ -30,7 +30,9 @@ Outputs per voxel: the posterior standard deviation ``std`` (occupancy units) an
 wrong. Summaries (:func:`summarise`): mean ``std`` over the support (the reconstructed object
 dilated by two voxels), the fraction of support voxels with ``p_wrong > 0.2`` and the expected
 misclassified volume over the reconstructed volume. :func:`calibration_by_decile` measures how
-well ``p_wrong`` ranks the voxels that are actually wrong.
+well ``p_wrong`` ranks the voxels that are actually wrong; :func:`sure_error_rate` whether the voxels it calls sure
+are right (the prior's doubt sits on the reconstructed boundary: a part the reconstruction misses far from it, e.g.
+along a missing cone, gets the ``floor`` and a ``p_wrong`` of about 1e-5).
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ log = logging.getLogger(__name__)
 
 PRIOR_STD = 0.5  # tau: a boundary voxel may flip between 0 and 1
 UNCERTAIN_P_WRONG = 0.2  # a voxel is "uncertain" when its binary call is wrong with at least this probability
+SURE_P_WRONG = 0.05  # a voxel the map calls "sure": its binary call wrong with less than this probability
 
 
 @dataclass
@@ -205,6 +208,19 @@ def calibration_by_decile(p_wrong: np.ndarray, binary: np.ndarray, truth: np.nda
     _, tie, count = np.unique(p[order], return_inverse=True, return_counts=True)
     wrong = np.bincount(tie, weights=(binary != truth)[where][order]) / count  # error rate of each tie
     return np.array([part.mean() if part.size else float("nan") for part in np.array_split(wrong[tie], n_bins)])
+
+
+def sure_error_rate(p_wrong: np.ndarray, binary: np.ndarray, truth: np.ndarray,
+                    sure: float = SURE_P_WRONG) -> tuple[float, int, int]:
+    """How often the voxels the map calls sure are wrong: over the voxels :func:`calibration_by_decile` scores (the
+    support and the true object), those with ``p_wrong < sure``; their error rate against ``truth`` (bool,
+    ``grid.shape``; NaN when no voxel is sure), their number and how many of them are wrong. A calibrated map keeps
+    the rate below ``sure`` (below its own mean ``p_wrong`` there, on average); well above it the map is certain
+    where the shape is wrong."""
+    binary, truth = np.asarray(binary, bool), np.asarray(truth, bool)
+    where = (support(binary) | truth) & (np.asarray(p_wrong) < sure)
+    n_sure, n_wrong = int(where.sum()), int((binary != truth)[where].sum())
+    return (n_wrong / n_sure if n_sure else float("nan")), n_sure, n_wrong
 
 
 def uncertainty(reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator | None = None,

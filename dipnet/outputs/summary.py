@@ -104,6 +104,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "uncertain_fraction": ("how sure", "share of the support with P(wrong) > 0.2"),
     "expected_error_fraction": ("how sure", "expected wrong voxels / reconstructed voxels"),
     "error_rate_by_uncertainty_decile": ("how sure", "true error rate per uncertainty decile (least to most)"),
+    "error_rate_where_sure": ("how sure", "true error rate of the voxels with P(wrong) < 0.05"),
     "uncertainty_method": ("how sure", "uncertainty method (linearised posterior or samples)"),
     "uncertainty_brier": ("how sure", "Brier score of the occupancy probability"),
     "uncertainty_samples": ("how sure", "ensemble members"),

@@ -12,7 +12,7 @@ import numpy as np
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.ensemble import brier_score, ensemble_uncertainty, occupancy_probability
-from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
+from dipnet.evaluation.uncertainty import SURE_P_WRONG, calibration_by_decile, sure_error_rate, uncertainty
 from dipnet.operators import DipOperator
 from dipnet.solvers.base import Solver
 from dipnet.outputs.plots import mid_slices, plt, save_figure, show_slice
@@ -22,6 +22,9 @@ log = logging.getLogger(__name__)
 #: ``output.uncertainty`` values: the linearised Gaussian posterior (``true`` is the same) or an ensemble
 #: of reconstructions from perturbed data (:mod:`dipnet.evaluation.ensemble`).
 METHODS = ("linearised", "samples")
+#: wrong voxels among those the map calls sure below which a high error rate there is not reported (one wrong voxel
+#: among ten sure ones is chance, not a map that is certain where the shape is wrong)
+SURE_WRONG_MIN = 3
 
 
 def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator,
@@ -31,7 +34,8 @@ def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: Di
     """Add the maps ``uncertainty_std`` / ``uncertainty_p_wrong`` (and with ``method="samples"``
     ``uncertainty_probability``, the ensemble's occupancy probability) to ``out/reconstruction.npz``,
     draw ``out/uncertainty.png`` and return the summary metrics (with the error rate per
-    uncertainty decile and the Brier score of the occupancy probability when the truth is known).
+    uncertainty decile, the error rate of the voxels it calls sure, ``error_rate_where_sure``, and the Brier score of
+    the occupancy probability when the truth is known; a warning when either says the map is not calibrated).
     ``truth`` ``grid.shape``: the true inside / outside (bool; a job gives the reference of its IoU and false rates,
     ``truth_occupancy > metrics.reference_level(...)``), or a true occupancy in [0, 1], whose voxels above 0.5 are
     taken for inside (at 24^3 the chamber box's are 15 % more than its exact volume, the reference's 5.6 %).
@@ -54,9 +58,20 @@ def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: Di
                         **extra)
     scores: dict[str, Any] = {"uncertainty_method": method, **summary}
     if truth is not None:
-        deciles = calibration_by_decile(maps["p_wrong"], reconstruction.binary, np.asarray(truth) > 0.5)
+        inside = np.asarray(truth) > 0.5
+        deciles = calibration_by_decile(maps["p_wrong"], reconstruction.binary, inside)
         scores["error_rate_by_uncertainty_decile"] = [round(float(v), 5) for v in deciles]
-        scores["uncertainty_brier"] = brier_score(probability, reconstruction.binary, np.asarray(truth) > 0.5)
+        scores["uncertainty_brier"] = brier_score(probability, reconstruction.binary, inside)
+        sure_rate, n_sure, n_sure_wrong = sure_error_rate(maps["p_wrong"], reconstruction.binary, inside)
+        scores["error_rate_where_sure"] = None if np.isnan(sure_rate) else sure_rate
+        if n_sure_wrong >= SURE_WRONG_MIN and sure_rate > SURE_P_WRONG and reconstruction.binary.any():
+            message = (f"uncertainty is confidently wrong on this run: {n_sure_wrong} of the {n_sure} voxels it calls "
+                       f"sure (p_wrong < {SURE_P_WRONG:g}) are wrong (error rate {sure_rate:.3f}): the shape is wrong "
+                       f"where the map is certain, e.g. parts the reconstruction misses far from its boundary (a "
+                       f"missing cone, too few dips); judge this run by its consistency and resolvability, not its "
+                       f"uncertainty")
+            log.warning(message)
+            warnings.warn(message, stacklevel=2)
         # no wrong call or voxel: nothing to calibrate; an empty reconstruction calls every true voxel wrong, so its
         # deciles all read 1 whatever the uncertainty (the job said it is empty)
         if np.any(deciles > 0) and not deciles[-1] > deciles[0] and reconstruction.binary.any():

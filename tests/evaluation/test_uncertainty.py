@@ -14,6 +14,7 @@ from dipnet.evaluation.uncertainty import (
     fit_posterior,
     resample,
     support,
+    sure_error_rate,
     uncertainty,
     voxel_maps,
 )
@@ -102,3 +103,20 @@ def test_deciles_count_tied_voxels_at_their_ties_error_rate():
     where = np.ones((20, 1, 1), bool)  # every voxel in the support
     np.testing.assert_allclose(calibration_by_decile(p[:, None, None], where, where ^ wrong[:, None, None], 4),
                                [0.25] * 4)
+
+
+def test_sure_error_rate_counts_the_wrong_calls_among_the_sure_voxels():
+    """Over the support and the true object, the voxels with p_wrong < 0.05: 4 of them, 1 wrong; a wrong voxel the
+    map doubts (p_wrong 0.3) does not count, and a map sure of nothing gives NaN."""
+    binary = np.zeros((8, 8, 8), bool)
+    binary[3:5, 3:5, 3:5] = True
+    truth = binary.copy()
+    truth[3, 3, 3] = False  # wrong, sure
+    truth[4, 4, 4] = False  # wrong, doubted
+    p_wrong = np.full(binary.shape, 0.3)
+    p_wrong[3, 3, 3] = p_wrong[3, 4, 3] = p_wrong[4, 3, 3] = 0.01
+    p_wrong[7, 7, 7] = 0.0  # outside the support and the true object: not scored
+    p_wrong[1, 4, 4] = 0.0  # in the support (two voxels off the object)
+    assert sure_error_rate(p_wrong, binary, truth) == (0.25, 4, 1)
+    rate, n_sure, n_wrong = sure_error_rate(np.full(binary.shape, 0.3), binary, truth)
+    assert np.isnan(rate) and n_sure == n_wrong == 0

@@ -87,3 +87,26 @@ def test_an_empty_reconstruction_is_not_called_uncalibrated(solved, tmp_path):
         warnings.simplefilter("error", UserWarning)
         scores = write_uncertainty(tmp_path, empty, measurement, operator, truth=truth > 0.5, figure=False)
     assert scores["error_rate_by_uncertainty_decile"] == [1.0] * 10
+
+
+def test_a_map_that_is_certain_where_the_shape_is_wrong_is_reported(solved, tmp_path):
+    """The audit's case: a part the reconstruction misses far from its boundary (a missing cone: 41 dips within 10 deg
+    of the vertical on a generated shape, 24^3, gave 31 wrong voxels at p_wrong < 0.05, 6 % of those called sure)
+    gets the prior's floor and a p_wrong near 0, yet the deciles still rose and nothing was said. Now the error rate
+    of the voxels the map calls sure is scored (``error_rate_where_sure``) and a rate above 0.05 is a warning."""
+    grid, measurement, operator, recon, _ = solved
+    p_wrong = uncertainty(recon, measurement, operator)[0]["p_wrong"]
+    sure_inside = recon.binary & (p_wrong < 0.05)
+    truth = recon.binary & ~sure_inside  # wrong exactly where the map is sure: a void the dips could not see
+    assert sure_inside.sum() >= 3
+    with pytest.warns(UserWarning, match=r"uncertainty is confidently wrong on this run: \d+ of the \d+ voxels"):
+        scores = write_uncertainty(tmp_path, recon, measurement, operator, truth=truth, figure=False)
+    assert scores["error_rate_where_sure"] > 0.05
+
+
+def test_a_map_right_where_it_is_sure_is_not_reported(solved, tmp_path):
+    _, measurement, operator, recon, _ = solved
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        scores = write_uncertainty(tmp_path, recon, measurement, operator, truth=recon.binary, figure=False)
+    assert scores["error_rate_where_sure"] == 0.0
