@@ -28,7 +28,7 @@ import torch
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
 from dipnet.core.orientations import Reach
-from dipnet.planning.planner import MEASURED_DEG, Planner, measured_candidates
+from dipnet.planning.planner import MEASURED_DEG, Planner, measured_candidates, repeated_directions
 from dipnet.core.rawscan import RawScan, RawScanFileError
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.minnorm import MinNormSolver
@@ -96,6 +96,10 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
         initial: the first directions (default ``reach.uniform(settings.initial_dips)``).
     """
     planned = reach.uniform(settings.initial_dips) if initial is None else torch.as_tensor(initial, dtype=torch.float64)
+    repeated = repeated_directions(planned)
+    if repeated.any():  # the loop never dips a measured direction again, the initial dips included
+        _warn_repeated_initial(int(repeated.sum()), len(planned), reach)
+        planned = planned[torch.from_numpy(~repeated)]
     candidates = reach.candidates()
     history: list[dict[str, Any]] = []
     while True:
@@ -133,6 +137,18 @@ def _warn_few_candidates(left: int, wanted: int, n_dips: int, n_candidates: int,
                f"short of the budget of {budget} (a dip along a measured direction measures the same planes again); "
                f"for more candidates give a finer reach.step_deg (now {reach.step_deg:g} deg) or a wider reach "
                f"(tilt {reach.tilt_range_deg[0]:g}-{reach.tilt_range_deg[1]:g} deg)")
+    log.warning(message)
+    warnings.warn(message, stacklevel=3)
+
+
+def _warn_repeated_initial(repeated: int, planned: int, reach: Reach) -> None:
+    """Warn that ``repeated`` of the ``planned`` initial directions repeat an earlier one (within
+    :data:`~dipnet.planning.planner.MEASURED_DEG`), so the loop starts from the others alone."""
+    message = (f"planner=adaptive: {repeated} of the {planned} initial dips spread over the reach (tilt "
+               f"{reach.tilt_range_deg[0]:g}-{reach.tilt_range_deg[1]:g} deg, spin {reach.spin_range_deg[0]:g}-"
+               f"{reach.spin_range_deg[1]:g} deg) repeat an earlier direction (within {MEASURED_DEG:g} deg), which "
+               f"measures the same planes again: the loop starts from the other {planned - repeated}; a wider reach "
+               f"gives more directions")
     log.warning(message)
     warnings.warn(message, stacklevel=3)
 

@@ -128,6 +128,15 @@ def measured_candidates(candidates: torch.Tensor, directions: torch.Tensor, tol_
     return np.degrees(angle_to_plan(c, d)) <= tol_deg
 
 
+def repeated_directions(directions: torch.Tensor, tol_deg: float = MEASURED_DEG) -> np.ndarray:
+    """Boolean mask ``(K,)``: which of the planned ``directions`` ``(K, 3)`` lie within ``tol_deg`` (deg) of the line of
+    an earlier row (:func:`measured_candidates`), so that dipping them measures the same planes again (a reach of
+    one direction, ``reach.tilt_range_deg=[0,0]``, makes every row of ``Reach.uniform`` the vertical)."""
+    d = torch.as_tensor(directions, dtype=torch.float64)
+    return np.array([i > 0 and bool(measured_candidates(d[i:i + 1], d[:i], tol_deg)[0]) for i in range(len(d))],
+                    dtype=bool)
+
+
 def _keyword_defaults(function: Callable[..., Any]) -> dict[str, Any]:
     """The defaults of ``function``'s keyword-only arguments."""
     return {name: p.default for name, p in inspect.signature(function).parameters.items() if p.kind is p.KEYWORD_ONLY}

@@ -12,6 +12,8 @@ Both return a :class:`PlanResult`: the final measurement and, for the loop, its 
 
 from __future__ import annotations
 
+import logging
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -21,7 +23,9 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import Reach, make_directions
 from dipnet.operators import DipOperator
 from dipnet.planning.adaptive import Acquire, AdaptiveSettings, adaptive_loop, warn_linear_loop_solver
-from dipnet.planning.planner import NextBestDipPlanner, Planner
+from dipnet.planning.planner import MEASURED_DEG, NextBestDipPlanner, Planner, repeated_directions
+
+log = logging.getLogger(__name__)
 
 #: directions ``(K, 3)`` -> the operator of a measurement along them
 MakeOperator = Callable[[torch.Tensor], DipOperator]
@@ -53,12 +57,23 @@ class FixedPlan:
 
     def directions(self, ndim: int, reach: Reach | None = None) -> torch.Tensor:
         """The planned unit directions ``(K, ndim)``, kept within ``reach`` (3D): a Fibonacci or
-        uniform plan that leaves it becomes the uniform plan over the reach; a random one is refused."""
+        uniform plan that leaves it becomes the uniform plan over the reach (a warning when the reach is too narrow
+        for ``K`` distinct directions); a random one is refused."""
         directions = make_directions(self.orientations, self.n_dips, ndim, self.seed)
         if ndim == 2 or reach is None or bool(reach.contains(directions).all()):
             return directions
         if self.orientations in ("fibonacci", "uniform"):
-            return reach.uniform(self.n_dips)
+            directions = reach.uniform(self.n_dips)
+            repeated = int(repeated_directions(directions).sum())
+            if repeated:
+                message = (f"n_dips={self.n_dips} over the reach (tilt {reach.tilt_range_deg[0]:g}-"
+                           f"{reach.tilt_range_deg[1]:g} deg, spin {reach.spin_range_deg[0]:g}-"
+                           f"{reach.spin_range_deg[1]:g} deg): {repeated} of the dips repeat an earlier direction "
+                           f"(within {MEASURED_DEG:g} deg) and measure the same planes again, "
+                           f"{self.n_dips - repeated} distinct direction(s) in all; a wider reach gives more")
+                log.warning(message)
+                warnings.warn(message, stacklevel=2)
+            return directions
         raise ValueError(f"orientations={self.orientations} leaves the reach (tilt {reach.tilt_range_deg}, spin "
                          f"{reach.spin_range_deg} deg): use orientations=fibonacci or another reach")
 

@@ -146,3 +146,18 @@ def test_each_step_names_the_grid_its_posterior_was_fitted_on(tmp_path):
     planning = json.loads((tmp_path / "planning.json").read_text())
     assert planning["posterior"]["resolution"] == 32  # the option asked for
     assert [(h["posterior_resolution"], h["posterior_slabs"]) for h in planning["history"]] == [(12, 12)] * 2
+
+
+def test_the_initial_dips_are_not_repeated(box_problem):
+    """The audit's case: ``planner=adaptive reach.tilt_range_deg=[0,0]`` (a rig that dips only vertically) dipped its 8
+    initial dips all along the vertical, 7 of them planes measured already, though the loop never plans a measured
+    direction again; then it stopped, ``candidates``. Now the initial dips keep each direction once, with a warning."""
+    from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
+
+    grid, _, dips = box_problem
+    dipped, acquire, reconstruct = _loop_callbacks(grid, dips)
+    with pytest.warns(UserWarning, match=r"7 of the 8 initial dips spread over the reach \(tilt 0-0 deg, spin 0-360 "
+                                         r"deg\) repeat an earlier direction .* the loop starts from the other 1"):
+        result = adaptive_loop(acquire, reconstruct, NextBestDipPlanner(resolution=10), Reach(tilt_range_deg=(0, 0)),
+                               AdaptiveSettings(budget=16, batch_size=8, initial_dips=8))
+    assert result.measurement.n_orientations == 1 and result.stop_reason == "candidates"

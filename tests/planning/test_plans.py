@@ -1,5 +1,7 @@
 """Dip plans (config group ``planner``): the fixed plan's directions and reach, the adaptive plan's loop."""
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -66,3 +68,14 @@ def test_the_adaptive_plan_needs_3d_and_a_solver():
         plan.run(lambda d: None, 3, None)
     with pytest.raises(ValueError, match="initial_dips <= budget"):
         AdaptivePlan(budget=4, initial_dips=8)
+
+
+def test_a_fixed_plan_over_a_reach_too_narrow_for_its_dips_says_they_repeat():
+    """The audit's case: ``reach.tilt_range_deg=[0,0] n_dips=41`` dipped 41 times along the vertical, no word."""
+    with pytest.warns(UserWarning, match=r"n_dips=41 over the reach \(tilt 0-0 deg, spin 0-360 deg\): 40 of the dips "
+                                         r"repeat an earlier direction \(within 0.5 deg\) .* 1 distinct direction\(s\) in all"):
+        directions = FixedPlan("fibonacci", 41).directions(3, Reach(tilt_range_deg=(0, 0)))
+    assert directions.shape == (41, 3)  # the plan asked for is kept
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        FixedPlan("fibonacci", 41).directions(3, AUTHORS_RIG)  # distinct directions: no word
