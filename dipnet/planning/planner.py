@@ -137,6 +137,15 @@ def repeated_directions(directions: torch.Tensor, tol_deg: float = MEASURED_DEG)
                     dtype=bool)
 
 
+def whole_number(name: str, value: Any) -> int:
+    """``value`` (option ``name``, a count) as an int; a ``ValueError`` naming the option unless it is a whole number
+    (``2.5`` was cut to 2 unsaid: ``planner.budget=40.7`` dipped 40 times)."""
+    if isinstance(value, (bool, str)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(value) or value != int(value):
+        raise ValueError(f"{name} must be a whole number, got {value!r} (2.5 is not cut to 2)")
+    return int(value)
+
+
 def _keyword_defaults(function: Callable[..., Any]) -> dict[str, Any]:
     """The defaults of ``function``'s keyword-only arguments."""
     return {name: p.default for name, p in inspect.signature(function).parameters.items() if p.kind is p.KEYWORD_ONLY}
@@ -179,7 +188,8 @@ class NextBestDipPlanner(Planner):
         if criterion not in CRITERIA:
             raise ValueError(f"unknown planning criterion {criterion!r}; choose one of {CRITERIA}")
         self.criterion = criterion
-        self.options = {"resolution": int(resolution), "n_samples": int(n_samples),
+        self.options = {"resolution": whole_number("resolution", resolution),
+                        "n_samples": whole_number("n_samples", n_samples),
                         "band_voxels": float(band_voxels), "floor": float(floor), "seed": int(seed)}
         check_posterior_options(self.options["resolution"], self.options["n_samples"], self.options["band_voxels"],
                                 self.options["floor"])  # before the first dip, not after the initial ones

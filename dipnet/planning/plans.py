@@ -23,7 +23,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import Reach, make_directions
 from dipnet.operators import DipOperator
 from dipnet.planning.adaptive import Acquire, AdaptiveSettings, adaptive_loop, warn_linear_loop_solver
-from dipnet.planning.planner import MEASURED_DEG, NextBestDipPlanner, Planner, repeated_directions
+from dipnet.planning.planner import MEASURED_DEG, NextBestDipPlanner, Planner, repeated_directions, whole_number
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,9 @@ class AdaptivePlan:
 
     def __init__(self, budget: int = 41, batch_size: int = 8, initial_dips: int = 8,
                  stop_uncertainty: float | None = None, planner: Planner | None = None) -> None:
-        self.settings = AdaptiveSettings(budget=int(budget), batch_size=int(batch_size), initial_dips=int(initial_dips),
+        self.settings = AdaptiveSettings(budget=whole_number("budget", budget),
+                                         batch_size=whole_number("batch_size", batch_size),
+                                         initial_dips=whole_number("initial_dips", initial_dips),
                                          stop_uncertainty=None if stop_uncertainty is None else float(stop_uncertainty))
         self.planner = planner or NextBestDipPlanner()
 

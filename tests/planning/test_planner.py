@@ -68,3 +68,11 @@ def test_the_planner_never_picks_a_measured_direction(box_problem):
     assert sorted(map(tuple, chosen.tolist())) == sorted(map(tuple, candidates[5:].tolist()))
     with pytest.raises(ValueError, match=r"asked for 4 new dips, but only 3 of the 8 candidates are not measured"):
         NextBestDipPlanner(resolution=10).next(measurement, recon, candidates, k=4, operator=operator)
+
+
+def test_the_posterior_grid_and_samples_must_be_whole_numbers():
+    """``planner.planner.resolution=24.5`` was cut to 24 unsaid."""
+    with pytest.raises(ValueError, match=r"resolution must be a whole number, got 24.5"):
+        NextBestDipPlanner(resolution=24.5)
+    with pytest.raises(ValueError, match=r"n_samples must be a whole number"):
+        NextBestDipPlanner(n_samples="64")

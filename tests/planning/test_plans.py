@@ -79,3 +79,11 @@ def test_a_fixed_plan_over_a_reach_too_narrow_for_its_dips_says_they_repeat():
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
         FixedPlan("fibonacci", 41).directions(3, AUTHORS_RIG)  # distinct directions: no word
+
+
+@pytest.mark.parametrize("option", ["budget", "batch_size", "initial_dips"])
+def test_a_count_of_the_loop_that_is_not_whole_is_refused(option):
+    """The audit's case: ``planner=adaptive planner.budget=40.7`` dipped 40 times, no word (``int()`` cut it)."""
+    with pytest.raises(ValueError, match=rf"{option} must be a whole number, got 7.5 \(2.5 is not cut to 2\)"):
+        AdaptivePlan(**{option: 7.5})
+    assert AdaptivePlan(budget=40.0).settings.budget == 40  # a whole float is the number
