@@ -103,6 +103,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
+from dipnet.core.counts import whole_number
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
 from dipnet.core.reconstruction import Reconstruction
@@ -135,15 +136,6 @@ def repeated_directions(directions: torch.Tensor, tol_deg: float = MEASURED_DEG)
     d = torch.as_tensor(directions, dtype=torch.float64)
     return np.array([i > 0 and bool(measured_candidates(d[i:i + 1], d[:i], tol_deg)[0]) for i in range(len(d))],
                     dtype=bool)
-
-
-def whole_number(name: str, value: Any) -> int:
-    """``value`` (option ``name``, a count) as an int; a ``ValueError`` naming the option unless it is a whole number
-    (``2.5`` was cut to 2 unsaid: ``planner.budget=40.7`` dipped 40 times)."""
-    if isinstance(value, (bool, str)) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not np.isfinite(value) or value != int(value):
-        raise ValueError(f"{name} must be a whole number, got {value!r} (2.5 is not cut to 2)")
-    return int(value)
 
 
 def _keyword_defaults(function: Callable[..., Any]) -> dict[str, Any]:

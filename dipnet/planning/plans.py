@@ -19,11 +19,12 @@ from typing import Any, Callable
 
 import torch
 
+from dipnet.core.counts import whole_number
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import Reach, make_directions
 from dipnet.operators import DipOperator
 from dipnet.planning.adaptive import Acquire, AdaptiveSettings, adaptive_loop, warn_linear_loop_solver
-from dipnet.planning.planner import MEASURED_DEG, NextBestDipPlanner, Planner, repeated_directions, whole_number
+from dipnet.planning.planner import MEASURED_DEG, NextBestDipPlanner, Planner, repeated_directions
 
 log = logging.getLogger(__name__)
 

@@ -33,6 +33,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from dipnet.core.grid import Grid
+from dipnet.core.counts import whole_number
 from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
@@ -511,9 +512,7 @@ class OptimisationSolver(Solver):
         if schedule not in SCHEDULES:
             raise ValueError(f"unknown schedule {schedule!r}; choose one of {SCHEDULES}")
         for name, value in (("iterations", iterations), ("window", window)):
-            if isinstance(value, (bool, str)) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
-                    or value != int(value) or value < 1:
-                raise ValueError(f"{name} must be a whole number >= 1, got {value!r} (2.5 is not cut to 2)")
+            whole_number(name, value, low=1)
         if isinstance(lr, (bool, str)) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf:
             raise ValueError(f"lr must be a positive, finite learning rate, got {lr!r}")
         priors = plain(priors or {})

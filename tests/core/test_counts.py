@@ -1,0 +1,22 @@
+import numpy as np
+import pytest
+
+from dipnet.core.counts import whole_number
+
+
+@pytest.mark.parametrize("value", [3, 3.0, np.int64(3), np.float32(3.0)])
+def test_a_whole_number_of_any_numeric_type_is_an_int(value):
+    assert whole_number("iterations", value) == 3
+    assert type(whole_number("iterations", value)) is int
+
+
+@pytest.mark.parametrize("value", [2.5, True, "3", None, float("nan"), float("inf")])
+def test_anything_else_is_refused_naming_the_option(value):
+    with pytest.raises(ValueError, match=r"budget must be a whole number, got"):
+        whole_number("budget", value)
+
+
+def test_a_lower_bound_is_named():
+    assert whole_number("window", 1, low=1) == 1
+    with pytest.raises(ValueError, match=r"window must be a whole number >= 1, got 0"):
+        whole_number("window", 0, low=1)
