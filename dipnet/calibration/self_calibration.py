@@ -302,6 +302,7 @@ def _section_report(report: CalibrationReport, model: ProfileModel, state: State
         report.undetermined["cross_section_mm2"] = why
         report.estimates["cross_section_mm2"] = _get(state, "cross_section_mm2", model.nominal_area)
         report.intervals.pop("cross_section_mm2")
+        report.caveats.pop("cross_section_mm2")  # "estimated through the shape prior, its interval widened": not so
         report.shape_motion["cross_section_mm2"] = SHAPE_MOTION["cross_section_mm2"]
     return state
 

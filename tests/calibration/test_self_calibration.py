@@ -375,6 +375,20 @@ def test_a_thin_shape_without_an_interior_is_not_read_as_diluted():
     assert "cross_section_mm2" in result.report.undetermined and result.geometry.cross_section_mm2 is None
 
 
+def test_a_section_kept_at_the_configured_value_is_not_also_called_estimated():
+    """A section named undetermined and kept was also warned about as "estimated through the shape prior, its
+    interval widened by 11.4 %" (its caveat, written to self_calibration.json too): two warnings that contradict each
+    other. Only the reason it is kept is left."""
+    grid = Grid(16, extent=80.0)
+    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(24), tank=Tank(60000.0), progress=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        result = self_calibrate(raw, grid, _ThinField(grid), ("cross_section_mm2",), **ANY_SETTING)
+    assert "cross_section_mm2" in result.report.undetermined and "cross_section_mm2" not in result.report.caveats
+    said = [str(w.message) for w in caught if "cross_section_mm2" in str(w.message)]
+    assert len(said) == 1 and "not determined by these dips, kept at 60000" in said[0]
+
+
 @pytest.mark.parametrize("max_tilt", [35.0, 65.0])
 def test_the_shapes_spread_into_a_wide_cone_stays_in_the_sections_interval(max_tilt):
     """A ball dipped at tilts up to 35 deg (a 55 deg band no dip reaches) came out with
