@@ -296,6 +296,11 @@ class Reach:
         object.__setattr__(self, "spin_range_deg", tuple(float(v) for v in self.spin_range_deg))
         reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)  # validates
 
+    def ranges(self) -> str:
+        """The tilt and spin ranges as a message names them: ``"tilt 0-35 deg, spin 0-360 deg"``."""
+        (t0, t1), (s0, s1) = self.tilt_range_deg, self.spin_range_deg
+        return f"tilt {t0:g}-{t1:g} deg, spin {s0:g}-{s1:g} deg"
+
     def candidates(self) -> torch.Tensor:
         """The candidate directions ``(C, 3)`` (:func:`reachable_candidates`)."""
         return reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)

@@ -144,9 +144,8 @@ def _warn_few_candidates(left: int, wanted: int, n_dips: int, n_candidates: int,
 def _warn_repeated_initial(repeated: int, planned: int, reach: Reach) -> None:
     """Warn that ``repeated`` of the ``planned`` initial directions repeat an earlier one (within
     :data:`~dipnet.planning.planner.MEASURED_DEG`), so the loop starts from the others alone."""
-    message = (f"planner=adaptive: {repeated} of the {planned} initial dips spread over the reach (tilt "
-               f"{reach.tilt_range_deg[0]:g}-{reach.tilt_range_deg[1]:g} deg, spin {reach.spin_range_deg[0]:g}-"
-               f"{reach.spin_range_deg[1]:g} deg) repeat an earlier direction (within {MEASURED_DEG:g} deg), which "
+    message = (f"planner=adaptive: {repeated} of the {planned} initial dips spread over the reach ({reach.ranges()}) "
+               f"repeat an earlier direction (within {MEASURED_DEG:g} deg), which "
                f"measures the same planes again: the loop starts from the other {planned - repeated}; a wider reach "
                f"gives more directions")
     log.warning(message)

@@ -67,9 +67,8 @@ class FixedPlan:
             directions = reach.uniform(self.n_dips)
             repeated = int(repeated_directions(directions).sum())
             if repeated:
-                message = (f"n_dips={self.n_dips} over the reach (tilt {reach.tilt_range_deg[0]:g}-"
-                           f"{reach.tilt_range_deg[1]:g} deg, spin {reach.spin_range_deg[0]:g}-"
-                           f"{reach.spin_range_deg[1]:g} deg): {repeated} of the dips repeat an earlier direction "
+                message = (f"n_dips={self.n_dips} over the reach ({reach.ranges()}): {repeated} of the dips repeat "
+                           f"an earlier direction "
                            f"(within {MEASURED_DEG:g} deg) and measure the same planes again, "
                            f"{self.n_dips - repeated} distinct direction(s) in all; a wider reach gives more")
                 log.warning(message)

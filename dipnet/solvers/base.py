@@ -106,8 +106,8 @@ def on_operator_slabs(measurement: DipMeasurement, operator: DipOperator) -> Dip
     they are there already, else a copy resampled once, its per-slab ``sigma`` with it (:func:`measured_sigma`).
     Solvers that read the profiles at every stage or round call this first, so a volume
     lost beyond the operator's slabs is warned about once per solve."""
-    profiles = measured_profiles(measurement, operator)
-    if torch.equal(profiles, measurement.profiles) and _same_slabs(measurement, operator):
+    profiles = measured_profiles(measurement, operator)  # checks the rows are the operator's dips
+    if _same_slabs(measurement, operator):
         return measurement
     return replace(measurement, profiles=profiles, slab_thickness=operator.slab_thickness,
                    offsets=operator.slab_edges()[:1].to(measurement.offsets).expand(operator.n_orientations).clone(),
