@@ -140,7 +140,7 @@ from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allo
                                             object_slabs, reading_quantum)
 from dipnet.preprocessing.level_trend import level_fall
 from dipnet.preprocessing.symmetry_moments import MISFIT_LIMIT, P_LIMIT, SymmetryFit, group_closure, symmetry_fit
-from dipnet.preprocessing.validation import beyond_ball_message, object_reach
+from dipnet.preprocessing.validation import NOISE_LEAK_MAX, beyond_ball_message, object_reach
 from dipnet.solvers.base import measured_profiles, measured_sigma
 from dipnet.solvers.optimize import EmptySupportError, support_hull
 from dipnet.solvers.priors import symmetry_maps
@@ -179,8 +179,6 @@ THRESHOLD_GAIN_MAX = 2.0
 #: A stated noise above this many times the readings' own is named (correct simulations: 0.86-1.30 at 1 mm steps,
 #: see the module docstring), and one below its inverse when the readings' estimate holds their noise alone
 NOISE_RATIO_MAX = 3.0
-#: The readings' noise estimate holds their noise alone when it grows by less than this with the step doubled
-NOISE_LEAK_MAX = 2.0
 
 
 class DataConsistencyWarning(UserWarning):

@@ -45,6 +45,11 @@ differences, :func:`~dipnet.preprocessing.validation.reading_noise`) goes into
 noise over it into ``metadata["reading_noise_ratio"]`` (``None`` when no noise is stated), which the
 consistency check compares; ``metadata["reading_noise_leak"]``
 (:func:`~dipnet.preprocessing.validation.reading_noise_leak`) says whether that estimate holds the rise too.
+When a dip states no noise and the estimate holds the noise alone (a leak below
+:data:`~dipnet.preprocessing.validation.NOISE_LEAK_MAX`), ``metadata["readings_slab_sigma"]`` is the per-slab
+sigma it gives (mm^3: the volume of one reading's noise times the slab gain ``sqrt(diag(S D D^T S^T))``, ``sqrt(2)``
+unsmoothed), which the optimising solvers take for an unstated noise (:func:`dipnet.solvers.base.noise_sigma`);
+else ``None``.
 """
 
 from __future__ import annotations
@@ -68,7 +73,7 @@ from dipnet.core.strict_json import finite_or_none
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
 from dipnet.preprocessing.level_trend import MIN_TAIL_READINGS, least_squares_slope, level_drop, tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
-from dipnet.preprocessing.validation import reading_noise, reading_noise_leak
+from dipnet.preprocessing.validation import NOISE_LEAK_MAX, reading_noise, reading_noise_leak
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +226,10 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                                  slope if np.isfinite(slope) else _end_slope(v))
              for (t, v), s, slope in zip(curves, sigmas, slopes)]
     leak = reading_noise_leak(readings)
+    # no stated noise: the slab noise the readings' scatter gives, when their estimate holds the noise alone
+    unit = float(np.median(_unit_slab_sigma(len(edges) - 1, smooth)))
+    readings_sigma = (scale * read_sigma * unit if any(s is None for s in stated) and read_sigma > 0
+                      and leak < NOISE_LEAK_MAX else None)  # NaN compares False
 
     prof = np.stack(profiles)
     if smooth:
@@ -243,6 +252,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                       None if header.resolution is None else scale * float(header.resolution),
                   "reading_noise_volume": finite_or_none(scale * read_sigma),
                   "reading_noise_ratio": finite_or_none(read_ratio), "reading_noise_leak": finite_or_none(leak),
+                  "readings_slab_sigma": finite_or_none(readings_sigma),
                   "readings": report.to_json()})
 
 

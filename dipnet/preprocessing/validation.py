@@ -66,6 +66,9 @@ _MAD = 1.4826  # MAD -> standard deviation for Gaussian data
 
 #: Gain of the third difference ``[-1, 3, -3, 1]`` on white noise: ``sqrt(1 + 9 + 9 + 1)``.
 _THIRD_DIFFERENCE_GAIN = math.sqrt(20.0)
+#: The readings' noise estimate holds their noise alone when it grows by less than this with the step doubled
+#: (:func:`reading_noise_leak`)
+NOISE_LEAK_MAX = 2.0
 
 
 def reading_noise(readings: list[np.ndarray], stated: list[float | None], quantum: float = 0.0

@@ -30,7 +30,8 @@ def _exact_slabs(edges: np.ndarray = EDGES) -> np.ndarray:
     return A_PRISM * np.clip(hi - lo, 0.0, None)
 
 
-def _scan(k: int = 1, sigma: float = 0.0, quantity: str = "level_mm", seed: int = 0, **header) -> RawScan:
+def _scan(k: int = 1, sigma: float = 0.0, quantity: str = "level_mm", seed: int = 0, state: bool = True,
+          **header) -> RawScan:
     stage = np.arange(0.0, 80.0, 1.0)
     rise = _prism_rise(stage)
     rng = np.random.default_rng(seed)
@@ -40,7 +41,7 @@ def _scan(k: int = 1, sigma: float = 0.0, quantity: str = "level_mm", seed: int 
     for i in range(k):
         ideal = 150.0 + rise if quantity == "level_mm" else 1e-3 * AREA * rise
         values = ideal + rng.normal(0.0, sigma, stage.shape) if sigma else ideal
-        meta = {"noise_sigma": sigma} if sigma else {}
+        meta = {"noise_sigma": sigma} if sigma and state else {}
         scans.append(OrientationScan(k=i, direction=[0.0, 0.0, 1.0], meta=meta, stage_mm=stage, values=values,
                                      time_s=2.0 * np.arange(len(stage)), complete=True))
     return RawScan(header=head, orientations=scans)
@@ -150,6 +151,23 @@ def test_noise_monotone_output_and_sigma():
     serr = smoothed.profiles.numpy()[:, inner] - _exact_slabs()[inner]
     assert serr.std(axis=0).mean() == pytest.approx(smoothed.sigma[0, inner].mean().item(), rel=0.25)
     np.testing.assert_allclose(smoothed.profiles.sum(1).numpy(), m.profiles.sum(1).numpy(), rtol=1e-12)
+
+
+def test_an_unstated_noise_is_measured_from_the_readings():
+    """No dip states its noise: ``metadata["readings_slab_sigma"]`` is the per-slab sigma the readings' own
+    scatter gives (what a stated noise would give, smoothed too); ``None`` when the noise is stated or the
+    readings hold none (the prism's exact rise)."""
+    sigma_r = 0.005
+    stated = preprocess(_scan(k=40, sigma=sigma_r, seed=1), edges=EDGES)
+    unstated = preprocess(_scan(k=40, sigma=sigma_r, seed=1, state=False), edges=EDGES)
+    assert stated.metadata["readings_slab_sigma"] is None and unstated.sigma is None
+    assert unstated.metadata["reading_noise_leak"] < 2
+    assert unstated.metadata["readings_slab_sigma"] == pytest.approx(np.sqrt(2.0) * AREA * sigma_r, rel=0.1)
+    smoothed = preprocess(_scan(k=40, sigma=sigma_r, seed=1), edges=EDGES, smooth=True)
+    smoothed_unstated = preprocess(_scan(k=40, sigma=sigma_r, seed=1, state=False), edges=EDGES, smooth=True)
+    assert smoothed_unstated.metadata["readings_slab_sigma"] == pytest.approx(
+        float(smoothed.sigma[0, 20]), rel=0.1)
+    assert preprocess(_scan(k=4), edges=EDGES).metadata["readings_slab_sigma"] is None
 
 
 def test_quantum_enters_sigma():
