@@ -38,7 +38,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "prior_weight_noise_residual": ("run", "weight rule: relative residual of the noise alone"),
     "prior_weight_target_residual": ("run", "weight rule: residual aimed at (tau x the noise's)"),
     "prior_weight_residual_reached": ("run", "weight rule: residual of the result"),
-    "prior_weight_noise_source": ("run", "weight rule: noise from the measurement's sigma or estimated"),
+    "prior_weight_noise_source": ("run", "weight rule: noise from the measurement's sigma (stated), the readings' own scatter, or "
+                                  "estimated from the profiles"),
     "prior_rounds": ("run", "plug-and-play rounds run, of the most allowed"),
     "prior_rounds_reason": ("run", "why the rounds ended there"),
     "threshold": ("run", "occupancy level of the binary shape and its surface"),

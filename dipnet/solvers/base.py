@@ -5,6 +5,7 @@ Solvers never read files or configs; scripts and Hydra build them.
 
 from __future__ import annotations
 
+import math
 import numbers
 from abc import ABC, abstractmethod
 from dataclasses import replace
@@ -99,6 +100,26 @@ def measured_sigma(measurement: DipMeasurement, operator: DipOperator) -> torch.
     if measurement.sigma is None or _same_slabs(measurement, operator):
         return measurement.sigma
     return measurement.resampled_sigma(operator.slab_edges())
+
+
+def noise_sigma(measurement: DipMeasurement, operator: DipOperator) -> tuple[torch.Tensor | None, str]:
+    """``(sigma, source)``: the noise sigma the solvers' data term and weight rules take, on the operator's slabs
+    (``(K, M)`` float64 mm^3, or ``None``).
+
+    ``source`` is ``"sigma"`` for a stated noise (:func:`measured_sigma`); ``"readings"`` when none is stated but
+    preprocessing found the readings' own scatter to hold their noise alone (``metadata["readings_slab_sigma"]``,
+    :mod:`dipnet.preprocessing.preprocess`; 0.86-1.30 of the true noise on correct simulations): the same sigma on
+    every slab, a slab being the difference of two cumulative readings whatever its width; ``"estimated"`` with
+    neither (``None``: the weight rules then estimate it from the profiles, which under-reads at fine slabs).
+    """
+    sigma = measured_sigma(measurement, operator)
+    if sigma is not None:
+        return sigma, "sigma"
+    reading = measurement.metadata.get("readings_slab_sigma")
+    if isinstance(reading, numbers.Real) and not isinstance(reading, bool) and math.isfinite(reading) and reading > 0:
+        shape = (operator.n_orientations, operator.n_slabs)
+        return torch.full(shape, float(reading), dtype=torch.float64), "readings"
+    return None, "estimated"
 
 
 def on_operator_slabs(measurement: DipMeasurement, operator: DipOperator) -> DipMeasurement:

@@ -38,11 +38,11 @@ from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, checked_flag, checked_threshold, measured_profiles, measured_sigma
+from dipnet.solvers.base import Solver, checked_flag, checked_threshold, measured_profiles, noise_sigma
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors
-from dipnet.solvers.weights import WeightRule, auto_names, noise_level, with_weight
+from dipnet.solvers.weights import KNOWN_NOISE, WeightRule, auto_names, noise_level, with_weight
 
 log = logging.getLogger(__name__)
 
@@ -290,10 +290,11 @@ def slab_support(target: torch.Tensor, edges: torch.Tensor, rel_tol: float, slac
     return lo, hi
 
 
-def target_and_sigma(measurement: DipMeasurement, operator: DipOperator) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Measured slab volumes on the operator's slabs ``(K, M)`` and their noise sigma (``None``
-    when unknown; resampled with the profiles when the slabs are not the operator's: :func:`measured_sigma`)."""
-    return measured_profiles(measurement, operator), measured_sigma(measurement, operator)
+def target_and_sigma(measurement: DipMeasurement, operator: DipOperator
+                     ) -> tuple[torch.Tensor, torch.Tensor | None, str]:
+    """Measured slab volumes on the operator's slabs ``(K, M)``, their noise sigma (``None`` when unknown) and
+    its source (``"sigma"``, ``"readings"`` or ``"estimated"``: :func:`~dipnet.solvers.base.noise_sigma`)."""
+    return measured_profiles(measurement, operator), *noise_sigma(measurement, operator)
 
 
 def volume_fraction(measurement: DipMeasurement, operator: DipOperator) -> float:
@@ -562,7 +563,7 @@ class OptimisationSolver(Solver):
                 return float(data(occupancy()))
 
         first = residual()
-        weight = rule.next_weight(rule.start, first, problem.noise[0], may_raise=problem.noise[1] == "sigma")
+        weight = rule.next_weight(rule.start, first, problem.noise[0], may_raise=problem.noise[1] in KNOWN_NOISE)
         priors, history = problem.priors, {}
         if weight != rule.start:
             priors = build_priors(with_weight(problem.spec, weight), problem.volume_fraction)
@@ -579,15 +580,15 @@ class OptimisationSolver(Solver):
         """Data term (fitting a gain with ``fit_gain``, default :attr:`fit_gain`), priors (those of
         ``priors``, default :attr:`priors`), measured volume fraction and support mask for ``operator``."""
         spec = self.priors if priors is None else priors
-        target, sigma = target_and_sigma(measurement, operator)
+        target, sigma, source = target_and_sigma(measurement, operator)
         fraction = volume_fraction(measurement, operator)
         support = self.support(target, operator, operator.grid)
         rel_tol = self.hull_tol if self.hull_tol is not None else 0.005
         data = DataTerm(operator, target, sigma, fit_gain=self.fit_gain if fit_gain is None else fit_gain,
                         noise_model=self.noise_model, white_share=self.white_share, rel_tol=rel_tol)
-        noise = noise_level(target, sigma, data.weight, rel_tol)
+        noise = (noise_level(target, sigma, data.weight, rel_tol)[0], source)
         if data.expected_noise is not None:  # the correlated model's own expectation of the noise's term
-            noise = (data.expected_noise, noise[1])
+            noise = (data.expected_noise, source)
         built = build_priors(with_weight(spec, self.weight_rule.start), fraction)
         _refuse_other_operators(built, operator)
         return Problem(data, built, fraction, support, noise, spec)

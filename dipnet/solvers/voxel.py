@@ -49,7 +49,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.base import checked_flag, on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 from dipnet.solvers.priors import build_priors
-from dipnet.solvers.weights import prior_options, with_weight
+from dipnet.solvers.weights import KNOWN_NOISE, prior_options, with_weight
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP] before taking logits
 MIN_COARSE_N = 8
@@ -170,7 +170,7 @@ class VoxelSolver(OptimisationSolver):
         if self.rounds_tau is None:
             return record
         goal = self.rounds_tau**2 * max(noise[0], 0.0)
-        known, within = noise[1] == "sigma", residual <= goal
+        known, within = noise[1] in KNOWN_NOISE, residual <= goal
         if done < self.min_rounds:
             reason = f"the first min_rounds={self.min_rounds} rounds always run"
         elif not known:

@@ -212,6 +212,11 @@ def test_the_anchor_weight_follows_the_noise_by_the_discrepancy_rule(weights16):
     estimated = VoxelSolver(**opts).solve(DipMeasurement(op.directions, noisy, op.slab_thickness, edges), op)
     assert estimated.info["weight_rule"]["noise_source"] == "estimated"
     assert estimated.info["prior_weights"]["learned"] == 1.0 and estimated.info["weight_rule"]["refit_steps"] == 0
+    # no stated noise, but the readings' own scatter (preprocessing's readings_slab_sigma): as the stated sigma
+    readings = VoxelSolver(**opts).solve(DipMeasurement(op.directions, noisy, op.slab_thickness, edges,
+                                                        metadata={"readings_slab_sigma": sigma}), op)
+    assert readings.info["weight_rule"]["noise_source"] == "readings"
+    assert readings.info["prior_weights"]["learned"] == pytest.approx(known.info["prior_weights"]["learned"])
 
 
 def test_each_round_anchors_to_the_denoised_last_round(weights16, monkeypatch):

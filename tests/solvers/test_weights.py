@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -74,6 +75,24 @@ def test_an_estimated_noise_never_raises_the_weight(clean):
     rule = VoxelSolver(progress=False).solve(meas, op).info["weight_rule"]
     assert rule["noise_source"] == "estimated" and rule["noise_residual"] > 0
     assert rule["weight"] <= WeightRule().start
+
+
+def test_an_unstated_noise_is_taken_from_the_readings(clean):
+    """No stated sigma, but the per-slab sigma preprocessing found in the readings' own scatter
+    (``metadata["readings_slab_sigma"]``): the weight the stated sigma gets, where the profiles' own estimate may
+    only lower it; a value that is no positive number is not taken."""
+    _, op, meas = clean
+    stated = noisy(meas, 0.1)
+    sigma = float(stated.sigma.max())
+    known = VoxelSolver(progress=False).solve(stated, op).info["weight_rule"]
+    readings = VoxelSolver(progress=False).solve(
+        replace(stated, sigma=None, metadata={"readings_slab_sigma": sigma}), op).info["weight_rule"]
+    assert readings["noise_source"] == "readings" and readings["weight"] == pytest.approx(known["weight"], rel=1e-6)
+    assert readings["noise_residual"] == pytest.approx(known["noise_residual"], rel=1e-6)
+    for bad in (None, 0.0, -1.0, float("nan"), True, "3"):
+        unknown = VoxelSolver(progress=False).solve(replace(stated, sigma=None, metadata={"readings_slab_sigma": bad}),
+                                                    op).info["weight_rule"]
+        assert unknown["noise_source"] == "estimated" and unknown["weight"] <= WeightRule().start, bad
 
 
 def test_a_fixed_weight_is_honoured(clean):
