@@ -5,7 +5,8 @@ For every mesh in ``--meshes-dir`` (scaled to ``--fill`` of the working ball) on
 ``--n``^3 grid, every orientation budget (Fibonacci hemisphere) and every noise level, the
 dips are simulated from the mesh geometry itself (:func:`dipnet.simulator.simulate.simulate_measurement`,
 a level sensor with exact readings (``--quantum-mm 0``), noise-free or with white noise at
-``--snr`` dB) and each solver reconstructs on the ``auto``
+``--snr`` dB, which the scan states; ``--noise unstated``: the same noise, the scan preprocessed again
+without its statement, so the solvers take the noise from the readings) and each solver reconstructs on the ``auto``
 operator. Prints one table (IoU, Chamfer / bbox diagonal, Hausdorff / bbox diagonal, wall
 time, the TV weight the solver used), the means per solver / budget / noise, the headline ratio
 (best optimiser's mean Chamfer at the smallest budget / minnorm's at the largest, noise-free) and
@@ -70,6 +71,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.metrics import evaluate
 from dipnet.experiments.prior_pairs import file_digest
 from dipnet.operators import make_operator
+from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
@@ -104,6 +106,9 @@ SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitS
 TRUTH_SUPERSAMPLE = 3
 OPTIMISERS = ("voxel", "implicit", "dip", "prior", "implicit_prior")
 DEFAULT_MESHES = MESHES_DIR
+#: ``--noise`` cases: noise-free; --snr dB that the scan states; the same noise unstated (its statement removed
+#: from the raw scan before preprocessing, as a sensor without a noise model gives).
+NOISES = ("clean", "snr", "unstated")
 #: The ``--meshes`` name that selects no mesh file (with ``--generated``: the generated shapes alone).
 NO_MESH = "none"
 
@@ -120,8 +125,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--dips", nargs="+", default=[], metavar="SOLVER=K[,K...]",
                    help="numbers of dips per solver, e.g. voxel=41 minnorm=410 (replaces --budgets and "
                         "--solvers: only the solvers named run, each at its own budgets)")
-    p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=["clean", "snr"],
-                   help="noise-free and/or level-sensor noise at --snr dB")
+    p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=NOISES,
+                   help="noise-free and/or level-sensor noise at --snr dB, stated (snr) or not (unstated)")
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR in dB for --noise snr")
     p.add_argument("--quantum-mm", type=float, default=0.0,
                    help="level-sensor resolution in mm (0: exact readings, so 'clean' is noise-free; the "
@@ -247,7 +252,7 @@ def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
     """``(measurement, truth occupancy bool, shape)`` of the shape ``make_shape()`` called ``name``."""
     shape = make_shape()
     code = simulation_digest()  # a rerun after a change to the simulator simulates afresh
-    tag = (f"{name}_n{grid.n}_k{k}_{noise}{args.snr if noise == 'snr' else ''}_q{args.quantum_mm}"
+    tag = (f"{name}_n{grid.n}_k{k}_{noise}{'' if noise == 'clean' else args.snr}_q{args.quantum_mm}"
            f"_f{args.fill}_s{args.seed}_code{code}")
     meas_file = args.cache / f"{tag}.npz"
     truth_file = args.cache / f"{name}_n{grid.n}_f{args.fill}_code{code}_truth.npy"
@@ -255,9 +260,11 @@ def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
     if meas_file.is_file():
         measurement = DipMeasurement.load(meas_file)
     else:
-        sensor = LevelSensor(snr_db=args.snr if noise == "snr" else None, quantum_mm=args.quantum_mm, seed=args.seed)
-        _, measurement = simulate_measurement(shape, fibonacci_hemisphere(k), grid=grid, sensor=sensor,
-                                              seed=args.seed, progress=False)
+        sensor = LevelSensor(snr_db=None if noise == "clean" else args.snr, quantum_mm=args.quantum_mm, seed=args.seed)
+        raw, measurement = simulate_measurement(shape, fibonacci_hemisphere(k), grid=grid, sensor=sensor,
+                                                seed=args.seed, progress=False)
+        if noise == "unstated":
+            measurement = preprocess(raw.without_stated_noise(), grid=grid, t_start="metadata")
         write_whole(meas_file, measurement.save)
     if truth_file.is_file():
         truth = np.load(truth_file)

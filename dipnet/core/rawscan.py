@@ -396,6 +396,13 @@ class RawScan:
             return torch.zeros(0, self.header.ndim, dtype=torch.float64)
         return torch.from_numpy(np.stack([o.unit_direction for o in scans]))
 
+    def without_stated_noise(self) -> RawScan:
+        """A copy whose header and orientations state no reading noise (``noise_sigma``): the scan of a sensor
+        whose noise nobody gave, as the authors' CSV is (preprocessing then measures it from the readings)."""
+        orientations = [replace(o, meta={key: value for key, value in o.meta.items() if key != "noise_sigma"})
+                        for o in self.orientations]
+        return replace(self, header=replace(self.header, noise_sigma=None), orientations=orientations)
+
     def save(self, path: str | Path, fsync: bool = False) -> Path:
         """Write the whole scan to ``path`` (overwriting it) in the JSON Lines format."""
         from dipnet.core.rawscan_writer import RawScanWriter  # the writer imports this module

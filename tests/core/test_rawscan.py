@@ -62,6 +62,18 @@ def test_file_round_trip(tmp_path):
                      "orientation", "reading", "reading"]
 
 
+def test_a_copy_without_the_stated_noise_keeps_everything_else():
+    raw = _scan()
+    raw.header = _header(noise_sigma=0.01)
+    raw.orientations[1].meta = {"noise_sigma": 0.03, "t_start_mm": -40.0}
+    quiet = raw.without_stated_noise()
+    assert quiet.header.noise_sigma is None and [o.meta for o in quiet.orientations] == [{}, {"t_start_mm": -40.0}]
+    assert raw.header.noise_sigma == 0.01 and raw.orientations[0].meta == {"noise_sigma": 0.02}  # the original kept
+    for a, b in zip(raw.orientations, quiet.orientations):
+        np.testing.assert_array_equal(a.values, b.values)
+        assert (a.k, a.flags, a.complete) == (b.k, b.flags, b.complete)
+
+
 def test_direction_from_rig_angles():
     scan = _scan()
     np.testing.assert_allclose(scan.orientations[1].unit_direction, rig_to_direction(30.0, 40.0)[0].numpy())

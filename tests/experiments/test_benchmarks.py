@@ -234,6 +234,22 @@ def test_from_json_refuses_a_case_given_twice(tmp_path, capsys):
     assert len(bench.main(["--from-json", str(tmp_path / "n16.json"), str(tmp_path / "bunny.json")])) == 4
 
 
+def test_the_quality_bench_unstated_noise_is_the_stated_cases_noise_left_to_the_readings(tmp_path):
+    """``--noise unstated``: the scan of ``--noise snr`` preprocessed without its noise statement, so its
+    measurement holds no sigma and the solvers take the readings' (``readings_slab_sigma``) instead."""
+    bench = load_script("bench_quality")
+    args = bench.parse_args(["--cache", str(tmp_path), "--n", "16", "--noise", "unstated"])
+    grid = bench.Grid(16)
+    stated, _, _ = bench.case_data(args, MESHES_DIR / "torus.ply", grid, 6, "snr")
+    unstated, _, _ = bench.case_data(args, MESHES_DIR / "torus.ply", grid, 6, "unstated")
+    assert stated.sigma is not None and stated.metadata["readings_slab_sigma"] is None
+    assert unstated.sigma is None
+    assert unstated.metadata["readings_slab_sigma"] == pytest.approx(float(stated.sigma.median()), rel=0.3)
+    np.testing.assert_allclose(unstated.profiles.numpy(), stated.profiles.numpy(), rtol=0,
+                               atol=1e-3 * float(stated.profiles.max()))
+    assert len(list(tmp_path.glob("*_unstated30.0_*.npz"))) == 1
+
+
 def test_the_quality_cache_is_keyed_by_the_mesh_files_bytes(tmp_path):
     """Two ``--meshes-dir`` holding a file of the same name (or one file edited): the second run was handed the
     first's simulated dips and truth (a bunny scored as the torus: IoU 0.667 and Chamfer 0.1099 for its own 0.583
