@@ -24,6 +24,7 @@ import logging
 import math
 import numbers
 import time
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import contextmanager
 from typing import NamedTuple
@@ -599,13 +600,22 @@ class OptimisationSolver(Solver):
 
     def check_priors(self, operator: DipOperator) -> None:
         """Refuse ``operator`` when a prior of any of :meth:`prior_specs` was made for another grid or operator
-        (the learned prior's weights), before a warm start or a first round spends minutes on it.
+        (the learned prior's weights), before a warm start or a first round spends minutes on it; warn once of
+        each prior's plan warning (:meth:`~dipnet.solvers.learned.LearnedPrior.plan_warning`: dips unlike those the
+        weights were trained on).
 
         Raises:
             PriorMismatchError: see :meth:`~dipnet.solvers.learned.LearnedPrior.check_operator`.
         """
+        said = set()
         for spec in self.prior_specs():
-            _refuse_other_operators(build_priors(with_weight(spec, self.weight_rule.start), 1.0), operator)
+            built = build_priors(with_weight(spec, self.weight_rule.start), 1.0)
+            _refuse_other_operators(built, operator)
+            for _, _, module in built:
+                message = module.plan_warning(operator.directions) if hasattr(module, "plan_warning") else None
+                if message is not None and message not in said:
+                    said.add(message)
+                    warnings.warn(message, stacklevel=2)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),

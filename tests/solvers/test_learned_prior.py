@@ -3,12 +3,14 @@ end-to-end reconstruction with the shipped weights."""
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
-from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.orientations import Reach, fibonacci_hemisphere
 from dipnet.evaluation.consistency import DataConsistencyWarning, check_consistency
 from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, PriorWeightsError, save_weights
 from dipnet.operators import make_operator
@@ -32,6 +34,31 @@ def small_problem() -> tuple:
 def weights16(tmp_path):
     """A randomly perturbed (not identity) denoiser for a 16^3 grid."""
     return save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+
+
+def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path):
+    """Weights trained on 41 Fibonacci-hemisphere dips (their meta's ``config.dips``): a rig that tilts 0-35 deg
+    leaves 55 deg about the horizontal unmeasured, which the solver warns of once (two priors specs share
+    the weights); the training plan itself, 2D dips and weights that do not name their plan give no warning."""
+    weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt",
+                           {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41}})
+    prior = LearnedPrior(weights)
+    tilted = Reach(tilt_range_deg=(0.0, 35.0)).uniform(41)
+    message = prior.plan_warning(tilted)
+    assert "41 dips over the whole hemisphere" in message and "leave 55 deg unmeasured" in message
+    assert prior.plan_warning(fibonacci_hemisphere(41)) is None
+    assert prior.plan_warning(fibonacci_hemisphere(12)) is None  # fewer dips, the same hemisphere
+    assert prior.plan_warning(torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)) is None
+    assert LearnedPrior(save_weights(perturbed_denoiser(0.2), tmp_path / "bare.pt",
+                                     {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})).plan_warning(tilted) is None
+    grid = Grid(16, 3)
+    learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned, later_priors=learned)
+    for directions, expected in ((tilted, 1), (fibonacci_hemisphere(41), 0)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solver.check_priors(make_operator(grid, directions, 16))
+        assert [str(w.message) for w in caught] == [message] * expected
 
 
 def test_value_and_gradient_are_red(weights16):
