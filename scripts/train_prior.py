@@ -91,6 +91,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.add_argument("--" + name.replace("_", "-"), type=int, default=getattr(defaults, name))
     for name in ("snr_db", "fill", "lr", "max_minutes"):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=getattr(defaults, name))
+    p.add_argument("--max-tilt-deg", type=float, default=defaults.max_tilt_deg,
+                   help="the pairs' dips tilted at most this far from the vertical (90: the whole hemisphere, the "
+                        "shipped weights; e.g. 35 for a rig that tilts 0-35 deg, reach=authors_rig)")
     p.add_argument("--noise-model", choices=("independent", "correlated"), default=defaults.noise_model,
                    help="the noise model of the noisy pairs' voxel solve and of stage 2's round "
                         "(correlated: as solver=voxel_learned uses it)")

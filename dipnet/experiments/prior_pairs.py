@@ -3,7 +3,8 @@ or of mesh files.
 
 For each seed and each noise level, the procedural solid (:mod:`dipnet.shapes.procedural`), or a
 mesh file turned by the seed's random rotation (:func:`rotated_mesh`), its farthest point at ``fill``
-of the working ball, is dipped along ``dips`` Fibonacci directions by
+of the working ball, is dipped along ``dips`` Fibonacci directions (over the hemisphere, or with ``max_tilt_deg``
+below 90 spread over the tilts a rig reaches, :func:`plan_directions`) by
 the simulator with the benchmark's level sensor (:func:`dipnet.simulator.simulate.simulate_measurement`,
 exact readings when noise-free, white noise at ``snr_db`` otherwise, both with ``quantum_mm=0``),
 and the voxel solver (its defaults, so the data-chosen TV weight; ``solver_options`` override)
@@ -37,7 +38,7 @@ from tqdm.auto import tqdm
 
 from dipnet.core.code_version import SIMULATION_PACKAGES, source_digest
 from dipnet.core.grid import Grid
-from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.orientations import Reach, fibonacci_hemisphere
 from dipnet.operators import make_operator
 from dipnet.shapes.mesh import MeshShape, from_trimesh, load_mesh
 from dipnet.shapes.procedural import generated_shape
@@ -62,8 +63,16 @@ def rotated_mesh(path: str | Path, seed: int, radius: float) -> MeshShape:
     return from_trimesh(mesh, radius=radius, name=f"{Path(path).stem}-{seed}", source=str(path))
 
 
+def plan_directions(dips: int, max_tilt_deg: float = 90.0) -> torch.Tensor:
+    """The ``(dips, 3)`` directions of the pairs' plan: the Fibonacci hemisphere, or for ``max_tilt_deg`` below 90 the
+    nearly uniform plan of a rig that tilts 0 to ``max_tilt_deg`` (:meth:`~dipnet.core.orientations.Reach.uniform`)."""
+    if max_tilt_deg >= 90.0:
+        return fibonacci_hemisphere(dips)
+    return Reach(tilt_range_deg=(0.0, float(max_tilt_deg))).uniform(dips)
+
+
 def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float, family: str | None = None,
-                 mesh: str | None = None):
+                 mesh: str | None = None, max_tilt_deg: float = 90.0):
     """``(shape, measurement, operator)`` of one shape dipped ``dips`` times (see the module): the
     generated shape of ``seed`` and ``family`` (``None``: drawn by the seed,
     :func:`~dipnet.shapes.procedural.make_solid`), or the mesh file ``mesh`` turned by ``seed``'s rotation."""
@@ -73,18 +82,19 @@ def _measurement(seed: int, n: int, dips: int, snr_db: float | None, fill: float
     else:
         shape = generated_shape(int(seed), family=family, radius=fill * grid.radius)
     sensor = LevelSensor(snr_db=snr_db, quantum_mm=0.0, seed=int(seed))
-    _, measurement = simulate_measurement(shape, fibonacci_hemisphere(dips), grid=grid, sensor=sensor,
+    _, measurement = simulate_measurement(shape, plan_directions(dips, max_tilt_deg), grid=grid, sensor=sensor,
                                           seed=int(seed), progress=False)
     return shape, measurement, make_operator(grid, measurement.directions, n)
 
 
 def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = None, fill: float = 0.9,
-              solver_options: Mapping | None = None, family: str | None = None, mesh: str | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
+              solver_options: Mapping | None = None, family: str | None = None, mesh: str | None = None,
+              max_tilt_deg: float = 90.0) -> tuple[np.ndarray, np.ndarray]:
     """``(reconstruction, truth)``, each ``(n, n, n)`` float32 in ``[0, 1]``, for one generated shape
     (of ``family``, or the seed's own when ``None``), or the mesh file ``mesh`` turned by the seed's
-    rotation, dipped ``dips`` times, noise-free (``snr_db=None``) or with level-sensor noise at ``snr_db`` dB."""
-    shape, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family, mesh)
+    rotation, dipped ``dips`` times (tilted at most ``max_tilt_deg``, :func:`plan_directions`), noise-free
+    (``snr_db=None``) or with level-sensor noise at ``snr_db`` dB."""
+    shape, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family, mesh, max_tilt_deg)
     options = {"progress": False, "seed": int(seed), **dict(solver_options or {})}
     recon = VoxelSolver(**options).solve(measurement, operator)
     truth = shape.occupancy(operator.grid, supersample=3)
@@ -93,11 +103,11 @@ def make_pair(seed: int, n: int = 64, dips: int = 41, snr_db: float | None = Non
 
 def refine_input(seed: int, start: np.ndarray, refine: Mapping, n: int = 64, dips: int = 41,
                  snr_db: float | None = None, fill: float = 0.9, family: str | None = None,
-                 mesh: str | None = None) -> np.ndarray:
+                 mesh: str | None = None, max_tilt_deg: float = 90.0) -> np.ndarray:
     """A second-stage input ``(n, n, n)`` float32: :class:`VoxelSolver` with options ``refine`` (e.g.
     one round of ``solver=voxel_learned``) warm-started from ``start``, a pair's first-stage input,
     on the same measurement."""
-    _, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family, mesh)
+    _, measurement, operator = _measurement(seed, n, dips, snr_db, fill, family, mesh, max_tilt_deg)
     options = {"progress": False, "seed": int(seed), **dict(refine), "warm_start": torch.from_numpy(start)}
     return VoxelSolver(**options).solve(measurement, operator).occupancy.numpy().astype(np.float32)
 
@@ -142,7 +152,7 @@ def _make_and_save(file: Path, seed: int, snr_db: float | None, options: dict, r
         with np.load(first) as saved:
             start, y = saved["input"], saved["target"]
         x = refine_input(seed, start, refine, options["n"], options["dips"], snr_db, options["fill"],
-                         options.get("family"), options.get("mesh"))
+                         options.get("family"), options.get("mesh"), options.get("max_tilt_deg", 90.0))
     file.parent.mkdir(parents=True, exist_ok=True)
     part = file.with_name(f"{file.stem}.{os.getpid()}.part.npz")  # renamed whole: a kill leaves no cut-short pair
     np.savez_compressed(part, input=x, target=y)
@@ -188,7 +198,8 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
                 noise_levels: Sequence[float | None] = (None, 30.0), fill: float = 0.9,
                 solver_options: Mapping | None = None, progress: bool = True, workers: int = 1,
                 refine: Mapping | None = None, noisy_options: Mapping | None = None,
-                family: str | None = None, mesh: str | Path | None = None) -> tuple[np.ndarray, np.ndarray]:
+                family: str | None = None, mesh: str | Path | None = None, max_tilt_deg: float = 90.0
+                ) -> tuple[np.ndarray, np.ndarray]:
     """One pair per seed and noise level (``None`` = noise-free, else SNR in dB), stacked as
     ``(S * len(noise_levels), n, n, n)`` inputs and targets (seed-major). Each pair is cached as
     ``cache/pair_<seed>_<digest>.npz`` (written whole: a temporary file renamed into place), so an interrupted
@@ -201,7 +212,8 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
     the one its seed draws; it enters the digest only when given, so the seeds' own pairs keep theirs.
     ``mesh`` (a mesh file) makes each seed that mesh turned by the seed's random rotation
     (:func:`rotated_mesh`); its pairs are cached as ``cache/pair_<stem>-<seed>_<digest>.npz``, the digest
-    holding the file's bytes.
+    holding the file's bytes. ``max_tilt_deg`` below 90 dips each shape along the plan of a rig that tilts
+    that far at most (:func:`plan_directions`); it enters the digest only then.
 
     With ``refine`` (:class:`VoxelSolver` options) the pairs are second-stage ones: each first-stage
     input is refined by :func:`refine_input` (cached as ``cache/stage2_<seed>_<digest>.npz``, the
@@ -215,7 +227,8 @@ def build_pairs(seeds: Sequence[int], cache: Path, n: int = 64, dips: int = 41,
     def options_at(snr: float | None) -> dict:
         solver = {**dict(solver_options or {}), **(dict(noisy_options or {}) if snr is not None else {})}
         return {"n": n, "dips": dips, "fill": fill, "solver_options": solver, **({"family": family} if family else {}),
-                **({"mesh": str(mesh)} if mesh is not None else {})}
+                **({"mesh": str(mesh)} if mesh is not None else {}),
+                **({"max_tilt_deg": float(max_tilt_deg)} if max_tilt_deg < 90.0 else {})}
 
     def key(seed: int, snr: float | None, **more) -> str:
         options = {k: v for k, v in options_at(snr).items() if k != "mesh"}  # the file by its bytes, not its path

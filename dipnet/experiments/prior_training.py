@@ -44,6 +44,9 @@ class TrainConfig:
         n, dips, snr_db, fill: the pairs' grid, number of Fibonacci dips, the level-sensor SNR (dB)
             of the noisy pair of each seed (each seed also gives a noise-free pair), and the
             shapes' size (farthest point / working-ball radius).
+        max_tilt_deg: the largest tilt of the pairs' dips from the vertical (degrees; 90: the whole hemisphere, as
+            the shipped weights; less: the plan of a rig that tilts that far,
+            :func:`~dipnet.experiments.prior_pairs.plan_directions`).
         solver_iterations: voxel-solver steps of the reconstructions (400: the solver's default).
         noise_model: the voxel solver's noise model for the noisy pairs (``"correlated"``: as the start
             of ``solver=voxel_learned`` with the sensor's sigma; noise-free pairs are the same either way).
@@ -72,6 +75,7 @@ class TrainConfig:
     dips: int = 41
     snr_db: float = 30.0
     fill: float = 0.9
+    max_tilt_deg: float = 90.0
     solver_iterations: int = 400
     noise_model: str = "independent"
     channels: int = 16
@@ -114,6 +118,8 @@ class TrainConfig:
             check_snr_db(self.snr_db)
         except ValueError as exc:
             raise TrainConfigError(str(exc)) from None
+        if not 0 < self.max_tilt_deg <= 90:
+            raise TrainConfigError(f"max_tilt_deg must be a tilt in (0, 90] degrees, got {self.max_tilt_deg!r}")
         if not 0 < self.fill <= 1:
             raise TrainConfigError(f"fill must be a number in (0, 1], got {self.fill!r}")
         if not 0 < self.lr < math.inf:
@@ -159,7 +165,7 @@ def _pairs(config: TrainConfig, seeds: tuple[int, int], cache: Path, progress: b
                        fill=config.fill, solver_options={"iterations": config.solver_iterations}, progress=progress,
                        workers=workers, refine=config.refine,
                        noisy_options={} if config.noise_model == "independent" else {"noise_model": config.noise_model},
-                       family=family, mesh=mesh)
+                       family=family, mesh=mesh, max_tilt_deg=config.max_tilt_deg)
 
 
 def training_pairs(config: TrainConfig, cache: Path, progress: bool = True, workers: int = 1

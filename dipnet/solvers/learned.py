@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dipnet.core.orientations import fibonacci_hemisphere, unmeasured_band_deg
+from dipnet.core.orientations import Reach, fibonacci_hemisphere, unmeasured_band_deg
 from dipnet.solvers.base import checked_flag
 from dipnet.solvers.denoiser import PriorMismatchError, load_weights
 
@@ -95,17 +95,23 @@ class LearnedPrior(nn.Module):
     def plan_warning(self, directions: torch.Tensor) -> str | None:
         """A warning when 3D ``directions`` ``(K, 3)`` leave a band about the horizontal unmeasured
         (:func:`~dipnet.core.orientations.unmeasured_band_deg`) more than :data:`PLAN_BAND_MARGIN_DEG` wider than
-        the Fibonacci-hemisphere plan the weights were trained on (their meta's ``config.dips``); else ``None``."""
-        dips = (self.meta.get("config") or {}).get("dips")
-        if directions.ndim != 2 or directions.shape[1] != 3 or not isinstance(dips, int) or dips < 1:
+        the plan the weights were trained on (their meta's ``config``: ``dips`` Fibonacci directions, tilted at
+        most ``max_tilt_deg``, 90 when not recorded); else ``None``."""
+        config = self.meta.get("config") or {}
+        dips, tilt = config.get("dips"), config.get("max_tilt_deg", 90.0)
+        if (directions.ndim != 2 or directions.shape[1] != 3 or not isinstance(dips, int) or dips < 1
+                or not isinstance(tilt, (int, float)) or not 0 < tilt <= 90):
             return None
-        trained, band = unmeasured_band_deg(fibonacci_hemisphere(dips)), unmeasured_band_deg(directions)
+        plan = fibonacci_hemisphere(dips) if tilt >= 90 else Reach(tilt_range_deg=(0.0, float(tilt))).uniform(dips)
+        trained, band = unmeasured_band_deg(plan), unmeasured_band_deg(directions)
         if not band > trained + PLAN_BAND_MARGIN_DEG:
             return None
-        return (f"the learned prior's denoiser was trained on {dips} dips over the whole hemisphere (at most "
-                f"{trained:.0f} deg from the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, so "
-                "what it makes of the missing cone is a guess the data cannot check: on five validation meshes "
-                "dipped at tilts of 0-35 deg its Chamfer was 0.80-1.92 times solver=voxel's; compare with solver=voxel")
+        where = "over the whole hemisphere" if tilt >= 90 else f"tilted 0-{tilt:g} deg"
+        return (f"the learned prior's denoiser was trained on {dips} dips {where} (at most {trained:.0f} deg from "
+                f"the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, so what it makes of the "
+                "missing cone is a guess the data cannot check: on five validation meshes dipped at tilts of 0-35 deg "
+                "the hemisphere weights' Chamfer was 0.80-1.92 times solver=voxel's; compare with solver=voxel, or "
+                "train weights for the rig's tilts (scripts/train_prior.py --max-tilt-deg)")
 
     def _check_grid(self, ndim: int, n: int) -> None:
         trained = int(self.meta.get("ndim", 3))

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.experiments.prior_pairs import build_pairs, make_pair, refine_weights_digest, rotated_mesh
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.experiments.prior_pairs import build_pairs, make_pair, plan_directions, refine_weights_digest, rotated_mesh
 from dipnet.shapes.procedural import family_of
 from dipnet.solvers.denoiser import PriorWeightsError
 
@@ -146,6 +148,21 @@ def test_noisy_options_change_only_the_noisy_pairs(tmp_path, shared_pairs):
     assert np.array_equal(plain[0][0], mixed[0][0]) and not np.array_equal(plain[0][1], mixed[0][1])
     x, _ = make_pair(5000, n=16, dips=8, snr_db=30.0, solver_options={**SMALL["solver_options"], **options})
     assert np.array_equal(mixed[0][1], x)
+
+
+def test_a_tilt_limit_dips_the_pairs_along_the_rigs_plan_and_keys_them_apart(tmp_path, shared_pairs):
+    """``max_tilt_deg`` below 90: the plan of a rig that tilts that far (no dip beyond it), pairs of their own;
+    90 is the hemisphere's Fibonacci plan and its pairs' digest."""
+    tilts = torch.rad2deg(torch.arccos(plan_directions(41, 35.0)[:, 2]))
+    assert tilts.max() <= 35.0 + 1e-9 and tilts.min() >= 0.0
+    assert torch.equal(plan_directions(41, 90.0), fibonacci_hemisphere(41))
+    hemisphere = build_pairs([5000], cache=tmp_path, noise_levels=(None,), **SMALL)
+    same = build_pairs([5000], cache=tmp_path, noise_levels=(None,), max_tilt_deg=90.0, **SMALL)
+    tilted = build_pairs([5000], cache=tmp_path, noise_levels=(None,), max_tilt_deg=35.0, **SMALL)
+    assert len(list(tmp_path.glob("pair_*.npz"))) == 2 and np.array_equal(hemisphere[0], same[0])
+    assert np.array_equal(hemisphere[1], tilted[1]) and not np.array_equal(hemisphere[0], tilted[0])
+    x, _ = make_pair(5000, n=16, dips=8, solver_options=SMALL["solver_options"], max_tilt_deg=35.0)
+    assert np.array_equal(tilted[0][0], x)
 
 
 @pytest.mark.slow

@@ -201,6 +201,12 @@ def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, arg
     assert not (tmp_path / "w.pt").exists() and not (tmp_path / "pairs").exists()
 
 
+@pytest.mark.parametrize("tilt", [0.0, -5.0, 91.0, float("nan")])
+def test_a_tilt_limit_outside_0_to_90_degrees_is_refused(tilt):
+    with pytest.raises(TrainConfigError, match=r"max_tilt_deg must be a tilt in \(0, 90\] degrees"):
+        TrainConfig(max_tilt_deg=tilt)
+
+
 def test_validation_seeds_that_overlap_the_training_seeds_are_refused():
     """A validation loss on shapes trained on is no held-out score: overlapping ranges are refused (touching ones,
     [1000, 1004) and [1004, 1006), share no seed)."""

@@ -51,6 +51,10 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     assert prior.plan_warning(torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)) is None
     assert LearnedPrior(save_weights(perturbed_denoiser(0.2), tmp_path / "bare.pt",
                                      {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})).plan_warning(tilted) is None
+    rig = LearnedPrior(save_weights(perturbed_denoiser(0.2), tmp_path / "rig.pt", {
+        "n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41, "max_tilt_deg": 35.0}}))
+    assert rig.plan_warning(tilted) is None  # weights trained for that rig's tilts
+    assert "tilted 0-35 deg" in rig.plan_warning(Reach(tilt_range_deg=(0.0, 15.0)).uniform(41))
     grid = Grid(16, 3)
     learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
     solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned, later_priors=learned)
