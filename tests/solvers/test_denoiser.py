@@ -96,7 +96,7 @@ def test_weights_are_a_path_or_the_name_of_shipped_ones(tmp_path):
 
 
 def test_the_shipped_second_stage_is_the_first_fine_tuned_on_its_rounds():
-    assert shipped_names() == ["denoiser64", "denoiser64_stage2"]
+    assert shipped_names() == ["denoiser64", "denoiser64_stage2", "denoiser64_tilt35"]
     first, _ = load_weights(None)
     second, meta = load_weights("denoiser64_stage2")
     assert (SHIPPED_DIR / "denoiser64_stage2.pt").stat().st_size < 20e6
@@ -108,6 +108,23 @@ def test_the_shipped_second_stage_is_the_first_fine_tuned_on_its_rounds():
     x = torch.rand(1, 1, 64, 64, 64)
     with torch.no_grad():
         assert not torch.allclose(first(x), second(x), atol=1e-4)
+
+
+def test_the_shipped_weights_for_a_rig_that_tilts_0_to_35_deg_say_so():
+    """``denoiser64_tilt35``: the first stage's recipe on pairs dipped along a 0-35 deg plan; its plan warning is
+    silent for that rig's dips and speaks for the hemisphere's (a band 10 deg narrower or more is not warned)."""
+    from dipnet.core.orientations import Reach, fibonacci_hemisphere
+    from dipnet.solvers.learned import LearnedPrior
+
+    model, meta = load_weights("denoiser64_tilt35")
+    assert (SHIPPED_DIR / "denoiser64_tilt35.pt").stat().st_size < 20e6
+    config = meta["config"]
+    assert config["max_tilt_deg"] == 35.0 and config["dips"] == 41 and config["init_weights"] is None
+    assert meta["n"] == 64 and meta["validation"][1] < meta["validation"][2]
+    prior = LearnedPrior("denoiser64_tilt35")
+    assert prior.plan_warning(Reach(tilt_range_deg=(0.0, 35.0)).uniform(41)) is None
+    assert prior.plan_warning(fibonacci_hemisphere(41)) is None
+    assert "tilted 0-35 deg" in prior.plan_warning(Reach(tilt_range_deg=(0.0, 15.0)).uniform(41))
 
 
 def test_weights_meta_without_its_grid_names_the_file(tmp_path):
