@@ -227,8 +227,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
              for (t, v), s, slope in zip(curves, sigmas, slopes)]
     leak = reading_noise_leak(readings)
     # no stated noise: the slab noise the readings' scatter gives, when their estimate holds the noise alone
-    unit = float(np.median(_unit_slab_sigma(len(edges) - 1, smooth)))
-    readings_sigma = (scale * read_sigma * unit if any(s is None for s in stated) and read_sigma > 0
+    slab_gain = float(np.median(_unit_slab_sigma(len(edges) - 1, smooth)))
+    readings_sigma = (scale * read_sigma * slab_gain if any(s is None for s in stated) and read_sigma > 0
                       and leak < NOISE_LEAK_MAX else None)  # NaN compares False
 
     prof = np.stack(profiles)

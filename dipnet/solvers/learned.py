@@ -110,8 +110,9 @@ class LearnedPrior(nn.Module):
         return (f"the learned prior's denoiser was trained on {dips} dips {where} (at most {trained:.0f} deg from "
                 f"the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, so what it makes of the "
                 "missing cone is a guess the data cannot check: on five validation meshes dipped at tilts of 0-35 deg "
-                "the hemisphere weights' Chamfer was 0.80-1.92 times solver=voxel's; compare with solver=voxel, or "
-                "train weights for the rig's tilts (scripts/train_prior.py --max-tilt-deg)")
+                "the hemisphere weights' Chamfer was 0.80-1.92 times solver=voxel's; compare with solver=voxel, use "
+                "weights trained for the rig's tilts (shipped for 0-35 deg: weights=denoiser64_tilt35) or train them "
+                "(scripts/train_prior.py --max-tilt-deg)")
 
     def _check_grid(self, ndim: int, n: int) -> None:
         trained = int(self.meta.get("ndim", 3))
