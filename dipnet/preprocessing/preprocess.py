@@ -227,16 +227,17 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
              for (t, v), s, slope in zip(curves, sigmas, slopes)]
     leak = reading_noise_leak(readings)
     # no stated noise: the slab noise the readings' scatter gives, when their estimate holds the noise alone
-    slab_gain = float(np.median(_unit_slab_sigma(len(edges) - 1, smooth)))
-    readings_sigma = (scale * read_sigma * slab_gain if any(s is None for s in stated) and read_sigma > 0
-                      and leak < NOISE_LEAK_MAX else None)  # NaN compares False
+    unit_sigma = _unit_slab_sigma(len(edges) - 1, smooth)  # a slab's sigma per unit noise of the cumulative volume
+    readings_sigma = (scale * read_sigma * float(np.median(unit_sigma))
+                      if any(s is None for s in stated) and read_sigma > 0 and leak < NOISE_LEAK_MAX
+                      else None)  # NaN compares False
 
     prof = np.stack(profiles)
     if smooth:
         prof = smooth_profiles(prof)
     sigma = None
     if all(s is not None and s > 0 for s in sigmas):
-        sigma = np.asarray(sigmas)[:, None] * _unit_slab_sigma(len(edges) - 1, smooth)[None, :]
+        sigma = np.asarray(sigmas)[:, None] * unit_sigma[None, :]
     return DipMeasurement(
         directions=np.stack([o.unit_direction for o in scans]), profiles=prof,
         slab_thickness=float(edges[1] - edges[0]), offsets=np.full(len(scans), edges[0]), sigma=sigma,
