@@ -2,7 +2,8 @@
 the bundled meshes and on generated test shapes (not a timed test).
 
 For every mesh in ``--meshes-dir`` (scaled to ``--fill`` of the working ball) on an
-``--n``^3 grid, every orientation budget (Fibonacci hemisphere) and every noise level, the
+``--n``^3 grid, every orientation budget (Fibonacci hemisphere; ``--max-tilt-deg T``: the plan of a rig that
+tilts 0-T deg, as ``reach=authors_rig`` for 35) and every noise level, the
 dips are simulated from the mesh geometry itself (:func:`dipnet.simulator.simulate.simulate_measurement`,
 a level sensor with exact readings (``--quantum-mm 0``), noise-free or with white noise at
 ``--snr`` dB, which the scan states; ``--noise unstated``: the same noise, the scan preprocessed again
@@ -69,10 +70,9 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.metrics import evaluate
-from dipnet.experiments.prior_pairs import file_digest
+from dipnet.experiments.prior_pairs import file_digest, plan_directions
 from dipnet.operators import make_operator
 from dipnet.preprocessing.preprocess import preprocess
-from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
 from dipnet.shapes import load_mesh
 from dipnet.shapes.procedural import generated_shape
@@ -132,6 +132,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="level-sensor resolution in mm (0: exact readings, so 'clean' is noise-free; the "
                         "simulator's default 0.01 mm is ~600 mm^3 in its 300 x 200 mm tank)")
     p.add_argument("--fill", type=float, default=0.9, help="mesh radius / working-ball radius")
+    p.add_argument("--max-tilt-deg", type=float, default=90.0,
+                   help="dip along the nearly uniform plan of a rig that tilts 0 to this many deg (below 90, e.g. 35 "
+                        "for reach=authors_rig); 90: the Fibonacci hemisphere")
     p.add_argument("--options", nargs="*", default=[], metavar="SOLVER=JSON",
                    help="constructor options per solver, e.g. voxel='{\"iterations\": 300}'")
     p.add_argument("--threads", type=int, default=None,
@@ -161,6 +164,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     args.workers = 1 if args.workers is None else args.workers
     if args.workers < 1:
         raise ValueError(f"--workers must be 1 or more, got {args.workers}")
+    if not 0 < args.max_tilt_deg <= 90:
+        raise ValueError(f"--max-tilt-deg must be in (0, 90], got {args.max_tilt_deg:g}")
     if min(args.budgets) < 1:
         raise ValueError(f"--budgets must be positive numbers of dips, got {' '.join(map(str, args.budgets))}")
     if args.dips:  # each solver at its own budgets, with --headline too (whose ratios take the smallest and largest)
@@ -252,8 +257,9 @@ def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
     """``(measurement, truth occupancy bool, shape)`` of the shape ``make_shape()`` called ``name``."""
     shape = make_shape()
     code = simulation_digest()  # a rerun after a change to the simulator simulates afresh
+    reach = "" if args.max_tilt_deg >= 90 else f"_t{args.max_tilt_deg:g}"  # the hemisphere keeps its cached cases
     tag = (f"{name}_n{grid.n}_k{k}_{noise}{'' if noise == 'clean' else args.snr}_q{args.quantum_mm}"
-           f"_f{args.fill}_s{args.seed}_code{code}")
+           f"_f{args.fill}{reach}_s{args.seed}_code{code}")
     meas_file = args.cache / f"{tag}.npz"
     truth_file = args.cache / f"{name}_n{grid.n}_f{args.fill}_code{code}_truth.npy"
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -261,7 +267,7 @@ def cached_case(args, name: str, make_shape, grid: Grid, k: int, noise: str):
         measurement = DipMeasurement.load(meas_file)
     else:
         sensor = LevelSensor(snr_db=None if noise == "clean" else args.snr, quantum_mm=args.quantum_mm, seed=args.seed)
-        raw, measurement = simulate_measurement(shape, fibonacci_hemisphere(k), grid=grid, sensor=sensor,
+        raw, measurement = simulate_measurement(shape, plan_directions(k, args.max_tilt_deg), grid=grid, sensor=sensor,
                                                 seed=args.seed, progress=False)
         if noise == "unstated":
             measurement = preprocess(raw.without_stated_noise(), grid=grid, t_start="metadata")

@@ -250,6 +250,24 @@ def test_the_quality_bench_unstated_noise_is_the_stated_cases_noise_left_to_the_
     assert len(list(tmp_path.glob("*_unstated30.0_*.npz"))) == 1
 
 
+def test_the_quality_bench_max_tilt_dips_along_a_limited_reach_and_keeps_the_hemisphere_cache(tmp_path):
+    """``--max-tilt-deg 35``: the dips of a rig that tilts 0-35 deg (the plan the tilt-35 weights were trained on),
+    cached apart from the hemisphere's; outside (0, 90] refused."""
+    bench = load_script("bench_quality")
+    grid = bench.Grid(16)
+    hemisphere = bench.parse_args(["--cache", str(tmp_path), "--n", "16"])
+    limited = bench.parse_args(["--cache", str(tmp_path), "--n", "16", "--max-tilt-deg", "35"])
+    full, _, _ = bench.case_data(hemisphere, MESHES_DIR / "torus.ply", grid, 12, "clean")
+    tilted, _, _ = bench.case_data(limited, MESHES_DIR / "torus.ply", grid, 12, "clean")
+    tilts = np.degrees(np.arccos(np.clip(tilted.directions[:, 2].abs().numpy(), 0, 1)))
+    assert tilts.max() <= 35 + 1e-6 and tilts.max() > 20
+    assert np.degrees(np.arccos(np.clip(full.directions[:, 2].abs().numpy(), 0, 1))).max() > 60
+    assert len(list(tmp_path.glob("*_t35_*.npz"))) == 1 and len(list(tmp_path.glob("*.npz"))) == 2
+    for bad in ("0", "91"):
+        with pytest.raises(ValueError, match="--max-tilt-deg must be in"):
+            bench.parse_args(["--max-tilt-deg", bad])
+
+
 def test_the_quality_cache_is_keyed_by_the_mesh_files_bytes(tmp_path):
     """Two ``--meshes-dir`` holding a file of the same name (or one file edited): the second run was handed the
     first's simulated dips and truth (a bunny scored as the torus: IoU 0.667 and Chamfer 0.1099 for its own 0.583
