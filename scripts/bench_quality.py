@@ -9,8 +9,8 @@ a level sensor with exact readings (``--quantum-mm 0``), noise-free or with whit
 ``--snr`` dB, which the scan states; ``--noise unstated``: the same noise, the scan preprocessed again
 without its statement, so the solvers take the noise from the readings) and each solver reconstructs on the ``auto``
 operator. Prints one table (IoU, Chamfer / bbox diagonal, Hausdorff / bbox diagonal, wall
-time, the TV weight the solver used), the means per solver / budget / noise, the headline ratio
-(best optimiser's mean Chamfer at the smallest budget / minnorm's at the largest, noise-free) and
+time, the TV weight the solver used, the consistency check's verdict), the means per solver / budget / noise,
+the headline ratio (best optimiser's mean Chamfer at the smallest budget / minnorm's at the largest, noise-free) and
 each mesh's ratio of voxel's Chamfer at the smallest budget to minnorm's at the largest, per noise.
 
     python scripts/bench_quality.py                                   # the full table
@@ -69,6 +69,7 @@ from dipnet.core.code_version import simulation_digest
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.evaluation.consistency import check_consistency
 from dipnet.evaluation.metrics import evaluate
 from dipnet.experiments.prior_pairs import file_digest, plan_directions
 from dipnet.operators import make_operator
@@ -309,11 +310,12 @@ def solve_row(args, grid: Grid, options: dict, task: tuple) -> dict:
     seconds = time.perf_counter() - t0
     scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
     rule = recon.info.get("weight_rule") or {}
+    verdict = None if name == "truth" else check_consistency(measurement, operator, recon, warn=False).verdict
     return {"mesh": label, "set": kind, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
             **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
             "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
             "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
-            "target_residual": rule.get("target_residual")}
+            "target_residual": rule.get("target_residual"), "verdict": verdict}
 
 
 def solved_rows(args, grid: Grid, options: dict, tasks: list[tuple]) -> Iterator[dict]:
@@ -410,12 +412,13 @@ def run(argv=None) -> list[dict]:
              if k in ks and (kind == "mesh" or name != "minnorm")]  # minnorm is the meshes' reference only
     rows = []
     print(f"{'mesh':<12} {'dips':>5} {'noise':>6} {'solver':<14} {'IoU':>6} {'Chamfer':>8} {'Hausd.':>7} {'time s':>7} "
-          f"{'TV w':>8}", flush=True)
+          f"{'TV w':>8} verdict", flush=True)
     for row in solved_rows(args, grid, options, tasks):
         rows.append(row)
         weight = "" if row["tv_weight"] is None else f"{row['tv_weight']:8.2e}"
         print(f"{row['mesh']:<12} {row['dips']:>5} {row['noise']:>6} {row['solver']:<14} {row['iou']:6.3f} "
-              f"{row['chamfer']:8.4f} {row['hausdorff']:7.4f} {row['seconds']:7.1f} {weight}", flush=True)
+              f"{row['chamfer']:8.4f} {row['hausdorff']:7.4f} {row['seconds']:7.1f} {weight:>8} {row['verdict'] or ''}",
+              flush=True)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1))
     print_all(rows, args)

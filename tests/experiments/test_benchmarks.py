@@ -142,8 +142,21 @@ def test_the_truth_row_scores_the_truths_own_occupancy(tmp_path, capsys):
     rows = bench.main(["--cache", str(tmp_path), "--n", "16", "--meshes", "torus", "--budgets", "12", "--noise", "clean",
                        "--solvers", "truth", "voxel", "--threads", "1"])
     truth, voxel = (next(r for r in rows if r["solver"] == name) for name in ("truth", "voxel"))
-    assert truth["iou"] == 1.0 and truth["chamfer"] < voxel["chamfer"]
+    assert truth["iou"] == 1.0 and truth["chamfer"] < voxel["chamfer"] and truth["verdict"] is None
     assert "truth" in capsys.readouterr().out
+
+
+def test_the_quality_bench_rows_hold_the_consistency_verdict(tmp_path, capsys):
+    """Each solved row holds (and prints) the verdict a job records, so a bench case far off in the missing cone
+    can be told from one the check flags; a solve stopped after one step does not fit its dips."""
+    bench = load_script("bench_quality")
+    argv = ["--cache", str(tmp_path), "--n", "16", "--meshes", "torus", "--budgets", "12", "--noise", "clean",
+            "--solvers", "voxel", "--threads", "1"]
+    converged = bench.main(argv)[0]
+    stopped = bench.main([*argv, "--options", 'voxel={"iterations": 1}'])[0]
+    assert (converged["verdict"], stopped["verdict"]) == ("consistent", "inconsistent")
+    assert converged["chamfer"] < stopped["chamfer"]
+    assert capsys.readouterr().out.count(" inconsistent") == 1
 
 
 @pytest.mark.slow
