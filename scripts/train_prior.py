@@ -69,8 +69,7 @@ def learned_round(temperature: float = SHIPPED_REFINE_TEMPERATURE, noise_model: 
     dropped = ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold")
     for key in dropped + (("noise_model", "white_share") if noise_model == "independent" else ()):
         options.pop(key, None)
-    if weights is not None:
-        options["priors"]["learned"]["weights"] = weights
+    options["priors"]["learned"]["weights"] = weights  # one network, not the solver's candidates
     return {**options, "rounds": 1, "min_rounds": 1, "temperature_start": temperature, "temperature_end": temperature}
 
 

@@ -21,15 +21,20 @@ On a grid whose ``N`` is half the weights' (the voxel solver's coarse stage) ``D
 volume upsampled (trilinear) to the weights' grid and its output is area-averaged back; any other
 resolution, dimension or slab spacing raises :class:`~dipnet.solvers.denoiser.PriorMismatchError`.
 
-The shipped weights were trained on dips over the whole hemisphere (41 Fibonacci directions). Dips that leave a
-much wider band about the horizontal unmeasured (a rig that tilts little) give ``D`` inputs unlike its training
-ones: :meth:`LearnedPrior.plan_warning` says so (solvers warn once per solve).
+The shipped weights were trained on dips over the whole hemisphere (41 Fibonacci directions), or over the 0-35 deg
+tilts of the authors' rig (``denoiser64_tilt35``). Given a list of weights, the prior keeps, for each operator, the
+one whose training plan leaves the band about the horizontal unmeasured nearest the dips' own
+(:meth:`LearnedPrior.select_for`; ``conf/solver/voxel_learned.yaml`` lists both first stages). Dips that leave a much
+wider band than the kept weights' plan give ``D`` inputs unlike its training ones:
+:meth:`LearnedPrior.plan_warning` says so (solvers warn once per solve).
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import numbers
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -39,6 +44,8 @@ from torch import nn
 from dipnet.core.orientations import Reach, fibonacci_hemisphere, unmeasured_band_deg
 from dipnet.solvers.base import checked_flag
 from dipnet.solvers.denoiser import PriorMismatchError, load_weights
+
+log = logging.getLogger(__name__)
 
 #: Dips whose unmeasured band about the horizontal exceeds the training plan's by more than this (degrees) are
 #: warned about (:meth:`LearnedPrior.plan_warning`)
@@ -54,7 +61,8 @@ class LearnedPrior(nn.Module):
     Args:
         weights: a weights file, or the name of weights shipped in ``dipnet/data/priors``
             (``None``: the first stage, ``denoiser64``; ``"denoiser64_stage2"``: the second, trained on
-            the first round's results; see :func:`~dipnet.solvers.denoiser.weights_path`).
+            the first round's results; see :func:`~dipnet.solvers.denoiser.weights_path`); or a list of them,
+            of which each operator's dips keep one (:meth:`select_for`; the first until then).
         refresh: evaluate the denoiser every ``refresh`` calls (>= 1; ``red`` mode).
         mode: ``"red"`` or ``"anchor"`` (see the module docstring).
         flips: average ``D`` over the 8 axis reflections (see the module docstring).
@@ -62,20 +70,53 @@ class LearnedPrior(nn.Module):
 
     MODES = ("red", "anchor")
 
-    def __init__(self, weights: str | Path | None = None, refresh: int = 10, mode: str = "red",
-                 flips: bool = False) -> None:
+    def __init__(self, weights: str | Path | None | Sequence[str | Path | None] = None, refresh: int = 10,
+                 mode: str = "red", flips: bool = False) -> None:
         super().__init__()
         if isinstance(refresh, bool) or not isinstance(refresh, numbers.Integral) or refresh < 1:
             raise ValueError(f"refresh must be a whole number >= 1 (calls between denoiser evaluations), got {refresh!r}")
         if mode not in self.MODES:
             raise ValueError(f"unknown learned-prior mode {mode!r}; choose one of {self.MODES}")
         self.mode, self.flips = mode, checked_flag("the learned prior's flips", flips)
-        self.denoiser, self.meta = load_weights(weights)
-        for p in self.denoiser.parameters():
-            p.requires_grad_(False)
-        self.n = int(self.meta["n"])
+        names = list(weights) if isinstance(weights, Sequence) and not isinstance(weights, str) else [weights]
+        if not names:
+            raise ValueError("the learned prior's weights: an empty list; give a weights file or shipped name, "
+                             "or a list of them")
+        self.candidates = [(name, *load_weights(name)) for name in names]
+        for _, denoiser, _ in self.candidates:
+            for p in denoiser.parameters():
+                p.requires_grad_(False)
+        self._keep(0, None)
         self.refresh = int(refresh)
         self._calls, self._denoised = 0, None
+
+    def _keep(self, index: int, reason: str | None) -> None:
+        """Use the candidate weights ``index``; :attr:`choice` records which and why (``reason`` ``None``: the only
+        ones given)."""
+        name, self.denoiser, self.meta = self.candidates[index]
+        self.n = int(self.meta["n"])
+        self.choice = {"weights": "denoiser64" if name is None else str(name), "reason": reason}
+
+    def select_for(self, directions: torch.Tensor) -> None:
+        """Of several candidate weights, keep the one whose training plan leaves the band about the horizontal
+        unmeasured (:func:`~dipnet.core.orientations.unmeasured_band_deg`) nearest that of 3D ``directions``
+        ``(K, 3)`` (the first of equals; weights without a recorded plan count as the hemisphere's). One candidate,
+        or 2D directions: nothing to choose."""
+        if len(self.candidates) < 2 or directions.ndim != 2 or directions.shape[1] != 3:
+            return
+        band = unmeasured_band_deg(directions)
+        bands = [_training_band_deg(meta) for _, _, meta in self.candidates]
+        index = min(range(len(bands)), key=lambda i: abs(bands[i] - band))
+        others = ", ".join(f"{self._name(i)} {b:.0f}" for i, b in enumerate(bands) if i != index)
+        reason = (f"the dips leave {band:.0f} deg about the horizontal unmeasured; the plan these weights were trained "
+                  f"on {bands[index]:.0f} deg (the other candidates': {others})")
+        if self.choice["reason"] != reason:
+            log.info("learned prior: weights %s: %s", self._name(index), reason)
+        self._keep(index, reason)
+
+    def _name(self, index: int) -> str:
+        name = self.candidates[index][0]
+        return "denoiser64" if name is None else str(name)
 
     def check_operator(self, operator) -> None:
         """Refuse an operator whose grid or slabs differ from the weights' (called by the solvers).
@@ -83,6 +124,7 @@ class LearnedPrior(nn.Module):
         Raises:
             PriorMismatchError: another dimension, resolution or slab spacing.
         """
+        self.select_for(operator.directions)
         grid = operator.grid
         self._check_grid(grid.ndim, grid.n)
         slabs = float(self.meta["n_slabs_per_voxel"]) * self.n  # a coarse stage keeps the fine grid's slabs
@@ -97,22 +139,20 @@ class LearnedPrior(nn.Module):
         (:func:`~dipnet.core.orientations.unmeasured_band_deg`) more than :data:`PLAN_BAND_MARGIN_DEG` wider than
         the plan the weights were trained on (their meta's ``config``: ``dips`` Fibonacci directions, tilted at
         most ``max_tilt_deg``, 90 when not recorded); else ``None``."""
-        config = self.meta.get("config") or {}
-        dips, tilt = config.get("dips"), config.get("max_tilt_deg", 90.0)
-        if (directions.ndim != 2 or directions.shape[1] != 3 or not isinstance(dips, int) or dips < 1
-                or not isinstance(tilt, (int, float)) or not 0 < tilt <= 90):
+        plan = _training_plan(self.meta)
+        if directions.ndim != 2 or directions.shape[1] != 3 or plan is None:
             return None
-        plan = fibonacci_hemisphere(dips) if tilt >= 90 else Reach(tilt_range_deg=(0.0, float(tilt))).uniform(dips)
-        trained, band = unmeasured_band_deg(plan), unmeasured_band_deg(directions)
+        dips, tilt = plan
+        trained, band = _training_band_deg(self.meta), unmeasured_band_deg(directions)
         if not band > trained + PLAN_BAND_MARGIN_DEG:
             return None
         where = "over the whole hemisphere" if tilt >= 90 else f"tilted 0-{tilt:g} deg"
-        return (f"the learned prior's denoiser was trained on {dips} dips {where} (at most {trained:.0f} deg from "
-                f"the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, so what it makes of the "
-                "missing cone is a guess the data cannot check: on five validation meshes dipped at tilts of 0-35 deg "
-                "the hemisphere weights' Chamfer was 0.80-1.92 times solver=voxel's; compare with solver=voxel, use "
-                "weights trained for the rig's tilts (shipped for 0-35 deg: weights=denoiser64_tilt35) or train them "
-                "(scripts/train_prior.py --max-tilt-deg)")
+        return (f"the learned prior's denoiser ({self.choice['weights']}) was trained on {dips} dips {where} (at most "
+                f"{trained:.0f} deg from the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, so what "
+                "it makes of the missing cone is a guess the data cannot check: on five validation meshes dipped at "
+                "tilts of 0-35 deg, weights trained over the whole hemisphere gave 0.80-1.92 times solver=voxel's "
+                "Chamfer; compare with solver=voxel, or train weights for the rig's tilts (scripts/train_prior.py "
+                "--max-tilt-deg) and add them to solver.priors.learned.weights")
 
     def _check_grid(self, ndim: int, n: int) -> None:
         trained = int(self.meta.get("ndim", 3))
@@ -158,3 +198,21 @@ class LearnedPrior(nn.Module):
         residual = occupancy.detach() - self._denoised
         inner = (occupancy * residual).mean()
         return inner - 0.5 * inner.detach()
+
+
+def _training_plan(meta: dict) -> tuple[int, float] | None:
+    """``(dips, max tilt in deg)`` of the plan weights were trained on (their meta's ``config``; the tilt 90 when not
+    recorded), or ``None`` when the meta records no plan."""
+    config = meta.get("config") or {}
+    dips, tilt = config.get("dips"), config.get("max_tilt_deg", 90.0)
+    if not isinstance(dips, int) or dips < 1 or not isinstance(tilt, (int, float)) or not 0 < tilt <= 90:
+        return None
+    return dips, float(tilt)
+
+
+def _training_band_deg(meta: dict) -> float:
+    """The band about the horizontal (deg) that the training plan of weights with ``meta`` leaves unmeasured (that of
+    41 Fibonacci directions over the hemisphere when the meta records no plan)."""
+    dips, tilt = _training_plan(meta) or (41, 90.0)
+    plan = fibonacci_hemisphere(dips) if tilt >= 90 else Reach(tilt_range_deg=(0.0, tilt)).uniform(dips)
+    return unmeasured_band_deg(plan)

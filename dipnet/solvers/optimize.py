@@ -523,6 +523,7 @@ class OptimisationSolver(Solver):
         self.iterations, self.lr, self.optimizer, self.schedule = int(iterations), float(lr), optimizer, schedule
         self.tol, self.window = float(tol), int(window)
         self.priors = priors
+        self._weights_choices: list[dict] = []  # the learned prior's choices among candidate weights, per solve
         if hull_tol is not None and not 0 <= hull_tol < 1:
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
         self.threshold = checked_threshold(threshold, "volume")
@@ -602,16 +603,20 @@ class OptimisationSolver(Solver):
         """Refuse ``operator`` when a prior of any of :meth:`prior_specs` was made for another grid or operator
         (the learned prior's weights), before a warm start or a first round spends minutes on it; warn once of
         each prior's plan warning (:meth:`~dipnet.solvers.learned.LearnedPrior.plan_warning`: dips unlike those the
-        weights were trained on).
+        weights were trained on); keep the learned prior's choices among candidate weights
+        (:meth:`~dipnet.solvers.learned.LearnedPrior.select_for`) for ``info["learned_weights"]``.
 
         Raises:
             PriorMismatchError: see :meth:`~dipnet.solvers.learned.LearnedPrior.check_operator`.
         """
-        said = set()
+        said, self._weights_choices = set(), []
         for spec in self.prior_specs():
             built = build_priors(with_weight(spec, self.weight_rule.start), 1.0)
             _refuse_other_operators(built, operator)
             for _, _, module in built:
+                choice = getattr(module, "choice", None)
+                if choice is not None and choice["reason"] is not None and choice not in self._weights_choices:
+                    self._weights_choices.append(dict(choice))
                 message = module.plan_warning(operator.directions) if hasattr(module, "plan_warning") else None
                 if message is not None and message not in said:
                     said.add(message)
@@ -654,7 +659,8 @@ class OptimisationSolver(Solver):
         ``priors`` (those of the result), ``info["prior_weights"]`` (``{name: weight}``) and ``info["symmetries"]``
         (the symmetries declared, as :meth:`~dipnet.solvers.priors.SymmetryPrior.spec` gives them: those of
         symmetry priors with a weight, after any in ``info``), and ``info["weight_rule"]``, the record of
-        :meth:`choose_weights`."""
+        :meth:`choose_weights`; ``info["learned_weights"]``: the learned prior's choices among candidate weights
+        (:meth:`check_priors`)."""
         steps = len(history.get("loss", []))
         if data is not None and data.log_gain is not None:
             info["gain"] = data.gain
@@ -664,6 +670,8 @@ class OptimisationSolver(Solver):
                 module.spec() for _, weight, module in priors if isinstance(module, SymmetryPrior) and weight > 0]
         if weights is not None:
             info["weight_rule"] = weights
+        if self._weights_choices:
+            info["learned_weights"] = [dict(choice) for choice in self._weights_choices]
         info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,
                 "final": {k: v[-1] for k, v in history.items() if v}, "optimizer": self.optimizer,
                 "seed": self.seed, **info}

@@ -45,7 +45,8 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     prior = LearnedPrior(weights)
     tilted = Reach(tilt_range_deg=(0.0, 35.0)).uniform(41)
     message = prior.plan_warning(tilted)
-    assert "41 dips over the whole hemisphere" in message and "leave 55 deg unmeasured" in message
+    assert "(" + str(weights) + ") was trained on 41 dips over the whole hemisphere" in message
+    assert "leave 55 deg unmeasured" in message
     assert prior.plan_warning(fibonacci_hemisphere(41)) is None
     assert prior.plan_warning(fibonacci_hemisphere(12)) is None  # fewer dips, the same hemisphere
     assert prior.plan_warning(torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)) is None
@@ -63,6 +64,45 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
             warnings.simplefilter("always")
             solver.check_priors(make_operator(grid, directions, 16))
         assert [str(w.message) for w in caught] == [message] * expected
+
+
+def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path, weights16):
+    """``weights: [hemisphere, rig]``: dips over the hemisphere keep the first, a rig's 0-35 deg dips the weights
+    trained on that plan (no plan warning then); the choice and its reason reach the result's ``info`` (a job's
+    metrics.json); one weights file records no choice; an empty list is refused."""
+    plans = {"hemisphere": {"dips": 41}, "rig": {"dips": 41, "max_tilt_deg": 35.0}}
+    files = [str(save_weights(perturbed_denoiser(0.1 * (i + 1)), tmp_path / f"{name}.pt",
+                              {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": plan}))
+             for i, (name, plan) in enumerate(plans.items())]
+    prior = LearnedPrior(files)
+    grid = Grid(16, 3)
+    tilted = Reach(tilt_range_deg=(0.0, 35.0)).uniform(12)
+    o = torch.rand(16, 16, 16)
+    denoised, reasons = {}, {}
+    for directions, kept in ((fibonacci_hemisphere(12), 0), (tilted, 1), (fibonacci_hemisphere(12), 0)):
+        prior.check_operator(make_operator(grid, directions, 16))
+        assert prior.choice["weights"] == files[kept] and prior.plan_warning(directions) is None
+        denoised.setdefault(kept, prior.denoise(o))
+        reasons[kept] = prior.choice["reason"]
+        assert torch.equal(prior.denoise(o), denoised[kept])
+    assert not torch.allclose(denoised[0], denoised[1])  # the kept network is the one that runs
+    assert "weights were trained on 55 deg" in reasons[1] and reasons[1].endswith("hemisphere.pt 1)")
+    op, measurement = small_problem()
+    learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": files, "mode": "anchor"}}
+    tilted_op = make_operator(grid, tilted, 16)
+    tilted_measurement = DipMeasurement(tilted, tilted_op(torch.from_numpy(generated_occupancy(4, grid)).double()),
+                                        tilted_op.slab_thickness, tilted_op.slab_edges()[:1].expand(12))
+    for m, operator, kept in ((measurement, op, 0), (tilted_measurement, tilted_op, 1)):
+        solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DataConsistencyWarning)
+            info = solver.solve(m, operator).info
+        assert [c["weights"] for c in info["learned_weights"]] == [files[kept]]
+    single = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False,
+                         priors={"learned": {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}})
+    assert "learned_weights" not in single.solve(measurement, op).info
+    with pytest.raises(ValueError, match="an empty list"):
+        LearnedPrior([])
 
 
 def test_value_and_gradient_are_red(weights16):
