@@ -42,6 +42,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
                                   "estimated from the profiles"),
     "prior_rounds": ("run", "plug-and-play rounds run, of the most allowed"),
     "prior_rounds_reason": ("run", "why the rounds ended there"),
+    "learned_weights": ("run", "learned prior: the weights kept of its candidates (by the dips' plan)"),
+    "learned_weights_reason": ("run", "why those weights"),
     "threshold": ("run", "occupancy level of the binary shape and its surface"),
     "overrides": ("run", "command-line overrides of the run that wrote these metrics"),
     "threshold_rule": ("run", "how that level was set (volume: its surface encloses the measured volume)"),
@@ -203,7 +205,7 @@ def headline(metrics: dict[str, Any]) -> str:
 def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     """The prior weights a solver used and why, from its ``Reconstruction.info``
     (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`; ``rounds``, see
-    :class:`~dipnet.solvers.voxel.VoxelSolver`; ``threshold_rule``, see
+    :class:`~dipnet.solvers.voxel.VoxelSolver`; ``threshold_rule`` and ``learned_weights``, see
     :class:`~dipnet.solvers.optimize.OptimisationSolver`), as flat ``metrics.json`` entries; ``{}`` for
     solvers without priors."""
     out: dict[str, Any] = {}
@@ -222,6 +224,10 @@ def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
         out["prior_rounds_reason"] = rounds["reason"]
     if "threshold_rule" in info:
         out["threshold_rule"] = info["threshold_rule"]["rule"]
+    choices = info.get("learned_weights") or []
+    if choices:
+        out["learned_weights"] = [choice["weights"] for choice in choices]
+        out["learned_weights_reason"] = [choice["reason"] for choice in choices]
     return out
 
 

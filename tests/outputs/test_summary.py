@@ -60,6 +60,9 @@ def test_prior_weights_and_their_reason_go_into_the_metrics():
     assert summary.prior_weight_metrics({"solver": "minnorm"}) == {}
     assert summary.prior_weight_metrics({"threshold_rule": {"rule": "volume", "level": 0.46}}) == {
         "threshold_rule": "volume"}
+    kept = {"weights": "denoiser64_tilt35", "reason": "the dips leave 55 deg about the horizontal unmeasured; ..."}
+    assert summary.prior_weight_metrics({"learned_weights": [kept]}) == {
+        "learned_weights": ["denoiser64_tilt35"], "learned_weights_reason": [kept["reason"]]}
 
 
 def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():
