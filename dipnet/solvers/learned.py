@@ -147,12 +147,12 @@ class LearnedPrior(nn.Module):
         if not band > trained + PLAN_BAND_MARGIN_DEG:
             return None
         where = "over the whole hemisphere" if tilt >= 90 else f"tilted 0-{tilt:g} deg"
-        return (f"the learned prior's denoiser ({self.choice['weights']}) was trained on {dips} dips {where} (at most "
-                f"{trained:.0f} deg from the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, so what "
-                "it makes of the missing cone is a guess the data cannot check: on five validation meshes dipped at "
-                "tilts of 0-35 deg, weights trained over the whole hemisphere gave 0.80-1.92 times solver=voxel's "
-                "Chamfer; compare with solver=voxel, or train weights for the rig's tilts (scripts/train_prior.py "
-                "--max-tilt-deg) and add them to solver.priors.learned.weights")
+        return (f"the learned prior's denoiser ({self.choice['weights']}) was trained on {dips} dips {where} (at "
+                f"most {trained:.0f} deg from the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, "
+                "so what it makes of the missing cone is a guess the data cannot check: on five validation meshes "
+                "dipped at tilts of 0-35 deg, weights trained over the whole hemisphere gave 0.80-1.92 times "
+                "solver=voxel's Chamfer; compare with solver=voxel, or train weights for the rig's tilts "
+                "(scripts/train_prior.py --max-tilt-deg) and add them to solver.priors.learned.weights")
 
     def _check_grid(self, ndim: int, n: int) -> None:
         trained = int(self.meta.get("ndim", 3))

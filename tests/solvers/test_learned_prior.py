@@ -39,7 +39,8 @@ def weights16(tmp_path):
 def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path):
     """Weights trained on 41 Fibonacci-hemisphere dips (their meta's ``config.dips``): a rig that tilts 0-35 deg
     leaves 55 deg about the horizontal unmeasured, which the solver warns of once (two priors specs share
-    the weights); the training plan itself, 2D dips and weights that do not name their plan give no warning."""
+    the weights); the training plan itself, 2D dips and weights that do not name their plan give no warning, nor do
+    the later rounds' weights after a first stage trained on the dips' plan."""
     weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt",
                            {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41}})
     prior = LearnedPrior(weights)
@@ -64,6 +65,13 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
             warnings.simplefilter("always")
             solver.check_priors(make_operator(grid, directions, 16))
         assert [str(w.message) for w in caught] == [message] * expected
+    rig_first = {"tv": {"weight": 0.0},
+                 "learned": {"weight": 1.0, "weights": str(tmp_path / "rig.pt"), "mode": "anchor"}}
+    solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=rig_first, later_priors=learned)
+    with warnings.catch_warnings(record=True) as caught:  # later rounds refine the rig weights' anchor: no warning
+        warnings.simplefilter("always")
+        solver.check_priors(make_operator(grid, tilted, 16))
+    assert not caught
 
 
 def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path, weights16):
