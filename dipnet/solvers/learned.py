@@ -32,7 +32,6 @@ wider band than the kept weights' plan give ``D`` inputs unlike its training one
 from __future__ import annotations
 
 import itertools
-import logging
 import numbers
 from collections.abc import Sequence
 from pathlib import Path
@@ -44,8 +43,6 @@ from torch import nn
 from dipnet.core.orientations import Reach, fibonacci_hemisphere, unmeasured_band_deg
 from dipnet.solvers.base import checked_flag
 from dipnet.solvers.denoiser import PriorMismatchError, load_weights
-
-log = logging.getLogger(__name__)
 
 #: Dips whose unmeasured band about the horizontal exceeds the training plan's by more than this (degrees) are
 #: warned about (:meth:`LearnedPrior.plan_warning`)
@@ -110,8 +107,6 @@ class LearnedPrior(nn.Module):
         others = ", ".join(f"{self._name(i)} {b:.0f}" for i, b in enumerate(bands) if i != index)
         reason = (f"the dips leave {band:.0f} deg about the horizontal unmeasured; the plan these weights were trained "
                   f"on {bands[index]:.0f} deg (the other candidates': {others})")
-        if self.choice["reason"] != reason:
-            log.info("learned prior: weights %s: %s", self._name(index), reason)
         self._keep(index, reason)
 
     def _name(self, index: int) -> str:

@@ -619,6 +619,7 @@ class OptimisationSolver(Solver):
                 choice = getattr(module, "choice", None)
                 if choice is not None and choice["reason"] is not None and choice not in self._weights_choices:
                     self._weights_choices.append(dict(choice))
+                    log.info("learned prior: weights %s: %s", choice["weights"], choice["reason"])
                 first = index == 0 and hasattr(module, "plan_warning")
                 message = module.plan_warning(operator.directions) if first else None
                 if message is not None and message not in said:

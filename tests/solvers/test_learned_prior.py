@@ -74,7 +74,7 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     assert not caught
 
 
-def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path, weights16):
+def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path, weights16, caplog):
     """``weights: [hemisphere, rig]``: dips over the hemisphere keep the first, a rig's 0-35 deg dips the weights
     trained on that plan (no plan warning then); the choice and its reason reach the result's ``info`` (a job's
     metrics.json); one weights file records no choice; an empty list is refused."""
@@ -102,10 +102,13 @@ def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path
                                         tilted_op.slab_thickness, tilted_op.slab_edges()[:1].expand(12))
     for m, operator, kept in ((measurement, op, 0), (tilted_measurement, tilted_op, 1)):
         solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned)
-        with warnings.catch_warnings():
+        caplog.clear()
+        with warnings.catch_warnings(), caplog.at_level("INFO", logger="dipnet.solvers.optimize"):
             warnings.simplefilter("ignore", DataConsistencyWarning)
             info = solver.solve(m, operator).info
         assert [c["weights"] for c in info["learned_weights"]] == [files[kept]]
+        assert [r.getMessage() for r in caplog.records if "learned prior: weights" in r.getMessage()] == [
+            f"learned prior: weights {files[kept]}: {info['learned_weights'][0]['reason']}"]  # once per solve
     single = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False,
                          priors={"learned": {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}})
     assert "learned_weights" not in single.solve(measurement, op).info
