@@ -646,6 +646,8 @@ class OptimisationSolver(Solver):
         elif callable(start):
             start = start(measurement, operator)
         if isinstance(start, Reconstruction):
+            chosen = start.info.get("learned_weights") or []  # the start's choice of weights is this result's too
+            self._weights_choices += [choice for choice in chosen if choice not in self._weights_choices]
             if not start.grid.matches(operator.grid):  # the same shape on other voxels would start elsewhere
                 raise ValueError(f"warm start is a reconstruction on {start.grid}, the operator's grid is "
                                  f"{operator.grid}: their voxels are not the same places; solve the start on the "
@@ -664,7 +666,7 @@ class OptimisationSolver(Solver):
         (the symmetries declared, as :meth:`~dipnet.solvers.priors.SymmetryPrior.spec` gives them: those of
         symmetry priors with a weight, after any in ``info``), and ``info["weight_rule"]``, the record of
         :meth:`choose_weights`; ``info["learned_weights"]``: the learned prior's choices among candidate weights
-        (:meth:`check_priors`)."""
+        (:meth:`check_priors`, and those of a warm start's solve)."""
         steps = len(history.get("loss", []))
         if data is not None and data.log_gain is not None:
             info["gain"] = data.gain

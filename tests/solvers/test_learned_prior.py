@@ -17,6 +17,7 @@ from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_occupancy
 from dipnet.solvers.learned import LearnedPrior
 from dipnet.solvers.priors import build_priors
+from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
 
 from solver_helpers import one_thread, perturbed_denoiser  # noqa: F401 (one_thread: autouse fixture)
@@ -109,6 +110,11 @@ def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path
         assert [c["weights"] for c in info["learned_weights"]] == [files[kept]]
         assert [r.getMessage() for r in caplog.records if "learned prior: weights" in r.getMessage()] == [
             f"learned prior: weights {files[kept]}: {info['learned_weights'][0]['reason']}"]  # once per solve
+    field = ImplicitSolver(iterations=2, progress=False, warm_start=VoxelSolver(
+        iterations=2, coarse_to_fine=False, progress=False, priors=learned))  # the start's choice is the field's too
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataConsistencyWarning)
+        assert field.solve(tilted_measurement, tilted_op).info["learned_weights"] == info["learned_weights"]
     single = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False,
                          priors={"learned": {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}})
     assert "learned_weights" not in single.solve(measurement, op).info
