@@ -90,9 +90,9 @@ class LearnedPrior(nn.Module):
     def _keep(self, index: int, reason: str | None) -> None:
         """Use the candidate weights ``index``; :attr:`choice` records which and why (``reason`` ``None``: the only
         ones given)."""
-        name, self.denoiser, self.meta = self.candidates[index]
+        _, self.denoiser, self.meta = self.candidates[index]
         self.n = int(self.meta["n"])
-        self.choice = {"weights": "denoiser64" if name is None else str(name), "reason": reason}
+        self.choice = {"weights": self._name(index), "reason": reason}
 
     def select_for(self, directions: torch.Tensor) -> None:
         """Of several candidate weights, keep the one whose training plan leaves the band about the horizontal
@@ -110,6 +110,7 @@ class LearnedPrior(nn.Module):
         self._keep(index, reason)
 
     def _name(self, index: int) -> str:
+        """The candidate ``index``'s weights as given (``denoiser64`` for ``None``, the shipped first stage)."""
         name = self.candidates[index][0]
         return "denoiser64" if name is None else str(name)
 
