@@ -441,7 +441,7 @@ def _warn_recorded_geometry_unused(raw: RawScan, path: str | Path) -> None:
     differ = ", ".join(f"{name}={value:.6g}" for name, value in recorded.to_dict().items()
                        if name != "cross_section_mm2" and value != getattr(ideal, name))
     remedy = (f"give the reader that calibration: calibration={file} (reconstruct.py: "
-              f"+source.reader.calibration={file})") if file else \
+              f"source.reader.calibration={file})") if file else \
         "give the reader that geometry (reconstruct.py: source.reader.geometry={...}) or its calibration file"
     message = (f"{path} was scanned with a rig geometry ({differ}; recorded in its header) and is read on the ideal "
                f"rig, since the reader is given no geometry: the dips' start heights, directions and stage travel are "

@@ -302,7 +302,7 @@ def test_csv_saved_by_a_spreadsheet_is_read_as_the_original(tmp_path, cli, encod
     # 450 mm: placed by their centroids on the ideal rig, the cats reach 175 mm from the centre (a 360 mm grid's
     # working ball at 16^3 has a radius of 157.5 mm, and is refused)
     proc = cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=450", "resolution=16",
-                "+source.reader.t_start=centroid", "+source.reader.truncated=keep", "output.figures=false",
+                "+source.reader.t_start=centroid", "source.reader.truncated=keep", "output.figures=false",
                 "output.uncertainty=false", "output.resolvability=false")
     assert proc.returncode == 0, proc.stderr[-2000:]
     original = read_recorded(str(CATS_CSV), Grid(16, 3, 450.0), t_start="centroid", truncated="keep")

@@ -190,6 +190,18 @@ def test_occupancy_levels_and_named_threshold_rules_are_accepted(overrides):
         check_config(compose(config_name="config", overrides=overrides))
 
 
+@pytest.mark.parametrize("override,key,value", [("source.reader.truncated=keep", "truncated", "keep"),
+                                                 ("source.reader.calibration=rig_cal.yaml", "calibration", "rig_cal.yaml")])
+def test_the_reader_options_the_messages_name_are_taken_as_written(override, key, value):
+    """The reader's errors and the bad-data guide advise ``source.reader.truncated=keep`` and
+    ``source.reader.calibration=FILE``; typed as given, Hydra refused both ("Could not override ... use +..."),
+    exit 2: ``conf/source/recorded.yaml`` had neither key."""
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[*RECORDED, override])
+    check_config(cfg)
+    assert cfg.source.reader[key] == value
+
+
 # ----------------------------------------------------------------------------- presets x solvers
 PRESETS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 SOLVERS = sorted(p.stem for p in (CONF / "solver").glob("*.yaml"))

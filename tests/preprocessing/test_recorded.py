@@ -259,7 +259,7 @@ def test_a_scan_recorded_with_a_calibration_and_read_without_one_is_warned_about
     raw.header.config.update({"rig_geometry": calibrated.to_dict(), "scan": {"rig": {"calibration": "rig_cal.yaml"}}})
     path = raw.save(tmp_path / "scan.jsonl")
     with pytest.warns(UserWarning, match=r"scan.jsonl was scanned with a rig geometry \(tilt_zero_deg=2, "
-                                         r"step_scale=1.03; .*\+source.reader.calibration=rig_cal.yaml"):
+                                         r"step_scale=1.03; .*source.reader.calibration=rig_cal.yaml"):
         prepare_recording(path)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
