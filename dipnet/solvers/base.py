@@ -36,8 +36,10 @@ def checked_threshold(threshold: float | str, rule: str) -> float | str:
     if threshold == rule:
         return rule
     if isinstance(threshold, (bool, str)) or not isinstance(threshold, numbers.Real) or not 0 < threshold < 1:
-        raise ValueError(f"threshold must be an occupancy level in (0, 1) or {rule!r}, got {threshold!r}: a level "
-                         "of 1 or above leaves an occupancy in [0, 1] empty, one of 0 or below takes the whole grid")
+        reason = (f"this solver's only named rule is {rule!r} ('volume' is the optimisation solvers' rule, 'otsu' the "
+                  "linear solvers')" if isinstance(threshold, str) else
+                  "a level of 1 or above leaves an occupancy in [0, 1] empty, one of 0 or below takes the whole grid")
+        raise ValueError(f"threshold must be an occupancy level in (0, 1) or {rule!r}, got {threshold!r}: {reason}")
     return float(threshold)
 
 

@@ -119,6 +119,15 @@ def test_a_solver_must_solve():
     assert Empty().solve(m, op).shape == grid.shape and Empty.name == "empty" and Solver.name == "solver"
 
 
+@pytest.mark.parametrize("name,rule,other", [("minnorm", "otsu", "volume"), ("voxel", "volume", "otsu")])
+def test_another_solvers_threshold_rule_is_named_as_such(name, rule, other):
+    """Before: ``solver.threshold=volume`` with minnorm was refused as "a level of 1 or above leaves an occupancy
+    in [0, 1] empty", a reason that does not apply to a rule."""
+    with pytest.raises(ValueError, match=rf"got '{other}': this solver's only named rule is '{rule}'") as caught:
+        make_solver(name, threshold=other)
+    assert "empty" not in str(caught.value)
+
+
 @pytest.mark.parametrize("name,rule", [("minnorm", "otsu"), ("lsmr", "otsu"), ("voxel", "volume"), ("implicit", "volume")])
 @pytest.mark.parametrize("level", [2.0, 1.0, 0.0, -0.5, float("nan"), True, "0.5"])
 def test_a_threshold_outside_the_occupancy_levels_is_refused(name, rule, level):
