@@ -83,6 +83,12 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   the estimate from every reading) is below ``NOISE_LEAK_MAX``, so that the readings' estimate holds their
   noise alone. On five bundled meshes and the built-in box at 0.5-5 mm steps and 10-60 dB, a correct statement with a leak
   below 2 had a ratio of 0.70-1.0, and every ratio below 0.5 came with a leak of 2.5 or more.
+* ``dip_outliers``, ``dip_outlier_share``, ``dip_outlier_sigmas``, ``dip_outlier_order``: the dips whose profiles
+  no object shares with the other dips (:mod:`dipnet.preprocessing.dip_agreement`: each dip's central moments of
+  orders 2-4 against the polynomials the others fit), and the largest one's miss in the object's scale and in noise
+  sigmas. A direction filed under the wrong dip (two rows swapped, an orientation log one dip off) or an object that
+  moved in its holder mid-scan does this, and an optimising solver absorbs it: three swapped pairs of the built-in
+  chamber box's 40 dips gave IoU 0.74 where the right directions gave 0.97, with a smaller residual, ``consistent``.
 * ``threshold_change_depth``: why a binary shape misses data its occupancy explains
   (:func:`threshold_change_depth`). Thresholding a shape's partial-volume occupancy changes only the voxels its
   surface and its thin parts cross, a layer about one voxel thick, and a finer grid shrinks that change; a field
@@ -113,7 +119,7 @@ height trend exceeds half a slab and 3 of its standard errors, the profile floor
 noise sigmas (or its standard errors, when the dips' floors agree: :func:`floor_limit`) and carries more
 than ``volume_tol`` of the measured volume, or the level
 falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0, the stated
-noise exceeds ``NOISE_RATIO_MAX`` times the readings' own, a dip's level falls by more than
+noise exceeds ``NOISE_RATIO_MAX`` times the readings' own, some dips disagree with the others, a dip's level falls by more than
 ``LEVEL_DROP_TOL`` of the volume while the object goes down, a dip measures more than the median dip beyond its
 noise and ``EXCESS_TOTAL_TOL`` of the volume, or the dips reject a declared symmetry. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
@@ -138,6 +144,7 @@ from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allowance, coarse_quantum_message,
                                             object_slabs, reading_quantum)
+from dipnet.preprocessing.dip_agreement import dip_agreement
 from dipnet.preprocessing.level_trend import level_fall
 from dipnet.preprocessing.symmetry_moments import MISFIT_LIMIT, P_LIMIT, SymmetryFit, group_closure, symmetry_fit
 from dipnet.preprocessing.validation import NOISE_LEAK_MAX, beyond_ball_message, object_reach
@@ -179,6 +186,8 @@ THRESHOLD_GAIN_MAX = 2.0
 #: A stated noise above this many times the readings' own is named (correct simulations: 0.86-1.30 at 1 mm steps,
 #: see the module docstring), and one below its inverse when the readings' estimate holds their noise alone
 NOISE_RATIO_MAX = 3.0
+#: The disagreeing dips a message names (the rest are counted)
+MAX_NAMED_DIPS = 8
 
 
 class DataConsistencyWarning(UserWarning):
@@ -229,6 +238,10 @@ class Consistency:
     reading_noise_mm3: float = float("nan")
     reading_noise_ratio: float = float("nan")
     reading_noise_leak: float = float("nan")
+    dip_outliers: list[int] = field(default_factory=list)
+    dip_outlier_share: float = float("nan")
+    dip_outlier_sigmas: float = float("nan")
+    dip_outlier_order: int = 0
     threshold_change_depth: float = float("nan")
     symmetry_misfit: float = float("nan")
     symmetry_misfit_p: float = float("nan")
@@ -530,6 +543,9 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         drops = [float(row[0]) for row in metadata["level_drop"]]
         result.level_drop_share = max(drops, default=0.0) / measured
         result.level_drop_dips = sum(d > 0 for d in drops)
+    agreement = dip_agreement(measurement)
+    result.dip_outliers, result.dip_outlier_share = agreement.outliers, agreement.share
+    result.dip_outlier_sigmas, result.dip_outlier_order = agreement.sigmas, agreement.order
     fit, result.symmetry_declared = declared_symmetry_fit(measurement, reconstruction)
     result.symmetry_misfit, result.symmetry_misfit_p = fit.misfit, fit.p_value
     result.symmetry_misfit_order, result.symmetry_rejected = fit.order, fit.rejected
@@ -663,6 +679,15 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    f"{c.reading_noise_mm3:.3g} {c.volume_unit}): the solvers' prior weights, set from it, are too small "
                    "and the shape takes noise for object, and the residual limit it sets is too strict. Correct the "
                    "sensor's noise_sigma or snr_db (or leave the noise unstated to have it estimated)")
+    if c.dip_outliers:
+        named = ", ".join(str(i) for i in c.dip_outliers[:MAX_NAMED_DIPS]) + (
+            f" and {len(c.dip_outliers) - MAX_NAMED_DIPS} more" if len(c.dip_outliers) > MAX_NAMED_DIPS else "")
+        out.append(f"{len(c.dip_outliers)} dip(s) disagree with the others (dips {named}, counted from 0): their "
+                   f"order-{c.dip_outlier_order} moments miss what the other dips give one object by up to "
+                   f"{c.dip_outlier_share:.1%} of its size ({c.dip_outlier_sigmas:.0f} noise sigmas). A direction "
+                   "filed under the wrong dip (rows swapped, an orientation log one dip off) or an object that moved "
+                   "in its holder during the scan does this, and the solvers fit such dips anyway: check the "
+                   "recording's orientations and the holder, and rescan those dips or remove them from the recording")
     if c.symmetry_rejected:
         if c.symmetry_declared == "images":
             what, remedy = "every dip copied to its images", "declare the object's own symmetry about z, or none"

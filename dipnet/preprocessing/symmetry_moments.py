@@ -116,21 +116,23 @@ def whole_dips(measurement: DipMeasurement) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
-def _monomials(d: int, k: int) -> list[tuple[int, ...]]:
+def monomials(d: int, k: int) -> list[tuple[int, ...]]:
+    """The exponents of the monomials of degree ``k`` in ``d`` variables."""
     return [a for a in itertools.product(range(k + 1), repeat=d) if sum(a) == k]
 
 
-def _design(directions: np.ndarray, exponents: list[tuple[int, ...]]) -> np.ndarray:
+def monomial_design(directions: np.ndarray, exponents: list[tuple[int, ...]]) -> np.ndarray:
+    """The monomials ``exponents`` of each row of ``directions`` ``(K, d)``: ``(K, len(exponents))``."""
     return np.stack([np.prod(directions ** np.asarray(a), axis=1) for a in exponents], axis=1)
 
 
 def _order_test(directions: np.ndarray, moments: np.ndarray, group: np.ndarray, k: int) -> tuple[float, float]:
     """``(relative misfit before scaling, p-value)`` of order ``k``: NaNs when it cannot be tested."""
     n = len(directions)
-    exponents = _monomials(directions.shape[1], k)
+    exponents = monomials(directions.shape[1], k)
     ones = np.ones((n, 1))
-    free = np.hstack([_design(directions, exponents), ones])
-    invariant = np.hstack([np.mean([_design(directions @ g.T, exponents) for g in group], axis=0), ones])
+    free = np.hstack([monomial_design(directions, exponents), ones])
+    invariant = np.hstack([np.mean([monomial_design(directions @ g.T, exponents) for g in group], axis=0), ones])
     rank_free, rank_inv = np.linalg.matrix_rank(free, 1e-8), np.linalg.matrix_rank(invariant, 1e-8)
     dof, extra = n - rank_free, rank_free - rank_inv
     if dof < MIN_DOF or extra < 1:
