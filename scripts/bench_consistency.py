@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
 from collections.abc import Callable
 import warnings
@@ -61,7 +60,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.consistency import RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS, allowed_residual, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.experiments.shape_pool import add_pool_options, shape_makers, shape_names
+from dipnet.experiments.shape_pool import add_pool_options, shape_makers, shape_names, start_pool_run
 from dipnet.jobs.tuning import compose_job
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
@@ -237,9 +236,7 @@ def band(snr: float | None) -> str:
 def main(argv=None) -> list[dict]:
     """Run the benchmark; returns one row per checked result (reconstructions and candidates)."""
     args = parse_args(argv)
-    torch.set_num_threads(args.threads)
-    logging.getLogger("dipnet").setLevel(logging.ERROR)
-    rng = np.random.default_rng(args.seed)
+    rng = start_pool_run(args)
     makers = shape_makers()
     names = shape_names(args.shapes)
     pools = {ndim: [name for name in makers if makers[name][0] == ndim] for ndim in (2, 3)}

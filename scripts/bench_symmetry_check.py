@@ -25,17 +25,15 @@ trials rejected, target 0, and of asymmetric and near ones rejected, target 1 fo
 from __future__ import annotations
 
 import argparse
-import logging
 import warnings
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import angles_2d, directions_2d, fibonacci_hemisphere
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.experiments.shape_pool import shape_makers, shape_names
+from dipnet.experiments.shape_pool import shape_makers, shape_names, start_pool_run
 from dipnet.preprocessing.symmetry_moments import P_LIMIT, group_closure, symmetry_fit
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
@@ -99,9 +97,7 @@ def classify(misfit: float) -> str:
 def main(argv=None) -> list[dict]:
     """Run the benchmark; returns one row per (shape, declaration, trial)."""
     args = parse_args(argv)
-    torch.set_num_threads(args.threads)
-    logging.getLogger("dipnet").setLevel(logging.ERROR)
-    rng = np.random.default_rng(args.seed)
+    rng = start_pool_run(args)
     rows = []
     for name, ndim, shape in tqdm(shapes(args.shapes), desc="shapes"):
         with warnings.catch_warnings():

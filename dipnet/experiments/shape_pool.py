@@ -7,8 +7,12 @@ mesh by its stem (``bunny``, ``hammer``, ...), ``disk_2d``, ``chamber_box_2d``, 
 from __future__ import annotations
 
 import argparse
+import logging
 from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
+import torch
 
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.shapes import builtin_shape, shape_from_file
@@ -51,3 +55,11 @@ def add_pool_options(parser: argparse.ArgumentParser, *, trials: int, resolution
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
     parser.add_argument("--json", type=Path, help=json_help)
+
+
+def start_pool_run(args: argparse.Namespace) -> np.random.Generator:
+    """Set up a run of the options :func:`add_pool_options` added: torch's threads (``--threads``), dipnet's log
+    quieted to errors (a benchmark's table is its output), and the random generator of its cases (``--seed``)."""
+    torch.set_num_threads(args.threads)
+    logging.getLogger("dipnet").setLevel(logging.ERROR)
+    return np.random.default_rng(args.seed)

@@ -420,6 +420,22 @@ def test_the_symmetry_check_runs_end_to_end_on_chosen_shapes(capsys):
         bench.shapes(["teapot"])
 
 
+def test_the_dip_agreement_bench_scores_correct_scans_and_their_faults(capsys):
+    """One random scan of the chamber box and the box (24 slabs) and their four faults; the correct ones and the authors'
+    real recording have no outlier, and the RESULT line holds the rates; a 2D or unknown shape is refused."""
+    bench = load_script("bench_dip_agreement")
+    rows = _main_in_this_process(bench, ["--trials", "1", "--shapes", "chamber_box_3d", "box_3d", "--threads", "1", "--resolution", "24",
+                                         "--seed", "5"])
+    assert [r["kind"] for r in rows] == list(bench.KINDS) * 2
+    assert all(r["tested"] > 0 and len(r["flags"]) == len(bench.LIMITS) for r in rows)
+    assert not any(r["flags"][0] for r in rows if r["kind"] == "ok")
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("RESULT false_alarms=0.000 detected_swap=") and last.endswith(" cats_outliers=0 cases=2")
+    for shapes in (["elephant_2d"], ["teapot"]):
+        with pytest.raises(ValueError, match="no shape named"):
+            bench.main(["--shapes", *shapes])
+
+
 def _consistency_row(kind, iou, residual, expected, snr_db=None, shape="ball_3d", seed=1):
     limit = max(3 * expected, 0.05)
     return {"shape": shape, "ndim": 3, "n": 48, "dips": 30, "snr_db": snr_db, "noise_seed": seed, "shift_axis": 0,

@@ -45,6 +45,8 @@ def test_quick_settings_fill_only_the_options_left_out():
     ("bench_scale", ["--quick", "--meshes", "torus"], {"n": [128], "meshes": ["torus"], "fractions": [0.03]}),
     ("bench_symmetry_check", ["--quick", "--seed", "3"], {"trials": 2, "seed": 3}),
     ("bench_symmetry_check", ["--quick", "--trials", "4"], {"trials": 4}),
+    ("bench_dip_agreement", ["--quick", "--seed", "3"], {"trials": 1, "seed": 3}),
+    ("bench_dip_agreement", ["--quick", "--shapes", "bunny"], {"trials": 1, "shapes": ["bunny"]}),
     ("bench_consistency", ["--quick", "--seed", "3"], {"trials": 2, "seed": 3}),
     ("bench_consistency", ["--quick", "--trials", "3", "--shapes", "bunny"], {"trials": 3, "shapes": ["bunny"]}),
 ])

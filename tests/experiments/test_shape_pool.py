@@ -38,3 +38,21 @@ def test_the_pool_options_parse_with_their_defaults():
     args = parser.parse_args(["--shapes", "bunny", "ball_3d", "--json", "rows.json"])
     assert (args.trials, args.resolution, args.seed, args.threads) == (3, 24, 2026, 2)
     assert args.shapes == ["bunny", "ball_3d"] and str(args.json) == "rows.json"
+
+
+def test_a_pool_run_sets_its_threads_quiets_the_log_and_seeds_its_cases():
+    import argparse
+    import logging
+
+    import torch
+
+    from dipnet.experiments.shape_pool import start_pool_run
+
+    log, level, threads = logging.getLogger("dipnet"), logging.getLogger("dipnet").level, torch.get_num_threads()
+    try:
+        args = argparse.Namespace(threads=1, seed=7)
+        draws = [start_pool_run(args).integers(1 << 30, size=3).tolist() for _ in range(2)]
+        assert draws[0] == draws[1] and torch.get_num_threads() == 1 and log.level == logging.ERROR
+    finally:
+        log.setLevel(level)
+        torch.set_num_threads(threads)
