@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {message}", file=sys.stderr)
             return 2
     out = args.out or args.dirs[0] / "compare"
+    if out.exists() and not out.is_dir():
+        print(f"error: --out {out} is a file: give a folder for the comparison's tables and plots", file=sys.stderr)
+        return 2
     out.mkdir(parents=True, exist_ok=True)
     earlier = output_files(out, COMPARE_OUTPUTS)
     metrics = collect.compared_metrics(rows)

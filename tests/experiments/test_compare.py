@@ -225,3 +225,13 @@ def test_a_column_no_run_records_is_refused(sweep, tmp_path, capsys, flag):
                           "choose among the axes (solver, shape, ndim, resolution, n_dips, dips_percent, snr_db, seed), "
                           "the options the runs set (n_dips, seed, solver)") and err.count("\n") == 1, err
     assert not out.exists()
+
+
+def test_an_output_path_that_is_a_file_is_refused_in_one_line(sweep, tmp_path, capsys):
+    """``compare.py SWEEP -o notes.txt`` (an existing file) printed a raw ``FileExistsError`` traceback."""
+    out = tmp_path / "notes.txt"
+    out.write_text("kept")
+    assert _load_compare().main([str(sweep), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: --out {out} is a file: give a folder for the comparison's tables and plots\n"
+    assert out.read_text() == "kept"
