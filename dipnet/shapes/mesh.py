@@ -144,6 +144,8 @@ def load_mesh(
             ``scale`` is not a finite positive number (a scale of 0 or below would shrink the mesh to a
             point or mirror it), or the scaled mesh reaches outside ``BALL_RADIUS_MM`` (the message names the file).
     """
+    if not str(path).strip():  # shape.path= left empty reads as "." (the working folder)
+        raise ShapeError("no mesh file given: set its path (shape.path=/path/to/mesh.ply)")
     path = Path(path)
     if not path.is_file():
         raise ShapeError(f"mesh path {path} is a directory, not a mesh file" if path.is_dir()

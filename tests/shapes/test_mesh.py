@@ -246,6 +246,9 @@ def test_file_errors_name_the_file(tmp_path):
                 load_mesh(path)
     with pytest.raises(ShapeError, match="is a directory, not a mesh file"):
         load_mesh(tmp_path)
+    for blank in ("", " "):  # shape.path= left empty: it read as "mesh path . is a directory"
+        with pytest.raises(ShapeError, match=r"no mesh file given: set its path \(shape.path="):
+            load_mesh(blank)
 
 
 def test_a_hole_bent_over_an_edge_is_refused_and_a_flat_one_filled():
