@@ -212,7 +212,8 @@ DIRECTION_SETS = ("fibonacci", "random", "uniform")
 def make_directions(kind: str, k: int, ndim: int, seed: int = 0) -> torch.Tensor:
     """Named orientation set: ``fibonacci`` | ``random`` | ``uniform`` (2D angles); ``(k, ndim)``.
 
-    In 2D ``fibonacci`` and ``uniform`` are both the ``k`` equal angles of :func:`angles_2d`. An unknown
+    ``uniform`` is an alias: the Fibonacci hemisphere in 3D, and in 2D both are the ``k`` equal angles of
+    :func:`angles_2d`. An unknown
     ``kind``, a ``k`` below 1 or an ``ndim`` other than 2 or 3 raises a ``ValueError`` (in 2D as in 3D)."""
     if kind not in DIRECTION_SETS:
         raise ValueError(f"unknown orientation set {kind!r}; choose fibonacci, random or uniform")
