@@ -119,8 +119,8 @@ height trend exceeds half a slab and 3 of its standard errors, the profile floor
 noise sigmas (or its standard errors, when the dips' floors agree: :func:`floor_limit`) and carries more
 than ``volume_tol`` of the measured volume, or the level
 falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0, the stated
-noise exceeds ``NOISE_RATIO_MAX`` times the readings' own, some dips disagree with the others, a dip's level falls by more than
-``LEVEL_DROP_TOL`` of the volume while the object goes down, a dip measures more than the median dip beyond its
+noise exceeds ``NOISE_RATIO_MAX`` times the readings' own, some dips disagree with the others, a dip's level falls
+by more than ``LEVEL_DROP_TOL`` of the volume while the object goes down, a dip measures more than the median dip beyond its
 noise and ``EXCESS_TOTAL_TOL`` of the volume, or the dips reject a declared symmetry. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
