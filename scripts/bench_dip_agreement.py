@@ -155,9 +155,9 @@ def print_table(rows: list[dict], cats: dict) -> None:
 def main(argv=None) -> list[dict]:
     """Run the benchmark; returns one row per scored scan."""
     args = parse_args(argv)
+    names = shape_names(args.shapes, ndim=3)
     rng = start_pool_run(args)
     makers = shape_makers()
-    names = shape_names(args.shapes, ndim=3)
     cases = [sample_case(rng, name, args.resolution) for _ in range(args.trials) for name in names]
     rows = []
     with warnings.catch_warnings():
