@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dipnet.core.measurement import DipMeasurement, estimate_slab_sigma, reading_slab_sigma
-from dipnet.preprocessing.symmetry_moments import monomial_design, monomials, whole_dips
+from dipnet.preprocessing.symmetry_moments import monomial_design, monomials, whole_dip_profiles
 
 #: The central-moment orders tested.
 ORDERS = (2, 3, 4)
@@ -98,21 +98,10 @@ def dip_scores(measurement: DipMeasurement) -> DipScores | None:
     A dip that disagrees pulls the least-squares fit toward itself and makes dips that agree miss it too, so the
     worst outlier is set aside and the rest refitted, up to a third of the dips; each is then scored against the
     fit of the dips kept (by its prediction error, ``sqrt(1 + h)`` for its leverage ``h``)."""
-    meta = measurement.metadata or {}
-    index = whole_dips(measurement)
-    if measurement.ndim != 3 or "symmetry_group_order" in meta or len(index) == 0:
+    dips = whole_dip_profiles(measurement)
+    if measurement.ndim != 3 or "symmetry_group_order" in (measurement.metadata or {}) or dips is None:
         return None
-    d = measurement.directions.double().numpy()[index]
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    p = measurement.profiles.double().numpy()[index]
-    t = measurement.slab_centres().double().numpy()[index]
-    totals = p.sum(1)
-    if not (totals > 0).all():
-        return None
-    u = t - ((p * t).sum(1) / totals)[:, None]
-    radius = math.sqrt(float(np.mean((p * u ** 2).sum(1) / totals)))
-    if not radius > 0:
-        return None
+    d, p, u, totals, radius, index = dips.directions, dips.profiles, dips.offsets, dips.totals, dips.radius, dips.index
     sigma_r = reading_sigma(measurement)
     fits = []
     for k in ORDERS:

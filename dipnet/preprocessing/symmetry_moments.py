@@ -116,6 +116,40 @@ def whole_dips(measurement: DipMeasurement) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
+@dataclass
+class WholeDipProfiles:
+    """The whole dips of a measurement as the moment tests read them (:func:`whole_dip_profiles`): ``index``
+    ``(K',)`` in the measurement, unit ``directions`` ``(K', d)``, ``profiles`` and their slab ``centres`` ``(K', M)``
+    (mm^3 and mm), each profile's ``totals`` ``(K',)``, the ``offsets`` ``(K', M)`` of the centres from each
+    profile's own centroid (mm), and the object's radius of gyration ``radius`` (mm, the root mean square offset)."""
+
+    index: np.ndarray
+    directions: np.ndarray
+    profiles: np.ndarray
+    centres: np.ndarray
+    totals: np.ndarray
+    offsets: np.ndarray
+    radius: float
+
+
+def whole_dip_profiles(measurement: DipMeasurement) -> WholeDipProfiles | None:
+    """The whole dips of ``measurement`` (:func:`whole_dips`) for the moment tests; ``None`` when there is none, a
+    profile holds no volume, or the profiles have no spread."""
+    index = whole_dips(measurement)
+    d = measurement.directions.double().numpy()[index]
+    p = measurement.profiles.double().numpy()[index]
+    totals = p.sum(1)
+    if len(index) == 0 or not (totals > 0).all():
+        return None
+    t = measurement.slab_centres().numpy()[index]
+    offsets = t - ((p * t).sum(1) / totals)[:, None]
+    radius = math.sqrt(float(np.mean((p * offsets ** 2).sum(1) / totals)))
+    if not radius > 0:
+        return None
+    return WholeDipProfiles(index=index, directions=d / np.linalg.norm(d, axis=1, keepdims=True), profiles=p,
+                            centres=t, totals=totals, offsets=offsets, radius=radius)
+
+
 def monomials(d: int, k: int) -> list[tuple[int, ...]]:
     """The exponents of the monomials of degree ``k`` in ``d`` variables."""
     return [a for a in itertools.product(range(k + 1), repeat=d) if sum(a) == k]
@@ -147,18 +181,10 @@ def _order_test(directions: np.ndarray, moments: np.ndarray, group: np.ndarray, 
 def symmetry_fit(measurement: DipMeasurement, group: np.ndarray) -> SymmetryFit:
     """Test the symmetry ``group`` ``(G, d, d)`` (orthogonal maps about the frame's origin, acting on
     ``(x, y[, z])``; :func:`group_closure`) against the whole dips of ``measurement`` (see the module docstring)."""
-    index = whole_dips(measurement)
-    d = measurement.directions.double().numpy()[index]
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    p = measurement.profiles.double().numpy()[index]
-    totals = p.sum(1)
-    if len(index) == 0 or not (totals > 0).all():
-        return SymmetryFit(dips=len(index))
-    t = measurement.slab_centres().numpy()[index]
-    centroid = (p * t).sum(1) / totals
-    radius = math.sqrt(float(np.mean((p * (t - centroid[:, None]) ** 2).sum(1) / totals)))
-    if not radius > 0:
-        return SymmetryFit(dips=len(index))
+    dips = whole_dip_profiles(measurement)
+    if dips is None:
+        return SymmetryFit(dips=len(whole_dips(measurement)))
+    d, p, t, totals, radius, index = dips.directions, dips.profiles, dips.centres, dips.totals, dips.radius, dips.index
     results = []
     for k in ORDERS:
         misfit, p_value = _order_test(d, (p * t ** k).sum(1) / totals, np.asarray(group, dtype=np.float64), k)
