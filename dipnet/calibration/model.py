@@ -180,11 +180,12 @@ class ProfileModel:
     def __init__(self, raw: RawScan, grid: Grid, n_slabs: int | None = None,
                  operator_factory: Callable | None = None, smooth: bool = False, finish: Callable[[DipMeasurement], DipMeasurement] | None = None,
                  drift_mm_per_s: float = 0.0) -> None:
+        self.n_slabs = grid.n if n_slabs is None else int(n_slabs)
         self.raw, self.readings = repair_without_drift(raw, drift_mm_per_s,  # once, not per trial
-                                                       max_cross_section=max_object_section(grid))
+                                                       max_cross_section=max_object_section(grid),
+                                                       slab_mm=grid.extent / self.n_slabs)
         self.drift_mm_per_s = float(drift_mm_per_s)
         self.grid, self.finish = grid, finish
-        self.n_slabs = grid.n if n_slabs is None else int(n_slabs)
         self.operator_factory, self.smooth = operator_factory or make_operator, smooth
         self.nominal_area = float(raw.header.tank_cross_section_mm2 or 0.0)
         self._operators: dict[bytes, Any] = {}

@@ -121,8 +121,10 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "resolvability_diameter_mm": ("what the plan resolves", "diameter of the resolvable ball (mm)"),
     "azimuthal_signal_ratio": ("what the plan resolves", "azimuthal signal ratio"),
     "readings_repaired": ("data checks", "readings repaired"),
+    "readings_flagged": ("data checks", "flagged readings left out"),
     "dips_rejected": ("data checks", "dips rejected"),
     "dips_truncated_dropped": ("data checks", "truncated dips dropped"),
+    "dips_incomplete_dropped": ("data checks", "incomplete dips left out (an interrupted scan)"),
     "validation_warnings": ("data checks", "validation warnings"),
     "validation": ("data checks", "validation details"),
 }

@@ -170,10 +170,11 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         the scan records its resolution, ``readings``: the outlier report, ...).
     """
     report = ReadingsReport()
-    if repair:
-        raw, report = repair_readings(raw, max_cross_section=None if grid is None else max_object_section(grid))
-    header = raw.header
     edges = _resolve_edges(edges, grid, n_slabs)
+    if repair:
+        raw, report = repair_readings(raw, max_cross_section=None if grid is None else max_object_section(grid),
+                                      slab_mm=float(edges[1] - edges[0]))
+    header = raw.header
     _check_step(_stage_step(raw), float(edges[1] - edges[0]))
     area = cross_section_mm2 if cross_section_mm2 is not None else header.tank_cross_section_mm2
     if area is None:

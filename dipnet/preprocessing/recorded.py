@@ -359,14 +359,15 @@ def interpolate_orientations(measurement: DipMeasurement, targets, k: int = 3, m
 def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = None, fixture: str | Path | None = None,
                       geometry: RigGeometry | dict | None = None, calibration: str | Path | None = None,
                       centre: str = "extent", truncated: str = "drop", tail_fraction: float = 0.1,
-                      tail_tol: float = 0.04, max_cross_section: float | None = None, ndim: int | None = None
-                      ) -> tuple[RawScan, RigGeometry, dict]:
+                      tail_tol: float = 0.04, max_cross_section: float | None = None, ndim: int | None = None,
+                      slab_mm: float | None = None) -> tuple[RawScan, RigGeometry, dict]:
     """A recording made ready for :func:`~dipnet.core.geometry.invert_scan` and preprocessing.
 
     Reads the file, keeps complete dips (:func:`dipnet.core.rawscan.complete_dips`, with a warning
     for the others), resolves the geometry (``geometry`` values or a ``calibration`` file), repairs outlier readings
     or rejects their dips with its level drift taken out (:func:`~dipnet.preprocessing.preprocess.
-    repair_without_drift`, with ``max_cross_section`` mm^2 capping the physical rise per step; reported in
+    repair_without_drift`, with ``max_cross_section`` mm^2 capping the physical rise per step and ``slab_mm``, the
+    slab thickness, bounding the gap flagged readings may leave; reported in
     ``info["readings"]``; the truncated dips are found with that drift taken out too),
     subtracts a fixture recording (in the rig's commanded coordinates with the geometry's
     cross-section), keeps complete dips, drops or keeps truncated ones and, when the recording
@@ -380,10 +381,15 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``; ``info["calibration"]`` names the
     calibration file (path, rig, tank, method, created) when the geometry is one's.
     """
-    raw = read_scan(path, cross_section_mm2)
+    raw = read_scan(path)
+    # the section the file states (the authors' CSV states none: its default is the authors' tank)
+    stated = None if Path(path).suffix.lower() == ".csv" else raw.header.tank_cross_section_mm2
+    if cross_section_mm2 is not None:
+        raw.header = replace(raw.header, tank_cross_section_mm2=float(cross_section_mm2))
     if ndim is not None and raw.header.ndim != ndim:
         raise ValueError(f"{path}: a {raw.header.ndim}D recording (its header's ndim) for a {ndim}D grid: "
                          f"set ndim={raw.header.ndim}")
+    incomplete = [o.k for o in raw.orientations if not o.complete]
     raw.orientations = complete_dips(raw)
     if calibration is not None and as_geometry(geometry) != RigGeometry():
         raise ValueError("give the rig geometry either as a calibration file or as values, not both")
@@ -394,7 +400,8 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
             geometry = geometry.with_values(cross_section_mm2=float(cross_section_mm2))
     geometry = as_geometry(geometry)
     # with the level drift taken out: a drift over a dip's rest readings passes for outliers
-    raw, readings = repair_without_drift(raw, geometry.level_drift_mm_per_s, max_cross_section=max_cross_section)
+    raw, readings = repair_without_drift(raw, geometry.level_drift_mm_per_s, max_cross_section=max_cross_section,
+                                         slab_mm=slab_mm)
     if calibration is None and geometry.is_ideal:
         _warn_recorded_geometry_unused(raw, path)
     area = geometry.area(raw.header.tank_cross_section_mm2 or 0.0)
@@ -403,8 +410,11 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     if fixture is not None:
         raw = subtract_fixture(raw, read_scan(fixture, cross_section_mm2), area)
     cut = truncated_orientations(level_drift_removed(raw, geometry.level_drift_mm_per_s), tail_fraction, tail_tol)
+    configured = cross_section_mm2 if cross_section_mm2 is not None else \
+        (geometry.cross_section_mm2 if calibrated is None else None)
     info: dict = {"truncated": cut, "truncated_policy": truncated, "geometry": geometry.to_dict(),
-                  "readings": readings.to_json()}
+                  "readings": readings.to_json(), "incomplete": incomplete,
+                  "cross_section_mm2": {"used": area, "recorded": stated, "configured": configured}}
     if calibrated is not None:  # which file placed the dips: the validation names it when they do not fit
         info["calibration"] = {"path": str(calibration), "rig": calibrated.rig, "tank": calibrated.tank,
                                "method": calibrated.method, "created": calibrated.created}
@@ -516,10 +526,10 @@ def read_raw_recording(path: str | Path, grid: Grid, n_slabs: int | None = None,
 
     Returns:
         The measurement, ``metadata["recorded"]`` holding what was done (geometry, start heights,
-        dropped dips, counts).
+        dropped dips, counts, the tank section used and the one the file states).
     """
     raw, geometry, info = prepare_recording(path, max_cross_section=max_object_section(grid), ndim=grid.ndim,
-                                            **options)
+                                            slab_mm=grid.extent / (n_slabs or grid.n), **options)
     # cleaned once, by prepare_recording: complete dips kept, outliers repaired
     m = preprocess(invert_scan(raw, geometry), grid=grid, n_slabs=n_slabs,
                    t_start="metadata" if t_start == "geometry" else t_start, smooth=smooth, repair=False,

@@ -152,7 +152,9 @@ class ValidationReport:
         readings = self.stats.get("readings", {})
         return {"readings_repaired": int(readings.get("readings_repaired", 0)),
                 "dips_rejected": int(readings.get("dips_rejected", 0)),
+                "readings_flagged": int(readings.get("readings_flagged", 0)),
                 "dips_truncated_dropped": int(self.stats.get("truncated_dropped", 0)),
+                "dips_incomplete_dropped": len(self.stats.get("incomplete_dropped", [])),
                 "validation_warnings": len(self.warnings),
                 "validation": {**self.stats, "warnings": self.warnings}}
 
@@ -186,7 +188,9 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     sigma = None if measurement.sigma is None else measurement.sigma.numpy()
     recorded = measurement.metadata.get("recorded") or {}
     dropped = len(recorded.get("truncated", [])) if recorded.get("truncated_policy") == "drop" else 0
-    report = ValidationReport(stats={"readings": measurement.metadata.get("readings", {}), "truncated_dropped": dropped})
+    report = ValidationReport(stats={"readings": measurement.metadata.get("readings", {}), "truncated_dropped": dropped,
+                                     "incomplete_dropped": list(recorded.get("incomplete", []))})
+    _check_configured_section(recorded.get("cross_section_mm2"), source, report)
     _check_magnitude(prof, grid, size_tol, source)
     totals = prof.sum(axis=1)
     noise = np.zeros(len(prof)) if sigma is None else np.sqrt((sigma**2).sum(axis=1))
@@ -200,6 +204,26 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
         log.warning("%s", message)
         warnings.warn(message, stacklevel=2)
     return report
+
+
+#: A configured tank section this far (relative) from the one the recording states is warned about.
+SECTION_TOL = 0.01
+
+
+def _check_configured_section(section: dict | None, source: str, report: ValidationReport) -> None:
+    """Record the tank section a recording was read with (``section``: ``used``, ``recorded`` and ``configured``,
+    mm^2, from :func:`~dipnet.preprocessing.recorded.prepare_recording`) and warn when a configured one replaces
+    a different one the recording states: every slab volume scales with it, and the dips cannot tell (a scan of
+    the built-in box stated at 20,000 mm^2 and read at 26,000: IoU 0.76 against 0.95, ``consistent``)."""
+    if not section:
+        return
+    report.stats["cross_section_mm2"] = section
+    recorded, configured = section.get("recorded"), section.get("configured")
+    if recorded and configured and abs(configured / recorded - 1.0) > SECTION_TOL:
+        report.warnings.append(
+            f"{source}: the configured tank section {configured:g} mm^2 replaces the {recorded:g} mm^2 the recording "
+            f"states ({configured / recorded - 1.0:+.0%}): every slab volume, and so the object's size, scales with "
+            "it; unset source.reader.cross_section_mm2 (or the geometry's) to read the recording's")
 
 
 def _check_magnitude(prof: np.ndarray, grid: Grid, size_tol: float, source: str) -> None:

@@ -55,3 +55,32 @@ def test_a_fall_that_lasts_is_kept_and_a_spike_beside_it_still_repaired(at):
         repaired, report = repair_readings(_scan(flooding))
     assert [r["index"] for r in report.repaired] == [12] and not report.rejected
     np.testing.assert_array_equal(repaired.orientations[0].values[13:], flooding[13:])
+
+
+def _flag(raw: RawScan, stages) -> RawScan:
+    """``raw`` with the readings at ``stages`` (mm) of its first dip flagged unstable."""
+    first = raw.orientations[0]
+    first.flags = [["unstable"] if s in stages else [] for s in first.stage_mm]
+    return raw
+
+
+@pytest.mark.parametrize("stages, rejected", [((14.0, 15.0), False),   # a 3 mm gap: 1.5 slabs of 2 mm, kept
+                                             ((14.0, 15.0, 16.0), True),  # 4 mm: 2 slabs
+                                             ((2.0, 3.0, 4.0, 5.0), False),  # before the rise: nothing lost
+                                             ((32.0, 33.0, 34.0, 35.0), False)])  # on the plateau
+def test_flagged_readings_are_counted_and_a_wide_gap_where_the_level_rises_rejects_the_dip(stages, rejected):
+    """Flagged readings are left out by preprocessing, which interpolates across them: across more than
+    1.5 slabs of the rise the slabs would be guesses, so the dip goes (before contact or under water it is kept)."""
+    with pytest.warns(UserWarning, match=rf"left out {len(stages)} flagged reading\(s\), rejected {int(rejected)} dip"):
+        repaired, report = repair_readings(_flag(_scan(CURVE, CURVE), stages), slab_mm=2.0)
+    assert report.to_json()["readings_flagged"] == len(stages)
+    assert report.flagged == [{"k": 0, "count": len(stages), "stage_mm": [min(stages), max(stages)]}]
+    assert [o.k for o in repaired.orientations] == ([1] if rejected else [0, 1])
+    if rejected:
+        assert "readings flagged unstable leave a gap of 4 mm (stage 13-17 mm, 2 slabs)" in report.rejected[0]["reason"]
+
+
+def test_flagged_readings_are_not_judged_without_a_slab():
+    with pytest.warns(UserWarning, match=r"left out 5 flagged reading\(s\), rejected 0 dip"):
+        repaired, report = repair_readings(_flag(_scan(CURVE), (14.0, 15.0, 16.0, 17.0, 18.0)))
+    assert len(repaired.orientations) == 1 and report.to_json()["readings_flagged"] == 5

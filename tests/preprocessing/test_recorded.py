@@ -289,6 +289,44 @@ def test_dropped_truncated_dips_are_named_counted_and_refused_when_most(tmp_path
         read_raw_recording(path, grid)
 
 
+def test_incomplete_dips_left_out_are_counted_in_the_metrics(tmp_path):
+    """The audit's case: a scan killed during its third dip was read as a 2-dip scan, the dip left out named
+    only in the log; ``metrics.json`` now counts it (``dips_incomplete_dropped``) and names it."""
+    from dipnet.preprocessing.validation import validate_measurement
+
+    grid = Grid(24, extent=80.0)
+    raw = simulate_scan(Ball(20.0), fibonacci_hemisphere(8), progress=False)
+    raw.orientations[5].complete = False
+    with pytest.warns(UserWarning, match=r"orientation\(s\) \[5\] are incomplete and left out"):
+        m = read_raw_recording(raw.save(tmp_path / "killed.jsonl"), grid)
+    metrics = validate_measurement(m, grid).metrics()
+    assert m.n_orientations == 7 and metrics["dips_incomplete_dropped"] == 1
+    assert metrics["validation"]["incomplete_dropped"] == [5]
+
+
+def test_a_configured_tank_section_other_than_the_recordings_is_warned_and_recorded(tmp_path):
+    """The audit's case: ``cross_section_mm2=26000`` on a scan whose header states 20,000 mm^2 silently scaled
+    every slab by 1.3 (IoU 0.76 against 0.95, ``consistent``). Now a warning names both values, and the
+    metrics record the section used; the recording's own value or a calibration's says nothing."""
+    from dipnet.preprocessing.validation import validate_measurement
+
+    grid = Grid(24, extent=80.0)
+    path = simulate_scan(Ball(20.0), fibonacci_hemisphere(8), tank=Tank(20000.0), progress=False).save(
+        tmp_path / "ball.jsonl")
+    for options in ({"cross_section_mm2": 26000.0}, {"geometry": {"cross_section_mm2": 26000.0}}):
+        m = read_raw_recording(path, grid, **options)
+        with pytest.warns(UserWarning, match=r"the configured tank section 26000 mm\^2 replaces the 20000 mm\^2 "
+                                             r"the recording states \(\+30%\)"):
+            report = validate_measurement(m, grid)
+        assert report.metrics()["validation"]["cross_section_mm2"] == {"used": 26000.0, "recorded": 20000.0,
+                                                                      "configured": 26000.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for options in ({}, {"cross_section_mm2": 20000.0}):
+            report = validate_measurement(read_raw_recording(path, grid, **options), grid)
+            assert report.metrics()["validation"]["cross_section_mm2"]["used"] == 20000.0
+
+
 def test_a_recording_on_a_grid_of_the_other_dimension_is_refused_before_its_readings_are_repaired(tmp_path):
     """Before: a 3D torus scan read with ndim=2 "repaired" 7 of its clean readings (against the 2D grid's rise cap),
     each with a warning, and then was refused as "3D directions for a 2D grid"."""
