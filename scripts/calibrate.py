@@ -9,7 +9,7 @@ Dip a ball of known radius (held with its centre at the object origin the rig as
 
 The file (:mod:`dipnet.core.calibration_file`) names the scan's rig and its tank (``--tank``, or the
 tank the scan recorded with ``scan.py +rig.tank=lab-tank-1``; a different ``--tank`` is refused); scans
-use it with ``rig.calibration=rig_calibration.yaml`` (and ``+rig.tank=lab-tank-1``), readers with
+use it with ``+rig.calibration=rig_calibration.yaml`` (and ``+rig.tank=lab-tank-1``), readers with
 ``source.reader.calibration=rig_calibration.yaml``. Every parameter is estimated by default;
 those the dips cannot determine (a centred ball's spin zero, by its symmetry) are named with
 the reason and written under ``not_estimated`` with their configured values. A ball off the spin

@@ -81,6 +81,12 @@ class CalibrationError(ValueError):
     """Calibration cannot give a trustworthy geometry (the message names the parameter or cause)."""
 
 
+#: What no dip determines, printed under every calibration: dips measure volumes, which a mirror image shares.
+TURNING_SENSE = ("not determined by any dip: a spin axis turning the other way than configured mirrors every shape, "
+                 "which fits its dips as well; check once by hand that a positive spin turns the holder "
+                 "counter-clockwise seen from above (else flip the spin axis's sign in rig.controller.axes)")
+
+
 @dataclass
 class CalibrationReport:
     """What the data determine.
@@ -137,7 +143,8 @@ class CalibrationReport:
         return [n for n in self.estimates if n not in self.undetermined and n in self.intervals]
 
     def table(self) -> str:
-        """A plain-text table: parameter, estimate, 90% interval, determined?; then the fitted reference centre."""
+        """A plain-text table: parameter, estimate, 90% interval, determined?; then the fitted reference centre and
+        what no dip determines (:data:`TURNING_SENSE`)."""
         lines = [f"{'parameter':<22} {'estimate':>12} {'90% interval':>25}  determined"]
         for name, value in self.estimates.items():
             low, high = self.intervals.get(name, (float("nan"), float("nan")))
@@ -149,6 +156,7 @@ class CalibrationReport:
         if self.reference_centroid_mm is not None:
             at = f"[{', '.join(f'{v:.2f}' for v in self.reference_centroid_mm)}]"
             lines.append(f"{'reference_centroid_mm':<22} {at:>38}  fitted: the reference's centre (mm, object frame)")
+        lines.append(f"{'turning sense':<22} {'':>12} {'':>25}  {TURNING_SENSE}")
         return "\n".join(lines)
 
 

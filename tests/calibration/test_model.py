@@ -105,6 +105,7 @@ def test_the_report_says_what_is_determined():
     assert table[1].split()[:4] == ["pivot_mm", "20.2", "[20,", "20.4]"] and table[1].endswith("yes")
     assert "no, kept at the configured value: a centred ball's symmetry" in table[2]
     assert table[3].startswith("sensor_lag_s")
+    assert table[-1].startswith("turning sense") and "mirrors every shape" in table[-1]
     record = report.to_dict()
     assert record["intervals_90"] == {"pivot_mm": [20.0, 20.4]} and record["not_estimated"] == NOT_ESTIMATED
     assert record["method"] == "reference" and np.isnan(record["residual_rms"])

@@ -520,3 +520,53 @@ def test_a_balances_section_given_is_the_one_its_rises_use(tmp_path):
     low, high = cal.intervals["step_scale"]
     assert low <= 1.01 <= high and cal.geometry.cross_section_mm2 == 66000.0
     assert "the given tolerance +-1 %" in cal.not_estimated["cross_section_mm2"]
+
+
+def test_a_quiet_quantised_sensor_is_neither_refused_nor_given_a_section_interval_too_narrow():
+    """The audit's case: a 16.4 mm ball rising 0.13 mm in a large tank, read to 0.001 mm without noise. Its rounding
+    missed the fit by a relative 0.052, which was refused as a misfit against a noise of 0 (the copy with as much
+    noise again added none); read 1.5 mm lower, the section came out 0.1 % small inside an interval of +-0.02 %
+    (7 standard errors). Rounding alike in every dip is an error no average removes: it now counts in both."""
+    from dipnet.core.orientations import rig_to_direction
+    from dipnet.simulator.physics import DipProtocol
+
+    true = RigGeometry(pivot_mm=-32.24, tilt_axis_offset_mm=31.42, tilt_zero_deg=-4.08, spin_zero_deg=1.0,
+                       step_scale=1.01371, cross_section_mm2=135000.0)
+    tilts, spins = np.meshgrid([0.0, 25.0, 50.0, 70.0], [0.0, 90.0, 180.0, 270.0], indexing="ij")
+    ball = Ball(16.4, center=(21.9, 0.0, 0.0))
+    raw = simulate_scan(ball, rig_to_direction(tilts.ravel(), spins.ravel()), tank=Tank(150000.0), geometry=true,
+                        sensor=LevelSensor(quantum_mm=0.001), protocol=DipProtocol(step_mm=1.5), progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        geometry, report = calibrate_reference(raw, ball, Grid(48, extent=2.0 * (16.4 + 21.9 + 10.0)))
+    low, high = report.intervals["cross_section_mm2"]
+    assert low <= 135000.0 <= high and high - low > 0.002 * 135000.0
+
+
+def test_reference_dips_that_end_before_the_ball_is_under_are_named_and_left_out():
+    """The audit's case: a reference scan whose ``stop_mm`` left 2 of 16 dips short of the ball's full rise was
+    refused as "does not fit the dips", blaming the ball's size, its mounting or the stage. The short dips are now
+    named and left out, and the rest calibrate the rig; when most are short the refusal says so."""
+    from dipnet.core.orientations import rig_to_direction
+
+    true = RigGeometry(pivot_mm=20.0, tilt_axis_offset_mm=10.0, tilt_zero_deg=1.0)
+    tilts, spins = np.meshgrid([0.0, 25.0, 50.0, 70.0], [0.0, 90.0, 180.0, 270.0], indexing="ij")
+    ball = Ball(30.0, center=(25.0, 0.0, 0.0))
+
+    def scan(short):
+        raw = simulate_scan(ball, rig_to_direction(tilts.ravel(), spins.ravel()), tank=Tank(60000.0), geometry=true,
+                            sensor=LevelSensor(snr_db=40.0, seed=3), progress=False)
+        for o in raw.orientations:
+            if o.k in short:  # the stage stopped with 60 % of the readings taken: the ball still going under
+                n = int(0.6 * len(o.values))
+                o.stage_mm, o.values, o.time_s, o.flags = o.stage_mm[:n], o.values[:n], o.time_s[:n], o.flags[:n]
+        return raw
+
+    grid = Grid(32, extent=2.0 * (30.0 + 25.0 + 10.0))
+    with pytest.warns(UserWarning, match=r"2 of 16 reference dips end before the object is under water \(dips 6, 9\)"):
+        geometry, report = calibrate_reference(scan({6, 9}), ball, grid)
+    for name in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg"):
+        low, high = report.intervals[name]
+        assert low <= getattr(true, name) <= high, name
+    with pytest.raises(CalibrationError, match=r"1[34] of 16 reference dips end .* too few are left"):
+        calibrate_reference(scan(set(range(14))), ball, grid)
