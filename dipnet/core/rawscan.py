@@ -589,6 +589,22 @@ def check_level_unit(raw: RawScan, column: str) -> None:
                            f"({peak * 1000:.4g} mm): convert them to mm (or declare the unit)")
 
 
+def check_reading_sign(raw: RawScan, column: str) -> None:
+    """Raise :class:`RawScanFileError` when the readings of ``raw`` fall as the object is lowered in most of its
+    complete dips (the median of each dip's last three readings below that of its first three): a lowered object displaces
+    water, so a level (or a balance's reading) rises; one that falls was counted downwards, or its sign reversed.
+    A cavity flooding or a leak makes some dips fall, never most by their end. The message names the file and the
+    ``column``. Before, each dip was rejected for its "outliers", and then the scan for having no dip left."""
+    dips = [o.values for o in raw.orientations if o.complete and o.n_readings >= 6]  # a live dip may not rise yet
+    net = np.array([np.median(v[-3:]) - np.median(v[:3]) for v in dips])
+    if not len(net) or (net < 0).sum() <= len(net) / 2:
+        return
+    raise RawScanFileError(f"{raw.path}: column {column}: the reading falls as the object is lowered in "
+                           f"{int((net < 0).sum())} of {len(net)} dips (by a median {-float(np.median(net)):.4g}), "
+                           "where displaced water raises it: is its sign reversed (a level counted downwards, "
+                           "a distance sensor read as a level)? Negate it")
+
+
 def complete_dips(raw: RawScan) -> list[OrientationScan]:
     """The complete orientations of ``raw``, warning about the ones left out.
 

@@ -88,6 +88,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "reading_noise_mm3": ("how consistent with the data", "noise of one reading the readings show (mm³)"),
     "reading_noise_ratio": ("how consistent with the data", "stated noise / the readings' own (flagged above 3 or below 1/3)"),
     "reading_noise_leak": ("how consistent with the data", "the readings' noise estimate at twice the step over it (below 2: noise alone)"),
+    "dip_outliers": ("how consistent with the data", "dips that disagree with the others (counted from 0)"),
+    "dip_agreement_tested": ("how consistent with the data", "dips the agreement test judged (0: not tested)"),
     "symmetry_declared": ("how consistent with the data", "symmetry tested: images (the symmetry option) or prior (the solver's)"),
     "symmetry_misfit": ("how consistent with the data", "its misfit to the dips' moments (share of the radius of gyration)"),
     "symmetry_misfit_p": ("how consistent with the data", "that misfit's significance (p-value)"),

@@ -48,7 +48,7 @@ from dipnet.core.keywords import forwards_to
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.preprocessing.preprocess import level_drift_removed, preprocess, repair_without_drift
 from dipnet.core.rawscan import (OrientationScan, RawScan, RawScanFileError, ScanHeader, check_level_unit,
-                                 complete_dips, read_rawscan)
+                                 check_reading_sign, complete_dips, read_rawscan)
 from dipnet.preprocessing.readings import max_object_section
 from dipnet.core.calibration_file import scan_calibration
 from dipnet.core.geometry import RigGeometry, as_geometry, invert_scan, scan_geometry
@@ -170,14 +170,17 @@ def authors_quantum(levels: np.ndarray, path: str | Path) -> float | None:
 
 def read_scan(path: str | Path, tank_cross_section_mm2: float | None = None) -> RawScan:
     """A dipnet raw scan (``.jsonl``) or an authors' CSV (``.csv``) as a :class:`RawScan`; water levels
-    that cannot be mm are refused (:func:`dipnet.core.rawscan.check_level_unit`)."""
+    that cannot be mm (:func:`dipnet.core.rawscan.check_level_unit`) and readings that fall as the object is
+    lowered (:func:`dipnet.core.rawscan.check_reading_sign`) are refused."""
     path = Path(path)
     if path.suffix.lower() == ".csv":
         raw = read_authors_csv(path, tank_cross_section_mm2 or AUTHORS_TANK_MM2)
         check_level_unit(raw, AUTHORS_COLUMNS[4])
+        check_reading_sign(raw, AUTHORS_COLUMNS[4])
         return raw
     raw = read_rawscan(path)
     check_level_unit(raw, "value (of the reading lines)")
+    check_reading_sign(raw, "value (of the reading lines)")
     if tank_cross_section_mm2 is not None:
         raw.header = replace(raw.header, tank_cross_section_mm2=float(tank_cross_section_mm2))
     return raw

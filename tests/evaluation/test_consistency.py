@@ -464,6 +464,7 @@ def test_slabs_an_object_fills_to_their_ends_are_not_blamed_on_a_drift(tmp_path,
         warnings.simplefilter("always")
         metrics = run(cfg, tmp_path).metrics
     assert metrics["profile_floor_share"] > 0.5 and metrics["consistency"] == "inconsistent"
+    assert metrics["dip_agreement_tested"] == 0 and metrics["dip_outliers"] == []  # 2D: said not tested
     assert metrics["floor_beyond_ratio"] == (pytest.approx(0.98, abs=0.05) if drift_named else pytest.approx(0, abs=1e-6))
     assert any("drifts in time" in str(w.message) for w in caught) == drift_named
 
@@ -854,7 +855,7 @@ def test_swapped_dips_a_solver_fits_anyway_are_named():
     outliers = ", ".join(str(i) for i in result.dip_outliers)
     assert len(named) == 1 and named[0].startswith(f"{len(result.dip_outliers)} dip(s) disagree with the others "
                                                    f"(dips {outliers}, counted from 0)")
-    assert result.metrics()["dip_outliers"] == result.dip_outliers
+    assert result.metrics()["dip_outliers"] == result.dip_outliers and result.metrics()["dip_agreement_tested"] == 40
     right = make_operator(grid, measurement.directions)
     result, caught = _check_on(measurement, right, make_solver("voxel", progress=False).solve(measurement, right))
     assert result.dip_outliers == [] and not any("disagree with the others" in str(w.message) for w in caught)

@@ -348,6 +348,20 @@ def test_unknown_units_are_refused_naming_the_field(tmp_path, scan_file, cli, un
     assert re.search(rf"error: {re.escape(str(path))}:1: {message}", line), line
 
 
+def test_a_level_counted_downwards_is_named_so(tmp_path, scan_file, cli):
+    """The audit's case: levels with their sign reversed (300 - level) had each dip rejected for its "outliers",
+    and then the scan for having no dip left. The reading falls as the object goes down: that is named."""
+    def reverse(rows):
+        return [{**r, "value": 300.0 - r["value"]} if r["type"] == "reading" else r for r in rows]
+
+    path = _edit_jsonl(scan_file, tmp_path / "reversed.jsonl", reverse)
+    line = one_line_error(cli(tmp_path / "run", "source=recorded", f"source.reader.path={path}", "extent_mm=100",
+                              "resolution=16"))
+    assert line.startswith(f"error: {path}: column value (of the reading lines): the reading falls as the object is "
+                           "lowered in 6 of 6 dips"), line
+    assert "is its sign reversed" in line, line
+
+
 @pytest.mark.slow
 def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path, cli):
     lines = CATS_CSV.read_text().splitlines()
