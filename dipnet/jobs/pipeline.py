@@ -160,9 +160,9 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
         scores.update(write_uncertainty(out, recon, measurement, operator, reference, bool(cfg.output.figures), method,
                                         solver, int(cfg.output.get("uncertainty_samples") or 4), int(cfg.seed),
                                         float(cfg.output.get("uncertainty_iterations") or 1.0)))
-    write_json(out / "metrics.json", scores, indent=2)
     stage("meshes and figures")
     write_outputs(cfg, out, measurement, operator, recon, truth, level, frame)
+    write_json(out / "metrics.json", scores, indent=2)  # last: a job killed before it shows as unfinished
     if "report" in stages:
         from dipnet.experiments.report import write_run_report  # optional extra: plotly
 

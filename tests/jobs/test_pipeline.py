@@ -361,3 +361,18 @@ def test_a_malformed_frame_in_a_measurements_metadata_is_left_out_with_a_warning
     assert saved_frame({"frame_offset_mm": [1, 2, float("nan")], "frame_scale": 3.5}) == {"frame_scale": 3.5}
     assert saved_frame({"frame_offset_mm": "abc", "frame_scale": -1}) == {}
     assert "frame_offset_mm='abc' is not three finite mm" in caplog.text and "frame_scale=-1" in caplog.text
+
+
+def test_a_job_killed_while_writing_its_meshes_and_figures_is_not_called_finished(tmp_path, monkeypatch):
+    """The audit's case: ``metrics.json`` was written before the meshes and figures, so a job killed between them
+    (no mesh, no figure, no ``done:`` line) was tabled by ``compare.py`` as finished. It is now written last."""
+    import dipnet.jobs.pipeline as pipeline
+    from dipnet.experiments.collect import load_run
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt  # as a kill would stop it: nothing after this runs
+
+    monkeypatch.setattr(pipeline, "write_outputs", killed)
+    with pytest.raises(KeyboardInterrupt):
+        run(_cfg("resolution=16", "n_dips=12", "output.uncertainty=false", "output.resolvability=false"), tmp_path)
+    assert not (tmp_path / "metrics.json").exists() and load_run(tmp_path).status == "unfinished"
