@@ -151,6 +151,13 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         uncertainty = {str(k): _number(v) for k, v in (data.get("uncertainty") or {}).items()}
         intervals = {str(k): (_number(v[0]), _number(v[1])) for k, v in (data.get("intervals_90") or {}).items()}
         not_estimated = {str(k): str(v) for k, v in (data.get("not_estimated") or {}).items()}
+        for name, (low, high) in intervals.items():  # a hand-edited interval that cannot hold its estimate
+            value = getattr(geometry, name, None)
+            if math.isnan(low) or math.isnan(high):  # unknown (written as null)
+                continue
+            if not low <= high or (isinstance(value, float) and not low <= value <= high):
+                raise ValueError(f"intervals_90.{name}: [{low:g}, {high:g}] does not hold the estimate "
+                                 f"geometry.{name}={value}")
         centroid = data.get("reference_centroid_mm")
         if centroid is not None and len(centroid) != 3:
             raise ValueError(f"reference_centroid_mm must be [x, y, z] (mm), got {centroid!r}")

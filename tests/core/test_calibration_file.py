@@ -51,6 +51,18 @@ def test_an_unphysical_geometry_names_the_field(tmp_path):
         load_calibration(tmp_path / "none.yaml")
 
 
+@pytest.mark.parametrize("interval", [(20.6, 19.6), (21.0, 22.0)])
+def test_an_interval_that_cannot_hold_its_estimate_is_refused(tmp_path, interval):
+    """The audit's case: a hand-edited file with its pivot's interval reversed, or beside its estimate, was read
+    without a word (the intervals are what the file claims about its own accuracy)."""
+    from dataclasses import replace
+
+    path = save_calibration(replace(CAL, intervals={"pivot_mm": interval}), tmp_path / "cal.yaml")
+    with pytest.raises(CalibrationFileError, match=rf"intervals_90.pivot_mm: \[{interval[0]:g}, {interval[1]:g}\] "
+                                                   r"does not hold the estimate geometry.pivot_mm=20.1"):
+        load_calibration(path)
+
+
 def test_a_truncated_file_is_refused_naming_the_missing_keys(tmp_path):
     """The audit's case: a file cut after ``pivot_mm`` was read with ideal values for the rest (exit 0, a
     volume 5 % off). A version 2 file names every section and geometry field, so the cut one is refused."""
