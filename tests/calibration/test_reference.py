@@ -570,3 +570,23 @@ def test_reference_dips_that_end_before_the_ball_is_under_are_named_and_left_out
         assert low <= getattr(true, name) <= high, name
     with pytest.raises(CalibrationError, match=r"1[34] of 16 reference dips end .* too few are left"):
         calibrate_reference(scan(set(range(14))), ball, grid)
+
+
+def test_a_tilt_axis_turning_other_than_commanded_is_refused_naming_its_scale():
+    """The audit's case: a tilt axis whose steps per degree were off (70 deg commanded, 62.5 turned) is outside the
+    geometry model, and the fit bent the pivot, offset and tilt zero to it: pivot 15.7 [14.3, 17.0] for 20,
+    "determined"; the bunny read with that file IoU 0.87 against 0.95, ``consistent``. The dips' first moments
+    fit far better with the tilts scaled, which names the fault; the right rig passes (the tests above)."""
+    from dipnet.core.orientations import rig_to_direction
+
+    true = RigGeometry(pivot_mm=20.0, tilt_axis_offset_mm=10.0, tilt_zero_deg=1.0)
+    tilts, spins = np.meshgrid([0.0, 25.0, 50.0, 70.0], [0.0, 90.0, 180.0, 270.0], indexing="ij")
+    ball = Ball(30.0, center=(25.0, 0.0, 0.0))
+    turned = 1.0 / 1.05  # the axis turns 0.952 times what it is told
+    raw = simulate_scan(ball, rig_to_direction(turned * tilts.ravel(), spins.ravel()), tank=Tank(60000.0),
+                        geometry=true, sensor=LevelSensor(snr_db=40.0, seed=3), progress=False)
+    for o, commanded in zip(raw.orientations, tilts.ravel()):
+        o.tilt_deg, o.direction = float(commanded), None  # the log holds what the rig was told
+    with pytest.raises(CalibrationError, match=r"the tilt axis turning 0\.95\d times the commanded angle .* its "
+                                               r"steps per degree are 4\.\d% too few"):
+        calibrate_reference(raw, ball, Grid(32, extent=2.0 * (30.0 + 25.0 + 10.0)))
