@@ -294,7 +294,8 @@ def override_values(overrides: Sequence[str]) -> dict[str, Any]:
 
 def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
     """One flat row per job: identity (job, status, error), axes (solver, shape, ndim,
-    resolution, n_dips, dips_percent, snr_db, seed, overrides) and every scalar metric.
+    resolution, n_dips, dips_percent, snr_db, seed, overrides) and every scalar metric; ``snr_db`` is
+    ``"recorded"`` for a recorded source, whose noise no configured SNR states.
 
     ``n_dips`` is the number of dips measured (``n_dips_measured`` in ``metrics.json``): with a declared
     ``symmetry`` the job solves its images too (``n_dips`` there, here ``n_dips_with_images``), but a 10-dip run
@@ -304,6 +305,8 @@ def run_row(run: Run, root: Path | None = None) -> dict[str, Any]:
     if solver is None and isinstance(cfg.get("solver"), dict):
         solver = str(cfg["solver"].get("_target_", "")).rsplit(".", 1)[-1] or None
     snr = m["snr_db"] if "snr_db" in m else cfg.get("snr_db", _get(cfg, "source.simulator.sensor.snr_db"))
+    if str(_get(cfg, "source._target_") or "").endswith("RecordedSource"):
+        snr = "recorded"  # its noise is the recording's (measured from its readings), not a configured SNR
     row: dict[str, Any] = {
         "job": str(run.path.relative_to(root)) if root is not None and run.path.is_relative_to(root) else str(run.path),
         "status": run.status,

@@ -105,6 +105,17 @@ def test_a_run_with_a_declared_symmetry_is_tabled_by_the_dips_it_measured(tmp_pa
     assert [g["n_dips"] for g in collect.aggregate(rows)] == [10, 40]
 
 
+def test_a_recorded_run_is_not_tabled_as_noise_free(tmp_path):
+    """The audit's case: a recorded run's SNR column read "none", as a noise-free simulation's does."""
+    simulated = write_job(tmp_path / "sim", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics={"iou": 0.9})
+    recorded = write_job(tmp_path / "rec", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics={"iou": 0.9},
+                         recording="scan.jsonl")
+    rows = collect.run_rows(collect.collect_runs([simulated, recorded]))
+    assert [r["snr_db"] for r in rows] == [None, "recorded"]
+    groups = [g["snr_db"] for g in collect.aggregate(rows)]
+    assert len(groups) == 2 and set(groups) == {None, "recorded"}  # two groups, not pooled
+
+
 def test_no_runs_is_a_clear_error(tmp_path):
     (tmp_path / "notes").mkdir()
     with pytest.raises(collect.NoRunsError, match="no reconstruction jobs found"):
