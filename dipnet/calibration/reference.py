@@ -15,9 +15,9 @@ import torch
 
 from dipnet.calibration.model import (DEFAULT_REFERENCE, MODEL_FLOOR, CalibrationError, CalibrationReport, ProfileModel,
                                       State, _check_params, _warn_undetermined)
-from dipnet.calibration.moments import (BALANCE_SECTION_SD, GAUGE_REASONS, MIN_SPARE_CONDITIONS, TOLERANCE,
-                                       DipMoments, KnownObject, confounded_heights, dip_moments, fit_drift, fit_moments,
-                                       reading_sigma, spare_conditions)
+from dipnet.calibration.moments import (BALANCE_SECTION_SD, GAUGE_REASONS, MIN_SPARE_CONDITIONS, SNUG_LEVEL_GAIN,
+                                       TOLERANCE, DipMoments, KnownObject, confounded_heights, dip_moments, fit_drift,
+                                       fit_moments, reading_sigma, spare_conditions)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
@@ -60,6 +60,14 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
                                                section_sd)
     _check_tilt_scale(raw, report.moment_rms[0], lambda scaled: _fit_moment_stage(
         scaled, params, initial, kind, known, seed, t0_sd_mm, position_sd_mm, section_sd)[1].moment_rms[0])
+    if moments.level_gain > SNUG_LEVEL_GAIN:
+        message = (f"{kind} calibration: the water line rises up to {moments.level_gain:.2g} mm per mm of stage (the "
+                   f"object fills about {moments.level_gain / (1.0 + moments.level_gain):.0%} of the tank's section), "
+                   f"so it moves {1.0 + moments.level_gain:.2g} times the stage step between readings, which the "
+                   "dips' moment sums take for an even slab: the estimates may be biased beyond their intervals. "
+                   "Use a tank several times the object's section, or smaller stage steps")
+        log.warning("%s", message)
+        warnings.warn(message, stacklevel=3)
     return state, report, moments
 
 

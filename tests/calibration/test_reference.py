@@ -3,6 +3,7 @@ geometry, or a named refusal."""
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -590,3 +591,21 @@ def test_a_tilt_axis_turning_other_than_commanded_is_refused_naming_its_scale():
     with pytest.raises(CalibrationError, match=r"the tilt axis turning 0\.95\d times the commanded angle .* its "
                                                r"steps per degree are 4\.\d% too few"):
         calibrate_reference(raw, ball, Grid(32, extent=2.0 * (30.0 + 25.0 + 10.0)))
+
+
+def test_a_ball_that_fills_much_of_the_tank_is_warned_about():
+    """The audit's case: a 30 mm ball in a 6,000 mm^2 tank (47 % of its section) had its offset 13.6 standard errors
+    off without a word: the water line moves 1.9 times the stage step between readings, which the moment sums take
+    for an even slab. That is now said; in a tank ten times the ball's section nothing is."""
+    from dipnet.calibration.moments import dip_moments
+
+    ball = Ball(30.0, center=(25.0, 0.0, 0.0))
+    for section, snug in ((6000.0, True), (60000.0, False)):
+        raw = simulate_scan(ball, fibonacci_hemisphere(12), tank=Tank(section), progress=False)
+        gain = dip_moments(raw, RigGeometry()).level_gain
+        assert gain == pytest.approx(math.pi * 30.0**2 / (section - math.pi * 30.0**2), rel=0.1)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            calibrate_reference(raw, ball, Grid(24, extent=2.0 * (30.0 + 25.0 + 10.0)))
+        said = [str(w.message) for w in caught if "the water line rises up to" in str(w.message)]
+        assert bool(said) == snug and (not said or "Use a tank several times the object's section" in said[0])
