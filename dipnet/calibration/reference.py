@@ -55,7 +55,9 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
                   seed: int = 0, t0_sd_mm: float = 0.0, position_sd_mm: float = 0.0,
                   section_sd: float | None = None) -> tuple[State, CalibrationReport, DipMoments]:
     """:func:`_fit_moment_stage`, refused when the dips' heights ask for a tilt axis that turns other than
-    commanded (:func:`_check_tilt_scale`), which the geometry model does not hold."""
+    commanded (:func:`_check_tilt_scale`), which the geometry model does not hold, and warned about when the
+    object fills so much of the tank that the moment sums are biased (:data:`~dipnet.calibration.moments.
+    SNUG_LEVEL_GAIN`)."""
     state, report, moments = _fit_moment_stage(raw, params, initial, kind, known, seed, t0_sd_mm, position_sd_mm,
                                                section_sd)
     _check_tilt_scale(raw, report.moment_rms[0], lambda scaled: _fit_moment_stage(
@@ -90,7 +92,8 @@ def _check_tilt_scale(raw: RawScan, misfit: float, misfit_at: Callable[[RawScan]
     the scan with every commanded tilt scaled. Two probes at ``1 -+ TILT_PROBE`` cost two moment fits; only when
     one of them fits better is the scale searched. On a ball's 16 dips the misfit was 0.0003 mm at the right
     scale and 0.08 mm at 5 % off; on 80 dips of a bunny 0.0023 against 0.0124 at 12 % off."""
-    if not math.isfinite(misfit) or not any(o.tilt_deg for o in raw.orientations):
+    if not math.isfinite(misfit) or not all(o.tilt_deg is not None for o in raw.orientations) or \
+            not any(o.tilt_deg for o in raw.orientations):
         return
 
     def scaled_misfit(scale: float) -> float:

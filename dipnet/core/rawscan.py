@@ -591,8 +591,9 @@ def check_level_unit(raw: RawScan, column: str) -> None:
 
 def check_reading_sign(raw: RawScan, column: str) -> None:
     """Raise :class:`RawScanFileError` when the readings of ``raw`` fall as the object is lowered in most of its
-    complete dips (the median of each dip's last three readings below that of its first three): a lowered object displaces
-    water, so a level (or a balance's reading) rises; one that falls was counted downwards, or its sign reversed.
+    complete dips (the median of each dip's last three readings below that of its first three): a lowered object
+    displaces water, so a level (or a balance's reading) rises; one that falls was counted downwards, or its sign
+    reversed.
     A cavity flooding or a leak makes some dips fall, never most by their end. The message names the file and the
     ``column``. Before, each dip was rejected for its "outliers", and then the scan for having no dip left."""
     dips = [o.values for o in raw.orientations if o.complete and o.n_readings >= 6]  # a live dip may not rise yet
