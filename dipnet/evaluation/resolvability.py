@@ -44,7 +44,8 @@ import torch
 from dipnet.evaluation.consistency import estimate_slab_sigma
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
-from dipnet.core.orientations import fibonacci_hemisphere, unmeasured_band_deg, unmeasured_wedge_deg
+from dipnet.core.orientations import (direction_to_rig, fibonacci_hemisphere, unmeasured_band_deg,
+                                      unmeasured_wedge_deg)
 
 SPHERE_SAMPLES = 20_000  # directions on which the missing cone is evaluated (3D)
 BAND_DEG = 30.0  # polar / azimuthal frequency bands: within this angle of the axis / plane
@@ -142,9 +143,13 @@ def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> 
 
     2D dips ``(K, 2)`` have no rig and no special direction: the widest wedge of angles between their lines
     (:func:`~dipnet.core.orientations.unmeasured_wedge_deg`) is warned wherever it lies, when its half-angle exceeds
-    ``limit_deg`` and twice an even spread's (``90 / K``): equal angles are never warned."""
+    ``limit_deg`` and twice an even spread's (``90 / K``): equal angles are never warned. In 3D a gap elsewhere than
+    about the horizontal plane (a rig whose spin turns 60 deg: 41 dips leave directions 65 deg from any dip, where
+    41 spread over the hemisphere leave 18; IoU 0.80 against 0.97, ``consistent``, no word) is warned the same way
+    (:func:`_cone_message`)."""
     d = torch.as_tensor(directions, dtype=torch.float64)
-    message = _wedge_message(d, limit_deg) if d.ndim == 2 and d.shape[1] == 2 else _band_message(d, limit_deg)
+    message = _wedge_message(d, limit_deg) if d.ndim == 2 and d.shape[1] == 2 else \
+        (_band_message(d, limit_deg) or _cone_message(d, limit_deg))
     if message is not None:
         log.warning(message)
         warnings.warn(message, stacklevel=2)
@@ -160,6 +165,24 @@ def _band_message(directions: torch.Tensor, limit_deg: float) -> str | None:
             f"of the horizontal plane are unmeasured (a missing cone), so surfaces facing them (normals within "
             f"{band:.0f} deg of horizontal: the sides) are guessed by the priors, not measured; dip at larger tilts "
             f"to narrow it")
+
+
+def _cone_message(directions: torch.Tensor, limit_deg: float) -> str | None:
+    """:func:`warn_unmeasured_band`'s message for 3D ``directions`` ``(K, 3)`` that leave some direction of the
+    hemisphere more than ``limit_deg`` and twice as far from every dip as ``K`` dips spread over it do
+    (:func:`~dipnet.core.orientations.fibonacci_hemisphere`), or ``None``."""
+    d = directions.numpy()
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    sphere = hemisphere_samples(3)
+    gap = np.degrees(angle_to_plan(sphere, d))
+    even = float(np.degrees(angle_to_plan(sphere, fibonacci_hemisphere(len(d)).numpy())).max())
+    cone = float(gap.max())
+    if not (cone > limit_deg and cone > 2 * even):
+        return None
+    tilt, spin = direction_to_rig(sphere[int(gap.argmax())][None])
+    return (f"the {len(d)} dips leave directions up to {cone:.0f} deg from every dip (about tilt {tilt[0]:.0f} deg, "
+            f"spin {spin[0]:.0f} deg), where {len(d)} dips spread over the hemisphere leave {even:.0f}: surfaces facing "
+            "them are guessed by the priors, not measured; dip there (a wider reach, or orientations spread over it)")
 
 
 def _wedge_message(directions: torch.Tensor, limit_deg: float) -> str | None:

@@ -98,6 +98,21 @@ def test_a_wide_unmeasured_band_is_warned_with_its_width_and_a_full_plan_is_not(
     assert warn_unmeasured_band(directions_2d([0.0, 45.0, 90.0, 135.0])) is None
 
 
+def test_a_gap_away_from_the_horizontal_is_warned_too():
+    """The audit's case: a rig whose spin turns 0-60 deg dipped 41 directions that leave some 65 deg from every dip
+    (a spread of 41 leaves 18), and nothing said so (the band check looks about the horizontal only): IoU 0.80
+    against 0.97, ``consistent``. The warning names the gap and where it lies; an even spread stays quiet."""
+    from dipnet.core.orientations import Reach
+    from dipnet.evaluation.resolvability import warn_unmeasured_band
+
+    limited = Reach(spin_range_deg=(0.0, 60.0)).uniform(41)
+    with pytest.warns(UserWarning, match=r"the 41 dips leave directions up to 6\d deg from every dip \(about tilt "
+                                         r"\d+ deg, spin \d+ deg\), where 41 dips spread over the hemisphere leave 1\d"):
+        assert warn_unmeasured_band(limited) is not None
+    assert warn_unmeasured_band(fibonacci_hemisphere(41)) is None
+    assert warn_unmeasured_band(fibonacci_hemisphere(123)) is None
+
+
 def test_a_2d_plan_has_no_spin_rings():
     """The audit's case: a 2D elephant dipped at 12 equal angles reported ``azimuthal_signal_ratio`` 3.14 ("the spin
     changes the profiles beyond noise"), from the profiles of mirror directions (15 and 165 deg, ...) compared as a
