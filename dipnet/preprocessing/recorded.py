@@ -174,15 +174,13 @@ def read_scan(path: str | Path, tank_cross_section_mm2: float | None = None) -> 
     lowered (:func:`dipnet.core.rawscan.check_reading_sign`) are refused."""
     path = Path(path)
     if path.suffix.lower() == ".csv":
-        raw = read_authors_csv(path, tank_cross_section_mm2 or AUTHORS_TANK_MM2)
-        check_level_unit(raw, AUTHORS_COLUMNS[4])
-        check_reading_sign(raw, AUTHORS_COLUMNS[4])
-        return raw
-    raw = read_rawscan(path)
-    check_level_unit(raw, "value (of the reading lines)")
-    check_reading_sign(raw, "value (of the reading lines)")
-    if tank_cross_section_mm2 is not None:
-        raw.header = replace(raw.header, tank_cross_section_mm2=float(tank_cross_section_mm2))
+        raw, column = read_authors_csv(path, tank_cross_section_mm2 or AUTHORS_TANK_MM2), AUTHORS_COLUMNS[4]
+    else:
+        raw, column = read_rawscan(path), "value (of the reading lines)"
+        if tank_cross_section_mm2 is not None:
+            raw.header = replace(raw.header, tank_cross_section_mm2=float(tank_cross_section_mm2))
+    check_level_unit(raw, column)
+    check_reading_sign(raw, column)
     return raw
 
 
