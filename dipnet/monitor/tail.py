@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dipnet.core.rawscan import RawScanFileError, ScanHeader
+import numpy as np
+
+from dipnet.core.rawscan import OrientationScan, RawScanFileError, ScanHeader, _check_direction
 
 
 def journal_path(scan_path: str | Path) -> Path:
@@ -121,6 +123,10 @@ class ScanTail:
         return bool(self.lines.pending.strip())
 
     def _apply(self, obj: dict[str, Any]) -> None:
+        """One line, refused (``ValueError``) where :func:`~dipnet.core.rawscan.read_rawscan` refuses it, so the
+        page never shows as recorded what the reconstruction will not read."""
+        if not isinstance(obj, dict) or "type" not in obj:
+            raise RawScanFileError("expected a JSON object with a 'type' field")
         kind = obj.get("type")
         if self.header is None:
             if kind != "header":
@@ -129,17 +135,37 @@ class ScanTail:
             self.factors = self.header.unit_factors(obj.get("units"))
         elif kind == "orientation":
             k = int(obj["k"])
+            if any(d.k == k and d.complete for d in self.dips):
+                raise RawScanFileError(f"orientation {k} is begun again after it was completed")
             angles = [None if obj.get(key) is None else float(obj[key]) * self.factors["angles"]
                       for key in ("tilt_deg", "spin_deg")]
+            checked = OrientationScan(k=k, direction=obj.get("direction"), tilt_deg=angles[0], spin_deg=angles[1])
+            if checked.direction is not None and checked.direction.shape != (self.header.ndim,):
+                raise RawScanFileError(f"direction must have {self.header.ndim} components")
+            _check_direction(checked)
             self.dips = [d for d in self.dips if d.k != k] + [Dip(k, *angles, obj.get("direction"), obj.get("meta") or {})]
         elif kind == "reading":
             dip = self._dip(obj)
-            dip.stage_mm.append(float(obj["stage_mm"]) * self.factors["stage"])
-            dip.values.append(float(obj["value"]) * self.factors["value"])
-            dip.time_s.append(float(obj["time_s"]) * self.factors["time"])
-            dip.flags.append([str(f) for f in obj.get("flags", [])])
+            stage, value, time_s = (float(obj[key]) * self.factors[unit] for key, unit in
+                                    (("stage_mm", "stage"), ("value", "value"), ("time_s", "time")))
+            if not np.isfinite([stage, value, time_s]).all():
+                raise RawScanFileError("reading holds a non-finite number")
+            if dip.stage_mm and stage < dip.stage_mm[-1]:
+                raise RawScanFileError(f"orientation {dip.k}: stage {stage:g} mm after {dip.stage_mm[-1]:g} mm: the "
+                                       "stage moved backwards (readings out of order?)")
+            flags = obj.get("flags", [])
+            if not isinstance(flags, list):
+                raise RawScanFileError("flags must be a list of strings")
+            dip.stage_mm.append(stage)
+            dip.values.append(value)
+            dip.time_s.append(time_s)
+            dip.flags.append([str(f) for f in flags])
         elif kind == "complete":
-            self._dip(obj).complete = True
+            dip = self._dip(obj)
+            if "n_readings" in obj and int(obj["n_readings"]) != len(dip.values):
+                raise RawScanFileError(f"orientation {dip.k} is marked complete with {obj['n_readings']} readings "
+                                       f"but {len(dip.values)} were recorded")
+            dip.complete = True
         elif kind == "session":
             self.sessions.append({key: value for key, value in obj.items() if key != "type"})
         else:
@@ -149,6 +175,8 @@ class ScanTail:
         k = int(obj["k"])
         for dip in reversed(self.dips):
             if dip.k == k:
+                if dip.complete:
+                    raise RawScanFileError(f"record for orientation {k} after it was completed")
                 return dip
         raise RawScanFileError(f"record for orientation {k}, which was never begun")
 
@@ -167,15 +195,27 @@ class JournalTail:
         self.status: dict[str, Any] | None = None
 
     def poll(self) -> bool:
-        """Read what was appended; ``True`` when anything changed (a malformed line is skipped)."""
+        """Read what was appended; ``True`` when anything changed (a malformed line is skipped: not JSON, not an
+        object, or an event without its message or time, which the page needs)."""
         lines = self.lines.new_lines()
         for _, text in lines:
             try:
                 obj = json.loads(text)
             except ValueError:
                 continue
+            if not isinstance(obj, dict) or (obj.get("type") != "status" and not _is_event(obj)):
+                continue
             if obj.get("type") == "status":
                 self.status = obj
             else:
                 self.events.append(obj)
         return bool(lines)
+
+
+def _is_event(obj: dict[str, Any]) -> bool:
+    """A journal event the page can show: a ``session`` with its time, or a warning, error or stop with its
+    message and time (:class:`dipnet.monitor.journal.MonitorJournal` writes them so)."""
+    kind, when = obj.get("type"), obj.get("time")
+    if not isinstance(when, (int, float)) or isinstance(when, bool):
+        return False
+    return kind == "session" or (kind in ("warning", "error", "stopped") and isinstance(obj.get("message"), str))

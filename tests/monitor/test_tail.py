@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 
-from dipnet.core.rawscan import read_rawscan
+import pytest
+
+from dipnet.core.rawscan import RawScanFileError, read_rawscan
 from dipnet.monitor.tail import JournalTail, ScanTail, journal_path
 
 
@@ -57,3 +59,36 @@ def test_the_journal_keeps_events_and_the_newest_status(tmp_path):
     journal = JournalTail(scan)
     assert journal.poll()
     assert journal.status["where"] == "b" and [e["type"] for e in journal.events] == ["session", "warning"]
+
+
+@pytest.mark.parametrize("line, reason", [
+    ('{"type": "reading", "k": 5, "stage_mm": 200.0, "value": NaN, "time_s": 1.0, "flags": []}', "non-finite"),
+    ('[1, 2]', "a JSON object with a 'type' field"),
+    ('{"type": "orientation", "k": 0, "tilt_deg": 10.0, "spin_deg": 0.0, "meta": {}}', "begun again"),
+    ('{"type": "reading", "k": 5, "stage_mm": 0.0, "value": 150.0, "time_s": 1.0, "flags": []}', "backwards"),
+])
+def test_a_line_the_reader_refuses_ends_the_reading_as_it_does(recorded_scan, tmp_path, line, reason):
+    """The tail took a NaN reading, a stage moving back or a completed orientation begun again as recorded (the
+    page drew them; the reconstruction refuses the file), and a line that is JSON but no object crashed its thread."""
+    lines = recorded_scan.read_bytes().splitlines(keepends=True)
+    cut = max(i for i, text in enumerate(lines) if b'"type": "orientation"' in text) + 4   # into the last dip
+    path = tmp_path / "rawscan.jsonl"
+    path.write_bytes(b"".join(lines[:cut]) + line.encode() + b"\n")
+    with pytest.raises(RawScanFileError, match=reason):
+        read_rawscan(path)
+    tail = ScanTail(path)
+    tail.poll()
+    assert tail.error is not None and reason in tail.error and str(path) in tail.error
+    assert tail.n_lines == cut
+
+
+def test_a_journal_line_without_what_the_page_needs_is_skipped(tmp_path):
+    """A journal line that was JSON but not an event (a list, ``null``, a stop without its message) crashed the page's
+    state (AttributeError, KeyError), which the docstring promised to skip."""
+    scan = tmp_path / "rawscan.jsonl"
+    records = ["[1]", "null", json.dumps({"type": "stopped", "time": 2.0}), json.dumps({"type": "warning"}),
+               json.dumps({"type": "warning", "message": "w", "time": 3.0})]
+    journal_path(scan).write_text("\n".join(records) + "\n")
+    journal = JournalTail(scan)
+    assert journal.poll()
+    assert [e["message"] for e in journal.events] == ["w"]
