@@ -53,10 +53,15 @@ def writer_alive(scan_path: Path) -> bool:
     return False
 
 
-def planned_orientations(tail: ScanTail) -> list[tuple[float, float]]:
-    """The ``(tilt, spin)`` the header's plan lists (empty when the scan records none)."""
+def _plan_entries(tail: ScanTail) -> list:
     plan = (tail.header.config or {}).get("plan") if tail.header is not None else None
-    return [(float(t), float(s)) for t, s in (plan or {}).get("orientations", [])]
+    return list((plan or {}).get("orientations") or [])
+
+
+def planned_orientations(tail: ScanTail) -> list[tuple[float, float]]:
+    """The ``(tilt, spin)`` the header's plan lists (empty when the scan records none); an entry without both
+    angles (a replayed recording whose orientations give only a direction) is left out."""
+    return [(float(t), float(s)) for t, s in _plan_entries(tail) if t is not None and s is not None]
 
 
 def planned_count(tail: ScanTail) -> int:
@@ -67,7 +72,7 @@ def planned_count(tail: ScanTail) -> int:
     planner = (config.get("scan") or {}).get("planner")
     if isinstance(planner, dict) and isinstance(planner.get("budget"), int):
         return int(planner["budget"])
-    return len(planned_orientations(tail))
+    return len(_plan_entries(tail))
 
 
 def readings_per_dip(tail: ScanTail) -> int | None:
@@ -205,8 +210,8 @@ def predicted_trace(recon: dict[str, Any] | None, dip: Dip, area: float | None) 
     ``delta`` solves ``A delta = C(t_start + s + delta)`` (fixed point, ``C' < A``) over the dip's
     first reading. ``None`` without a reconstruction, a cross-section or the dip's start height."""
     t0 = dip.meta.get("t_start_mm")
-    if recon is None or area is None or t0 is None or not dip.values:
-        return None
+    if recon is None or area is None or t0 is None or not dip.values or dip.tilt_deg is None or dip.spin_deg is None:
+        return None   # the reconstruction's curves are keyed by the rig angles
     key = f"{dip.tilt_deg:.6f},{dip.spin_deg:.6f}"
     curve = recon.get("cumulative", {}).get(key)
     if curve is None:
@@ -268,7 +273,14 @@ def _where(dip: Dip | None, mode: str) -> str:
     """The stage of the scan as the raw scan tells it (without a journal)."""
     if dip is None:
         return "connecting, homing or moving to the first orientation"
-    angles = f"orientation {dip.k} (tilt {dip.tilt_deg:g}, spin {dip.spin_deg:g})"
+    angles = f"orientation {dip.k} ({_angles_text(dip)})"
     if dip.complete:
         return f"after {angles}: lifting and rotating" if mode == "live" else f"{angles} done"
     return f"{angles}, reading {len(dip.values)} at {dip.stage_mm[-1]:g} mm" if dip.values else f"{angles}: lowering"
+
+
+def _angles_text(dip: Dip) -> str:
+    """``tilt 45, spin 90``, or the direction when the scan records no rig angles (``direction [0, 0.71, 0.71]``)."""
+    if dip.tilt_deg is not None and dip.spin_deg is not None:
+        return f"tilt {dip.tilt_deg:g}, spin {dip.spin_deg:g}"
+    return "direction [" + ", ".join(f"{x:.3g}" for x in _direction(dip)) + "]"

@@ -214,3 +214,29 @@ def test_a_resumed_scan_shows_what_was_recorded_before_and_goes_on(tmp_path):
     state = snapshot(tail, journal, alive=True, now=31.0)
     assert [len(d.values) for d in tail.dips] == [5, 1] and state["sessions"] == 1
     assert [o["status"] for o in state["orientations"]] == ["done", "in progress", "planned", "planned"]
+
+
+def test_a_scan_whose_orientations_give_only_a_direction_is_shown(tmp_path):
+    """A raw scan may give an orientation's direction without rig angles (the format allows it, the reconstruction
+    reads it): the page's state crashed formatting the missing tilt (TypeError), and so did a replay of such a file,
+    whose plan then listed no angles."""
+    path = tmp_path / "rawscan.jsonl"
+    plan = {"orientations": [[None, None]] * 3}
+    header = ScanHeader(tank_cross_section_mm2=1e4, step_mm=1.0, resolution=0.001, config={"plan": plan})
+    directions = [[0.0, 0.0, 1.0], [0.0, 0.6, 0.8], [0.6, 0.0, 0.8]]
+    with RawScanWriter(path, header, resume=False, fsync=False) as writer:
+        for k in range(2):
+            writer.begin_orientation(k, direction=directions[k], meta={"t_start_mm": -5.0})
+            for i, value in enumerate(RISING[:5 - 2 * k]):
+                writer.append_reading(float(i), value, 10.0 * k + i, [])
+            if k == 0:
+                writer.complete_orientation()
+    recon = {"edges": [-50.0, 50.0], "cumulative": {}}
+    tail, journal = ScanTail(path), JournalTail(path)
+    tail.poll()
+    state = snapshot(tail, journal, alive=True, recon=recon)
+    assert state["mode"] == "live" and "1 of 3 orientations done" in state["message"]
+    assert state["where"].startswith("orientation 1 (direction [0, 0.6, 0.8])") and state["dip"]["predicted"] is None
+    assert [o["direction"] for o in state["orientations"]] == directions[:2]
+    json.dumps(state)
+
