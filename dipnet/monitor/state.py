@@ -123,6 +123,17 @@ def logged_end(tail: ScanTail) -> tuple[str, str] | None:
     return None
 
 
+def _last_run_start(tail: ScanTail) -> float:
+    """When the scan's last rig run began (UNIX s, its ``session`` record in the raw scan; ``-inf`` without one). A
+    journalled stop before it is an earlier run's: a run resumed without ``monitor=true`` writes no journal session."""
+    if not tail.sessions or not tail.sessions[-1].get("time"):
+        return -math.inf
+    try:
+        return datetime.fromisoformat(str(tail.sessions[-1]["time"])).timestamp()
+    except ValueError:
+        return -math.inf
+
+
 def mode_of(tail: ScanTail, journal: JournalTail, replay: bool, alive: bool) -> tuple[str, str]:
     """``(mode, what it means)`` (one of :data:`MODES`)."""
     planned, done = planned_count(tail), sum(d.complete for d in tail.dips)
@@ -133,7 +144,7 @@ def mode_of(tail: ScanTail, journal: JournalTail, replay: bool, alive: bool) -> 
     starts = [e for e in journal.events if e.get("type") == "session"]
     if alive:
         return "live", f"live: the scan is running ({total} orientations done)"
-    if stops and (not starts or stops[-1]["time"] >= starts[-1]["time"]):
+    if stops and (not starts or stops[-1]["time"] >= starts[-1]["time"]) and stops[-1]["time"] >= _last_run_start(tail):
         return "stopped", stops[-1]["message"]
     if tail.error is not None:
         return "stopped", (f"the scan file cannot be read past {tail.error}: a damaged line, which resuming does not "

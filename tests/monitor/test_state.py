@@ -240,3 +240,24 @@ def test_a_scan_whose_orientations_give_only_a_direction_is_shown(tmp_path):
     assert [o["direction"] for o in state["orientations"]] == directions[:2]
     json.dumps(state)
 
+
+
+def test_a_stop_journalled_by_an_earlier_run_is_not_shown_after_a_resume_without_the_monitor(tmp_path):
+    """A run with monitor=true stopped (its journal holds the stop); the scan was resumed without monitor=true (no
+    journal session) and finished: the page kept showing the old stop."""
+    path = synthetic_scan(tmp_path / "rawscan.jsonl", [RISING, RISING[:3]], complete=1)
+    message = "scan stopped at orientation 1: RigTimeout: ...; object lifted: ...; run the same command again"
+    records = [{"type": "session", "time": 1.7e9}, {"type": "stopped", "message": message, "time": 1.7e9 + 60}]
+    journal_path(path).write_text("".join(json.dumps(r) + "\n" for r in records))
+    assert _state(path)["message"] == message
+    header = ScanHeader(tank_cross_section_mm2=1e4, step_mm=1.0, resolution=0.001, config={"plan": PLAN})
+    with RawScanWriter(path, header, resume=True, fsync=False) as writer:   # resumed an hour later, to the end
+        writer.record_session({"first_k": 1, "time": "2023-11-14T23:13:20+0000"})   # 1.7e9 + 3600 s
+        for k in (1, 2, 3):
+            writer.begin_orientation(k, tilt_deg=PLAN["orientations"][k][0], spin_deg=PLAN["orientations"][k][1])
+            for i, value in enumerate(RISING):
+                writer.append_reading(float(i), value, 1.7e9 + 3600 + 10 * k + i, [])
+            writer.complete_orientation()
+    state = _state(path)
+    assert state["mode"] == "finished" and state["message"] == "finished: 4 of 4 orientations recorded"
+
