@@ -215,11 +215,13 @@ def consistency_warnings(tail: ScanTail, resolution: float | None) -> list[str]:
     return out
 
 
-def predicted_trace(recon: dict[str, Any] | None, dip: Dip, area: float | None) -> list[float] | None:
-    """The level trace the running reconstruction predicts for ``dip`` at its recorded stages (mm),
-    from the reconstruction's cumulative volume ``C(t)`` along the dip's direction: the rise
-    ``delta`` solves ``A delta = C(t_start + s + delta)`` (fixed point, ``C' < A``) over the dip's
-    first reading. ``None`` without a reconstruction, a cross-section or the dip's start height."""
+def predicted_trace(recon: dict[str, Any] | None, dip: Dip, area: float | None,
+                    density: float | None = None) -> list[float] | None:
+    """The trace the running reconstruction predicts for ``dip`` at its recorded stages, from the reconstruction's
+    cumulative volume ``C(t)`` along the dip's direction: the rise ``delta`` solves ``A delta = C(t_start + s +
+    delta)`` (fixed point, ``C' < A``) over the dip's first reading. A level (mm) rises by ``delta``; with the liquid's
+    ``density`` (g/mm^3, a balance's scan, quantity ``mass_g``) the reading (g) rises by the displaced water's mass,
+    ``density A delta``. ``None`` without a reconstruction, a cross-section or the dip's start height."""
     t0 = dip.meta.get("t_start_mm")
     if recon is None or area is None or t0 is None or not dip.values or dip.tilt_deg is None or dip.spin_deg is None:
         return None   # the reconstruction's curves are keyed by the rig angles
@@ -232,7 +234,8 @@ def predicted_trace(recon: dict[str, Any] | None, dip: Dip, area: float | None) 
     delta = np.zeros_like(t)
     for _ in range(30):
         delta = np.interp(t + delta, edges, cum, left=0.0, right=cum[-1]) / area
-    return (dip.values[0] + delta - delta[0]).tolist()
+    scale = 1.0 if density is None else density * area
+    return (dip.values[0] + scale * (delta - delta[0])).tolist()
 
 
 def snapshot(tail: ScanTail, journal: JournalTail, *, replay: bool = False, alive: bool = False,
@@ -257,7 +260,8 @@ def snapshot(tail: ScanTail, journal: JournalTail, *, replay: bool = False, aliv
         dip = {"k": current.k, "tilt": current.tilt_deg, "spin": current.spin_deg, "complete": current.complete,
                "stage_mm": current.stage_mm, "values": current.values, "flags": current.flags,
                "n_planned": readings_per_dip(tail),
-               "predicted": predicted_trace(recon, current, header.tank_cross_section_mm2)}
+               "predicted": predicted_trace(recon, current, header.tank_cross_section_mm2,
+                                            header.density_g_per_mm3 if header.quantity == "mass_g" else None)}
     status = journal.status or {}
     stops = {e["message"] for e in journal.events if e.get("type") == "stopped"}
     warnings = [f"{e.get('logger', 'scan')}: {e['message']}" for e in journal.events

@@ -241,7 +241,6 @@ def test_a_scan_whose_orientations_give_only_a_direction_is_shown(tmp_path):
     json.dumps(state)
 
 
-
 def test_a_stop_journalled_by_an_earlier_run_is_not_shown_after_a_resume_without_the_monitor(tmp_path):
     """A run with monitor=true stopped (its journal holds the stop); the scan was resumed without monitor=true (no
     journal session) and finished: the page kept showing the old stop."""
@@ -261,3 +260,35 @@ def test_a_stop_journalled_by_an_earlier_run_is_not_shown_after_a_resume_without
     state = _state(path)
     assert state["mode"] == "finished" and state["message"] == "finished: 4 of 4 orientations recorded"
 
+
+def test_a_balance_scan_predicts_its_reading_in_grams():
+    """A balance's reading rises by the displaced water's mass (density x A x rise), not by the level's rise in mm:
+    the page drew a balance scan's predicted trace about A x density times too flat."""
+    area, c, b, t0, density = 1e4, 2e3, -5.0, -8.0, 1e-3
+    edges = np.linspace(-50, 50, 101)
+    recon = {"edges": edges.tolist(), "cumulative": {"10.000000,20.000000": np.clip(c * (edges - b), 0, None).tolist()}}
+    stages = np.arange(0.0, 20.0, 2.0)
+    dip = Dip(0, 10.0, 20.0, None, {"t_start_mm": t0}, stages.tolist(), [0.0] * len(stages))
+    level = np.asarray(predicted_trace(recon, dip, area))
+    mass = np.asarray(predicted_trace(recon, dip, area, density))
+    np.testing.assert_allclose(mass, density * area * level)
+    volume = np.interp(t0 + stages + level, edges, recon["cumulative"]["10.000000,20.000000"])
+    np.testing.assert_allclose(mass, density * volume, rtol=1e-6)   # the displaced water's mass
+
+
+def test_a_balance_scan_state_carries_its_density_to_the_trace(tmp_path):
+    path = tmp_path / "rawscan.jsonl"
+    header = ScanHeader(quantity="mass_g", tank_cross_section_mm2=1e4, step_mm=1.0, config={"plan": PLAN})
+    with RawScanWriter(path, header, resume=False, fsync=False) as writer:
+        writer.begin_orientation(0, tilt_deg=10.0, spin_deg=0.0, meta={"t_start_mm": -3.0})
+        for i in range(5):
+            writer.append_reading(float(i), 0.0, float(i), [])
+    edges = np.linspace(-50, 50, 101)
+    recon = {"edges": edges.tolist(), "cumulative": {"10.000000,0.000000": np.clip(500.0 * edges, 0, None).tolist()}}
+    tail, journal = ScanTail(path), JournalTail(path)
+    tail.poll()
+    predicted = snapshot(tail, journal, alive=True, recon=recon)["dip"]["predicted"]
+    dip = tail.dips[0]
+    level = np.asarray(predicted_trace(recon, dip, 1e4))
+    assert level[-1] > level[0]
+    np.testing.assert_allclose(predicted, header.density_g_per_mm3 * 1e4 * level)   # grams, not the mm of a level
