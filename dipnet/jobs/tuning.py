@@ -240,7 +240,7 @@ def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]
     """Raise ``ValueError`` (:class:`~dipnet.jobs.options.ConfigError`, a Hydra error) for a study that cannot
     run: fewer than 1 trial, an override of a tuned option (each trial would replace it without a word), a job
     option out of range or unknown (the overrides and every tuned option
-    at its ``low``), or a job with no ground truth (:func:`check_ground_truth`), before any trial (else every
+    at its ``low``, then at its ``high``), or a job with no ground truth (:func:`check_ground_truth`), before any trial (else every
     trial would fail alike)."""
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
         raise ValueError(f"the number of trials (--trials) must be a positive integer, got {n_trials!r}")
@@ -255,6 +255,12 @@ def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]
     job = compose_job([*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.low!r}" for p in params)])
     check_config(job)
     check_ground_truth(job)
+    try:   # the range's other end: a range running past what the option takes fails every trial drawn there
+        check_config(compose_job([*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.high!r}" for p in params)]))
+    except ValueError as exc:
+        ranges = ", ".join(f"{p.key}={p.low:g}:{p.high:g}" for p in params)
+        raise ConfigError(f"{exc} (the high end of a tuned range, --param {ranges}: every trial drawn near it would "
+                          "fail; narrow the range to the values the option takes)") from None
 
 
 def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_PARAMS,

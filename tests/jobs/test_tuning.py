@@ -268,3 +268,13 @@ def test_a_study_stored_without_verdicts_keeps_ranking_by_chamfer(tmp_path, fake
     tuning.tune(tmp_path, n_trials=2, overrides=TINY)
     best = OmegaConf.load(tmp_path / "best.yaml")
     assert (best.trial, best.consistency) == (0, None) and "lowest_chamfer" not in best
+
+
+def test_a_range_whose_high_end_the_option_refuses_is_refused_before_any_trial(tmp_path, capsys, tune_script):
+    """``--param snr_db=10:300:linear``: only the low end was checked; every trial drawn above 200 dB failed."""
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "2", "--out", str(tmp_path / "study"), "--param", "snr_db=10:300:linear", *TINY])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("error: snr_db must be a number of dB in [-20, 200]") and "high end of a tuned range" in err
+    assert not (tmp_path / "study").exists()
