@@ -8,7 +8,8 @@
 
 Trial ``i`` runs in ``<out>/<i>``; the best values go to ``<out>/best.yaml`` with the best trial's consistency
 verdict: a trial whose result is ``inconsistent`` with its dips ranks behind every consistent one, and a best
-trial that is inconsistent is named with a warning (:mod:`dipnet.jobs.tuning`). An ``--out`` that already holds a study is refused (exit 2) unless
+trial that is inconsistent is named with a warning (:mod:`dipnet.jobs.tuning`), and so is a best value at an end of
+its range (the optimum may lie beyond it). An ``--out`` that already holds a study is refused (exit 2) unless
 ``--storage`` continues that study.
 """
 
@@ -21,7 +22,7 @@ from pathlib import Path
 
 from dipnet.jobs.cli import user_errors
 from dipnet.core.console import report
-from dipnet.jobs.tuning import DEFAULT_PARAMS, NoBestTrialError, Param, best_trial, check_study, tune
+from dipnet.jobs.tuning import DEFAULT_PARAMS, NoBestTrialError, Param, best_trial, check_study, range_edges, tune
 
 
 def parse_param(text: str) -> Param:
@@ -63,7 +64,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     best = best_trial(study, out)
     verdict = best.user_attrs.get("consistency") or "no consistency verdict"
-    print(f"best chamfer {best.value:.5f} (trial {best.number}, {verdict}): {best.params}; "
+    edges = range_edges(best.params, params)
+    at_edge = "".join(f"; {key} at the {end} end of its range" for key, end in edges.items())
+    print(f"best chamfer {best.value:.5f} (trial {best.number}, {verdict}): {best.params}{at_edge}; "
           f"written to {out / 'best.yaml'}")
     return 0
 

@@ -156,10 +156,32 @@ def trial_summary(trial: Any) -> dict[str, Any]:
             "consistency_warnings": list(trial.user_attrs.get("consistency_warnings") or [])}
 
 
-def best_summary(study: Any, out: Path, overrides: Sequence[str]) -> dict[str, Any]:
+#: A best value within this share of its range (on the range's scale, log or linear) from one of its ends lies at that
+#: end: the optimum may lie beyond it.
+EDGE_SHARE = 0.05
+
+
+def range_edges(values: dict[str, float], params: Sequence[Param]) -> dict[str, str]:
+    """The tuned options whose value in ``values`` (a trial's ``params``) lies at an end of its range (within
+    :data:`EDGE_SHARE` of it, on the range's scale): ``{key: "low" | "high"}``."""
+    edges = {}
+    for p in params:
+        if p.key not in values:
+            continue
+        scale = math.log if p.log else float
+        share = (scale(values[p.key]) - scale(p.low)) / (scale(p.high) - scale(p.low))
+        if share <= EDGE_SHARE:
+            edges[p.key] = "low"
+        elif share >= 1.0 - EDGE_SHARE:
+            edges[p.key] = "high"
+    return edges
+
+
+def best_summary(study: Any, out: Path, overrides: Sequence[str], params: Sequence[Param] = ()) -> dict[str, Any]:
     """The contents of ``best.yaml``: the best trial (:func:`best_trial`: :func:`trial_summary`), the study's
-    overrides, how many trials ran, failed and were consistent, and ``lowest_chamfer`` (that trial's summary)
-    when ranking by the consistency verdict passed over a trial of lower Chamfer."""
+    overrides, how many trials ran, failed and were consistent, ``lowest_chamfer`` (that trial's summary)
+    when ranking by the consistency verdict passed over a trial of lower Chamfer, and ``at_range_edge``
+    (:func:`range_edges` of the tuned ``params``) when a best value lies at an end of its range."""
     best, lowest = best_trial(study, out), lowest_chamfer_trial(study, out)
     failed = sum(t.state.name != "COMPLETE" for t in study.trials)
     summary = {**trial_summary(best), "overrides": [*overrides], "trials": len(study.trials), "failed": failed,
@@ -167,7 +189,26 @@ def best_summary(study: Any, out: Path, overrides: Sequence[str]) -> dict[str, A
                "ranking": "consistent trials first, then the lowest Chamfer distance"}
     if lowest.number != best.number:
         summary["lowest_chamfer"] = trial_summary(lowest)
+    edges = range_edges(best.params, params)
+    if edges:
+        summary["at_range_edge"] = {key: {"end": end, "range": [p.low, p.high], "scale": "log" if p.log else "linear"}
+                                    for p in params for key, end in edges.items() if p.key == key}
     return summary
+
+
+def edge_messages(summary: dict[str, Any]) -> list[str]:
+    """A warning for each best value at an end of its tuned range (:func:`best_summary`'s ``at_range_edge``): the
+    search ran into the range's edge, so the best may lie beyond it, and these values are the range's end, not an
+    optimum."""
+    messages = []
+    for key, edge in (summary.get("at_range_edge") or {}).items():
+        low, high = edge["range"]
+        wider = (f", e.g. --param {key}=" + (f"{low / 10:g}:{high:g}" if edge["end"] == "low" else f"{low:g}:{high * 10:g}")
+                 if edge["scale"] == "log" else " (as far as the option allows)")
+        messages.append(f"the best trial's {key} = {summary['params'][key]:g} lies at the {edge['end']} end of its "
+                        f"range [{low:g}, {high:g}] ({edge['scale']} scale, within {EDGE_SHARE:.0%} of it): the best "
+                        f"value may lie beyond the range; tune again with a range reaching past that end{wider}")
+    return messages
 
 
 def verdict_messages(summary: dict[str, Any], out: Path) -> list[str]:
@@ -313,10 +354,12 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
         record_trial(trial, result)
         study.tell(trial, result.chamfer)
         log.info("trial %d: chamfer %.5f%s with %s", trial.number, result.chamfer, trial_note(result), values)
-    summary = best_summary(study, out, overrides)
+    summary = best_summary(study, out, overrides, params)
     OmegaConf.save(OmegaConf.create(summary), out / "best.yaml")
     for message in verdict_messages(summary, out):
         (log.warning if summary["consistency"] == "inconsistent" else log.info)("%s", message)
+    for message in edge_messages(summary):
+        log.warning("%s", message)
     return study
 
 

@@ -270,6 +270,37 @@ def test_a_study_stored_without_verdicts_keeps_ranking_by_chamfer(tmp_path, fake
     assert (best.trial, best.consistency) == (0, None) and "lowest_chamfer" not in best
 
 
+@pytest.mark.parametrize("value, param, end", [
+    (1.1e-4, Param("w", 1e-4, 1.0), "low"),        # 1% of the 4 decades from the low end
+    (0.9, Param("w", 1e-4, 1.0), "high"),
+    (1e-2, Param("w", 1e-4, 1.0), None),
+    (0.52, Param("f", 0.5, 0.95, False), "low"),   # 4% of the linear range
+    (0.6, Param("f", 0.5, 0.95, False), None),
+])
+def test_a_value_at_an_end_of_its_range_is_told_from_one_inside_it(value, param, end):
+    assert tuning.range_edges({param.key: value}, [param]) == ({param.key: end} if end else {})
+
+
+def test_a_best_value_at_the_end_of_its_range_is_named_not_called_the_optimum(tmp_path, capsys, caplog, monkeypatch,
+                                                                             tune_script):
+    """A study whose Chamfer keeps falling toward one end of the tuned range reported the last value before that end
+    as "best" without a word: the search ran into the range's edge, and the optimum may lie beyond it."""
+    monkeypatch.setattr(tuning, "run", lambda cfg, out: SimpleNamespace(
+        metrics={"chamfer": float(cfg.solver.priors.tv.weight), "empty": False}))   # the lower, the better
+    out = tmp_path / "study"
+    with caplog.at_level("WARNING", logger="dipnet.jobs.tuning"):
+        assert tune_script.main(["--trials", "12", "--startup-trials", "4", "--out", str(out),
+                                 "--param", "solver.priors.tv.weight=1e-4:1", *TINY]) == 0
+    best = OmegaConf.load(out / "best.yaml")
+    weight = best.params["solver.priors.tv.weight"]
+    assert tuning.range_edges({"solver.priors.tv.weight": weight}, [Param("solver.priors.tv.weight", 1e-4, 1.0)])
+    edge = best.at_range_edge["solver.priors.tv.weight"]
+    assert edge.end == "low" and list(edge.range) == [1e-4, 1.0] and edge.scale == "log"
+    assert "solver.priors.tv.weight at the low end of its range" in capsys.readouterr().out
+    assert any("lies at the low end of its range [0.0001, 1]" in r.getMessage() and "--param "
+               "solver.priors.tv.weight=1e-05:1" in r.getMessage() for r in caplog.records), caplog.text
+
+
 def test_a_range_whose_high_end_the_option_refuses_is_refused_before_any_trial(tmp_path, capsys, tune_script):
     """``--param snr_db=10:300:linear``: only the low end was checked; every trial drawn above 200 dB failed."""
     with pytest.raises(SystemExit) as exit_:
