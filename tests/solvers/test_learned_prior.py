@@ -50,7 +50,7 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     assert "(" + str(weights) + ") was trained on 41 dips over the whole hemisphere" in message
     assert "leave 55 deg unmeasured" in message
     assert prior.plan_warning(fibonacci_hemisphere(41)) is None
-    assert prior.plan_warning(fibonacci_hemisphere(12)) is None  # fewer dips, the same hemisphere
+    assert prior.plan_warning(fibonacci_hemisphere(20)) is None  # fewer dips, the same hemisphere, as checked
     assert prior.plan_warning(torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)) is None
     assert LearnedPrior(save_weights(perturbed_denoiser(0.2), tmp_path / "bare.pt",
                                      {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})).plan_warning(tilted) is None
@@ -75,6 +75,26 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     assert not caught
 
 
+def test_far_fewer_dips_than_the_training_plan_are_warned_about(tmp_path):
+    """Weights trained on 41 dips were checked down to 20; fewer leave what the denoiser fills in unchecked (the hand
+    from 6 dips passed as consistent at IoU 0.57), so the solve warns once, also beside a band warning."""
+    weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt",
+                           {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41}})
+    prior = LearnedPrior(weights)
+    message = prior.plan_warning(fibonacci_hemisphere(6))
+    assert "trained on 41 dips over the whole hemisphere, and checked down to 20; these are 6" in message
+    assert prior.plan_warning(fibonacci_hemisphere(19)) is not None
+    assert prior.plan_warning(fibonacci_hemisphere(20)) is None
+    both = prior.plan_warning(Reach(tilt_range_deg=(0.0, 35.0)).uniform(6))
+    assert "deg from the horizontal unmeasured); these dips leave" in both and "these are 6" in both
+    learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned, later_priors=learned)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        solver.check_priors(make_operator(Grid(16, 3), fibonacci_hemisphere(6), 16))
+    assert [str(w.message) for w in caught] == [message]
+
+
 def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path, weights16, caplog):
     """``weights: [hemisphere, rig]``: dips over the hemisphere keep the first, a rig's 0-35 deg dips the weights
     trained on that plan (no plan warning then); the choice and its reason reach the result's ``info`` (a job's
@@ -85,10 +105,10 @@ def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path
              for i, (name, plan) in enumerate(plans.items())]
     prior = LearnedPrior(files)
     grid = Grid(16, 3)
-    tilted = Reach(tilt_range_deg=(0.0, 35.0)).uniform(12)
+    tilted = Reach(tilt_range_deg=(0.0, 35.0)).uniform(20)
     o = torch.rand(16, 16, 16)
     denoised, reasons = {}, {}
-    for directions, kept in ((fibonacci_hemisphere(12), 0), (tilted, 1), (fibonacci_hemisphere(12), 0)):
+    for directions, kept in ((fibonacci_hemisphere(20), 0), (tilted, 1), (fibonacci_hemisphere(20), 0)):
         prior.check_operator(make_operator(grid, directions, 16))
         assert prior.choice["weights"] == files[kept] and prior.plan_warning(directions) is None
         denoised.setdefault(kept, prior.denoise(o))
@@ -100,7 +120,7 @@ def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path
     learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": files, "mode": "anchor"}}
     tilted_op = make_operator(grid, tilted, 16)
     tilted_measurement = DipMeasurement(tilted, tilted_op(torch.from_numpy(generated_occupancy(4, grid)).double()),
-                                        tilted_op.slab_thickness, tilted_op.slab_edges()[:1].expand(12))
+                                        tilted_op.slab_thickness, tilted_op.slab_edges()[:1].expand(20))
     for m, operator, kept in ((measurement, op, 0), (tilted_measurement, tilted_op, 1)):
         solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned)
         caplog.clear()
