@@ -15,7 +15,7 @@ from dipnet.evaluation.consistency import DataConsistencyWarning, check_consiste
 from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, PriorWeightsError, save_weights
 from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_occupancy
-from dipnet.solvers.learned import LearnedPrior
+from dipnet.solvers.learned import LearnedPrior, object_fill
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
@@ -93,6 +93,34 @@ def test_far_fewer_dips_than_the_training_plan_are_warned_about(tmp_path):
         warnings.simplefilter("always")
         solver.check_priors(make_operator(Grid(16, 3), fibonacci_hemisphere(6), 16))
     assert [str(w.message) for w in caught] == [message]
+
+
+def test_an_object_much_smaller_in_the_grid_than_the_training_objects_is_warned_about(tmp_path):
+    """Weights trained on objects reaching 0.9 of the working ball: a ball reaching 0.2 of it (a grid four times too
+    large) is warned about once as the solve starts, at 0.9 it is not; weights that record no fill say
+    nothing."""
+    weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt",
+                           {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41, "fill": 0.9}})
+    directions = fibonacci_hemisphere(24)
+    learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    caught_by_fill = {}
+    for fill in (0.9, 0.2):
+        grid = Grid(16, 3, extent=60.0)
+        truth = (grid.centers().norm(dim=-1) <= fill * grid.radius).double()
+        op = make_operator(grid, directions, 16)
+        measurement = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(24))
+        estimate = object_fill(measurement.profiles, measurement.slab_thickness, grid.radius)
+        assert fill - 0.05 <= estimate <= fill + op.slab_thickness / grid.radius  # its end slabs count whole
+        solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solver.check_priors(op, measurement)
+        caught_by_fill[fill] = [str(w.message) for w in caught]
+    assert caught_by_fill[0.9] == []
+    assert len(caught_by_fill[0.2]) == 1 and "trained on objects reaching 0.9 of it" in caught_by_fill[0.2][0]
+    bare = LearnedPrior(save_weights(perturbed_denoiser(0.2), tmp_path / "bare.pt",
+                                     {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41}}))
+    assert bare.size_warning(0.1) is None
 
 
 def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path, weights16, caplog):
