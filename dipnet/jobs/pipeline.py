@@ -283,8 +283,11 @@ def run_overrides() -> dict[str, list[str]]:
     return {"overrides": [str(o) for o in OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)]}
 
 
-#: The keys of a mesh file's frame in ``metrics.json`` and in the metadata of the job's ``measurement.npz``.
-FRAME_KEYS = ("frame_offset_mm", "frame_scale")
+#: The keys of a mesh file's frame in ``metrics.json`` and in the metadata of the job's ``measurement.npz``
+#: (``frame_axes``: in 2D, the file's axes that the 2D ``x, y`` are, e.g. ``"zx"`` for a silhouette along y).
+FRAME_KEYS = ("frame_offset_mm", "frame_scale", "frame_axes")
+#: The 2D planes a silhouette of a mesh file lies in (``shape.axis`` x, y, z).
+FRAME_AXES_2D = ("yz", "zx", "xy")
 
 
 def mesh_frame(shape: Shape | None, measurement: DipMeasurement | None = None) -> dict[str, Any]:
@@ -300,6 +303,9 @@ def mesh_frame(shape: Shape | None, measurement: DipMeasurement | None = None) -
         frame["frame_offset_mm"] = [float(v) for v in offset]
     if float(getattr(shape, "frame_scale", 1.0)) != 1.0:
         frame["frame_scale"] = float(shape.frame_scale)
+    axes = getattr(shape, "frame_axes", None)
+    if axes in FRAME_AXES_2D and (frame or axes != "xy"):  # a silhouette: the file's axes its x, y are
+        frame["frame_axes"] = axes
     return frame
 
 
@@ -307,7 +313,12 @@ def saved_frame(metadata: dict[str, Any]) -> dict[str, Any]:
     """The :data:`FRAME_KEYS` a measurement's ``metadata`` holds, those that are well formed (an offset of three
     finite mm, a finite positive scale); another value (a hand-edited file) is left out with a warning."""
     frame: dict[str, Any] = {}
-    for key, size in (("frame_offset_mm", 3), ("frame_scale", None)):
+    axes = metadata.get("frame_axes")
+    size = 2 if axes is not None else 3
+    if axes is not None and axes not in FRAME_AXES_2D:
+        log.warning("the measurement's frame_axes=%r is not one of %s: its frame is left out", axes, FRAME_AXES_2D)
+        return frame
+    for key, size in (("frame_offset_mm", size), ("frame_scale", None)):
         if metadata.get(key) is None:
             continue
         try:
@@ -318,7 +329,10 @@ def saved_frame(metadata: dict[str, Any]) -> dict[str, Any]:
             frame[key] = value.tolist()
         else:
             log.warning("the measurement's %s=%r is not %s: left out, so the meshes of this run are not placed by it",
-                        key, metadata[key], "three finite mm" if size else "a finite positive number")
+                        key, metadata[key], f"{'three' if size == 3 else 'two'} finite mm" if size
+                        else "a finite positive number")
+    if frame and axes is not None:
+        frame["frame_axes"] = axes
     return frame
 
 
@@ -326,10 +340,19 @@ def frame_offset(frame: dict[str, Any], grid: Grid, scores: dict[str, Any]) -> n
     """The shift (3,) mm from the grid frame to the frame of the user's mesh file (``None``: no
     shift), from ``frame`` (:func:`mesh_frame`), stated with the scale in ``scores`` and the log (the
     mesh files are written in the file's frame, in mm; volumes and figures stay centred). A vertex ``v``
-    (mm) of a mesh file is ``v / frame_scale`` in the file's own units."""
-    if grid.ndim != 3 or not frame:
+    (mm) of a mesh file is ``v / frame_scale`` in the file's own units. In 2D (a silhouette of a mesh file) the
+    frame is stated and logged, with the file's axes the 2D ``x, y`` are (``frame_axes``), and ``None`` returned:
+    no mesh file is written."""
+    if not frame or len(frame.get("frame_offset_mm", [0.0] * grid.ndim)) != grid.ndim:
         return None
     scores.update(frame)
+    if grid.ndim == 2:  # no mesh file: the frame is stated for reconstruction.npz and the figures
+        axes = frame.get("frame_axes", "xy")
+        log.info("the 2D results (reconstruction.npz, slices.png) are centred; their x, y are the %s, %s axes of the "
+                 "shape's file: add frame_offset_mm %s and divide by frame_scale %s for the file's coordinates",
+                 axes[0], axes[1], [round(float(v), 4) for v in frame.get("frame_offset_mm", [0.0, 0.0])],
+                 frame.get("frame_scale", 1.0))
+        return None
     if "frame_scale" in frame:
         log.info("the mesh was scaled by %.6g (frame_scale, mm per unit of its file): divide the mesh files' "
                  "vertices by it for the file's units", frame["frame_scale"])

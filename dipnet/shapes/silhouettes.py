@@ -142,7 +142,10 @@ def project_mesh(shape: MeshShape, axis: str = "z", pixels: int = 1024) -> Polyg
         pixels: image resolution; the boundary error is about ``span / pixels``.
 
     Returns:
-        A :class:`PolygonShape` in the plane coordinates, mm.
+        A :class:`PolygonShape` in the plane coordinates, mm, with the mesh's frame in the plane: ``frame_axes``
+        (the file's axes the 2D ``(x, y)`` are, e.g. ``"zx"`` along ``y``), ``frame_offset`` ``(2,)`` mm (the mesh's
+        ``frame_offset`` on them) and ``frame_scale``, so a 2D point ``p`` is ``(p + frame_offset) / frame_scale`` on
+        those axes of the file.
     """
     if axis not in _PLANE_AXES:
         raise ValueError(f"axis must be 'x', 'y' or 'z', got {axis!r}")
@@ -164,4 +167,9 @@ def project_mesh(shape: MeshShape, axis: str = "z", pixels: int = 1024) -> Polyg
         for c in find_contours(image.astype(np.float64), 0.5)
         if len(c) >= 4 and abs(signed_area(c)) >= 2.0
     ]
-    return PolygonShape(rings, name=f"{shape.name}_silhouette_{axis}")
+    polygon = PolygonShape(rings, name=f"{shape.name}_silhouette_{axis}")
+    plane = list(_PLANE_AXES[axis])
+    polygon.frame_axes = "".join("xyz"[i] for i in plane)
+    polygon.frame_offset = np.asarray(getattr(shape, "frame_offset", np.zeros(3)), dtype=np.float64)[plane]
+    polygon.frame_scale = float(getattr(shape, "frame_scale", 1.0))
+    return polygon

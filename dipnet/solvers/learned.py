@@ -32,6 +32,7 @@ wider band than the kept weights' plan give ``D`` inputs unlike its training one
 from __future__ import annotations
 
 import itertools
+import math
 import numbers
 from collections.abc import Sequence
 from pathlib import Path
@@ -47,6 +48,14 @@ from dipnet.solvers.denoiser import PriorMismatchError, load_weights
 #: Dips whose unmeasured band about the horizontal exceeds the training plan's by more than this (degrees) are
 #: warned about (:meth:`LearnedPrior.plan_warning`)
 PLAN_BAND_MARGIN_DEG = 10.0
+#: Fewer dips than this share of the training plan's are warned about (:meth:`LearnedPrior.plan_warning`): the
+#: weights trained on 41 dips were checked down to 20 (docs/design/learned-prior.md, "Other dip counts")
+PLAN_DIPS_SHARE = 0.5
+#: An object spanning less than this share of the training objects' ``fill`` is warned about
+#: (:meth:`LearnedPrior.size_warning`): at half the working ball the shipped weights lost most of their gain
+#: (docs/design/learned-prior.md, "Other dip counts and a smaller object"), at a quarter they did worse than the voxel
+#: solver alone
+PLAN_FILL_SHARE = 0.5
 
 #: The spatial dims of a ``(B, C, N, N, N)`` volume to flip for each of its 8 axis reflections.
 _REFLECTIONS = [dims for k in range(4) for dims in itertools.combinations((2, 3, 4), k)]
@@ -134,21 +143,45 @@ class LearnedPrior(nn.Module):
         """A warning when 3D ``directions`` ``(K, 3)`` leave a band about the horizontal unmeasured
         (:func:`~dipnet.core.orientations.unmeasured_band_deg`) more than :data:`PLAN_BAND_MARGIN_DEG` wider than
         the plan the weights were trained on (their meta's ``config``: ``dips`` Fibonacci directions, tilted at
-        most ``max_tilt_deg``, 90 when not recorded); else ``None``."""
+        most ``max_tilt_deg``, 90 when not recorded), or when they are fewer than :data:`PLAN_DIPS_SHARE` of its
+        ``dips``; else ``None``."""
         plan = _training_plan(self.meta)
         if directions.ndim != 2 or directions.shape[1] != 3 or plan is None:
             return None
         dips, tilt = plan
         trained, band = _training_band_deg(self.meta), unmeasured_band_deg(directions)
-        if not band > trained + PLAN_BAND_MARGIN_DEG:
-            return None
         where = "over the whole hemisphere" if tilt >= 90 else f"tilted 0-{tilt:g} deg"
-        return (f"the learned prior's denoiser ({self.choice['weights']}) was trained on {dips} dips {where} (at "
+        messages = []
+        if band > trained + PLAN_BAND_MARGIN_DEG:
+            messages.append(
+                f"the learned prior's denoiser ({self.choice['weights']}) was trained on {dips} dips {where} (at "
                 f"most {trained:.0f} deg from the horizontal unmeasured); these dips leave {band:.0f} deg unmeasured, "
                 "so what it makes of the missing cone is a guess the data cannot check: on five validation meshes "
                 "dipped at tilts of 0-35 deg, weights trained over the whole hemisphere gave 0.80-1.92 times "
                 "solver=voxel's Chamfer; compare with solver=voxel, or train weights for the rig's tilts "
                 "(scripts/train_prior.py --max-tilt-deg) and add them to solver.priors.learned.weights")
+        fewest = math.floor(PLAN_DIPS_SHARE * dips)
+        if len(directions) < fewest:
+            messages.append(
+                f"the learned prior's denoiser ({self.choice['weights']}) was trained on {dips} dips {where}, and "
+                f"checked down to {fewest}; these are {len(directions)}: so few dips leave most of the shape open, "
+                "and what the denoiser fills in there is a guess the data cannot check, so a shape far off passes as "
+                "consistent (the hand at 64^3 from 6 dips: IoU 0.57, consistent); add dips, or compare with "
+                "solver=voxel")
+        return "; and ".join(messages) or None
+
+    def size_warning(self, fill: float) -> str | None:
+        """A warning when the object spans less than :data:`PLAN_FILL_SHARE` of the share of the working ball the
+        weights' training objects reached (their meta's ``config.fill``); ``fill``: the object's largest span over
+        the working ball's diameter (:func:`object_fill`). ``None`` otherwise, or when the meta records no fill."""
+        trained = (self.meta.get("config") or {}).get("fill")
+        if not isinstance(trained, (int, float)) or not 0 < trained <= 1 or not fill < PLAN_FILL_SHARE * trained:
+            return None
+        return (f"the object spans at most {fill:.2f} of the working ball's diameter; the learned prior's denoiser "
+                f"({self.choice['weights']}) was trained on objects reaching {trained:g} of it, and works at the voxels' "
+                "scale, so on so few voxels it adds little or does harm (bracket_B66 at fill 0.25, 64^3, 41 dips: "
+                "Chamfer 1.10 times solver=voxel's, consistent): give the grid the object's size (extent_mm=null with "
+                f"the default fill, or an extent_mm near the object's span), or compare with solver=voxel")
 
     def _check_grid(self, ndim: int, n: int) -> None:
         trained = int(self.meta.get("ndim", 3))
@@ -194,6 +227,20 @@ class LearnedPrior(nn.Module):
         residual = occupancy.detach() - self._denoised
         inner = (occupancy * residual).mean()
         return inner - 0.5 * inner.detach()
+
+
+def object_fill(profiles: torch.Tensor, slab_thickness: float, radius: float, rel_tol: float = 0.005) -> float:
+    """The object's largest span (mm) over its dips ``profiles`` ``(K, M)``, between the first and last slab holding
+    more than ``rel_tol`` of the dip's largest, over the working ball's diameter ``2 radius``: about the share of the
+    ball the object fills (a job's ``fill``), a little less for dips that miss its longest direction."""
+    p = torch.as_tensor(profiles).double()
+    full = p > rel_tol * p.max(dim=1, keepdim=True).values.clamp(min=1e-300)
+    if not full.any():
+        return 0.0
+    first = full.double().argmax(1)
+    last = p.shape[1] - 1 - full.flip(1).double().argmax(1)
+    spans = (last - first + 1).double()[full.any(1)] * float(slab_thickness)
+    return float(spans.max()) / (2.0 * float(radius))
 
 
 def _training_plan(meta: dict) -> tuple[int, float] | None:

@@ -44,6 +44,7 @@ from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors
 from dipnet.solvers.weights import KNOWN_NOISE, WeightRule, auto_names, noise_level, with_weight
+from dipnet.solvers.learned import object_fill
 
 log = logging.getLogger(__name__)
 
@@ -599,14 +600,16 @@ class OptimisationSolver(Solver):
         """Every priors spec a solve uses: :attr:`priors` (the voxel solver adds its later rounds')."""
         return [self.priors]
 
-    def check_priors(self, operator: DipOperator) -> None:
+    def check_priors(self, operator: DipOperator, measurement: DipMeasurement | None = None) -> None:
         """Refuse ``operator`` when a prior of any of :meth:`prior_specs` was made for another grid or operator
         (the learned prior's weights), before a warm start or a first round spends minutes on it; warn once of
         each plan warning of the first spec's priors (:meth:`~dipnet.solvers.learned.LearnedPrior.plan_warning`: dips
         unlike those the weights were trained on; later rounds' weights refine a result anchored by the first's: the
         hemisphere's second stage after the 0-35 deg rig's first did better than ``solver=voxel`` on 14 of 16 meshes
         under that rig's plan); keep the learned prior's choices among candidate weights
-        (:meth:`~dipnet.solvers.learned.LearnedPrior.select_for`) for ``info["learned_weights"]``.
+        (:meth:`~dipnet.solvers.learned.LearnedPrior.select_for`) for ``info["learned_weights"]``. With the
+        ``measurement`` (on ``operator``'s slabs), warn as well of an object much smaller in the grid than the weights'
+        training objects (:meth:`~dipnet.solvers.learned.LearnedPrior.size_warning`).
 
         Raises:
             PriorMismatchError: see :meth:`~dipnet.solvers.learned.LearnedPrior.check_operator`.
@@ -621,10 +624,15 @@ class OptimisationSolver(Solver):
                     self._weights_choices.append(dict(choice))
                     log.info("learned prior: weights %s: %s", choice["weights"], choice["reason"])
                 first = index == 0 and hasattr(module, "plan_warning")
-                message = module.plan_warning(operator.directions) if first else None
-                if message is not None and message not in said:
-                    said.add(message)
-                    warnings.warn(message, stacklevel=2)
+                messages = [module.plan_warning(operator.directions)] if first else []
+                if first and measurement is not None and hasattr(module, "size_warning"):
+                    grid = operator.grid
+                    messages.append(module.size_warning(object_fill(measurement.profiles, measurement.slab_thickness,
+                                                                    grid.radius)))
+                for message in messages:
+                    if message is not None and message not in said:
+                        said.add(message)
+                        warnings.warn(message, stacklevel=2)
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),
@@ -635,7 +643,7 @@ class OptimisationSolver(Solver):
 
     def _initial_occupancy(self, measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor | None:
         """The warm-start occupancy on ``operator.grid`` (float32, in [0, 1]) or ``None``."""
-        self.check_priors(operator)
+        self.check_priors(operator, measurement)
         start = self.warm_start
         if start is None:
             return None

@@ -45,3 +45,29 @@ def test_mesh_files_of_a_job_line_up_with_the_users_file(off_centre, tmp_path):
     for name in ("truth.ply", "reconstruction.ply"):
         mesh = trimesh.load(tmp_path / "job" / name)
         np.testing.assert_allclose(mesh.bounds, source.bounds, atol=1.5 * voxel, err_msg=name)
+
+
+def test_a_2d_job_states_the_files_axes_and_shift_of_its_silhouette(off_centre, tmp_path):
+    """A silhouette along y lies in the file's (z, x) plane: metrics.json names those axes (``frame_axes``) and the
+    shift, so the centred 2D result plus ``frame_offset_mm`` covers the part's z and x in the file; a run on the job's
+    measurement.npz states the same."""
+    overrides = ["output.progress=false", "ndim=2", "resolution=32", "output.figures=false",
+                 "output.uncertainty=false", "output.resolvability=false"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides + [
+            "shape=mesh", f"shape.path={off_centre}", "shape.axis=y", "n_dips=12"])
+        again = compose(config_name="config", overrides=overrides + [
+            "source=recorded", f"source.reader.path={tmp_path / 'job' / 'measurement.npz'}"])
+    result = run(cfg, tmp_path / "job")
+    saved = json.loads((tmp_path / "job" / "metrics.json").read_text())
+    assert saved["frame_axes"] == "zx"
+    grid = result.reconstruction.grid
+    rows, cols = np.nonzero(result.reconstruction.binary)
+    centres = grid.extent / grid.n * (np.stack([cols, rows], axis=1) + 0.5) - grid.extent / 2
+    placed = centres + np.asarray(saved["frame_offset_mm"])
+    source = trimesh.load(off_centre).bounds[:, [2, 0]]  # the file's z and x
+    np.testing.assert_allclose([placed.min(0), placed.max(0)], source, atol=1.5 * grid.voxel_size)
+    run(again, tmp_path / "again")
+    stated = json.loads((tmp_path / "again" / "metrics.json").read_text())
+    assert {k: stated[k] for k in ("frame_axes", "frame_offset_mm")} == {k: saved[k] for k in ("frame_axes",
+                                                                                                "frame_offset_mm")}

@@ -15,7 +15,7 @@ from dipnet.evaluation.consistency import DataConsistencyWarning, check_consiste
 from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, PriorWeightsError, save_weights
 from dipnet.operators import make_operator
 from dipnet.shapes.procedural import generated_occupancy
-from dipnet.solvers.learned import LearnedPrior
+from dipnet.solvers.learned import LearnedPrior, object_fill
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
@@ -50,7 +50,7 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     assert "(" + str(weights) + ") was trained on 41 dips over the whole hemisphere" in message
     assert "leave 55 deg unmeasured" in message
     assert prior.plan_warning(fibonacci_hemisphere(41)) is None
-    assert prior.plan_warning(fibonacci_hemisphere(12)) is None  # fewer dips, the same hemisphere
+    assert prior.plan_warning(fibonacci_hemisphere(20)) is None  # fewer dips, the same hemisphere, as checked
     assert prior.plan_warning(torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)) is None
     assert LearnedPrior(save_weights(perturbed_denoiser(0.2), tmp_path / "bare.pt",
                                      {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})).plan_warning(tilted) is None
@@ -75,6 +75,54 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     assert not caught
 
 
+def test_far_fewer_dips_than_the_training_plan_are_warned_about(tmp_path):
+    """Weights trained on 41 dips were checked down to 20; fewer leave what the denoiser fills in unchecked (the hand
+    from 6 dips passed as consistent at IoU 0.57), so the solve warns once, also beside a band warning."""
+    weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt",
+                           {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41}})
+    prior = LearnedPrior(weights)
+    message = prior.plan_warning(fibonacci_hemisphere(6))
+    assert "trained on 41 dips over the whole hemisphere, and checked down to 20; these are 6" in message
+    assert prior.plan_warning(fibonacci_hemisphere(19)) is not None
+    assert prior.plan_warning(fibonacci_hemisphere(20)) is None
+    both = prior.plan_warning(Reach(tilt_range_deg=(0.0, 35.0)).uniform(6))
+    assert "deg from the horizontal unmeasured); these dips leave" in both and "these are 6" in both
+    learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned, later_priors=learned)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        solver.check_priors(make_operator(Grid(16, 3), fibonacci_hemisphere(6), 16))
+    assert [str(w.message) for w in caught] == [message]
+
+
+def test_an_object_much_smaller_in_the_grid_than_the_training_objects_is_warned_about(tmp_path):
+    """Weights trained on objects reaching 0.9 of the working ball: a ball reaching 0.2 of it (a grid four times too
+    large) is warned about once as the solve starts, at 0.9 it is not; weights that record no fill say
+    nothing."""
+    weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt",
+                           {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41, "fill": 0.9}})
+    directions = fibonacci_hemisphere(24)
+    learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    caught_by_fill = {}
+    for fill in (0.9, 0.2):
+        grid = Grid(16, 3, extent=60.0)
+        truth = (grid.centers().norm(dim=-1) <= fill * grid.radius).double()
+        op = make_operator(grid, directions, 16)
+        measurement = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(24))
+        estimate = object_fill(measurement.profiles, measurement.slab_thickness, grid.radius)
+        assert fill - 0.05 <= estimate <= fill + op.slab_thickness / grid.radius  # its end slabs count whole
+        solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solver.check_priors(op, measurement)
+        caught_by_fill[fill] = [str(w.message) for w in caught]
+    assert caught_by_fill[0.9] == []
+    assert len(caught_by_fill[0.2]) == 1 and "trained on objects reaching 0.9 of it" in caught_by_fill[0.2][0]
+    bare = LearnedPrior(save_weights(perturbed_denoiser(0.2), tmp_path / "bare.pt",
+                                     {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41}}))
+    assert bare.size_warning(0.1) is None
+
+
 def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path, weights16, caplog):
     """``weights: [hemisphere, rig]``: dips over the hemisphere keep the first, a rig's 0-35 deg dips the weights
     trained on that plan (no plan warning then); the choice and its reason reach the result's ``info`` (a job's
@@ -85,10 +133,10 @@ def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path
              for i, (name, plan) in enumerate(plans.items())]
     prior = LearnedPrior(files)
     grid = Grid(16, 3)
-    tilted = Reach(tilt_range_deg=(0.0, 35.0)).uniform(12)
+    tilted = Reach(tilt_range_deg=(0.0, 35.0)).uniform(20)
     o = torch.rand(16, 16, 16)
     denoised, reasons = {}, {}
-    for directions, kept in ((fibonacci_hemisphere(12), 0), (tilted, 1), (fibonacci_hemisphere(12), 0)):
+    for directions, kept in ((fibonacci_hemisphere(20), 0), (tilted, 1), (fibonacci_hemisphere(20), 0)):
         prior.check_operator(make_operator(grid, directions, 16))
         assert prior.choice["weights"] == files[kept] and prior.plan_warning(directions) is None
         denoised.setdefault(kept, prior.denoise(o))
@@ -100,7 +148,7 @@ def test_of_candidate_weights_the_dips_keep_those_trained_on_their_plan(tmp_path
     learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": files, "mode": "anchor"}}
     tilted_op = make_operator(grid, tilted, 16)
     tilted_measurement = DipMeasurement(tilted, tilted_op(torch.from_numpy(generated_occupancy(4, grid)).double()),
-                                        tilted_op.slab_thickness, tilted_op.slab_edges()[:1].expand(12))
+                                        tilted_op.slab_thickness, tilted_op.slab_edges()[:1].expand(20))
     for m, operator, kept in ((measurement, op, 0), (tilted_measurement, tilted_op, 1)):
         solver = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned)
         caplog.clear()
