@@ -6,10 +6,15 @@ import math
 import numbers
 from dataclasses import dataclass, field
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 
 from dipnet.core.grid import Grid, as_grid
+
+if TYPE_CHECKING:
+    import trimesh
 
 
 @dataclass
@@ -25,6 +30,10 @@ class Reconstruction:
         info: solver name, wall time (s), iterations and other facts, JSON-serialisable.
         fine: optionally the same result sampled on a finer grid (implicit solver's
             ``output_upsample``), else ``None``.
+        mesh: optionally the result's surface refitted to the dips (:mod:`dipnet.solvers.surface_refit`), a
+            watertight ``trimesh.Trimesh`` in mm in the grid's frame; when set it is the result's surface: the one
+            a job exports and :func:`~dipnet.evaluation.metrics.evaluate` scores. ``None``: the surface is
+            ``occupancy == threshold``.
     """
 
     occupancy: torch.Tensor
@@ -33,6 +42,7 @@ class Reconstruction:
     history: dict[str, list[float]] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
     fine: "Reconstruction | None" = None
+    mesh: "trimesh.Trimesh | None" = None
 
     def __post_init__(self) -> None:
         """Raises ``TypeError`` for a ``grid`` that is no :class:`Grid` and ``ValueError`` for an occupancy not of

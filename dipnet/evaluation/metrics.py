@@ -199,8 +199,9 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
     """IoU, Chamfer, Hausdorff and volume error of a reconstruction against the truth.
 
     Args:
-        reconstruction: the solver's result; its surface is the iso-surface of the raw
-            occupancy at its threshold (the boundary of :attr:`Reconstruction.binary`).
+        reconstruction: the solver's result; its surface is its refitted mesh when it has one
+            (:attr:`Reconstruction.mesh`), else the iso-surface of the raw occupancy at its threshold (the
+            boundary of :attr:`Reconstruction.binary`); IoU and the volume error are the binary volume's.
         truth_occupancy: true occupancy fractions in ``[0, 1]`` (other values raise a ``ValueError``), ``grid.shape``;
             inside is ``> 0.5``.
         grid: the grid of both volumes: the reconstruction's (another raises a ``ValueError``).
@@ -243,7 +244,8 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         truth_surface, truth_volume = volume_surface(truth, grid), float(truth.sum() * grid.voxel_volume)
     if exact_volume is not None:
         truth_volume = float(exact_volume)
-    recon_surface = volume_surface(reconstruction.occupancy, grid, level=reconstruction.threshold)
+    recon_surface = reconstruction.mesh if reconstruction.mesh is not None else \
+        volume_surface(reconstruction.occupancy, grid, level=reconstruction.threshold)
     dist = chamfer_hausdorff(truth_surface, recon_surface, n_points, seed)
     if dist["chamfer"] is None:
         message = (f"the true shape has no surface on the grid ({grid.n} voxels per axis over {grid.extent:g} mm, "

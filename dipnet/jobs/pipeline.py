@@ -368,7 +368,8 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
                   offset: np.ndarray | None = None) -> None:
     """Meshes (3D; moved by ``offset`` (3,) mm into the frame of the user's mesh file) and
     PNG figures of one job (``level``: the truth occupancy counted as inside in the slices). The
-    reconstruction's mesh comes from its finer sampling when the solver made one
+    reconstruction's mesh is its surface refitted to the dips when the solver refitted one
+    (:attr:`Reconstruction.mesh`: ``solver.surface_refit``), else from its finer sampling when the solver made one
     (:attr:`Reconstruction.fine`: ``solver=implicit solver.output_upsample=2``), as the log says; its
     volume, metrics and figures stay on the data grid."""
     grid = recon.grid
@@ -377,12 +378,17 @@ def write_outputs(cfg, out: Path, measurement, operator, recon: Reconstruction, 
         if truth is not None:
             meshes.append((volume_to_mesh(truth, grid, 0.5), "truth"))
         surface = recon.fine if recon.fine is not None and recon.fine.grid.ndim == 3 else recon
-        if surface is not recon:
-            log.info("the reconstruction's mesh is its field sampled at %d^3 (the solver's finer sampling, "
-                     "solver.output_upsample); reconstruction.npz, the metrics and the figures are on the %d^3 grid",
-                     surface.grid.n, grid.n)
-        meshes.append((volume_to_mesh(surface.occupancy.detach().cpu().numpy(), surface.grid, surface.threshold),
-                       "reconstruction"))
+        if recon.mesh is not None:
+            log.info("the reconstruction's mesh is its surface refitted to the dips (solver.surface_refit); "
+                     "reconstruction.npz and the figures hold the voxel result it started from")
+            meshes.append((recon.mesh, "reconstruction"))
+        else:
+            if surface is not recon:
+                log.info("the reconstruction's mesh is its field sampled at %d^3 (the solver's finer sampling, "
+                         "solver.output_upsample); reconstruction.npz, the metrics and the figures are on the %d^3 "
+                         "grid", surface.grid.n, grid.n)
+            meshes.append((volume_to_mesh(surface.occupancy.detach().cpu().numpy(), surface.grid,
+                                          surface.threshold), "reconstruction"))
         for mesh, name in meshes:
             if len(mesh.faces):
                 placed = mesh if offset is None else mesh.copy().apply_translation(offset)

@@ -140,7 +140,7 @@ class ImplicitSolver(OptimisationSolver):
             fine_occupancy = self.sample(fine) * mask
             recon.fine = Reconstruction(occupancy=fine_occupancy, grid=fine, threshold=self.level(fine_occupancy, fine, data),
                                         info={"solver": self.name, "source_n": grid.n})
-        return recon
+        return self._refit_surface(recon, measurement, operator)
 
     def _encoding_for(self, grid: Grid) -> dict:
         """The encoding spec with a ``densegrid``'s ``max_resolution: None`` set to ``grid.n``."""

@@ -45,6 +45,7 @@ from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors
 from dipnet.solvers.weights import KNOWN_NOISE, WeightRule, auto_names, noise_level, with_weight
 from dipnet.solvers.learned import object_fill
+from dipnet.solvers.surface_refit import SurfaceRefit
 
 log = logging.getLogger(__name__)
 
@@ -498,6 +499,10 @@ class OptimisationSolver(Solver):
         noise_model, white_share: how the data term weighs the slabs' errors when the measurement
             gives their sigma (:class:`DataTerm`): ``"independent"``, or ``"correlated"`` (the
             differences of independent cumulative readings, plus a white part).
+        surface_refit: ``None`` (off), or the options of a
+            :class:`~dipnet.solvers.surface_refit.SurfaceRefit` (a mapping, ``{}`` for its defaults): a 3D result's
+            surface is refitted to the dips as a mesh (:attr:`Reconstruction.mesh`) when held-out dips say the
+            refit generalises, recorded in ``info["surface_refit"]``.
     """
 
     name = "optimisation"
@@ -507,7 +512,7 @@ class OptimisationSolver(Solver):
                  warm_start=None, hull_tol: float | None = 0.005, seed: int = 0, threshold: float | str = 0.5,
                  progress: bool = True, hull_margin: float = 1.5, checkpoint=None, fit_gain: bool = False,
                  weight_rule: Mapping | None = None, noise_model: str = "independent",
-                 white_share: float = 1.0) -> None:
+                 white_share: float = 1.0, surface_refit: Mapping | SurfaceRefit | None = None) -> None:
         if noise_model not in NOISE_MODELS:
             raise ValueError(f"unknown noise_model {noise_model!r}; choose one of {NOISE_MODELS}")
         if optimizer not in OPTIMIZERS:
@@ -536,6 +541,8 @@ class OptimisationSolver(Solver):
         self.checkpoint = checkpoint
         self.fit_gain = checked_flag("fit_gain", fit_gain)
         self.noise_model, self.white_share = noise_model, float(white_share)
+        self.surface_refit = surface_refit if surface_refit is None or isinstance(surface_refit, SurfaceRefit) \
+            else SurfaceRefit(**plain(surface_refit))
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
               before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:
@@ -695,6 +702,20 @@ class OptimisationSolver(Solver):
             info["threshold_rule"] = {"rule": "volume", "level": level, "measured_volume_mm3": self._volume(data),
                                       "enclosed_volume_mm3": enclosed_volume(occupancy, operator.grid, level)}
         return Reconstruction(occupancy=occupancy, grid=operator.grid, threshold=level, history=history, info=info)
+
+    def _refit_surface(self, recon: Reconstruction, measurement: DipMeasurement,
+                       operator: DipOperator) -> Reconstruction:
+        """``recon`` with its surface refitted to ``measurement`` (on ``operator``'s slabs) by :attr:`surface_refit`
+        (itself when that is off; with ``fit_gain`` the refit is skipped and says why: the dips' scale is the
+        fitted gain's, not the measured one)."""
+        if self.surface_refit is None:
+            return recon
+        if self.fit_gain:
+            recon.info["surface_refit"] = {"applied": False, "reason": "fit_gain: the dips' scale is being fitted"}
+            return recon
+        target, sigma, _ = target_and_sigma(measurement, operator)
+        return self.surface_refit.refit(recon, target, sigma, operator.directions, operator.slab_edges(),
+                                        progress=self.progress)
 
     def level(self, occupancy: torch.Tensor, grid: Grid, data: DataTerm | None) -> float:
         """The level of the binary shape of ``occupancy`` (``grid.shape``): :attr:`threshold`, or with

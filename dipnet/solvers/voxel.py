@@ -159,8 +159,9 @@ class VoxelSolver(OptimisationSolver):
             start = occ
             if rounds.get("stopped"):
                 break
-        return self._result(occ, operator, merge_histories(*histories), started, stages=stage_info, **last,
-                            **({"rounds": rounds} if rounds else {}))
+        recon = self._result(occ, operator, merge_histories(*histories), started, stages=stage_info, **last,
+                             **({"rounds": rounds} if rounds else {}))
+        return self._refit_surface(recon, measurement, operator)
 
     def _rounds_record(self, done: int, residual: float, noise: tuple[float, str]) -> dict:
         """``info["rounds"]`` after round ``done`` with data term ``residual``: rounds run and allowed,
