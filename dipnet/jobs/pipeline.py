@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from dipnet.evaluation import consistency, metrics
 from dipnet.outputs import export, plots
 from dipnet.outputs.progress import OutputStages, planned_stages
-from dipnet.outputs.summary import headline, prior_weight_metrics
+from dipnet.outputs.summary import headline, prior_weight_metrics, surface_refit_metrics
 from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.jobs.calibration_job import self_calibration_job
 from dipnet.jobs.deprecations import upgrade_config
@@ -133,6 +133,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                                                                                   measurement.n_orientations),
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
                               "empty": empty, **prior_weight_metrics(recon.info),
+                              **surface_refit_metrics(recon.info),
                               **run_overrides()}
     stages = planned_stages(cfg.output, truth=shape is not None)
     stage = OutputStages(bool(cfg.output.progress), stages)

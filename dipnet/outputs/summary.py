@@ -43,6 +43,10 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
                                   "estimated from the profiles"),
     "prior_rounds": ("run", "plug-and-play rounds run, of the most allowed"),
     "prior_rounds_reason": ("run", "why the rounds ended there"),
+    "surface_refit": ("run", "the surface refitted to the dips as a mesh (refitted), or the voxel result's kept (kept)"),
+    "surface_refit_reason": ("run", "why (the held-out dips' misfit in the refit's probe)"),
+    "surface_residual": ("run", "relative residual of the exported mesh's exact dips"),
+    "surface_volume_mm3": ("run", "volume enclosed by the exported mesh (mm^3)"),
     "learned_weights": ("run", "learned prior: the weights kept of its candidates (by the dips' plan)"),
     "learned_weights_reason": ("run", "why those weights"),
     "threshold": ("run", "occupancy level of the binary shape and its surface"),
@@ -233,6 +237,23 @@ def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     if choices:
         out["learned_weights"] = [choice["weights"] for choice in choices]
         out["learned_weights_reason"] = [choice["reason"] for choice in choices]
+    return out
+
+
+def surface_refit_metrics(info: dict[str, Any]) -> dict[str, Any]:
+    """Whether the result's surface was refitted to the dips and why, the exported mesh's relative residual and
+    volume (mm^3), from ``info["surface_refit"]`` (:mod:`dipnet.solvers.surface_refit`), as flat ``metrics.json``
+    entries; ``{}`` when the solver has no refit. The residual is the refitted mesh's, or, when the surface was
+    kept, the voxel result's own surface's (before any refit)."""
+    record = info.get("surface_refit")
+    if not record:
+        return {}
+    out = {"surface_refit": "refitted" if record.get("applied") else "kept", "surface_refit_reason": record["reason"]}
+    residual = record.get("residual_after", record.get("residual_before"))
+    if residual is not None:
+        out["surface_residual"] = residual
+    if "mesh_volume_mm3" in record:
+        out["surface_volume_mm3"] = record["mesh_volume_mm3"]
     return out
 
 

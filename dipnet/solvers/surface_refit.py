@@ -27,6 +27,7 @@ import torch
 import trimesh
 from tqdm.auto import tqdm
 
+from dipnet.core.counts import whole_number
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators.mesh_slabs import mesh_slab_volumes
 from dipnet.shapes.isosurface import volume_to_mesh
@@ -57,11 +58,8 @@ class SurfaceRefit:
     min_gain: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("steps", "holdout_every", "probe_steps"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (2 if name == "holdout_every" else 1):
-                raise ValueError(f"surface_refit.{name} must be a whole number >= "
-                                 f"{2 if name == 'holdout_every' else 1}, got {value!r}")
+        for name, low in (("steps", 1), ("holdout_every", 2), ("probe_steps", 1)):
+            object.__setattr__(self, name, whole_number(f"surface_refit.{name}", getattr(self, name), low))
         for name, span, inside in (("lr", "(0, inf)", lambda x: 0 < x < math.inf),
                                    ("smoothness", "[0, inf)", lambda x: 0 <= x < math.inf),
                                    ("min_gain", "[0, 1)", lambda x: 0 <= x < 1)):

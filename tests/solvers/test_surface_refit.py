@@ -1,0 +1,97 @@
+"""The surface refit: it moves a wrong surface to its dips when held-out dips license it, and keeps it otherwise."""
+
+import numpy as np
+import pytest
+import torch
+
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.reconstruction import Reconstruction
+from dipnet.evaluation.metrics import chamfer_hausdorff, evaluate, volume_surface
+from dipnet.operators import make_operator
+from dipnet.shapes import Ball
+from dipnet.solvers.surface_refit import SurfaceRefit
+from dipnet.solvers.voxel import VoxelSolver
+from tests.solvers.solver_helpers import one_thread, partial_volume  # noqa: F401  (one_thread: a fixture)
+
+GRID = Grid(24, 3)
+RADIUS = 30.0  # mm, in a 100 mm grid
+
+
+def ball_problem(k: int = 24) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(directions (k, 3), slab edges (25,), exact slab volumes (k, 24))`` of the centred ball."""
+    directions = fibonacci_hemisphere(k).double()
+    edges = torch.linspace(-GRID.extent / 2, GRID.extent / 2, GRID.n + 1, dtype=torch.float64)
+    below = Ball(RADIUS).volume_below(directions, edges)
+    return directions, edges, torch.diff(below, dim=1)
+
+
+def ball_result(radius: float) -> Reconstruction:
+    return Reconstruction(partial_volume(GRID, lambda p: p.norm(dim=-1) < radius).float(), GRID, 0.5)
+
+
+def mean_radius(mesh) -> float:
+    return float(np.linalg.norm(mesh.vertices, axis=1).mean())
+
+
+def test_a_surface_too_small_is_moved_to_its_exact_dips():
+    directions, edges, slabs = ball_problem()
+    start = ball_result(0.9 * RADIUS)
+    before = mean_radius(volume_surface(start.occupancy, GRID, 0.5))
+    recon = SurfaceRefit().refit(start, slabs, None, directions, edges)
+    record = recon.info["surface_refit"]
+    assert record["applied"] and record["heldout_gain"] > 0.5
+    assert record["residual_after"] < record["residual_before"] / 5
+    assert abs(mean_radius(recon.mesh) - RADIUS) < abs(before - RADIUS) / 4
+    assert recon.mesh.is_watertight
+    assert record["mesh_volume_mm3"] == pytest.approx(4 / 3 * np.pi * RADIUS**3, rel=0.01)
+
+
+def test_a_surface_that_explains_noisy_dips_is_kept():
+    directions, edges, slabs = ball_problem()
+    sigma = torch.full_like(slabs, 0.05 * float(slabs.max()))
+    noisy = slabs + sigma * torch.from_numpy(np.random.default_rng(0).normal(size=slabs.shape))
+    recon = SurfaceRefit().refit(ball_result(RADIUS), noisy, sigma, directions, edges)
+    record = recon.info["surface_refit"]
+    assert not record["applied"] and recon.mesh is None
+    assert record["heldout_gain"] < 0.1 and "min_gain" in record["reason"]
+
+
+def test_too_few_dips_to_hold_out_and_2d_results_are_kept_with_the_reason():
+    directions, edges, slabs = ball_problem(k=8)
+    recon = SurfaceRefit().refit(ball_result(0.9 * RADIUS), slabs, None, directions, edges)
+    assert recon.mesh is None and "fewer than 2" in recon.info["surface_refit"]["reason"]
+    flat = Reconstruction(torch.zeros(16, 16), Grid(16, 2), 0.5)
+    assert "3D only" in SurfaceRefit().refit(flat, slabs, None, directions, edges).info["surface_refit"]["reason"]
+
+
+def test_evaluate_scores_the_refitted_mesh_when_there_is_one():
+    directions, edges, slabs = ball_problem()
+    truth = partial_volume(GRID, lambda p: p.norm(dim=-1) < RADIUS)
+    start = ball_result(0.9 * RADIUS)
+    voxel_score = evaluate(start, truth, GRID)["chamfer"]
+    recon = SurfaceRefit().refit(start, slabs, None, directions, edges)
+    score = evaluate(recon, truth, GRID)
+    assert score["chamfer"] == chamfer_hausdorff(volume_surface(truth, GRID), recon.mesh)["chamfer"]
+    assert score["chamfer"] < voxel_score / 2
+
+
+@pytest.mark.parametrize("option, value", [("steps", 0), ("holdout_every", 1), ("lr", 0.0), ("smoothness", -1.0),
+                                           ("min_gain", 1.0), ("probe_steps", 2.5)])
+def test_bad_options_are_refused_by_name(option, value):
+    with pytest.raises(ValueError, match=f"surface_refit.{option}"):
+        SurfaceRefit(**{option: value})
+
+
+def test_the_voxel_solver_refits_its_surface_when_asked_and_says_why_not_with_a_fitted_gain():
+    directions, edges, slabs = ball_problem()
+    op = make_operator(GRID, directions)
+    meas = DipMeasurement(op.directions, slabs, op.slab_thickness, edges[:1].expand(len(directions)))
+    options = {"iterations": 60, "progress": False, "priors": {"tv": {"weight": 1e-3}}}
+    recon = VoxelSolver(surface_refit={"steps": 60}, **options).solve(meas, op)
+    assert recon.info["surface_refit"]["applied"] and recon.mesh is not None
+    assert recon.info["surface_refit"]["steps"] == 60
+    gained = VoxelSolver(surface_refit={}, fit_gain=True, **options).solve(meas, op)
+    assert gained.mesh is None and "fit_gain" in gained.info["surface_refit"]["reason"]
+    assert "surface_refit" not in VoxelSolver(**options).solve(meas, op).info
