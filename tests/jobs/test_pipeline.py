@@ -73,6 +73,19 @@ def test_3d_end_to_end_reaches_the_iou_floor(tmp_path):
     assert measured.profiles.shape == (100, 32)
 
 
+def test_a_job_with_the_surface_refit_exports_and_scores_the_refitted_mesh(tmp_path):
+    result = run(_cfg("resolution=24", "n_dips=24", "shape.name=ball", "solver=voxel", "solver.iterations=80",
+                      "solver.surface_refit={steps: 60}", "output.figures=false", "output.uncertainty=false",
+                      "output.resolvability=false"), tmp_path)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["surface_refit"] == "refitted" and "held-out" in saved["surface_refit_reason"]
+    exported = trimesh.load(tmp_path / "reconstruction.ply")
+    assert exported.is_watertight
+    assert abs(exported.volume) == pytest.approx(saved["surface_volume_mm3"], rel=1e-6)
+    assert np.allclose(exported.vertices, result.reconstruction.mesh.vertices, atol=1e-4)  # the refitted mesh
+    assert saved["surface_residual"] < result.reconstruction.info["surface_refit"]["residual_before"]
+
+
 @pytest.fixture
 def cli(script_run):
     """``python scripts/reconstruct.py hydra.run.dir=<dir> ...`` in this process (tests/script_runs.py: the same
