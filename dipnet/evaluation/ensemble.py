@@ -89,13 +89,13 @@ class RandomStart:
 
 
 def member(solver: Solver, index: int, seed: int, random_start: bool = True, iterations_scale: float = 1.0) -> Solver:
-    """A copy of ``solver`` for ensemble member ``index``: quiet, without checkpoint, its own seed
-    (``seed + 1 + index``), a :class:`RandomStart` when it is an optimisation solver without a warm
+    """A copy of ``solver`` for ensemble member ``index``: quiet, without checkpoint or surface refit (the
+    ensemble reads the members' occupancies, not their surfaces), its own seed (``seed + 1 + index``), a :class:`RandomStart` when it is an optimisation solver without a warm
     start (and not one whose seed already draws its start, ``seeded_start``), and
     ``iterations_scale`` of its iterations."""
     out = copy.copy(solver)
     member_seed = int(seed) + 1 + int(index)
-    for name, value in (("progress", False), ("checkpoint", None), ("seed", member_seed)):
+    for name, value in (("progress", False), ("checkpoint", None), ("surface_refit", None), ("seed", member_seed)):
         if hasattr(out, name):
             setattr(out, name, value)
     if isinstance(out, OptimisationSolver):

@@ -98,6 +98,8 @@ def test_members_are_independent_copies():
     assert isinstance(copy.warm_start, RandomStart) and solver.warm_start is None and solver.iterations == 100
     assert member(DeepImagePriorSolver(), 0, seed=0).warm_start is None  # its seed draws its start
     assert not hasattr(member(MinNormSolver(), 0, seed=0), "warm_start")
+    refitting = VoxelSolver(surface_refit={})
+    assert member(refitting, 0, seed=0).surface_refit is None and refitting.surface_refit is not None  # occupancies only
 
 
 def test_random_start_fills_the_measured_volume_on_average(box_case):
