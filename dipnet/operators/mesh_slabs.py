@@ -52,8 +52,7 @@ def mesh_volume_below(vertices: torch.Tensor, faces: torch.Tensor, directions: t
     # cut by the planes first_cut <= j < first_above
     counts = (first_above - first_cut).reshape(-1)
     pair = torch.repeat_interleave(torch.arange(n_dirs * n_faces), counts)
-    offset = torch.arange(len(pair)) - torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
-    plane = first_cut.reshape(-1)[pair] + offset
+    plane = torch.arange(len(pair)) + (first_cut.reshape(-1) - (torch.cumsum(counts, 0) - counts))[pair]
     k = pair // n_faces
     h = heights[k, plane]
     dl, dm, dh = lo.reshape(-1)[pair], mid.reshape(-1)[pair], hi.reshape(-1)[pair]

@@ -92,12 +92,13 @@ class SurfaceRefit:
             return recon
         fit = _Fit(mesh, target, sigma, directions, edges, self.smoothness)
         record["residual_before"] = fit.residual(fit.start)
-        probe, best, best_step, held_start = fit.start.clone(), math.inf, 0, fit.misfit(fit.start, held)
+        probe, best, best_step, held_start = fit.start.clone(), math.inf, 0, math.nan
         with tqdm(total=self.probe_steps + self.steps, desc="surface refit", disable=not progress, leave=False) as bar:
-            for step in fit.descend(probe, ~held, self.probe_steps, self.lr, bar):
-                held_now = fit.misfit(probe, held)
+            for step, slabs in fit.descend(probe, ~held, self.probe_steps, self.lr, bar):
+                held_now = float(fit.relative_misfit(slabs, held))  # of the vertices before this step
+                held_start = held_now if step == 1 else held_start
                 if held_now < best:
-                    best, best_step = held_now, step
+                    best, best_step = held_now, step - 1
             gain = 1.0 - best / held_start if held_start > 0 else 0.0
             record.update(heldout_dips=int(held.sum()), heldout_residual_before=held_start ** 0.5,
                           heldout_residual_best=best ** 0.5, heldout_best_step=best_step, heldout_gain=gain)
@@ -107,12 +108,12 @@ class SurfaceRefit:
                                     "surface fitted closer would gain (noise), so its surface is kept")
             else:
                 vertices = fit.start.clone()
-                for _ in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
+                for _step, _slabs in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
                     pass
                 recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
                 record.update(applied=True, residual_after=fit.residual(vertices),
                               reason=f"the held-out dips' misfit fell by {gain:.1%} in the probe")
-        record["mesh_volume_mm3"] = abs(float((recon.mesh or mesh).volume))
+        record["mesh_volume_mm3"] = abs(float((mesh if recon.mesh is None else recon.mesh).volume))
         record["seconds"] = time.perf_counter() - started
         log.info("surface refit: %s (relative residual %.3g%s)", record["reason"], record["residual_before"],
                  f" -> {record['residual_after']:.3g}" if record["applied"] else "")
@@ -135,30 +136,29 @@ class _Fit:
         self.laplacian = torch.sparse_coo_tensor(torch.from_numpy(index), torch.from_numpy(values),
                                                  (len(mesh.vertices),) * 2, check_invariants=False).coalesce()
 
-    def _misfit(self, slabs: torch.Tensor, dips: torch.Tensor) -> torch.Tensor:
+    def relative_misfit(self, slabs: torch.Tensor, dips: torch.Tensor) -> torch.Tensor:
+        """``sum w (slabs - target)^2 / sum w target^2`` over the dips ``dips`` (bool ``(K,)``) of ``slabs`` (K, M)."""
         w, t = self.weight[dips], self.target[dips]
         return (w * (slabs[dips] - t).pow(2)).sum() / (w * t.pow(2)).sum().clamp_min(1e-300)
 
-    def misfit(self, vertices: torch.Tensor, dips: torch.Tensor) -> float:
-        """Relative data misfit (squared) of ``vertices`` on the dips ``dips`` (bool ``(K,)``)."""
-        with torch.no_grad():
-            return float(self._misfit(mesh_slab_volumes(vertices, self.faces, self.directions, self.edges), dips))
-
     def residual(self, vertices: torch.Tensor) -> float:
-        """Relative residual on every dip: the square root of :meth:`misfit`."""
-        return self.misfit(vertices, torch.ones(len(self.directions), dtype=torch.bool)) ** 0.5
+        """Relative residual of ``vertices`` on every dip: the square root of :meth:`relative_misfit`."""
+        with torch.no_grad():
+            slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
+        return float(self.relative_misfit(slabs, torch.ones(len(self.directions), dtype=torch.bool))) ** 0.5
 
     def descend(self, vertices: torch.Tensor, dips: torch.Tensor, steps: int, lr: float, bar: tqdm):
-        """Move ``vertices`` (in place) by ``steps`` Adam steps on the dips ``dips``; yield each step's number."""
+        """Move ``vertices`` (in place) by ``steps`` Adam steps on the dips ``dips``; yield each step's number and the
+        slab volumes of every dip (detached) of the vertices before that step: held-out dips cost no extra pass."""
         vertices.requires_grad_(True)
         optimiser = torch.optim.Adam([vertices], lr=lr)
         for step in range(1, steps + 1):
             optimiser.zero_grad()
             slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
             smooth = torch.sparse.mm(self.laplacian, vertices).pow(2).sum(1).mean()
-            (self._misfit(slabs, dips) + self.smoothness * smooth).backward()
+            (self.relative_misfit(slabs, dips) + self.smoothness * smooth).backward()
             optimiser.step()
             bar.update()
             with torch.no_grad():
-                yield step
+                yield step, slabs.detach()
         vertices.requires_grad_(False)
