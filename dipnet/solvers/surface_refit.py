@@ -16,7 +16,7 @@ and the refit runs only when the held-out dips' misfit fell by ``min_gain`` (10 
 still falling at the probe's end (its lowest point at or after ``still_falling`` (3/4) of the probe).
 On the validation meshes, noise-free, it fell by 45-77 % with its lowest point at steps 48-49 of 50;
 at 30 dB (stated or not) by 0-14 %, lowest at steps 2-9, after which it rose as the surface took in the
-noise (refitted anyway, their Chamfer grew by 40-80 %). Then the refit proper runs from the start on
+noise (refitted anyway, their Chamfer grew by 60-80 %). Then the refit proper runs from the start on
 every dip.
 """
 
