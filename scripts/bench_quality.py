@@ -315,7 +315,8 @@ def solve_row(args, grid: Grid, options: dict, task: tuple) -> dict:
             **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
             "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
             "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
-            "target_residual": rule.get("target_residual"), "verdict": verdict}
+            "target_residual": rule.get("target_residual"), "verdict": verdict,
+            "surface_refit": (recon.info.get("surface_refit") or {}).get("applied")}
 
 
 def solved_rows(args, grid: Grid, options: dict, tasks: list[tuple]) -> Iterator[dict]:

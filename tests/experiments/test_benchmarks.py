@@ -133,6 +133,8 @@ def test_the_quality_bench_runs_the_learned_prior_as_a_job_would():
     assert isinstance(start.warm_start, VoxelSolver) and implicit.priors["learned"]["mode"] == "anchor"
     assert implicit.priors["learned"]["weights"] == "denoiser64_stage2"  # its start is a cascade result
     assert implicit.threshold == "volume" and start.threshold == 0.5  # pre-fitted to the start's occupancy as it is
+    assert prior.surface_refit is not None and implicit.surface_refit == prior.surface_refit  # both refit their surface
+    assert start.surface_refit is None  # the field's start is not refitted: the field's result is
 
 
 def test_the_truth_row_scores_the_truths_own_occupancy(tmp_path, capsys):
