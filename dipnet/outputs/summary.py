@@ -47,6 +47,7 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "surface_refit_reason": ("run", "why (the held-out dips' misfit in the refit's probe)"),
     "surface_residual": ("run", "relative residual of the exported mesh's exact dips"),
     "surface_volume_mm3": ("run", "volume enclosed by the exported mesh (mm^3)"),
+    "surface_volume_ratio": ("run", "the exported mesh's volume over the measured one (the profiles' median total)"),
     "learned_weights": ("run", "learned prior: the weights kept of its candidates (by the dips' plan)"),
     "learned_weights_reason": ("run", "why those weights"),
     "threshold": ("run", "occupancy level of the binary shape and its surface"),
@@ -254,6 +255,7 @@ def surface_refit_metrics(info: dict[str, Any]) -> dict[str, Any]:
         out["surface_residual"] = residual
     if "mesh_volume_mm3" in record:
         out["surface_volume_mm3"] = record["mesh_volume_mm3"]
+        out["surface_volume_ratio"] = record["volume_ratio"]
     return out
 
 

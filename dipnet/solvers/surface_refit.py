@@ -36,6 +36,7 @@ from dipnet.core.counts import whole_number
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators.mesh_slabs import mesh_slab_volumes
 from dipnet.shapes.isosurface import volume_to_mesh
+from dipnet.solvers.progress import stop_bar
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +114,7 @@ class SurfaceRefit:
                                     f"squared residual {record['noise_ratio']:.2f} x sigma^2, at most {limit:.2f}: the "
                                     "noise's own 1 plus 3 standard deviations): a surface fitted closer would fit the "
                                     "noise, so its surface is kept")
-                return self._finish(recon, mesh, record, started)
+                return self._finish(recon, mesh, record, started, float(target.sum(1).median()))
         probe, best, best_step, held_start = fit.start.clone(), math.inf, 0, math.nan
         with tqdm(total=self.probe_steps + self.steps, desc="surface refit", disable=not progress, leave=False) as bar:
             for step, slabs in fit.descend(probe, ~held, self.probe_steps, self.lr, bar):
@@ -131,19 +132,30 @@ class SurfaceRefit:
                        f"{self.still_falling:g})")
                 record["reason"] = (f"the held-out dips' misfit fell by {gain:.1%} in the probe, {why}: a surface "
                                     "fitted closer would fit the dips' noise, not the shape, so its surface is kept")
+                stop_bar(bar, "surface kept")
             else:
                 vertices = fit.start.clone()
                 for _step, _slabs in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
                     pass
-                recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
-                record.update(applied=True, residual_after=fit.residual(vertices),
-                              reason=f"the held-out dips' misfit fell by {gain:.1%} in the probe")
-        return self._finish(recon, mesh, record, started)
+                after = fit.residual(vertices)
+                if after < record["residual_before"]:
+                    recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
+                    record.update(applied=True, residual_after=after,
+                                  reason=f"the held-out dips' misfit fell by {gain:.1%} in the probe and was still "
+                                         f"falling at its end (lowest at step {best_step} of {self.probe_steps})")
+                else:  # a fit that ends further from the dips than it began has gone wrong: keep the surface
+                    record["reason"] = (f"the refit ended further from the dips than it began (relative residual "
+                                        f"{record['residual_before']:.3g} -> {after:.3g}), so the surface is kept")
+                    log.warning("surface refit: %s", record["reason"])
+        return self._finish(recon, mesh, record, started, float(target.sum(1).median()))
 
     @staticmethod
-    def _finish(recon: Reconstruction, mesh: trimesh.Trimesh, record: dict, started: float) -> Reconstruction:
-        """``recon`` with the volume of its surface (refitted or kept) and the time in ``record``, logged."""
+    def _finish(recon: Reconstruction, mesh: trimesh.Trimesh, record: dict, started: float,
+                measured_volume: float) -> Reconstruction:
+        """``recon`` with the volume of its surface (refitted or kept), that over the ``measured_volume`` (mm^3: the
+        median of the profiles' totals) and the time in ``record``, logged."""
         record["mesh_volume_mm3"] = abs(float((mesh if recon.mesh is None else recon.mesh).volume))
+        record["volume_ratio"] = record["mesh_volume_mm3"] / measured_volume if measured_volume > 0 else math.nan
         record["seconds"] = time.perf_counter() - started
         log.info("surface refit: %s (relative residual %.3g%s)", record["reason"], record["residual_before"],
                  f" -> {record['residual_after']:.3g}" if record["applied"] else "")

@@ -76,13 +76,14 @@ def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():
 
 def test_the_surface_refit_and_its_mesh_go_into_the_metrics():
     refitted = {"surface_refit": {"applied": True, "reason": "the held-out dips' misfit fell by 31.0% in the probe",
-                                  "residual_before": 0.012, "residual_after": 0.0015, "mesh_volume_mm3": 5210.0}}
+                                  "residual_before": 0.012, "residual_after": 0.0015, "mesh_volume_mm3": 5210.0,
+                                  "volume_ratio": 0.998}}
     flat = summary.surface_refit_metrics(refitted)
     assert flat == {"surface_refit": "refitted", "surface_refit_reason": refitted["surface_refit"]["reason"],
-                    "surface_residual": 0.0015, "surface_volume_mm3": 5210.0}
+                    "surface_residual": 0.0015, "surface_volume_mm3": 5210.0, "surface_volume_ratio": 0.998}
     assert list(summary.grouped(flat)) == ["run"]
     kept = {"surface_refit": {"applied": False, "reason": "fell by 2.0%, less than min_gain=0.1",
-                              "residual_before": 0.03, "mesh_volume_mm3": 5100.0}}
+                              "residual_before": 0.03, "mesh_volume_mm3": 5100.0, "volume_ratio": 0.98}}
     assert summary.surface_refit_metrics(kept)["surface_refit"] == "kept"
     assert summary.surface_refit_metrics(kept)["surface_residual"] == 0.03  # the kept surface's own
     assert summary.surface_refit_metrics({"solver": "voxel"}) == {}

@@ -46,6 +46,7 @@ def test_a_surface_too_small_is_moved_to_its_exact_dips():
     assert abs(mean_radius(recon.mesh) - RADIUS) < abs(before - RADIUS) / 4
     assert recon.mesh.is_watertight
     assert record["mesh_volume_mm3"] == pytest.approx(4 / 3 * np.pi * RADIUS**3, rel=0.01)
+    assert record["volume_ratio"] == pytest.approx(1.0, abs=0.01)  # over the profiles' measured total
 
 
 def noisy_ball(share: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -72,6 +73,15 @@ def test_held_out_dips_whose_misfit_turns_up_early_keep_the_surface_even_after_a
     record = recon.info["surface_refit"]
     assert record["heldout_gain"] > 0.3 and record["heldout_best_step"] < 10
     assert not record["applied"] and recon.mesh is None and "turned up" in record["reason"]
+
+
+def test_a_refit_that_ends_further_from_the_dips_keeps_the_surface_and_says_so(caplog):
+    directions, edges, slabs = ball_problem()
+    wild = SurfaceRefit(lr=40.0, min_gain=0.0, still_falling=0.0, steps=20)  # steps of 40 mm: the mesh flies apart
+    recon = wild.refit(ball_result(0.9 * RADIUS), slabs, None, directions, edges)
+    assert recon.mesh is None and not recon.info["surface_refit"]["applied"]
+    assert "further from the dips" in recon.info["surface_refit"]["reason"]
+    assert "further from the dips" in caplog.text
 
 
 def test_too_few_dips_to_hold_out_and_2d_results_are_kept_with_the_reason():
