@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field
-
 from typing import TYPE_CHECKING
 
 import numpy as np

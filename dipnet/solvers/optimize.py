@@ -542,7 +542,7 @@ class OptimisationSolver(Solver):
         self.fit_gain = checked_flag("fit_gain", fit_gain)
         self.noise_model, self.white_share = noise_model, float(white_share)
         self.surface_refit = surface_refit if surface_refit is None or isinstance(surface_refit, SurfaceRefit) \
-            else SurfaceRefit(**plain(surface_refit))
+            else SurfaceRefit.from_options(plain(surface_refit) if isinstance(surface_refit, Mapping) else surface_refit)
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
               before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:

@@ -25,7 +25,9 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from typing import Any
 
 import numpy as np
 import torch
@@ -78,6 +80,19 @@ class SurfaceRefit:
             value = getattr(self, name)
             if isinstance(value, (bool, str)) or not inside(float(value)):
                 raise ValueError(f"surface_refit.{name} must be a number in {span}, got {value!r}")
+
+    @classmethod
+    def from_options(cls, options: Any) -> "SurfaceRefit":
+        """The refit of a config's ``surface_refit`` mapping (``{}``: the defaults). Anything else, or an option it
+        does not take, raises a ``ValueError`` naming the options it takes."""
+        names = [f.name for f in fields(cls)]
+        if not isinstance(options, Mapping):
+            raise ValueError(f"surface_refit must be null (off) or a mapping of its options ({{}} for the defaults: "
+                             f"{', '.join(names)}), got {options!r}")
+        unknown = sorted(set(options) - set(names))
+        if unknown:
+            raise ValueError(f"surface_refit takes {', '.join(names)}; not {', '.join(map(str, unknown))}")
+        return cls(**options)
 
     def refit(self, recon: Reconstruction, target: torch.Tensor, sigma: torch.Tensor | None,
               directions: torch.Tensor, edges: torch.Tensor, progress: bool = False) -> Reconstruction:

@@ -110,6 +110,12 @@ def test_bad_options_are_refused_by_name(option, value):
         SurfaceRefit(**{option: value})
 
 
+@pytest.mark.parametrize("value, message", [(True, "null \\(off\\) or a mapping"), ({"step": 10}, "not step")])
+def test_a_solvers_surface_refit_option_that_is_no_mapping_of_its_options_is_refused(value, message):
+    with pytest.raises(ValueError, match=message):
+        VoxelSolver(surface_refit=value)
+
+
 def test_the_voxel_solver_refits_its_surface_when_asked_and_says_why_not_with_a_fitted_gain():
     directions, edges, slabs = ball_problem()
     op = make_operator(GRID, directions)
