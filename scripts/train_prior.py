@@ -61,12 +61,12 @@ SHIPPED_REFINE_TEMPERATURE = 0.25
 def learned_round(temperature: float = SHIPPED_REFINE_TEMPERATURE, noise_model: str = "independent",
                   weights: str | None = None) -> dict:
     """The options of one round of ``solver=voxel_learned`` with the first-stage weights (``weights``;
-    ``None``: the shipped ``denoiser64``), no warm start (it starts from each pair's input) and no
-    threshold (the input is the occupancy), at the fixed sigmoid ``temperature``: the second stage's
+    ``None``: the shipped ``denoiser64``), no warm start (it starts from each pair's input), no threshold and no
+    surface refit (the input is the occupancy), at the fixed sigmoid ``temperature``: the second stage's
     ``refine``. ``noise_model="independent"`` (with which the shipped second stage's inputs were made)
     drops the solver's noise model; ``"correlated"`` keeps it, as the solver's refits use it."""
     options = OmegaConf.to_container(compose_job(["solver=voxel_learned"]).solver, resolve=True)
-    dropped = ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold")
+    dropped = ("_target_", "warm_start", "later_priors", "progress", "seed", "threshold", "surface_refit")
     for key in dropped + (("noise_model", "white_share") if noise_model == "independent" else ()):
         options.pop(key, None)
     options["priors"]["learned"]["weights"] = weights  # one network, not the solver's candidates

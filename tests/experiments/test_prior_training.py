@@ -100,6 +100,7 @@ def test_the_script_makes_the_second_stage_from_one_round_of_voxel_learned():
     refine = script.learned_round()
     assert refine["rounds"] == refine["min_rounds"] == 1 and "warm_start" not in refine and "later_priors" not in refine
     assert "threshold" not in refine  # the binary level leaves the occupancy, and the pairs' cache key, alone
+    assert "surface_refit" not in refine  # so does the surface refit (a mesh beside the occupancy)
     assert refine["priors"]["learned"]["mode"] == "anchor" and refine["priors"]["learned"]["weights"] is None
 
 
