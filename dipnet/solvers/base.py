@@ -17,6 +17,9 @@ from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 
+#: A slab's noise sigma is taken as at least this share of the median sigma in a data term (no infinite weight).
+SIGMA_FLOOR = 1e-3
+
 
 class Solver(ABC):
     """Reconstructs an occupancy volume from a measurement through a dip operator."""

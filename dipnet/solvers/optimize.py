@@ -39,7 +39,7 @@ from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import Solver, checked_flag, checked_threshold, measured_profiles, noise_sigma
+from dipnet.solvers.base import SIGMA_FLOOR, Solver, checked_flag, checked_threshold, measured_profiles, noise_sigma
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors
@@ -53,7 +53,6 @@ OPTIMIZERS = ("adam", "lbfgs")
 SCHEDULES = ("cosine", "step", "constant")
 _HULL_ENTRIES = 1 << 25  # column x orientation bounds held at once by support_hull
 _FLAT = 1e-12  # |theta_z| below this: a slab parallel to the hull's columns
-_SIGMA_FLOOR = 1e-3  # sigma below this fraction of its median is clamped (no infinite weights)
 VOLUME_LEVELS = (0.25, 0.75)  # the levels threshold='volume' searches
 GAIN_LR = 0.01  # Adam step of the log-gain (fit_gain): a few steps per percent, no overshoot
 
@@ -124,7 +123,7 @@ class DataTerm(nn.Module):
             sigma, weight = None, torch.ones_like(target)
         else:
             sigma = sigma.to(target.dtype)
-            sigma = sigma.clamp(min=_SIGMA_FLOOR * float(sigma[sigma > 0].median()))
+            sigma = sigma.clamp(min=SIGMA_FLOOR * float(sigma[sigma > 0].median()))
             weight = sigma.pow(-2)
         norm = float((weight * target.pow(2)).sum().clamp(min=1e-300))
         self.register_buffer("target", target.to(dtype))

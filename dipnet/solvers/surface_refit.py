@@ -38,11 +38,11 @@ from dipnet.core.counts import whole_number
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators.mesh_slabs import mesh_slab_volumes
 from dipnet.shapes.isosurface import volume_to_mesh
+from dipnet.solvers.base import SIGMA_FLOOR
 from dipnet.solvers.progress import stop_bar
 
 log = logging.getLogger(__name__)
 
-_SIGMA_FLOOR = 1e-3  # a slab's sigma is at least this share of the median, as in the solvers' data term (no infinite weight)
 
 
 @dataclass(frozen=True)
@@ -120,16 +120,18 @@ class SurfaceRefit:
                                 f"{len(directions)} dips hold out fewer than 2 at every {self.holdout_every}-th")
             return recon
         fit = _Fit(mesh, target, sigma, directions, edges, self.smoothness)
-        record["residual_before"] = fit.residual(fit.start)
+        measured_volume = float(target.sum(1).median())
+        start_slabs = fit.slabs(fit.start)
+        record["residual_before"] = fit.residual(start_slabs)
         if sigma is not None:
-            record["noise_ratio"] = fit.noise_ratio(fit.start)
+            record["noise_ratio"] = fit.noise_ratio(start_slabs)
             limit = 1.0 + 3.0 * (2.0 / target.numel()) ** 0.5  # the noise's own ratio is 1 +- sqrt(2 / slabs)
             if record["noise_ratio"] <= limit:
                 record["reason"] = (f"the result's dips agree with the measured ones within their stated noise (mean "
                                     f"squared residual {record['noise_ratio']:.2f} x sigma^2, at most {limit:.2f}: the "
                                     "noise's own 1 plus 3 standard deviations): a surface fitted closer would fit the "
                                     "noise, so its surface is kept")
-                return self._finish(recon, mesh, record, started, float(target.sum(1).median()))
+                return self._finish(recon, mesh, record, started, measured_volume)
         probe, best, best_step, held_start = fit.start.clone(), math.inf, 0, math.nan
         with tqdm(total=self.probe_steps + self.steps, desc="surface refit", disable=not progress, leave=False) as bar:
             for step, slabs in fit.descend(probe, ~held, self.probe_steps, self.lr, bar):
@@ -152,7 +154,7 @@ class SurfaceRefit:
                 vertices = fit.start.clone()
                 for _step, _slabs in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
                     pass
-                after = fit.residual(vertices)
+                after = fit.residual(fit.slabs(vertices))
                 if after < record["residual_before"]:
                     recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
                     record.update(applied=True, residual_after=after,
@@ -162,7 +164,7 @@ class SurfaceRefit:
                     record["reason"] = (f"the refit ended further from the dips than it began (relative residual "
                                         f"{record['residual_before']:.3g} -> {after:.3g}), so the surface is kept")
                     log.warning("surface refit: %s", record["reason"])
-        return self._finish(recon, mesh, record, started, float(target.sum(1).median()))
+        return self._finish(recon, mesh, record, started, measured_volume)
 
     @staticmethod
     def _finish(recon: Reconstruction, mesh: trimesh.Trimesh, record: dict, started: float,
@@ -186,7 +188,7 @@ class _Fit:
         self.faces = torch.tensor(mesh.faces, dtype=torch.long)
         self.target, self.directions, self.edges = target.double(), directions.double(), edges.double()
         self.weight = torch.ones_like(self.target) if sigma is None else \
-            sigma.double().clamp_min(_SIGMA_FLOOR * float(sigma[sigma > 0].median())).pow(-2)
+            sigma.double().clamp_min(SIGMA_FLOOR * float(sigma[sigma > 0].median())).pow(-2)
         self.smoothness = float(smoothness)
         average = trimesh.smoothing.laplacian_calculation(mesh, equal_weight=True).tocoo()  # neighbours' mean
         index = np.concatenate([np.stack([average.row, average.col]), np.tile(np.arange(len(mesh.vertices)), (2, 1))], 1)
@@ -199,16 +201,17 @@ class _Fit:
         w, t = self.weight[dips], self.target[dips]
         return (w * (slabs[dips] - t).pow(2)).sum() / (w * t.pow(2)).sum().clamp_min(1e-300)
 
-    def residual(self, vertices: torch.Tensor) -> float:
-        """Relative residual of ``vertices`` on every dip: the square root of :meth:`relative_misfit`."""
+    def slabs(self, vertices: torch.Tensor) -> torch.Tensor:
+        """The slab volumes ``(K, M)`` of ``vertices`` (no gradient), mm^3."""
         with torch.no_grad():
-            slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
+            return mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
+
+    def residual(self, slabs: torch.Tensor) -> float:
+        """Relative residual of ``slabs`` on every dip: the square root of :meth:`relative_misfit`."""
         return float(self.relative_misfit(slabs, torch.ones(len(self.directions), dtype=torch.bool))) ** 0.5
 
-    def noise_ratio(self, vertices: torch.Tensor) -> float:
-        """Mean over the slabs of ``(predicted - measured)^2 / sigma^2`` (a stated sigma; 1: the noise's own)."""
-        with torch.no_grad():
-            slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
+    def noise_ratio(self, slabs: torch.Tensor) -> float:
+        """Mean over the slabs of ``(slabs - measured)^2 / sigma^2`` (a stated sigma; 1: the noise's own)."""
         return float((self.weight * (slabs - self.target).pow(2)).mean())
 
     def descend(self, vertices: torch.Tensor, dips: torch.Tensor, steps: int, lr: float, bar: tqdm):
