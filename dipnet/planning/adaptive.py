@@ -28,7 +28,7 @@ import torch
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
 from dipnet.core.orientations import Reach
-from dipnet.planning.planner import MEASURED_DEG, Planner, measured_candidates, repeated_directions
+from dipnet.planning.planner import MEASURED_DEG, Planner, repeated_directions, unmeasured_lines
 from dipnet.core.rawscan import RawScan, RawScanFileError
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.minnorm import MinNormSolver
@@ -118,7 +118,7 @@ def adaptive_loop(acquire: Acquire, reconstruct: Reconstruct, planner: Planner, 
         if settings.stop_uncertainty is not None and summary["expected_error_fraction"] < settings.stop_uncertainty:
             return AdaptiveResult(measurement, recon, operator, maps, history, "uncertainty")
         wanted = min(settings.batch_size, settings.budget - n)
-        left = int((~measured_candidates(candidates, measurement.directions)).sum())
+        left = unmeasured_lines(candidates, measurement.directions)
         if left < wanted:
             _warn_few_candidates(left, wanted, n, len(candidates), settings.budget, reach)
             if not left:

@@ -138,6 +138,15 @@ def repeated_directions(directions: torch.Tensor, tol_deg: float = MEASURED_DEG)
                     dtype=bool)
 
 
+def unmeasured_lines(candidates: torch.Tensor, directions: torch.Tensor, tol_deg: float = MEASURED_DEG) -> int:
+    """How many distinct lines (``c`` and ``-c``: the same planes) the ``candidates`` ``(C, 3)`` hold that no measured
+    direction ``(K, 3)`` lies on (:func:`measured_candidates`): the most new dips a plan can add (a reach up to tilt
+    90 deg holds both ``c`` and ``-c`` at that tilt)."""
+    fresh = torch.as_tensor(candidates, dtype=torch.float64)[torch.from_numpy(~measured_candidates(candidates,
+                                                                                                   directions, tol_deg))]
+    return int((~repeated_directions(fresh, tol_deg)).sum())
+
+
 def _keyword_defaults(function: Callable[..., Any]) -> dict[str, Any]:
     """The defaults of ``function``'s keyword-only arguments."""
     return {name: p.default for name, p in inspect.signature(function).parameters.items() if p.kind is p.KEYWORD_ONLY}
@@ -150,8 +159,8 @@ class Planner(ABC):
     def next(self, measurement: DipMeasurement, reconstruction: Reconstruction, candidates: torch.Tensor,
              k: int = 1, operator: DipOperator | None = None, posterior: Posterior | None = None) -> torch.Tensor:
         """The ``k`` next directions ``(k, 3)``, rows of ``candidates`` ``(C, 3)``, best first, none of them a
-        direction ``measurement`` holds (:func:`measured_candidates`); ``posterior``: :meth:`posterior` of the same
-        reconstruction, if the caller has it already."""
+        direction ``measurement`` holds (:func:`measured_candidates`) nor two of them on one line; ``posterior``:
+        :meth:`posterior` of the same reconstruction, if the caller has it already."""
 
     def posterior(self, reconstruction: Reconstruction, measurement: DipMeasurement,
                   operator: DipOperator | None = None) -> Posterior:
@@ -202,16 +211,18 @@ class NextBestDipPlanner(Planner):
         if candidates.ndim != 2 or candidates.shape[1] != 3 or len(candidates) < k or k < 1:
             raise ValueError(f"need 1 <= k <= C candidates of shape (C, 3), got k={k}, {tuple(candidates.shape)}")
         measured = measured_candidates(candidates, measurement.directions)
-        if k > int((~measured).sum()):
-            raise ValueError(f"asked for {k} new dips, but only {int((~measured).sum())} of the {len(candidates)} "
-                             f"candidates are not measured already (within {MEASURED_DEG:g} deg): plan fewer, or give "
-                             "more candidates (a finer reach step_deg)")
+        left = unmeasured_lines(candidates, measurement.directions)
+        if k > left:
+            raise ValueError(f"asked for {k} new dips, but only {left} of the {len(candidates)} candidates are not "
+                             f"measured already (within {MEASURED_DEG:g} deg, or opposite another candidate): plan "
+                             "fewer, or give more candidates (a finer reach step_deg)")
         if posterior is None:
             posterior = self.posterior(reconstruction, measurement, operator)
         projections = self._candidate_matrix(posterior.grid, posterior.n_slabs, candidates) @ posterior.samples.T
         chosen = greedy_batch(projections.T.reshape(len(posterior.samples), len(candidates), posterior.n_slabs),
                               posterior.noise_var, k, np.random.default_rng(self.options["seed"] + 1),
-                              posterior.samples if self.criterion == "variance" else None, excluded=measured)
+                              posterior.samples if self.criterion == "variance" else None, excluded=measured,
+                              directions=candidates)
         self.last_seconds = time.perf_counter() - start
         log.info("planned %d dips among %d candidates in %.2f s", k, len(candidates), self.last_seconds)
         return candidates[chosen]
@@ -241,9 +252,12 @@ def candidate_scores(projections: np.ndarray, noise_var: float, gram: np.ndarray
 
 
 def greedy_batch(projections: np.ndarray, noise_var: float, k: int, rng: np.random.Generator,
-                 samples: np.ndarray | None = None, excluded: np.ndarray | None = None) -> list[int]:
+                 samples: np.ndarray | None = None, excluded: np.ndarray | None = None,
+                 directions: torch.Tensor | None = None) -> list[int]:
     """Pick ``k`` candidates one by one by :func:`candidate_scores`, conditioning on each pick; never a candidate
-    of the boolean mask ``excluded`` ``(C,)`` (directions measured already), nor one twice.
+    of the boolean mask ``excluded`` ``(C,)`` (directions measured already), nor one twice, nor, given the candidates'
+    ``directions`` ``(C, 3)``, one on the line of an earlier pick (:func:`measured_candidates`: its opposite measures
+    the same planes, and with noisy data the conditioning alone hardly lowers its score).
 
     The conditioning is an ensemble Kalman update with perturbed observations; it acts on the
     samples from the left, ``D' = T D`` with ``T = I - E C_yy^-1 Y_c^T / (S - 1)`` ``(S, S)``, so
@@ -257,13 +271,15 @@ def greedy_batch(projections: np.ndarray, noise_var: float, k: int, rng: np.rand
         centred = samples - samples.mean(axis=0, keepdims=True)
         gram = centred @ centred.T
     chosen: list[int] = []
+    excluded = np.zeros(n_cand, dtype=bool) if excluded is None else excluded.copy()
     for _ in range(k):
         scores = candidate_scores(y, noise_var, gram)
         scores[chosen] = -np.inf
-        if excluded is not None:
-            scores[excluded] = -np.inf
+        scores[excluded] = -np.inf
         best = int(np.argmax(scores))
         chosen.append(best)
+        if directions is not None:
+            excluded |= measured_candidates(directions, directions[best:best + 1])
         picked = y[:, best, :]  # (S, M)
         cov = picked.T @ picked / (n_samples - 1) + noise_var * np.eye(n_slabs)
         innovation = picked + rng.standard_normal(picked.shape) * np.sqrt(noise_var)

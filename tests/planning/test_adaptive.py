@@ -161,3 +161,21 @@ def test_the_initial_dips_are_not_repeated(box_problem):
         result = adaptive_loop(acquire, reconstruct, NextBestDipPlanner(resolution=10), Reach(tilt_range_deg=(0, 0)),
                                AdaptiveSettings(budget=16, batch_size=8, initial_dips=8))
     assert result.measurement.n_orientations == 1 and result.stop_reason == "candidates"
+
+
+def test_the_loop_never_dips_a_direction_and_its_opposite(box_problem):
+    """The audit's case: a reach of the horizontal ring (tilt 90 deg, step 60: 6 candidates on 3 lines), 1 initial dip
+    and a budget of 6. The loop counted 4 candidates left and dipped them all, two pairs of opposite directions (the
+    same planes twice). Now it counts lines: it plans the 2 left and stops, ``candidates``."""
+    from dipnet.planning.adaptive import AdaptiveSettings, adaptive_loop
+
+    grid, _, dips = box_problem
+    dipped, acquire, reconstruct = _loop_callbacks(grid, dips)
+    with pytest.warns(UserWarning, match="only 2 of the reach's 6 candidate directions are not measured yet"):
+        result = adaptive_loop(acquire, reconstruct, NextBestDipPlanner(resolution=10),
+                               Reach(tilt_range_deg=(90, 90), step_deg=60),
+                               AdaptiveSettings(budget=6, batch_size=6, initial_dips=1))
+    directions = result.measurement.directions.numpy()
+    cosines = np.abs(directions @ directions.T)[np.triu_indices(len(directions), 1)]
+    assert len(directions) == 3 and cosines.max() < np.cos(np.radians(0.5))
+    assert result.stop_reason == "candidates"

@@ -76,3 +76,29 @@ def test_the_posterior_grid_and_samples_must_be_whole_numbers():
         NextBestDipPlanner(resolution=24.5)
     with pytest.raises(ValueError, match=r"n_samples must be a whole number"):
         NextBestDipPlanner(n_samples="64")
+
+
+def test_a_batch_never_holds_a_direction_and_its_opposite_even_with_noisy_data():
+    """The audit's case: with 2 dips at -10 dB the hemisphere's candidates at tilt 90 deg hold ``c`` and ``-c`` (the
+    same planes); the conditioning on a pick hardly lowered its opposite's score when the noise dwarfs the predicted
+    variances, and the batch of 8 held both. Asking for more dips than unmeasured lines is refused."""
+    from dipnet.core.grid import Grid
+    from dipnet.planning.planner import repeated_directions
+    from dipnet.shapes import builtin_shape
+    from dipnet.simulator.physics import LevelSensor
+    from dipnet.simulator.simulate import simulate_measurement
+
+    grid = Grid(20, 3)
+    _, measurement = simulate_measurement(builtin_shape("chamber_box", 3, 0.9 * grid.radius),
+                                          Reach(tilt_range_deg=(0, 35)).uniform(2), grid=grid,
+                                          sensor=LevelSensor(snr_db=-10, seed=1), progress=False)
+    operator = make_operator(grid, measurement.directions, grid.n)
+    recon = MinNormSolver(progress=False).solve(measurement, operator)
+    candidates = Reach(step_deg=20).candidates()
+    for criterion in ("information", "variance"):
+        chosen = NextBestDipPlanner(resolution=10, criterion=criterion).next(measurement, recon, candidates, k=8,
+                                                                            operator=operator)
+        assert not repeated_directions(chosen).any(), criterion
+    ring = Reach(tilt_range_deg=(90, 90), step_deg=60).candidates()  # 6 directions on 3 lines
+    with pytest.raises(ValueError, match=r"asked for 4 new dips, but only 3 of the 6 candidates are not measured"):
+        NextBestDipPlanner(resolution=10).next(measurement, recon, ring, k=4, operator=operator)
