@@ -32,7 +32,10 @@ def journal_path(scan_path: str | Path) -> Path:
 class LineTail:
     """The complete lines appended to a file since the last call (a growing JSON Lines file).
 
-    A file that shrank (replaced by a new scan) is read again from its start (:attr:`restarted`).
+    A file that shrank below its complete lines (replaced by a new scan) is read again from its start
+    (:attr:`restarted`). A partial last line is read again with what follows it at every call: a resumed scan cuts
+    off a line its crash left unfinished (:class:`~dipnet.core.rawscan_writer.RawScanWriter`) and writes on from
+    there.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -48,11 +51,11 @@ class LineTail:
             size = self.path.stat().st_size
         except FileNotFoundError:
             return []
-        if size < self.offset + len(self.pending):
-            self.offset, self.pending, self.restarted = 0, b"", True
+        if size < self.offset:
+            self.offset, self.restarted = 0, True
         with self.path.open("rb") as f:
-            f.seek(self.offset + len(self.pending))
-            data = self.pending + f.read()
+            f.seek(self.offset)
+            data = f.read()
         lines, start = [], 0
         while (end := data.find(b"\n", start)) >= 0:
             if data[start:end].strip():

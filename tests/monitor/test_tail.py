@@ -33,6 +33,28 @@ def test_a_line_being_written_waits_for_its_end(recorded_scan, tmp_path):
     assert tail.poll() and not tail.truncated and sum(len(d.values) for d in tail.dips) == n + 1
 
 
+def test_a_scan_resumed_after_dying_mid_line_is_followed_on(recorded_scan, tmp_path):
+    """The audit's case: a scan died mid-line while the monitor followed it; the resumed run cut the partial line off
+    and wrote its session and readings from there, and the tail glued the partial line to the new bytes: "byte ...:
+    'value'", and the page stopped reading the scan."""
+    from dipnet.core.rawscan_writer import RawScanWriter
+
+    lines = recorded_scan.read_bytes().splitlines(keepends=True)
+    path = tmp_path / "rawscan.jsonl"
+    path.write_bytes(b"".join(lines[:5]) + lines[5][:20])        # a reading cut mid-line by a crash
+    tail = ScanTail(path)
+    tail.poll()
+    raw = read_rawscan(path)
+    with RawScanWriter(path, raw.header, fsync=False) as writer:  # the resumed run
+        writer.record_session({"first_k": 0})
+        writer.begin_orientation(0, tilt_deg=raw.orientations[0].tilt_deg, spin_deg=raw.orientations[0].spin_deg)
+        writer.append_reading(0.0, 150.0, 1.0)
+    assert tail.poll() and tail.error is None and not tail.truncated
+    resumed = read_rawscan(path)
+    assert len(tail.sessions) == len(resumed.sessions) == 2
+    assert [d.values for d in tail.dips] == [o.values.tolist() for o in resumed.orientations] == [[150.0]]
+
+
 def test_a_replaced_file_is_read_from_its_start(recorded_scan, tmp_path):
     path = tmp_path / "rawscan.jsonl"
     path.write_bytes(recorded_scan.read_bytes())
