@@ -311,10 +311,16 @@ class ScanRunner:
 
     # ------------------------------------------------------------------ scanning
     def _check_resume(self, scan: RawScan) -> None:
-        """Raise :class:`RawScanFileError` when a recorded orientation is not this run's plan's: the orientation
-        options changed (a Fibonacci set of another size is another set of directions, not more of them)."""
+        """Raise :class:`RawScanFileError` when the file was not written by a scan runner (its header records no
+        plan: a simulated or converted recording, whose dips would be merged with this rig's) or a recorded
+        orientation is not this run's plan's: the orientation options changed (a Fibonacci set of another size is
+        another set of directions, not more of them)."""
         planned = self.plan.orientations
-        recorded = (scan.header.config.get("plan") or {}).get("orientations")
+        if not isinstance(scan.header.config.get("plan"), dict):
+            raise RawScanFileError(f"{self.path}: cannot resume, the file was not recorded by a rig scan (its header "
+                                   f"records no plan; rig {scan.header.rig!r}): its dips are not this rig's; scan "
+                                   "into another file")
+        recorded = scan.header.config["plan"].get("orientations")
         for o in scan.orientations:
             if o.k >= len(planned) or not np.allclose((o.tilt_deg, o.spin_deg), planned[o.k], atol=1e-6):
                 now = f"({planned[o.k][0]:g}, {planned[o.k][1]:g})" if o.k < len(planned) else "no orientation"

@@ -277,3 +277,26 @@ def test_an_origin_height_that_is_not_a_number_is_refused_naming_the_option():
     with pytest.raises(ValueError, match=r"^rig\.origin_height_mm must be a finite height \(mm\) or null, got nan; "
                                          r"nothing moved$"):
         ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0, origin_height_mm=float("nan"))
+
+
+@pytest.mark.parametrize("angles", [False, True])
+def test_a_file_not_recorded_by_a_rig_scan_is_refused_not_resumed(world, tmp_path, angles):
+    """The audit's case: a simulated recording in the scan's place, its header's fields the scan's own. Its dips
+    along directions only made the resume fail with "TypeError: unsupported operand type(s) for -: 'NoneType' and
+    'float'"; its dips at the plan's rig angles were resumed, the rig's dips appended under the simulation's header."""
+    from dipnet.core.rawscan import OrientationScan, RawScan, ScanHeader
+    from rig_helpers import AREA
+
+    plan, path = plan_for(3, step=10.0), tmp_path / "scan.jsonl"
+    tilt, spin = plan.orientations[0]
+    dip = OrientationScan(k=0, direction=None if angles else [0.0, 0.0, 1.0], tilt_deg=tilt if angles else None,
+                          spin_deg=spin if angles else None, stage_mm=[0.0, 10.0, 20.0, 30.0],
+                          values=[150.0, 151.0, 152.0, 153.0], time_s=[0.0, 1.0, 2.0, 3.0], complete=True)
+    header = ScanHeader(tank_cross_section_mm2=AREA, step_mm=plan.step_mm, resolution=0.001, rig="simulator")
+    RawScan(header=header, orientations=[dip]).save(path)
+    before = path.read_bytes()
+    world.reset()
+    with pytest.raises(RawScanFileError, match=r"scan.jsonl: cannot resume, the file was not recorded by a rig scan "
+                                               r"\(its header records no plan; rig 'simulator'\)"):
+        scan(world, "grbl", "level", plan, path)
+    assert path.read_bytes() == before and world.max_lower_seen == 0.0
