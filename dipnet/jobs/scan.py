@@ -151,7 +151,7 @@ def rig_calibration(rig_cfg) -> Calibration | None:
 def adaptive_scan_from_config(cfg, path: str | Path, journal=None) -> RawScan:
     """``scripts/scan.py +planner=adaptive [+reach=authors_rig]``: the rig, sensor and dip protocol of the
     scan config (as :func:`~dipnet.jobs.scan.scan_from_config`), the loop of ``cfg.planner`` (an
-    :class:`~dipnet.planning.plans.AdaptivePlan`) and the reach of ``cfg.reach`` (default the hemisphere);
+    :class:`~dipnet.planning.plans.AdaptivePlan`) and the reach of :func:`adaptive_reach` (within ``max_tilt_deg``);
     reconstructions with the ``voxel`` solver on a ``cfg.planner.resolution`` grid (default 32) of side
     ``cfg.planner.extent_mm`` (default 100 mm): with ``minnorm`` estimates the planner's noise level (their
     misfit) is model error far above the sensor noise and its scores hardly tell candidates apart (see
@@ -170,9 +170,29 @@ def adaptive_scan_from_config(cfg, path: str | Path, journal=None) -> RawScan:
     def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:
         return runner_from_config(cfg, plan, path, home=home, journal=journal)
 
-    reach = instantiate(cfg.reach) if cfg.get("reach") is not None else Reach()
-    adaptive_scan(make_runner, scan_settings, path, grid, VoxelSolver(progress=False), plan.planner, reach, plan.settings)
+    adaptive_scan(make_runner, scan_settings, path, grid, VoxelSolver(progress=False), plan.planner, adaptive_reach(cfg),
+                  plan.settings)
     return read_rawscan(path)
+
+
+def adaptive_reach(cfg) -> Reach:
+    """The reach an adaptive scan plans in: ``cfg.reach`` (e.g. ``+reach=authors_rig``), by default the hemisphere up to
+    the rig's mechanical tilt limit ``cfg.max_tilt_deg`` (degrees).
+
+    Raises:
+        ValueError: ``cfg.reach`` tilts beyond ``max_tilt_deg`` (the message names both options; nothing moved).
+    """
+    from hydra.utils import instantiate
+
+    max_tilt = min(float(cfg.get("max_tilt_deg", 90.0)), 90.0)
+    if cfg.get("reach") is None:
+        return Reach(tilt_range_deg=(0.0, max_tilt))
+    reach = instantiate(cfg.reach)
+    if reach.tilt_range_deg[1] > max_tilt:
+        raise ValueError(f"reach.tilt_range_deg={list(reach.tilt_range_deg)} plans tilts beyond max_tilt_deg="
+                         f"{max_tilt:g} (the rig's mechanical limit): give reach.tilt_range_deg=[0,{max_tilt:g}] or a "
+                         "larger max_tilt_deg; nothing moved")
+    return reach
 
 
 def scan_job(cfg, path: str | Path, journal=None) -> RawScan:

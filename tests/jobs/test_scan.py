@@ -209,3 +209,24 @@ def test_scan_refuses_a_safe_position_below_the_start(tmp_path, script_run):
     assert one_line_error(done) == ("error: protocol.safe_mm=200 must be <= protocol.start_mm=0: lowering positions "
                                     "grow downward (mm), and the safe position, where the object turns, must be no "
                                     "deeper than the first reading's; nothing moved")
+
+
+ADAPTIVE_QUICK = ("+planner=adaptive", "planner.budget=5", "planner.batch_size=2", "planner.initial_dips=3",
+                  "+planner.resolution=16", "planner.planner.resolution=16", "protocol.step_mm=10", "fsync=false",
+                  "progress=false", "rig.fake.shape.radius=30")
+
+
+def test_an_adaptive_scan_keeps_within_the_rigs_tilt_limit(tmp_path):
+    """The audit's case: ``max_tilt_deg=35 +planner=adaptive`` planned over the whole hemisphere and dipped at tilts
+    60, 80, 90 and 70 deg, beyond the rig's mechanical limit, no word. Now the default reach ends at max_tilt_deg and
+    a reach beyond it is refused before anything moves."""
+    from dipnet.core.orientations import direction_to_rig
+    from dipnet.jobs.scan import scan_job
+
+    raw = scan_job(_scan_cfg("max_tilt_deg=35", *ADAPTIVE_QUICK), tmp_path / "rawscan.jsonl")
+    tilt, _ = direction_to_rig(raw.directions())
+    assert len(raw.completed()) == 5 and tilt.max() <= 35 + 1e-6
+    with pytest.raises(ValueError, match=r"reach.tilt_range_deg=\[0.0, 90.0\] plans tilts beyond max_tilt_deg=35 \(the "
+                                         r"rig's mechanical limit\): give reach.tilt_range_deg=\[0,35\]"):
+        scan_job(_scan_cfg("max_tilt_deg=35", "+reach=hemisphere", *ADAPTIVE_QUICK), tmp_path / "other.jsonl")
+    assert not (tmp_path / "other.jsonl").exists()
