@@ -38,7 +38,7 @@ from dipnet.planning.planner import Planner
 from dipnet.preprocessing.preprocess import preprocess
 from dipnet.core.rawscan import RawScan, read_rawscan
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.rig.runner import ScanPlan, ScanRunner
+from dipnet.rig.runner import ScanPlan, ScanRunner, check_rig_scan
 from dipnet.core.orientations import direction_to_rig
 
 log = logging.getLogger(__name__)
@@ -71,6 +71,7 @@ class RigDips:
         planned = [(float(t), float(s)) for t, s in zip(np.round(tilt, 6), np.round(spin, 6))]
         recorded = read_rawscan(self.path) if self.path.is_file() else None
         if recorded is not None:
+            check_rig_scan(recorded, self.path)
             planned = keep_recorded(recorded, planned, len(self.orientations), self.reach, self.path)
         self.orientations += planned
         n = len(self.orientations)

@@ -316,10 +316,7 @@ class ScanRunner:
         orientation is not this run's plan's: the orientation options changed (a Fibonacci set of another size is
         another set of directions, not more of them)."""
         planned = self.plan.orientations
-        if not isinstance(scan.header.config.get("plan"), dict):
-            raise RawScanFileError(f"{self.path}: cannot resume, the file was not recorded by a rig scan (its header "
-                                   f"records no plan; rig {scan.header.rig!r}): its dips are not this rig's; scan "
-                                   "into another file")
+        check_rig_scan(scan, self.path)
         recorded = scan.header.config["plan"].get("orientations")
         for o in scan.orientations:
             if o.k >= len(planned) or not np.allclose((o.tilt_deg, o.spin_deg), planned[o.k], atol=1e-6):
@@ -552,6 +549,14 @@ class ScanRunner:
         self.marker.unlink(missing_ok=True)
         if self.rig_marker is not None:
             self.rig_marker.unlink(missing_ok=True)
+
+
+def check_rig_scan(scan: RawScan, path: Path) -> None:
+    """Raise :class:`RawScanFileError` when ``scan`` (read from ``path``) was not recorded by a scan runner: its header
+    records no plan (a simulated or converted recording), so a rig's dips must not be merged into it."""
+    if not isinstance(scan.header.config.get("plan"), dict):
+        raise RawScanFileError(f"{path}: cannot resume, the file was not recorded by a rig scan (its header records no "
+                               f"plan; rig {scan.header.rig!r}): its dips are not this rig's; scan into another file")
 
 
 def value_ranges(moves: list[dict[str, float | None]]) -> dict[str, tuple[float, float]]:

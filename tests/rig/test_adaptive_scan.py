@@ -104,3 +104,20 @@ def test_scan_script_runs_an_adaptive_scan(tmp_path):
     raw = read_rawscan(tmp_path / "rawscan.jsonl")
     tilt, _ = direction_to_rig(raw.directions())
     assert len(raw.completed()) == 5 and tilt.max() <= 35 + 1e-6
+
+
+def test_a_file_not_recorded_by_a_rig_scan_is_refused_not_replayed(world, tmp_path):
+    """The audit's case: a simulated recording (dips along directions only) in an adaptive scan's place. The replay
+    failed with "TypeError: unsupported operand type(s) for -: 'NoneType' and 'float'"; now it is named as no rig
+    scan's file before any reconstruction or motion (as :class:`ScanRunner` names it)."""
+    from dipnet.core.rawscan import OrientationScan, RawScan
+
+    path = tmp_path / "scan.jsonl"
+    dips = [OrientationScan(k=k, direction=d.tolist(), meta={"t_start_mm": -ORIGIN}, stage_mm=[0.0, 10.0, 20.0, 30.0],
+                            values=[150.0, 151.0, 152.0, 153.0], time_s=[0.0, 1.0, 2.0, 3.0], complete=True)
+            for k, d in enumerate(REACH.uniform(4).numpy())]
+    RawScan(header=ScanHeader(tank_cross_section_mm2=AREA, step_mm=10.0, rig="simulator"), orientations=dips).save(path)
+    world.reset()
+    with pytest.raises(RawScanFileError, match=r"cannot resume, the file was not recorded by a rig scan"):
+        scan(world, path)
+    assert world.max_lower_seen == 0.0
