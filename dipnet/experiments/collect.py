@@ -439,13 +439,15 @@ UNCHANGING_OPTIONS = ("progress", "figures", "report", "mesh_formats", "checkpoi
 
 
 def flat_config(config: dict, prefix: str = "") -> dict[str, Any]:
-    """The leaves of a nested config as ``{"a.b": value}`` (lists as tuples, so values compare and hash)."""
+    """The leaves of a nested config as ``{"a.b": value}`` (lists as tuples and an empty mapping as ``"{}"``, e.g.
+    ``solver.surface_refit={}``, so values compare and hash)."""
     flat: dict[str, Any] = {}
     for key, value in config.items():
         if isinstance(value, dict) and value:
             flat.update(flat_config(value, f"{prefix}{key}."))
         else:
-            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else value
+            flat[f"{prefix}{key}"] = tuple(value) if isinstance(value, list) else "{}" if isinstance(value, dict) \
+                else value
     return flat
 
 

@@ -230,3 +230,17 @@ def test_null_metrics_of_strict_json_are_read_as_no_value(tmp_path):
     assert [r["status"] for r in rows] == ["ok"] * 3 and rows[1]["iou"] is None
     (g,) = collect.aggregate(rows, by=("solver",))
     assert g["runs"] == 3 and g["iou_mean"] == pytest.approx(0.6) and "chamfer_mean" not in g
+
+
+def test_runs_with_an_option_set_to_an_empty_mapping_are_compared(tmp_path):
+    """``'solver.surface_refit={}'`` (the refit with its defaults) leaves an empty mapping in the job's config: the
+    runs that set it and those that do not are named as pooled, not a crash (a dict does not hash)."""
+    runs = []
+    for seed, refit in ((0, {}), (1, None)):
+        job = write_job(tmp_path / str(seed), solver="voxel", n_dips=8, snr_db=None, seed=seed, metrics={"iou": 0.9})
+        config = OmegaConf.load(job / ".hydra" / "config.yaml")
+        config.solver.surface_refit = refit
+        OmegaConf.save(config, job / ".hydra" / "config.yaml")
+        runs.append(collect.load_run(job))
+    assert collect.flat_config(runs[0].config)["solver.surface_refit"] == "{}"
+    assert collect.pooled_options(runs, collect.run_rows(runs)) == {"solver.surface_refit": ["{}", None]}
