@@ -44,8 +44,9 @@ log = logging.getLogger(__name__)
 
 #: The fields of a checkpoint record.
 FIELDS = frozenset({"fingerprint", "step", "done", "params", "optimizer", "scheduler", "history"})
-#: Solver attributes that do not change the optimisation, so :func:`solver_settings` leaves them out.
-UNRECORDED = frozenset({"progress", "checkpoint", "threshold"})
+#: Solver attributes that do not change the optimisation, so :func:`solver_settings` leaves them out (the surface
+#: refit runs on the optimisation's result: :mod:`dipnet.solvers.surface_refit`).
+UNRECORDED = frozenset({"progress", "checkpoint", "threshold", "surface_refit"})
 
 
 class Checkpoint:

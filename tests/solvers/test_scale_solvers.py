@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from types import SimpleNamespace
 
 import pytest
@@ -86,6 +87,19 @@ def test_checkpoint_made_with_other_solver_options_is_not_resumed(tmp_path):
     again = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), **changed).solve(meas, op)  # same options
     torch.testing.assert_close(again.occupancy, clean.occupancy, atol=0, rtol=0)
 
+
+def test_a_checkpoint_is_resumed_when_only_the_surface_refit_changed(tmp_path):
+    """The refit runs on the optimisation's result, as the threshold is set on it: turning it on for a checkpointed
+    solve resumes the solve (before: every stage was ignored as made with other solver options and began afresh)."""
+    truth, op, meas = noise_free_problem(3, None)
+    options = {"iterations": 20, "tol": 0.0, "progress": False, "coarse_to_fine": False}
+    plain = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), **options).solve(meas, op)
+    refit = {"steps": 2, "probe_steps": 2, "holdout_every": 2, "min_gain": 0.0, "still_falling": 0.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no checkpoint is ignored
+        resumed = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=10), surface_refit=refit, **options).solve(meas, op)
+    torch.testing.assert_close(resumed.occupancy, plain.occupancy, atol=0, rtol=0)
+    assert resumed.history["loss"] == plain.history["loss"] and resumed.info["surface_refit"]["reason"]
 
 def test_memory_estimate_of_the_paper_size_voxel_run_is_above_the_measured_peak_and_below_the_target():
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
