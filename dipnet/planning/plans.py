@@ -25,6 +25,7 @@ from dipnet.core.orientations import Reach, make_directions
 from dipnet.operators import DipOperator
 from dipnet.planning.adaptive import Acquire, AdaptiveSettings, adaptive_loop, warn_linear_loop_solver
 from dipnet.planning.planner import MEASURED_DEG, NextBestDipPlanner, Planner, repeated_directions
+from dipnet.solvers.surface_refit import without_surface_refit
 
 log = logging.getLogger(__name__)
 
@@ -105,10 +106,11 @@ class AdaptivePlan:
         if solver is None or make_operator is None:
             raise ValueError("the adaptive loop reconstructs after every batch: give solver and make_operator")
         warn_linear_loop_solver(solver)
+        loop_solver = without_surface_refit(solver)  # the loop reads occupancies; the job refits its own result
 
         def reconstruct(measurement: DipMeasurement):
             operator = make_operator(measurement.directions)
-            return solver.solve(measurement, operator), operator
+            return loop_solver.solve(measurement, operator), operator
 
         result = adaptive_loop(acquire, reconstruct, self.planner, reach or Reach(), self.settings)
         return PlanResult(result.measurement, {"stop_reason": result.stop_reason, "history": result.history,

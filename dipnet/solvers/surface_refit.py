@@ -22,6 +22,7 @@ every dip.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -178,6 +179,15 @@ class SurfaceRefit:
                  f" -> {record['residual_after']:.3g}" if record["applied"] else "")
         return recon
 
+
+def without_surface_refit(solver: Any) -> Any:
+    """``solver`` itself when it refits no surface, else a copy that does not: for the solves whose occupancy alone
+    is read (the adaptive loop's after every batch), which the refit's mesh would only slow (tens of seconds at 64^3)."""
+    if getattr(solver, "surface_refit", None) is None:
+        return solver
+    quiet = copy.copy(solver)
+    quiet.surface_refit = None
+    return quiet
 
 class _Fit:
     """The refit's objective on one mesh: data misfit per dip subset and smoothness."""

@@ -87,3 +87,20 @@ def test_a_count_of_the_loop_that_is_not_whole_is_refused(option):
     with pytest.raises(ValueError, match=rf"{option} must be a whole number, got 7.5 \(2.5 is not cut to 2\)"):
         AdaptivePlan(**{option: 7.5})
     assert AdaptivePlan(budget=40.0).settings.budget == 40  # a whole float is the number
+
+
+def test_the_adaptive_loop_solves_without_the_surface_refit_and_the_job_refits_its_own_result(tmp_path, monkeypatch):
+    """The loop reads each batch's occupancy only: before, every batch's solve refitted its surface too (about 40 s
+    each for solver=voxel_learned at 64^3), for a mesh nobody read."""
+    from dipnet.jobs.pipeline import run
+    from dipnet.solvers.surface_refit import SurfaceRefit
+
+    refits, refit = [], SurfaceRefit.refit
+    monkeypatch.setattr(SurfaceRefit, "refit", lambda self, recon, *args, **kw: refits.append(
+        recon.info["solver"]) or refit(self, recon, *args, **kw))
+    result = run(_cfg("resolution=16", "planner=adaptive", "planner.budget=16", "planner.initial_dips=8",
+                      "planner.planner.resolution=16", "solver=voxel", "solver.iterations=30",
+                      "solver.surface_refit={steps: 5, probe_steps: 5}", "output.progress=false", "output.figures=false",
+                      "output.uncertainty=false", "output.resolvability=false"), tmp_path)
+    assert result.measurement.n_orientations == 16
+    assert len(refits) == 1 and result.reconstruction.info["surface_refit"]["reason"]  # the job's own solve alone
