@@ -189,6 +189,7 @@ def without_surface_refit(solver: Any) -> Any:
     quiet.surface_refit = None
     return quiet
 
+
 class _Fit:
     """The refit's objective on one mesh: data misfit per dip subset and smoothness."""
 
