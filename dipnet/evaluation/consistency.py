@@ -553,7 +553,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     fit, result.symmetry_declared = declared_symmetry_fit(measurement, reconstruction)
     result.symmetry_misfit, result.symmetry_misfit_p = fit.misfit, fit.p_value
     result.symmetry_misfit_order, result.symmetry_rejected = fit.order, fit.rejected
-    result.warnings = _findings(result, metadata.get("symmetry_group_order", 1), quantum, operator.grid)
+    result.warnings = _findings(result, metadata.get("symmetry_group_order", 1), quantum, operator.grid) + \
+        _refit_findings(result, reconstruction.info.get("surface_refit") or {})
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
         for message in result.warnings:
@@ -726,6 +727,20 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    f"{c.measured_volume_mm3:.4g} {c.volume_unit} (ratio {c.volume_ratio:.3f}, noise explains "
                    f"+-{c.volume_ratio_noise:.3f}; continuous occupancy: {c.continuous_volume_mm3:.4g} {c.volume_unit})")
     return out
+
+
+def _refit_findings(c: Consistency, refit: dict) -> list[str]:
+    """A message when the surface refitted to the dips (``refit``: ``info["surface_refit"]`` of
+    :mod:`dipnet.solvers.surface_refit`; the exported and scored mesh) encloses a volume further from the measured
+    one than ``c`` allows the binary result (:attr:`Consistency.volume_limit`): the binary result's checks do not
+    speak for it."""
+    ratio = float(refit.get("volume_ratio", math.nan)) if refit.get("applied") else math.nan
+    if not abs(ratio - 1) > c.volume_limit:  # NaN: no refitted surface
+        return []
+    return [f"the surface refitted to the dips (the exported mesh, solver.surface_refit) encloses "
+            f"{refit['mesh_volume_mm3']:.4g} {c.volume_unit}, {ratio:.3f} x the measured volume (the binary result: "
+            f"{c.volume_ratio:.3f}; allowed +-{c.volume_limit:.3f}): the refit moved the surface off the data's volume; "
+            "use the voxel result (reconstruction.npz) or solve with solver.surface_refit=null"]
 
 
 def _binary_hint(c: Consistency) -> str:

@@ -45,9 +45,11 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "prior_rounds_reason": ("run", "why the rounds ended there"),
     "surface_refit": ("run", "the surface refitted to the dips as a mesh (refitted), or the voxel result's kept (kept)"),
     "surface_refit_reason": ("run", "why (the held-out dips' misfit in the refit's probe)"),
-    "surface_residual": ("run", "relative residual of the exported mesh's exact dips"),
-    "surface_volume_mm3": ("run", "volume enclosed by the exported mesh (mm^3)"),
-    "surface_volume_ratio": ("run", "the exported mesh's volume over the measured one (the profiles' median total)"),
+    "surface_residual": ("run", "relative residual of the refit's mesh's exact dips (refitted, or the result's own "
+                                "surface on the data grid when kept)"),
+    "surface_volume_mm3": ("run", "volume enclosed by the refit's mesh (mm^3; the exported one unless the surface was "
+                                  "kept and the solver's finer sampling is exported: solver.output_upsample)"),
+    "surface_volume_ratio": ("run", "the refit's mesh's volume over the measured one (the profiles' median total)"),
     "learned_weights": ("run", "learned prior: the weights kept of its candidates (by the dips' plan)"),
     "learned_weights_reason": ("run", "why those weights"),
     "threshold": ("run", "occupancy level of the binary shape and its surface"),

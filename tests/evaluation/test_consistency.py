@@ -64,6 +64,23 @@ def test_exact_answer_has_no_residual_and_a_wrong_one_does(problem):
     assert further.profile_residual > wrong.profile_residual
 
 
+@pytest.mark.parametrize("applied, ratio, verdict", [(True, 1.2, "inconsistent"), (True, 0.99, "consistent"),
+                                                    (False, 1.2, "consistent")])
+def test_a_refitted_surface_off_the_measured_volume_is_inconsistent(problem, applied, ratio, verdict):
+    """The exported mesh, when the surface refit moved it, is judged by its own volume: the exact binary ball
+    passes every other check."""
+    operator, ball, measurement = problem
+    recon = Reconstruction(occupancy=ball.float(), grid=GRID)
+    volume = float(ball.sum()) * GRID.voxel_volume
+    recon.info["surface_refit"] = {"applied": applied, "volume_ratio": ratio, "mesh_volume_mm3": ratio * volume}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = check_consistency(measurement, operator, recon)
+    refit_messages = [str(w.message) for w in caught if "surface refitted" in str(w.message)]
+    assert result.verdict == verdict and len(refit_messages) == (verdict == "inconsistent")
+    assert all(f"{ratio:.3f} x the measured volume" in message for message in refit_messages)
+
+
 def test_missing_30_percent_of_the_volume_warns(problem):
     operator, ball, measurement = problem
     keep = torch.rand(GRID.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) < 0.7
