@@ -25,6 +25,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.solvers.weights import with_weight
+from dipnet.solvers.surface_refit import without_surface_refit
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +129,7 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
     levels = raw.header.quantity == "level_mm"  # a balance's volumes do not depend on the section
     volume_params = ("cross_section_mm2",) if "cross_section_mm2" in params and levels else ()
     shape_solver = _with_gain(gain_solver or solver) if volume_params else (gain_solver or solver)
+    shape_solver = without_surface_refit(shape_solver)  # the rounds read occupancies; the final solve refits
     state, report, _ = _moment_stage(raw, params, initial, "self", None, seed)
     if "cross_section_mm2" in params and not levels:
         report.not_estimated["cross_section_mm2"] = balance_section_note(None, reference=False)

@@ -428,3 +428,22 @@ def test_a_balances_section_is_named_not_estimated_not_fitted():
     assert result.geometry.cross_section_mm2 is None and [h["stage"] for h in result.history] == ["moments"]
     low, high = report.intervals["pivot_mm"]
     assert low <= 20.0 <= high
+
+
+def test_the_shape_rounds_solve_without_the_surface_refit_and_the_final_solve_refits(monkeypatch):
+    """The rounds of the joint shape step read occupancies only: before, each refitted its surface too (tens of
+    seconds at 64^3 for solver=voxel_learned), for a mesh nobody read."""
+    from dipnet.solvers.surface_refit import SurfaceRefit
+
+    refits, refit = [], SurfaceRefit.refit
+    monkeypatch.setattr(SurfaceRefit, "refit", lambda self, recon, *args, **kw: refits.append(1) or
+                        refit(self, recon, *args, **kw))
+    raw = simulate_scan(Ball(25.0), fibonacci_hemisphere(12), tank=Tank(60000.0), progress=False)
+    solver = VoxelSolver(iterations=20, progress=False, surface_refit={"steps": 5, "probe_steps": 5})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        result = self_calibrate(raw, Grid(16, extent=80.0), solver, ("pivot_mm",), iterations=3,
+                                dip_offset_sigma_mm=1.0)
+    assert len([row for row in result.history if row["stage"].startswith("shape")]) == 3
+    assert len(refits) == 1 and result.reconstruction.info["surface_refit"]["reason"]
+    assert solver.surface_refit is not None  # the caller's solver is left as it was
