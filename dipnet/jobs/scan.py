@@ -11,7 +11,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.orientations import Reach
 from dipnet.core.rawscan import RawScan, ScanHeader, read_rawscan
 from dipnet.jobs.deprecations import upgrade_scan_config
-from dipnet.jobs.options import instantiates
+from dipnet.jobs.options import ConfigError, instantiates
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.rig.adaptive import adaptive_scan
 from dipnet.rig.controller import Controller
@@ -180,7 +180,7 @@ def adaptive_reach(cfg) -> Reach:
     the rig's mechanical tilt limit ``cfg.max_tilt_deg`` (degrees).
 
     Raises:
-        ValueError: ``cfg.reach`` tilts beyond ``max_tilt_deg`` (the message names both options; nothing moved).
+        ConfigError: ``cfg.reach`` tilts beyond ``max_tilt_deg`` (the message names both options; nothing moved).
     """
     from hydra.utils import instantiate
 
@@ -189,7 +189,7 @@ def adaptive_reach(cfg) -> Reach:
         return Reach(tilt_range_deg=(0.0, max_tilt))
     reach = instantiate(cfg.reach)
     if reach.tilt_range_deg[1] > max_tilt:
-        raise ValueError(f"reach.tilt_range_deg={list(reach.tilt_range_deg)} plans tilts beyond max_tilt_deg="
+        raise ConfigError(f"reach.tilt_range_deg={list(reach.tilt_range_deg)} plans tilts beyond max_tilt_deg="
                          f"{max_tilt:g} (the rig's mechanical limit): give reach.tilt_range_deg=[0,{max_tilt:g}] or a "
                          "larger max_tilt_deg; nothing moved")
     return reach

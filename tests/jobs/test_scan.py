@@ -11,6 +11,7 @@ from dipnet.core.calibration_file import TANK_CONFIG_KEY, Calibration, Calibrati
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import read_rawscan
+from dipnet.jobs.options import ConfigError
 from dipnet.jobs.deprecations import upgrade_scan_config
 from dipnet.jobs.scan import deepest_lowering, orientations_from_config, plan_settings, scan_geometry
 
@@ -226,7 +227,7 @@ def test_an_adaptive_scan_keeps_within_the_rigs_tilt_limit(tmp_path):
     raw = scan_job(_scan_cfg("max_tilt_deg=35", *ADAPTIVE_QUICK), tmp_path / "rawscan.jsonl")
     tilt, _ = direction_to_rig(raw.directions())
     assert len(raw.completed()) == 5 and tilt.max() <= 35 + 1e-6
-    with pytest.raises(ValueError, match=r"reach.tilt_range_deg=\[0.0, 90.0\] plans tilts beyond max_tilt_deg=35 \(the "
+    with pytest.raises(ConfigError, match=r"reach.tilt_range_deg=\[0.0, 90.0\] plans tilts beyond max_tilt_deg=35 \(the "
                                          r"rig's mechanical limit\): give reach.tilt_range_deg=\[0,35\]"):
         scan_job(_scan_cfg("max_tilt_deg=35", "+reach=hemisphere", *ADAPTIVE_QUICK), tmp_path / "other.jsonl")
     assert not (tmp_path / "other.jsonl").exists()
