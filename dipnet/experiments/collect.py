@@ -46,7 +46,6 @@ LABELS = {"iou": "IoU", "chamfer": "Chamfer", "hausdorff": "Hausdorff", "volume_
            "profile_residual": "profile residual", "volume_ratio": "volume ratio"}
 
 
-
 class NoRunsError(FileNotFoundError):
     """A directory holds no reconstruction jobs."""
 
@@ -78,7 +77,6 @@ class Run:
     choices: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
     error: str | None = None
-
 
 
 def _load_yaml(path: Path) -> Any:
@@ -235,7 +233,6 @@ def collect_runs(dirs: str | Path | Iterable[str | Path]) -> list[Run]:
                    f"its own jobs): {names}; each is compared once")
         warnings.warn(message, stacklevel=2)
     return runs
-
 
 
 def _get(d: dict, dotted: str) -> Any:

@@ -45,7 +45,6 @@ from dipnet.solvers.progress import stop_bar
 log = logging.getLogger(__name__)
 
 
-
 @dataclass(frozen=True)
 class SurfaceRefit:
     """Options of the surface refit (module docstring).

@@ -27,7 +27,6 @@ from dipnet.solvers.voxel import VoxelSolver
 from calibration_helpers import MISMATCH, ball_in_smaller_tank
 
 
-
 #: The joint step's mechanics on a ball, below the setting at which the section's interval was validated
 #: (SECTION_MIN_RESOLUTION, SECTION_MIN_DIPS): a ball, with few partly filled voxels, recovers it there too.
 ANY_SETTING = {"section_min_resolution": 0, "section_min_dips": 0}

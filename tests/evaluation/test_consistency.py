@@ -521,7 +521,6 @@ def test_more_volume_than_the_dips_bound_and_dips_that_bound_nothing_are_named(p
     assert any("bound no region" in str(w.message) for w in caught) and result.verdict == "inconsistent"
 
 
-
 def test_a_declared_symmetry_the_object_lacks_is_named(problem):
     """A ball off the z axis has no 4-fold symmetry: copying its dips to their images leaves a residual the truth
     cannot explain, and the message names the declared symmetry (it blamed only the rig model and the priors)."""
