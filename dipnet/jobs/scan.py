@@ -15,7 +15,7 @@ from dipnet.jobs.options import ConfigError, instantiates
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.rig.adaptive import adaptive_scan
 from dipnet.rig.controller import Controller
-from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations
+from dipnet.rig.runner import ScanPlan, ScanRunner, plan_orientations, tilt_reach
 from dipnet.rig.sensors import AveragingSensor
 
 
@@ -184,10 +184,10 @@ def adaptive_reach(cfg) -> Reach:
     """
     from hydra.utils import instantiate
 
-    max_tilt = min(float(cfg.get("max_tilt_deg", 90.0)), 90.0)
+    limit = tilt_reach(float(cfg.get("max_tilt_deg", 90.0)))
     if cfg.get("reach") is None:
-        return Reach(tilt_range_deg=(0.0, max_tilt))
-    reach = instantiate(cfg.reach)
+        return limit
+    reach, max_tilt = instantiate(cfg.reach), limit.tilt_range_deg[1]
     if reach.tilt_range_deg[1] > max_tilt:
         raise ConfigError(f"reach.tilt_range_deg={list(reach.tilt_range_deg)} plans tilts beyond max_tilt_deg="
                          f"{max_tilt:g} (the rig's mechanical limit): give reach.tilt_range_deg=[0,{max_tilt:g}] or a "

@@ -127,6 +127,11 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
     return [(float(t), float(s)) for t, s in zip(np.round(tilt, 6), np.round(spin, 6))]
 
 
+def tilt_reach(max_tilt_deg: float) -> Reach:
+    """The hemisphere up to the rig's mechanical tilt limit ``max_tilt_deg`` (degrees; at most 90)."""
+    return Reach(tilt_range_deg=(0.0, min(float(max_tilt_deg), 90.0)))
+
+
 def set_within_tilt(kind: str, n: int, seed: int, max_tilt_deg: float) -> torch.Tensor:
     """``n`` directions ``(n, 3)`` of the set ``kind`` tilted at most ``max_tilt_deg`` (degrees) from the
     object's z axis. A fibonacci (or uniform) set reaching beyond is spread over the reachable cap
@@ -141,7 +146,7 @@ def set_within_tilt(kind: str, n: int, seed: int, max_tilt_deg: float) -> torch.
         raise ValueError(f"max_tilt_deg={max_tilt_deg:g} leaves no tilt to spread n_dips={n} {kind} directions "
                          "over: give max_tilt_deg in (0, 90], or dip vertically with orientations=grid "
                          "'tilts=[0]' 'spins=[0]'")
-    reach = Reach(tilt_range_deg=(0.0, min(float(max_tilt_deg), 90.0)))
+    reach = tilt_reach(max_tilt_deg)
     beyond = int((~reach.contains(directions)).sum())
     if beyond == 0:
         return directions
