@@ -17,7 +17,9 @@ still falling at the probe's end (its lowest point at or after ``still_falling``
 On the validation meshes, noise-free, it fell by 45-77 % with its lowest point at steps 48-49 of 50;
 at 30 dB (stated or not) by 0-14 %, lowest at steps 2-9, after which it rose as the surface took in the
 noise (refitted anyway, their Chamfer grew by 60-80 %). Then the refit proper runs from the start on
-every dip.
+every dip; it stops at the last surface before a step that folds a face over (its normal turned against
+the start's: a surface that intersects itself is no solid's), and a refit that ends no closer to the dips
+keeps the start.
 """
 
 from __future__ import annotations
@@ -152,17 +154,30 @@ class SurfaceRefit:
                 stop_bar(bar, "surface kept")
             else:
                 vertices = fit.start.clone()
-                for _step, _slabs in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
-                    pass
+                kept = vertices.clone()
+                for step, _slabs in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
+                    folded = fit.folded_faces(vertices)
+                    if folded:  # stop at the last surface without a fold: a folded one intersects itself
+                        record.update(folded_faces=folded, stopped_at_step=step - 1)
+                        log.warning("surface refit: step %d folded %d faces over (their normals turned round): "
+                                    "the refit stops at step %d", step, folded, step - 1)
+                        stop_bar(bar, "stopped before a fold")
+                        break
+                    kept = vertices.detach().clone()
+                vertices = kept
                 after = fit.residual(fit.slabs(vertices))
+                stopped = (f"; it stopped after step {record['stopped_at_step']} of {self.steps}, before a step that "
+                           f"folded {record['folded_faces']} faces over") if "folded_faces" in record else ""
                 if after < record["residual_before"]:
                     recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
                     record.update(applied=True, residual_after=after,
                                   reason=f"the held-out dips' misfit fell by {gain:.1%} in the probe and was still "
-                                         f"falling at its end (lowest at step {best_step} of {self.probe_steps})")
-                else:  # a fit that ends further from the dips than it began has gone wrong: keep the surface
-                    record["reason"] = (f"the refit ended further from the dips than it began (relative residual "
-                                        f"{record['residual_before']:.3g} -> {after:.3g}), so the surface is kept")
+                                         f"falling at its end (lowest at step {best_step} of {self.probe_steps})"
+                                         f"{stopped}")
+                else:  # a fit that ends no closer to the dips than it began has gone wrong: keep the surface
+                    record["reason"] = (f"the refit ended no closer to the dips than it began (relative residual "
+                                        f"{record['residual_before']:.3g} -> {after:.3g}){stopped}, so the surface "
+                                        "is kept")
                     log.warning("surface refit: %s", record["reason"])
         return self._finish(recon, mesh, record, started, measured_volume)
 
@@ -196,6 +211,7 @@ class _Fit:
                  directions: torch.Tensor, edges: torch.Tensor, smoothness: float) -> None:
         self.start = torch.tensor(mesh.vertices, dtype=torch.float64)
         self.faces = torch.tensor(mesh.faces, dtype=torch.long)
+        self.start_normals = self.normals(self.start)
         self.target, self.directions, self.edges = target.double(), directions.double(), edges.double()
         self.weight = torch.ones_like(self.target) if sigma is None else \
             sigma.double().clamp_min(SIGMA_FLOOR * float(sigma[sigma > 0].median())).pow(-2)
@@ -220,6 +236,17 @@ class _Fit:
         """Relative residual of ``slabs`` on every dip: the square root of :meth:`relative_misfit`."""
         return float(self.relative_misfit(slabs, torch.ones(len(self.directions), dtype=torch.bool))) ** 0.5
 
+    def normals(self, vertices: torch.Tensor) -> torch.Tensor:
+        """The faces' normals scaled by twice their areas ``(F, 3)``, mm^2."""
+        with torch.no_grad():
+            corners = vertices[self.faces]
+            return torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+    def folded_faces(self, vertices: torch.Tensor) -> int:
+        """How many faces of ``vertices`` have turned round against the start (their normal points against the
+        start's), where the surface has folded over and intersects itself."""
+        return int(((self.normals(vertices) * self.start_normals).sum(1) < 0).sum())
+
     def noise_ratio(self, slabs: torch.Tensor) -> float:
         """Mean over the slabs of ``(slabs - measured)^2 / sigma^2`` (a stated sigma; 1: the noise's own)."""
         return float((self.weight * (slabs - self.target).pow(2)).mean())
@@ -229,13 +256,15 @@ class _Fit:
         slab volumes of every dip (detached) of the vertices before that step: held-out dips cost no extra pass."""
         vertices.requires_grad_(True)
         optimiser = torch.optim.Adam([vertices], lr=lr)
-        for step in range(1, steps + 1):
-            optimiser.zero_grad()
-            slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
-            smooth = torch.sparse.mm(self.laplacian, vertices).pow(2).sum(1).mean()
-            (self.relative_misfit(slabs, dips) + self.smoothness * smooth).backward()
-            optimiser.step()
-            bar.update()
-            with torch.no_grad():
-                yield step, slabs.detach()
-        vertices.requires_grad_(False)
+        try:
+            for step in range(1, steps + 1):
+                optimiser.zero_grad()
+                slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
+                smooth = torch.sparse.mm(self.laplacian, vertices).pow(2).sum(1).mean()
+                (self.relative_misfit(slabs, dips) + self.smoothness * smooth).backward()
+                optimiser.step()
+                bar.update()
+                with torch.no_grad():
+                    yield step, slabs.detach()
+        finally:  # also when the caller stops early
+            vertices.requires_grad_(False)

@@ -80,8 +80,31 @@ def test_a_refit_that_ends_further_from_the_dips_keeps_the_surface_and_says_so(c
     wild = SurfaceRefit(lr=40.0, min_gain=0.0, still_falling=0.0, steps=20)  # steps of 40 mm: the mesh flies apart
     recon = wild.refit(ball_result(0.9 * RADIUS), slabs, None, directions, edges)
     assert recon.mesh is None and not recon.info["surface_refit"]["applied"]
-    assert "further from the dips" in recon.info["surface_refit"]["reason"]
-    assert "further from the dips" in caplog.text
+    assert "no closer to the dips" in recon.info["surface_refit"]["reason"]
+    assert "no closer to the dips" in caplog.text
+
+
+def folded(start, mesh) -> int:
+    """Faces of ``mesh`` whose normal points against the same face's in ``start`` (the same faces)."""
+    def normals(m):
+        corners = m.vertices[m.faces]
+        return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return int(((normals(start) * normals(mesh)).sum(1) < 0).sum())
+
+
+def test_a_refit_stops_before_a_step_that_folds_faces_over_and_exports_the_last_unfolded_surface(caplog):
+    """1 mm steps without smoothness fold faces of the ball's surface over within a few steps (a self-intersecting
+    surface, though closer to the dips): the refit keeps the last surface before the fold and says so."""
+    directions, edges, slabs = ball_problem()
+    start = ball_result(0.9 * RADIUS)
+    rough = SurfaceRefit(lr=1.0, smoothness=0.0, min_gain=0.0, still_falling=0.0)
+    recon = rough.refit(start, slabs, None, directions, edges)
+    record = recon.info["surface_refit"]
+    assert record["applied"] and record["folded_faces"] > 0 and 0 < record["stopped_at_step"] < rough.steps
+    assert folded(volume_surface(start.occupancy, GRID, 0.5), recon.mesh) == 0
+    assert record["residual_after"] < record["residual_before"] / 5
+    assert f"stopped after step {record['stopped_at_step']} of {rough.steps}" in record["reason"]
+    assert "folded" in caplog.text
 
 
 def test_too_few_dips_to_hold_out_and_2d_results_are_kept_with_the_reason():
