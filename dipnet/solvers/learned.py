@@ -214,6 +214,14 @@ class LearnedPrior(nn.Module):
         total = sum(self.denoiser(x.flip(dims)).flip(dims) for dims in _REFLECTIONS)
         return (total / len(_REFLECTIONS)).clamp(0, 1)
 
+    def anchor_at(self, occupancy: torch.Tensor) -> None:
+        """In ``anchor`` mode, take ``D(occupancy)`` as the anchor now, as the first call would: the optimisation
+        calls this with its stage's starting occupancy before a checkpoint moves the parameters on, so a resumed stage
+        keeps the uninterrupted one's anchor (``red`` mode: nothing to do)."""
+        if self.mode == "anchor":
+            self._check_grid(occupancy.ndim, occupancy.shape[-1])
+            self._denoised = self.denoise(occupancy)
+
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
         """``0.5 <o, o - D(o)> / N^3`` with gradient ``(o - D(o)) / N^3`` (``red``), or
         ``0.5 mean (o - D(o_0))^2`` (``anchor``)."""

@@ -387,6 +387,11 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
                                 float(op.directions.double().sum())], "options": plain(options or {})}
     first, ended = 0, False
     if checkpoint is not None:
+        with torch.no_grad():  # an anchored prior's anchor is of the stage's start, not of the restored state
+            start = occupancy()
+            for _, _, module in priors:
+                if hasattr(module, "anchor_at"):
+                    module.anchor_at(start)
         first, saved, ended = checkpoint.restore(desc, fingerprint, flat, opt, sched)
         history = saved or history
         if first and before_step is not None:
