@@ -52,7 +52,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.solvers.base import measured_profiles
+from dipnet.solvers.base import measured_profiles, measured_sigma
 from dipnet.solvers.minnorm import _dense_gram, operator_matrix
 
 log = logging.getLogger(__name__)
@@ -145,11 +145,13 @@ def fit_posterior(reconstruction: Reconstruction, measurement: DipMeasurement, o
 
 def misfit_variance(reconstruction: Reconstruction, measurement: DipMeasurement, operator: DipOperator) -> float:
     """Slab noise variance (mm^6) on the operator's slabs: the mean squared misfit of the binary
-    reconstruction, or the measurement's mean ``sigma^2`` if larger; never below a tiny floor."""
+    reconstruction, or the measurement's mean ``sigma^2`` on those slabs (:func:`~dipnet.solvers.base.measured_sigma`)
+    if larger; never below a tiny floor."""
     with torch.no_grad():
         predicted = operator(reconstruction.occupancy.detach().double().clamp(0.0, 1.0))
     misfit = float((predicted - measured_profiles(measurement, operator)).pow(2).mean())
-    stated = float(measurement.sigma.pow(2).mean()) if measurement.sigma is not None else 0.0
+    sigma = measured_sigma(measurement, operator)
+    stated = float(sigma.pow(2).mean()) if sigma is not None else 0.0
     return max(misfit, stated, (1e-6 * operator.grid.voxel_volume) ** 2)
 
 

@@ -7,11 +7,15 @@ import numpy as np
 import pytest
 import torch
 
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import Reach, fibonacci_hemisphere
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.evaluation.ensemble import profile_noise_std
 from dipnet.evaluation.uncertainty import (
     calibration_by_decile,
     fit_posterior,
+    misfit_variance,
     resample,
     support,
     sure_error_rate,
@@ -19,6 +23,7 @@ from dipnet.evaluation.uncertainty import (
     voxel_maps,
 )
 from dipnet.operators import make_operator
+from dipnet.shapes.procedural import generated_occupancy
 from dipnet.solvers.minnorm import MinNormSolver
 
 from planning_fixtures import box_problem as make_box_problem
@@ -120,3 +125,18 @@ def test_sure_error_rate_counts_the_wrong_calls_among_the_sure_voxels():
     assert sure_error_rate(p_wrong, binary, truth) == (0.25, 4, 1)
     rate, n_sure, n_wrong = sure_error_rate(np.full(binary.shape, 0.3), binary, truth)
     assert np.isnan(rate) and n_sure == n_wrong == 0
+
+
+def test_a_stated_sigma_on_thinner_slabs_than_the_operators_is_summed_onto_its_slabs():
+    """Dips measured on slabs half as thick as the operator's: each operator slab sums two measured ones, so its
+    stated noise variance is twice theirs. It was taken as theirs, which halved the ensemble's perturbation
+    variance (std 35 for a stated 50 mm^3 per measured slab)."""
+    grid, sigma = Grid(16, 3), 50.0
+    fine = make_operator(grid, fibonacci_hemisphere(6), 32)
+    operator = make_operator(grid, fibonacci_hemisphere(6), 16)
+    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
+    measurement = DipMeasurement(fine.directions, fine(truth), fine.slab_thickness, fine.slab_edges()[:1].expand(6),
+                                 sigma=torch.full((6, 32), sigma))
+    exact = Reconstruction(occupancy=truth.float(), grid=grid)
+    assert misfit_variance(exact, measurement, operator) == pytest.approx(2 * sigma**2)
+    assert profile_noise_std(exact, measurement, operator) == pytest.approx(sigma)
