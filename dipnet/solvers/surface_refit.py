@@ -27,6 +27,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import numbers
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
@@ -80,7 +81,7 @@ class SurfaceRefit:
                                    ("min_gain", "[0, 1)", lambda x: 0 <= x < 1),
                                    ("still_falling", "[0, 1]", lambda x: 0 <= x <= 1)):
             value = getattr(self, name)
-            if isinstance(value, (bool, str)) or not inside(float(value)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not inside(float(value)):
                 raise ValueError(f"surface_refit.{name} must be a number in {span}, got {value!r}")
 
     @classmethod

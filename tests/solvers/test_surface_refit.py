@@ -127,7 +127,8 @@ def test_evaluate_scores_the_refitted_mesh_when_there_is_one():
 
 
 @pytest.mark.parametrize("option, value", [("steps", 0), ("holdout_every", 1), ("lr", 0.0), ("smoothness", -1.0),
-                                           ("min_gain", 1.0), ("probe_steps", 2.5), ("still_falling", 1.5)])
+                                           ("min_gain", 1.0), ("probe_steps", 2.5), ("still_falling", 1.5),
+                                           ("lr", None), ("smoothness", [1e-4]), ("still_falling", {})])
 def test_bad_options_are_refused_by_name(option, value):
     with pytest.raises(ValueError, match=f"surface_refit.{option}"):
         SurfaceRefit(**{option: value})
