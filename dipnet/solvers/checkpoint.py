@@ -14,8 +14,8 @@ disk) removes its temporary file and warns; the solve goes on without that check
 Reading never runs code from the file (``torch.load(..., weights_only=True)``: tensors, numbers,
 strings, lists and dicts only) and checks what it read: the record's keys, the parameters'
 shapes and dtypes, the step count, and the problem it was made for (the fingerprint: step count,
-optimiser, parameter shapes, measured data, grid and operator, and the solver's options,
-:func:`solver_settings`). A checkpoint that cannot be read (truncated, empty, foreign bytes) or
+optimiser, parameter shapes, measured data, grid and operator, the bytes of the learned prior's weights, and the
+solver's options, :func:`solver_settings`). A checkpoint that cannot be read (truncated, empty, foreign bytes) or
 does not fit is ignored with one warning naming the file (and the options that differ, when
 those are what differs), and that stage starts afresh: a damaged checkpoint never blocks a rerun.
 
@@ -161,9 +161,12 @@ def _check_state(state, fingerprint: dict, params: list[torch.Tensor]) -> str | 
     recorded = state["fingerprint"]
     if recorded != fingerprint:
         same_problem = isinstance(recorded, dict) and set(recorded) == set(fingerprint) and all(
-            recorded[key] == value for key, value in fingerprint.items() if key != "options")
+            recorded[key] == value for key, value in fingerprint.items() if key not in ("options", "weights"))
         if not same_problem:
             return "it was made for another problem (grid, operator, measured data or solver settings differ)"
+        if recorded["weights"] != fingerprint["weights"]:
+            return (f"it was made with other learned-prior weights (sha256 of their files {recorded['weights']} -> "
+                    f"{fingerprint['weights']}: weights retrained under the same name?)")
         differences = _differences(recorded["options"], fingerprint["options"])
         return f"it was made with other solver options ({'; '.join(differences)} (recorded -> now))"
     saved, step, history = state["params"], state["step"], state["history"]

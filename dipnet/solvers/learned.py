@@ -31,6 +31,7 @@ wider band than the kept weights' plan give ``D`` inputs unlike its training one
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import math
 import numbers
@@ -43,7 +44,7 @@ from torch import nn
 
 from dipnet.core.orientations import Reach, fibonacci_hemisphere, unmeasured_band_deg
 from dipnet.solvers.base import checked_flag
-from dipnet.solvers.denoiser import PriorMismatchError, load_weights
+from dipnet.solvers.denoiser import PriorMismatchError, load_weights, weights_path
 
 #: Dips whose unmeasured band about the horizontal exceeds the training plan's by more than this (degrees) are
 #: warned about (:meth:`LearnedPrior.plan_warning`)
@@ -88,8 +89,8 @@ class LearnedPrior(nn.Module):
         if not names:
             raise ValueError("the learned prior's weights: an empty list; give a weights file or shipped name, "
                              "or a list of them")
-        self.candidates = [(name, *load_weights(name)) for name in names]
-        for _, denoiser, _ in self.candidates:
+        self.candidates = [(name, *load_weights(name), _digest(name)) for name in names]
+        for _, denoiser, _, _ in self.candidates:
             for p in denoiser.parameters():
                 p.requires_grad_(False)
         self._keep(0, None)
@@ -98,8 +99,8 @@ class LearnedPrior(nn.Module):
 
     def _keep(self, index: int, reason: str | None) -> None:
         """Use the candidate weights ``index``; :attr:`choice` records which and why (``reason`` ``None``: the only
-        ones given)."""
-        _, self.denoiser, self.meta = self.candidates[index]
+        ones given), :attr:`digest` the sha256 of their file's bytes (12 hex characters)."""
+        _, self.denoiser, self.meta, self.digest = self.candidates[index]
         self.n = int(self.meta["n"])
         self.choice = {"weights": self._name(index), "reason": reason}
 
@@ -111,7 +112,7 @@ class LearnedPrior(nn.Module):
         if len(self.candidates) < 2 or directions.ndim != 2 or directions.shape[1] != 3:
             return
         band = unmeasured_band_deg(directions)
-        bands = [_training_band_deg(meta) for _, _, meta in self.candidates]
+        bands = [_training_band_deg(meta) for _, _, meta, _ in self.candidates]
         index = min(range(len(bands)), key=lambda i: abs(bands[i] - band))
         others = ", ".join(f"{self._name(i)} {b:.0f}" for i, b in enumerate(bands) if i != index)
         reason = (f"the dips leave {band:.0f} deg about the horizontal unmeasured; the plan these weights were trained "
@@ -249,6 +250,12 @@ def object_fill(profiles: torch.Tensor, slab_thickness: float, radius: float, re
     last = p.shape[1] - 1 - full.flip(1).double().argmax(1)
     spans = (last - first + 1).double()[full.any(1)] * float(slab_thickness)
     return float(spans.max()) / (2.0 * float(radius))
+
+
+def _digest(weights: str | Path | None) -> str:
+    """The sha256 (12 hex characters) of the bytes of the weights file of ``weights`` (a path or shipped name): weights
+    retrained under the same name are other weights."""
+    return hashlib.sha256(weights_path(weights).read_bytes()).hexdigest()[:12]
 
 
 def _training_plan(meta: dict) -> tuple[int, float] | None:

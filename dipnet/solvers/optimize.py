@@ -384,7 +384,8 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
     fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [list(p.shape) for p in flat],
                    "target": float(data.target.double().sum()), "terms": list(history),
                    "operator": [type(op).__name__, *op.grid.shape, float(op.grid.extent), int(op.n_slabs),
-                                float(op.directions.double().sum())], "options": plain(options or {})}
+                                float(op.directions.double().sum())], "options": plain(options or {}),
+                   "weights": [module.digest for _, _, module in priors if hasattr(module, "digest")]}
     first, ended = 0, False
     if checkpoint is not None:
         with torch.no_grad():  # an anchored prior's anchor is of the stage's start, not of the restored state

@@ -458,3 +458,18 @@ def test_a_resumed_anchored_solve_keeps_the_anchor_of_its_start(weights16, tmp_p
     monkeypatch.setattr(Checkpoint, "save", save)
     resumed = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=5), **opts).solve(m, op)
     torch.testing.assert_close(resumed.occupancy, uninterrupted.occupancy, atol=1e-6, rtol=0)
+
+
+def test_a_checkpoint_made_with_other_weights_under_the_same_name_is_not_resumed(tmp_path):
+    """Weights retrained into the same file (``outputs/prior/denoiser64.pt``) are other weights: a checkpoint of a
+    solve with the former ones was resumed, its stages kept, as if the solve had used the new ones."""
+    op, m = small_problem()
+    weights = tmp_path / "w.pt"
+    save_weights(perturbed_denoiser(0.2), weights, {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    priors = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    opts = dict(iterations=6, coarse_to_fine=False, progress=False, priors=priors, tol=0)
+    VoxelSolver(checkpoint=Checkpoint(tmp_path / "ck", every=3), **opts).solve(m, op)
+    save_weights(perturbed_denoiser(0.2, seed=1), weights, {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    with pytest.warns(UserWarning, match="made with other learned-prior weights"):
+        rerun = VoxelSolver(checkpoint=Checkpoint(tmp_path / "ck", every=3), **opts).solve(m, op)
+    torch.testing.assert_close(rerun.occupancy, VoxelSolver(**opts).solve(m, op).occupancy, atol=1e-6, rtol=0)
