@@ -17,9 +17,10 @@ still falling at the probe's end (its lowest point at or after ``still_falling``
 On the validation meshes, noise-free, it fell by 45-77 % with its lowest point at steps 48-49 of 50;
 at 30 dB (stated or not) by 0-14 %, lowest at steps 2-9, after which it rose as the surface took in the
 noise (refitted anyway, their Chamfer grew by 60-80 %). Then the refit proper runs from the start on
-every dip; it stops at the last surface before a step that folds a face over (its normal turned against
-the start's: a surface that intersects itself is no solid's), and a refit that ends no closer to the dips
-keeps the start.
+every dip; when its last step leaves a face folded over (its normal turned against the start's: a surface
+that intersects itself is no solid's), the last surface without a fold is taken (a fold may come and go
+on the way: on bracket_B66 one face folded at steps 5-14 of 150), and a refit that ends no closer to the
+dips keeps the start.
 """
 
 from __future__ import annotations
@@ -155,20 +156,19 @@ class SurfaceRefit:
                 stop_bar(bar, "surface kept")
             else:
                 vertices = fit.start.clone()
-                kept = vertices.clone()
+                kept, kept_step = vertices.clone(), 0
                 for step, _slabs in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
-                    folded = fit.folded_faces(vertices)
-                    if folded:  # stop at the last surface without a fold: a folded one intersects itself
-                        record.update(folded_faces=folded, stopped_at_step=step - 1)
-                        log.warning("surface refit: step %d folded %d faces over (their normals turned round): "
-                                    "the refit stops at step %d", step, folded, step - 1)
-                        stop_bar(bar, "stopped before a fold")
-                        break
-                    kept = vertices.detach().clone()
+                    if not fit.folded_faces(vertices):  # a fold may come and go: the last surface without one
+                        kept, kept_step = vertices.detach().clone(), step
+                folded = fit.folded_faces(vertices)
+                if folded:  # a folded surface intersects itself: the last one without a fold is the refit's
+                    record.update(folded_faces=folded, kept_step=kept_step)
+                    log.warning("surface refit: the last step left %d faces folded over (their normals turned "
+                                "round): the surface of step %d, the last without a fold, is taken", folded, kept_step)
                 vertices = kept
                 after = fit.residual(fit.slabs(vertices))
-                stopped = (f"; it stopped after step {record['stopped_at_step']} of {self.steps}, before a step that "
-                           f"folded {record['folded_faces']} faces over") if "folded_faces" in record else ""
+                stopped = (f"; its last step left {folded} faces folded over, so the surface of step {kept_step} of "
+                           f"{self.steps}, the last without a fold, is taken") if folded else ""
                 if after < record["residual_before"]:
                     recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
                     record.update(applied=True, residual_after=after,

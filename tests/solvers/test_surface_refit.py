@@ -92,19 +92,25 @@ def folded(start, mesh) -> int:
     return int(((normals(start) * normals(mesh)).sum(1) < 0).sum())
 
 
-def test_a_refit_stops_before_a_step_that_folds_faces_over_and_exports_the_last_unfolded_surface(caplog):
-    """1 mm steps without smoothness fold faces of the ball's surface over within a few steps (a self-intersecting
-    surface, though closer to the dips): the refit keeps the last surface before the fold and says so."""
+def test_a_refit_whose_last_step_leaves_faces_folded_over_exports_the_last_unfolded_surface(caplog):
+    """1 mm steps without smoothness fold faces of the ball's surface over (a self-intersecting surface, though
+    closer to the dips): the refit takes the last surface without a fold and says so."""
     directions, edges, slabs = ball_problem()
     start = ball_result(0.9 * RADIUS)
     rough = SurfaceRefit(lr=1.0, smoothness=0.0, min_gain=0.0, still_falling=0.0)
     recon = rough.refit(start, slabs, None, directions, edges)
     record = recon.info["surface_refit"]
-    assert record["applied"] and record["folded_faces"] > 0 and 0 < record["stopped_at_step"] < rough.steps
+    assert record["applied"] and record["folded_faces"] > 0 and 0 < record["kept_step"] < rough.steps
     assert folded(volume_surface(start.occupancy, GRID, 0.5), recon.mesh) == 0
     assert record["residual_after"] < record["residual_before"] / 5
-    assert f"stopped after step {record['stopped_at_step']} of {rough.steps}" in record["reason"]
-    assert "folded" in caplog.text
+    assert f"the surface of step {record['kept_step']} of {rough.steps}" in record["reason"]
+    assert "folded over" in caplog.text
+
+
+def test_the_default_refit_of_a_ball_folds_nothing():
+    directions, edges, slabs = ball_problem()
+    recon = SurfaceRefit().refit(ball_result(0.9 * RADIUS), slabs, None, directions, edges)
+    assert recon.info["surface_refit"]["applied"] and "folded_faces" not in recon.info["surface_refit"]
 
 
 def test_too_few_dips_to_hold_out_and_2d_results_are_kept_with_the_reason():
