@@ -101,6 +101,8 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     grid = build_grid(cfg, shape, source)
     factory = instantiate(cfg.operator)
     options = acquisition_options(cfg, grid, shape, factory)
+    if hasattr(options["solver"], "check_grid"):  # weights made for another grid: refused before any dip
+        options["solver"].check_grid(grid, options["n_slabs"])
     calibration = instantiate(cfg.calibration) if cfg.get("calibration") else None
     if calibration is None:
         acquired = source.measure(**options)

@@ -131,13 +131,22 @@ class LearnedPrior(nn.Module):
             PriorMismatchError: another dimension, resolution or slab spacing.
         """
         self.select_for(operator.directions)
-        grid = operator.grid
-        self._check_grid(grid.ndim, grid.n)
+        self.check_grid(operator.grid.ndim, operator.grid.n, operator.n_slabs)
+
+    def check_grid(self, ndim: int, n: int, n_slabs: int) -> None:
+        """Refuse a grid of ``n`` voxels per axis in ``ndim`` dimensions with ``n_slabs`` slabs per profile that
+        the weights were not trained for: the check of :meth:`check_operator` without an operator, which a job
+        makes before it simulates or reads any dip.
+
+        Raises:
+            PriorMismatchError: another dimension, resolution or slab spacing.
+        """
+        self._check_grid(ndim, n)
         slabs = float(self.meta["n_slabs_per_voxel"]) * self.n  # a coarse stage keeps the fine grid's slabs
-        if abs(operator.n_slabs - slabs) > 1e-9:
+        if abs(n_slabs - slabs) > 1e-9:
             raise PriorMismatchError(
                 f"the learned prior's weights were trained with {slabs:g} slabs on a {self.n}^3 grid, the operator "
-                f"has {operator.n_slabs} slabs on a {grid.n}^{grid.ndim} grid: train weights for it "
+                f"has {n_slabs} slabs on a {n}^{ndim} grid: train weights for it "
                 "(scripts/train_prior.py) or drop the learned prior")
 
     def plan_warning(self, directions: torch.Tensor) -> str | None:

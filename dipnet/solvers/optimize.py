@@ -612,6 +612,21 @@ class OptimisationSolver(Solver):
         """Every priors spec a solve uses: :attr:`priors` (the voxel solver adds its later rounds')."""
         return [self.priors]
 
+    def check_grid(self, grid: Grid, n_slabs: int) -> None:
+        """Refuse ``grid`` with ``n_slabs`` slabs per profile when a prior of any of :meth:`prior_specs`, or of a
+        warm-start solver's, was made for another (the learned prior's weights): what :meth:`check_priors` refuses
+        of an operator on that grid, checked by a job before it simulates or reads any dip.
+
+        Raises:
+            PriorMismatchError: see :meth:`~dipnet.solvers.learned.LearnedPrior.check_grid`.
+        """
+        for spec in self.prior_specs():
+            for _, _, module in build_priors(with_weight(spec, self.weight_rule.start), 1.0):
+                if hasattr(module, "check_grid"):
+                    module.check_grid(grid.ndim, grid.n, n_slabs)
+        if hasattr(self.warm_start, "check_grid"):
+            self.warm_start.check_grid(grid, n_slabs)
+
     def check_priors(self, operator: DipOperator, measurement: DipMeasurement | None = None) -> None:
         """Refuse ``operator`` when a prior of any of :meth:`prior_specs` was made for another grid or operator
         (the learned prior's weights), before a warm start or a first round spends minutes on it; warn once of

@@ -16,6 +16,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.jobs.pipeline import run, saved_frame, write_outputs
+from dipnet.solvers.denoiser import PriorMismatchError
 
 from planning_fixtures import reconstruct_cfg, tilt_spin
 
@@ -389,3 +390,17 @@ def test_a_job_killed_while_writing_its_meshes_and_figures_is_not_called_finishe
     with pytest.raises(KeyboardInterrupt):
         run(_cfg("resolution=16", "n_dips=12", "output.uncertainty=false", "output.resolvability=false"), tmp_path)
     assert not (tmp_path / "metrics.json").exists() and load_run(tmp_path).status == "unfinished"
+
+
+@pytest.mark.parametrize("overrides,match", [
+    (["solver=voxel_learned", "resolution=16"], r"64\^3 grid"),
+    (["solver=implicit_learned", "resolution=16"], r"64\^3 grid"),  # through its voxel_learned warm start too
+    (["solver=voxel_learned", "ndim=2", "resolution=16"], "2D"),
+    (["solver=voxel_learned", "resolution=64", "n_slabs=32"], "slabs"),
+])
+def test_a_grid_the_learned_weights_do_not_fit_is_refused_before_any_dip(tmp_path, overrides, match):
+    # the refusal came after the dips were simulated (seconds to minutes) and measurement.npz / rawscan.jsonl written
+    with pytest.raises(PriorMismatchError, match=match):
+        run(_cfg(*overrides, "n_dips=8", "output.figures=false"), tmp_path)
+    assert not (tmp_path / "measurement.npz").exists()
+    assert not (tmp_path / "rawscan.jsonl").exists()
