@@ -50,8 +50,9 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
      "the recording fixes the dips, their directions, their noise and the object"),
     ("planner=adaptive", lambda cfg: instantiates(cfg, "planner", AdaptivePlan), ("n_dips", "orientations"),
      "the planner chooses the dips: set planner.budget"),
-    ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("reach", "output.mesh_formats"),
-     "a reach is the 3D rig's tilt and spin range; 2D dips are angles in the plane, set by n_dips and orientations; "
+    ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("reach",),
+     "a reach is the 3D rig's tilt and spin range; 2D dips are angles in the plane, set by n_dips and orientations"),
+    ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("output.mesh_formats",),
      "a 2D job writes no mesh: its shape is in reconstruction.npz and slices.png"),
     ("ndim=3", lambda cfg: cfg.get("ndim") == 3, ("shape.axis",),
      "the axis a mesh is projected along makes its 2D silhouette, for ndim=2"),

@@ -174,6 +174,19 @@ def test_an_option_the_dimension_ignores_is_refused(overrides, message, fine):
         check_config(cfg, overrides, ["reach", "shape"])
 
 
+@pytest.mark.parametrize("overrides,says,not_about", [
+    (["ndim=2", "output.mesh_formats=[stl]"], "writes no mesh", "reach"),
+    (["ndim=2", "reach=authors_rig"], "tilt and spin range", "mesh"),
+])
+def test_a_2d_refusal_gives_the_reason_of_the_option_refused_only(overrides, says, not_about):
+    # the refusal of output.mesh_formats with ndim=2 explained what a reach is, and the reach's what a 2D job writes
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    with pytest.raises(ConfigError, match=says) as refused:
+        check_config(cfg, overrides, ["reach", "shape"])
+    assert not_about not in str(refused.value).split("(", 1)[1]
+
+
 @pytest.mark.parametrize("overrides", [["solver.threshold=0.3"], ["solver=voxel_learned"], ["solver=implicit_learned"],
                                        ["symmetry={n_fold:3,mirror:true,mirror_azimuth_deg:-30,tol_deg:0}"],
                                        ["calibration=self", "calibration.dip_offset_sigma_mm=0.5"],
