@@ -309,14 +309,14 @@ def solve_row(args, grid: Grid, options: dict, task: tuple) -> dict:
         recon = SOLVERS[name](progress=False, **options.get(name, {})).solve(measurement, operator)
     seconds = time.perf_counter() - t0
     scores = evaluate(recon, truth, grid, truth_mesh=shape.mesh)
-    rule = recon.info.get("weight_rule") or {}
+    rule, refit = recon.info.get("weight_rule") or {}, recon.info.get("surface_refit") or {}
     verdict = None if name == "truth" else check_consistency(measurement, operator, recon, warn=False).verdict
     return {"mesh": label, "set": kind, "dips": k, "noise": noise, "solver": name, "seconds": seconds,
             **{key: scores[key] for key in ("iou", "chamfer", "hausdorff", "volume_error")},
             "tv_weight": (recon.info.get("prior_weights") or {}).get("tv"),
             "weight_rule": rule.get("rule"), "residual_reached": rule.get("residual_reached"),
             "target_residual": rule.get("target_residual"), "verdict": verdict,
-            "surface_refit": (recon.info.get("surface_refit") or {}).get("applied")}
+            "surface_refit": refit.get("applied"), "surface_folded": refit.get("folded_faces", 0)}
 
 
 def solved_rows(args, grid: Grid, options: dict, tasks: list[tuple]) -> Iterator[dict]:
