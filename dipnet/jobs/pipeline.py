@@ -272,18 +272,20 @@ def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> N
         write_json(out / "planning.json", planning, indent=2)
 
 
-def run_overrides() -> dict[str, list[str]]:
-    """``{"overrides": the job's command-line overrides}`` in a Hydra run (``scripts/reconstruct.py``, a sweep
-    job), as typed (``n_slabs=${resolution}`` unresolved, as in ``.hydra/overrides.yaml``), else ``{}``: whose
-    metrics ``metrics.json`` holds. A later run into the same folder rewrites ``.hydra/overrides.yaml`` as it
-    starts and ``metrics.json`` only when it finishes (:func:`dipnet.experiments.collect.earlier_metrics`).
-    Outside Hydra (the compose API of ``tune.py``, which writes the trial's ``.hydra/`` itself) there is no
+def run_overrides() -> dict[str, Any]:
+    """``{"overrides": the job's command-line overrides, "solver_config": the solver config chosen}`` in a Hydra run
+    (``scripts/reconstruct.py``, a sweep job), the overrides as typed (``n_slabs=${resolution}`` unresolved, as in
+    ``.hydra/overrides.yaml``), else ``{}``: whose metrics ``metrics.json`` holds, and by which recipe (``solver``
+    names the solver's class: ``voxel`` for ``solver=voxel_learned``). A later run into the same folder rewrites
+    ``.hydra/overrides.yaml`` as it starts and ``metrics.json`` only when it finishes
+    (:func:`dipnet.experiments.collect.earlier_metrics`). Outside Hydra (the compose API of ``tune.py``, which writes the trial's ``.hydra/`` itself) there is no
     record to compare with."""
     from hydra.core.hydra_config import HydraConfig
 
     if not HydraConfig.initialized():
         return {}
-    return {"overrides": [str(o) for o in OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)]}
+    return {"overrides": [str(o) for o in OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)],
+            "solver_config": HydraConfig.get().runtime.choices.get("solver")}
 
 
 #: The keys of a mesh file's frame in ``metrics.json`` and in the metadata of the job's ``measurement.npz``

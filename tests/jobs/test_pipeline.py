@@ -269,6 +269,7 @@ def test_a_run_into_the_folder_of_an_earlier_run_names_the_files_it_did_not_writ
     written = json.loads((tmp_path / "metrics.json").read_text())["overrides"]
     assert written == OmegaConf.to_container(OmegaConf.load(tmp_path / ".hydra" / "overrides.yaml"), resolve=False)
     assert "source=recorded" in written and "n_slabs=${resolution}" in written
+    assert json.loads((tmp_path / "metrics.json").read_text())["solver_config"] == "minnorm"  # conf/solver/<this>.yaml
     assert collect.load_run(tmp_path).status == "ok"
 
 
