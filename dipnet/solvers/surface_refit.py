@@ -162,7 +162,7 @@ class SurfaceRefit:
                 vertices = fit.start.clone()
                 for _step, _slabs in fit.descend(vertices, torch.ones_like(held), self.steps, self.lr, bar):
                     pass
-                folded = fit.folded_faces(vertices)  # a fold may come and go on the way: the last step's counts
+                folded = int(fit.folded(vertices).sum())  # a fold may come and go on the way: the last step's counts
                 if folded:
                     passes, left = fit.unfold(vertices, self.unfold_passes)
                     record.update(folded_faces=folded, unfolded_in=passes, folded_left=left)
@@ -250,17 +250,17 @@ class _Fit:
             corners = vertices[self.faces]
             return torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
 
-    def folded_faces(self, vertices: torch.Tensor) -> int:
-        """How many faces of ``vertices`` have turned round against the start (their normal points against the
-        start's), where the surface has folded over and intersects itself."""
-        return int(((self.normals(vertices) * self.start_normals).sum(1) < 0).sum())
+    def folded(self, vertices: torch.Tensor) -> torch.Tensor:
+        """Which faces of ``vertices`` have turned round against the start (their normal points against the
+        start's), where the surface has folded over and intersects itself: bool ``(F,)``."""
+        return (self.normals(vertices) * self.start_normals).sum(1) < 0
 
     def unfold(self, vertices: torch.Tensor, passes: int) -> tuple[int, int]:
-        """Move the corners of folded faces (:meth:`folded_faces`) of ``vertices`` (in place) to the mean of their
+        """Move the corners of folded faces (:meth:`folded`) of ``vertices`` (in place) to the mean of their
         neighbours, pass by pass, until none is folded or ``passes`` are done: ``(passes done, faces still folded)``."""
         with torch.no_grad():
             for done in range(passes + 1):
-                folded = (self.normals(vertices) * self.start_normals).sum(1) < 0
+                folded = self.folded(vertices)
                 if done == passes or not bool(folded.any()):
                     return done, int(folded.sum())
                 corners = torch.unique(self.faces[folded])
@@ -275,15 +275,13 @@ class _Fit:
         slab volumes of every dip (detached) of the vertices before that step: held-out dips cost no extra pass."""
         vertices.requires_grad_(True)
         optimiser = torch.optim.Adam([vertices], lr=lr)
-        try:
-            for step in range(1, steps + 1):
-                optimiser.zero_grad()
-                slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
-                smooth = torch.sparse.mm(self.laplacian, vertices).pow(2).sum(1).mean()
-                (self.relative_misfit(slabs, dips) + self.smoothness * smooth).backward()
-                optimiser.step()
-                bar.update()
-                with torch.no_grad():
-                    yield step, slabs.detach()
-        finally:  # also when the caller stops early
-            vertices.requires_grad_(False)
+        for step in range(1, steps + 1):
+            optimiser.zero_grad()
+            slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
+            smooth = torch.sparse.mm(self.laplacian, vertices).pow(2).sum(1).mean()
+            (self.relative_misfit(slabs, dips) + self.smoothness * smooth).backward()
+            optimiser.step()
+            bar.update()
+            with torch.no_grad():
+                yield step, slabs.detach()
+        vertices.requires_grad_(False)
