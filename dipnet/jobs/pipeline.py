@@ -278,8 +278,8 @@ def run_overrides() -> dict[str, Any]:
     ``.hydra/overrides.yaml``), else ``{}``: whose metrics ``metrics.json`` holds, and by which recipe (``solver``
     names the solver's class: ``voxel`` for ``solver=voxel_learned``). A later run into the same folder rewrites
     ``.hydra/overrides.yaml`` as it starts and ``metrics.json`` only when it finishes
-    (:func:`dipnet.experiments.collect.earlier_metrics`). Outside Hydra (the compose API of ``tune.py``, which writes the trial's ``.hydra/`` itself) there is no
-    record to compare with."""
+    (:func:`dipnet.experiments.collect.earlier_metrics`). Outside Hydra (the compose API of ``tune.py``, which
+    writes the trial's ``.hydra/`` itself) there is no record to compare with."""
     from hydra.core.hydra_config import HydraConfig
 
     if not HydraConfig.initialized():
