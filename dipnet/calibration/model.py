@@ -186,7 +186,8 @@ class ProfileModel:
     """
 
     def __init__(self, raw: RawScan, grid: Grid, n_slabs: int | None = None,
-                 operator_factory: Callable | None = None, smooth: bool = False, finish: Callable[[DipMeasurement], DipMeasurement] | None = None,
+                 operator_factory: Callable | None = None, smooth: bool = False,
+                 finish: Callable[[DipMeasurement], DipMeasurement] | None = None,
                  drift_mm_per_s: float = 0.0) -> None:
         self.n_slabs = grid.n if n_slabs is None else int(n_slabs)
         self.raw, self.readings = repair_without_drift(raw, drift_mm_per_s,  # once, not per trial
@@ -380,7 +381,8 @@ def identifiability(model: ProfileModel, occupancy: torch.Tensor, state: State, 
         elif not se[i] <= tol:
             j = max((j for j in range(len(names)) if j != i), key=lambda j: abs(corr[i, j]), default=None)
             partner = "" if j is None else \
-                f"; degenerate with {names[j]} ({GAUGES.get(names[j], 'a rig parameter')}, correlation {corr[i, j]:+.3f})"
+                f"; degenerate with {names[j]} ({GAUGES.get(names[j], 'a rig parameter')}, " \
+                f"correlation {corr[i, j]:+.3f})"
             report.undetermined[name] = f"standard error {se[i]:.3g} > {tol:.3g}{partner}"
     return report
 
@@ -403,7 +405,8 @@ def _warn_undetermined(report: CalibrationReport, what: str) -> None:
         warnings.warn(message, stacklevel=3)
 
 
-def to_calibration(geometry: RigGeometry, report: CalibrationReport, rig: str, tank: str, notes: str = "") -> Calibration:
+def to_calibration(geometry: RigGeometry, report: CalibrationReport, rig: str, tank: str,
+                   notes: str = "") -> Calibration:
     """The calibration file's record of a result: estimates with their intervals; every other field
     listed under ``not_estimated`` with the reason (never a configured value labelled an estimate)."""
     fields = [f for f in geometry.to_dict() if f != "cross_section_mm2" or geometry.cross_section_mm2 is not None

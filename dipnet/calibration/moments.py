@@ -178,7 +178,8 @@ def fit_drift(raw: RawScan, bootstrap: int = BOOTSTRAP, seed: int = 0) -> tuple[
         if np.ptp(t[rows]) > 0:
             draws.append(_robust_slope(t[rows], y[rows]))
     half = 1.645 * _slope_standard_error(t, y, slope)
-    return slope, (float(min(np.percentile(draws, 5), slope - half)), float(max(np.percentile(draws, 95), slope + half)))
+    return slope, (float(min(np.percentile(draws, 5), slope - half)),
+                   float(max(np.percentile(draws, 95), slope + half)))
 
 
 def _slope_standard_error(t: np.ndarray, y: np.ndarray, slope: float) -> float:
@@ -506,7 +507,8 @@ class MomentModel:
         self.priors = {n: float(sd) for n, sd in (priors or {}).items() if sd > 0} if known is not None else {}
         unknown = set(self.priors) - set(NUISANCES)
         if unknown or set(self.priors) & set(linear_free):
-            raise ValueError(f"priors are for the nuisances {list(NUISANCES)} not fitted otherwise, got {sorted(self.priors)}")
+            raise ValueError(f"priors are for the nuisances {list(NUISANCES)} not fitted otherwise, "
+                             f"got {sorted(self.priors)}")
         self.weights = (1.0, 1.0)
         self.prior_residual = np.zeros(0)  # the priors' residuals at the last solve, in the units of r1
 
@@ -658,7 +660,8 @@ def confounded_heights(moments: DipMoments, free: tuple[str, ...], *, known: Kno
         norm = float(np.linalg.norm(column))
         if not norm > 0 or float(np.linalg.norm(left)) <= CONFOUNDED * norm:
             out[name] = (f"the dips' first moments cannot tell it from the other unknowns (the pivot, the tilt-axis "
-                         f"offset, the start height{', the object' + chr(39) + 's position' if known is None else ''}): "
+                         f"offset, the start height"
+                         f"{', the object' + chr(39) + 's position' if known is None else ''}): "
                          f"{len(tilts)} distinct tilt(s) ({', '.join(f'{t:g}' for t in tilts[:6])}"
                          f"{', ...' if len(tilts) > 6 else ''} deg) and {len(spins)} spin(s) leave any split of the "
                          "heights among them as good, and a bootstrap over the same tilts repeats one; dip at three or "

@@ -122,11 +122,11 @@ def _fit_moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, kno
     ``kind`` is ``"self"`` (unknown object: spin zero and step scale are gauges, never fitted) or
     ``"reference"`` (``known`` moments; ``t0_sd_mm`` and ``position_sd_mm``: how well the start height and the
     object's mounting are known, see :func:`fit_moments`). ``section_sd``: how well a balance's tank section is
-    known (relative standard deviation, :func:`~dipnet.calibration.moments.dip_moments`). The parameters the dips do not pin to their
-    tolerance are settled by :func:`_hold_undetermined`; the others are refitted around them, their intervals widened to the joint
-    fit's. Returns the state (its ``t0_mm`` the reference object's fitted start height: for its profile check
-    only, never part of the geometry), the report and the dips' moments (drift removed:
-    their rises give a reference object's cross-section).
+    known (relative standard deviation, :func:`~dipnet.calibration.moments.dip_moments`). The parameters the dips do not
+    pin to their tolerance are settled by :func:`_hold_undetermined`; the others are refitted around them, their
+    intervals widened to the joint fit's. Returns the state (its ``t0_mm`` the reference object's fitted start height:
+    for its profile check only, never part of the geometry), the report and the dips' moments (drift removed: their
+    rises give a reference object's cross-section).
     """
     geometry = initial
     report = CalibrationReport(estimates={}, standard_errors={}, correlations={},
@@ -217,7 +217,8 @@ def _fit_moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, kno
 #: range +-5 %). An estimate the dips know less well is shrunk toward the configured value by this prior
 #: (:func:`_hold_undetermined`).
 CONFIGURED_SD = {"pivot_mm": 60 / math.sqrt(3), "tilt_axis_offset_mm": 40 / math.sqrt(3),
-                 "tilt_zero_deg": 5 / math.sqrt(3), "spin_zero_deg": 5 / math.sqrt(3), "step_scale": 0.05 / math.sqrt(3)}
+                 "tilt_zero_deg": 5 / math.sqrt(3), "spin_zero_deg": 5 / math.sqrt(3),
+                 "step_scale": 0.05 / math.sqrt(3)}
 
 
 def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fixed: dict[str, float], kind: str,
@@ -231,9 +232,9 @@ def _hold_undetermined(joint, moments: DipMoments, known: KnownObject | None, fi
     :data:`CONFIGURED_SD`; the data's sd the largest of the bootstrap's, the joint fit's (a parameter held in a
     later round was refitted around the ones held before it, whose errors it absorbs: a 10 mm bunny's pivot came
     out 52.9 mm, interval [49.9, 55.7], after its offset was held, for a true 30; the joint fit's interval
-    [28.0, 77.6]) and, for the nonlinear ones, ``tolerance / sqrt(profile rise)``). When the data carry less than half the weight, or the estimate
-    reached the edge of its search range, it is held at the configured value and named ``undetermined``;
-    else it is estimated: ``held[name] = (value, 90% interval, sd)``, named in ``caveats``.
+    [28.0, 77.6]) and, for the nonlinear ones, ``tolerance / sqrt(profile rise)``). When the data carry less than half
+    the weight, or the estimate reached the edge of its search range, it is held at the configured value and named
+    ``undetermined``; else it is estimated: ``held[name] = (value, 90% interval, sd)``, named in ``caveats``.
 
     The refits fit the reference's start height and mounting with their priors as the joint fit does
     (``t0_sd_mm``, ``position_sd_mm``): a held tilt zero cannot absorb a height error, which would otherwise
@@ -379,7 +380,8 @@ def balance_section_note(section_tolerance: float | None, reference: bool = True
     else:
         known = f"sd {100 * section_tolerance / 1.645:.2g} %: the given tolerance +-{100 * section_tolerance:.3g} %"
     return ("not estimated: a balance reads the displaced volume, which needs no section; the water line's rise "
-            f"(volume over section) uses the configured one, and the other parameters' intervals carry its error ({known})")
+            f"(volume over section) uses the configured one, and the other parameters' intervals carry its error "
+            f"({known})")
 
 
 #: A tolerance of the section at or above this is taken for a percentage (20 meant as 20 %).
@@ -498,8 +500,9 @@ def noise_residual(model: ProfileModel, state: State, seed: int = 0) -> float:
     return float(np.linalg.norm(again.profiles.numpy().reshape(-1) - measured) / max(np.linalg.norm(measured), 1e-300))
 
 
-def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *, initial: RigGeometry | None = None,
-                        n_slabs: int | None = None, operator_factory: Callable | None = None, supersample: int = 3,
+def calibrate_reference(raw: RawScan, shape, grid: Grid, params=DEFAULT_REFERENCE, *,
+                        initial: RigGeometry | None = None, n_slabs: int | None = None,
+                        operator_factory: Callable | None = None, supersample: int = 3,
                         max_relative_residual: float = 0.05, start_height_tolerance_mm: float = 0.5,
                         position_tolerance_mm: float = 0.5, section_tolerance: float | None = None,
                         seed: int = 0) -> tuple[RigGeometry, CalibrationReport]:

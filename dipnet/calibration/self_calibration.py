@@ -83,8 +83,8 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
        off the tank's with an interval that missed it): the shape step (``gain_solver`` or ``solver``
        with ``fit_gain``) fits one gain ``a`` on every predicted volume together with the shape;
        the calibrated cross-section is ``assumed / a``, corrected for the field's volume deficit in
-       partly filled voxels (:func:`~dipnet.calibration.model.self_section_bias`). Fitted jointly, the gain and the shape's
-       size compete through the profiles' *shapes* (a dilated object widens every profile, a gain
+       partly filled voxels (:func:`~dipnet.calibration.model.self_section_bias`). Fitted jointly, the gain and the
+       shape's size compete through the profiles' *shapes* (a dilated object widens every profile, a gain
        only scales it; a nearly binary interior cannot exceed 1). Its interval is widened by the
        shape prior's bias (:data:`SELF_SECTION_FLOOR`). With ``dip_offset_sigma_mm`` a geometry
        step then fits per-dip height offsets to that shape. ``iterations`` such rounds.
@@ -168,7 +168,8 @@ def self_calibrate(raw: RawScan, grid: Grid, solver, params=DEFAULT_SELF, *, n_s
             state, sigma = fit_geometry(model, occupancy, state, ("t0_mm",), dip_offset_sigma_mm=dip_offset_sigma_mm,
                                         sigma=sigma, max_nfev=max_nfev)
         history.append({"stage": f"shape {it}", "gain": gain, "partial_volume": partial,
-                        "interior_density": density, "interior_share": interior, "section_bias": 0.0 if diluted else self_section_bias(partial),
+                        "interior_density": density, "interior_share": interior,
+                        "section_bias": 0.0 if diluted else self_section_bias(partial),
                         **{p: _get(state, p, model.nominal_area) for p in params}})
         it += 1
     if volume_params and diluted and implausible is None:
@@ -288,11 +289,13 @@ def _section_report(report: CalibrationReport, model: ProfileModel, state: State
     report.caveats["cross_section_mm2"] = (
         f"estimated through the shape prior (a nearly binary shape cannot be denser than 1), its interval widened by "
         f"{model_error:.1%} for the prior's bias ({partial:.0%} of the shape's volume in partly filled voxels"
-        f"{cone_note}); at the configured step scale ({initial.step_scale:g}): with a true step scale s times the configured one "
+        f"{cone_note}); at the configured step scale ({initial.step_scale:g}): with a true step scale s times the "
+        "configured one "
         "the scene is 1/s times its true size and the true section s^3 times this one; for the section and the "
         "step scale, calibrate with a reference object")
     low, high = report.intervals["cross_section_mm2"]
-    too_wide = (f"its 90% interval is +-{(high - low) / 2 / section:.1%}, wider than {TOLERANCE['cross_section_mm2']:.0%}: "
+    too_wide = (f"its 90% interval is +-{(high - low) / 2 / section:.1%}, "
+                f"wider than {TOLERANCE['cross_section_mm2']:.0%}: "
                 f"{partial:.0%} of the shape's volume sits in partly filled voxels (thin parts the grid does not "
                 "resolve), whose density the gain trades against" +
                 (f", and no dip reaches the {cone:.0f} deg about the horizontal plane, into which the shape prior "

@@ -1,4 +1,5 @@
-"""The vocabulary every room shares: grid, orientations, rig geometry, and the file formats (raw scans, measurements, calibrations).
+"""The vocabulary every room shares: grid, orientations, rig geometry, and the file formats (raw scans, measurements,
+calibrations).
 
 Imports no other dipnet room.
 """

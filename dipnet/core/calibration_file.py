@@ -115,7 +115,8 @@ def save_calibration(calibration: Calibration, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = calibration.to_dict()
-    text = strict_json.dumps(data, indent=2) if path.suffix.lower() == ".json" else yaml.safe_dump(data, sort_keys=False)
+    text = strict_json.dumps(data, indent=2) if path.suffix.lower() == ".json" \
+        else yaml.safe_dump(data, sort_keys=False)
     path.write_text(text)
     return path
 
@@ -182,7 +183,8 @@ def _missing_keys(data: dict[str, Any]) -> list[str]:
     if data["version"] == 1:
         return []
     required = {f.name for f in fields(RigGeometry)} - _OPTIONAL_GEOMETRY
-    return sorted(_KEYS - _OPTIONAL_KEYS - set(data)) + [f"geometry.{name}" for name in sorted(required - set(data["geometry"]))]
+    return sorted(_KEYS - _OPTIONAL_KEYS - set(data)) + [f"geometry.{name}"
+                                                         for name in sorted(required - set(data["geometry"]))]
 
 
 def _number(value: Any) -> float:

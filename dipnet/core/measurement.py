@@ -291,7 +291,8 @@ class DipMeasurement:
         total = self.profiles.sum(1)
         lost = float(((total - out.sum(1)).abs() / total.abs().clamp(min=1e-300)).max())
         if rel_tol is not None and lost > rel_tol:
-            message = (f"resampling the profiles from slabs [{float(src[:, 0].min()):.1f}, {float(src[:, -1].max()):.1f}]"
+            message = (f"resampling the profiles from slabs [{float(src[:, 0].min()):.1f}, "
+                       f"{float(src[:, -1].max()):.1f}]"
                        f" mm onto [{float(edges[0]):.1f}, {float(edges[-1]):.1f}] mm drops up to {100 * lost:.2f}% "
                        "of a profile's volume: the object does not fit the grid (raise extent_mm)")
             log.warning(message)

@@ -235,7 +235,8 @@ def _check_count(k: int) -> None:
         raise ValueError(f"number of orientations must be a positive integer, got {k!r}")
 
 
-def reachable_candidates(tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0), step_deg: float = 10.0) -> torch.Tensor:
+def reachable_candidates(tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0),
+                         step_deg: float = 10.0) -> torch.Tensor:
     """The directions a rig can reach, on a grid of rig angles: the planners' candidate set, ``(C, 3)``.
 
     Tilts run from ``tilt_range_deg[0]`` to ``tilt_range_deg[1]`` and spins over ``spin_range_deg``
@@ -266,7 +267,8 @@ def reachable_candidates(tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0)
     return directions[np.sort(keep)]
 
 
-def within_reach(directions, tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0), tol_deg: float = 1e-6) -> torch.Tensor:
+def within_reach(directions, tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0),
+                 tol_deg: float = 1e-6) -> torch.Tensor:
     """Boolean mask ``(k,)``: which unit "up" vectors ``(k, 3)`` the rig limits allow (degrees)."""
     d = torch.as_tensor(directions, dtype=torch.float64).reshape(-1, 3)
     d = d / d.norm(dim=1, keepdim=True)

@@ -35,8 +35,8 @@ back (the rig only lowers; equal positions are repeats): a reading at a lower st
 before is an error, not sorted silently; reading times that run backwards within a dip are kept with a
 warning naming the line (a wall clock set back leaves sound readings, but not times to fit a drift by).
 The header's ``quantity`` must agree with its ``units`` and with ``config.sensor.quantity`` when those
-are recorded. The header's ``units`` (dipnet writes mm, mm^2, g, s, deg) may declare other units for a field (:data:`UNITS`, e.g.
-``"units": {"stage": "in"}``): the reader converts the readings, the step, the noise and resolution
+are recorded. The header's ``units`` (dipnet writes mm, mm^2, g, s, deg) may declare other units for a field
+(:data:`UNITS`, e.g. ``"units": {"stage": "in"}``): the reader converts the readings, the step, the noise and resolution
 and the cross-section to dipnet's units, and refuses a unit it does not know, naming the field
 (``t_start_mm`` and the orientations' ``meta`` stay in mm). Any other malformed
 line raises :class:`RawScanFileError` naming the file and the line number.

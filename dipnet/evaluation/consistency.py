@@ -81,8 +81,8 @@ operator ``A`` and a reconstruction ``x`` (its binary shape and its continuous o
   0.803, `consistent`): below ``1 / NOISE_RATIO_MAX`` it is named, but only when ``reading_noise_leak``
   (:func:`~dipnet.preprocessing.validation.reading_noise_leak`: the estimate from every other reading over
   the estimate from every reading) is below ``NOISE_LEAK_MAX``, so that the readings' estimate holds their
-  noise alone. On five bundled meshes and the built-in box at 0.5-5 mm steps and 10-60 dB, a correct statement with a leak
-  below 2 had a ratio of 0.70-1.0, and every ratio below 0.5 came with a leak of 2.5 or more.
+  noise alone. On five bundled meshes and the built-in box at 0.5-5 mm steps and 10-60 dB, a correct statement with a
+  leak below 2 had a ratio of 0.70-1.0, and every ratio below 0.5 came with a leak of 2.5 or more.
 * ``dip_outliers``, ``dip_outlier_share``, ``dip_outlier_sigmas``, ``dip_outlier_order``: the dips whose profiles
   no object shares with the other dips (:mod:`dipnet.preprocessing.dip_agreement`: each dip's central moments of
   orders 2-4 against the polynomials the others fit), and the largest one's miss in the object's scale and in noise
@@ -122,8 +122,8 @@ noise sigmas (or its standard errors, when the dips' floors agree: :func:`floor_
 than ``volume_tol`` of the measured volume, or the level
 falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0, the stated
 noise exceeds ``NOISE_RATIO_MAX`` times the readings' own, some dips disagree with the others, a dip's level falls
-by more than ``LEVEL_DROP_TOL`` of the volume while the object goes down, a dip measures more than the median dip beyond its
-noise and ``EXCESS_TOTAL_TOL`` of the volume, or the dips reject a declared symmetry. Each
+by more than ``LEVEL_DROP_TOL`` of the volume while the object goes down, a dip measures more than the median dip beyond
+its noise and ``EXCESS_TOTAL_TOL`` of the volume, or the dips reject a declared symmetry. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
 """
@@ -174,7 +174,8 @@ HULL_FILL_MIN = 0.04  # measured volume / the dips' support hull below which the
 HULL_FILL_MAX = 1.1  # above it the dips measure more than the region they bound can hold (a box fills ~1)
 FLOOR_SIGMAS = 3.0  # a profile floor within this many noise sigmas of 0 is noise
 FLOOR_SPREAD = 0.25  # the dips' floors agree (a drift's floor) when their robust spread is at most this share
-FLOOR_BEYOND_MATERIAL = 0.01  # a drift of the floor that puts less than this share of the volume beyond the slabs: untested
+# a drift of the floor that puts less than this share of the volume beyond the slabs: untested
+FLOOR_BEYOND_MATERIAL = 0.01
 FLOOR_BEYOND_MIN = 0.25  # readings beyond the slabs holding less than this share of a drift's: the floor is no drift
 #: The share of what the threshold adds or removes that lies more than one voxel deep inside the regions it changes,
 #: above which the occupancy is a smeared field, not a shape's partial voxels (:func:`threshold_change_depth`; true
@@ -479,8 +480,9 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     """
     got = (measurement, operator, reconstruction)
     if not all(isinstance(a, cls) for a, cls in zip(got, (DipMeasurement, DipOperator, Reconstruction))):
-        raise TypeError(f"check_consistency(measurement, operator, reconstruction) takes a DipMeasurement, a DipOperator "
-                        f"and a Reconstruction (a solver's result), got {', '.join(type(a).__name__ for a in got)}")
+        raise TypeError(f"check_consistency(measurement, operator, reconstruction) takes a DipMeasurement, "
+                        f"a DipOperator and a Reconstruction (a solver's result), "
+                        f"got {', '.join(type(a).__name__ for a in got)}")
     if not reconstruction.grid.matches(operator.grid):  # not !=: extents equal to 1e-9 are the same voxels
         raise ValueError(f"the reconstruction's grid {reconstruction.grid} is not the operator's {operator.grid}: "
                          "check it with the operator its solver used")
@@ -507,8 +509,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     result = Consistency(
         profile_residual=_relative_residual(operator, binary, target),
         profile_residual_continuous=_relative_residual(operator, occupancy, target),
-        profile_residual_expected=expected, residual_limit=allowed_residual(expected, operator.grid.n, sigma is not None, residual_factor,
-                                                      residual_floor),
+        profile_residual_expected=expected,
+        residual_limit=allowed_residual(expected, operator.grid.n, sigma is not None, residual_factor, residual_floor),
         noise_source=source, measured_volume_mm3=measured, reconstructed_volume_mm3=recon_volume,
         continuous_volume_mm3=float((occupancy.double() * mask).sum()) * voxel,
         volume_ratio=recon_volume / measured, volume_ratio_noise=math.hypot(spread, rounding) / measured,
@@ -518,7 +520,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         volume_unit=operator.grid.volume_unit)
     result.threshold_change_depth = threshold_change_depth(occupancy.numpy(), reconstruction.binary,
                                                            mask.cpu().numpy())
-    result.height_trend_pivot_mm, result.height_trend_offset_mm, result.height_trend_limit_mm = height_trend(measurement)
+    (result.height_trend_pivot_mm, result.height_trend_offset_mm,
+     result.height_trend_limit_mm) = height_trend(measurement)
     if quantum is not None:
         spanned = object_slabs(measurement.profiles)
         result.quantum_volume_mm3, result.mean_slab_mm3 = quantum.volume, measured / spanned
@@ -628,7 +631,8 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
     if flooding or c.excess_total_dips:
         suspects = f"cavities that keep air or stay dry (below) make the dips disagree, or {suspects}"
     if c.excess_total_dips:
-        out.append(f"{c.excess_total_dips} dip(s) measure more than the median dip, by up to {c.excess_total_share:.1%} "
+        out.append(f"{c.excess_total_dips} dip(s) measure more than the median dip, "
+                   f"by up to {c.excess_total_share:.1%} "
                    "of the volume and more than their noise: air trapped in a cavity of the object that opens "
                    "downward along those dips displaces water as the object does (or the level rose during them). "
                    "Vent the cavity (a second opening lets the air out), or fill or seal it and measure the object "
@@ -662,26 +666,30 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
     trend = max(abs(c.height_trend_pivot_mm), abs(c.height_trend_offset_mm))
     if trend > c.height_trend_limit_mm and not coarse:  # NaN compares False
         out.append(f"the dips' heights trend with their tilt as a wrong rig geometry leaves them: the pivot looks "
-                   f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by {c.height_trend_offset_mm:+.2f}"
+                   f"off by {c.height_trend_pivot_mm:+.2f} mm and the tilt-axis offset by "
+                   f"{c.height_trend_offset_mm:+.2f}"
                    f" mm (more than {c.height_trend_limit_mm:.2f} mm): calibrate the rig (calibration=self, "
                    "scripts/calibrate.py)")
     drift_free = c.floor_beyond_ratio < FLOOR_BEYOND_MIN  # NaN compares False: no readings to tell by
     if abs(c.profile_floor_mm3) > c.profile_floor_limit_mm3 and abs(c.profile_floor_share) > c.volume_limit \
             and not beyond and not over_ball and not drift_free:  # an object beyond fills the slabs to their ends
-        out.append(f"every dip holds {c.profile_floor_mm3:+.4g} {c.volume_unit} per slab where its slabs should be empty (before "
+        out.append(f"every dip holds {c.profile_floor_mm3:+.4g} {c.volume_unit} per slab where its slabs should be "
+                   "empty (before "
                    f"the object touches the water and after it is under): {c.profile_floor_share:+.1%} of the "
                    "measured volume, which the reconstruction takes for object. A level that drifts in time (the "
                    f"sensor's drift, a leak or an inflow) does this: calibrate it ({fit_drift}), or check the tank; "
                    "or the object fills the working range to its ends (raise extent_mm)")
     if c.level_fall_share > c.volume_limit and c.level_fall_sigmas > FLOOR_SIGMAS:  # NaN compares False
         out.append(f"the water level falls after the object is under, where it must stay put: over a dip the fall "
-                   f"takes {c.level_fall_share:.1%} of the measured volume ({c.level_fall_sigmas:.0f} standard errors), "
+                   f"takes {c.level_fall_share:.1%} of the measured volume "
+                   f"({c.level_fall_sigmas:.0f} standard errors), "
                    "and the monotone slabs hide it, so every profile, the measured volume and the shape are too small "
                    "by about that much. A leak, evaporation or a level sensor drifting down does this: check the tank "
                    f"and the sensor, or fit the drift ({fit_drift})")
     if c.reading_noise_ratio < 1 / NOISE_RATIO_MAX and c.reading_noise_leak < NOISE_LEAK_MAX:  # NaN compares False
-        out.append(f"the stated noise is only {c.reading_noise_ratio:.2f} of what the readings scatter by (one reading: "
-                   f"{c.reading_noise_mm3:.3g} {c.volume_unit}): the solvers' prior weights, set from it, are too small "
+        out.append(f"the stated noise is only {c.reading_noise_ratio:.2f} of what the readings scatter by "
+                   f"(one reading: {c.reading_noise_mm3:.3g} {c.volume_unit}): the solvers' prior weights, "
+                   "set from it, are too small "
                    "and the shape takes noise for object, and the residual limit it sets is too strict. Correct the "
                    "sensor's noise_sigma or snr_db (or leave the noise unstated to have it estimated)")
     if c.dip_outliers:
@@ -713,19 +721,22 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
         out.append("the dips bound no region on the grid (each dip's non-empty slabs exclude the others'): the "
                    "directions, start heights or slab thickness do not belong to these profiles")
     elif c.hull_fill > HULL_FILL_MAX and not coarse:
-        out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, {c.hull_fill:.0%} of the region they bound, "
+        out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, "
+                   f"{c.hull_fill:.0%} of the region they bound, "
                    "which can hold at most all of it: the volumes are too large for their slabs (a level or "
                    "cross-section unit too small, levels in cm read as mm), or the dips' heights or directions are "
                    "not theirs (a wrong rig geometry or start heights)")
     if c.hull_fill < c.hull_fill_min and not coarse:  # NaN compares False
-        out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, {c.hull_fill:.2%} of the region they bound "
+        out.append(f"the dips measure {c.measured_volume_mm3:.4g} {c.volume_unit}, "
+                   f"{c.hull_fill:.2%} of the region they bound "
                    f"(real objects fill 4-76 %): a volume ten times too small, as levels in cm under a column that "
                    "says mm or a cross-section in cm^2 give, or an object much thinner than that region (a wire, a "
                    "sheet); check the level unit and the tank's cross-section")
     if abs(c.volume_ratio - 1) > c.volume_limit:
         out.append(f"the reconstruction holds {c.reconstructed_volume_mm3:.4g} {c.volume_unit}, the dips measure "
                    f"{c.measured_volume_mm3:.4g} {c.volume_unit} (ratio {c.volume_ratio:.3f}, noise explains "
-                   f"+-{c.volume_ratio_noise:.3f}; continuous occupancy: {c.continuous_volume_mm3:.4g} {c.volume_unit})")
+                   f"+-{c.volume_ratio_noise:.3f}; continuous occupancy: "
+                   f"{c.continuous_volume_mm3:.4g} {c.volume_unit})")
     return out
 
 
@@ -739,7 +750,8 @@ def _refit_findings(c: Consistency, refit: dict) -> list[str]:
         return []
     return [f"the surface refitted to the dips (the exported mesh, solver.surface_refit) encloses "
             f"{refit['mesh_volume_mm3']:.4g} {c.volume_unit}, {ratio:.3f} x the measured volume (the binary result: "
-            f"{c.volume_ratio:.3f}; allowed +-{c.volume_limit:.3f}): the refit moved the surface off the data's volume; "
+            f"{c.volume_ratio:.3f}; allowed +-{c.volume_limit:.3f}): the refit moved the surface off the data's "
+            "volume; "
             "use the voxel result (reconstruction.npz) or solve with solver.surface_refit=null"]
 
 

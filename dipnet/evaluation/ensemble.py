@@ -82,7 +82,8 @@ class RandomStart:
 
     def __call__(self, measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor:
         grid = operator.grid
-        level = max(measurement.volume_estimate(), 0.0) / grid.extent ** grid.ndim / float(grid.working_mask().double().mean())
+        level = max(measurement.volume_estimate(), 0.0) / grid.extent ** grid.ndim \
+            / float(grid.working_mask().double().mean())
         field = scipy.ndimage.gaussian_filter(np.random.default_rng(self.seed).standard_normal(grid.shape), self.smooth)
         field *= self.amplitude / max(float(field.std()), 1e-12)
         return torch.from_numpy(np.clip(min(level, 1.0) + field, 0.0, 1.0)).float()
@@ -90,9 +91,9 @@ class RandomStart:
 
 def member(solver: Solver, index: int, seed: int, random_start: bool = True, iterations_scale: float = 1.0) -> Solver:
     """A copy of ``solver`` for ensemble member ``index``: quiet, without checkpoint or surface refit (the
-    ensemble reads the members' occupancies, not their surfaces), its own seed (``seed + 1 + index``), a :class:`RandomStart` when it is an optimisation solver without a warm
-    start (and not one whose seed already draws its start, ``seeded_start``), and
-    ``iterations_scale`` of its iterations."""
+    ensemble reads the members' occupancies, not their surfaces), its own seed (``seed + 1 + index``),
+    a :class:`RandomStart` when it is an optimisation solver without a warm start (and not one whose seed already draws
+    its start, ``seeded_start``), and ``iterations_scale`` of its iterations."""
     out = copy.copy(solver)
     member_seed = int(seed) + 1 + int(index)
     for name, value in (("progress", False), ("checkpoint", None), ("surface_refit", None), ("seed", member_seed)):

@@ -3,8 +3,8 @@
 Surface distances follow the paper's METRO-style numbers: points are sampled uniformly
 (seeded) on each surface - marching-cubes meshes in 3D, iso-contours in 2D, or the truth
 mesh when one is given - and measured against the other surface (exact point-to-surface
-distances); the symmetric mean (Chamfer) and maximum (Hausdorff) are divided by the diagonal of the truth's bounding box, so
-they are dimensionless. All functions are pure and return plain Python floats.
+distances); the symmetric mean (Chamfer) and maximum (Hausdorff) are divided by the diagonal of the truth's bounding
+box, so they are dimensionless. All functions are pure and return plain Python floats.
 """
 
 from __future__ import annotations
@@ -220,8 +220,8 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         (the reconstruction has no voxel inside).
     """
     if not isinstance(reconstruction, Reconstruction) or isinstance(truth_occupancy, Shape):
-        raise TypeError(f"evaluate(reconstruction, truth_occupancy, grid) takes a Reconstruction (a solver's result) and "
-                        f"the true occupancy on its grid, got {type(reconstruction).__name__} and "
+        raise TypeError(f"evaluate(reconstruction, truth_occupancy, grid) takes a Reconstruction (a solver's result) "
+                        f"and the true occupancy on its grid, got {type(reconstruction).__name__} and "
                         f"{type(truth_occupancy).__name__}: voxelise a true shape with shape.occupancy(grid)")
     grid = as_grid(grid)
     if not reconstruction.grid.matches(grid):
@@ -232,7 +232,8 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
     if not (np.isfinite(truth).all() and truth.min(initial=0.0) >= 0.0 and truth.max(initial=0.0) <= 1.0):
         finite = truth[np.isfinite(truth)]
         span = f"{finite.min():.3g} to {finite.max():.3g}" if finite.size else "no finite value"
-        hint = f" (a 0/{finite.max():.3g} mask? divide it by {finite.max():.3g})" if finite.size and finite.max() > 1 else ""
+        hint = f" (a 0/{finite.max():.3g} mask? divide it by {finite.max():.3g})" \
+            if finite.size and finite.max() > 1 else ""
         raise ValueError(f"evaluate: truth_occupancy must hold occupancy fractions in [0, 1], got {span}"
                          f"{' and NaN or inf' if finite.size < truth.size else ''}: the true volume and surface are "
                          f"read from them{hint}")

@@ -81,5 +81,6 @@ def coarse_quantum_message(quantum: Quantum, mean_slab: float, volume_unit: str)
     return (f"the {quantum.sensor}'s resolution ({quantum.reading:g} {quantum.unit} = {quantum.volume:.4g} "
             f"{volume_unit} per reading) is coarse against a mean slab of {mean_slab:.4g} {volume_unit} (a slab is "
             f"{mean_slab / quantum.volume:.1f} reading steps), so the slab volumes, the dips' heights and their ends "
-            "are rounded away (the heights' trend and the region the dips bound are not checked); use a finer sensor or thicker slabs (fewer slabs or a lower "
+            "are rounded away (the heights' trend and the region the dips bound are not checked); "
+            "use a finer sensor or thicker slabs (fewer slabs or a lower "
             "resolution)" + (", or a tank of smaller section" if quantum.unit == "mm" else ""))

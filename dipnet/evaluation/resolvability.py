@@ -138,8 +138,9 @@ def angle_to_plan(points: np.ndarray, directions: np.ndarray, chunk: int = 8192)
 
 def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> str | None:
     """Log and ``warnings.warn`` how wide the band no dip of ``directions`` ``(K, d)`` reaches is, when it is wider
-    than ``limit_deg`` (:func:`~dipnet.core.orientations.unmeasured_band_deg`); returns the message, or ``None``. A property of the plan,
-    not a failed check of the result: surfaces whose normals lie in the band are the priors' guess.
+    than ``limit_deg`` (:func:`~dipnet.core.orientations.unmeasured_band_deg`); returns the message, or ``None``. A
+    property of the plan, not a failed check of the result: surfaces whose normals lie in the band are the priors'
+    guess.
 
     2D dips ``(K, 2)`` have no rig and no special direction: the widest wedge of angles between their lines
     (:func:`~dipnet.core.orientations.unmeasured_wedge_deg`) is warned wherever it lies, when its half-angle exceeds
@@ -181,7 +182,8 @@ def _cone_message(directions: torch.Tensor, limit_deg: float) -> str | None:
         return None
     tilt, spin = direction_to_rig(sphere[int(gap.argmax())][None])
     return (f"the {len(d)} dips leave directions up to {cone:.0f} deg from every dip (about tilt {tilt[0]:.0f} deg, "
-            f"spin {spin[0]:.0f} deg), where {len(d)} dips spread over the hemisphere leave {even:.0f}: surfaces facing "
+            f"spin {spin[0]:.0f} deg), where {len(d)} dips spread over the hemisphere leave {even:.0f}: "
+            "surfaces facing "
             "them are guessed by the priors, not measured; dip there (a wider reach, or orientations spread over it)")
 
 
