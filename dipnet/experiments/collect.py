@@ -57,8 +57,8 @@ class Run:
     Attributes:
         path: the job directory.
         status: ``"ok"`` (``metrics.json`` written by this run), ``"failed"`` (``error.txt``, also one written after
-            ``metrics.json``: a job that failed after its numbers, e.g. writing its meshes, or a ``tune.py`` trial without
-            a Chamfer distance; an unreadable
+            ``metrics.json``: a job that failed after its numbers, e.g. writing its meshes, or a ``tune.py`` trial
+            without a Chamfer distance; an unreadable
             ``metrics.json``, or a job log whose last record is an ``error: ...`` line: a refused run) or
             ``"unfinished"`` (none of these: still running, killed, or empty). A ``metrics.json`` an earlier
             run left in the folder (:func:`earlier_metrics`) is not this run's: failed or unfinished.
@@ -129,7 +129,8 @@ def load_run(job_dir: str | Path) -> Run:
     config = _load_yaml(job_dir / ".hydra" / "config.yaml") or {}
     overrides = _load_yaml(job_dir / ".hydra" / "overrides.yaml") or []
     hydra_cfg = _load_yaml(job_dir / ".hydra" / "hydra.yaml") or {}
-    choices = (hydra_cfg.get("hydra", {}).get("runtime", {}).get("choices") or {}) if isinstance(hydra_cfg, dict) else {}
+    choices = (hydra_cfg.get("hydra", {}).get("runtime", {}).get("choices") or {}) \
+        if isinstance(hydra_cfg, dict) else {}
     run = Run(job_dir, "unfinished", config, [str(o) for o in overrides], dict(choices))
     metrics_path, error_path = job_dir / METRICS_FILE, job_dir / ERROR_FILE
     if metrics_path.is_file():

@@ -239,7 +239,8 @@ def pairs_made_by(config: TrainConfig) -> dict[str, str | None]:
     """What makes ``config``'s pairs beyond its options (recorded in each checkpoint as ``pairs``): the code version
     (:func:`~dipnet.experiments.prior_pairs.pairs_code`), the digest of the second stage's round weights (their
     bytes: retrained first-stage weights under the same name make other inputs) and of each of ``meshes``."""
-    return {"code": pairs_code(), "refine_weights": None if config.refine is None else refine_weights_digest(config.refine),
+    return {"code": pairs_code(),
+            "refine_weights": None if config.refine is None else refine_weights_digest(config.refine),
             "meshes": " ".join(file_digest(mesh) for mesh in config.meshes)}
 
 
@@ -265,7 +266,8 @@ def resumable_checkpoint(path: Path, config: TrainConfig) -> dict | None:
     if not same_run(saved["config"], config):
         recorded = dataclasses.asdict(TrainConfig()) | saved["config"]
         now = dataclasses.asdict(config) | {"steps": recorded["steps"], "max_minutes": recorded["max_minutes"]}
-        differ = "; ".join(f"{key} {recorded.get(key)!r} -> {now.get(key)!r}" for key in sorted(set(recorded) | set(now))
+        differ = "; ".join(f"{key} {recorded.get(key)!r} -> {now.get(key)!r}"
+                           for key in sorted(set(recorded) | set(now))
                            if _plain(recorded.get(key)) != _plain(now.get(key)))
         raise TrainConfigError(f"checkpoint {path} was made with other options ({differ} (recorded -> now)): give "
                                "the same options to resume it, or another --out to train afresh")
@@ -317,8 +319,8 @@ def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
         return OccupancyDenoiser(config.channels)
     model, meta = load_weights(config.init_weights)
     if int(meta["channels"]) != config.channels or int(meta["n"]) != config.n:
-        raise TrainConfigError(f"init_weights {config.init_weights!r} have {meta['channels']} channels for a {meta['n']}^3 "
-                         f"grid, the config {config.channels} channels and n={config.n}")
+        raise TrainConfigError(f"init_weights {config.init_weights!r} have {meta['channels']} channels "
+                               f"for a {meta['n']}^3 grid, the config {config.channels} channels and n={config.n}")
     return model
 
 
@@ -425,8 +427,10 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
               f"training) after {step} of {config.steps} steps: the weights written to {out} are those of step "
               f"{step}; the same command with --resume continues to step {config.steps}")
     meta = {"n": config.n, "ndim": 3, "n_slabs_per_voxel": 1, "config": dataclasses.asdict(config),
-            "steps_done": step, "seconds": round(seconds, 1), "validation": history["val"][-1] if history["val"] else None,
-            "trained_on": "generated shapes (dipnet.shapes.procedural), seeds " f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"
+            "steps_done": step, "seconds": round(seconds, 1),
+            "validation": history["val"][-1] if history["val"] else None,
+            "trained_on": "generated shapes (dipnet.shapes.procedural), seeds "
+                          f"{config.train_seeds[0]}..{config.train_seeds[1] - 1}"
             + "".join(f", {family} seeds {a}..{b - 1}" for family, (a, b) in sorted(config.family_seeds.items()))
             + mesh_note(config)
             + ("" if config.refine is None else ", inputs after one round of the learned prior (second stage)")}

@@ -51,7 +51,8 @@ _TRUTH_COLOR, _RECON_COLOR = "#9aa5b1", "#3b7dd8"
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em auto;max-width:1200px;color:#222}
 h1{font-size:1.5em} h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}
-table{border-collapse:collapse;font-size:.9em} td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right;white-space:nowrap}
+table{border-collapse:collapse;font-size:.9em} \
+td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right;white-space:nowrap}
 th{background:#f3f3f3} td.l,th.l{text-align:left} .ok{color:#1a7f37} .failed{color:#b42318} .unfinished{color:#b54708}
 img{max-width:100%;border:1px solid #eee} .note{color:#666;font-style:italic}
 .top{display:grid;grid-template-columns:minmax(0,1fr) 290px;gap:1em;align-items:start}
@@ -203,7 +204,8 @@ def answers_html(metrics: dict[str, Any]) -> str:
     """The three first answers (:func:`dipnet.outputs.summary.answers`) as cards."""
     cards = [f"<div class=answer><div class=q>{html.escape(a.question)}</div><div class=h>{html.escape(a.headline)}"
              f"</div><div class=d>{html.escape(a.detail)}</div></div>" for a in summary.answers(metrics)]
-    return "<div class=answers>" + ("".join(cards) or "<p class=note>no metrics (the run did not finish)</p>") + "</div>"
+    return ("<div class=answers>" + ("".join(cards) or "<p class=note>no metrics (the run did not finish)</p>")
+            + "</div>")
 
 
 def _fmt(v: Any) -> str:
@@ -400,7 +402,8 @@ def curves_figure(groups: Sequence[dict], x: str, metrics: Sequence[str], line: 
                                      name=tables.format_cell(key), legendgroup=str(key), showlegend=col == 1,
                                      line={"color": palette[i % len(palette)]}), row=1, col=col)
         fig.update_xaxes(title_text=collect.LABELS.get(x, x), type="log" if log_x else "linear", row=1, col=col)
-    fig.update_layout(height=400, margin={"l": 50, "r": 10, "t": 40, "b": 40}, legend_title_text=collect.LABELS.get(line, line))
+    fig.update_layout(height=400, margin={"l": 50, "r": 10, "t": 40, "b": 40},
+                      legend_title_text=collect.LABELS.get(line, line))
     return fig
 
 

@@ -91,7 +91,8 @@ def pooled_note(options: dict[str, list], by: Sequence[str], columns: set[str]) 
         note += f"; split them with `--by {' '.join([*by, *split])}`"
     others = [k for k in options if k not in columns]
     if others:
-        note += f"; {', '.join(others)} {'is' if len(others) == 1 else 'are'} no runs.csv column: compare those runs separately"
+        note += (f"; {', '.join(others)} {'is' if len(others) == 1 else 'are'} no runs.csv column: "
+                 "compare those runs separately")
     return note + "\n"
 
 
@@ -103,5 +104,6 @@ def markdown_problems(runs: Sequence[Run], root: str | Path | None = None) -> st
     lines = [f"Failed or unfinished jobs ({len(bad)} of {len(runs)}):", ""]
     for row, run in zip(run_rows(bad, root), bad):
         what = run.error or "no metrics.json (unfinished or killed)"
-        lines.append(f"- `{row['job']}` ({run.status}): {what}" + (f" [{row['overrides']}]" if row["overrides"] else ""))
+        lines.append(f"- `{row['job']}` ({run.status}): {what}"
+                     + (f" [{row['overrides']}]" if row["overrides"] else ""))
     return "\n".join(lines) + "\n"

@@ -39,7 +39,8 @@ def _move(cfg: DictConfig, old: str, new: str) -> None:
         if value is not None:
             shown = value
             if isinstance(value, DictConfig):  # as typed on the command line: {n_fold: 3, mirror: true}
-                shown = "{" + ", ".join(f"{k}: {v}" for k, v in OmegaConf.to_container(value, resolve=True).items()) + "}"
+                shown = "{" + ", ".join(f"{k}: {v}"
+                                        for k, v in OmegaConf.to_container(value, resolve=True).items()) + "}"
             deprecated(old, f"{new}={shown}")
             OmegaConf.update(cfg, new, value, force_add=True)
         del parent[leaf]

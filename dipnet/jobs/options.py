@@ -4,9 +4,9 @@
 one ``error: ...`` line (exit 2, see :mod:`dipnet.jobs.cli`) before anything is simulated, solved or
 written, and a sweep job with a bad option fails instead of counting as finished. It refuses:
 
-* values out of range (``resolution=abc``, ``seed=-1``, ``snr_db=abc``, ``source.simulator.smooth=maybe``, an unknown mesh format,
-  ``output.report=true`` without the ``report`` extra, ``symmetry={n_fold: 2.5}``, and the counts and sizes of a
-  ``_target_`` node by its target, :data:`TARGET_COUNTS`, e.g. ``solver.hidden_width=0``), naming the option and
+* values out of range (``resolution=abc``, ``seed=-1``, ``snr_db=abc``, ``source.simulator.smooth=maybe``, an unknown
+  mesh format, ``output.report=true`` without the ``report`` extra, ``symmetry={n_fold: 2.5}``, and the counts and sizes
+  of a ``_target_`` node by its target, :data:`TARGET_COUNTS`, e.g. ``solver.hidden_width=0``), naming the option and
   the allowed values;
 * options no code reads: a key of a ``_target_`` node that its target does not take (following
   ``**options`` through :func:`~dipnet.core.keywords.forwards_to`), e.g. ``+operator.bogus_option=1``, and a key added
@@ -73,7 +73,8 @@ class Count(NamedTuple):
 #: node is (``solver``, ``solver.warm_start``, ``calibration.gain_solver``, ...), by their key below the node;
 #: a key the node does not set keeps the target's default.
 TARGET_COUNTS: tuple[tuple[Any, dict[str, Count]], ...] = (
-    (OptimisationSolver, {"iterations": Count(1, "optimisation steps"), "window": Count(1, "steps of the plateau test")}),
+    (OptimisationSolver, {"iterations": Count(1, "optimisation steps"),
+                          "window": Count(1, "steps of the plateau test")}),
     (ImplicitSolver, {"hidden_width": Count(1, "neurons per hidden layer"), "hidden_layers": Count(0, "hidden layers"),
                       "output_upsample": Count(1, "fine samples per voxel and axis"),
                       "warm_iterations": Count(0, "warm-start steps"), "encoding.levels": Count(1, "grid levels"),
@@ -250,7 +251,8 @@ def check_self_calibration(cfg: DictConfig) -> None:
 
 def check_symmetry(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for a ``symmetry`` that is not null or ``{n_fold, mirror, mirror_azimuth_deg,
-    tol_deg}`` with a positive integer, a boolean and numbers (:func:`~dipnet.preprocessing.symmetry.symmetry_group`)."""
+    tol_deg}`` with a positive integer, a boolean and numbers
+    (:func:`~dipnet.preprocessing.symmetry.symmetry_group`)."""
     spec = cfg.get("symmetry")
     if spec is None:
         return
@@ -262,7 +264,8 @@ def check_symmetry(cfg: DictConfig) -> None:
             raise unknown_option(f"symmetry.{key}", SYMMETRY_KEYS, f"symmetry takes {', '.join(SYMMETRY_KEYS)}")
     if cfg.get("ndim") == 2:
         raise ConfigError(f"symmetry={OmegaConf.to_container(spec)} copies 3D dips to their images about the vertical "
-                          "axis z, which a 2D object does not have: set symmetry=null with ndim=2; a 2D object's mirror "
+                          "axis z, which a 2D object does not have: set symmetry=null with ndim=2; "
+                          "a 2D object's mirror "
                           "line or rotation is a solver prior (solver=voxel solver.priors.symmetry.weight=1 "
                           "'solver.priors.symmetry.plane_normal=[1,0]', or solver=implicit "
                           "'solver.symmetry={plane_normal: [1, 0]}')")

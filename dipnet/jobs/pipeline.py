@@ -265,7 +265,8 @@ def not_rewritten(out: Path, earlier: dict[str, tuple[int, int]]) -> list[str]:
 
 
 def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> None:
-    """Save what the run made while dipping: its raw scan (``rawscan.jsonl``) and a plan's report (``planning.json``)."""
+    """Save what the run made while dipping: its raw scan (``rawscan.jsonl``) and a plan's report
+    (``planning.json``)."""
     if raw is not None:
         raw.save(out / "rawscan.jsonl")
     if planning is not None:

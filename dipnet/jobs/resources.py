@@ -24,9 +24,9 @@ These are the dominant terms, enough to refuse a run that needs 24 PB before any
 allocated. Measured (peak RSS minus the RSS after imports, one run each, 1 thread) against
 the estimate: default config (40^3, K = 120, minnorm Cholesky) 746 MB vs ~800 MB; voxel 64^3
 (fourier) 286 MB vs ~300 MB, voxel 240^3 with K = 5,760 (fourier, single precision) peak RSS
-2.03 GB with imports and the operator vs 3.0 GB (solver part, ``800 V`` before: 11 GB); lsmr 96^3, K = 60 208 MB vs ~290 MB; implicit 48^3 157 MB vs
-~280 MB. :func:`check_memory` raises :class:`ResourceError` when the estimate exceeds the available
-memory (``psutil`` if installed, else ``MemAvailable`` of ``/proc/meminfo``, else
+2.03 GB with imports and the operator vs 3.0 GB (solver part, ``800 V`` before: 11 GB); lsmr 96^3, K = 60 208 MB vs
+~290 MB; implicit 48^3 157 MB vs ~280 MB. :func:`check_memory` raises :class:`ResourceError` when the estimate exceeds
+the available memory (``psutil`` if installed, else ``MemAvailable`` of ``/proc/meminfo``, else
 ``os.sysconf``).
 """
 

@@ -170,8 +170,8 @@ def adaptive_scan_from_config(cfg, path: str | Path, journal=None) -> RawScan:
     def make_runner(plan: ScanPlan, home: bool) -> ScanRunner:
         return runner_from_config(cfg, plan, path, home=home, journal=journal)
 
-    adaptive_scan(make_runner, scan_settings, path, grid, VoxelSolver(progress=False), plan.planner, adaptive_reach(cfg),
-                  plan.settings)
+    adaptive_scan(make_runner, scan_settings, path, grid, VoxelSolver(progress=False), plan.planner,
+                  adaptive_reach(cfg), plan.settings)
     return read_rawscan(path)
 
 

@@ -203,7 +203,8 @@ def edge_messages(summary: dict[str, Any]) -> list[str]:
     messages = []
     for key, edge in (summary.get("at_range_edge") or {}).items():
         low, high = edge["range"]
-        wider = (f", e.g. --param {key}=" + (f"{low / 10:g}:{high:g}" if edge["end"] == "low" else f"{low:g}:{high * 10:g}")
+        wider = (f", e.g. --param {key}="
+                 + (f"{low / 10:g}:{high:g}" if edge["end"] == "low" else f"{low:g}:{high * 10:g}")
                  if edge["scale"] == "log" else " (as far as the option allows)")
         messages.append(f"the best trial's {key} = {summary['params'][key]:g} lies at the {edge['end']} end of its "
                         f"range [{low:g}, {high:g}] ({edge['scale']} scale, within {EDGE_SHARE:.0%} of it): the best "
@@ -281,8 +282,8 @@ def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]
     """Raise ``ValueError`` (:class:`~dipnet.jobs.options.ConfigError`, a Hydra error) for a study that cannot
     run: fewer than 1 trial, an override of a tuned option (each trial would replace it without a word), a job
     option out of range or unknown (the overrides and every tuned option
-    at its ``low``, then at its ``high``), or a job with no ground truth (:func:`check_ground_truth`), before any trial (else every
-    trial would fail alike)."""
+    at its ``low``, then at its ``high``), or a job with no ground truth (:func:`check_ground_truth`), before any trial
+    (else every trial would fail alike)."""
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
         raise ValueError(f"the number of trials (--trials) must be a positive integer, got {n_trials!r}")
     tuned = {p.key for p in params}
@@ -319,8 +320,8 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
     Returns:
         The ``optuna.Study`` (its best trial: :func:`best_trial`).
     Raises:
-        ValueError: ``n_trials`` < 1, ``n_startup_trials`` < 0, an option out of range (:func:`check_study`), or an ``out`` holding
-            another study (:func:`check_out`), before any trial.
+        ValueError: ``n_trials`` < 1, ``n_startup_trials`` < 0, an option out of range (:func:`check_study`), or
+            an ``out`` holding another study (:func:`check_out`), before any trial.
         NoBestTrialError: every trial failed or reconstructed nothing.
     """
     optuna = optional_import("optuna", extra="sweeps", purpose="tuning (scripts/tune.py)")

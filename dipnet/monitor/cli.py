@@ -35,18 +35,21 @@ def parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", nargs="?", help="the scan's run directory (scans/<name>) or its rawscan.jsonl")
     p.add_argument("--replay", metavar="FILE", help="play back a recording (.jsonl or the authors' .csv)")
-    p.add_argument("--speed", type=float, default=10.0, help="replay speed, x the recorded pace (default 10; inf: at once)")
+    p.add_argument("--speed", type=float, default=10.0,
+                   help="replay speed, x the recorded pace (default 10; inf: at once)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; any other needs the printed access token)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default {DEFAULT_PORT})")
     p.add_argument("--token", help="the access token for a non-loopback --host (default: a random one)")
     p.add_argument("--every", type=int, default=4, help="re-solve the running reconstruction every N dips (default 4)")
-    p.add_argument("--resolution", type=int, default=48, help="voxels per axis of the running reconstruction (default 48)")
+    p.add_argument("--resolution", type=int, default=48,
+                   help="voxels per axis of the running reconstruction (default 48)")
     p.add_argument("--extent-mm", type=float, default=None,
                    help="grid side (mm); default from the recording's object or its stage travel")
     p.add_argument("--no-recon", action="store_true", help="no running reconstruction")
     p.add_argument("--nice", type=int, default=0, help="lower this process's priority by N (scan.py monitor=true: 10)")
-    p.add_argument("--wait", action="store_true", help="the scan may not have started writing yet (scan.py monitor=true)")
+    p.add_argument("--wait", action="store_true",
+                   help="the scan may not have started writing yet (scan.py monitor=true)")
     return p
 
 
@@ -62,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        with on_signals(terminated), interrupted(lambda: f"monitor stopped; to show it again: python scripts/monitor.py {shown(args)}"):
+        with on_signals(terminated), \
+                interrupted(lambda: f"monitor stopped; to show it again: python scripts/monitor.py {shown(args)}"):
             optional_import("fastapi", "monitor", "the scan monitor")
             optional_import("uvicorn", "monitor", "the scan monitor")
             optional_import("plotly", "report", "the scan monitor's page")
@@ -108,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
         if args.replay is not None:
             if not Path(args.replay).is_file():
                 raise MonitorError(f"recording not found: {args.replay}")
-            scratch = cleanup.enter_context(tempfile.TemporaryDirectory(prefix="dipnet-replay-", ignore_cleanup_errors=True))
+            scratch = cleanup.enter_context(tempfile.TemporaryDirectory(prefix="dipnet-replay-",
+                                                                        ignore_cleanup_errors=True))
             path = Path(scratch) / "rawscan.jsonl"
             replay = Replay(args.replay, path, args.speed)
         else:

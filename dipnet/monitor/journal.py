@@ -103,7 +103,8 @@ class MonitorJournal(logging.Handler):
         if status != self._last_status:
             self._last_status = status
             self.write({"type": "status", "where": status[0], "report": status[1],
-                        "state": getattr(report, "state", None), "dialect": getattr(runner.controller, "dialect", None)})
+                        "state": getattr(report, "state", None),
+                        "dialect": getattr(runner.controller, "dialect", None)})
 
 
 def format_report(report: Any) -> str:

@@ -77,7 +77,8 @@ class Replay:
                 writer.record_session(session)
             last = None
             for o in self.raw.orientations:
-                writer.begin_orientation(o.k, direction=o.direction, tilt_deg=o.tilt_deg, spin_deg=o.spin_deg, meta=o.meta)
+                writer.begin_orientation(o.k, direction=o.direction, tilt_deg=o.tilt_deg, spin_deg=o.spin_deg,
+                                         meta=o.meta)
                 for i in range(o.n_readings):
                     t = float(o.time_s[i]) * (CSV_READING_S if self.csv else 1.0)
                     self._wait(0.0 if last is None else t - last)

@@ -51,7 +51,8 @@ def find_scan(run: str | Path, wait: bool = False) -> Path:
     if wait or path.is_file():
         return path
     if not run.exists():
-        raise MonitorError(f"{run} does not exist: give the run directory of a scan (scans/<name>) or its rawscan.jsonl")
+        raise MonitorError(f"{run} does not exist: give the run directory of a scan (scans/<name>) "
+                           "or its rawscan.jsonl")
     if run.is_file():
         raise MonitorError(f"{run} is a file, not a scan: give the run directory of a scan (scans/<name>) or its "
                            "rawscan.jsonl; a recording (.csv or .jsonl) plays with --replay FILE")
@@ -99,7 +100,8 @@ class Monitor:
             self.recon_version += 1
         if changed or recon or force:
             result = self.worker.result if self.worker is not None else None
-            state = snapshot(self.tail, self.journal, replay=self.replay, alive=writer_alive(self.tail.path), recon=result)
+            state = snapshot(self.tail, self.journal, replay=self.replay, alive=writer_alive(self.tail.path),
+                             recon=result)
             if self.worker is not None and self.worker.error:
                 state["warnings"].append(f"running reconstruction failed {self.worker.error}")
             self.state = state

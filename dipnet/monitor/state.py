@@ -254,7 +254,8 @@ def snapshot(tail: ScanTail, journal: JournalTail, *, replay: bool = False, aliv
                      "status": "done" if d.complete else ("in progress" if d is current and mode in ("live", "replay")
                                                           else "incomplete")} for d in tail.dips]
     orientations += [{"k": k, "tilt": t, "spin": s, "direction": _direction((t, s)), "status": "planned"}
-                     for k, (t, s) in enumerate(planned_orientations(tail)) if (round(t, 6), round(s, 6)) not in recorded]
+                     for k, (t, s) in enumerate(planned_orientations(tail))
+                     if (round(t, 6), round(s, 6)) not in recorded]
     dip = None
     if current is not None:
         dip = {"k": current.k, "tilt": current.tilt_deg, "spin": current.spin_deg, "complete": current.complete,

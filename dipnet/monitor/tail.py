@@ -146,7 +146,8 @@ class ScanTail:
             if checked.direction is not None and checked.direction.shape != (self.header.ndim,):
                 raise RawScanFileError(f"direction must have {self.header.ndim} components")
             _check_direction(checked)
-            self.dips = [d for d in self.dips if d.k != k] + [Dip(k, *angles, obj.get("direction"), obj.get("meta") or {})]
+            self.dips = [d for d in self.dips if d.k != k] \
+                + [Dip(k, *angles, obj.get("direction"), obj.get("meta") or {})]
         elif kind == "reading":
             dip = self._dip(obj)
             stage, value, time_s = (float(obj[key]) * self.factors[unit] for key, unit in

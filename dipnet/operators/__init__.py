@@ -81,5 +81,5 @@ def backend_name(operator: DipOperator) -> str:
     raise ValueError(f"operator type {type(operator).__name__} is not a registered backend")
 
 
-__all__ = ["ALIASES", "AUTO_SPLAT_LIMIT", "BACKENDS", "SPLAT_MATRIX_BACKENDS", "backend_name", "DEFAULT_BACKEND", "DipOperator", "FourierOperator", "RotateSumOperator",
-           "SplatOperator", "make_operator", "select_backend"]
+__all__ = ["ALIASES", "AUTO_SPLAT_LIMIT", "BACKENDS", "SPLAT_MATRIX_BACKENDS", "backend_name", "DEFAULT_BACKEND",
+           "DipOperator", "FourierOperator", "RotateSumOperator", "SplatOperator", "make_operator", "select_backend"]

@@ -111,8 +111,9 @@ class FourierOperator(DipOperator):
         self.single = bool(single)
         self._complex = np.complex64 if self.single else np.complex128
         self.upsampfac = None if upsampfac is None else float(upsampfac)
+        # to build the same operator on another grid
         self.options = {"bandwidth": self.bandwidth, "axis_boost": self.axis_boost, "eps": self.eps,
-                        "upsampfac": self.upsampfac, "single": self.single}  # to build the same operator on another grid
+                        "upsampfac": self.upsampfac, "single": self.single}
         h, delta, d = grid.voxel_size, self.slab_thickness, grid.ndim
         support = grid.radius + (h * math.sqrt(d) + delta) / 2  # g_k vanishes beyond, mm
         self.period_slabs = math.ceil((support + grid.extent / 2) / delta) + 2  # M_T

@@ -133,7 +133,8 @@ def _warn_few_candidates(left: int, wanted: int, n_dips: int, n_candidates: int,
     than the ``wanted`` next batch: the loop plans ``left`` (and stops when 0 are left) short of ``budget``."""
     then = f"the loop stops at {n_dips} dips" if not left else f"the loop plans those {left}"
     message = (f"planner=adaptive: after {n_dips} dips only {left} of the reach's {n_candidates} candidate directions "
-               f"are not measured yet (within {MEASURED_DEG:g} deg), fewer than the {wanted} of the next batch: {then}, "
+               f"are not measured yet (within {MEASURED_DEG:g} deg), fewer than the {wanted} of the next batch: "
+               f"{then}, "
                f"short of the budget of {budget} (a dip along a measured direction measures the same planes again); "
                f"for more candidates give a finer reach.step_deg (now {reach.step_deg:g} deg) or a wider reach "
                f"(tilt {reach.tilt_range_deg[0]:g}-{reach.tilt_range_deg[1]:g} deg)")
@@ -174,7 +175,8 @@ def keep_recorded(recorded: RawScan, planned: list[tuple[float, float]], first: 
         if 0 <= i < len(out) and not np.allclose((o.tilt_deg, o.spin_deg), out[i], atol=1e-6):
             direction = torch.as_tensor(o.unit_direction, dtype=torch.float64)[None]
             if reach is not None and not bool(reach.contains(direction)[0]):
-                raise RawScanFileError(f"{path}: dip {o.k} was recorded at (tilt, spin) = ({o.tilt_deg}, {o.spin_deg}), "
+                raise RawScanFileError(f"{path}: dip {o.k} was recorded at (tilt, spin) = "
+                                       f"({o.tilt_deg}, {o.spin_deg}), "
                                        f"outside the rig's reach now ({reach}): the config changed; use another "
                                        f"scan name")
             moved.append(f"dip {o.k}: recorded ({o.tilt_deg:g}, {o.spin_deg:g}), replayed plan ({out[i][0]:g}, "

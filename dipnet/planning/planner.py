@@ -119,7 +119,8 @@ CRITERIA = ("information", "variance")
 MEASURED_DEG = 0.5
 
 
-def measured_candidates(candidates: torch.Tensor, directions: torch.Tensor, tol_deg: float = MEASURED_DEG) -> np.ndarray:
+def measured_candidates(candidates: torch.Tensor, directions: torch.Tensor,
+                        tol_deg: float = MEASURED_DEG) -> np.ndarray:
     """Boolean mask ``(C,)``: which ``candidates`` ``(C, 3)`` lie within ``tol_deg`` (deg) of the line of a measured
     direction ``(K, 3)`` (any length: normalised here), so that dipping them again measures the same planes."""
     c, d = (torch.nn.functional.normalize(torch.as_tensor(v, dtype=torch.float64), dim=1).numpy()
@@ -142,8 +143,8 @@ def unmeasured_lines(candidates: torch.Tensor, directions: torch.Tensor, tol_deg
     """How many distinct lines (``c`` and ``-c``: the same planes) the ``candidates`` ``(C, 3)`` hold that no measured
     direction ``(K, 3)`` lies on (:func:`measured_candidates`): the most new dips a plan can add (a reach up to tilt
     90 deg holds both ``c`` and ``-c`` at that tilt)."""
-    fresh = torch.as_tensor(candidates, dtype=torch.float64)[torch.from_numpy(~measured_candidates(candidates,
-                                                                                                   directions, tol_deg))]
+    fresh = torch.as_tensor(candidates, dtype=torch.float64)[
+        torch.from_numpy(~measured_candidates(candidates, directions, tol_deg))]
     return int((~repeated_directions(fresh, tol_deg)).sum())
 
 

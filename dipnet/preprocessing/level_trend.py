@@ -39,7 +39,8 @@ def tail_slope(volume: np.ndarray, fitted: np.ndarray, min_readings: int = MIN_T
     """
     volume, fitted = np.asarray(volume, dtype=np.float64), np.asarray(fitted, dtype=np.float64)
     if volume.shape != fitted.shape or volume.ndim != 1:
-        raise ValueError(f"volume and fitted must be one dip's readings of one shape, got {volume.shape} and {fitted.shape}")
+        raise ValueError(f"volume and fitted must be one dip's readings of one shape, "
+                         f"got {volume.shape} and {fitted.shape}")
     if volume.size == 0:
         return float("nan")
     noise = reading_noise(volume)

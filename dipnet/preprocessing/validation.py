@@ -121,12 +121,13 @@ def reading_noise_leak(readings: list[np.ndarray]) -> float:
 
     White noise gives the same sigma at either step (ratio 1); the rise's own third difference grows with the
     step's cube, so a ratio well above 1 says the estimate holds the rise too, and the readings' noise is smaller
-    than it says. On five bundled meshes and the built-in box (41 dips, 0.5-5 mm steps, 10-60 dB), where the ratio was below 2 the true
-    noise was 0.70-1.0 of the estimate, and where the estimate exceeded twice the true noise the ratio was 2.5 or
-    more. NaN without a dip of 8 readings.
+    than it says. On five bundled meshes and the built-in box (41 dips, 0.5-5 mm steps, 10-60 dB), where the ratio was
+    below 2 the true noise was 0.70-1.0 of the estimate, and where the estimate exceeded twice the true noise the ratio
+    was 2.5 or more. NaN without a dip of 8 readings.
     """
     full = [np.diff(np.asarray(v, dtype=np.float64), 3) for v in readings if len(v) >= 8]
-    halves = [np.diff(np.asarray(v, dtype=np.float64)[start::2], 3) for v in readings if len(v) >= 8 for start in (0, 1)]
+    halves = [np.diff(np.asarray(v, dtype=np.float64)[start::2], 3)
+              for v in readings if len(v) >= 8 for start in (0, 1)]
     sigma = _third_difference_sigma(full)
     return _third_difference_sigma(halves) / sigma if sigma > 0 else float("nan")
 
@@ -241,7 +242,8 @@ def _check_not_tiny(totals: np.ndarray, grid: Grid, source: str) -> None:
     if total < grid.voxel_volume:
         raise MeasurementValidationError(
             f"{source}: the largest profile holds {total:.4g} {grid.volume_unit}, less than one voxel's "
-            f"{grid.voxel_volume:.4g} {grid.volume_unit} (extent_mm={grid.extent:g}, resolution {grid.n}): wrong units or "
+            f"{grid.voxel_volume:.4g} {grid.volume_unit} (extent_mm={grid.extent:g}, resolution {grid.n}): "
+            "wrong units or "
             f"scale ({_UNIT_SLIPS[grid.ndim]}), or an extent far too large for the object")
 
 
@@ -383,7 +385,8 @@ def beyond_ball_message(reach: float, grid: Grid, dip: str = "", *, placement: P
     if file:
         width = f" (no dip shows it wider than {placement.width_mm:.1f} mm)" if placement is not None else ""
         message += (f". The rig geometry comes from the calibration file {_calibration_name(file)}: if the object is "
-                    f"not that far off the spin axis{width}, check that the file is this rig's, or recalibrate this rig")
+                    f"not that far off the spin axis{width}, check that the file is this rig's, "
+                    "or recalibrate this rig")
     return message
 
 
@@ -484,5 +487,6 @@ def _check_duplicates(measurement: DipMeasurement, totals, noise, total_tol: flo
         report.warnings.append(
             f"{source}: {int(disagree.sum())} of {len(pairs)} pair(s) of directions within {dup_deg:g} deg measure "
             f"different profiles (worst: dips {i[worst]} and {j[worst]}, whose volumes below a height differ by "
-            f"up to {gap[worst]:.4g} {unit}, {gap[worst] / scale[worst]:.1%} of {scale[worst]:.4g} {unit}): a direction "
+            f"up to {gap[worst]:.4g} {unit}, {gap[worst] / scale[worst]:.1%} of {scale[worst]:.4g} {unit}): "
+            "a direction "
             "mislabelled, or the same direction recorded for different dips?")

@@ -403,7 +403,8 @@ class Controller(SerialDevice):
         self.timeout = seconds(timeout, "timeout", "rig.controller")
         self.move_timeout = seconds(move_timeout, "move_timeout", "rig.controller")
         self.home_timeout = seconds(home_timeout, "home_timeout", "rig.controller")
-        if feed is not None and (isinstance(feed, bool) or not isinstance(feed, (int, float)) or not 0 < feed < math.inf):
+        if feed is not None and (isinstance(feed, bool) or not isinstance(feed, (int, float))
+                                 or not 0 < feed < math.inf):
             raise ValueError(f"rig.controller.feed must be a positive feed rate (machine units per minute) or null "
                              f"(G0 rapids), got {feed!r}: G1 moves need a positive F")
         self.feed = feed

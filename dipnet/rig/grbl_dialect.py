@@ -30,7 +30,8 @@ FEED_HOLD = b"!"
 ERRORS = {1: "expected command letter", 2: "bad number format", 3: "invalid $ statement",
           5: "homing is not enabled ($22=0)", 8: "not idle", 9: "G-code locked out during alarm or jog state",
           10: "soft limits need homing enabled ($22=1)", 15: "travel exceeded (soft limit)",
-          20: "unsupported or invalid g-code command", 22: "feed rate not set", 25: "a g-code word repeated in the block",
+          20: "unsupported or invalid g-code command", 22: "feed rate not set",
+          25: "a g-code word repeated in the block",
           33: "invalid target"}
 #: GRBL 1.1 alarm codes.
 ALARMS = {1: "hard limit triggered", 2: "soft limit: target exceeds machine travel",

@@ -218,8 +218,8 @@ class ScanPlan:
             raise ValueError(f"need step_mm > 0 and stop_mm > start_mm, got step {self.step_mm}, "
                              f"start {self.start_mm}, stop {self.stop_mm}")
         if self.origin_height_mm is not None and not math.isfinite(self.origin_height_mm):
-            raise ValueError(f"rig.origin_height_mm must be a finite height (mm) or null, got {self.origin_height_mm!r}; "
-                             "nothing moved")
+            raise ValueError(f"rig.origin_height_mm must be a finite height (mm) or null, "
+                             f"got {self.origin_height_mm!r}; nothing moved")
         if not math.isfinite(self.safe_mm) or self.safe_mm > self.start_mm:  # lowering positions grow downward
             raise ValueError(f"protocol.safe_mm={self.safe_mm:g} must be <= protocol.start_mm={self.start_mm:g}: "
                              f"lowering positions grow downward (mm), and the safe position, where the object "
@@ -229,7 +229,8 @@ class ScanPlan:
                              f"got {self.retries!r}; nothing moved")
         if (isinstance(self.settle_s, bool) or not isinstance(self.settle_s, (int, float))
                 or not 0 <= self.settle_s < math.inf):
-            raise ValueError(f"protocol.settle_s must be a number of seconds >= 0, got {self.settle_s!r}; nothing moved")
+            raise ValueError(f"protocol.settle_s must be a number of seconds >= 0, got {self.settle_s!r}; "
+                             "nothing moved")
         if self.max_lower_mm is not None and self.stop_mm > self.max_lower_mm:
             raise ValueError(f"protocol.stop_mm={self.stop_mm:g} lowers the object onto the tank bottom: at most "
                              f"{self.max_lower_mm:.4g} mm ({self.max_lower_source}); nothing moved")

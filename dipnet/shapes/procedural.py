@@ -394,5 +394,5 @@ def generated_occupancy(seed: int, grid: Grid, fill: float = 0.9, family: str | 
     return make_solid(seed, family).occupancy(grid.n, fill * grid.radius / (grid.extent / 2), supersample)
 
 
-__all__ = ["FAMILIES", "SEED_FAMILIES", "GeneratedShape", "ProceduralSolid", "family_of", "generated_occupancy", "generated_shape",
-           "make_solid"]
+__all__ = ["FAMILIES", "SEED_FAMILIES", "GeneratedShape", "ProceduralSolid", "family_of", "generated_occupancy",
+           "generated_shape", "make_solid"]

@@ -120,8 +120,9 @@ class SensorModel(ABC):
                 raise ValueError(f"sensor {name} must be {kind}, got {value!r}")
         sigma, snr_db, _, _ = self._params()
         if snr_db is not None and sigma > 0:
-            raise ValueError(f"the sensor's sigma_{unit}={sigma:g} {unit} and snr_db={snr_db:g} both set its noise, and "
-                             f"with snr_db the sigma is ignored: give one (snr_db=null for a noise of {sigma:g} {unit})")
+            raise ValueError(f"the sensor's sigma_{unit}={sigma:g} {unit} and snr_db={snr_db:g} both set its noise, "
+                             f"and with snr_db the sigma is ignored: give one "
+                             f"(snr_db=null for a noise of {sigma:g} {unit})")
 
     @property
     def quantum(self) -> float:
@@ -356,7 +357,8 @@ def _check_quantum(sensor: SensorModel, tank: Tank, volume: float) -> None:
     rise = float(np.ptp(sensor.ideal(tank, np.array([0.0, volume]))))
     if sensor.quantum > 0 and sensor.quantum >= rise:
         unit = sensor.quantity.rsplit("_", 1)[-1]
-        what = "its volume over the tank's section" if sensor.quantity == "level_mm" else "the mass of water it displaces"
+        what = "its volume over the tank's section" if sensor.quantity == "level_mm" \
+            else "the mass of water it displaces"
         fix = "use a smaller tank" if sensor.quantity == "level_mm" else "dip a larger object"
         raise ValueError(f"the sensor's quantum ({sensor.quantum:g} {unit}) is at least the whole change the object "
                          f"makes in its reading ({rise:.3g} {unit}, {what}): every dip would read one level; lower "

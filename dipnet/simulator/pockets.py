@@ -65,7 +65,8 @@ class Pockets:
     resolution: int = 64
 
     def __post_init__(self) -> None:
-        if isinstance(self.resolution, bool) or int(self.resolution) != self.resolution or not 8 <= self.resolution <= 256:
+        if isinstance(self.resolution, bool) or int(self.resolution) != self.resolution \
+                or not 8 <= self.resolution <= 256:
             raise ValueError(f"pockets resolution must be a whole number of cells per axis in [8, 256], "
                              f"got {self.resolution!r}")
         self.resolution = int(self.resolution)

@@ -32,7 +32,8 @@ def concatenate(first: DipMeasurement, second: DipMeasurement) -> DipMeasurement
     sigma = None
     if first.sigma is not None and second.sigma is not None:
         sigma = torch.cat([first.sigma, second.sigma])
-    return DipMeasurement(torch.cat([first.directions, second.directions]), torch.cat([first.profiles, second.profiles]),
+    return DipMeasurement(torch.cat([first.directions, second.directions]),
+                          torch.cat([first.profiles, second.profiles]),
                           first.slab_thickness, torch.cat([first.offsets, second.offsets]), sigma, dict(first.metadata))
 
 

@@ -45,4 +45,5 @@ def make_solver(name: str, **options) -> Solver:
     return SOLVERS[name](**options)
 
 
-__all__ = ["DeepImagePriorSolver", "ImplicitSolver", "LSMRSolver", "LSQRSolver", "MinNormSolver", "OptimisationSolver", "SOLVERS", "VoxelSolver", "Solver", "make_solver", "measured_profiles"]
+__all__ = ["DeepImagePriorSolver", "ImplicitSolver", "LSMRSolver", "LSQRSolver", "MinNormSolver", "OptimisationSolver",
+           "SOLVERS", "VoxelSolver", "Solver", "make_solver", "measured_profiles"]

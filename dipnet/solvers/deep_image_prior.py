@@ -85,7 +85,8 @@ class DeepDecoder(nn.Module):
             nn.Sequential(conv(channels, channels, kernel_size, padding=kernel_size // 2, padding_mode="replicate"),
                           nn.ReLU(), nn.GroupNorm(1, channels))  # channel norm over the whole volume
             for _ in range(levels))
-        self.fine = nn.Sequential(conv(channels, channels, fine_kernel, padding=fine_kernel // 2, padding_mode="replicate"),
+        self.fine = nn.Sequential(conv(channels, channels, fine_kernel, padding=fine_kernel // 2,
+                                       padding_mode="replicate"),
                                   nn.ReLU(), nn.GroupNorm(1, channels)) if fine_kernel else nn.Identity()
         self.head = conv(channels, 1, 1)
         self.mode = "trilinear" if ndim == 3 else "bilinear"
@@ -138,7 +139,8 @@ class DeepImagePriorSolver(OptimisationSolver):
         return self.temperature_start * (self.temperature_end / self.temperature_start) ** fraction
 
     def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
-        """Reconstruct on ``operator.grid``; ``info`` holds the network's size (``network_weights``) and the final temperature."""
+        """Reconstruct on ``operator.grid``; ``info`` holds the network's size (``network_weights``) and the final
+        temperature."""
         started = time.perf_counter()
         measurement = on_operator_slabs(measurement, operator)  # resampled (and warned about) once
         problem = self._problem(measurement, operator)  # an "auto" prior weight stays at the rule's start

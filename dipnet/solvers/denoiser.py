@@ -121,7 +121,8 @@ def existing_weights_path(weights: str | Path | None) -> Path:
                                 + (f" in it ({', '.join(inside[:5])})" if inside else " (it holds no .pt file)"))
     if not path.is_file():
         raise PriorWeightsError(f"learned-prior weights not found: {path} (train them with scripts/train_prior.py, "
-                                f"pass weights: null for the shipped first stage, or a shipped name: {shipped_names()})")
+                                f"pass weights: null for the shipped first stage, "
+                                f"or a shipped name: {shipped_names()})")
     return path
 
 

@@ -13,8 +13,8 @@ extent), or ``None``. The fitted field stays available as ``solver.field_`` and
 Defaults (chosen with ``scripts/bench_quality.py`` at 64^3): a 6-level dense feature grid
 (4^3 .. N^3 cells, 2 features each), a 64-wide MLP with 2 hidden layers, Adam lr 0.01 with a
 cosine schedule, 400 steps, isotropic TV with its weight from the noise (``"auto"``). Lighter
-fields (4 levels, width 32) ran ~1.5x faster but under-fitted (bunny, 41 dips: IoU 0.93 vs 0.96). Cost per step: the dip operator
-and the MLP over the support-hull voxels (see :func:`~dipnet.solvers.optimize.support_hull`).
+fields (4 levels, width 32) ran ~1.5x faster but under-fitted (bunny, 41 dips: IoU 0.93 vs 0.96). Cost per step: the dip
+operator and the MLP over the support-hull voxels (see :func:`~dipnet.solvers.optimize.support_hull`).
 """
 
 from __future__ import annotations
@@ -138,7 +138,8 @@ class ImplicitSolver(OptimisationSolver):
             mask = self.support(data.target.double(), operator, fine)
             mask &= fine.centers().norm(dim=-1) <= grid.radius
             fine_occupancy = self.sample(fine) * mask
-            recon.fine = Reconstruction(occupancy=fine_occupancy, grid=fine, threshold=self.level(fine_occupancy, fine, data),
+            recon.fine = Reconstruction(occupancy=fine_occupancy, grid=fine,
+                                        threshold=self.level(fine_occupancy, fine, data),
                                         info={"solver": self.name, "source_n": grid.n})
         return self._refit_surface(recon, measurement, operator)
 

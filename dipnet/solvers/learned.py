@@ -81,7 +81,8 @@ class LearnedPrior(nn.Module):
                  mode: str = "red", flips: bool = False) -> None:
         super().__init__()
         if isinstance(refresh, bool) or not isinstance(refresh, numbers.Integral) or refresh < 1:
-            raise ValueError(f"refresh must be a whole number >= 1 (calls between denoiser evaluations), got {refresh!r}")
+            raise ValueError(f"refresh must be a whole number >= 1 (calls between denoiser evaluations), "
+                             f"got {refresh!r}")
         if mode not in self.MODES:
             raise ValueError(f"unknown learned-prior mode {mode!r}; choose one of {self.MODES}")
         self.mode, self.flips = mode, checked_flag("the learned prior's flips", flips)
@@ -188,7 +189,8 @@ class LearnedPrior(nn.Module):
         if not isinstance(trained, (int, float)) or not 0 < trained <= 1 or not fill < PLAN_FILL_SHARE * trained:
             return None
         return (f"the object spans at most {fill:.2f} of the working ball's diameter; the learned prior's denoiser "
-                f"({self.choice['weights']}) was trained on objects reaching {trained:g} of it, and works at the voxels' "
+                f"({self.choice['weights']}) was trained on objects reaching {trained:g} of it, "
+                "and works at the voxels' "
                 "scale, so on so few voxels it adds little or does harm (bracket_B66 at fill 0.25, 64^3, 41 dips: "
                 "Chamfer 1.10 times solver=voxel's, consistent): give the grid the object's size (extent_mm=null with "
                 f"the default fill, or an extent_mm near the object's span), or compare with solver=voxel")

@@ -30,8 +30,8 @@ chamber box 128^2, 20      0.992   0.992   0.993   0.995
 Methods
 -------
 * ``cholesky``: the explicit sparse ``B`` (the splat backend's matrix, exactly the splat and
-  rotate_sum operators; see :func:`matrix_backend` for fourier), dense ``B B^T + s I`` and a Cholesky factorisation. ``B B^T``
-  is singular in practice - every profile sums to the object volume, so the rows of
+  rotate_sum operators; see :func:`matrix_backend` for fourier), dense ``B B^T + s I`` and a Cholesky factorisation.
+  ``B B^T`` is singular in practice - every profile sums to the object volume, so the rows of
   different orientations are linearly dependent, and slabs outside the working ball are
   empty rows - so the shift also makes the factorisation possible. With ``tikhonov=0``, or
   if the factorisation still fails, the rank-revealing fallback is an eigendecomposition of
@@ -145,7 +145,8 @@ class MinNormSolver(Solver):
 
     def __init__(self, method: str = "auto", tikhonov: float = 0.1, iter_lim: int = 300,
                  atol: float = 1e-6, btol: float = 1e-6, max_cholesky_rows: int = 6000,
-                 max_cholesky_bytes: float = 2e9, rcond: float = 1e-10, threshold: str | float = "otsu", progress: bool = True) -> None:
+                 max_cholesky_bytes: float = 2e9, rcond: float = 1e-10, threshold: str | float = "otsu",
+                 progress: bool = True) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown minnorm method {method!r}; choose one of {METHODS}")
         if not tikhonov >= 0:

@@ -66,7 +66,8 @@ class Problem(NamedTuple):
     priors: Priors  # "auto" weights at the weight rule's start (see OptimisationSolver.choose_weights)
     volume_fraction: float  # measured object volume / grid cube volume
     support: torch.Tensor  # bool, grid.shape: voxels that may be occupied
-    noise: tuple[float, str]  # the data term of the noise alone (weights.noise_level, or DataTerm.expected_noise) and its source
+    # the data term of the noise alone (weights.noise_level, or DataTerm.expected_noise) and its source
+    noise: tuple[float, str]
     spec: Mapping[str, Mapping]  # the priors' options ("auto" weights unresolved) that ``priors`` was built from
 
 
@@ -547,7 +548,8 @@ class OptimisationSolver(Solver):
         self.fit_gain = checked_flag("fit_gain", fit_gain)
         self.noise_model, self.white_share = noise_model, float(white_share)
         self.surface_refit = surface_refit if surface_refit is None or isinstance(surface_refit, SurfaceRefit) \
-            else SurfaceRefit.from_options(plain(surface_refit) if isinstance(surface_refit, Mapping) else surface_refit)
+            else SurfaceRefit.from_options(plain(surface_refit) if isinstance(surface_refit, Mapping)
+                                           else surface_refit)
 
     def _loop(self, parameters, occupancy, data: DataTerm, priors: Priors, iterations: int, desc: str,
               before_step=None, lr_scale: float = 1.0) -> dict[str, list[float]]:

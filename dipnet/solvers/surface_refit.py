@@ -204,7 +204,8 @@ class SurfaceRefit:
 
 def without_surface_refit(solver: Any) -> Any:
     """``solver`` itself when it refits no surface, else a copy that does not: for the solves whose occupancy alone
-    is read (the adaptive loop's after every batch), which the refit's mesh would only slow (tens of seconds at 64^3)."""
+    is read (the adaptive loop's after every batch), which the refit's mesh would only slow (tens of seconds at
+    64^3)."""
     if getattr(solver, "surface_refit", None) is None:
         return solver
     quiet = copy.copy(solver)
@@ -225,7 +226,8 @@ class _Fit:
             sigma.double().clamp_min(SIGMA_FLOOR * float(sigma[sigma > 0].median())).pow(-2)
         self.smoothness = float(smoothness)
         average = trimesh.smoothing.laplacian_calculation(mesh, equal_weight=True).tocoo()  # neighbours' mean
-        index = np.concatenate([np.stack([average.row, average.col]), np.tile(np.arange(len(mesh.vertices)), (2, 1))], 1)
+        index = np.concatenate([np.stack([average.row, average.col]),
+                                np.tile(np.arange(len(mesh.vertices)), (2, 1))], 1)
         values = np.concatenate([-average.data, np.ones(len(mesh.vertices))])
         self.laplacian = torch.sparse_coo_tensor(torch.from_numpy(index), torch.from_numpy(values),
                                                  (len(mesh.vertices),) * 2, check_invariants=False).coalesce()

@@ -109,7 +109,8 @@ class VoxelSolver(OptimisationSolver):
         if self.later_priors is not None:
             build_priors(with_weight(self.later_priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.temperature_start, self.temperature_end = float(temperature_start), float(temperature_end)
-        self.coarse_to_fine, self.coarse_fraction = checked_flag("coarse_to_fine", coarse_to_fine), float(coarse_fraction)
+        self.coarse_to_fine, self.coarse_fraction = (checked_flag("coarse_to_fine", coarse_to_fine),
+                                                     float(coarse_fraction))
         self.rounds, self.rounds_tau = int(rounds), None if rounds_tau is None else float(rounds_tau)
 
     def _merged(self, later: Mapping[str, Mapping]) -> dict[str, dict]:
@@ -178,7 +179,8 @@ class VoxelSolver(OptimisationSolver):
             reason = ("the noise is estimated from the profiles (an upper bound that includes their own curvature), "
                       "which never licenses a stronger prior: no further round")
         elif not within:
-            reason = "the data term exceeds rounds_tau^2 x the noise's: a further round would pull the result off its data"
+            reason = ("the data term exceeds rounds_tau^2 x the noise's: a further round would pull the result off "
+                      "its data")
         else:
             reason = "the data term stays within rounds_tau^2 x the noise's"
         stopped = self.min_rounds <= done < self.rounds and not (known and within)

@@ -4,8 +4,8 @@ Its planner keeps the machine position it last commanded (:attr:`MarlinDevice.pl
 reports it in logical coordinates (plus the workspace offset: ``FakeRig.marlin_offset``, changed by ``G92``) and,
 after ``Count``, in steps (``FakeRig.marlin_steps``, which ``M92`` reports and sets), as Marlin 2.x's
 ``report_current_position_projected`` does; moves take logical coordinates, and the motors turn by the steps counted
-(an ``M92`` other than ``FakeRig.marlin_motor_steps`` moves them too far or not far enough). A ``stall`` fault stops the stage
-half-way while the planner keeps the target, and says ``echo:endstops hit:``."""
+(an ``M92`` other than ``FakeRig.marlin_motor_steps`` moves them too far or not far enough). A ``stall`` fault stops the
+stage half-way while the planner keeps the target, and says ``echo:endstops hit:``."""
 
 from __future__ import annotations
 
