@@ -24,8 +24,8 @@ report names them. So the calibrated shape is compared with the truth both as it
 1 / step scale about the stage-0 water line), and the self-calibrated pivot and offset are
 compared with their gauge-equivalent values (``p' = (1 - l) t0 + l p``, ``e' = l e``, ``A' = l^3 A``
 for the cross-section, ``l`` = 1 / step scale: the scene seen at step scale 1 is ``l`` times the true one,
-its volume ``l^3`` times, for the same level rises). Coverage counts, over (rig, parameter) pairs marked determined, how often the 90%
-interval holds the true value.
+its volume ``l^3`` times, for the same level rises). Coverage counts, over (rig, parameter) pairs marked determined, how
+often the 90% interval holds the true value.
 
 Prints a table per rig and last ``RESULT median_calibrated_over_true=<> worst_calibrated_over_true=<>
 coverage90=<> refused=<> ball_coverage90=<> median_gauged_over_true=<> worst_gauged_over_true=<>

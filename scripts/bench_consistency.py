@@ -14,8 +14,8 @@ those of other rules.
 Random cases, seeded by ``--seed``: ``--trials`` scans per shape of the 3D built-ins (ball, box, torus, chamber box),
 the 16 bundled meshes and the 2D built-ins (disk, chamber box, elephant), 45 mm in radius on the job's grid around
 the object (``fill`` 0.9; 24^3 in 3D, 48^2 in 2D, or ``--resolution``), with a random number of dips (3D 20-80
-on the Fibonacci hemisphere, 2D 10-40 equal angles) and a random noise: noise-free one time in five (the noise then estimated),
-else an SNR uniform in 5-40 dB that the sensor states. Each scan is solved by the job's default optimisation
+on the Fibonacci hemisphere, 2D 10-40 equal angles) and a random noise: noise-free one time in five (the noise then
+estimated), else an SNR uniform in 5-40 dB that the sensor states. Each scan is solved by the job's default optimisation
 solver (``solver=voxel`` of ``conf/config.yaml`` and its ``operator``, via Hydra's compose) and checked as the job
 checks it. Then WRONG candidates are checked against the same measurement with the same operator: (a) a ball of
 the reconstruction's volume at the data's centroid, (b) the reconstruction shifted by 2 voxels along a random axis
@@ -28,9 +28,9 @@ A reconstruction with IoU >= 0.85 is **correct**: flagging it is a false alarm. 
 with IoU < 0.8 is **wrong**: flagging it is a detection (the ones in between count as neither). Per SNR band
 (noise-free, 30-40, 15-30, 5-15 dB) the table gives the quantiles of residual / expected of the correct results,
 their share the current rule flags (the residual check alone, and the whole verdict), the wrong candidates'
-residual / expected, and, for the current rule, the rules before (``profiles``, ``before``) and other rules: ``max(f * expected,
-0.05)`` (``fN``, f in 1.25, 1.5, 2) and ``hypot(f * expected, floor_n)`` (``hypotN``, f in 1.25, 1.5, 2, 3), the share
-of correct results flagged (false alarms) and of wrong candidates flagged (detected). Last line
+residual / expected, and, for the current rule, the rules before (``profiles``, ``before``) and other rules:
+``max(f * expected, 0.05)`` (``fN``, f in 1.25, 1.5, 2) and ``hypot(f * expected, floor_n)`` (``hypotN``, f in 1.25,
+1.5, 2, 3), the share of correct results flagged (false alarms) and of wrong candidates flagged (detected). Last line
 ``RESULT false_alarms_current=<> detected_current=<> false_alarms_before=<> detected_before=<> ... cases=<>`` (over
 all bands).
 
@@ -90,7 +90,8 @@ def rules() -> dict[str, Callable[[dict], float]]:
         "profiles": lambda r: allowed_residual(_profiles_expected(r), r["n"], r["noise_source"] == "sigma"),
         "before": lambda r: max(3.0 * _profiles_expected(r), RESIDUAL_FLOOR)}
     out.update({f"f{f:g}": (lambda r, f=f: max(f * r["expected"], RESIDUAL_FLOOR)) for f in FACTORS if f != 3.0})
-    out.update({f"hypot{f:g}": (lambda r, f=f: allowed_residual(r["expected"], r["n"], True, factor=f)) for f in FACTORS})
+    out.update({f"hypot{f:g}": (lambda r, f=f: allowed_residual(r["expected"], r["n"], True, factor=f))
+                for f in FACTORS})
     return out
 
 
@@ -216,7 +217,8 @@ def run_case(case: dict, cfg, makers: dict, resolution: int = 24) -> list[dict]:
     profiles_expected = estimate_slab_sigma(target) * math.sqrt(target.numel()) / float(target.norm())
     for kind, result in candidates.items():
         c = check_consistency(measurement, operator, result, warn=False)
-        rows.append({**case, "n": grid.n, "kind": kind, "iou": iou(result.binary, truth), "residual": c.profile_residual,
+        rows.append({**case, "n": grid.n, "kind": kind, "iou": iou(result.binary, truth),
+                     "residual": c.profile_residual,
                      "residual_continuous": c.profile_residual_continuous, "expected_profiles": profiles_expected,
                      "expected": c.profile_residual_expected, "ratio": c.profile_residual / c.profile_residual_expected,
                      "limit": c.residual_limit, "noise_source": c.noise_source, "verdict": c.verdict,

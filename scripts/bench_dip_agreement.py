@@ -11,9 +11,9 @@ uniform in 5-40 dB. Each correct scan (``ok``) is then broken four ways: two dip
 45 deg about a random axis halfway through the scan (``slip20``, ``slip45``). The table gives, per kind, the share
 of scans with an outlier at the shipped limits and at others (false alarms for ``ok``, detections for the rest; the
 dips set aside before the final fit are chosen at the shipped limits, so the other rows are close, not exact),
-the shipped limits' rates per SNR band, and the ``ok`` scans nearest the limits. The authors' real recording (``dipnet/data/real``, as
-``experiment=cats_real`` reads it) is scored too. Last line ``RESULT false_alarms=<> detected_swap=<>
-detected_off_by_one=<> detected_slip20=<> detected_slip45=<> cats_outliers=<> cases=<>``.
+the shipped limits' rates per SNR band, and the ``ok`` scans nearest the limits. The authors' real recording
+(``dipnet/data/real``, as ``experiment=cats_real`` reads it) is scored too. Last line ``RESULT false_alarms=<>
+detected_swap=<> detected_off_by_one=<> detected_slip20=<> detected_slip45=<> cats_outliers=<> cases=<>``.
 
     python scripts/bench_dip_agreement.py            # 4 scans per shape (80 cases, 400 scored scans)
     python scripts/bench_dip_agreement.py --quick    # 1 scan of 8 shapes
@@ -85,7 +85,8 @@ def scored(measurement) -> dict:
     if scores is None:
         return {"tested": 0, "flags": [False] * len(LIMITS), "share": float("nan"), "sigmas": float("nan")}
     worst = int(np.argmax(np.minimum(scores.share / OUTLIER_SHARE, scores.sigmas / OUTLIER_SIGMAS)))
-    return {"tested": len(scores.index), "flags": [bool(scores.outliers(share, sigmas).any()) for sigmas, share in LIMITS],
+    return {"tested": len(scores.index),
+            "flags": [bool(scores.outliers(share, sigmas).any()) for sigmas, share in LIMITS],
             "share": float(scores.share[worst]), "sigmas": float(scores.sigmas[worst])}
 
 
@@ -123,7 +124,8 @@ def cats_row() -> dict:
 
 def print_table(rows: list[dict], cats: dict) -> None:
     """Flag rates per kind and limits, the correct scans' largest scores and the RESULT line."""
-    print(f"\n{len([r for r in rows if r['kind'] == 'ok'])} correct scans and their faults; share of scans with an outlier")
+    print(f"\n{len([r for r in rows if r['kind'] == 'ok'])} correct scans and their faults; "
+          "share of scans with an outlier")
     print(f"{'limits (sigmas, share)':24s}" + "".join(f"{k:>12s}" for k in KINDS))
     for j, (sigmas, share) in enumerate(LIMITS):
         rates = [np.mean([r["flags"][j] for r in rows if r["kind"] == kind]) for kind in KINDS]

@@ -25,7 +25,8 @@ one. The planner's posterior grid is half the reconstruction's. Prints one row p
 Chamfer / bbox diagonal, dips, seconds; for adaptive runs also the planning seconds per step),
 the means, the uncertainty calibration (error rate per uncertainty decile, pooled) and ends with
 
-    RESULT adaptive41_over_fib123=<ratio of mean Chamfer> adaptive41_over_fib41=<ratio> cap_adaptive_over_uniform=<ratio>
+    RESULT adaptive41_over_fib123=<ratio of mean Chamfer> adaptive41_over_fib41=<ratio>
+        cap_adaptive_over_uniform=<ratio>
 
 (with ``--oracle``, also ``oracle_rotations41_over_fib123=<ratio>``; with ``--oracle-pool``,
 ``oracle_greedy41_over_fib123=<ratio> cap_oracle_greedy_over_uniform=<ratio>``).
@@ -123,7 +124,8 @@ def check_plan_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> 
 
 def main(argv=None) -> dict[str, float]:
     args = parse_args(argv)
-    print(f"{'mesh':<12} {'plan':<16} {'dips':>5} {'IoU':>6} {'Chamfer':>8} {'time s':>7} {'plan s/step':>11}", flush=True)
+    print(f"{'mesh':<12} {'plan':<16} {'dips':>5} {'IoU':>6} {'Chamfer':>8} {'time s':>7} {'plan s/step':>11}",
+          flush=True)
     if args.jobs > 1:  # one process per mesh, each with its own torch threads
         with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("fork")) as pool:
             per_mesh = list(pool.map(bench_mesh, args.meshes, [args] * len(args.meshes)))
@@ -270,7 +272,8 @@ def summarise(rows: list[dict], calibration: list[np.ndarray], args) -> dict[str
         if oracle in means:
             ratios[f"{oracle}41_over_fib123"] = means[oracle]["chamfer"] / means["fibonacci_large"]["chamfer"]
     if "cap_oracle_greedy" in means:
-        ratios["cap_oracle_greedy_over_uniform"] = means["cap_oracle_greedy"]["chamfer"] / means["cap_uniform"]["chamfer"]
+        ratios["cap_oracle_greedy_over_uniform"] = (means["cap_oracle_greedy"]["chamfer"]
+                                                    / means["cap_uniform"]["chamfer"])
     print("RESULT " + " ".join(f"{k}={v:.3f}" for k, v in ratios.items()))
     return ratios
 

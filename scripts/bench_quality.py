@@ -372,7 +372,8 @@ def read_rows(paths: list[Path]) -> list[dict]:
         for row in data:
             case = tuple(row[key] for key in ("mesh", "set", "dips", "noise", "solver"))
             if case in seen:
-                raise ValueError(f"--from-json: {row['solver']} on {row['mesh']} at {row['dips']} dips ({row['noise']}) "
+                raise ValueError(f"--from-json: {row['solver']} on {row['mesh']} at {row['dips']} dips "
+                                 f"({row['noise']}) "
                                  f"is in {seen[case]} and in {path}: a file given twice, or runs of another --n, --snr "
                                  "or --fill, whose rows would be averaged as one case; give each case once")
             seen[case] = path

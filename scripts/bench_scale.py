@@ -6,8 +6,8 @@ For every mesh (scaled to ``--fill`` of the working ball), resolution ``N`` and 
 timed, and the noisy variant (``--snr`` dB white noise on the same readings) made from the same
 scan. Each solver (``minnorm``: matrix-free LSMR when ``B B^T`` would be large; ``voxel``)
 reconstructs on the ``auto`` operator (the NUFFT ``fourier`` backend at scale, with
-``--eps`` / ``--upsampfac`` / ``--precision``, ``--threads`` threads). Prints one row per run: seconds, the process's peak resident
-memory so far (``resource.getrusage``; runs are sequential in one process, so the column
+``--eps`` / ``--upsampfac`` / ``--precision``, ``--threads`` threads). Prints one row per run: seconds, the process's
+peak resident memory so far (``resource.getrusage``; runs are sequential in one process, so the column
 only grows), the CPU seconds of this process (on a shared machine the wall time can be several
 times longer), IoU and Chamfer (truth bounding-box diagonals). Ends with
 

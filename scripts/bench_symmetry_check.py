@@ -57,8 +57,8 @@ REFERENCE_DIPS = {2: 80, 3: 123}
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--trials", type=int, default=8, help="random scans per shape")
-    p.add_argument("--shapes", nargs="+", metavar="NAME", help="the shapes to dip (default: all; names as in the table, "
-                   "e.g. elephant_2d ball_3d bunny)")
+    p.add_argument("--shapes", nargs="+", metavar="NAME",
+                   help="the shapes to dip (default: all; names as in the table, e.g. elephant_2d ball_3d bunny)")
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--quick", action="store_true", help="2 scans per shape")
@@ -138,7 +138,8 @@ def print_table(rows: list[dict], args: argparse.Namespace) -> None:
               f"{smallest:.4f} |")
     missed = [f"{r['shape']}:{r['declared']} ({r['dips']} dips)" for r in rows
               if r["class"] == "asymmetric" and not r["rejected"]]
-    wrong = [f"{r['shape']}:{r['declared']} ({r['dips']} dips)" for r in rows if r["class"] == "symmetric" and r["rejected"]]
+    wrong = [f"{r['shape']}:{r['declared']} ({r['dips']} dips)" for r in rows
+             if r["class"] == "symmetric" and r["rejected"]]
     print(f"\nasymmetric declarations kept: {', '.join(missed) or 'none'}")
     print(f"symmetric declarations rejected: {', '.join(wrong) or 'none'}")
     near = sorted({(r["shape"], r["declared"], r["reference_misfit"]) for r in rows if r["class"] == "near"},

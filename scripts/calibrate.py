@@ -84,7 +84,8 @@ def check_options(args: argparse.Namespace) -> Ball:
     ball = Ball(args.ball_radius, center=tuple(args.centre))
     check_reference_options(args.max_residual, args.height_tolerance, args.position_tolerance, args.section_tolerance)
     if not 0 <= args.sensor_lag <= MAX_SENSOR_LAG_S:  # NaN fails too
-        raise ValueError(f"--sensor-lag must be a time constant in [0, {MAX_SENSOR_LAG_S:g}] s, got {args.sensor_lag:g}")
+        raise ValueError(f"--sensor-lag must be a time constant in [0, {MAX_SENSOR_LAG_S:g}] s, "
+                         f"got {args.sensor_lag:g}")
     initial_geometry(args)  # an unphysical --cross-section is named before the scan is read
     return ball
 
@@ -115,7 +116,8 @@ def main(argv=None) -> int:
                                                section_tolerance=args.section_tolerance)
         fitted = report.reference_centroid_mm
         notes = f"ball r={args.ball_radius:g} mm, given centre {list(args.centre)} mm" + \
-            (f", fitted centre {[round(v, 3) for v in fitted]} mm" if fitted is not None else "") + f", from {args.scan}"
+            (f", fitted centre {[round(v, 3) for v in fitted]} mm" if fitted is not None else "") + \
+            f", from {args.scan}"
         calibration = to_calibration(geometry, report, raw.header.rig, str(tank), notes=notes)
         path = save_calibration(calibration, args.output)
     print(report.table())

@@ -5,8 +5,8 @@
     python scripts/compare.py sweeps/a sweeps/b -o results --x dips_percent --html
 
 Writes into the output directory: ``runs.csv`` (one row per job, failed and unfinished ones
-included), ``summary.csv`` and ``summary.md`` (mean ± std per solver x n_dips x snr_db, or ``--by``; a warning and a note
-under the table name any other config option, seeds aside, that differs within a row, such as
+included), ``summary.csv`` and ``summary.md`` (mean ± std per solver x n_dips x snr_db, or ``--by``; a warning and a
+note under the table name any other config option, seeds aside, that differs within a row, such as
 ``resolution``, with the ``--by`` that splits it; runs whose reconstruction is empty are counted in an ``empty``
 column, their Chamfer and Hausdorff, a stand-in of one truth diagonal, left out of the means; then the
 failed/unfinished jobs), ``vs_dips.png`` (IoU and Chamfer vs dips, paper Fig. 13a),

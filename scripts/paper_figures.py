@@ -264,7 +264,8 @@ def summary(rows: list[dict], groups: list[dict]) -> str:
     (``-`` for a metric a run leaves undefined; ``empty`` for the distances of a run that reconstructed nothing,
     which the means leave out and the ``jobs`` column counts)."""
     ok = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: (r["shape"], r["resolution"], r["percent"]))
-    lines = ["| mesh | N | dips | % of N^2 | IoU | Chamfer | Hausdorff | solve s |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| mesh | N | dips | % of N^2 | IoU | Chamfer | Hausdorff | solve s |",
+             "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r['shape']} | {r['resolution']} | {r['n_dips']} | {r['percent']:g} | {_cell(r.get('iou'), '.3f')} | "
               f"{_distance_cell(r, 'chamfer')} | {_distance_cell(r, 'hausdorff')} | {r['seconds']:.1f} |"
               for r in ok]

@@ -21,8 +21,8 @@ rotations of ``--mesh-seeds FIRST STOP`` (default 0 4: four rotations, each nois
 
 ``--stage 2`` makes the second stage (``later_priors`` of ``solver=voxel_learned``): each pair's input
 goes through one round of ``solver=voxel_learned`` (its config, one round, the first-stage weights
-``--refine-weights``, by default ``--init-weights``, the noise model ``--noise-model``, at the temperature ``--refine-temperature``:
-0.25 and independent slabs made the shipped weights; the solver's refits now run at 0.125 with
+``--refine-weights``, by default ``--init-weights``, the noise model ``--noise-model``, at the temperature
+``--refine-temperature``: 0.25 and independent slabs made the shipped weights; the solver's refits now run at 0.125 with
 correlated slabs, chosen afterwards on held-out shapes), about 25 more minutes on 2 cores, and the
 first-stage weights are fine-tuned on those (``--init-weights denoiser64``, 2000 steps at lr 5e-4
 unless given).
@@ -80,7 +80,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     known, _ = stage.parse_known_args(argv)
     defaults = TrainConfig(**(STAGE2 if known.stage == 2 else {}))
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], parents=[stage])
-    p.add_argument("--out", type=Path, default=Path("outputs/prior") / f"denoiser64{'_stage2' if known.stage == 2 else ''}.pt",
+    p.add_argument("--out", type=Path,
+                   default=Path("outputs/prior") / f"denoiser64{'_stage2' if known.stage == 2 else ''}.pt",
                    help=f"weights file (the shipped ones are {SHIPPED_WEIGHTS.name} in dipnet/data/priors)")
     p.add_argument("--cache", type=Path, default=Path("outputs/prior_pairs"), help="folder caching training pairs")
     p.add_argument("--train-seeds", type=int, nargs=2, default=list(defaults.train_seeds), metavar=("FIRST", "STOP"))
@@ -97,7 +98,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="the noise model of the noisy pairs' voxel solve and of stage 2's round "
                         "(correlated: as solver=voxel_learned uses it)")
     p.add_argument("--refine-temperature", type=float, default=SHIPPED_REFINE_TEMPERATURE,
-                   help="stage 2: the sigmoid temperature of the round that makes the inputs (0.25 made the shipped weights)")
+                   help="stage 2: the sigmoid temperature of the round that makes the inputs "
+                        "(0.25 made the shipped weights)")
     p.add_argument("--family-seeds", nargs=3, action="append", default=[], metavar=("FAMILY", "FIRST", "STOP"),
                    help="more training shapes of one named family (repeatable), e.g. organic 3000 3032")
     p.add_argument("--meshes", type=Path, nargs="+", default=[], metavar="FILE",
@@ -108,7 +110,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="weights to start from (file or shipped name); default: a new network (stage 1)")
     p.add_argument("--refine-weights", default=None,
                    help="stage 2: the first-stage weights of the round that makes the inputs (default: --init-weights; "
-                        "set it to fine-tune the second stage itself, e.g. --init-weights denoiser64_stage2 --refine-weights denoiser64)")
+                        "set it to fine-tune the second stage itself, e.g. --init-weights denoiser64_stage2 "
+                        "--refine-weights denoiser64)")
     p.add_argument("--resume", action="store_true", help="continue from the checkpoint next to --out")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the training")
     p.add_argument("--workers", type=int, default=2, help="processes making the missing training pairs")
@@ -167,7 +170,8 @@ def family_seeds(specs: list[list[str]]) -> dict[str, tuple[int, int]]:
         except ValueError:
             seeds = (0, 0)
         if seeds[1] <= seeds[0]:
-            raise ValueError(f"--family-seeds {family} {first} {stop}: FIRST and STOP must be whole numbers, FIRST < STOP")
+            raise ValueError(f"--family-seeds {family} {first} {stop}: FIRST and STOP must be whole numbers, "
+                             "FIRST < STOP")
         out[family] = seeds
     return out
 
@@ -178,7 +182,8 @@ def main(argv=None) -> dict:
     log_warnings_once()  # a warning (a checkpoint not used) in one line, without the source line
     with user_errors():
         if args.threads < 1 or args.workers < 1:
-            raise ValueError(f"--threads and --workers must be positive integers, got {args.threads} and {args.workers}")
+            raise ValueError(f"--threads and --workers must be positive integers, "
+                             f"got {args.threads} and {args.workers}")
         torch.set_num_threads(args.threads)
         config = config_of(args)
         meta = train(config, args.out, args.cache, resume=args.resume, progress=not args.no_progress,
