@@ -59,7 +59,8 @@ def write_job(job: Path, *, solver: str, n_dips: int, snr_db: float | None, seed
             (job / "history.json").write_text(json.dumps(history))
         directions = make_directions("fibonacci" if ndim == 3 else "uniform", n_dips, ndim, seed)
         profiles = torch.rand(n_dips, resolution, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
-        DipMeasurement(directions, profiles, 100.0 / resolution, torch.full((n_dips,), -50.0)).save(job / "measurement.npz")
+        DipMeasurement(directions, profiles, 100.0 / resolution,
+                       torch.full((n_dips,), -50.0)).save(job / "measurement.npz")
         if ndim == 3:
             export.save_mesh(volume_to_mesh(truth.astype(np.float32), grid, 0.5), job / "truth.ply")
             export.save_mesh(volume_to_mesh(recon.astype(np.float32), grid, 0.5), job / "reconstruction.ply")

@@ -142,4 +142,5 @@ def test_the_profile_model_repairs_a_level_spike_once_not_per_trial(monkeypatch)
         trial = model.measurement(State(RigGeometry(tilt_axis_offset_mm=offset)))
         assert trial.metadata["readings"] == model.readings.to_json()
     repaired = model.measurement(State(RigGeometry()))
-    np.testing.assert_allclose(repaired.profiles, clean.profiles, atol=1e-4 * float(clean.profiles.max()))  # interpolated
+    # interpolated
+    np.testing.assert_allclose(repaired.profiles, clean.profiles, atol=1e-4 * float(clean.profiles.max()))

@@ -59,7 +59,8 @@ def test_drift_is_read_from_the_rest_level():
                             sensor=LevelSensor(snr_db=30.0, seed=seed), progress=False)
         drift, (low, high) = fit_drift(raw)
         assert drift == pytest.approx(2e-5, rel=0.005)
-        z.append((drift - 2e-5) / math.hypot((high - low) / 3.29, MODEL_FLOOR["reference"]["level_drift_mm_per_s"] / 1.645))
+        z.append((drift - 2e-5) / math.hypot((high - low) / 3.29,
+                                             MODEL_FLOOR["reference"]["level_drift_mm_per_s"] / 1.645))
     assert abs(float(np.mean(z))) < 1.0
 
 
@@ -146,7 +147,8 @@ def test_the_drift_slope_drops_spikes_and_needs_two_distinct_times():
         assert _robust_slope(t, y) == pytest.approx(0.01, rel=1e-9)
         assert np.isnan(_robust_slope(np.full(5, 3.0), np.arange(5.0)))
         t2 = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 1.0])  # both readings at the other time are trimmed as spikes
-        assert _robust_slope(t2, np.array([0.0, 0.0, 0.0, 0.0, 100.0, -100.0])) == pytest.approx(0.0, abs=1e-9)  # rounding only
+        # rounding only
+        assert _robust_slope(t2, np.array([0.0, 0.0, 0.0, 0.0, 100.0, -100.0])) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_the_fits_directions_and_batched_grid_search_match_the_point_by_point_ones():

@@ -40,7 +40,8 @@ def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
     cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
     g = cal.geometry
     assert g.pivot_mm == pytest.approx(20.0, abs=1.0) and g.tilt_axis_offset_mm == pytest.approx(10.0, abs=0.5)
-    assert g.tilt_zero_deg == pytest.approx(1.0, abs=0.3) and g.cross_section_mm2 == pytest.approx(0.95 * AREA, rel=0.005)
+    assert (g.tilt_zero_deg == pytest.approx(1.0, abs=0.3)
+            and g.cross_section_mm2 == pytest.approx(0.95 * AREA, rel=0.005))
     for name in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg", "cross_section_mm2", "step_scale"):
         low, high = cal.intervals[name]
         assert low <= getattr(FAKE_TRUTH, name) <= high, name  # 8 dips: the intervals hold the truth
@@ -137,7 +138,8 @@ def test_a_ball_off_the_spin_axis_shows_both_zeros_within_its_position_tolerance
             found[tolerance] = calibrate_reference(raw, Ball(30.0, center=(25.0, 0.0, 0.0)), Grid(32, extent=130.0),
                                                    position_tolerance_mm=tolerance)
     geometry, report = found[0.5]
-    assert geometry.spin_zero_deg == pytest.approx(3.5, abs=1.5) and geometry.tilt_zero_deg == pytest.approx(-2.5, abs=1.5)
+    assert (geometry.spin_zero_deg == pytest.approx(3.5, abs=1.5)
+            and geometry.tilt_zero_deg == pytest.approx(-2.5, abs=1.5))
     for name in ("tilt_zero_deg", "spin_zero_deg"):
         low, high = report.intervals[name]
         assert low <= getattr(true, name) <= high, name

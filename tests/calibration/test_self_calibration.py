@@ -51,7 +51,8 @@ def test_run_hands_the_recording_and_options_to_self_calibrate(monkeypatch):
     assert calibrator.run(recording, grid, "solver", 8, "factory") == "result"
     assert seen["raw"] == "raw scan" and seen["params"] == ("pivot_mm",) and seen["initial"] is initial
     assert seen["smooth"] is True and seen["finish"] is finish and seen["operator_factory"] == "factory"
-    assert (seen["iterations"], seen["dip_offset_sigma_mm"], seen["max_section_change"], seen["n_slabs"]) == (3, 1.0, 0.1, 8)
+    assert (seen["iterations"], seen["dip_offset_sigma_mm"], seen["max_section_change"],
+            seen["n_slabs"]) == (3, 1.0, 0.1, 8)
 
 
 def test_the_partial_volume_share():

@@ -178,7 +178,8 @@ def test_options_of_another_backend_are_named_with_the_auto_choice():
     small = Grid(16, ndim=2)
     dirs = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
     with pytest.raises(ValueError, match=r"backend='auto' chose splat for 2 orientations on a 16\^2 grid .*takes no "
-                                         r"option\(s\) eps \(backends that take them: fourier\): choose backend='fourier'"):
+                                         r"option\(s\) eps \(backends that take them: fourier\): "
+                                         r"choose backend='fourier'"):
         make_operator(small, dirs, eps=1e-3)
     with pytest.raises(ValueError, match=r"^the splat backend takes no option\(s\) bogus .*: remove them"):
         make_operator(small, dirs, backend="splat", bogus=1)

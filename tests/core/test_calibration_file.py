@@ -70,7 +70,8 @@ def test_a_truncated_file_is_refused_naming_the_missing_keys(tmp_path):
     text = path.read_text()
     path.write_text(text[:text.index("pivot_mm:") + len("pivot_mm: 20")])
     with pytest.raises(CalibrationFileError, match=r"cal.yaml: missing key\(s\) \['intervals_90', 'not_estimated', "
-                                                   r"'notes', 'uncertainty', 'geometry.level_drift_mm_per_s'.*truncated"):
+                                                   r"'notes', 'uncertainty', 'geometry.level_drift_mm_per_s'"
+                                                   r".*truncated"):
         load_calibration(path)
     path.write_text(text.replace("  sensor_lag_s: 0.0\n", ""))
     with pytest.raises(CalibrationFileError, match=r"missing key\(s\) \['geometry.sensor_lag_s'\]"):

@@ -11,7 +11,8 @@ from dipnet.core.orientations import fibonacci_hemisphere
 
 def _measurement(k=4, m=10, sigma=True):
     gen = torch.Generator().manual_seed(0)
-    return DipMeasurement(directions=fibonacci_hemisphere(k), profiles=torch.rand(k, m, generator=gen, dtype=torch.float64),
+    return DipMeasurement(directions=fibonacci_hemisphere(k),
+                          profiles=torch.rand(k, m, generator=gen, dtype=torch.float64),
                           slab_thickness=2.5, offsets=torch.full((k,), -12.5),
                           sigma=torch.full((k, m), 0.1) if sigma else None, metadata={"source": "test"})
 
@@ -93,7 +94,8 @@ def test_rebinning_round_trip_preserves_profile_totals(tmp_path):
         assert r.sigma.shape == (4, n) and r.metadata["rebinned_from"]["n_slabs"] == 10
     coarse = m.rebinned(torch.linspace(-12.5, 12.5, 6, dtype=torch.float64))
     torch.testing.assert_close(coarse.profiles, m.profiles.reshape(4, 5, 2).sum(2))
-    torch.testing.assert_close(coarse.sigma, (0.1**2 * 2) ** 0.5 * torch.ones(4, 5, dtype=torch.float64))  # independent slabs
+    # independent slabs
+    torch.testing.assert_close(coarse.sigma, (0.1**2 * 2) ** 0.5 * torch.ones(4, 5, dtype=torch.float64))
     with pytest.warns(UserWarning, match="does not fit the grid"):
         m.rebinned(torch.linspace(-5.0, 5.0, 5, dtype=torch.float64))
     with pytest.raises(MeasurementFileError, match="uniform"):

@@ -47,7 +47,8 @@ def test_2d_angles_in_radians_are_warned_about():
     12 dips within 2.9 deg, a 24^2 elephant reconstructed (minnorm) at IoU 0.431 instead of 0.775."""
     with pytest.warns(UserWarning, match=r"all 12 angles lie within \[-2 pi, 2 pi\] \(0 to 2.88\).*np.degrees"):
         d = o.directions_2d(np.linspace(0, np.pi, 12, endpoint=False))
-    assert torch.allclose(d[1], torch.tensor([math.cos(math.radians(math.pi / 12)), math.sin(math.radians(math.pi / 12))],
+    assert torch.allclose(d[1], torch.tensor([math.cos(math.radians(math.pi / 12)),
+                                              math.sin(math.radians(math.pi / 12))],
                                              dtype=torch.float64))  # still read as degrees, as documented
     with warnings.catch_warnings():
         warnings.simplefilter("error")

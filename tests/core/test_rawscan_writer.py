@@ -117,8 +117,8 @@ def test_a_resume_with_the_same_dip_settings_goes_on(tmp_path):
 
 def test_a_fake_rig_scan_resumed_with_another_object_is_refused_naming_it(tmp_path):
     """Before: ``scan.py rig.fake.shape.name=ball`` resumed a torus scan killed after 4 of 12 dips: exit 0, the file
-    held 4 torus dips and 8 ball dips (reconstructed: profile residual 0.30, volume ratio 1.11). The fake rig's object is
-    recorded under ``config.scan``; a real rig's scan records none, and is not compared."""
+    held 4 torus dips and 8 ball dips (reconstructed: profile residual 0.30, volume ratio 1.11). The fake rig's object
+    is recorded under ``config.scan``; a real rig's scan records none, and is not compared."""
     def header(shape: dict | None) -> ScanHeader:
         rig = {"name": "fake-grbl", "fake": None if shape is None else {"shape": shape}}
         return ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=2e4, step_mm=4.0,

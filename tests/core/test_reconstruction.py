@@ -22,8 +22,8 @@ def test_the_binary_volume_is_the_occupancy_above_the_threshold_and_round_trips(
 
 
 def test_a_numpy_occupancy_is_taken_as_a_tensor():
-    """Before: Reconstruction(numpy_array, grid).binary (and evaluate on it) failed with "AttributeError: 'numpy.ndarray'
-    object has no attribute 'detach'"."""
+    """Before: Reconstruction(numpy_array, grid).binary (and evaluate on it) failed with
+    "AttributeError: 'numpy.ndarray' object has no attribute 'detach'"."""
     grid = Grid(8, 2, 40.0)
     occupancy = np.linspace(0, 1, 64, dtype=np.float32).reshape(grid.shape)
     recon = Reconstruction(occupancy, grid, threshold=0.5)

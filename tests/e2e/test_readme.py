@@ -44,5 +44,6 @@ def test_the_api_checks_name_data_in_another_unit_and_a_result_that_does_not_exp
     assert check.verdict == "inconsistent" and check.volume_ratio < 2e-3
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert dipnet.check_consistency(meas, op, dipnet.make_solver("minnorm", progress=False).solve(meas, op)).verdict \
+        assert dipnet.check_consistency(meas, op,
+                                        dipnet.make_solver("minnorm", progress=False).solve(meas, op)).verdict \
             == "consistent"

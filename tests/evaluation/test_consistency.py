@@ -127,8 +127,8 @@ def test_the_threshold_change_depth_tells_partial_voxels_from_a_smear():
 
 
 def _solved(grid: Grid, solver, n_dips: int = 12):
-    """The chamber box's exact profiles on ``grid`` (no readings: the noise is estimated from the profiles), ``solver``'s
-    result on them and its data check's findings."""
+    """The chamber box's exact profiles on ``grid`` (no readings: the noise is estimated from the profiles),
+    ``solver``'s result on them and its data check's findings."""
     truth = builtin_shape("chamber_box", radius=45.0, ndim=3).occupancy(grid, supersample=3).double()
     operator = make_operator(grid, fibonacci_hemisphere(n_dips))
     measurement = _exact_measurement(operator, truth)
@@ -482,7 +482,8 @@ def test_slabs_an_object_fills_to_their_ends_are_not_blamed_on_a_drift(tmp_path,
         metrics = run(cfg, tmp_path).metrics
     assert metrics["profile_floor_share"] > 0.5 and metrics["consistency"] == "inconsistent"
     assert metrics["dip_agreement_tested"] == 0 and metrics["dip_outliers"] == []  # 2D: said not tested
-    assert metrics["floor_beyond_ratio"] == (pytest.approx(0.98, abs=0.05) if drift_named else pytest.approx(0, abs=1e-6))
+    assert metrics["floor_beyond_ratio"] == (pytest.approx(0.98, abs=0.05) if drift_named
+                                             else pytest.approx(0, abs=1e-6))
     assert any("drifts in time" in str(w.message) for w in caught) == drift_named
 
 

@@ -10,8 +10,9 @@ import torch
 
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
-from dipnet.evaluation.ensemble import (RandomStart, brier_score, centred_occupancy, ensemble_maps, ensemble_uncertainty,
-                                        member, occupancy_probability, reliability, sample_ensemble)
+from dipnet.evaluation.ensemble import (RandomStart, brier_score, centred_occupancy, ensemble_maps,
+                                        ensemble_uncertainty, member, occupancy_probability, reliability,
+                                        sample_ensemble)
 from dipnet.evaluation.uncertainty import calibration_by_decile
 from dipnet.operators import make_operator
 from dipnet.shapes import builtin_shape
@@ -99,7 +100,8 @@ def test_members_are_independent_copies():
     assert member(DeepImagePriorSolver(), 0, seed=0).warm_start is None  # its seed draws its start
     assert not hasattr(member(MinNormSolver(), 0, seed=0), "warm_start")
     refitting = VoxelSolver(surface_refit={})
-    assert member(refitting, 0, seed=0).surface_refit is None and refitting.surface_refit is not None  # occupancies only
+    # occupancies only
+    assert member(refitting, 0, seed=0).surface_refit is None and refitting.surface_refit is not None
 
 
 def test_random_start_fills_the_measured_volume_on_average(box_case):

@@ -129,7 +129,8 @@ def test_evaluate_refuses_a_truth_outside_the_occupancy_fractions():
     grid = Grid(16, ndim=2)
     truth = ball(grid, [0.0, 0.0], 30.0)
     recon = Reconstruction(torch.from_numpy(truth).float(), grid, 0.5)
-    with pytest.raises(ValueError, match=r"fractions in \[0, 1\], got 0 to 255: .* \(a 0/255 mask\? divide it by 255\)"):
+    with pytest.raises(ValueError,
+                       match=r"fractions in \[0, 1\], got 0 to 255: .* \(a 0/255 mask\? divide it by 255\)"):
         evaluate(recon, truth.astype(np.uint8) * 255, grid, n_points=500)
     with pytest.raises(ValueError, match=r"got 1 to 1 and NaN or inf"):
         evaluate(recon, np.where(truth, 1.0, np.nan), grid, n_points=500)

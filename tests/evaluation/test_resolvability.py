@@ -107,7 +107,8 @@ def test_a_gap_away_from_the_horizontal_is_warned_too():
 
     limited = Reach(spin_range_deg=(0.0, 60.0)).uniform(41)
     with pytest.warns(UserWarning, match=r"the 41 dips leave directions up to 6\d deg from every dip \(about tilt "
-                                         r"\d+ deg, spin \d+ deg\), where 41 dips spread over the hemisphere leave 1\d"):
+                                         r"\d+ deg, spin \d+ deg\), where 41 dips spread over the hemisphere "
+                                         r"leave 1\d"):
         assert warn_unmeasured_band(limited) is not None
     assert warn_unmeasured_band(fibonacci_hemisphere(41)) is None
     assert warn_unmeasured_band(fibonacci_hemisphere(123)) is None

@@ -76,7 +76,8 @@ def test_maps_have_the_reconstruction_grid(box_problem):
     recon = Reconstruction(occupancy=torch.from_numpy(truth).float(), grid=grid)
     maps = voxel_maps(recon, fit_posterior(recon, measurement, resolution=10))
     assert maps["std"].shape == grid.shape and maps["p_wrong"].shape == grid.shape
-    assert float(maps["p_wrong"].max()) <= 0.5 + 1e-6 and float(maps["p_wrong"][~grid.working_mask().numpy()].max()) == 0
+    assert (float(maps["p_wrong"].max()) <= 0.5 + 1e-6
+            and float(maps["p_wrong"][~grid.working_mask().numpy()].max()) == 0)
 
 
 def test_fit_posterior_refuses_a_negative_band(box_problem):

@@ -30,7 +30,8 @@ def test_a_mesh_name_not_bundled_is_refused_before_any_case(capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--samples", "1"], "--n 32, --dips 41, --samples 1, --iterations-scale 1: an ensemble needs n_samples >= 2, got 1"),
+    (["--samples", "1"],
+     "--n 32, --dips 41, --samples 1, --iterations-scale 1: an ensemble needs n_samples >= 2, got 1"),
     (["--iterations-scale", "0"], "iterations_scale must be in (0, 1], got 0.0"),
     (["--iterations-scale", "2"], "iterations_scale must be in (0, 1], got 2.0"),
     (["--dips", "0"], "number of orientations must be a positive integer, got 0"),

@@ -141,8 +141,8 @@ def test_the_truth_row_scores_the_truths_own_occupancy(tmp_path, capsys):
     """``--solvers truth`` solves nothing: its row is the partial-volume truth, IoU 1 and a Chamfer
     below voxel's from 12 dips."""
     bench = load_script("bench_quality")
-    rows = bench.main(["--cache", str(tmp_path), "--n", "16", "--meshes", "torus", "--budgets", "12", "--noise", "clean",
-                       "--solvers", "truth", "voxel", "--threads", "1"])
+    rows = bench.main(["--cache", str(tmp_path), "--n", "16", "--meshes", "torus", "--budgets", "12",
+                       "--noise", "clean", "--solvers", "truth", "voxel", "--threads", "1"])
     truth, voxel = (next(r for r in rows if r["solver"] == name) for name in ("truth", "voxel"))
     assert truth["iou"] == 1.0 and truth["chamfer"] < voxel["chamfer"] and truth["verdict"] is None
     assert "truth" in capsys.readouterr().out
@@ -346,7 +346,8 @@ def test_the_reference_plans_table_and_result_line(capsys):
     assert "| grid16 | ball | tilt_zero_deg | 1/6 | 0/1 |" in out
     assert out.strip().splitlines()[-1] == (
         "RESULT grid16_ball_coverage90=0.714 grid16_offball_coverage90=1.000 fibonacci41_ball_coverage90=0.667 "
-        "fibonacci41_offball_coverage90=nan worst_parameter_coverage90=0.667 worst_parameter=fibonacci41:ball:step_scale")
+        "fibonacci41_offball_coverage90=nan worst_parameter_coverage90=0.667 "
+        "worst_parameter=fibonacci41:ball:step_scale")
     bench.print_table({("grid16", "ball"): {"pivot_mm": [(True, 0.1)] * 6}}, args)
     assert capsys.readouterr().out.strip().endswith("worst_parameter_coverage90=1.000 worst_parameter=none")
 
@@ -423,11 +424,11 @@ def test_the_symmetry_check_runs_end_to_end_on_chosen_shapes(capsys):
 
 
 def test_the_dip_agreement_bench_scores_correct_scans_and_their_faults(capsys):
-    """One random scan of the chamber box and the box (24 slabs) and their four faults; the correct ones and the authors'
-    real recording have no outlier, and the RESULT line holds the rates; a 2D or unknown shape is refused."""
+    """One random scan of the chamber box and the box (24 slabs) and their four faults; the correct ones and the
+    authors' real recording have no outlier, and the RESULT line holds the rates; a 2D or unknown shape is refused."""
     bench = load_script("bench_dip_agreement")
-    rows = _main_in_this_process(bench, ["--trials", "1", "--shapes", "chamber_box_3d", "box_3d", "--threads", "1", "--resolution", "24",
-                                         "--seed", "5"])
+    rows = _main_in_this_process(bench, ["--trials", "1", "--shapes", "chamber_box_3d", "box_3d", "--threads", "1",
+                                         "--resolution", "24", "--seed", "5"])
     assert [r["kind"] for r in rows] == list(bench.KINDS) * 2
     assert all(r["tested"] > 0 and len(r["flags"]) == len(bench.LIMITS) for r in rows)
     assert not any(r["flags"][0] for r in rows if r["kind"] == "ok")

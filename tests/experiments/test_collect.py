@@ -85,8 +85,10 @@ def test_metrics_an_earlier_run_left_in_its_folder_are_not_the_later_runs(tmp_pa
     OmegaConf.save(OmegaConf.create(["solver=voxel", "n_dips=4", "seed=0"]), job / ".hydra" / "overrides.yaml")
     run = collect.load_run(job)
     assert (run.status, run.metrics) == ("unfinished", {})
-    assert run.error == ("its metrics.json is an earlier run's in this folder (overrides: seed=0 solver=minnorm n_dips=4), "
-                         "not this run's (solver=voxel n_dips=4 seed=0): this run wrote none (still running, or killed)")
+    assert run.error == ("its metrics.json is an earlier run's in this folder "
+                         "(overrides: seed=0 solver=minnorm n_dips=4), "
+                         "not this run's (solver=voxel n_dips=4 seed=0): this run wrote none "
+                         "(still running, or killed)")
     (job / "reconstruct.log").write_text("[2026-11-28 06:52:52,521][dipnet][ERROR] - error: snr_db must be ...\n")
     run = collect.load_run(job)
     assert run.status == "failed" and run.error.startswith("snr_db must be ... (reconstruct.log); its metrics.json is")

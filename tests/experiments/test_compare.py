@@ -222,7 +222,8 @@ def test_a_column_no_run_records_is_refused(sweep, tmp_path, capsys, flag):
     assert _load_compare().main([str(sweep), "-o", str(out), flag, "solver", "solvr"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {flag} solvr: no run records 'solvr', so every run would fall in one group; "
-                          "choose among the axes (solver, shape, ndim, resolution, n_dips, dips_percent, snr_db, seed), "
+                          "choose among the axes (solver, shape, ndim, resolution, n_dips, dips_percent, snr_db, "
+                          "seed), "
                           "the options the runs set (n_dips, seed, solver)") and err.count("\n") == 1, err
     assert not out.exists()
 

@@ -134,8 +134,8 @@ def test_new_first_stage_weights_under_the_same_name_make_new_second_stage_input
     assert refine_weights_digest({"priors": {"learned": {"weights": None}}}) == refine_weights_digest(
         {"priors": {"learned": {"weights": "denoiser64"}}})  # None is the shipped first stage
     with pytest.raises(PriorWeightsError, match="not found"):
-        build_pairs([5000], cache=cache, noise_levels=(None,), refine={"priors": {"learned": {"weights": str(tmp_path / "x.pt")}}},
-                    **SMALL)
+        build_pairs([5000], cache=cache, noise_levels=(None,),
+                    refine={"priors": {"learned": {"weights": str(tmp_path / "x.pt")}}}, **SMALL)
 
 
 def test_noisy_options_change_only_the_noisy_pairs(tmp_path, shared_pairs):

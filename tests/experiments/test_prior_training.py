@@ -83,7 +83,8 @@ def test_a_second_stage_starts_from_the_given_weights_on_refined_inputs(tmp_path
     second = dataclasses.replace(TINY, init_weights=str(tmp_path / "first.pt"), refine=refine, lr=1e-12, steps=3)
     meta = train(second, tmp_path / "second.pt", cache, progress=False)
     assert meta["config"]["init_weights"] == str(tmp_path / "first.pt") and "second stage" in meta["trained_on"]
-    assert len(list(cache.glob("stage2_*.npz"))) == 6  # three seeds (two to train on, one to validate), two noise levels
+    # three seeds (two to train on, one to validate), two noise levels
+    assert len(list(cache.glob("stage2_*.npz"))) == 6
     a, _ = load_weights(tmp_path / "first.pt")
     b, _ = load_weights(tmp_path / "second.pt")
     for (name, p), q in zip(a.state_dict().items(), b.state_dict().values()):
@@ -110,7 +111,8 @@ def test_the_second_stage_round_is_the_one_that_made_the_shipped_weights():
     assert script.learned_round() == shipped  # the default round is the one recorded with the weights
     assert script.parse_args(["--stage", "2", "--refine-temperature", "0.125"]).refine_temperature == 0.125
     assert script.learned_round(0.125)["temperature_end"] == 0.125
-    assert script.refine_of(script.parse_args(["--stage", "2"])) == shipped and script.refine_of(script.parse_args([])) is None
+    assert (script.refine_of(script.parse_args(["--stage", "2"])) == shipped
+            and script.refine_of(script.parse_args([])) is None)
 
 
 @pytest.mark.parametrize("stage", [1, 2])
@@ -309,7 +311,8 @@ def test_a_meshes_file_that_is_not_a_mesh_is_refused_before_any_pair(tmp_path, c
     with pytest.raises(SystemExit) as exit_:
         load_script("train_prior").main(argv)
     err = capsys.readouterr().err
-    assert exit_.value.code == 2 and re.match(r"error: (cannot read )?mesh file .*garbage\.stl: corrupt, or not a mesh", err), err
+    assert (exit_.value.code == 2
+            and re.match(r"error: (cannot read )?mesh file .*garbage\.stl: corrupt, or not a mesh", err)), err
     assert not (tmp_path / "pairs").exists()
 
 

@@ -149,7 +149,8 @@ def test_chromium_shows_the_meshes_without_console_errors(sweep, tmp_path):
     plots = {p["id"]: p for p in probe["plots"]}
     assert {"meshes", "sinogram", "loss"} <= set(plots)
     meshes = plots["meshes"]
-    assert [(t["type"], t["name"]) for t in meshes["traces"]] == [("mesh3d", "truth")] * 2 + [("mesh3d", "reconstruction")] * 2
+    assert [(t["type"], t["name"]) for t in meshes["traces"]] == \
+        [("mesh3d", "truth")] * 2 + [("mesh3d", "reconstruction")] * 2
     assert all(t["faces"] > 100 for t in meshes["traces"][::2])     # the visible, cut-open ones
     assert meshes["canvases"] >= 2                                   # WebGL scenes were created
 

@@ -231,7 +231,8 @@ def test_ten_identical_directions_with_different_profiles_warn(measurement):
     with pytest.warns(UserWarning) as record:
         report = validate_measurement(ten, GRID)
     messages = [str(w.message) for w in record]
-    assert any(re.search(r"45 of 45 pair\(s\) of directions within 0.5 deg measure different profiles", m) for m in messages)
+    assert any(re.search(r"45 of 45 pair\(s\) of directions within 0.5 deg measure different profiles", m)
+               for m in messages)
     assert any(re.search(r"8 of 10 dip total\(s\) differ from the median", m) for m in messages)
     assert report.stats["duplicate_max_discrepancy"] == pytest.approx(0.6)
     assert report.stats["total_spread"] == pytest.approx(0.6, rel=1e-6)
@@ -334,7 +335,8 @@ def test_declared_units_are_honoured(tmp_path, scan_file, cli):
     reference = _measured_volume(cli(tmp_path / "mm", *quiet, f"source.reader.path={scan_file}"), tmp_path / "mm")
     converted = _measured_volume(cli(tmp_path / "in", *quiet, f"source.reader.path={inches}"), tmp_path / "in")
     assert converted == pytest.approx(reference, rel=1e-9)
-    assert read_rawscan(inches).orientations[0].stage_mm == pytest.approx(read_rawscan(scan_file).orientations[0].stage_mm)
+    assert read_rawscan(inches).orientations[0].stage_mm == \
+        pytest.approx(read_rawscan(scan_file).orientations[0].stage_mm)
 
 
 @pytest.mark.parametrize("units,message", [
@@ -365,7 +367,8 @@ def test_a_level_counted_downwards_is_named_so(tmp_path, scan_file, cli):
 @pytest.mark.slow
 def test_levels_in_metres_under_a_mm_header_are_refused(tmp_path, cli):
     lines = CATS_CSV.read_text().splitlines()
-    metres = [lines[0]] + [",".join([*row.split(",")[:4], f"{float(row.split(',')[4]) / 1000:.5f}"]) for row in lines[1:]]
+    metres = [lines[0]] + [",".join([*row.split(",")[:4], f"{float(row.split(',')[4]) / 1000:.5f}"])
+                           for row in lines[1:]]
     path = tmp_path / "cats_metres.csv"
     path.write_text("\n".join(metres) + "\n")
     line = one_line_error(cli(tmp_path / "run", "experiment=cats_real", f"source.reader.path={path}"))

@@ -36,9 +36,10 @@ def test_ball_scan_reads_the_same_from_its_npz_and_its_jsonl(tmp_path, script_ru
     """Before: the .jsonl reader smoothed by default (the .npz was not): 0.871 inconsistent vs 0.957."""
     simulated = _metrics(script_run, tmp_path / "sim", "shape.name=ball", "n_dips=40")
     extent = 2 * 24 * 45.0 / (0.9 * 22)  # the simulated run's grid (conf: fill 0.9 around the 45 mm ball)
-    npz = _metrics(script_run, tmp_path / "npz", "source=recorded", f"source.reader.path={tmp_path / 'sim' / 'measurement.npz'}")
-    jsonl = _metrics(script_run, tmp_path / "jsonl", "source=recorded", f"source.reader.path={tmp_path / 'sim' / 'rawscan.jsonl'}",
-                     f"extent_mm={extent}")
+    npz = _metrics(script_run, tmp_path / "npz", "source=recorded",
+                   f"source.reader.path={tmp_path / 'sim' / 'measurement.npz'}")
+    jsonl = _metrics(script_run, tmp_path / "jsonl", "source=recorded",
+                     f"source.reader.path={tmp_path / 'sim' / 'rawscan.jsonl'}", f"extent_mm={extent}")
     assert simulated["consistency"] == npz["consistency"] == jsonl["consistency"] == "consistent"
     assert npz["volume_ratio"] == pytest.approx(simulated["volume_ratio"], abs=1e-6)
     assert jsonl["volume_ratio"] == pytest.approx(npz["volume_ratio"], abs=1e-3)
@@ -71,7 +72,8 @@ def test_simulation_beyond_the_available_memory_is_refused():
     ball = builtin_shape("ball", 3, 45.0)
     assert check_simulation(ball, 120, 100, 1.0, available=10**9).total < 10**6
     with pytest.raises(ResourceError, match=r"95,000 readings per dip \(120 dips: 11,400,000 readings, needing "
-                                            r"~\d+ MB .*this machine has 100 MB available\) for an object of radius 45 mm"):
+                                            r"~\d+ MB .*this machine has 100 MB available\) "
+                                            r"for an object of radius 45 mm"):
         check_simulation(ball, 120, 95_000, 1.0, available=10**8)
 
 

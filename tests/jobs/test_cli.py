@@ -20,7 +20,8 @@ def test_the_message_is_the_user_error_behind_an_instantiation():
     assert error_message(_instantiation_error(ValueError("resolution must be an integer"))) == \
         "resolution must be an integer"
     assert error_message(KeyError("solver")) == "missing key 'solver'"
-    assert error_message(FileNotFoundError(2, "No such file or directory", "/x.npz")) == "/x.npz: No such file or directory"
+    assert error_message(FileNotFoundError(2, "No such file or directory", "/x.npz")) == \
+        "/x.npz: No such file or directory"
     assert error_message(ValueError("a\n  b   c")) == "a b c"
 
 

@@ -30,7 +30,8 @@ def test_a_given_old_spelling_replaces_the_new_and_the_new_spelling_is_silent(re
 
 
 def test_the_origin_height_leaves_the_rig_geometry():
-    with pytest.warns(ConfigDeprecation, match="rig.geometry.origin_height_mm is deprecated: use rig.origin_height_mm=60"):
+    with pytest.warns(ConfigDeprecation,
+                      match="rig.geometry.origin_height_mm is deprecated: use rig.origin_height_mm=60"):
         upgraded = upgrade_scan_config(_compose("scan", "rig=grbl", "rig.geometry.origin_height_mm=60"))
     assert upgraded.rig.origin_height_mm == 60 and "origin_height_mm" not in upgraded.rig.geometry
 

@@ -47,7 +47,8 @@ def _cli(run_dir: Path, *overrides: str, env: dict | None = None) -> subprocess.
     (["output.mesh_formats=[xyz]"], "error: output.mesh_formats must be a list of ply, stl, obj, got ['xyz']"),
     (["output.checkpoint_every=0"], "error: output.checkpoint_every must be a positive integer, got 0"),
     (["calibration=self", "solver=voxel", "calibration.iterations=0"],
-     "error: calibration.iterations must be a positive integer (rounds of the joint shape + cross-section step), got 0"),
+     "error: calibration.iterations must be a positive integer (rounds of the joint shape + cross-section step), "
+     "got 0"),
 ])
 @pytest.mark.slow
 def test_bad_options_are_refused_before_any_work(tmp_path, overrides, message):
@@ -203,8 +204,9 @@ def test_occupancy_levels_and_named_threshold_rules_are_accepted(overrides):
         check_config(compose(config_name="config", overrides=overrides))
 
 
-@pytest.mark.parametrize("override,key,value", [("source.reader.truncated=keep", "truncated", "keep"),
-                                                 ("source.reader.calibration=rig_cal.yaml", "calibration", "rig_cal.yaml")])
+@pytest.mark.parametrize("override,key,value",
+                         [("source.reader.truncated=keep", "truncated", "keep"),
+                          ("source.reader.calibration=rig_cal.yaml", "calibration", "rig_cal.yaml")])
 def test_the_reader_options_the_messages_name_are_taken_as_written(override, key, value):
     """The reader's errors and the bad-data guide advise ``source.reader.truncated=keep`` and
     ``source.reader.calibration=FILE``; typed as given, Hydra refused both ("Could not override ... use +..."),

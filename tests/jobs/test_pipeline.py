@@ -99,7 +99,8 @@ def cli(script_run):
     (["resolution=-4"], "resolution must be"),
     pytest.param(["n_dips=0"], "n_dips must be a positive integer", marks=pytest.mark.slow),
     pytest.param(["shape=mesh", "shape.path=/nonexistent/bunny.stl"], "/nonexistent/bunny.stl", marks=pytest.mark.slow),
-    pytest.param(["source=recorded", "source.reader.path=/nonexistent/m.npz"], "/nonexistent/m.npz", marks=pytest.mark.slow),
+    pytest.param(["source=recorded", "source.reader.path=/nonexistent/m.npz"], "/nonexistent/m.npz",
+                 marks=pytest.mark.slow),
 ])
 def test_bad_input_gets_a_one_line_error(tmp_path, cli, overrides, message):
     proc = cli(tmp_path, *overrides)

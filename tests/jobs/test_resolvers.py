@@ -8,7 +8,8 @@ from dipnet.preprocessing.datasets import CATS_CSV, mesh_path
 
 
 def test_bundled_files_resolve_to_their_absolute_paths():
-    cfg = OmegaConf.create({"csv": "${dipnet_data:real/3cats_fixture_3mm.csv}", "mesh": "${dipnet_data:meshes/bunny.ply}"})
+    cfg = OmegaConf.create({"csv": "${dipnet_data:real/3cats_fixture_3mm.csv}",
+                            "mesh": "${dipnet_data:meshes/bunny.ply}"})
     assert cfg.csv == str(CATS_CSV) and cfg.mesh == str(mesh_path("bunny"))
 
 

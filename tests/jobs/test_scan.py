@@ -160,7 +160,8 @@ def test_an_adaptive_scan_refuses_a_percentage_for_its_stopping_fraction(tmp_pat
                       "planner.stop_uncertainty=5", "protocol.step_mm=20", "fsync=false", "progress=false")
     assert _error_line(done) == (
         "error: stop_uncertainty must be a fraction in (0, 1) or null (the share of the object's volume expected "
-        "misclassified, e.g. 0.05), got 5 (5 would stop after the first 4 dips, whatever the budget; for 5 % give 0.05)")
+        "misclassified, e.g. 0.05), got 5 (5 would stop after the first 4 dips, whatever the budget; "
+        "for 5 % give 0.05)")
     assert not (tmp_path / "rawscan.jsonl").exists()
 
 
@@ -173,7 +174,8 @@ def test_scan_script_process_refuses_an_unknown_option_with_exit_2(tmp_path):
 
 
 def test_scan_script_options_the_scan_reads_without_a_default_are_accepted():
-    """``+rig.tank``, ``+rig.calibration`` and ``+metadata.*`` are added keys the scan reads (docs/guide/real-data.md)."""
+    """``+rig.tank``, ``+rig.calibration`` and ``+metadata.*`` are added keys the scan reads
+    (docs/guide/real-data.md)."""
     from script_modules import load_script
 
     added = load_script("scan")._adds_a_read_key
@@ -227,7 +229,7 @@ def test_an_adaptive_scan_keeps_within_the_rigs_tilt_limit(tmp_path):
     raw = scan_job(_scan_cfg("max_tilt_deg=35", *ADAPTIVE_QUICK), tmp_path / "rawscan.jsonl")
     tilt, _ = direction_to_rig(raw.directions())
     assert len(raw.completed()) == 5 and tilt.max() <= 35 + 1e-6
-    with pytest.raises(ConfigError, match=r"reach.tilt_range_deg=\[0.0, 90.0\] plans tilts beyond max_tilt_deg=35 \(the "
-                                         r"rig's mechanical limit\): give reach.tilt_range_deg=\[0,35\]"):
+    with pytest.raises(ConfigError, match=r"reach.tilt_range_deg=\[0.0, 90.0\] plans tilts beyond max_tilt_deg=35 "
+                                         r"\(the rig's mechanical limit\): give reach.tilt_range_deg=\[0,35\]"):
         scan_job(_scan_cfg("max_tilt_deg=35", "+reach=hemisphere", *ADAPTIVE_QUICK), tmp_path / "other.jsonl")
     assert not (tmp_path / "other.jsonl").exists()

@@ -195,7 +195,8 @@ def test_a_cut_sweep_job_says_how_to_resume_it_alone_and_how_to_finish_the_sweep
                          ("hydra/job_logging=disabled",))
     reconstruct = load_script("reconstruct")
     monkeypatch.setattr(HydraConfig, "initialized", staticmethod(lambda: True))
-    monkeypatch.setattr(HydraConfig, "get", staticmethod(lambda: OmegaConf.merge(hydra_cfg, {"mode": RunMode.MULTIRUN})))
+    monkeypatch.setattr(HydraConfig, "get",
+                        staticmethod(lambda: OmegaConf.merge(hydra_cfg, {"mode": RunMode.MULTIRUN})))
     cfg = OmegaConf.create({"output": {"checkpoint": True}})
     hint = reconstruct.resume_hint(cfg, sweep / "1")
     single = (f"python scripts/reconstruct.py solver=voxel n_dips=12 'shape.path=${{dipnet_data:meshes/hand.ply}}' "

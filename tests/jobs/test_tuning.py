@@ -158,7 +158,8 @@ def test_a_fake_rig_scan_names_its_ground_truth_and_can_be_tuned_on(tmp_path):
         scan_cfg = compose(config_name="scan", overrides=["n_dips=4", "protocol.step_mm=8", "fsync=false",
                                                           "progress=false", "rig.fake.shape.name=ball"])
     scan_from_config(scan_cfg, tmp_path / "rawscan.jsonl")
-    tuning.check_study(2, tuning.DEFAULT_PARAMS, ["source=recorded", f"source.reader.path={tmp_path / 'rawscan.jsonl'}"])
+    tuning.check_study(2, tuning.DEFAULT_PARAMS,
+                       ["source=recorded", f"source.reader.path={tmp_path / 'rawscan.jsonl'}"])
 
 
 @pytest.fixture

@@ -27,7 +27,8 @@ CHROMEDRIVER = shutil.which("chromedriver")
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow,
               pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
-                                 reason="chromium or chromedriver not installed (apt-get install chromium chromium-driver)")]
+                                 reason="chromium or chromedriver not installed "
+                                        "(apt-get install chromium chromium-driver)")]
 
 
 @pytest.fixture
@@ -52,7 +53,8 @@ def wait_for(driver, script: str, timeout: float = 120.0, what: str = ""):
         if value:
             return value
         time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what or script}; page: {driver.find_element('tag name', 'body').text[:1500]}")
+    raise AssertionError(f"timed out waiting for {what or script}; "
+                         f"page: {driver.find_element('tag name', 'body').text[:1500]}")
 
 
 def readings(driver) -> int:

@@ -146,7 +146,8 @@ def test_an_adaptive_scan_counts_its_budget_not_its_first_batch(tmp_path):
     log = tmp_path / "scan.log"
     log.write_text("[2026-11-27 19:30:00,000][dipnet][INFO] - scan complete: 4 orientations, 20 readings in x\n")
     state = _state(path)
-    assert state["mode"] == "finished" and state["message"] == "finished: scan complete: 4 orientations, 20 readings in x"
+    assert state["mode"] == "finished" \
+        and state["message"] == "finished: scan complete: 4 orientations, 20 readings in x"
     stop = "scan stopped outside a dip (no dip was in progress): every complete dip is kept in x; run the same command"
     log.write_text(f"[2026-11-27 19:30:00,000][dipnet][ERROR] - interrupted: {stop}\n")
     assert _state(path)["message"] == stop

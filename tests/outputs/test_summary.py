@@ -25,7 +25,8 @@ def test_every_metric_is_grouped_once_with_a_label():
     groups = summary.grouped(METRICS)
     keys = [key for rows in groups.values() for _, key, _ in rows]
     assert sorted(keys) == sorted(METRICS)
-    assert list(groups)[0] == "how close to the truth" and ("some new metric", "some_new_metric", 1.5) in groups["other"]
+    assert list(groups)[0] == "how close to the truth" \
+        and ("some new metric", "some_new_metric", 1.5) in groups["other"]
 
 
 def test_the_job_line_keeps_the_headline_numbers_in_order():
@@ -40,7 +41,8 @@ def test_an_undefined_iou_is_said_with_its_reason_not_printed_as_a_score():
     assert headline(metrics) == f"IoU undefined ({reason}), 1.3 s"
     assert headline({**metrics, "iou": None}) == f"IoU undefined ({reason}), 1.3 s"  # as read from metrics.json
     found = {a.question: a for a in summary.answers(metrics)}
-    assert found["How close to the truth?"].headline == "IoU undefined" and found["How close to the truth?"].detail == reason
+    assert found["How close to the truth?"].headline == "IoU undefined" \
+        and found["How close to the truth?"].detail == reason
 
 
 def test_prior_weights_and_their_reason_go_into_the_metrics():
@@ -71,7 +73,8 @@ def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():
     flat = summary.prior_weight_metrics(info)
     assert flat == {"prior_rounds": "1 of 4", "prior_rounds_reason": info["rounds"]["reason"]}
     assert list(summary.grouped(flat)) == ["run"]
-    assert summary.prior_weight_metrics({"rounds": {"done": 3, "max": 3, "rule": "fixed"}}) == {"prior_rounds": "3 of 3"}
+    assert summary.prior_weight_metrics({"rounds": {"done": 3, "max": 3, "rule": "fixed"}}) == \
+        {"prior_rounds": "3 of 3"}
 
 
 def test_the_surface_refit_and_its_mesh_go_into_the_metrics():
@@ -103,7 +106,8 @@ def test_an_empty_reconstruction_is_named_not_scored_by_its_stand_in_chamfer():
     Chamfer of an empty result is one truth diagonal by convention, not a distance."""
     metrics = {"iou": 0.0, "chamfer": 1.0, "empty": True, "profile_residual": 1.0, "volume_ratio": 0.0, "seconds": 1.3,
                "consistency": "inconsistent"}
-    assert headline(metrics) == "empty reconstruction, IoU 0.000, residual 1.000, volume ratio 0.000, 1.3 s, inconsistent"
+    assert headline(metrics) == \
+        "empty reconstruction, IoU 0.000, residual 1.000, volume ratio 0.000, 1.3 s, inconsistent"
     close = {a.question: a for a in summary.answers(metrics)}["How close to the truth?"]
     assert close.headline == "empty reconstruction" and "stand-in" in close.detail
     assert headline({**metrics, "empty": False}).startswith("IoU 0.000, Chamfer 1.0000")

@@ -39,7 +39,8 @@ def test_adaptive_loop_stops_at_the_budget(tmp_path):
     assert [(h["posterior_resolution"], h["posterior_slabs"]) for h in planning["history"]] == [(16, 16)] * 4
     with np.load(tmp_path / "reconstruction.npz") as saved:
         assert saved["uncertainty_std"].shape == (16, 16, 16)
-    assert 0 < result.metrics["uncertainty_mean"] < 0.5 and len(result.metrics["error_rate_by_uncertainty_decile"]) == 10
+    assert 0 < result.metrics["uncertainty_mean"] < 0.5 \
+        and len(result.metrics["error_rate_by_uncertainty_decile"]) == 10
 
 
 def test_adaptive_loop_stops_when_certain_enough(tmp_path):
@@ -84,7 +85,8 @@ def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
             return super().next(*args, posterior=posterior, **kwargs)
 
     planner = Counting()
-    result = adaptive_loop(acquire, reconstruct, planner, Reach(), AdaptiveSettings(budget=8, batch_size=2, initial_dips=4))
+    result = adaptive_loop(acquire, reconstruct, planner, Reach(),
+                           AdaptiveSettings(budget=8, batch_size=2, initial_dips=4))
     assert [h["n_dips"] for h in result.history] == [4, 6, 8]
     assert planner.fitted == 3 and len(planner.given) == 2 and all(p is not None for p in planner.given)
     # planning with the loop's posterior is planning with the planner's own fit (seeded: the same)
@@ -92,7 +94,8 @@ def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
     candidates = Reach().candidates()
     shared = planner.next(result.measurement, recon, candidates, 2, operator,
                           posterior=planner.posterior(recon, result.measurement, operator))
-    assert torch.equal(shared, NextBestDipPlanner(resolution=10).next(result.measurement, recon, candidates, 2, operator))
+    assert torch.equal(shared,
+                       NextBestDipPlanner(resolution=10).next(result.measurement, recon, candidates, 2, operator))
 
 
 def test_bad_loop_settings_are_user_errors(tmp_path):

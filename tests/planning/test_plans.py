@@ -73,7 +73,8 @@ def test_the_adaptive_plan_needs_3d_and_a_solver():
 def test_a_fixed_plan_over_a_reach_too_narrow_for_its_dips_says_they_repeat():
     """The audit's case: ``reach.tilt_range_deg=[0,0] n_dips=41`` dipped 41 times along the vertical, no word."""
     with pytest.warns(UserWarning, match=r"n_dips=41 over the reach \(tilt 0-0 deg, spin 0-360 deg\): 40 of the dips "
-                                         r"repeat an earlier direction \(within 0.5 deg\) .* 1 distinct direction\(s\) in all"):
+                                         r"repeat an earlier direction \(within 0.5 deg\) "
+                                         r".* 1 distinct direction\(s\) in all"):
         directions = FixedPlan("fibonacci", 41).directions(3, Reach(tilt_range_deg=(0, 0)))
     assert directions.shape == (41, 3)  # the plan asked for is kept
     with warnings.catch_warnings():
@@ -100,7 +101,7 @@ def test_the_adaptive_loop_solves_without_the_surface_refit_and_the_job_refits_i
         recon.info["solver"]) or refit(self, recon, *args, **kw))
     result = run(_cfg("resolution=16", "planner=adaptive", "planner.budget=16", "planner.initial_dips=8",
                       "planner.planner.resolution=16", "solver=voxel", "solver.iterations=30",
-                      "solver.surface_refit={steps: 5, probe_steps: 5}", "output.progress=false", "output.figures=false",
-                      "output.uncertainty=false", "output.resolvability=false"), tmp_path)
+                      "solver.surface_refit={steps: 5, probe_steps: 5}", "output.progress=false",
+                      "output.figures=false", "output.uncertainty=false", "output.resolvability=false"), tmp_path)
     assert result.measurement.n_orientations == 16
     assert len(refits) == 1 and result.reconstruction.info["surface_refit"]["reason"]  # the job's own solve alone

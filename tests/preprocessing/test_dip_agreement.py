@@ -64,7 +64,8 @@ def test_swapped_dips_of_a_ball_agree():
 def test_a_log_one_dip_off_is_found(chamber_box):
     half = DIPS // 2
     d = chamber_box.directions
-    assert dip_agreement(replace(chamber_box, directions=torch.cat([d[:half], d[half + 1:], d[half:half + 1]]))).outliers
+    assert dip_agreement(replace(chamber_box,
+                                 directions=torch.cat([d[:half], d[half + 1:], d[half:half + 1]]))).outliers
 
 
 def test_an_object_that_turned_in_its_holder_is_found():
@@ -84,7 +85,8 @@ def test_scores_cover_every_whole_dip(chamber_box):
 
 def test_the_authors_real_recording_agrees():
     measurement = read_recorded(str(CATS_CSV), Grid(40, 3, 360.0), cross_section_mm2=183600.0, t_start="geometry",
-                                truncated="keep", smooth=True, geometry={"pivot_mm": 188.0, "tilt_axis_offset_mm": -18.0})
+                                truncated="keep", smooth=True,
+                                geometry={"pivot_mm": 188.0, "tilt_axis_offset_mm": -18.0})
     agreement = dip_agreement(measurement)
     assert agreement.outliers == [] and agreement.tested >= 12  # 16 whole dips; the fit hinges on a few
 

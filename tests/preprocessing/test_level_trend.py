@@ -87,4 +87,5 @@ def test_a_fall_that_lasts_is_found_with_its_size_and_place():
     assert level_drop(rounded) == (0.0, -1)
     for seed in range(5):
         assert level_drop(_dip(sigma=5.0, seed=seed), sigma=5.0) == (0.0, -1)
-    assert level_drop(_dip(sigma=5.0) - np.where(np.arange(80) > 60, 60.0, 0.0), sigma=5.0)[1] in (59, 60, 61)  # 12 sigmas
+    # 12 sigmas
+    assert level_drop(_dip(sigma=5.0) - np.where(np.arange(80) > 60, 60.0, 0.0), sigma=5.0)[1] in (59, 60, 61)

@@ -105,7 +105,8 @@ def test_a_start_height_that_is_no_height_is_named(t_start):
                                preprocess(_scan(), edges=EDGES).profiles.numpy())
 
 
-@pytest.mark.parametrize("area,message", [(1e-300, "1e-300"), (-5.0, "-5.0"), (float("nan"), "nan"), (float("inf"), "inf")])
+@pytest.mark.parametrize("area,message", [(1e-300, "1e-300"), (-5.0, "-5.0"), (float("nan"), "nan"),
+                                          (float("inf"), "inf")])
 def test_a_cross_section_outside_any_tank_is_named(area, message):
     """Before: preprocess(scan, cross_section_mm2=1e-300) gave a 2827 mm^2 disk profiles totalling 9.4e-300 mm^2
     without a word (the

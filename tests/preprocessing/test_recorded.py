@@ -344,7 +344,8 @@ def test_a_csv_counting_depth_as_positive_is_named_so(tmp_path):
     """Before: the authors' CSV with its Height_mm negated (depth counted as positive) was refused as a stage that
     "moved backwards within a dip (rows out of order? ...)", which every dip does alike. Now the sign is named."""
     lines = CSV.read_text().splitlines()
-    flipped = [lines[0]] + [",".join(f[:3] + [str(-float(f[3])), f[4]]) for f in (line.split(",") for line in lines[1:])]
+    flipped = [lines[0]] + [",".join(f[:3] + [str(-float(f[3])), f[4]])
+                            for f in (line.split(",") for line in lines[1:])]
     path = tmp_path / "depth.csv"
     path.write_text("\n".join(flipped) + "\n")
     with pytest.raises(RawScanFileError, match=r"depth.csv: Height_mm rises within every dip \(25, 28, \.\.\.\).*"

@@ -54,7 +54,8 @@ def test_a_measurement_expanded_again_counts_the_dips_measured_once():
 
 def test_merging_is_limited_to_directions_a_dip_repeats_at():
     """Before: ``tol_deg: 15`` averaged the profiles of distinct dips into one (a torus under ``n_fold: 4``: 34 of 120
-    directions kept, IoU 0.963 -> 0.893, ``consistent``, no word). Now a tolerance above ``MAX_MERGE_DEG`` is refused."""
+    directions kept, IoU 0.963 -> 0.893, ``consistent``, no word). Now a tolerance above ``MAX_MERGE_DEG`` is
+    refused."""
     measured = ball_measurement([0.0, 0.0, 0.0], 20.0, fibonacci_hemisphere(10).numpy())
     assert apply_symmetry(measured, {"n_fold": 4, "tol_deg": MAX_MERGE_DEG}).n_orientations >= 37
     with pytest.raises(ValueError, match=r"tol_deg must lie in \[0, 2\] deg, got 15.*average distinct dips"):

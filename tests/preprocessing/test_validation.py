@@ -65,7 +65,8 @@ def test_a_mislabelled_direction_is_named_by_its_profile_not_its_total():
     profiles = ball_profiles(directions, EDGES, centre, 20.0).numpy()
     mislabelled = directions.clone()
     mislabelled[0] = directions[5]
-    with pytest.warns(UserWarning, match=r"1 of 1 pair\(s\) of directions .* measure different profiles .* dips 0 and 5, whose volumes below a "
+    with pytest.warns(UserWarning, match=r"1 of 1 pair\(s\) of directions .* measure different profiles .* "
+                      r"dips 0 and 5, whose volumes below a "
                       r"height differ by up to [\d.e+]+ mm\^3, [\d.]+% of [\d.e+]+ mm\^3\)"):
         report = validate_measurement(DipMeasurement(mislabelled, profiles, 100.0 / 16, np.full(12, -50.0)), GRID)
     assert report.stats["duplicate_max_discrepancy"] > 0.2
@@ -288,7 +289,8 @@ def test_dips_that_trap_air_in_a_cavity_are_named_by_their_totals():
 
 
 def test_a_grid_that_is_no_grid_is_named():
-    """Before: validate_measurement(measurement, 16) failed with "AttributeError: 'int' object has no attribute 'ndim'"."""
+    """Before: validate_measurement(measurement, 16) failed with
+    "AttributeError: 'int' object has no attribute 'ndim'"."""
     with pytest.raises(TypeError, match=r"grid must be a dipnet.Grid, e.g. Grid\(16, "):
         validate_measurement(_measurement(_ball()), 16)
 

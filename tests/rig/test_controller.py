@@ -37,7 +37,8 @@ def test_an_axis_converts_rig_values_to_machine_words_and_back():
         assert axis.from_machine(axis.to_machine(value)) == pytest.approx(value)
     assert axis.to_machine(10.0) == -15.0
     for bad, message in (({"letter": "ZZ"}, "one letter"), ({"letter": "1"}, "one letter"),
-                         ({"letter": "Z", "sign": 2}, "sign must be"), ({"letter": "Z", "scale": 0.0}, "scale positive"),
+                         ({"letter": "Z", "sign": 2}, "sign must be"),
+                         ({"letter": "Z", "scale": 0.0}, "scale positive"),
                          ({"letter": "B", "wrap": -360.0}, "wrap must be a positive period")):
         with pytest.raises(ValueError, match=message):
             Axis(**bad)

@@ -172,8 +172,8 @@ def test_a_marlin_that_does_not_report_its_steps_per_unit_says_once_that_arrival
         raw = scan(silent, "marlin", "level", plan_for(2, step=10.0), tmp_path / "silent.jsonl")
     assert len(raw.completed()) == 2
     warnings = [r.getMessage() for r in caplog.records if "not checking" in r.getMessage()]
-    assert warnings == ["not checking that the machine arrives where the scan sends it: the controller reports no steps "
-                        "per unit (M92 answers only 'ok' in Marlin 1.x; M503 may be compiled out)"]
+    assert warnings == ["not checking that the machine arrives where the scan sends it: the controller reports "
+                        "no steps per unit (M92 answers only 'ok' in Marlin 1.x; M503 may be compiled out)"]
 
 
 def test_steps_per_unit_changed_after_connect_stop_the_marlin_scan(world, tmp_path, monkeypatch):

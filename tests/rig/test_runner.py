@@ -22,7 +22,8 @@ from rig_helpers import plan_for, scan
 
 
 @pytest.mark.parametrize("dialect,sensor", [("grbl", "level"), ("marlin", "level"),
-                                            *(pytest.param("grbl", s, marks=pytest.mark.slow) for s in ("modbus", "ad", "sics"))])
+                                            *(pytest.param("grbl", s, marks=pytest.mark.slow)
+                                              for s in ("modbus", "ad", "sics"))])
 def test_scan_reconstructs_mesh(world, tmp_path, dialect, sensor):
     world.reset()
     raw = scan(world, dialect, sensor, plan_for(30), tmp_path / "scan.jsonl")

@@ -76,7 +76,8 @@ def _level_config() -> dict:
     """``conf/sensor/level.yaml``'s ``device`` node."""
     import yaml
 
-    return yaml.safe_load((Path(__file__).resolve().parents[2] / "conf" / "sensor" / "level.yaml").read_text())["device"]
+    return yaml.safe_load((Path(__file__).resolve().parents[2] / "conf" / "sensor" / "level.yaml")
+                          .read_text())["device"]
 
 
 def test_a_sensor_sending_error_lines_fails_the_reading_naming_the_line(world):

@@ -131,7 +131,8 @@ def test_generated_shape_matches_its_occupancy_and_gives_exact_dips():
     assert abs(float(occ.sum()) * grid.voxel_volume / shape.volume - 1) < 0.03
     dirs = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]], dtype=torch.float64)
     below = shape.volume_below(dirs, torch.tensor([-100.0, 0.0, 100.0], dtype=torch.float64))
-    assert torch.allclose(below[:, 0], torch.zeros(2, dtype=torch.float64)) and torch.allclose(below[:, 2], torch.full((2,), shape.volume, dtype=torch.float64))
+    assert torch.allclose(below[:, 0], torch.zeros(2, dtype=torch.float64)) \
+        and torch.allclose(below[:, 2], torch.full((2,), shape.volume, dtype=torch.float64))
     direct = generated_occupancy(4, grid, fill=40.0 / grid.radius, family="holes")
     assert np.abs(direct - occ.numpy()).mean() < 0.01
 

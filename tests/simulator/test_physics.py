@@ -54,7 +54,8 @@ def test_object_wider_than_tank_is_refused():
 
 
 @pytest.mark.parametrize("bad,message", [([0.0, 0.0, 0.0], r"a zero vector in rows \[1\]"),
-                                         ([float("nan"), 0.0, 1.0], r"non-finite \(NaN or inf\) components in rows \[1\]")])
+                                         ([float("nan"), 0.0, 1.0],
+                                          r"non-finite \(NaN or inf\) components in rows \[1\]")])
 def test_a_zero_or_nan_direction_is_named(bad, message):
     """Before: 'ValueError: cannot convert float NaN to integer' from deep in the dip solver (the operator named
     such rows already); a direction of any other length is normalised, as the operator does."""
@@ -157,7 +158,8 @@ def test_a_noise_sigma_beside_an_snr_is_refused():
     """The SNR sets the noise: before, ``sigma_mm=0.1`` with ``snr_db=30`` simulated a noise of 0.0009-0.0012 mm
     (the 30 dB one, 90x below the sigma asked for) without a word."""
     with pytest.raises(ValueError, match=r"the sensor's sigma_mm=0.1 mm and snr_db=30 both set its noise, and with "
-                                         r"snr_db the sigma is ignored: give one \(snr_db=null for a noise of 0.1 mm\)"):
+                                         r"snr_db the sigma is ignored: give one "
+                                         r"\(snr_db=null for a noise of 0.1 mm\)"):
         LevelSensor(sigma_mm=0.1, snr_db=30.0)
     with pytest.raises(ValueError, match=r"sigma_g=0.5 g and snr_db=20"):
         Balance(sigma_g=0.5, snr_db=20.0)
@@ -192,7 +194,8 @@ def test_a_quantum_as_large_as_the_whole_rise_is_refused():
     the rise. A quantum of a tenth of the rise is only coarse."""
     rise = float(np.ptp(LevelSensor().ideal(Tank(), np.array([0.0, BALL.volume]))))
     assert 1.0 < rise < 10.0
-    with pytest.raises(ValueError, match=rf"quantum \({2 * rise:g} mm\) is at least the whole change .* \({rise:.3g} mm"):
+    with pytest.raises(ValueError,
+                       match=rf"quantum \({2 * rise:g} mm\) is at least the whole change .* \({rise:.3g} mm"):
         simulate_scan(BALL, DIRS[:2], sensor=LevelSensor(quantum_mm=2 * rise), progress=False)
     coarse = simulate_scan(BALL, DIRS[:2], sensor=LevelSensor(quantum_mm=0.1 * rise), progress=False)
     assert np.ptp(coarse.orientations[0].values) > 0.5 * rise

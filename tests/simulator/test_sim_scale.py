@@ -74,7 +74,8 @@ def test_closed_form_newton_agrees_with_the_tabulated_path():
         fast = solve_dip(shape, direction, tank, stage, -43.0)
         slow = solve_dip(_NoSweep(shape), direction, tank, stage, -43.0)
         assert fast.residual < 1e-11 * shape.volume
-        np.testing.assert_allclose(fast.rise_mm, slow.rise_mm, rtol=0, atol=1e-12 * shape.volume / tank.cross_section_mm2)
+        np.testing.assert_allclose(fast.rise_mm, slow.rise_mm, rtol=0,
+                                   atol=1e-12 * shape.volume / tank.cross_section_mm2)
         v = shape.volume_below(torch.from_numpy(direction[None]), torch.from_numpy(fast.waterline_mm))[0].numpy()
         np.testing.assert_allclose(tank.cross_section_mm2 * fast.rise_mm, v, rtol=0, atol=1e-11 * shape.volume)
 

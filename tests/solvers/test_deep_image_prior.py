@@ -45,7 +45,8 @@ def test_reconstructs_a_disc_and_is_deterministic_by_seed():
     assert not torch.equal(a.occupancy, c.occupancy)
     assert 0 <= float(a.occupancy.min()) <= float(a.occupancy.max()) <= 1
     assert float(a.occupancy[~op.mask].abs().max()) == 0.0
-    assert a.info["solver"] == "dip" and a.info["network_weights"] > 0 and a.history["data"][-1] < 0.01 * a.history["data"][0]
+    assert a.info["solver"] == "dip" and a.info["network_weights"] > 0 \
+        and a.history["data"][-1] < 0.01 * a.history["data"][0]
 
 
 @pytest.mark.slow

@@ -137,7 +137,8 @@ def test_weights_meta_without_its_grid_names_the_file(tmp_path):
 
 
 @pytest.mark.parametrize("key, value", [("n", "abc"), ("n", 30), ("n", 0), ("ndim", 4),
-                                        ("n_slabs_per_voxel", float("nan")), ("n_slabs_per_voxel", -1), ("channels", 2.5)])
+                                        ("n_slabs_per_voxel", float("nan")), ("n_slabs_per_voxel", -1),
+                                        ("channels", 2.5)])
 def test_weights_meta_with_an_impossible_grid_names_the_key(tmp_path, key, value):
     """A meta value no weights file can hold (a U-Net grid that is not a positive multiple of 4, a NaN slab
     spacing, which passed the slab check as no mismatch) is one named error when the file is read."""

@@ -96,7 +96,8 @@ def test_rejects_bad_options():
 
 @pytest.mark.parametrize("option,message", [({"hidden_width": 0}, r"hidden_width must be an integer >= 1 \(neurons"),
                                             ({"hidden_width": 2.5}, "hidden_width must be an integer >= 1"),
-                                            ({"hidden_layers": -2}, r"hidden_layers must be an integer >= 0 \(hidden layers\)")])
+                                            ({"hidden_layers": -2},
+                                             r"hidden_layers must be an integer >= 0 \(hidden layers\)")])
 def test_an_mlp_of_no_neurons_is_refused(option, message):
     """Before: ImplicitSolver(hidden_width=0) fitted a field of no neurons and returned an empty 16^2 chamber box
     (IoU 0.000) with no word; hidden_layers=-2 ran as 0. Only a config's solver.hidden_width was checked."""

@@ -324,7 +324,8 @@ def test_the_learned_solver_config_beats_voxel_on_a_noisy_test_shape():
     rounds = learned.info["rounds"]
     assert rounds["done"] == rounds["max"] > 1 and rounds["residual"] <= rounds["target_residual"]
     level = learned.info["threshold_rule"]  # its surface encloses the measured volume
-    assert level["rule"] == "volume" and level["enclosed_volume_mm3"] == pytest.approx(level["measured_volume_mm3"], rel=2e-3)
+    assert level["rule"] == "volume" \
+        and level["enclosed_volume_mm3"] == pytest.approx(level["measured_volume_mm3"], rel=2e-3)
     assert level["measured_volume_mm3"] == pytest.approx(shape.volume, rel=0.01)
     refit = learned.info["surface_refit"]  # within the stated noise already: the surface is the voxel result's
     assert not refit["applied"] and learned.mesh is None and "stated noise" in refit["reason"]
@@ -347,8 +348,8 @@ def test_the_learned_solver_refits_its_surface_past_the_grid_on_exact_dips():
 
     grid = Grid(64, 3)
     shape = generated_shape(7, radius=0.9 * grid.radius)
-    _, m = simulate_measurement(shape, fibonacci_hemisphere(41), grid=grid, sensor=LevelSensor(snr_db=None, quantum_mm=0),
-                                seed=7, progress=False)
+    _, m = simulate_measurement(shape, fibonacci_hemisphere(41), grid=grid,
+                                sensor=LevelSensor(snr_db=None, quantum_mm=0), seed=7, progress=False)
     op = make_operator(grid, m.directions, 64)
     truth = shape.occupancy(grid, supersample=3).numpy() >= 0.5
     learned = instantiate(compose_job(["solver=voxel_learned", "output.progress=false"]).solver).solve(m, op)

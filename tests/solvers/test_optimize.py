@@ -150,7 +150,8 @@ def test_correlated_term_is_generalised_least_squares(white_share):
     assert float(data(occ)) == pytest.approx(0.0, abs=1e-20)
     if white_share < 1e-3:  # no white part: the GLS term is the cumulative residual's, edge by edge
         cumulative = torch.cumsum(r, -1)
-        assert float(data(guess)) == pytest.approx(float((2 / sigma ** 2 * cumulative ** 2)[span].sum()) / norm, rel=1e-3)
+        assert float(data(guess)) == pytest.approx(float((2 / sigma ** 2 * cumulative ** 2)[span].sum()) / norm,
+                                                   rel=1e-3)
 
 
 def test_correlated_term_expects_what_the_differenced_noise_scores():

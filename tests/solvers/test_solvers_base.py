@@ -128,7 +128,8 @@ def test_another_solvers_threshold_rule_is_named_as_such(name, rule, other):
     assert "empty" not in str(caught.value)
 
 
-@pytest.mark.parametrize("name,rule", [("minnorm", "otsu"), ("lsmr", "otsu"), ("voxel", "volume"), ("implicit", "volume")])
+@pytest.mark.parametrize("name,rule", [("minnorm", "otsu"), ("lsmr", "otsu"), ("voxel", "volume"),
+                                       ("implicit", "volume")])
 @pytest.mark.parametrize("level", [2.0, 1.0, 0.0, -0.5, float("nan"), True, "0.5"])
 def test_a_threshold_outside_the_occupancy_levels_is_refused(name, rule, level):
     """Before: make_solver(name, threshold=2.0) (or nan) gave an empty shape and -0.5 the whole 16^3 grid (4096
@@ -150,7 +151,8 @@ def test_arguments_that_are_no_measurement_and_operator_are_named(name):
     profiles = op(occupancy)
     m = DipMeasurement(op.directions, profiles, op.slab_thickness, op.slab_edges()[:1].expand(op.n_orientations))
     solver = make_solver(name, progress=False)
-    with pytest.raises(TypeError, match="takes a DipMeasurement and a DipOperator, got SplatOperator and DipMeasurement$"):
+    with pytest.raises(TypeError,
+                       match="takes a DipMeasurement and a DipOperator, got SplatOperator and DipMeasurement$"):
         solver.solve(op, m)
     with pytest.raises(TypeError, match=r"got Tensor and SplatOperator; profiles on the operator's slabs make one"):
         solver.solve(profiles, op)

@@ -166,7 +166,8 @@ def test_hull_margin_widens_the_support_and_is_validated():
         VoxelSolver(hull_margin=-1.0)
 
 
-@pytest.mark.parametrize("shape", [Ball(25.0), pytest.param(Box((20.0, 12.0, 16.0), (4.0, -3.0, 2.0)), marks=pytest.mark.slow)],
+@pytest.mark.parametrize("shape", [Ball(25.0),
+                                   pytest.param(Box((20.0, 12.0, 16.0), (4.0, -3.0, 2.0)), marks=pytest.mark.slow)],
                          ids=["ball", "box"])
 def test_fit_gain_recovers_a_common_volume_factor(shape):
     """Every measured volume x 1.1 (a tank 9 % smaller than assumed): with ``fit_gain`` the solver

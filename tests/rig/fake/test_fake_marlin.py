@@ -83,8 +83,9 @@ def test_an_older_marlin_reports_no_steps_per_unit():
 
 
 def test_a_workspace_offset_moves_in_logical_coordinates_and_counts_in_machine_ones():
-    """``G92 Z0`` at machine Z -10 makes logical = machine + 10: ``G0 Z-5`` goes to machine Z -15, reported as ``Z:-5.00``
-    and counted as -15 mm; ``G28`` clears it, and an ``M206`` offset kept by the world (its EEPROM) survives homing."""
+    """``G92 Z0`` at machine Z -10 makes logical = machine + 10: ``G0 Z-5`` goes to machine Z -15, reported as
+    ``Z:-5.00`` and counted as -15 mm; ``G28`` clears it, and an ``M206`` offset kept by the world (its EEPROM) survives
+    homing."""
     world = ball_world()
     dev = MarlinDevice(world)
     replies(dev)
