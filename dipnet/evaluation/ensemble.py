@@ -90,7 +90,8 @@ class RandomStart:
 
 
 def member(solver: Solver, index: int, seed: int, random_start: bool = True, iterations_scale: float = 1.0) -> Solver:
-    """A copy of ``solver`` for ensemble member ``index``: quiet, without checkpoint or surface refit (the
+    """A copy of ``solver`` for ensemble member ``index``: quiet (a warm-start solver too), without checkpoint or
+    surface refit (the
     ensemble reads the members' occupancies, not their surfaces), its own seed (``seed + 1 + index``),
     a :class:`RandomStart` when it is an optimisation solver without a warm start (and not one whose seed already draws
     its start, ``seeded_start``), and ``iterations_scale`` of its iterations."""
@@ -99,6 +100,9 @@ def member(solver: Solver, index: int, seed: int, random_start: bool = True, ite
     for name, value in (("progress", False), ("checkpoint", None), ("surface_refit", None), ("seed", member_seed)):
         if hasattr(out, name):
             setattr(out, name, value)
+    if getattr(getattr(out, "warm_start", None), "progress", False):  # a nested solver (voxel_learned's): quiet too
+        out.warm_start = copy.copy(out.warm_start)
+        out.warm_start.progress = False
     if isinstance(out, OptimisationSolver):
         out.iterations = max(1, round(out.iterations * iterations_scale))
         if random_start and out.warm_start is None and not getattr(out, "seeded_start", False):

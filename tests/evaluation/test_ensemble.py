@@ -102,6 +102,8 @@ def test_members_are_independent_copies():
     refitting = VoxelSolver(surface_refit={})
     # occupancies only
     assert member(refitting, 0, seed=0).surface_refit is None and refitting.surface_refit is not None
+    nested = VoxelSolver(warm_start=VoxelSolver(progress=True))  # voxel_learned's plain voxel start
+    assert member(nested, 0, seed=0).warm_start.progress is False and nested.warm_start.progress is True
 
 
 def test_random_start_fills_the_measured_volume_on_average(box_case):
