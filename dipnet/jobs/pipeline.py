@@ -136,7 +136,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
                               "resolution": grid.n, "ndim": grid.ndim, "threshold": float(recon.threshold),
                               "empty": empty, **prior_weight_metrics(recon.info),
                               **surface_refit_metrics(recon.info),
-                              **run_overrides()}
+                              **run_provenance()}
     stages = planned_stages(cfg.output, truth=shape is not None)
     stage = OutputStages(bool(cfg.output.progress), stages)
     stage("consistency")
@@ -273,7 +273,7 @@ def save_acquisition(out: Path, raw: RawScan | None, planning: dict | None) -> N
         write_json(out / "planning.json", planning, indent=2)
 
 
-def run_overrides() -> dict[str, Any]:
+def run_provenance() -> dict[str, Any]:
     """``{"overrides": the job's command-line overrides, "solver_config": the solver config chosen}`` in a Hydra run
     (``scripts/reconstruct.py``, a sweep job), the overrides as typed (``n_slabs=${resolution}`` unresolved, as in
     ``.hydra/overrides.yaml``), else ``{}``: whose metrics ``metrics.json`` holds, and by which recipe (``solver``
