@@ -41,6 +41,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
 from dipnet.solvers.base import SIGMA_FLOOR, Solver, checked_flag, checked_threshold, measured_profiles, noise_sigma
 from dipnet.solvers.checkpoint import solver_settings
+from dipnet.solvers.noise_covariance import correlated_precision
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors
 from dipnet.solvers.weights import KNOWN_NOISE, WeightRule, auto_names, noise_level, with_weight
@@ -72,7 +73,6 @@ class Problem(NamedTuple):
 
 
 NOISE_MODELS = ("independent", "correlated")
-_PRECISION_ENTRIES = 1 << 26  # K x M x M precision entries noise_model="correlated" may hold (256 MB float32)
 
 
 class DataTerm(nn.Module):
@@ -132,8 +132,8 @@ class DataTerm(nn.Module):
         self.register_buffer("precision", None)  # (K, M, M) with noise_model="correlated" and sigma
         self.expected_noise: float | None = None
         if noise_model == "correlated" and sigma is not None:
-            precision, expected = correlated_precision(target, sigma, white_share, rel_tol)
-            self.precision, self.expected_noise = (precision / norm).to(dtype), expected / norm
+            noise = correlated_precision(target, sigma, white_share, rel_tol)
+            self.precision, self.expected_noise = (noise.precision / norm).to(dtype), noise.expected / norm
 
     @property
     def gain(self) -> float:
@@ -148,45 +148,6 @@ class DataTerm(nn.Module):
         if self.precision is not None:
             return torch.einsum("km,kmn,kn->", residual, self.precision, residual)
         return (self.weight * residual.pow(2)).sum()
-
-
-def filled_span(target: torch.Tensor, rel_tol: float = 0.005) -> torch.Tensor:
-    """Boolean ``(K, M)``: the slabs from each profile's first to its last filled one (volume above
-    ``rel_tol`` x the profile's largest), ends included."""
-    filled = filled_slabs(target, rel_tol)
-    return (torch.cumsum(filled.int(), dim=-1) > 0) & (torch.cumsum(filled.flip(-1).int(), dim=-1).flip(-1) > 0)
-
-
-def correlated_precision(target: torch.Tensor, sigma: torch.Tensor, white_share: float = 1.0,
-                         rel_tol: float = 0.005) -> tuple[torch.Tensor, float]:
-    """The slabs' noise precision under :class:`DataTerm`'s ``"correlated"`` model, unnormalised.
-
-    Args:
-        target: measured slab volumes ``(K, M)``, mm^3.
-        sigma: their noise sigma ``(K, M)``, mm^3 (each slab's sigma gives its upper edge's
-            cumulative error ``sigma^2 / 2``).
-        white_share: the white part's variance in units of ``sigma^2 / 2``.
-        rel_tol: see :func:`filled_span`.
-
-    Returns:
-        The precision ``(K, M, M)`` float64 (mm^-6) and ``sum_k tr(P_k C_k)`` over the filled spans,
-        ``C_k`` the differenced noise's covariance alone: the expected ``r^T P r`` of that noise.
-    """
-    k, m = target.shape
-    if k * m * m > _PRECISION_ENTRIES:
-        raise ValueError(f"noise_model='correlated' holds a (K, M, M) = ({k}, {m}, {m}) precision, more than "
-                         f"{_PRECISION_ENTRIES:,} entries; use noise_model='independent' for a problem this large")
-    var = sigma.double().pow(2).clamp(min=1e-300)
-    span = filled_span(target, rel_tol)
-    edge = torch.where(span, var / 2, torch.zeros_like(var))  # cumulative error at each slab's upper edge
-    below = torch.cat([torch.zeros_like(edge[:, :1]), edge[:, :-1]], dim=1) * span  # and at its lower edge
-    inside = span[:, 1:] & span[:, :-1]
-    differenced = torch.diag_embed(edge + below) - torch.diag_embed(edge[:, :-1] * inside, offset=1) \
-        - torch.diag_embed(edge[:, :-1] * inside, offset=-1)
-    covariance = differenced + torch.diag_embed(torch.where(span, white_share * var / 2, var))
-    precision = torch.linalg.inv(covariance)
-    expected = float(((precision @ differenced).diagonal(dim1=-2, dim2=-1) * span).sum())
-    return precision, expected
 
 
 def support_hull(target: torch.Tensor, grid: Grid, directions: torch.Tensor, edges: torch.Tensor,

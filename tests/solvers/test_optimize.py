@@ -15,8 +15,9 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators import make_operator
 from dipnet.shapes import Disk
 from dipnet.simulator.simulate import simulate_measurement
-from dipnet.solvers import optimize
-from dipnet.solvers.optimize import DataTerm, filled_span, slab_support, support_hull
+from dipnet.solvers import noise_covariance, optimize
+from dipnet.solvers.noise_covariance import filled_span
+from dipnet.solvers.optimize import DataTerm, slab_support, support_hull
 from dipnet.solvers.voxel import VoxelSolver
 from dipnet.solvers.weights import noise_level
 
@@ -189,7 +190,7 @@ def test_correlated_model_needs_sigma_and_a_bounded_problem(monkeypatch):
         DataTerm(op, target, sigma, noise_model="correlated", white_share=0.0)
     with pytest.raises(ValueError, match="noise_model"):
         VoxelSolver(noise_model="cumulative")
-    monkeypatch.setattr(optimize, "_PRECISION_ENTRIES", 100)
+    monkeypatch.setattr(noise_covariance, "PRECISION_ENTRIES", 100)
     with pytest.raises(ValueError, match=r"\(5, 24, 24\) precision.*noise_model='independent'"):
         DataTerm(op, target, sigma, noise_model="correlated")
 
