@@ -90,24 +90,35 @@ class RandomStart:
 
 
 def member(solver: Solver, index: int, seed: int, random_start: bool = True, iterations_scale: float = 1.0) -> Solver:
-    """A copy of ``solver`` for ensemble member ``index``: quiet (a warm-start solver too), without checkpoint or
-    surface refit (the
+    """A copy of ``solver`` for ensemble member ``index``: quiet, without checkpoint or surface refit (the
     ensemble reads the members' occupancies, not their surfaces), its own seed (``seed + 1 + index``),
     a :class:`RandomStart` when it is an optimisation solver without a warm start (and not one whose seed already draws
-    its start, ``seeded_start``), and ``iterations_scale`` of its iterations."""
+    its start, ``seeded_start``), and ``iterations_scale`` of its iterations. A nested warm-start solver
+    (``voxel_learned``'s plain voxel start, and any start of that start) is copied too, quiet and with the member's
+    seed, as the configs tie it (``warm_start.seed: ${seed}``): a shared seed would leave members differing by
+    their perturbed data alone."""
     out = copy.copy(solver)
     member_seed = int(seed) + 1 + int(index)
     for name, value in (("progress", False), ("checkpoint", None), ("surface_refit", None), ("seed", member_seed)):
         if hasattr(out, name):
             setattr(out, name, value)
-    if getattr(getattr(out, "warm_start", None), "progress", False):  # a nested solver (voxel_learned's): quiet too
-        out.warm_start = copy.copy(out.warm_start)
-        out.warm_start.progress = False
+    _nested_members(out, member_seed)
     if isinstance(out, OptimisationSolver):
         out.iterations = max(1, round(out.iterations * iterations_scale))
         if random_start and out.warm_start is None and not getattr(out, "seeded_start", False):
             out.warm_start = RandomStart(member_seed)
     return out
+
+
+def _nested_members(solver: Solver, member_seed: int) -> None:
+    """Replace the warm-start solver of ``solver`` (a member's copy), and its own, recursively, by copies that are
+    quiet and seeded with ``member_seed`` (a start that is no solver, a tensor or a callable, is kept)."""
+    while isinstance(getattr(solver, "warm_start", None), Solver):
+        solver.warm_start = copy.copy(solver.warm_start)
+        solver = solver.warm_start
+        for name, value in (("progress", False), ("seed", member_seed)):
+            if hasattr(solver, name):
+                setattr(solver, name, value)
 
 
 def perturbed(measurement: DipMeasurement, std: float, rng: np.random.Generator) -> DipMeasurement:

@@ -106,6 +106,27 @@ def test_members_are_independent_copies():
     assert member(nested, 0, seed=0).warm_start.progress is False and nested.warm_start.progress is True
 
 
+def test_members_nested_warm_start_solvers_take_the_members_seed(box_case):
+    """``voxel_learned``'s plain voxel start (``warm_start.seed: ${seed}``) kept the job's one seed in every member,
+    so members differed by their perturbed data alone; each member's nested solvers (a start's start too) now take
+    the member's seed, the job's solver is unchanged, and the same seed gives the same ensemble."""
+    innermost = VoxelSolver(iterations=10, progress=True, seed=0)
+    nested = VoxelSolver(iterations=10, progress=False, seed=0,
+                         warm_start=VoxelSolver(iterations=10, progress=False, seed=0, warm_start=innermost))
+    first, second = member(nested, 0, seed=5), member(nested, 1, seed=5)
+    assert (first.seed, first.warm_start.seed, first.warm_start.warm_start.seed) == (6, 6, 6)
+    assert (second.seed, second.warm_start.seed, second.warm_start.warm_start.seed) == (7, 7, 7)
+    assert first.warm_start.warm_start.progress is False and innermost.progress is True
+    assert nested.warm_start.seed == 0 and nested.warm_start.warm_start is innermost and innermost.seed == 0
+    assert member(nested, 0, seed=5).warm_start.seed == first.warm_start.seed  # deterministic by seed
+    _, measurement, operator, _, recon = box_case
+    job = VoxelSolver(iterations=20, progress=False, warm_start=VoxelSolver(iterations=20, progress=False))
+    options = {"n_samples": 2, "seed": 3}
+    a = sample_ensemble(job, recon, measurement, operator, **options)
+    b = sample_ensemble(job, recon, measurement, operator, **options)
+    assert np.array_equal(a.occupancies, b.occupancies) and np.array_equal(a.binaries, b.binaries)
+
+
 def test_random_start_fills_the_measured_volume_on_average(box_case):
     _, measurement, operator, _, _ = box_case
     start = RandomStart(seed=0)(measurement, operator)
