@@ -95,14 +95,15 @@ def member(solver: Solver, index: int, seed: int, random_start: bool = True, ite
     a :class:`RandomStart` when it is an optimisation solver without a warm start (and not one whose seed already draws
     its start, ``seeded_start``), and ``iterations_scale`` of its iterations. A nested warm-start solver
     (``voxel_learned``'s plain voxel start, and any start of that start) is copied too, quiet and with the member's
-    seed, as the configs tie it (``warm_start.seed: ${seed}``): a shared seed would leave members differing by
-    their perturbed data alone."""
+    seed, as the configs tie it (``warm_start.seed: ${seed}``), and the innermost one gets the :class:`RandomStart`
+    instead (the voxel solver's seed draws nothing): a shared seed and start would leave members differing by their
+    perturbed data alone."""
     out = copy.copy(solver)
     member_seed = int(seed) + 1 + int(index)
     for name, value in (("progress", False), ("checkpoint", None), ("surface_refit", None), ("seed", member_seed)):
         if hasattr(out, name):
             setattr(out, name, value)
-    _nested_members(out, member_seed)
+    _nested_members(out, member_seed, random_start)
     if isinstance(out, OptimisationSolver):
         out.iterations = max(1, round(out.iterations * iterations_scale))
         if random_start and out.warm_start is None and not getattr(out, "seeded_start", False):
@@ -110,15 +111,21 @@ def member(solver: Solver, index: int, seed: int, random_start: bool = True, ite
     return out
 
 
-def _nested_members(solver: Solver, member_seed: int) -> None:
+def _nested_members(solver: Solver, member_seed: int, random_start: bool = True) -> None:
     """Replace the warm-start solver of ``solver`` (a member's copy), and its own, recursively, by copies that are
-    quiet and seeded with ``member_seed`` (a start that is no solver, a tensor or a callable, is kept)."""
+    quiet and seeded with ``member_seed`` (a start that is no solver, a tensor or a callable, is kept); with
+    ``random_start`` the innermost, when it is an optimisation solver without a start (nor ``seeded_start``), starts
+    from a :class:`RandomStart` of ``member_seed``."""
+    nested = False
     while isinstance(getattr(solver, "warm_start", None), Solver):
-        solver.warm_start = copy.copy(solver.warm_start)
+        solver.warm_start, nested = copy.copy(solver.warm_start), True
         solver = solver.warm_start
         for name, value in (("progress", False), ("seed", member_seed)):
             if hasattr(solver, name):
                 setattr(solver, name, value)
+    if nested and random_start and isinstance(solver, OptimisationSolver) and solver.warm_start is None \
+            and not getattr(solver, "seeded_start", False):
+        solver.warm_start = RandomStart(member_seed)
 
 
 def perturbed(measurement: DipMeasurement, std: float, rng: np.random.Generator) -> DipMeasurement:

@@ -127,6 +127,22 @@ def test_members_nested_warm_start_solvers_take_the_members_seed(box_case):
     assert np.array_equal(a.occupancies, b.occupancies) and np.array_equal(a.binaries, b.binaries)
 
 
+def test_members_nested_start_begins_from_its_own_random_start(box_case):
+    """The voxel solver's seed draws nothing, so the innermost nested solver (the plain voxel start) starts from the
+    member's :class:`RandomStart`: without perturbed data the members still differ (before: identical), the same
+    seed still gives the same ensemble, and ``random_start=False`` keeps the plain start."""
+    _, measurement, operator, _, recon = box_case
+    job = VoxelSolver(iterations=20, progress=False, warm_start=VoxelSolver(iterations=20, progress=False))
+    copy = member(job, 1, seed=5)
+    assert isinstance(copy.warm_start.warm_start, RandomStart) and copy.warm_start.warm_start.seed == 7
+    assert member(job, 1, seed=5, random_start=False).warm_start.warm_start is None
+    assert job.warm_start.warm_start is None  # the job's solver is unchanged
+    options = {"n_samples": 2, "seed": 3, "perturb": False}
+    a = sample_ensemble(job, recon, measurement, operator, **options)
+    assert not np.array_equal(a.occupancies[0], a.occupancies[1])
+    assert np.array_equal(a.occupancies, sample_ensemble(job, recon, measurement, operator, **options).occupancies)
+
+
 def test_random_start_fills_the_measured_volume_on_average(box_case):
     _, measurement, operator, _, _ = box_case
     start = RandomStart(seed=0)(measurement, operator)
