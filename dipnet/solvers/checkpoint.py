@@ -3,9 +3,10 @@
 :class:`Checkpoint` is handed to a solver (``OptimisationSolver(checkpoint=...)``); the
 optimisation loop (:func:`dipnet.solvers.optimize.optimise`) calls :meth:`Checkpoint.restore`
 before its first step and :meth:`Checkpoint.save` after every step. Every ``every`` steps, and
-when a stage ends, it writes the parameters, the optimiser's and scheduler's state and the loss
-history to ``<directory>/<stage>.pt``. A finished stage is marked done, so a resumed
-multi-stage solve (coarse then fine) skips it.
+when a stage ends, it writes the parameters, the optimiser's and scheduler's state, the loss
+history and the lagged state of the stage's priors (a ``red`` mode learned prior's reused denoiser output and call
+count, :meth:`~dipnet.solvers.learned.LearnedPrior.lag_state`) to ``<directory>/<stage>.pt``. A finished stage
+is marked done, so a resumed multi-stage solve (coarse then fine) skips it.
 
 Writing is atomic: a temporary file, flushed to disk (``fsync``), then renamed over the old
 one, so a kill mid-write leaves the previous checkpoint intact. A write that fails (a full
@@ -20,7 +21,10 @@ does not fit is ignored with one warning naming the file (and the options that d
 those are what differs), and that stage starts afresh: a damaged checkpoint never blocks a rerun.
 
 Adam and the schedules are deterministic, so a resumed solve gives the same result as an
-uninterrupted one (to rounding).
+uninterrupted one (to rounding). A checkpoint written before the lagged state was recorded (no ``lagged`` field,
+:data:`LEGACY_FIELDS`) is still resumed as before: exactly for every prior without such state (``anchor`` mode, the
+shipped recipe), while a ``red`` mode learned prior starts its lag afresh (D evaluated at the first resumed step), so
+that solve ends near, not bit-identical to, an uninterrupted one (logged).
 """
 
 from __future__ import annotations
@@ -43,7 +47,9 @@ from dipnet.solvers.base import Solver
 log = logging.getLogger(__name__)
 
 #: The fields of a checkpoint record.
-FIELDS = frozenset({"fingerprint", "step", "done", "params", "optimizer", "scheduler", "history"})
+FIELDS = frozenset({"fingerprint", "step", "done", "params", "optimizer", "scheduler", "history", "lagged"})
+#: The fields of a record written before the priors' lagged state was saved (resumed without it; module docstring).
+LEGACY_FIELDS = FIELDS - {"lagged"}
 #: Solver attributes that do not change the optimisation, so :func:`solver_settings` leaves them out (the surface
 #: refit runs on the optimisation's result: :mod:`dipnet.solvers.surface_refit`).
 UNRECORDED = frozenset({"progress", "checkpoint", "threshold", "surface_refit"})
@@ -67,12 +73,14 @@ class Checkpoint:
         """The file of ``stage`` (a progress label such as ``"voxel 240^3"``)."""
         return self.directory / (re.sub(r"[^A-Za-z0-9_.-]+", "_", stage).strip("_") + ".pt")
 
-    def restore(self, stage: str, fingerprint: dict, params: list[torch.Tensor], optimizer, scheduler
-                ) -> tuple[int, dict[str, list[float]] | None, bool]:
-        """Load ``stage``'s state into ``params`` / ``optimizer`` / ``scheduler`` when its file
+    def restore(self, stage: str, fingerprint: dict, params: list[torch.Tensor], optimizer, scheduler,
+                lagged: Mapping[str, Any] | None = None) -> tuple[int, dict[str, list[float]] | None, bool]:
+        """Load ``stage``'s state into ``params`` / ``optimizer`` / ``scheduler`` and the priors ``lagged``
+        (``{name: prior with lag_state / restore_lag}``, those whose :meth:`lag_state` is not ``None``) when its file
         holds a valid state of the problem ``fingerprint`` describes; returns ``(steps done,
         history, whether the stage had ended)`` (``(0, None, False)``: start afresh, with a warning
         naming the file when one was there but unusable)."""
+        lagged = dict(lagged or {})
         file = self.path(stage)
         with suppress(OSError):  # what a kill mid-write left (the checkpoint itself is whole)
             _tmp(file).unlink(missing_ok=True)
@@ -81,7 +89,7 @@ class Checkpoint:
         state, problem = read_state(file)
         if problem is None:
             try:
-                problem = _check_state(state, fingerprint, params)
+                problem = _check_state(state, fingerprint, params, lagged)
             except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, the stage starts afresh
                 problem = _unreadable(file, exc)
         if problem is None:
@@ -89,19 +97,27 @@ class Checkpoint:
         if problem is not None:
             _warn(f"checkpoint {file} is not used: {problem}; starting {stage!r} afresh")
             return 0, None, False
+        if "lagged" in state:
+            for name, prior in lagged.items():
+                prior.restore_lag(state["lagged"][name])
+        elif lagged:
+            log.info("checkpoint %s predates the priors' lagged state: %s resume(s) with a fresh lag (the result "
+                     "is near, not bit-identical to, an uninterrupted solve's)", file, ", ".join(sorted(lagged)))
         log.info("resumed %r from %s at step %d", stage, file, state["step"])
         return int(state["step"]), state["history"], bool(state["done"])
 
     def save(self, stage: str, fingerprint: dict, step: int, params: list[torch.Tensor], optimizer, scheduler,
-             history: dict[str, list[float]], done: bool) -> bool:
-        """Write the state after ``step`` steps when ``step`` is a multiple of ``every`` or ``done``;
+             history: dict[str, list[float]], done: bool, lagged: Mapping[str, Any] | None = None) -> bool:
+        """Write the state after ``step`` steps when ``step`` is a multiple of ``every`` or ``done``, with the
+        :meth:`lag_state` of the priors ``lagged`` (``{name: prior}``, as :meth:`restore` takes them);
         returns whether it wrote (``False`` also when the write failed, with a warning)."""
         if not done and step % self.every:
             return False
         file = self.path(stage)
         state = {"fingerprint": fingerprint, "step": step, "done": done,
                  "params": [p.detach().clone() for p in params], "optimizer": optimizer.state_dict(),
-                 "scheduler": None if scheduler is None else scheduler.state_dict(), "history": history}
+                 "scheduler": None if scheduler is None else scheduler.state_dict(), "history": history,
+                 "lagged": {name: prior.lag_state() for name, prior in (lagged or {}).items()}}
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
             write_state(state, file)
@@ -152,10 +168,12 @@ def read_state(file: Path) -> tuple[Any, str | None]:
         return None, _unreadable(Path(file), exc)
 
 
-def _check_state(state, fingerprint: dict, params: list[torch.Tensor]) -> str | None:
-    """What makes ``state`` (a loaded checkpoint) unusable for ``params`` of the problem
-    ``fingerprint`` (which holds ``iterations`` and the loss ``terms``), or ``None`` when it fits."""
-    if not isinstance(state, dict) or set(state) != FIELDS:
+def _check_state(state, fingerprint: dict, params: list[torch.Tensor], lagged: Mapping[str, Any] | None = None
+                 ) -> str | None:
+    """What makes ``state`` (a loaded checkpoint) unusable for ``params`` and the lagged priors' names ``lagged``
+    of the problem ``fingerprint`` (which holds ``iterations`` and the loss ``terms``), or ``None`` when it fits
+    (a record without the ``lagged`` field, :data:`LEGACY_FIELDS`, fits too)."""
+    if not isinstance(state, dict) or set(state) not in (FIELDS, LEGACY_FIELDS):
         keys = sorted(map(str, state)) if isinstance(state, dict) else type(state).__name__
         return f"it is not a dipnet checkpoint (fields {keys})"
     recorded = state["fingerprint"]
@@ -181,7 +199,18 @@ def _check_state(state, fingerprint: dict, params: list[torch.Tensor]) -> str | 
         return "its loss history does not match its step count and terms"
     if not isinstance(state["optimizer"], dict):
         return "it holds no optimiser state"
+    if "lagged" in state and not _lag_fits(state["lagged"], set(lagged or {})):
+        return "its priors' lagged state (a red mode learned prior's denoiser output) does not match the solver's"
     return None
+
+
+def _lag_fits(recorded: Any, names: set[str]) -> bool:
+    """Whether ``recorded`` (a checkpoint's ``lagged`` field) holds a lagged state (``{"calls": int >= 0,
+    "denoised": tensor or None}``) for each of the priors ``names``, and for no other."""
+    return isinstance(recorded, dict) and set(recorded) == names and all(
+        isinstance(lag, dict) and set(lag) == {"calls", "denoised"} and type(lag["calls"]) is int
+        and lag["calls"] >= 0 and (lag["denoised"] is None or isinstance(lag["denoised"], torch.Tensor))
+        for lag in recorded.values())
 
 
 def solver_settings(solver: Solver) -> dict[str, Any]:

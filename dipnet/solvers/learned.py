@@ -7,7 +7,9 @@ symmetric, ``D`` detached), which pulls the occupancy toward what the denoiser m
 shapes like the generated training shapes (thin limbs and plates, flat faces, holes, cavities).
 
 ``D`` costs about as much as 10 dip-operator applications at 64^3, so it is evaluated every
-``refresh`` calls and its output reused in between (lagged RED); ``refresh=1`` is exact RED.
+``refresh`` calls and its output reused in between (lagged RED); ``refresh=1`` is exact RED. That lagged state
+(the output and the call count, :meth:`LearnedPrior.lag_state`) goes into the optimisation's checkpoints, so a
+resumed ``red`` solve is the uninterrupted one.
 
 ``mode="anchor"`` is the plug-and-play alternative: ``D`` is evaluated once, at the first call
 (the solver's starting occupancy, e.g. a voxel result given as ``warm_start``), and the prior is
@@ -35,8 +37,9 @@ import hashlib
 import itertools
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -233,6 +236,21 @@ class LearnedPrior(nn.Module):
         if self.mode == "anchor":
             self._check_grid(occupancy.ndim, occupancy.shape[-1])
             self._denoised = self.denoise(occupancy)
+
+    def lag_state(self) -> dict[str, Any] | None:
+        """In ``red`` mode, what the next calls depend on beyond the occupancy, for a checkpoint
+        (:class:`~dipnet.solvers.checkpoint.Checkpoint`): ``{"calls": calls so far, "denoised": the reused output
+        D(o), grid.shape float32, or None before the first call}``; ``None`` in ``anchor`` mode (its anchor is D of
+        the stage's start, :meth:`anchor_at`)."""
+        if self.mode != "red":
+            return None
+        return {"calls": self._calls, "denoised": None if self._denoised is None else self._denoised.detach().clone()}
+
+    def restore_lag(self, state: Mapping[str, Any]) -> None:
+        """Take back a ``red`` mode :meth:`lag_state` (a resumed checkpoint's), so the next call reuses or refreshes
+        D's output as the uninterrupted solve's would."""
+        denoised = state["denoised"]
+        self._calls, self._denoised = int(state["calls"]), None if denoised is None else denoised.detach().clone()
 
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
         """``0.5 <o, o - D(o)> / N^3`` with gradient ``(o - D(o)) / N^3`` (``red``), or

@@ -349,13 +349,16 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
                                 float(op.directions.double().sum())], "options": plain(options or {}),
                    "weights": [module.digest for _, _, module in priors if hasattr(module, "digest")]}
     first, ended = 0, False
+    # priors whose next calls depend on more than the occupancy (a red mode learned prior's lag): checkpointed too
+    lagged = {name: module for name, _, module in priors
+              if hasattr(module, "lag_state") and module.lag_state() is not None}
     if checkpoint is not None:
         with torch.no_grad():  # an anchored prior's anchor is of the stage's start, not of the restored state
             start = occupancy()
             for _, _, module in priors:
                 if hasattr(module, "anchor_at"):
                     module.anchor_at(start)
-        first, saved, ended = checkpoint.restore(desc, fingerprint, flat, opt, sched)
+        first, saved, ended = checkpoint.restore(desc, fingerprint, flat, opt, sched, lagged)
         history = saved or history
         if first and before_step is not None:
             before_step((first - 1) / max(iterations, 1))  # the hooks' state after the last saved step
@@ -380,7 +383,7 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
                                     f"(learning rate {lr:g}): the optimisation diverged; try a lower solver.lr")
             done = plateaued(history["loss"], tol, window) or i == iterations - 1
             if checkpoint is not None:
-                checkpoint.save(desc, fingerprint, i + 1, flat, opt, sched, history, done)
+                checkpoint.save(desc, fingerprint, i + 1, flat, opt, sched, history, done, lagged)
             if done:
                 if i < iterations - 1:
                     stop_bar(bar, f"plateau at step {i + 1}")

@@ -461,6 +461,73 @@ def test_a_resumed_anchored_solve_keeps_the_anchor_of_its_start(weights16, tmp_p
     torch.testing.assert_close(resumed.occupancy, uninterrupted.occupancy, atol=1e-6, rtol=0)
 
 
+def test_a_resumed_red_solve_keeps_the_lagged_denoiser_state(weights16, tmp_path, monkeypatch):
+    """``mode: red`` reuses D's output between ``refresh`` calls; a checkpoint now holds that output and the call
+    count, so a solve interrupted between refreshes (step 5, refresh 3) and resumed equals the uninterrupted one
+    bit for bit (before: D was evaluated afresh at the first resumed step)."""
+    op, m = small_problem()
+    priors = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights16), "mode": "red",
+                                                 "refresh": 3}}
+    opts = dict(iterations=10, coarse_to_fine=False, progress=False, priors=priors, tol=0)
+    uninterrupted = VoxelSolver(**opts).solve(m, op)
+    save = Checkpoint.save
+
+    def save_then_stop(self, stage, fingerprint, step, *args):
+        saved = save(self, stage, fingerprint, step, *args)
+        if step == 5:
+            raise KeyboardInterrupt
+        return saved
+
+    monkeypatch.setattr(Checkpoint, "save", save_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        VoxelSolver(checkpoint=Checkpoint(tmp_path, every=5), **opts).solve(m, op)
+    monkeypatch.setattr(Checkpoint, "save", save)
+    resumed = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=5), **opts).solve(m, op)
+    assert torch.equal(resumed.occupancy, uninterrupted.occupancy)
+    assert resumed.history["loss"] == uninterrupted.history["loss"]
+
+
+def test_a_checkpoint_without_the_lagged_state_is_resumed_as_before(weights16, tmp_path, monkeypatch, caplog):
+    """A record written before the lagged state was saved (no ``lagged`` field) is still resumed, not refused: an
+    anchored solve's exactly (its anchor is of the stage's start), a ``red`` one's with a fresh lag (logged); a record
+    whose lagged state names other priors is refused with a warning."""
+    op, m = small_problem()
+    results = {}
+    for mode in ("anchor", "red"):
+        priors = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights16), "mode": mode,
+                                                     "refresh": 3}}
+        opts = dict(iterations=10, coarse_to_fine=False, progress=False, priors=priors, tol=0)
+        directory = tmp_path / mode
+        save = Checkpoint.save
+
+        def save_then_stop(self, stage, fingerprint, step, *args):
+            saved = save(self, stage, fingerprint, step, *args)
+            if step == 5:
+                raise KeyboardInterrupt
+            return saved
+
+        monkeypatch.setattr(Checkpoint, "save", save_then_stop)
+        with pytest.raises(KeyboardInterrupt):
+            VoxelSolver(checkpoint=Checkpoint(directory, every=5), **opts).solve(m, op)
+        monkeypatch.setattr(Checkpoint, "save", save)
+        (file,) = directory.glob("*.pt")
+        record = torch.load(file, weights_only=True)
+        assert set(record["lagged"]) == ({"learned"} if mode == "red" else set())
+        torch.save({k: v for k, v in record.items() if k != "lagged"}, file)  # as an older dipnet wrote it
+        with caplog.at_level("INFO", logger="dipnet.solvers.checkpoint"), warnings.catch_warnings():
+            warnings.simplefilter("error")  # resumed, not refused
+            resumed = VoxelSolver(checkpoint=Checkpoint(directory, every=5), **opts).solve(m, op)
+        assert len(resumed.history["loss"]) == 10
+        assert ("predates the priors' lagged state" in caplog.text) == (mode == "red")
+        results[mode] = resumed.occupancy, VoxelSolver(**opts).solve(m, op).occupancy
+        if mode == "red":
+            torch.save({**record, "lagged": {"other": record["lagged"]["learned"]}}, file)
+            with pytest.warns(UserWarning, match="lagged state .* does not match"):
+                VoxelSolver(checkpoint=Checkpoint(directory, every=5), **opts).solve(m, op)
+    torch.testing.assert_close(*results["anchor"], atol=1e-6, rtol=0)
+    torch.testing.assert_close(*results["red"], atol=0.05, rtol=0)  # near: the lag restarted at step 5
+
+
 def test_a_checkpoint_made_with_other_weights_under_the_same_name_is_not_resumed(tmp_path):
     """Weights retrained into the same file (``outputs/prior/denoiser64.pt``) are other weights: a checkpoint of a
     solve with the former ones was resumed, its stages kept, as if the solve had used the new ones."""
