@@ -58,15 +58,7 @@ class RawScanWriter:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND | getattr(os, "O_BINARY", 0), 0o644)
             if existed and resume and os.fstat(self._fd).st_size > 0:
                 self.scan = read_rawscan(self.path)
-                declared = {**header.units, **self.scan.units}
-                if declared != header.units:
-                    raise RawScanFileError(f"{self.path}: cannot resume, the file records in the units "
-                                           f"{declared}, this scan writes {header.units}")
-                differences = self.scan.header.differences(header)
-                if differences:
-                    raise RawScanFileError(f"{self.path}: cannot resume, the new scan differs from the recorded "
-                                           f"one in {'; '.join(differences)} (recorded -> new): scan with the "
-                                           "recorded settings, or into another file")
+                check_resumable(self.scan, header, self.path)
                 position, prefix = _append_position(self.path)
                 os.ftruncate(self._fd, position)
                 if prefix:
@@ -142,6 +134,23 @@ class RawScanWriter:
 
 class RawScanLocked(RawScanFileError):
     """Another writer (a second scan) holds the raw scan file."""
+
+
+def check_resumable(recorded: RawScan, header: ScanHeader, path: str | Path) -> None:
+    """Raise :class:`RawScanFileError` when a scan with ``header`` may not continue ``recorded`` (read from
+    ``path``): other units, or a header field or recorded setting that differs
+    (:meth:`~dipnet.core.rawscan.ScanHeader.differences`, named in the message). Reads and writes nothing: a
+    resume (:class:`RawScanWriter`) and a replay of recorded dips (:class:`~dipnet.rig.adaptive.RigDips`) both check
+    with it."""
+    declared = {**header.units, **recorded.units}
+    if declared != header.units:
+        raise RawScanFileError(f"{path}: cannot resume, the file records in the units {declared}, this scan writes "
+                               f"{header.units}")
+    differences = recorded.header.differences(header)
+    if differences:
+        raise RawScanFileError(f"{path}: cannot resume, the new scan differs from the recorded one in "
+                               f"{'; '.join(differences)} (recorded -> new): scan with the recorded settings, or "
+                               "into another file")
 
 
 def _lock_scan(path: Path) -> HeldLock:
