@@ -17,6 +17,9 @@ library version changes the order of sums, and a greedy plan can then pick anoth
 replayed plan would place elsewhere is kept as recorded, with a warning, and planning goes on
 from the recorded data. A recorded dip outside the current reach means the config changed; it
 stops with :class:`~dipnet.core.rawscan.RawScanFileError` rather than mixing two rigs' plans in one file.
+So does a file recorded with other settings (rig geometry, dip protocol, sensor, ...: the header check of a
+resumed :class:`~dipnet.rig.runner.ScanRunner`), checked when the file is first read, before any dip is
+replayed, even when every dip of the run is recorded already and no runner runs.
 """
 
 from __future__ import annotations
@@ -51,7 +54,8 @@ class RigDips:
 
     Args:
         make_runner: ``(plan, home) -> ScanRunner`` writing to :attr:`path` (a fresh controller
-            and sensor each time: the runner closes them when it returns).
+            and sensor each time: the runner closes them when it returns); the first time the file is read, one
+            more is made for its header only (:meth:`check_header`), never run.
         plan_settings: the :class:`ScanPlan` fields except the orientations: the dip protocol (``start_mm``,
             ``stop_mm``, ``step_mm``, ...), ``origin_height_mm``, ``geometry``, the deepest lowering.
         path: the raw scan file.
@@ -65,6 +69,7 @@ class RigDips:
         self.to_measurement, self.reach = to_measurement, reach
         self.orientations: list[tuple[float, float]] = []
         self.homed = False
+        self.checked = False  # the recorded header was compared with this run's (once: the settings stay)
 
     def __call__(self, directions: torch.Tensor) -> DipMeasurement:
         tilt, spin = direction_to_rig(directions)
@@ -72,6 +77,8 @@ class RigDips:
         recorded = read_rawscan(self.path) if self.path.is_file() else None
         if recorded is not None:
             check_rig_scan(recorded, self.path)
+            if not self.checked:
+                self.check_header(recorded, self.orientations + planned)
             planned = keep_recorded(recorded, planned, len(self.orientations), self.reach, self.path)
         self.orientations += planned
         n = len(self.orientations)
@@ -84,6 +91,15 @@ class RigDips:
             log.info("dips 0-%d are in %s already: replaying the plan", n - 1, self.path)
         first = [o for o in recorded.orientations if o.complete and o.k < n]
         return self.to_measurement(replace(recorded, orientations=first))
+
+    def check_header(self, recorded: RawScan, orientations: list[tuple[float, float]]) -> None:
+        """Raise :class:`~dipnet.core.rawscan.RawScanFileError` when ``recorded`` (the file) was recorded with other
+        settings than this run's, as a resumed runner does (:meth:`ScanRunner.check_recorded`, the same message):
+        a replay that dips nothing must not read another scan's dips as this one's. The runner is made for its
+        header only (``orientations``: ``(tilt_deg, spin_deg)`` of the plan so far) and never run, so nothing
+        connects, moves or writes."""
+        self.make_runner(ScanPlan(list(orientations), **self.plan_settings), False).check_recorded(recorded)
+        self.checked = True
 
 
 def adaptive_scan(make_runner: MakeRunner, plan_settings: dict, path: str | Path, grid: Grid, solver, planner: Planner,

@@ -42,7 +42,7 @@ from tqdm.auto import tqdm
 
 from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig, distinct_rig_angles, make_directions
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
-from dipnet.core.rawscan_writer import RawScanWriter
+from dipnet.core.rawscan_writer import RawScanWriter, check_resumable
 from dipnet.core.memory import MAX_READINGS_PER_DIP
 from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
                                    SensorUnstable, rig_position_marker)
@@ -311,6 +311,13 @@ class ScanRunner:
             writer.close()
             self.controller.close()
             self.sensor_device().close()
+
+    def check_recorded(self, scan: RawScan) -> None:
+        """Raise :class:`RawScanFileError` when ``scan`` (this runner's file, read) was recorded with settings that
+        this run's header forbids resuming (:func:`~dipnet.core.rawscan_writer.check_resumable`, the check of
+        :meth:`run`'s resume), without connecting the controller or the sensor or opening the file: a replay of
+        recorded dips that dips nothing (:class:`~dipnet.rig.adaptive.RigDips`) checks with it."""
+        check_resumable(scan, self.header, self.path)
 
     def sensor_device(self):
         return self.sensor.sensor if isinstance(self.sensor, AveragingSensor) else self.sensor

@@ -233,3 +233,21 @@ def test_an_adaptive_scan_keeps_within_the_rigs_tilt_limit(tmp_path):
                                          r"\(the rig's mechanical limit\): give reach.tilt_range_deg=\[0,35\]"):
         scan_job(_scan_cfg("max_tilt_deg=35", "+reach=hemisphere", *ADAPTIVE_QUICK), tmp_path / "other.jsonl")
     assert not (tmp_path / "other.jsonl").exists()
+
+
+def test_an_adaptive_scan_replayed_whole_with_another_rig_geometry_is_refused(tmp_path):
+    """The audit's case: ``scripts/scan.py +planner=adaptive`` run again on a file that holds every dip of its plan
+    replayed it with exit 0 although the recording was made with another rig geometry (a wrong result, silently):
+    the header was compared only when a runner ran for new dips. Now the replay is refused with the resume's message
+    before any dip is read back, and replays with the recorded settings."""
+    from dipnet.core.rawscan import RawScanFileError
+    from dipnet.jobs.scan import scan_job
+
+    path = tmp_path / "rawscan.jsonl"
+    assert len(scan_job(_scan_cfg(*ADAPTIVE_QUICK), path).completed()) == 5
+    recorded = path.read_bytes()
+    with pytest.raises(RawScanFileError, match=r"cannot resume, the new scan differs from the recorded one in "
+                                               r"rig.geometry.pivot_mm \(config.rig_geometry.pivot_mm\) 0.0 -> 5.0"):
+        scan_job(_scan_cfg("rig.geometry.pivot_mm=5", *ADAPTIVE_QUICK), path)
+    assert path.read_bytes() == recorded
+    assert len(scan_job(_scan_cfg(*ADAPTIVE_QUICK), path).completed()) == 5 and path.read_bytes() == recorded

@@ -32,7 +32,7 @@ def world():
                    origin_height_mm=ORIGIN).register("adaptiverig")
 
 
-def scan(world, path, budget=8, reach=REACH, planner=None):
+def scan(world, path, budget=8, reach=REACH, planner=None, protocol=None):
     def make_runner(plan, home):
         ctl = GrblController(world.url("grbl"), timeout=0.3, move_timeout=2.0)
         sensor = AveragingSensor(LineSensor(world.url("level"), pattern=r"L=(?P<value>[-+\d.]+)\s*(?P<unit>mm)"),
@@ -41,7 +41,7 @@ def scan(world, path, budget=8, reach=REACH, planner=None):
                             resolution=0.001, rig="fake-grbl")
         return ScanRunner(ctl, sensor, plan, path, header, home=home, progress=False, fsync=False)
 
-    return adaptive_scan(make_runner, PROTOCOL, path, Grid(16, 3), MinNormSolver(progress=False),
+    return adaptive_scan(make_runner, protocol or PROTOCOL, path, Grid(16, 3), MinNormSolver(progress=False),
                          planner or NextBestDipPlanner(resolution=16, n_samples=32), reach,
                          AdaptiveSettings(budget=budget, batch_size=2, initial_dips=4))
 
@@ -86,6 +86,22 @@ def test_a_replay_that_plans_otherwise_keeps_the_recorded_dips(world, tmp_path):
     assert [o.k for o in again.orientations] == list(range(8)) and all(o.complete for o in again.orientations)
     assert np.allclose(again.directions().numpy()[:6], first.directions().numpy())  # nothing re-dipped
     assert resumed.measurement.n_orientations == 8
+
+
+def test_a_replay_of_dips_all_recorded_with_other_settings_is_refused(world, tmp_path):
+    """Before: a replay whose every dip was recorded ran no runner, so the file's header was never compared with
+    the run's settings and a scan recorded with another origin height (or geometry, protocol...) replayed silently
+    as this one's. Now it stops with the resume's message, before any dip is replayed."""
+    world.reset()
+    scan(world, tmp_path / "scan.jsonl", budget=6)
+    before = (tmp_path / "scan.jsonl").read_bytes()
+    world.reset()
+    with pytest.raises(RawScanFileError, match=r"cannot resume, the new scan differs from the recorded one in "
+                                               r"rig.origin_height_mm \(config.plan.origin_height_mm\) 50.0 -> 40.0"):
+        scan(world, tmp_path / "scan.jsonl", budget=6, protocol={**PROTOCOL, "origin_height_mm": 40.0})
+    assert (tmp_path / "scan.jsonl").read_bytes() == before and world.max_lower_seen == 0.0
+    again = scan(world, tmp_path / "scan.jsonl", budget=6)  # the recorded settings: replays
+    assert again.measurement.n_orientations == 6 and world.max_lower_seen == 0.0
 
 
 @pytest.mark.slow
