@@ -12,6 +12,8 @@ weights were trained for, and how they were made); a JSON copy of ``meta`` sits 
 
 from __future__ import annotations
 
+import hashlib
+import io
 import math
 import numbers
 import pickle
@@ -133,9 +135,23 @@ def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dic
         PriorWeightsError: the file is missing, unreadable, not a dipnet denoiser, or holds a NaN or
             infinite value.
     """
+    model, meta, _ = load_weights_with_digest(path)
+    return model, meta
+
+
+def load_weights_with_digest(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dict, str]:
+    """``(model in eval mode, meta, sha256)`` from a weights file or shipped name (see :func:`weights_path`):
+    :func:`load_weights` and the sha256 (64 hex characters) of the file's bytes, read once, so the digest is that
+    of the very bytes loaded (a file replaced between two reads cannot give the weights of one and the digest of
+    the other).
+
+    Raises:
+        PriorWeightsError: as :func:`load_weights`.
+    """
     path = existing_weights_path(path)
     try:
-        saved = torch.load(path, map_location="cpu", weights_only=True)
+        data = path.read_bytes()
+        saved = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:  # torch's message advises weights_only=False: unsafe for a foreign file
         raise PriorWeightsError(f"learned-prior weights {path} are not a dipnet denoiser weights file (format "
                                 f"{WEIGHTS_FORMAT}): torch cannot read it as saved tensors") from exc
@@ -163,7 +179,7 @@ def load_weights(path: str | Path | None = None) -> tuple[OccupancyDenoiser, dic
         raise PriorWeightsError(f"learned-prior weights {path}: tensor {bad[0]} holds NaN or infinite values"
                                 f"{f' (and {len(bad) - 1} more)' if len(bad) > 1 else ''}: damaged, or saved from a "
                                 "diverged training; retrain them (scripts/train_prior.py, a lower --lr)")
-    return model.eval(), meta
+    return model.eval(), meta, hashlib.sha256(data).hexdigest()
 
 
 def _bad_meta(meta: dict) -> str:

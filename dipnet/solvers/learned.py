@@ -33,7 +33,6 @@ wider band than the kept weights' plan give ``D`` inputs unlike its training one
 
 from __future__ import annotations
 
-import hashlib
 import itertools
 import math
 import numbers
@@ -47,7 +46,7 @@ from torch import nn
 
 from dipnet.core.orientations import Reach, fibonacci_hemisphere, unmeasured_band_deg
 from dipnet.solvers.base import checked_flag
-from dipnet.solvers.denoiser import PriorMismatchError, load_weights, weights_path
+from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, load_weights_with_digest
 
 #: Dips whose unmeasured band about the horizontal exceeds the training plan's by more than this (degrees) are
 #: warned about (:meth:`LearnedPrior.plan_warning`)
@@ -93,7 +92,7 @@ class LearnedPrior(nn.Module):
         if not names:
             raise ValueError("the learned prior's weights: an empty list; give a weights file or shipped name, "
                              "or a list of them")
-        self.candidates = [(name, *load_weights(name), _digest(name)) for name in names]
+        self.candidates = [(name, *_load(name)) for name in names]
         for _, denoiser, _, _ in self.candidates:
             for p in denoiser.parameters():
                 p.requires_grad_(False)
@@ -281,10 +280,12 @@ def object_fill(profiles: torch.Tensor, slab_thickness: float, radius: float, re
     return float(spans.max()) / (2.0 * float(radius))
 
 
-def _digest(weights: str | Path | None) -> str:
-    """The sha256 (12 hex characters) of the bytes of the weights file of ``weights`` (a path or shipped name): weights
-    retrained under the same name are other weights."""
-    return hashlib.sha256(weights_path(weights).read_bytes()).hexdigest()[:12]
+def _load(weights: str | Path | None) -> tuple[OccupancyDenoiser, dict, str]:
+    """``(denoiser, meta, digest)`` of ``weights`` (a path or shipped name), the file read once
+    (:func:`~dipnet.solvers.denoiser.load_weights_with_digest`): ``digest`` is the sha256 (12 hex characters) of the
+    bytes loaded: weights retrained under the same name are other weights."""
+    denoiser, meta, sha256 = load_weights_with_digest(weights)
+    return denoiser, meta, sha256[:12]
 
 
 def _training_plan(meta: dict) -> tuple[int, float] | None:

@@ -541,3 +541,36 @@ def test_a_checkpoint_made_with_other_weights_under_the_same_name_is_not_resumed
     with pytest.warns(UserWarning, match="made with other learned-prior weights"):
         rerun = VoxelSolver(checkpoint=Checkpoint(tmp_path / "ck", every=3), **opts).solve(m, op)
     torch.testing.assert_close(rerun.occupancy, VoxelSolver(**opts).solve(m, op).occupancy, atol=1e-6, rtol=0)
+
+
+def test_the_weights_file_is_read_once_and_the_checkpoint_records_the_sha256_of_its_bytes(tmp_path, monkeypatch):
+    """Before: each prior built read its weights file twice, once to load it and once to hash it for the checkpoint
+    fingerprint (and a file replaced between the two reads gave the weights of one and the digest of the other). Now
+    the bytes loaded are the bytes hashed: one open of the file, and the checkpoint records their sha256."""
+    import builtins
+    import hashlib
+    import io
+    import os
+    from pathlib import Path
+
+    op, m = small_problem()
+    weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
+    opened, real_open = [], io.open
+
+    def spy(file, *args, **kwargs):
+        if isinstance(file, (str, os.PathLike)) and Path(file).resolve() == weights.resolve():
+            opened.append(args[0] if args else kwargs.get("mode", "r"))
+        return real_open(file, *args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(io, "open", spy)  # pathlib's reads
+        patch.setattr(builtins, "open", spy)  # torch.load's of a path
+        prior = LearnedPrior(weights)
+    assert opened == ["rb"]
+    digest = hashlib.sha256(weights.read_bytes()).hexdigest()[:12]
+    assert prior.digest == digest
+    priors = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    VoxelSolver(checkpoint=Checkpoint(tmp_path / "ck", every=3), iterations=3, coarse_to_fine=False, progress=False,
+                priors=priors, tol=0).solve(m, op)
+    [file] = (tmp_path / "ck").glob("*.pt")
+    assert torch.load(file, weights_only=True)["fingerprint"]["weights"] == [digest]
