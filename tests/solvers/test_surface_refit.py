@@ -11,6 +11,9 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.metrics import chamfer_hausdorff, evaluate, volume_surface
 from dipnet.operators import make_operator
 from dipnet.shapes import Ball
+from dipnet.simulator.physics import LevelSensor
+from dipnet.simulator.simulate import simulate_measurement
+from dipnet.solvers.optimize import target_and_sigma
 from dipnet.solvers.surface_refit import SurfaceRefit
 from dipnet.solvers.voxel import VoxelSolver
 from tests.solvers.solver_helpers import one_thread, partial_volume  # noqa: F401  (one_thread: a fixture)
@@ -56,13 +59,48 @@ def noisy_ball(share: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, 
     return directions, edges, slabs + sigma * torch.from_numpy(np.random.default_rng(0).normal(size=slabs.shape)), sigma
 
 
+def readings_ball(snr_db: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """As :func:`noisy_ball`, the noise a level sensor gives at ``snr_db``: the ball dipped by the simulator and
+    preprocessed (slab volumes the differences of cumulative readings, the sigma their stated noise)."""
+    directions = fibonacci_hemisphere(24).double()
+    sensor = LevelSensor(snr_db=snr_db, seed=0)
+    _, measurement = simulate_measurement(Ball(RADIUS), directions, grid=GRID, sensor=sensor, seed=0, progress=False)
+    operator = make_operator(GRID, measurement.directions, GRID.n)
+    target, sigma, _ = target_and_sigma(measurement, operator)
+    return operator.directions.double(), operator.slab_edges().double(), target, sigma
+
+
 def test_a_surface_within_the_stated_noise_of_its_dips_is_kept_without_a_probe():
     directions, edges, noisy, sigma = noisy_ball(0.1)
-    recon = SurfaceRefit().refit(ball_result(RADIUS), noisy, sigma, directions, edges)
+    recon = SurfaceRefit(white_share=None).refit(ball_result(RADIUS), noisy, sigma, directions, edges)
     record = recon.info["surface_refit"]
-    assert not record["applied"] and recon.mesh is None
+    assert not record["applied"] and recon.mesh is None and record["noise_model"] == "independent"
     assert record["noise_ratio"] <= 1 + 3 * (2 / noisy.numel()) ** 0.5  # the noise's own ratio, 1 +- sqrt(2 / slabs)
     assert "stated noise" in record["reason"] and "heldout_gain" not in record
+
+
+def test_a_wrong_surface_the_independent_model_calls_noise_is_refitted_under_the_readings_model():
+    """10 dB from the readings: a ball 3 % too small (9 % of its volume) is within what independent slab errors
+    allow, but its profiles' low frequencies (the cumulative volume) are 100 times the readings' noise off, so the
+    readings model (the default) refits it, to about the noise's misfit."""
+    directions, edges, noisy, sigma = readings_ball(10.0)
+    kept = SurfaceRefit(white_share=None).refit(ball_result(0.97 * RADIUS), noisy, sigma, directions, edges)
+    assert not kept.info["surface_refit"]["applied"] and "stated noise" in kept.info["surface_refit"]["reason"]
+    record = SurfaceRefit().refit(ball_result(0.97 * RADIUS), noisy, sigma, directions, edges).info["surface_refit"]
+    assert record["applied"] and record["noise_model"] == "readings" and record["noise_ratio"] > 50
+    assert record["noise_ratio_after"] < 1.5 and "heldout_gain" not in record
+    assert abs(record["volume_ratio"] - 1) < 0.01 < abs(kept.info["surface_refit"]["volume_ratio"] - 1) / 5
+
+
+def test_with_a_stated_noise_the_refit_stops_where_the_misfit_reaches_the_noises():
+    """The discrepancy principle: 30 dB, a ball 3 % too small, its misfit 39 x the noise's (independent slabs):
+    the fit stops at the first step whose misfit is at most the noise's, long before its 150 steps."""
+    directions, edges, noisy, sigma = readings_ball(30.0)
+    record = SurfaceRefit(white_share=None).refit(ball_result(0.97 * RADIUS), noisy, sigma, directions,
+                                                  edges).info["surface_refit"]
+    assert record["applied"] and record["noise_ratio"] > 10 and 0 < record["steps_run"] < record["steps"] / 2
+    assert 0.5 < record["noise_ratio_after"] <= 1.0
+    assert f"until their misfit reached the noise's ({record['steps_run']} of 150 steps)" in record["reason"]
 
 
 def test_held_out_dips_whose_misfit_turns_up_early_keep_the_surface_even_after_a_large_fall():
