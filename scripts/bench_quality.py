@@ -60,9 +60,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
+from dipnet.experiments.configured import check_test_seeds, configured
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.core.code_version import simulation_digest
@@ -79,26 +78,10 @@ from dipnet.shapes import load_mesh
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.jobs.cli import user_errors
-from dipnet.jobs.tuning import compose_job
 from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
-from dipnet.solvers.denoiser import load_weights
 from dipnet.solvers.voxel import VoxelSolver
-
-
-def configured(name: str):
-    """A solver factory for ``conf/solver/<name>.yaml``, the recipe ``solver=<name>`` runs in a job
-    (composed once per progress setting, which ``output.progress`` passes on to a warm start too);
-    ``--options`` entries are merged into that config (e.g. ``{"priors": {"learned": {"weight": 3}}}``)."""
-    @functools.cache
-    def config(progress: bool):
-        return compose_job([f"solver={name}", "seed=0", f"output.progress={progress}"]).solver
-
-    def make(progress: bool = False, **options):
-        return instantiate(OmegaConf.merge(config(bool(progress)), options))
-    return make
-
 
 SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver,
            "prior": configured("voxel_learned"), "implicit_prior": configured("implicit_learned"), "truth": None}
@@ -177,19 +160,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     else:
         args.plan = {name: list(args.budgets) for name in args.solvers}
     return args
-
-
-def check_test_seeds(first: int, count: int) -> None:
-    """Refuse generated test seeds that the learned prior's weights were trained or validated on."""
-    config = load_weights(None)[1].get("config", {})
-    used = set()
-    for key in ("train_seeds", "val_seeds"):
-        if key in config:
-            used.update(range(*config[key]))
-    overlap = used & set(range(first, first + count))
-    if overlap:
-        raise ValueError(f"generated test seeds {first}..{first + count - 1} overlap the prior's training / "
-                         f"validation seeds ({min(overlap)}..{max(overlap)}): choose another --generated-first")
 
 
 def solver_budgets(specs: list[str]) -> dict[str, list[int]]:
