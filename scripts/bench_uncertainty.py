@@ -23,6 +23,13 @@ calibration error (10 equal-width bins). Prints a row per case and method, the m
     python scripts/bench_uncertainty.py --threads 1                      # 4 meshes, 32^3, clean and 30 dB
     python scripts/bench_uncertainty.py --quick                          # 2 meshes, 24^3, clean
     python scripts/bench_uncertainty.py --meshes bunny --n 48 --samples 8
+    python scripts/bench_uncertainty.py --solver prior --meshes none --generated 2 --generated-first 2008
+
+``--solver prior`` is ``solver=voxel_learned`` composed from ``conf/solver/`` as a job would
+(:func:`dipnet.experiments.configured.configured`, as ``scripts/bench_quality.py``); its weights are for a
+64^3 grid, which ``--n`` then defaults to (another ``--n`` is refused). ``--generated K`` adds the generated
+shapes of seeds ``--generated-first`` .. + K - 1 (refused where the prior's weights were trained or validated),
+``--mesh-files`` any mesh files (e.g. validation meshes that are not bundled); ``--meshes none``: no bundled mesh.
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dipnet.experiments.configured import check_test_seeds, configured
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
@@ -45,21 +53,41 @@ from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
 from dipnet.operators import make_operator
 from dipnet.preprocessing.datasets import MESHES_DIR, check_mesh_names
 from dipnet.shapes import load_mesh
+from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
-from dipnet.solvers import SOLVERS
+from dipnet.solvers import SOLVERS as REGISTERED
+from dipnet.solvers.denoiser import load_weights
 
 METHODS = ("linearised", "samples", "samples_hard", "own")
+#: ``--solver`` names and their factories (``factory(progress=..., seed=...)``); ``prior`` is the job's recipe.
+SOLVERS = {**{name: REGISTERED[name] for name in ("voxel", "dip", "implicit", "minnorm")},
+           "prior": configured("voxel_learned")}
+#: Grid resolution per ``--solver`` when ``--n`` is not given; ``prior``: its weights' grid (:func:`default_n`).
+DEFAULT_N = 32
+#: The ``--meshes`` name that selects no bundled mesh (with ``--generated`` / ``--mesh-files``: those alone).
+NO_MESH = "none"
+
+
+def default_n(solver: str) -> int:
+    """The ``--n`` a solver runs at by default: the learned prior's weights' grid for ``prior``, else ``DEFAULT_N``."""
+    return int(load_weights(None)[1]["n"]) if solver == "prior" else DEFAULT_N
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--meshes", nargs="+", default=["bunny", "fish", "part_B13", "hollow_cube"])
-    p.add_argument("--n", type=int, default=32, help="grid resolution N")
+    p.add_argument("--meshes", nargs="+", default=["bunny", "fish", "part_B13", "hollow_cube"],
+                   help=f"bundled meshes; {NO_MESH}: none (with --generated or --mesh-files)")
+    p.add_argument("--mesh-files", nargs="*", type=Path, default=[], help="further mesh files (any folder)")
+    p.add_argument("--generated", type=int, default=0, help="number of generated test shapes")
+    p.add_argument("--generated-first", type=int, default=2008, help="seed of the first generated test shape")
+    p.add_argument("--n", type=int, default=None,
+                   help=f"grid resolution N (default {DEFAULT_N}; --solver prior: its weights' grid, 64)")
     p.add_argument("--dips", type=int, default=41, help="Fibonacci-hemisphere dips")
     p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=["clean", "snr"])
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR (dB) for --noise snr")
-    p.add_argument("--solver", default="voxel", choices=["voxel", "dip", "implicit", "minnorm"])
+    p.add_argument("--solver", default="voxel", choices=list(SOLVERS),
+                   help="prior: solver=voxel_learned as a job composes it")
     p.add_argument("--samples", type=int, default=4, help="ensemble members")
     p.add_argument("--iterations-scale", type=float, default=1.0, help="share of the solver's iterations per member")
     p.add_argument("--threads", type=int, default=None)
@@ -69,10 +97,29 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), meshes=["bunny", "torus"], n=24, noise=["clean"])
+    if args.meshes == [NO_MESH]:
+        args.meshes = []
     try:
         check_mesh_names(args.meshes)
     except FileNotFoundError as exc:  # now, not after the meshes before it
         p.error(f"--meshes: {exc}")
+    missing = [str(path) for path in args.mesh_files if not path.is_file()]
+    if missing:
+        p.error(f"--mesh-files: no file {', '.join(missing)}")
+    if args.generated < 0:
+        p.error(f"--generated must be 0 or more, got {args.generated}")
+    if args.generated:
+        try:
+            check_test_seeds(args.generated_first, args.generated)
+        except ValueError as exc:
+            p.error(str(exc))
+    if not args.meshes and not args.mesh_files and not args.generated:
+        p.error(f"no case: --meshes {NO_MESH} without --generated or --mesh-files")
+    trained_n = default_n(args.solver) if args.solver == "prior" else None
+    if args.n is None:
+        args.n = default_n(args.solver)
+    elif trained_n is not None and args.n != trained_n:  # now, not after the first case's simulation
+        p.error(f"--solver prior: its weights are for a {trained_n}^3 grid, not --n {args.n}")
     try:  # now, not by a traceback after the first case's reference solve
         Grid(args.n, 3)
         fibonacci_hemisphere(args.dips)
@@ -90,9 +137,24 @@ def scores(probability: np.ndarray, p_wrong: np.ndarray, binary: np.ndarray, tru
             "brier": brier_score(probability, binary, truth), "ece": reliability(probability, binary, truth)[3]}
 
 
-def run_case(args, mesh: str, noise: str) -> list[dict]:
+def cases(args) -> list[tuple[str, object]]:
+    """``(label, source)`` per shape: bundled mesh names, ``--mesh-files`` paths and generated seeds, in that order."""
+    return ([(name, MESHES_DIR / f"{name}.ply") for name in args.meshes]
+            + [(path.stem, path) for path in args.mesh_files]
+            + [(f"generated{seed}", seed) for seed in range(args.generated_first,
+                                                            args.generated_first + args.generated)])
+
+
+def make_shape(source: object, radius: float):
+    """The shape of a case's ``source`` (a mesh path, or a generated shape's seed) whose farthest point is at ``radius``
+    mm."""
+    return generated_shape(source, radius=radius) if isinstance(source, int) else load_mesh(source, radius=radius)
+
+
+def run_case(args, mesh: str, noise: str, source: object) -> list[dict]:
+    """The rows of every method on the shape ``source`` (:func:`make_shape`) labelled ``mesh``, at ``noise``."""
     grid = Grid(args.n, 3)
-    shape = load_mesh(MESHES_DIR / f"{mesh}.ply", radius=0.9 * grid.radius)
+    shape = make_shape(source, 0.9 * grid.radius)
     sensor = LevelSensor(snr_db=args.snr if noise == "snr" else None, quantum_mm=0.0, seed=args.seed)
     _, measurement = simulate_measurement(shape, fibonacci_hemisphere(args.dips), grid=grid, sensor=sensor,
                                           seed=args.seed, progress=False)
@@ -132,7 +194,7 @@ def main(argv=None) -> list[dict]:
     print(f"{args.solver}, {args.dips} dips, {args.n}^3, {args.samples} members x {args.iterations_scale} iterations")
     print(f"{'mesh':<12} {'noise':>5} {'method':<13} {'Brier':>7} {'ECE':>7} {'top':>6} {'time s':>7}  "
           "error rate per p_wrong decile (lowest first)")
-    rows = [row for mesh in args.meshes for noise in args.noise for row in run_case(args, mesh, noise)]
+    rows = [row for mesh, source in cases(args) for noise in args.noise for row in run_case(args, mesh, noise, source)]
     print(f"\nmeans over {len(rows) // len(METHODS)} cases\n{'method':<13} {'Brier':>7} {'ECE':>7} {'top':>6} "
           f"{'time s':>7}  deciles")
     means = {}
