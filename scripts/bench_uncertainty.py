@@ -49,7 +49,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.evaluation.ensemble import (brier_score, check_ensemble_options, ensemble_maps, occupancy_probability,
                                         reliability, sample_ensemble)
-from dipnet.evaluation.uncertainty import calibration_by_decile, uncertainty
+from dipnet.evaluation.uncertainty import SURE_P_WRONG, calibration_by_decile, sure_error_rate, uncertainty
 from dipnet.operators import make_operator
 from dipnet.preprocessing.datasets import MESHES_DIR, check_mesh_names
 from dipnet.shapes import load_mesh
@@ -131,10 +131,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def scores(probability: np.ndarray, p_wrong: np.ndarray, binary: np.ndarray, truth: np.ndarray) -> dict:
-    """Deciles, Brier score and expected calibration error of one method on one case."""
+    """Deciles, Brier score, expected calibration error and the error rate where the method is sure
+    (``sure``: ``p_wrong`` below ``SURE_P_WRONG``, a job's ``error_rate_where_sure``; NaN when no voxel is) of one
+    method on one case."""
     deciles = calibration_by_decile(p_wrong, binary, truth)
     return {"deciles": [round(float(v), 4) for v in deciles], "top": float(deciles[-1]),
-            "brier": brier_score(probability, binary, truth), "ece": reliability(probability, binary, truth)[3]}
+            "brier": brier_score(probability, binary, truth), "ece": reliability(probability, binary, truth)[3],
+            "sure": sure_error_rate(p_wrong, binary, truth)[0]}
 
 
 def cases(args) -> list[tuple[str, object]]:
@@ -172,7 +175,7 @@ def run_case(args, mesh: str, noise: str, source: object) -> list[dict]:
                "errors": int((binary != truth).sum()), **scores(probability, p_wrong, binary, truth)}
         rows.append(row)
         print(f"{mesh:<12} {noise:>5} {method:<13} {row['brier']:7.4f} {row['ece']:7.4f} {row['top']:6.3f} "
-              f"{seconds:7.1f}  {' '.join(f'{v:.3f}' for v in row['deciles'])}", flush=True)
+              f"{row['sure']:7.4f} {seconds:7.1f}  {' '.join(f'{v:.3f}' for v in row['deciles'])}", flush=True)
 
     t0 = time.perf_counter()
     maps, _ = uncertainty(recon, measurement, operator)
@@ -192,18 +195,20 @@ def main(argv=None) -> list[dict]:
     if args.threads:
         torch.set_num_threads(args.threads)
     print(f"{args.solver}, {args.dips} dips, {args.n}^3, {args.samples} members x {args.iterations_scale} iterations")
-    print(f"{'mesh':<12} {'noise':>5} {'method':<13} {'Brier':>7} {'ECE':>7} {'top':>6} {'time s':>7}  "
+    print(f"{'mesh':<12} {'noise':>5} {'method':<13} {'Brier':>7} {'ECE':>7} {'top':>6} {'sure':>7} {'time s':>7}  "
           "error rate per p_wrong decile (lowest first)")
     rows = [row for mesh, source in cases(args) for noise in args.noise for row in run_case(args, mesh, noise, source)]
     print(f"\nmeans over {len(rows) // len(METHODS)} cases\n{'method':<13} {'Brier':>7} {'ECE':>7} {'top':>6} "
-          f"{'time s':>7}  deciles")
+          f"{'sure':>7} {'time s':>7}  deciles (sure: error rate where p_wrong < {SURE_P_WRONG:g})")
     means = {}
     for method in METHODS:
         items = [r for r in rows if r["method"] == method]
         means[method] = {k: statistics.fmean(r[k] for r in items) for k in ("brier", "ece", "top", "seconds")}
+        means[method]["sure"] = float(np.nanmean([r["sure"] for r in items])) \
+            if any(r["sure"] == r["sure"] for r in items) else float("nan")  # NaN: no sure voxel in any case
         deciles = np.mean([r["deciles"] for r in items], axis=0)
         print(f"{method:<13} {means[method]['brier']:7.4f} {means[method]['ece']:7.4f} {means[method]['top']:6.3f} "
-              f"{means[method]['seconds']:7.1f}  {' '.join(f'{v:.3f}' for v in deciles)}")
+              f"{means[method]['sure']:7.4f} {means[method]['seconds']:7.1f}  {' '.join(f'{v:.3f}' for v in deciles)}")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     print("RESULT " + " ".join(f"{key}_{method}={means[method][key]:.4f}" for key in ("brier", "ece", "top")
