@@ -44,3 +44,34 @@ def test_bad_ensemble_options_are_refused_before_any_case(capsys, argv, message)
         load_script("bench_uncertainty").parse_args(["--meshes", "torus", *argv])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and message in err and err.count("error:") == 1, err
+
+
+def test_the_learned_prior_runs_as_a_job_composes_it_on_its_grid():
+    """``--solver prior`` is ``conf/solver/voxel_learned.yaml`` (the factory bench_quality.py uses), seeded as the
+    bench asks, nested start included; ``--n`` defaults to the weights' 64 and the cases are the generated shapes and
+    mesh files asked for (no bundled mesh with ``--meshes none``). No solve."""
+    from dipnet.solvers.voxel import VoxelSolver
+
+    bench = load_script("bench_uncertainty")
+    args = bench.parse_args(["--solver", "prior", "--meshes", "none", "--generated", "2", "--generated-first", "2008"])
+    assert args.n == 64 and bench.cases(args) == [("generated2008", 2008), ("generated2009", 2009)]
+    assert bench.SOLVERS["prior"].config_name == "voxel_learned"
+    prior = bench.SOLVERS[args.solver](progress=False, seed=5)
+    assert isinstance(prior, VoxelSolver) and isinstance(prior.warm_start, VoxelSolver)
+    assert prior.priors["learned"]["mode"] == "anchor"
+    assert prior.later_priors["learned"]["weights"] == "denoiser64_stage2"
+    assert prior.seed == 5 and prior.warm_start.seed == 5
+    assert bench.parse_args([]).n == 32 and bench.parse_args(["--quick"]).n == 24  # the defaults keep their grids
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--solver", "prior", "--n", "32"], "--solver prior: its weights are for a 64^3 grid, not --n 32"),
+    (["--meshes", "none"], "no case: --meshes none without --generated or --mesh-files"),
+    (["--generated", "20", "--generated-first", "990"], "overlap the prior's training / validation seeds"),
+    (["--mesh-files", "/nonexistent/cow.obj"], "--mesh-files: no file /nonexistent/cow.obj"),
+])
+def test_cases_the_learned_prior_cannot_run_are_refused_before_any_case(capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_:
+        load_script("bench_uncertainty").parse_args(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and message in err, err
