@@ -61,7 +61,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dipnet.experiments.configured import check_test_seeds, configured
+from dipnet.jobs.configured import check_test_seeds, configured
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.core.code_version import simulation_digest

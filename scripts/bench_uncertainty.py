@@ -26,7 +26,7 @@ calibration error (10 equal-width bins). Prints a row per case and method, the m
     python scripts/bench_uncertainty.py --solver prior --meshes none --generated 2 --generated-first 2008
 
 ``--solver prior`` is ``solver=voxel_learned`` composed from ``conf/solver/`` as a job would
-(:func:`dipnet.experiments.configured.configured`, as ``scripts/bench_quality.py``); its weights are for a
+(:func:`dipnet.jobs.configured.configured`, as ``scripts/bench_quality.py``); its weights are for a
 64^3 grid, which ``--n`` then defaults to (another ``--n`` is refused). ``--generated K`` adds the generated
 shapes of seeds ``--generated-first`` .. + K - 1 (refused where the prior's weights were trained or validated),
 ``--mesh-files`` any mesh files (e.g. validation meshes that are not bundled); ``--meshes none``: no bundled mesh.
@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dipnet.experiments.configured import check_test_seeds, configured
+from dipnet.jobs.configured import check_test_seeds, configured
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere

@@ -94,13 +94,6 @@ def test_the_prior_headline_ratios_and_result_line(capsys):
         "beats_voxel_generated=0.500")
 
 
-def test_generated_test_seeds_must_not_overlap_the_training_seeds():
-    bench = load_script("bench_quality")
-    bench.check_test_seeds(0, 50)
-    with pytest.raises(ValueError, match="overlap"):
-        bench.check_test_seeds(990, 20)
-
-
 def test_the_quality_bench_runs_each_solver_at_its_own_budgets():
     bench = load_script("bench_quality")
     assert bench.parse_args(["--dips", "voxel=41", "minnorm=123,410"]).plan == {"voxel": [41], "minnorm": [123, 410]}
