@@ -437,14 +437,9 @@ def test_2d_weights_on_a_3d_grid_say_2d_vs_3d(tmp_path):
         prior(torch.rand(16, 16, 16))
 
 
-def test_a_resumed_anchored_solve_keeps_the_anchor_of_its_start(weights16, tmp_path, monkeypatch):
-    """An interrupted solve (``output.checkpoint``) resumed mid-stage gives the uninterrupted result: the anchor is
-    D of the stage's start, not D of the occupancy the checkpoint restored (which moved voxels by up to 0.1 on a
-    20-step solve from a voxel start)."""
-    op, m = small_problem()
-    priors = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}}
-    opts = dict(iterations=10, coarse_to_fine=False, progress=False, priors=priors, tol=0)
-    uninterrupted = VoxelSolver(**opts).solve(m, op)
+def interrupt_at_step_5(opts: dict, m, op, directory, monkeypatch) -> None:
+    """Solve ``VoxelSolver(**opts)`` with a checkpoint every 5 steps in ``directory``, stopped (as by Ctrl-C) once
+    step 5 is saved."""
     save = Checkpoint.save
 
     def save_then_stop(self, stage, fingerprint, step, *args):
@@ -455,8 +450,19 @@ def test_a_resumed_anchored_solve_keeps_the_anchor_of_its_start(weights16, tmp_p
 
     monkeypatch.setattr(Checkpoint, "save", save_then_stop)
     with pytest.raises(KeyboardInterrupt):
-        VoxelSolver(checkpoint=Checkpoint(tmp_path, every=5), **opts).solve(m, op)
+        VoxelSolver(checkpoint=Checkpoint(directory, every=5), **opts).solve(m, op)
     monkeypatch.setattr(Checkpoint, "save", save)
+
+
+def test_a_resumed_anchored_solve_keeps_the_anchor_of_its_start(weights16, tmp_path, monkeypatch):
+    """An interrupted solve (``output.checkpoint``) resumed mid-stage gives the uninterrupted result: the anchor is
+    D of the stage's start, not D of the occupancy the checkpoint restored (which moved voxels by up to 0.1 on a
+    20-step solve from a voxel start)."""
+    op, m = small_problem()
+    priors = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights16), "mode": "anchor"}}
+    opts = dict(iterations=10, coarse_to_fine=False, progress=False, priors=priors, tol=0)
+    uninterrupted = VoxelSolver(**opts).solve(m, op)
+    interrupt_at_step_5(opts, m, op, tmp_path, monkeypatch)
     resumed = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=5), **opts).solve(m, op)
     torch.testing.assert_close(resumed.occupancy, uninterrupted.occupancy, atol=1e-6, rtol=0)
 
@@ -470,18 +476,7 @@ def test_a_resumed_red_solve_keeps_the_lagged_denoiser_state(weights16, tmp_path
                                                  "refresh": 3}}
     opts = dict(iterations=10, coarse_to_fine=False, progress=False, priors=priors, tol=0)
     uninterrupted = VoxelSolver(**opts).solve(m, op)
-    save = Checkpoint.save
-
-    def save_then_stop(self, stage, fingerprint, step, *args):
-        saved = save(self, stage, fingerprint, step, *args)
-        if step == 5:
-            raise KeyboardInterrupt
-        return saved
-
-    monkeypatch.setattr(Checkpoint, "save", save_then_stop)
-    with pytest.raises(KeyboardInterrupt):
-        VoxelSolver(checkpoint=Checkpoint(tmp_path, every=5), **opts).solve(m, op)
-    monkeypatch.setattr(Checkpoint, "save", save)
+    interrupt_at_step_5(opts, m, op, tmp_path, monkeypatch)
     resumed = VoxelSolver(checkpoint=Checkpoint(tmp_path, every=5), **opts).solve(m, op)
     assert torch.equal(resumed.occupancy, uninterrupted.occupancy)
     assert resumed.history["loss"] == uninterrupted.history["loss"]
@@ -498,18 +493,7 @@ def test_a_checkpoint_without_the_lagged_state_is_resumed_as_before(weights16, t
                                                      "refresh": 3}}
         opts = dict(iterations=10, coarse_to_fine=False, progress=False, priors=priors, tol=0)
         directory = tmp_path / mode
-        save = Checkpoint.save
-
-        def save_then_stop(self, stage, fingerprint, step, *args):
-            saved = save(self, stage, fingerprint, step, *args)
-            if step == 5:
-                raise KeyboardInterrupt
-            return saved
-
-        monkeypatch.setattr(Checkpoint, "save", save_then_stop)
-        with pytest.raises(KeyboardInterrupt):
-            VoxelSolver(checkpoint=Checkpoint(directory, every=5), **opts).solve(m, op)
-        monkeypatch.setattr(Checkpoint, "save", save)
+        interrupt_at_step_5(opts, m, op, directory, monkeypatch)
         (file,) = directory.glob("*.pt")
         record = torch.load(file, weights_only=True)
         assert set(record["lagged"]) == ({"learned"} if mode == "red" else set())
