@@ -1,4 +1,4 @@
-"""A voxel result's surface refitted to the dips, vertex by vertex, when held-out dips say it generalises.
+"""A voxel result's surface refitted to the dips, vertex by vertex, when the data license it.
 
 A 64^3 voxel model explains exact dips only to 0.5-1 % (its own error: uniform-density voxels, a soft
 level surface), while the dips of a closed mesh are exact (:mod:`dipnet.operators.mesh_slabs`). So the
@@ -116,7 +116,7 @@ class SurfaceRefit:
 
     def refit(self, recon: Reconstruction, target: torch.Tensor, sigma: torch.Tensor | None,
               directions: torch.Tensor, edges: torch.Tensor, progress: bool = False) -> Reconstruction:
-        """``recon`` with :attr:`~Reconstruction.mesh` refitted to ``target`` when the held-out dips license it, and
+        """``recon`` with :attr:`~Reconstruction.mesh` refitted to ``target`` when the data license it, and
         ``info["surface_refit"]`` recording the decision, the misfits and the mesh's volume either way.
 
         Args:
@@ -275,8 +275,8 @@ class _Fit:
         if sigma is not None and white_share is not None:
             try:
                 noise = correlated_precision(self.target, sigma, white_share)
-            except ValueError as error:  # too large a problem for the (K, M, M) precision
-                self.noise_model = f"independent ({error})"
+            except ValueError:  # too large a problem for the (K, M, M) precision
+                self.noise_model = f"independent, the readings model's {tuple(self.target.shape)} slabs being too many"
             else:
                 self.precision, self.noise_model = noise.precision, "readings"
                 self.noise_mean, self.noise_sd = noise.expected, noise.variance ** 0.5

@@ -13,6 +13,7 @@ from dipnet.operators import make_operator
 from dipnet.shapes import Ball
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.solvers import noise_covariance
 from dipnet.solvers.optimize import target_and_sigma
 from dipnet.solvers.surface_refit import SurfaceRefit
 from dipnet.solvers.voxel import VoxelSolver
@@ -206,3 +207,11 @@ def test_the_voxel_solver_refits_its_surface_when_asked_and_says_why_not_with_a_
     gained = VoxelSolver(surface_refit={}, fit_gain=True, **options).solve(meas, op)
     assert gained.mesh is None and "fit_gain" in gained.info["surface_refit"]["reason"]
     assert "surface_refit" not in VoxelSolver(**options).solve(meas, op).info
+
+
+def test_slabs_too_many_for_the_readings_model_are_weighed_as_independent_and_say_so(monkeypatch):
+    monkeypatch.setattr(noise_covariance, "PRECISION_ENTRIES", 100)
+    directions, edges, noisy, sigma = readings_ball(30.0)
+    record = SurfaceRefit().refit(ball_result(0.97 * RADIUS), noisy, sigma, directions, edges).info["surface_refit"]
+    assert record["noise_model"].startswith("independent, the readings model's (24, 24) slabs being too many")
+    assert record["applied"] and record["noise_ratio_after"] <= 1.0  # the independent model's discrepancy stop
