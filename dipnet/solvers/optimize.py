@@ -701,7 +701,8 @@ class OptimisationSolver(Solver):
             return recon
         target, sigma, _ = target_and_sigma(measurement, operator)
         return self.surface_refit.refit(recon, target, sigma, operator.directions, operator.slab_edges(),
-                                        progress=self.progress)
+                                        progress=self.progress,
+                                        differenced=not measurement.metadata.get("smoothed", False))
 
     def level(self, occupancy: torch.Tensor, grid: Grid, data: DataTerm | None) -> float:
         """The level of the binary shape of ``occupancy`` (``grid.shape``): :attr:`threshold`, or with

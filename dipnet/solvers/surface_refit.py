@@ -115,7 +115,8 @@ class SurfaceRefit:
         return cls(**options)
 
     def refit(self, recon: Reconstruction, target: torch.Tensor, sigma: torch.Tensor | None,
-              directions: torch.Tensor, edges: torch.Tensor, progress: bool = False) -> Reconstruction:
+              directions: torch.Tensor, edges: torch.Tensor, progress: bool = False,
+              differenced: bool = True) -> Reconstruction:
         """``recon`` with :attr:`~Reconstruction.mesh` refitted to ``target`` when the data license it, and
         ``info["surface_refit"]`` recording the decision, the misfits and the mesh's volume either way.
 
@@ -124,6 +125,9 @@ class SurfaceRefit:
             target: measured slab volumes ``(K, M)``, mm^3, on the slabs ``edges``.
             sigma: their noise sigma ``(K, M)`` mm^3, or ``None``.
             directions: ``(K, 3)`` unit "up" vectors; edges: ``(M + 1,)`` slab boundaries, mm.
+            differenced: whether the slabs are the differences of cumulative readings as read; profiles smoothed
+                in preprocessing (``metadata["smoothed"]``) are not: their errors are weighed as independent, and
+                held-out dips decide as without a stated noise (their sigma gives the fit no level to stop at).
         """
         started = time.perf_counter()
         record: dict = {"applied": False, **asdict(self)}
@@ -135,11 +139,14 @@ class SurfaceRefit:
             return recon
         mesh = volume_to_mesh(recon.occupancy.detach().cpu().numpy(), recon.grid, recon.threshold)
         held = torch.arange(len(directions)) % self.holdout_every == 0
-        if len(mesh.faces) == 0 or (sigma is None and int(held.sum()) < 2):  # a stated noise needs no held-out dips
+        if len(mesh.faces) == 0 or ((sigma is None or not differenced) and int(held.sum()) < 2):  # (the probe's)
             record["reason"] = ("the result has no surface" if len(mesh.faces) == 0 else
                                 f"{len(directions)} dips hold out fewer than 2 at every {self.holdout_every}-th")
             return recon
-        fit = _Fit(mesh, target, sigma, directions, edges, self.smoothness, self.white_share)
+        fit = _Fit(mesh, target, sigma, directions, edges, self.smoothness, self.white_share if differenced else None)
+        if sigma is not None and self.white_share is not None and not differenced:
+            fit.noise_model = ("independent, the profiles being smoothed (their errors are not the readings' "
+                               "differences)")
         measured_volume = float(target.sum(1).median())
         start_slabs = fit.slabs(fit.start)
         record["residual_before"] = fit.residual(start_slabs)
@@ -153,9 +160,10 @@ class SurfaceRefit:
                                     "fitted closer would fit the noise, so its surface is kept")
                 return self._finish(recon, mesh, record, started, measured_volume)
         every = torch.ones_like(held)
-        with tqdm(total=self.steps + (self.probe_steps if sigma is None else 0), desc="surface refit",
+        probe = sigma is None or not differenced  # a smoothed profile's sigma gives no level to stop at: held-out dips
+        with tqdm(total=self.steps + (self.probe_steps if probe else 0), desc="surface refit",
                   disable=not progress, leave=False) as bar:
-            if sigma is None:
+            if probe:
                 why_kept = self._probe(fit, held, record, bar)
                 if why_kept:
                     record["reason"] = why_kept

@@ -215,3 +215,16 @@ def test_slabs_too_many_for_the_readings_model_are_weighed_as_independent_and_sa
     record = SurfaceRefit().refit(ball_result(0.97 * RADIUS), noisy, sigma, directions, edges).info["surface_refit"]
     assert record["noise_model"].startswith("independent, the readings model's (24, 24) slabs being too many")
     assert record["applied"] and record["noise_ratio_after"] <= 1.0  # the independent model's discrepancy stop
+
+
+def test_smoothed_profiles_are_weighed_as_independent_slabs_and_held_out_dips_decide():
+    """Smoothed in preprocessing, a profile's errors are no longer the readings' differences: the readings model
+    would call a surface thousands of times the noise off (3004 on the authors' smoothed cats, refitted for all its
+    steps). So the slabs count as independent, and held-out dips decide, as without a stated noise."""
+    directions, edges, noisy, sigma = readings_ball(30.0)
+    record = SurfaceRefit().refit(ball_result(0.97 * RADIUS), noisy, sigma, directions, edges,
+                                  differenced=False).info["surface_refit"]
+    assert record["noise_model"].startswith("independent, the profiles being smoothed")
+    assert record["noise_ratio"] == pytest.approx(SurfaceRefit(white_share=None).refit(
+        ball_result(0.97 * RADIUS), noisy, sigma, directions, edges).info["surface_refit"]["noise_ratio"])
+    assert "heldout_gain" in record and "steps_run" not in record
