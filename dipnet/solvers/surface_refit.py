@@ -16,7 +16,9 @@ cumulative readings, so a profile's low frequencies, its running total, count at
 simulated 30 dB scans the voxel results' surfaces agree with the dips within independent slab errors (0.4-0.5 x
 the noise's, as the truth's own surface) while their running totals are 1.1-7.4 x the readings' noise off (the
 truth's: 1.05-1.08); refitted under that model five validation meshes gained 1.3-4 % and the held-out generated shapes
-0.1-0.7 %. Without a stated noise, with dips held out (every ``holdout_every``-th), a probe fits the other dips for
+0.1-0.7 %. Profiles smoothed in preprocessing are no readings' differences, and their sigma gives no level to
+stop at: they are weighed as independent slabs and decided as without a stated noise. Without a stated noise,
+with dips held out (every ``holdout_every``-th), a probe fits the other dips for
 ``probe_steps`` steps, and the refit runs (for ``steps``) only when the held-out dips' misfit fell by ``min_gain``
 (10 %) of its start and was still falling at the probe's end (its lowest point at or after ``still_falling``
 (3/4) of the probe). On the validation meshes, noise-free, it fell by 45-77 % with its lowest point at steps 48-49
