@@ -115,11 +115,11 @@ def parse_args(argv=None) -> argparse.Namespace:
             p.error(str(exc))
     if not args.meshes and not args.mesh_files and not args.generated:
         p.error(f"no case: --meshes {NO_MESH} without --generated or --mesh-files")
-    trained_n = default_n(args.solver) if args.solver == "prior" else None
+    n = default_n(args.solver)
     if args.n is None:
-        args.n = default_n(args.solver)
-    elif trained_n is not None and args.n != trained_n:  # now, not after the first case's simulation
-        p.error(f"--solver prior: its weights are for a {trained_n}^3 grid, not --n {args.n}")
+        args.n = n
+    elif args.solver == "prior" and args.n != n:  # now, not after the first case's simulation
+        p.error(f"--solver prior: its weights are for a {n}^3 grid, not --n {args.n}")
     try:  # now, not by a traceback after the first case's reference solve
         Grid(args.n, 3)
         fibonacci_hemisphere(args.dips)

@@ -145,10 +145,7 @@ class SurfaceRefit:
             record["reason"] = ("the result has no surface" if len(mesh.faces) == 0 else
                                 f"{len(directions)} dips hold out fewer than 2 at every {self.holdout_every}-th")
             return recon
-        fit = _Fit(mesh, target, sigma, directions, edges, self.smoothness, self.white_share if differenced else None)
-        if sigma is not None and self.white_share is not None and not differenced:
-            fit.noise_model = ("independent, the profiles being smoothed (their errors are not the readings' "
-                               "differences)")
+        fit = _Fit(mesh, target, sigma, directions, edges, self.smoothness, self.white_share, differenced)
         measured_volume = float(target.sum(1).median())
         start_slabs = fit.slabs(fit.start)
         record["residual_before"] = fit.residual(start_slabs)
@@ -226,16 +223,17 @@ class SurfaceRefit:
                 log.warning("surface refit: %s", record["reason"])
                 return self._finish(recon, mesh, record, started, measured_volume)
         after = fit.slabs(vertices)
+        residual = fit.residual(after)
         unfolded = (f"; the {folded} faces its last step folded over were unfolded by moving their corners "
                     f"to their neighbours' mean ({passes} passes)") if folded else ""
-        if fit.residual(after) < record["residual_before"]:
+        if residual < record["residual_before"]:
             recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
-            record.update(applied=True, residual_after=fit.residual(after), reason=f"{why}{unfolded}")
+            record.update(applied=True, residual_after=residual, reason=f"{why}{unfolded}")
             if "noise_ratio" in record:
                 record["noise_ratio_after"] = fit.noise_ratio(after)
         else:  # a fit that ends no closer to the dips than it began has gone wrong: keep the surface
             record["reason"] = (f"the refit ended no closer to the dips than it began (relative residual "
-                                f"{record['residual_before']:.3g} -> {fit.residual(after):.3g}){unfolded}, so the "
+                                f"{record['residual_before']:.3g} -> {residual:.3g}){unfolded}, so the "
                                 "surface is kept")
             log.warning("surface refit: %s", record["reason"])
         return self._finish(recon, mesh, record, started, measured_volume)
@@ -269,7 +267,7 @@ class _Fit:
 
     def __init__(self, mesh: trimesh.Trimesh, target: torch.Tensor, sigma: torch.Tensor | None,
                  directions: torch.Tensor, edges: torch.Tensor, smoothness: float,
-                 white_share: float | None = None) -> None:
+                 white_share: float | None = None, differenced: bool = True) -> None:
         self.start = torch.tensor(mesh.vertices, dtype=torch.float64)
         self.faces = torch.tensor(mesh.faces, dtype=torch.long)
         self.start_normals = self.normals(self.start)
@@ -282,7 +280,10 @@ class _Fit:
         self.precision: torch.Tensor | None = None
         self.noise_mean, self.noise_sd = float(self.target.numel()), (2.0 * self.target.numel()) ** 0.5
         self.noise_model = "independent"
-        if sigma is not None and white_share is not None:
+        if sigma is not None and white_share is not None and not differenced:
+            self.noise_model = ("independent, the profiles being smoothed (their errors are not the readings' "
+                                "differences)")
+        elif sigma is not None and white_share is not None:
             try:
                 noise = correlated_precision(self.target, sigma, white_share)
             except ValueError:  # too large a problem for the (K, M, M) precision
