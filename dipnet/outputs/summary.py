@@ -41,6 +41,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "prior_weight_residual_reached": ("run", "weight rule: residual of the result"),
     "prior_weight_noise_source": ("run", "weight rule: noise from the measurement's sigma (stated), the readings' own "
                                   "scatter, or estimated from the profiles"),
+    "noise_model": ("run", "how the data term weighed the slabs' errors: independent, or correlated (differences of "
+                    "cumulative readings; smoothed profiles count as independent)"),
     "prior_rounds": ("run", "plug-and-play rounds run, of the most allowed"),
     "prior_rounds_reason": ("run", "why the rounds ended there"),
     "surface_refit": ("run",
@@ -225,7 +227,7 @@ def headline(metrics: dict[str, Any]) -> str:
 def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     """The prior weights a solver used and why, from its ``Reconstruction.info``
     (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`; ``rounds``, see
-    :class:`~dipnet.solvers.voxel.VoxelSolver`; ``threshold_rule`` and ``learned_weights``, see
+    :class:`~dipnet.solvers.voxel.VoxelSolver`; ``threshold_rule``, ``learned_weights`` and ``noise_model``, see
     :class:`~dipnet.solvers.optimize.OptimisationSolver`), as flat ``metrics.json`` entries; ``{}`` for
     solvers without priors."""
     out: dict[str, Any] = {}
@@ -244,6 +246,8 @@ def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
         out["prior_rounds_reason"] = rounds["reason"]
     if "threshold_rule" in info:
         out["threshold_rule"] = info["threshold_rule"]["rule"]
+    if "noise_model" in info:
+        out["noise_model"] = info["noise_model"]
     choices = info.get("learned_weights") or []
     if choices:
         out["learned_weights"] = [choice["weights"] for choice in choices]

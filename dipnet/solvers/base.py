@@ -127,6 +127,18 @@ def noise_sigma(measurement: DipMeasurement, operator: DipOperator) -> tuple[tor
     return None, "estimated"
 
 
+SMOOTHED_NOISE_MODEL = "independent, the profiles being smoothed (their errors are not the readings' differences)"
+"""The noise model a data term records for profiles smoothed in preprocessing, whatever model it was asked for."""
+
+
+def readings_differenced(measurement: DipMeasurement) -> bool:
+    """Whether the profiles' slabs are the differences of cumulative readings as read: ``False`` when they were
+    smoothed in preprocessing (``metadata["smoothed"]``), so that their errors are not the readings' differences
+    and a noise model of differenced readings (the solvers' ``noise_model="correlated"``, the surface refit's
+    ``white_share``) does not hold for them."""
+    return not measurement.metadata.get("smoothed", False)
+
+
 def on_operator_slabs(measurement: DipMeasurement, operator: DipOperator) -> DipMeasurement:
     """``measurement`` with its profiles on the operator's slabs (:func:`measured_profiles`): itself when
     they are there already, else a copy resampled once, its per-slab ``sigma`` with it (:func:`measured_sigma`).

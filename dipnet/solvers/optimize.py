@@ -39,7 +39,8 @@ from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import SIGMA_FLOOR, Solver, checked_flag, checked_threshold, measured_profiles, noise_sigma
+from dipnet.solvers.base import (SIGMA_FLOOR, SMOOTHED_NOISE_MODEL, Solver, checked_flag, checked_threshold,
+                                 measured_profiles, noise_sigma, readings_differenced)
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.noise_covariance import correlated_precision
 from dipnet.solvers.progress import stop_bar
@@ -108,11 +109,19 @@ class DataTerm(nn.Module):
             count as independent).
         white_share: the white part's variance in units of ``sigma^2 / 2`` (``"correlated"``).
         rel_tol: a slab is filled when its volume exceeds this share of its profile's largest.
+        differenced: whether the slabs are the differences of cumulative readings as read; profiles smoothed in
+            preprocessing are not (:func:`~dipnet.solvers.base.readings_differenced`), and ``"correlated"`` then
+            counts them as independent.
+
+    :attr:`noise_model` is the model the term uses: ``"correlated"`` (with a ``(K, M, M)`` :attr:`precision`),
+    ``"independent"``, or :data:`~dipnet.solvers.base.SMOOTHED_NOISE_MODEL` when ``"correlated"`` was asked for
+    smoothed profiles.
     """
 
     def __init__(self, operator: DipOperator, target: torch.Tensor, sigma: torch.Tensor | None = None,
                  dtype: torch.dtype = torch.float32, fit_gain: bool = False, log_gain: float = 0.0,
-                 noise_model: str = "independent", white_share: float = 1.0, rel_tol: float = 0.005) -> None:
+                 noise_model: str = "independent", white_share: float = 1.0, rel_tol: float = 0.005,
+                 differenced: bool = True) -> None:
         super().__init__()
         if noise_model not in NOISE_MODELS:
             raise ValueError(f"unknown noise_model {noise_model!r}; choose one of {NOISE_MODELS}")
@@ -131,9 +140,13 @@ class DataTerm(nn.Module):
         self.register_buffer("weight", (weight / norm).to(dtype))
         self.register_buffer("precision", None)  # (K, M, M) with noise_model="correlated" and sigma
         self.expected_noise: float | None = None
-        if noise_model == "correlated" and sigma is not None:
+        self.noise_model = "independent"
+        if noise_model == "correlated" and sigma is not None and not differenced:
+            self.noise_model = SMOOTHED_NOISE_MODEL
+        elif noise_model == "correlated" and sigma is not None:
             noise = correlated_precision(target, sigma, white_share, rel_tol)
             self.precision, self.expected_noise = (noise.precision / norm).to(dtype), noise.expected / norm
+            self.noise_model = "correlated"
 
     @property
     def gain(self) -> float:
@@ -566,7 +579,8 @@ class OptimisationSolver(Solver):
         support = self.support(target, operator, operator.grid)
         rel_tol = self.hull_tol if self.hull_tol is not None else 0.005
         data = DataTerm(operator, target, sigma, fit_gain=self.fit_gain if fit_gain is None else fit_gain,
-                        noise_model=self.noise_model, white_share=self.white_share, rel_tol=rel_tol)
+                        noise_model=self.noise_model, white_share=self.white_share, rel_tol=rel_tol,
+                        differenced=readings_differenced(measurement))
         noise = (noise_level(target, sigma, data.weight, rel_tol)[0], source)
         if data.expected_noise is not None:  # the correlated model's own expectation of the noise's term
             noise = (data.expected_noise, source)
@@ -667,10 +681,13 @@ class OptimisationSolver(Solver):
         (the symmetries declared, as :meth:`~dipnet.solvers.priors.SymmetryPrior.spec` gives them: those of
         symmetry priors with a weight, after any in ``info``), and ``info["weight_rule"]``, the record of
         :meth:`choose_weights`; ``info["learned_weights"]``: the learned prior's choices among candidate weights
-        (:meth:`check_priors`, and those of a warm start's solve)."""
+        (:meth:`check_priors`, and those of a warm start's solve); with ``data``, ``info["noise_model"]``: the model
+        its slabs' errors were weighed by (:attr:`DataTerm.noise_model`)."""
         steps = len(history.get("loss", []))
         if data is not None and data.log_gain is not None:
             info["gain"] = data.gain
+        if data is not None:
+            info["noise_model"] = data.noise_model
         if priors is not None:
             info["prior_weights"] = {name: weight for name, weight, _ in priors}
             info["symmetries"] = info.get("symmetries", []) + [
@@ -702,7 +719,7 @@ class OptimisationSolver(Solver):
         target, sigma, _ = target_and_sigma(measurement, operator)
         return self.surface_refit.refit(recon, target, sigma, operator.directions, operator.slab_edges(),
                                         progress=self.progress,
-                                        differenced=not measurement.metadata.get("smoothed", False))
+                                        differenced=readings_differenced(measurement))
 
     def level(self, occupancy: torch.Tensor, grid: Grid, data: DataTerm | None) -> float:
         """The level of the binary shape of ``occupancy`` (``grid.shape``): :attr:`threshold`, or with

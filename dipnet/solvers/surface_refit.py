@@ -50,7 +50,7 @@ from dipnet.core.counts import whole_number
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators.mesh_slabs import mesh_slab_volumes
 from dipnet.shapes.isosurface import volume_to_mesh
-from dipnet.solvers.base import SIGMA_FLOOR
+from dipnet.solvers.base import SIGMA_FLOOR, SMOOTHED_NOISE_MODEL
 from dipnet.solvers.noise_covariance import correlated_precision
 from dipnet.solvers.progress import stop_bar
 
@@ -281,8 +281,7 @@ class _Fit:
         self.noise_mean, self.noise_sd = float(self.target.numel()), (2.0 * self.target.numel()) ** 0.5
         self.noise_model = "independent"
         if sigma is not None and white_share is not None and not differenced:
-            self.noise_model = ("independent, the profiles being smoothed (their errors are not the readings' "
-                                "differences)")
+            self.noise_model = SMOOTHED_NOISE_MODEL
         elif sigma is not None and white_share is not None:
             try:
                 noise = correlated_precision(self.target, sigma, white_share)

@@ -14,8 +14,10 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators import make_operator
 from dipnet.shapes import Disk
+from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers import noise_covariance, optimize
+from dipnet.solvers.base import SMOOTHED_NOISE_MODEL
 from dipnet.solvers.noise_covariance import filled_span
 from dipnet.solvers.optimize import DataTerm, slab_support, support_hull
 from dipnet.solvers.voxel import VoxelSolver
@@ -193,6 +195,33 @@ def test_correlated_model_needs_sigma_and_a_bounded_problem(monkeypatch):
     monkeypatch.setattr(noise_covariance, "PRECISION_ENTRIES", 100)
     with pytest.raises(ValueError, match=r"\(5, 24, 24\) precision.*noise_model='independent'"):
         DataTerm(op, target, sigma, noise_model="correlated")
+
+
+def test_smoothed_profiles_are_weighed_as_independent_slabs_and_the_result_says_so():
+    """Profiles smoothed in preprocessing are not the differences of the readings, so ``noise_model="correlated"``
+    (which ``solver=voxel_learned`` sets) weighs them as independent slabs, as the surface refit does: the same
+    solve as ``"independent"``, its ``info["noise_model"]`` saying why. Before, their smoothed sigma was taken for
+    the readings' and the weight rule and rounds compared the data term with a noise the model got wrong."""
+    grid = Grid(20, 2, 100.0)
+    directions = torch.tensor([[1.0, 0.0], [0.6, 0.8], [0.0, 1.0], [-0.6, 0.8], [-0.8, 0.6]], dtype=torch.float64)
+    sensor = LevelSensor(snr_db=30.0, quantum_mm=0.0, seed=3)
+    op = make_operator(grid, directions)
+    opts = dict(iterations=20, coarse_to_fine=False, progress=False, priors={"tv": {"weight": "auto"}}, seed=1)
+    results = {}
+    for smooth in (False, True):
+        _, meas = simulate_measurement(Disk(30.0), directions, grid=grid, sensor=sensor, smooth=smooth,
+                                       progress=False)
+        assert meas.sigma is not None and bool(meas.metadata["smoothed"]) == smooth
+        results[smooth] = {model: VoxelSolver(noise_model=model, **opts).solve(meas, op)
+                           for model in ("independent", "correlated")}
+    assert results[False]["correlated"].info["noise_model"] == "correlated"
+    assert results[True]["correlated"].info["noise_model"] == SMOOTHED_NOISE_MODEL
+    assert results[True]["independent"].info["noise_model"] == "independent"
+    assert not torch.equal(results[False]["correlated"].occupancy, results[False]["independent"].occupancy)
+    assert torch.equal(results[True]["correlated"].occupancy, results[True]["independent"].occupancy)
+    assert results[True]["correlated"].info["weight_rule"] == results[True]["independent"].info["weight_rule"]
+    term = DataTerm(op, meas.profiles, meas.sigma, noise_model="correlated", differenced=False)
+    assert term.precision is None and term.expected_noise is None and term.noise_model == SMOOTHED_NOISE_MODEL
 
 
 def test_solver_compares_its_residual_with_the_correlated_noise_expectation():
