@@ -616,12 +616,14 @@ class OptimisationSolver(Solver):
         under that rig's plan); keep the learned prior's choices among candidate weights
         (:meth:`~dipnet.solvers.learned.LearnedPrior.select_for`) for ``info["learned_weights"]``. With the
         ``measurement`` (on ``operator``'s slabs), warn as well of an object much smaller in the grid than the weights'
-        training objects (:meth:`~dipnet.solvers.learned.LearnedPrior.size_warning`).
+        training objects (:meth:`~dipnet.solvers.learned.LearnedPrior.size_warning`). None of these when a warm start
+        with a learned prior of its own warns of them (:meth:`_start_warns_of_plan`).
 
         Raises:
             PriorMismatchError: see :meth:`~dipnet.solvers.learned.LearnedPrior.check_operator`.
         """
         said, self._weights_choices = set(), []
+        start_warns = self._start_warns_of_plan()
         for index, spec in enumerate(self.prior_specs()):
             built = build_priors(with_weight(spec, self.weight_rule.start), 1.0)
             _refuse_other_operators(built, operator)
@@ -630,7 +632,7 @@ class OptimisationSolver(Solver):
                 if choice is not None and choice["reason"] is not None and choice not in self._weights_choices:
                     self._weights_choices.append(dict(choice))
                     log.info("learned prior: weights %s: %s", choice["weights"], choice["reason"])
-                first = index == 0 and hasattr(module, "plan_warning")
+                first = index == 0 and hasattr(module, "plan_warning") and not start_warns
                 messages = [module.plan_warning(operator.directions)] if first else []
                 if first and measurement is not None and hasattr(module, "size_warning"):
                     grid = operator.grid
@@ -640,6 +642,18 @@ class OptimisationSolver(Solver):
                     if message is not None and message not in said:
                         said.add(message)
                         warnings.warn(message, stacklevel=2)
+
+    def _start_warns_of_plan(self) -> bool:
+        """Whether the warm start is a solver whose first priors spec holds a learned prior: its own solve warns of
+        the dips and the object against those first-stage weights, and this solve's learned prior refines that
+        start's result (``solver=implicit_learned``'s ``denoiser64_stage2`` after ``solver=voxel_learned``), so it
+        does not warn of them again against its later-stage weights (the plan warning looks at the first stage)."""
+        start = self.warm_start
+        if not hasattr(start, "prior_specs") or not hasattr(start, "weight_rule"):
+            return False
+        spec = start.prior_specs()[0]
+        return any(hasattr(module, "plan_warning")
+                   for _, _, module in build_priors(with_weight(spec, start.weight_rule.start), 1.0))
 
     def support(self, target: torch.Tensor, operator: DipOperator, grid: Grid) -> torch.Tensor:
         """Boolean mask ``grid.shape`` of the voxels the solver may fill (see ``hull_tol``),

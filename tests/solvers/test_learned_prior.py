@@ -76,6 +76,39 @@ def test_dips_unlike_the_training_plans_are_warned_about_once_per_solve(tmp_path
     assert not caught
 
 
+def test_a_field_refining_a_learned_start_leaves_the_plan_warning_to_the_starts_first_stage(tmp_path):
+    """``solver=implicit_learned`` under a 0-35 deg rig: its start (``voxel_learned``) keeps the rig's first-stage
+    weights and says nothing; the field's own anchor, a second stage trained on the hemisphere, refines that start,
+    so the field does not warn that hemisphere weights meet a rig's dips (it did, advising to add rig weights to its
+    own list). Without a learned start the field still warns, and a start with hemisphere weights warns once."""
+    meta = {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1}
+    hemisphere = str(save_weights(perturbed_denoiser(0.2), tmp_path / "hemi.pt", {**meta, "config": {"dips": 41}}))
+    rig = str(save_weights(perturbed_denoiser(0.1), tmp_path / "rig.pt",
+                           {**meta, "config": {"dips": 41, "max_tilt_deg": 35.0}}))
+    tilted = make_operator(Grid(16, 3), Reach(tilt_range_deg=(0.0, 35.0)).uniform(41), 16)
+
+    def learned(weights: str) -> dict:
+        return {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": weights, "mode": "anchor"}}
+
+    def warned(solver) -> list[str]:
+        """The warnings of ``solver``'s checks, its warm start's after its own (as a solve makes them)."""
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solver.check_priors(tilted)
+            if hasattr(solver.warm_start, "check_priors"):
+                solver.warm_start.check_priors(tilted)
+        return [str(w.message) for w in caught]
+
+    def field(start) -> ImplicitSolver:
+        return ImplicitSolver(iterations=2, progress=False, priors=learned(hemisphere), warm_start=start)
+
+    start = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned(rig))
+    assert warned(field(start)) == []
+    assert len(warned(field(None))) == 1 and "trained on 41 dips over the whole hemisphere" in warned(field(None))[0]
+    hemisphere_start = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned(hemisphere))
+    assert warned(field(hemisphere_start)) == [LearnedPrior(hemisphere).plan_warning(tilted.directions)]
+
+
 def test_far_fewer_dips_than_the_training_plan_are_warned_about(tmp_path):
     """Weights trained on 41 dips were checked down to 20; fewer leave what the denoiser fills in unchecked (the hand
     from 6 dips passed as consistent at IoU 0.57), so the solve warns once, also beside a band warning."""
