@@ -141,11 +141,12 @@ class TrainConfigError(ValueError):
 
 
 def _seed_range(name: str, seeds) -> None:
-    """Raise :class:`TrainConfigError` unless ``seeds`` is ``(first, stop)``, whole numbers, ``first < stop``."""
+    """Raise :class:`TrainConfigError` unless ``seeds`` is ``(first, stop)``, whole numbers, ``0 <= first < stop``
+    (a negative seed seeds no random generator: it failed after the training pairs were made)."""
     if (len(seeds) != 2 or any(isinstance(s, bool) or not isinstance(s, int) for s in seeds)
-            or not seeds[0] < seeds[1]):
-        raise TrainConfigError(f"{name} must be FIRST STOP, whole numbers with FIRST < STOP (the seeds FIRST..STOP-1), "
-                               f"got {' '.join(map(str, seeds))}")
+            or not 0 <= seeds[0] < seeds[1]):
+        raise TrainConfigError(f"{name} must be FIRST STOP, whole numbers with 0 <= FIRST < STOP (the seeds "
+                               f"FIRST..STOP-1), got {' '.join(map(str, seeds))}")
 
 
 def _whole(name: str, value, low: int) -> None:
@@ -350,10 +351,10 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     (:func:`~dipnet.solvers.checkpoint.write_state`): a run killed mid-write leaves the previous one whole.
 
     Raises:
-        TrainConfigError: a bad option, starting weights or second-stage round weights, a checkpoint of another
-            run to resume (these, and a file of ``meshes`` that is not a mesh (``ShapeError``), before any pair is
-            made), or a loss that became NaN or infinite, or a validation loss above 1 (before any
-            weights or checkpoint of the diverged network are written).
+        TrainConfigError: a bad option, starting weights or second-stage round weights, an ``out`` that is a
+            folder, a checkpoint of another run to resume (these, and a file of ``meshes`` that is not a mesh
+            (``ShapeError``), before any pair is made), or a loss that became NaN or infinite, or a validation
+            loss above 1 (before any weights or checkpoint of the diverged network are written).
     """
     if config.init_weights is not None:
         _initial_model(config)  # weights that are missing, damaged or of another size: an error before the pairs
@@ -361,6 +362,8 @@ def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, pro
     for mesh in config.meshes:  # a file that is not a mesh: an error now, not after the generated shapes' pairs
         load_mesh(mesh)
     out = Path(out)
+    if out.is_dir():  # now, not by a traceback when the trained weights are written
+        raise TrainConfigError(f"the weights file {out} is a folder: give a file, e.g. {out / 'denoiser64.pt'}")
     out.parent.mkdir(parents=True, exist_ok=True)
     ckpt_path = out.with_suffix(".ckpt")
     saved = resumable_checkpoint(ckpt_path, config) if resume else None  # another run's: refused before the pairs

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from dipnet.experiments.prior_training import STAGE2, TrainConfig, TrainConfigError, random_batch, same_run, train
+from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.solvers.denoiser import SHIPPED_DIR, OccupancyDenoiser, PriorWeightsError, load_weights, save_weights
 
 from script_modules import load_script
@@ -179,7 +180,12 @@ def test_the_second_stage_can_be_fine_tuned_from_itself_with_the_first_stage_rou
 
 @pytest.mark.parametrize("argv, message", [
     (["--n", "0"], "n must be an integer >= 4, got 0"),
-    (["--train-seeds", "1005", "1000"], "train_seeds must be FIRST STOP, whole numbers with FIRST < STOP"),
+    (["--train-seeds", "1005", "1000"], "train_seeds must be FIRST STOP, whole numbers with 0 <= FIRST < STOP"),
+    # negative seeds: numpy's "expected non-negative integer" after the training pairs were made
+    (["--val-seeds", "-3", "-1"], "val_seeds must be FIRST STOP, whole numbers with 0 <= FIRST < STOP .*got -3 -1"),
+    (["--family-seeds", "organic", "-4", "-2"], "family_seeds organic must be FIRST STOP, whole numbers with 0 <="),
+    (["--meshes", "{bunny}", "--mesh-seeds", "-2", "0"], "mesh_seeds must be FIRST STOP, whole numbers with 0 <="),
+    (["--out", "{tmp}"], "the weights file .* is a folder: give a file"),  # was a traceback after the training
     (["--crop", "64", "--n", "16"], "n and crop must be multiples of 4 .* with crop <= n .*got n=16, crop=64"),
     (["--lr", "nan"], "lr must be a positive, finite learning rate, got nan"),
     (["--steps", "-1"], "steps must be a positive integer, got -1"),
@@ -196,12 +202,13 @@ def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, arg
     torch.nn.init.constant_(nan.down0[0].weight, float("nan"))
     save_weights(nan, tmp_path / "nan.pt", {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1})
     script = load_script("train_prior")
-    argv = [a.format(tmp=tmp_path) for a in argv]
+    argv = [a.format(tmp=tmp_path, bunny=MESHES_DIR / "bunny.ply") for a in argv]
     with pytest.raises(SystemExit) as exit_:
         script.main(["--out", str(tmp_path / "w.pt"), "--cache", str(tmp_path / "pairs"), "--no-progress", *argv])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
     assert not (tmp_path / "w.pt").exists() and not (tmp_path / "pairs").exists()
+    assert not list(tmp_path.parent.glob(f"{tmp_path.name}.*"))  # no checkpoint beside an --out folder
 
 
 @pytest.mark.parametrize("tilt", [0.0, -5.0, 91.0, float("nan")])
