@@ -52,9 +52,9 @@ from dipnet.evaluation.ensemble import (brier_score, check_ensemble_options, ens
 from dipnet.evaluation.uncertainty import SURE_P_WRONG, calibration_by_decile, sure_error_rate, uncertainty
 from dipnet.operators import make_operator
 from dipnet.preprocessing.datasets import MESHES_DIR, check_mesh_names
-from dipnet.shapes import load_mesh
+from dipnet.shapes import ShapeError, load_mesh
 from dipnet.shapes.procedural import generated_shape
-from dipnet.simulator.physics import LevelSensor
+from dipnet.simulator.physics import LevelSensor, check_snr_db
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers import SOLVERS as REGISTERED
 from dipnet.solvers.denoiser import load_weights
@@ -93,10 +93,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
-    p.add_argument("--quick", action="store_true", help="bunny and torus at 24^3, noise-free (about a minute idle)")
+    p.add_argument("--quick", action="store_true",
+                   help="bunny and torus at 24^3 (--solver prior: 64^3), noise-free (about a minute idle)")
     args = p.parse_args(argv)
-    if args.quick:  # the options given beside --quick keep their values
-        apply_quick(args, given_options(p, argv), meshes=["bunny", "torus"], n=24, noise=["clean"])
+    if args.quick:  # the options given beside --quick keep their values; the prior keeps its weights' grid
+        apply_quick(args, given_options(p, argv), meshes=["bunny", "torus"], noise=["clean"],
+                    n=None if args.solver == "prior" else 24)
     if args.meshes == [NO_MESH]:
         args.meshes = []
     try:
@@ -106,6 +108,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     missing = [str(path) for path in args.mesh_files if not path.is_file()]
     if missing:
         p.error(f"--mesh-files: no file {', '.join(missing)}")
+    check_run_options(p, args)
     if args.generated < 0:
         p.error(f"--generated must be 0 or more, got {args.generated}")
     if args.generated:
@@ -128,6 +131,28 @@ def parse_args(argv=None) -> argparse.Namespace:
         p.error(f"--n {args.n}, --dips {args.dips}, --samples {args.samples}, --iterations-scale "
                 f"{args.iterations_scale:g}: {exc}")
     return args
+
+
+def check_run_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exit through ``p.error`` on a ``--mesh-files`` file that is no mesh, an ``--snr`` out of range (with
+    ``--noise snr``), a negative ``--seed``, ``--threads`` below 1 or a ``--json`` in a missing folder: now, not by a
+    traceback after the cases before (or, for ``--json``, after every case)."""
+    for path in args.mesh_files:
+        try:
+            load_mesh(path)
+        except ShapeError as exc:
+            p.error(f"--mesh-files: {exc}")
+    if "snr" in args.noise:
+        try:
+            check_snr_db(args.snr)
+        except ValueError as exc:
+            p.error(f"--snr: {exc}")
+    if args.seed < 0:
+        p.error(f"--seed must be 0 or more, got {args.seed}")
+    if args.threads is not None and args.threads < 1:
+        p.error(f"--threads must be 1 or more, got {args.threads}")
+    if args.json is not None and not args.json.parent.is_dir():
+        p.error(f"--json {args.json}: no folder {args.json.parent}")
 
 
 def scores(probability: np.ndarray, p_wrong: np.ndarray, binary: np.ndarray, truth: np.ndarray) -> dict:

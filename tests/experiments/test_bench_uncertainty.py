@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -75,3 +77,31 @@ def test_cases_the_learned_prior_cannot_run_are_refused_before_any_case(capsys, 
         load_script("bench_uncertainty").parse_args(argv)
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and message in err, err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--snr", "nan"], "--snr: snr_db must be a number of dB in [-20, 200]"),
+    (["--seed", "-1"], "--seed must be 0 or more, got -1"),
+    (["--threads", "-1"], "--threads must be 1 or more, got -1"),
+    (["--threads", "0"], "--threads must be 1 or more, got 0"),
+    (["--json", "/nonexistent/dir/rows.json"], "--json /nonexistent/dir/rows.json: no folder /nonexistent/dir"),
+    (["--mesh-files", "{readme}"], "--mesh-files: cannot read mesh file"),
+])
+def test_run_options_that_fail_later_are_refused_before_any_case(capsys, argv, message):
+    """``--solver prior --snr nan``: a traceback at the first 30 dB case, after the noise-free one (minutes at 64^3);
+    ``--seed -1``, ``--threads -1`` and a ``--mesh-files`` file that is no mesh: tracebacks; ``--threads 0`` was
+    ignored unsaid; ``--json`` in a missing folder: a traceback after every case. Now refused by the argument parser,
+    exit 2."""
+    readme = Path(__file__).parents[2] / "README.md"
+    argv = [a.format(readme=readme) for a in argv]
+    with pytest.raises(SystemExit) as exit_:
+        load_script("bench_uncertainty").parse_args(["--solver", "prior", "--meshes", "torus", *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and message in err and err.count("error:") == 1, err
+
+
+def test_the_quick_mode_of_the_learned_prior_keeps_its_weights_grid():
+    """``--quick --solver prior`` was refused as ``not --n 24``, an --n never given: the quick mode's grid is not one
+    the prior's weights can run; it keeps their 64^3 and the quick cases."""
+    args = load_script("bench_uncertainty").parse_args(["--quick", "--solver", "prior"])
+    assert args.n == 64 and args.meshes == ["bunny", "torus"] and args.noise == ["clean"]
