@@ -130,7 +130,15 @@ class SurfaceRefit:
             differenced: whether the slabs are the differences of cumulative readings as read; profiles smoothed
                 in preprocessing (``metadata["smoothed"]``) are not: their errors are weighed as independent, and
                 held-out dips decide as without a stated noise (their sigma gives the fit no level to stop at).
+
+        Raises:
+            ValueError: ``target`` or ``sigma`` holds a NaN or infinite value.
         """
+        for name, values in (("measured slab volumes", target), ("slab sigma", sigma)):
+            bad = 0 if values is None else int((~torch.isfinite(values)).sum())
+            if bad:  # else the probe read a NaN misfit as "fell by 0.0%: would fit the noise", or ran on NaN
+                raise ValueError(f"surface refit: the {name} hold {bad} NaN or infinite value(s) of {values.numel()}: "
+                                 "repair or drop those dips (dipnet.validate_measurement names them)")
         started = time.perf_counter()
         record: dict = {"applied": False, **asdict(self)}
         recon.info["surface_refit"] = record

@@ -170,6 +170,19 @@ def test_too_few_dips_to_hold_out_and_2d_results_are_kept_with_the_reason():
     assert "3D only" in SurfaceRefit().refit(flat, slabs, None, directions, edges).info["surface_refit"]["reason"]
 
 
+@pytest.mark.parametrize("where", ["target", "sigma"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_slab_volumes_or_sigma_are_refused_by_name(where, bad):
+    """A NaN slab made the probe's held-out misfit NaN, read as "fell by 0.0 % ...: a surface fitted closer would fit
+    the dips' noise"; a NaN sigma ran 150 steps on NaN. Refused now, naming what holds it."""
+    directions, edges, noisy, sigma = readings_ball(30.0)
+    values = {"target": noisy.clone(), "sigma": sigma.clone()}
+    values[where][3, 10] = bad
+    name = "measured slab volumes" if where == "target" else "slab sigma"
+    with pytest.raises(ValueError, match=f"surface refit: the {name} hold 1 NaN or infinite value"):
+        SurfaceRefit().refit(ball_result(0.9 * RADIUS), values["target"], values["sigma"], directions, edges)
+
+
 def test_evaluate_scores_the_refitted_mesh_when_there_is_one():
     directions, edges, slabs = ball_problem()
     truth = partial_volume(GRID, lambda p: p.norm(dim=-1) < RADIUS)
