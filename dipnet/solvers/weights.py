@@ -117,7 +117,10 @@ class WeightRule:
             why = ("an estimated noise (which includes the profiles' own curvature) lies above the residual but "
                    "never raises the weight: first weight kept")
         elif weight <= self.floor * (1 + 1e-9) and first_residual > goal:
-            why = "the noise lies below the residual the data allow (noise-free data): floor weight"
+            why = ("the noise lies below the residual the data allow (noise-free data): floor weight"
+                   if noise[1] not in KNOWN_NOISE else  # a known noise: the model misses the data by more
+                   f"the residual the data allow lies above their noise (from the {noise[1]}): the model's own "
+                   "error (the voxels, the rig geometry) exceeds it: floor weight")
         elif weight >= self.largest * (1 - 1e-9) and first_residual < goal:
             why = "even the largest weight is expected to fit the data more closely than the noise: largest weight"
         else:

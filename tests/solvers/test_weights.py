@@ -68,6 +68,19 @@ def test_noise_below_the_reachable_residual_gets_the_floor_weight_and_says_why(c
     assert rule["refit_steps"] > 0 and rule["first_residual"] > rule["target_residual"]
 
 
+@pytest.mark.parametrize("source", ["sigma", "readings"])
+def test_a_known_noise_below_the_reachable_residual_is_not_called_noise_free(source):
+    """The authors' real cats (64^3, the readings' noise 0.024 relative, the residual 0.080): metrics.json said "the
+    noise lies below the residual the data allow (noise-free data)" of a recording whose noise is known and 3 times
+    smaller than the model's misfit. A known noise names the model's error; an estimated one keeps the old reason."""
+    rule = WeightRule()
+    known = rule.record(rule.floor, 0.080**2, 0.080**2, (0.024**2, source))["reason"]
+    assert "noise-free" not in known and f"(from the {source}): the model's own error" in known
+    assert known.endswith("floor weight")
+    estimated = rule.record(rule.floor, 0.080**2, 0.080**2, (0.024**2, "estimated"))["reason"]
+    assert estimated == "the noise lies below the residual the data allow (noise-free data): floor weight"
+
+
 def test_an_estimated_noise_never_raises_the_weight(clean):
     """Noise-free data the grid reproduces exactly: the estimate reads the profiles' curvature as
     noise (about the residual here); the weight may fall, never rise above the start."""
