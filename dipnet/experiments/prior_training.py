@@ -32,6 +32,7 @@ from dipnet.solvers.denoiser import OccupancyDenoiser, load_weights, save_weight
 from dipnet.experiments.prior_pairs import build_pairs, file_digest, pairs_code, refine_weights_digest
 from dipnet.shapes.mesh import load_mesh
 from dipnet.simulator.physics import check_snr_db
+from dipnet.solvers.voxel import VoxelSolver
 
 
 @dataclass
@@ -327,17 +328,24 @@ def _initial_model(config: TrainConfig) -> OccupancyDenoiser:
 
 def _check_refine(config: TrainConfig) -> None:
     """Raise :class:`~dipnet.solvers.denoiser.PriorWeightsError` (missing, unreadable) or :class:`TrainConfigError`
-    (another grid) for the weights of ``config.refine``'s learned round (``--refine-weights``), which the second
-    stage first reads after every first-stage pair is made."""
-    learned = ((config.refine or {}).get("priors") or {}).get("learned")
-    if learned is None:
+    (another grid, or options its :class:`~dipnet.solvers.voxel.VoxelSolver` refuses, e.g. ``--refine-temperature
+    0``) for ``config.refine``'s learned round (its weights: ``--refine-weights``), which the second stage first
+    runs after every first-stage pair is made."""
+    if config.refine is None:
         return
-    weights = learned.get("weights")
-    _, meta = load_weights(weights)
-    if int(meta["n"]) != config.n:
-        raise TrainConfigError(f"the second stage's round runs on the pairs' {config.n}^3 grid, but its weights "
-                               f"{weights or 'denoiser64'!s} (--refine-weights, or --init-weights) were trained for "
-                               f"{meta['n']}^3: give first-stage weights of n={config.n}")
+    learned = (config.refine.get("priors") or {}).get("learned")
+    if learned is not None:
+        weights = learned.get("weights")
+        _, meta = load_weights(weights)
+        if int(meta["n"]) != config.n:
+            raise TrainConfigError(f"the second stage's round runs on the pairs' {config.n}^3 grid, but its weights "
+                                   f"{weights or 'denoiser64'!s} (--refine-weights, or --init-weights) were trained "
+                                   f"for {meta['n']}^3: give first-stage weights of n={config.n}")
+    try:
+        VoxelSolver(**{"progress": False, **config.refine})
+    except (TypeError, ValueError) as exc:
+        raise TrainConfigError(f"the second stage's round (at --refine-temperature "
+                               f"{config.refine.get('temperature_start')!r}) cannot run: {exc}") from None
 
 
 def train(config: TrainConfig, out: Path, cache: Path, resume: bool = False, progress: bool = True,

@@ -295,6 +295,20 @@ def test_the_second_stage_rounds_weights_are_checked_before_any_pair(tmp_path, w
     assert not (tmp_path / "pairs").exists()
 
 
+@pytest.mark.parametrize("temperature", [0.0, float("nan"), -1.0])
+def test_a_second_stage_round_temperature_it_cannot_run_is_refused_before_any_pair(tmp_path, capsys, temperature):
+    """``--stage 2 --refine-temperature nan``: "error: need 0 < temperature_end <= temperature_start", naming no
+    option, after every first-stage training pair was made (about 30 minutes at 64^3); now first, naming it."""
+    argv = ["--stage", "2", "--refine-temperature", str(temperature), "--out", str(tmp_path / "w.pt"), "--cache",
+            str(tmp_path / "pairs"), "--no-progress", "--train-seeds", "5000", "5001", "--val-seeds", "5001", "5002"]
+    with pytest.raises(SystemExit) as exit_:
+        load_script("train_prior").main(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: the second stage's round (at --refine-temperature {temperature!r}) cannot run: ")
+    assert not (tmp_path / "pairs").exists()
+
+
 def test_a_session_stopped_by_max_minutes_says_its_weights_are_unfinished(tmp_path, shared_pairs):
     """``--max-minutes`` (90 by default) ends a session and writes the weights as a finished run does, exit 0: a
     warning says they are those of step 1 of 6 and how to continue. The time is checked after every step: it was
