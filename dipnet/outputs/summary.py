@@ -55,6 +55,8 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "surface_volume_ratio": ("run", "the refit's mesh's volume over the measured one (the profiles' median total)"),
     "learned_weights": ("run", "learned prior: the weights kept of its candidates (by the dips' plan)"),
     "learned_weights_reason": ("run", "why those weights"),
+    "learned_prior_warnings": ("run", "learned prior: dips or an object unlike its training ones (a consistent "
+                                      "verdict does not speak for what it filled in)"),
     "threshold": ("run", "occupancy level of the binary shape and its surface"),
     "overrides": ("run", "command-line overrides of the run that wrote these metrics"),
     "threshold_rule": ("run", "how that level was set (volume: its surface encloses the measured volume)"),
@@ -227,7 +229,8 @@ def headline(metrics: dict[str, Any]) -> str:
 def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     """The prior weights a solver used and why, from its ``Reconstruction.info``
     (``prior_weights`` and ``weight_rule``, see :mod:`dipnet.solvers.weights`; ``rounds``, see
-    :class:`~dipnet.solvers.voxel.VoxelSolver`; ``threshold_rule``, ``learned_weights`` and ``noise_model``, see
+    :class:`~dipnet.solvers.voxel.VoxelSolver`; ``threshold_rule``, ``learned_weights``, ``learned_prior_warnings``
+    and ``noise_model``, see
     :class:`~dipnet.solvers.optimize.OptimisationSolver`), as flat ``metrics.json`` entries; ``{}`` for
     solvers without priors."""
     out: dict[str, Any] = {}
@@ -252,6 +255,8 @@ def prior_weight_metrics(info: dict[str, Any]) -> dict[str, Any]:
     if choices:
         out["learned_weights"] = [choice["weights"] for choice in choices]
         out["learned_weights_reason"] = [choice["reason"] for choice in choices]
+    if info.get("learned_prior_warnings"):
+        out["learned_prior_warnings"] = list(info["learned_prior_warnings"])
     return out
 
 

@@ -513,6 +513,7 @@ class OptimisationSolver(Solver):
         self.tol, self.window = float(tol), int(window)
         self.priors = priors
         self._weights_choices: list[dict] = []  # the learned prior's choices among candidate weights, per solve
+        self._plan_warnings: list[str] = []  # and its warnings of dips or an object unlike its training ones
         if hull_tol is not None and not 0 <= hull_tol < 1:
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
         self.threshold = checked_threshold(threshold, "volume")
@@ -622,7 +623,7 @@ class OptimisationSolver(Solver):
         Raises:
             PriorMismatchError: see :meth:`~dipnet.solvers.learned.LearnedPrior.check_operator`.
         """
-        said, self._weights_choices = set(), []
+        said, self._weights_choices, self._plan_warnings = set(), [], []
         start_warns = self._start_warns_of_plan()
         for index, spec in enumerate(self.prior_specs()):
             built = build_priors(with_weight(spec, self.weight_rule.start), 1.0)
@@ -641,6 +642,7 @@ class OptimisationSolver(Solver):
                 for message in messages:
                     if message is not None and message not in said:
                         said.add(message)
+                        self._plan_warnings.append(message)
                         warnings.warn(message, stacklevel=2)
 
     def _start_warns_of_plan(self) -> bool:
@@ -677,6 +679,8 @@ class OptimisationSolver(Solver):
         if isinstance(start, Reconstruction):
             chosen = start.info.get("learned_weights") or []  # the start's choice of weights is this result's too
             self._weights_choices += [choice for choice in chosen if choice not in self._weights_choices]
+            said = start.info.get("learned_prior_warnings") or []  # and its warnings, which this solve leaves to it
+            self._plan_warnings += [message for message in said if message not in self._plan_warnings]
             if not start.grid.matches(operator.grid):  # the same shape on other voxels would start elsewhere
                 raise ValueError(f"warm start is a reconstruction on {start.grid}, the operator's grid is "
                                  f"{operator.grid}: their voxels are not the same places; solve the start on the "
@@ -695,7 +699,8 @@ class OptimisationSolver(Solver):
         (the symmetries declared, as :meth:`~dipnet.solvers.priors.SymmetryPrior.spec` gives them: those of
         symmetry priors with a weight, after any in ``info``), and ``info["weight_rule"]``, the record of
         :meth:`choose_weights`; ``info["learned_weights"]``: the learned prior's choices among candidate weights
-        (:meth:`check_priors`, and those of a warm start's solve); with ``data``, ``info["noise_model"]``: the model
+        (:meth:`check_priors`, and those of a warm start's solve); ``info["learned_prior_warnings"]``: its plan and
+        size warnings (:meth:`check_priors`, and a warm start's); with ``data``, ``info["noise_model"]``: the model
         its slabs' errors were weighed by (:attr:`DataTerm.noise_model`)."""
         steps = len(history.get("loss", []))
         if data is not None and data.log_gain is not None:
@@ -710,6 +715,8 @@ class OptimisationSolver(Solver):
             info["weight_rule"] = weights
         if self._weights_choices:
             info["learned_weights"] = [dict(choice) for choice in self._weights_choices]
+        if self._plan_warnings:
+            info["learned_prior_warnings"] = list(self._plan_warnings)
         info = {"solver": self.name, "seconds": time.perf_counter() - started, "iterations": steps,
                 "final": {k: v[-1] for k, v in history.items() if v}, "optimizer": self.optimizer,
                 "seed": self.seed, **info}

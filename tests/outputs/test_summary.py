@@ -65,6 +65,9 @@ def test_prior_weights_and_their_reason_go_into_the_metrics():
     kept = {"weights": "denoiser64_tilt35", "reason": "the dips leave 55 deg about the horizontal unmeasured; ..."}
     assert summary.prior_weight_metrics({"learned_weights": [kept]}) == {
         "learned_weights": ["denoiser64_tilt35"], "learned_weights_reason": [kept["reason"]]}
+    warned = "the learned prior's denoiser (denoiser64) was trained on 41 dips ...; these are 6: ..."
+    flat = summary.prior_weight_metrics({"learned_prior_warnings": [warned]})
+    assert flat == {"learned_prior_warnings": [warned]} and list(summary.grouped(flat)) == ["run"]
 
 
 def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():

@@ -129,6 +129,29 @@ def test_far_fewer_dips_than_the_training_plan_are_warned_about(tmp_path):
     assert [str(w.message) for w in caught] == [message]
 
 
+def test_the_plan_warnings_reach_the_result_and_a_field_refining_it(tmp_path):
+    """From 6 dips the learned solvers' verdict can be ``consistent`` where the shape is far off (the hand: IoU 0.57);
+    the warning saying so went to the log only, so metrics.json (and compare.py's tables) showed a plain
+    ``consistent``. The result's ``info["learned_prior_warnings"]`` holds it now (a job's metrics.json), and a field
+    that refines a learned start (``implicit_learned``) carries its start's."""
+    weights = save_weights(perturbed_denoiser(0.2), tmp_path / "w16.pt",
+                           {"n": 16, "ndim": 3, "n_slabs_per_voxel": 1, "config": {"dips": 41}})
+    grid = Grid(16, 3)
+    op = make_operator(grid, fibonacci_hemisphere(6), 16)
+    truth = torch.from_numpy(generated_occupancy(4, grid)).double()
+    measurement = DipMeasurement(op.directions, op(truth), op.slab_thickness, op.slab_edges()[:1].expand(6))
+    learned = {"tv": {"weight": 0.0}, "learned": {"weight": 1.0, "weights": str(weights), "mode": "anchor"}}
+    start = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False, priors=learned)
+    message = LearnedPrior(weights).plan_warning(op.directions)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert start.solve(measurement, op).info["learned_prior_warnings"] == [message]
+        field = ImplicitSolver(iterations=2, progress=False, priors=learned, warm_start=start)
+        assert field.solve(measurement, op).info["learned_prior_warnings"] == [message]
+        plain = VoxelSolver(iterations=2, coarse_to_fine=False, progress=False)
+        assert "learned_prior_warnings" not in plain.solve(measurement, op).info
+
+
 def test_an_object_much_smaller_in_the_grid_than_the_training_objects_is_warned_about(tmp_path):
     """Weights trained on objects reaching 0.9 of the working ball: a ball reaching 0.2 of it (a grid four times too
     large) is warned about once as the solve starts, at 0.9 it is not; weights that record no fill say
