@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from dipnet.jobs.configured import check_test_seeds, configured
+from dipnet.experiments.bench_options import check_run_options
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
@@ -54,7 +55,7 @@ from dipnet.operators import make_operator
 from dipnet.preprocessing.datasets import MESHES_DIR, check_mesh_names
 from dipnet.shapes import ShapeError, load_mesh
 from dipnet.shapes.procedural import generated_shape
-from dipnet.simulator.physics import LevelSensor, check_snr_db
+from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers import SOLVERS as REGISTERED
 from dipnet.solvers.denoiser import load_weights
@@ -108,7 +109,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     missing = [str(path) for path in args.mesh_files if not path.is_file()]
     if missing:
         p.error(f"--mesh-files: no file {', '.join(missing)}")
-    check_run_options(p, args)
+    check_mesh_files_and_run_options(p, args)
     if args.generated < 0:
         p.error(f"--generated must be 0 or more, got {args.generated}")
     if args.generated:
@@ -133,26 +134,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def check_run_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Exit through ``p.error`` on a ``--mesh-files`` file that is no mesh, an ``--snr`` out of range (with
-    ``--noise snr``), a negative ``--seed``, ``--threads`` below 1 or a ``--json`` in a missing folder: now, not by a
-    traceback after the cases before (or, for ``--json``, after every case)."""
+def check_mesh_files_and_run_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exit through ``p.error`` on a ``--mesh-files`` file that is no mesh, or a run option no case could use
+    (:func:`~dipnet.experiments.bench_options.check_run_options`): now, not by a traceback after the cases before
+    (or, for ``--json``, after every case)."""
     for path in args.mesh_files:
         try:
             load_mesh(path)
         except ShapeError as exc:
             p.error(f"--mesh-files: {exc}")
-    if "snr" in args.noise:
-        try:
-            check_snr_db(args.snr)
-        except ValueError as exc:
-            p.error(f"--snr: {exc}")
-    if args.seed < 0:
-        p.error(f"--seed must be 0 or more, got {args.seed}")
-    if args.threads is not None and args.threads < 1:
-        p.error(f"--threads must be 1 or more, got {args.threads}")
-    if args.json is not None and not args.json.parent.is_dir():
-        p.error(f"--json {args.json}: no folder {args.json.parent}")
+    try:
+        check_run_options(args)
+    except ValueError as exc:
+        p.error(str(exc))
 
 
 def scores(probability: np.ndarray, p_wrong: np.ndarray, binary: np.ndarray, truth: np.ndarray) -> dict:

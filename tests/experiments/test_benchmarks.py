@@ -195,11 +195,21 @@ def test_a_mesh_name_the_quality_bench_does_not_find_is_refused(tmp_path):
     (["--budgets", "0"], r"--budgets must be positive numbers of dips, got 0"),
     (["--n", "3"], r"grid resolution n must be an integer >= 4, got 3"),
     (["--meshes", "torsu"], r"--meshes: no mesh named torsu"),
+    (["--threads", "-1"], r"--threads must be 1 or more, got -1"),
+    (["--threads", "0"], r"--threads must be 1 or more, got 0"),
+    (["--seed", "-1"], r"--seed must be 0 or more, got -1"),
+    (["--noise", "snr", "--snr", "nan"], r"--snr: snr_db must be a number of dB in \[-20, 200\]"),
+    (["--json", "{tmp}/missing/rows.json"], r"--json .*missing/rows\.json: no folder .*missing"),
+    (["--generated", "-2"], r"--generated must be 0 or more, got -2"),
+    (["--fill", "2"], r"--fill must be in \(0, 1\]"),
 ])
 def test_bad_options_of_the_quality_bench_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
     """A cut-short or foreign ``--from-json`` file, ``--options`` that are not JSON, ``--n 3``: tracebacks before
     (``JSONDecodeError``, ``AttributeError: 'str' object has no attribute 'get'``, ``ValueError``); ``--workers 0``
-    ran with one worker; now one ``error:`` line each, exit 2 (as the script's own checks, which exited 1)."""
+    ran with one worker; now one ``error:`` line each, exit 2 (as the script's own checks, which exited 1).
+    Before the shared run-option checks: ``--threads -1`` a traceback, ``--threads 0`` and ``--generated -2``
+    ignored unsaid, ``--seed -1`` and ``--snr nan`` an error at the first case, ``--json`` in a missing folder one
+    after every case, and ``--fill 2`` solved meshes reaching past the grid's slabs, exit 0."""
     (tmp_path / "cut.json").write_text('[{"mesh": "a"')
     (tmp_path / "metrics.json").write_text('{"iou": 0.9}')
     bench = load_script("bench_quality")

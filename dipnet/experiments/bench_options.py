@@ -1,0 +1,36 @@
+"""The benchmarks' run options shared by ``scripts/bench_quality.py`` and ``scripts/bench_uncertainty.py``,
+checked before any case runs.
+
+A bad value of one of these used to surface late: ``--threads -1`` as a traceback, ``--threads 0`` not at all
+(torch's default taken unsaid), ``--seed -1`` at the first simulation, ``--snr nan`` at the first noisy case (after
+the noise-free ones) and ``--json`` into a missing folder only after every case had run.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from dipnet.simulator.physics import check_snr_db
+
+
+def check_run_options(args: argparse.Namespace) -> None:
+    """Refuse the shared run options of ``args`` that no case could use.
+
+    Reads ``args.noise`` and ``args.snr`` (dB; checked only when ``"snr"`` or ``"unstated"`` noise is asked for),
+    ``args.seed`` (``>= 0``), ``args.threads`` (``None`` or ``>= 1``) and ``args.json`` (``None`` or a file in an
+    existing folder).
+
+    Raises:
+        ValueError: naming the first bad option and its value.
+    """
+    if {"snr", "unstated"} & set(args.noise):
+        try:
+            check_snr_db(args.snr)
+        except ValueError as exc:
+            raise ValueError(f"--snr: {exc}") from None
+    if args.seed < 0:
+        raise ValueError(f"--seed must be 0 or more, got {args.seed}")
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"--threads must be 1 or more, got {args.threads}")
+    if args.json is not None and not args.json.parent.is_dir():
+        raise ValueError(f"--json {args.json}: no folder {args.json.parent}")
