@@ -164,6 +164,11 @@ class Answer:
     detail: str
 
 
+LEARNED_PRIOR_WARNED = ("the learned prior warned that these dips or this object are unlike its training ones "
+                        "(learned_prior_warnings): a consistent verdict does not speak for what it filled in")
+"""What the answers and the headline add when ``metrics.json`` holds ``learned_prior_warnings``."""
+
+
 def _num(metrics: dict[str, Any], key: str) -> float | None:
     """``metrics[key]`` as a float; ``None`` when absent, not a number, or undefined (NaN, null)."""
     value = metrics.get(key)
@@ -195,6 +200,8 @@ def answers(metrics: dict[str, Any]) -> list[Answer]:
         parts = [] if ratio is None else [f"reconstructed volume {ratio:.3f} × the measured"]
         if metrics.get("consistency"):
             parts.append(f"verdict: {metrics['consistency']}")
+        if metrics.get("learned_prior_warnings"):
+            parts.append(LEARNED_PRIOR_WARNED)
         out.append(Answer("How consistent with its data?", head,
                           "; ".join(parts) or "profile residual relative to the measured profiles"))
     uncertain, expected_error = _num(metrics, "uncertain_fraction"), _num(metrics, "expected_error_fraction")
@@ -223,6 +230,8 @@ def headline(metrics: dict[str, Any]) -> str:
             parts.append(f"IoU undefined ({metrics['overlap_undefined']})")
     if metrics.get("consistency"):
         parts.append(str(metrics["consistency"]))
+    if metrics.get("learned_prior_warnings"):
+        parts.append(LEARNED_PRIOR_WARNED)
     return ", ".join(parts)
 
 

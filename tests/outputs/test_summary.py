@@ -68,6 +68,11 @@ def test_prior_weights_and_their_reason_go_into_the_metrics():
     warned = "the learned prior's denoiser (denoiser64) was trained on 41 dips ...; these are 6: ..."
     flat = summary.prior_weight_metrics({"learned_prior_warnings": [warned]})
     assert flat == {"learned_prior_warnings": [warned]} and list(summary.grouped(flat)) == ["run"]
+    consistent = {"profile_residual": 0.01, "profile_residual_expected": 0.012, "consistency": "consistent"}
+    assert summary.LEARNED_PRIOR_WARNED not in summary.headline(consistent)
+    assert summary.headline({**consistent, **flat}).endswith("consistent, " + summary.LEARNED_PRIOR_WARNED)
+    detail = summary.answers({**consistent, **flat})[0].detail
+    assert detail == "verdict: consistent; " + summary.LEARNED_PRIOR_WARNED  # the verdict is not read alone
 
 
 def test_the_plug_and_play_rounds_and_why_they_ended_go_into_the_metrics():
