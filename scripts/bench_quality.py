@@ -152,8 +152,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     if not 0 < args.max_tilt_deg <= 90:
         raise ValueError(f"--max-tilt-deg must be in (0, 90], got {args.max_tilt_deg:g}")
     check_run_options(args)
-    if args.generated < 0:
-        raise ValueError(f"--generated must be 0 or more, got {args.generated}")
     if not 0 < args.fill <= 1:  # beyond the working ball the profiles lose volume past the grid's slabs
         raise ValueError(f"--fill must be in (0, 1] (the mesh's radius over the working ball's), got {args.fill:g}")
     if min(args.budgets) < 1:

@@ -110,8 +110,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     if missing:
         p.error(f"--mesh-files: no file {', '.join(missing)}")
     check_mesh_files_and_run_options(p, args)
-    if args.generated < 0:
-        p.error(f"--generated must be 0 or more, got {args.generated}")
     if args.generated:
         try:
             check_test_seeds(args.generated_first, args.generated)

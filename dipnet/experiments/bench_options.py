@@ -3,7 +3,7 @@ checked before any case runs.
 
 A bad value of one of these used to surface late: ``--threads -1`` as a traceback, ``--threads 0`` not at all
 (torch's default taken unsaid), ``--seed -1`` at the first simulation, ``--snr nan`` at the first noisy case (after
-the noise-free ones) and ``--json`` into a missing folder only after every case had run.
+the noise-free ones), ``--json`` into a missing folder only after every case had run and ``--generated -2`` not at all.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ def check_run_options(args: argparse.Namespace) -> None:
     """Refuse the shared run options of ``args`` that no case could use.
 
     Reads ``args.noise`` and ``args.snr`` (dB; checked only when ``"snr"`` or ``"unstated"`` noise is asked for),
-    ``args.seed`` (``>= 0``), ``args.threads`` (``None`` or ``>= 1``) and ``args.json`` (``None`` or a file in an
-    existing folder).
+    ``args.seed`` (``>= 0``), ``args.threads`` (``None`` or ``>= 1``), ``args.json`` (``None`` or a file in an
+    existing folder) and ``args.generated`` (the number of generated test shapes, ``>= 0``).
 
     Raises:
         ValueError: naming the first bad option and its value.
@@ -34,3 +34,5 @@ def check_run_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--threads must be 1 or more, got {args.threads}")
     if args.json is not None and not args.json.parent.is_dir():
         raise ValueError(f"--json {args.json}: no folder {args.json.parent}")
+    if args.generated < 0:
+        raise ValueError(f"--generated must be 0 or more, got {args.generated}")

@@ -11,7 +11,7 @@ from dipnet.experiments.bench_options import check_run_options
 
 
 def _args(tmp_path: Path, **given) -> argparse.Namespace:
-    values = dict(noise=["clean", "snr"], snr=30.0, seed=0, threads=None, json=tmp_path / "rows.json")
+    values = dict(noise=["clean", "snr"], snr=30.0, seed=0, threads=None, json=tmp_path / "rows.json", generated=0)
     return argparse.Namespace(**{**values, **given})
 
 
@@ -28,6 +28,7 @@ def test_usable_run_options_pass(tmp_path):
     ({"threads": 0}, r"--threads must be 1 or more, got 0"),
     ({"threads": -2}, r"--threads must be 1 or more, got -2"),
     ({"json": Path("/nonexistent/dir/rows.json")}, r"--json /nonexistent/dir/rows.json: no folder /nonexistent/dir"),
+    ({"generated": -2}, r"--generated must be 0 or more, got -2"),
 ])
 def test_each_bad_run_option_is_named(tmp_path, given, message):
     with pytest.raises(ValueError, match=message):
