@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
@@ -20,6 +19,7 @@ from dipnet.core.geometry import RigGeometry, invert_scan
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
+from dipnet.core.warn import log_and_warn
 from dipnet.operators import make_operator
 from dipnet.preprocessing.preprocess import preprocess, repair_without_drift
 from dipnet.preprocessing.readings import max_object_section
@@ -401,8 +401,7 @@ def _warn_undetermined(report: CalibrationReport, what: str) -> None:
                 for name, why in report.undetermined.items()]
     messages += [f"{what}: {name} {why}" for name, why in report.caveats.items()]
     for message in messages:
-        log.warning(message)
-        warnings.warn(message, stacklevel=3)
+        log_and_warn(log, message, stacklevel=3)
 
 
 def to_calibration(geometry: RigGeometry, report: CalibrationReport, rig: str, tank: str,

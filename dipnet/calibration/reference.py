@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import replace
 from typing import Callable
 
@@ -21,6 +20,7 @@ from dipnet.calibration.moments import (BALANCE_SECTION_SD, GAUGE_REASONS, MIN_S
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.core.rawscan import RawScan
+from dipnet.core.warn import log_and_warn
 from dipnet.preprocessing.recorded import MAX_DROPPED_SHARE, truncated_orientations
 
 log = logging.getLogger(__name__)
@@ -68,8 +68,7 @@ def _moment_stage(raw: RawScan, params, initial: RigGeometry, kind: str, known: 
                    f"so it moves {1.0 + moments.level_gain:.2g} times the stage step between readings, which the "
                    "dips' moment sums take for an even slab: the estimates may be biased beyond their intervals. "
                    "Use a tank several times the object's section, or smaller stage steps")
-        log.warning("%s", message)
-        warnings.warn(message, stacklevel=3)
+        log_and_warn(log, message, stacklevel=3)
     return state, report, moments
 
 
@@ -403,8 +402,7 @@ def _warn_misplaced(given: np.ndarray, fitted: list[float] | None, tolerance_mm:
                f"from the spin axis with it (a tilt-zero error moves their heights as cos r, a distance error as "
                f"sin r); its height and its direction from the axis are not fitted that way (an error in them moves "
                f"the pivot and the spin zero), so check the mounting and the given centre (calibrate.py --centre)")
-    log.warning(message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
 
 
 def check_reference_options(max_relative_residual: float, start_height_tolerance_mm: float,
@@ -463,8 +461,7 @@ def _without_truncated(raw: RawScan) -> RawScan:
     if len(cut) > MAX_DROPPED_SHARE * len(raw.orientations):
         raise CalibrationError(f"{found}; too few are left to calibrate from")
     message = f"{found}; they are left out"
-    log.warning("%s", message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
     return replace(raw, orientations=[o for o in raw.orientations if o.k not in cut])
 
 

@@ -13,13 +13,14 @@ import json
 import logging
 import math
 import os
-import warnings
 import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from dipnet.core.warn import log_and_warn
 
 log = logging.getLogger(__name__)
 
@@ -295,8 +296,7 @@ class DipMeasurement:
                        f"{float(src[:, -1].max()):.1f}]"
                        f" mm onto [{float(edges[0]):.1f}, {float(edges[-1]):.1f}] mm drops up to {100 * lost:.2f}% "
                        "of a profile's volume: the object does not fit the grid (raise extent_mm)")
-            log.warning(message)
-            warnings.warn(message, stacklevel=3)
+            log_and_warn(log, message, stacklevel=3)
         return out
 
     def resampled_sigma(self, edges: torch.Tensor) -> torch.Tensor | None:

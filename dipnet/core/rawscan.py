@@ -59,6 +59,7 @@ import numpy as np
 import torch
 
 from dipnet.core.orientations import rig_to_direction
+from dipnet.core.warn import log_and_warn
 
 log = logging.getLogger(__name__)
 
@@ -619,8 +620,7 @@ def complete_dips(raw: RawScan) -> list[OrientationScan]:
     if dropped:
         cause = " (its last line is truncated: a crash mid-write?)" if raw.truncated else ""
         message = f"{where}{cause}: orientation(s) {dropped} are incomplete and left out"
-        log.warning("%s", message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     if not done:
         raise RawScanFileError(f"{where} holds no complete dip ({len(raw.orientations)} orientation(s) "
                                f"begun, {sum(o.n_readings for o in raw.orientations)} reading(s))")

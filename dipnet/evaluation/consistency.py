@@ -132,7 +132,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -142,6 +141,7 @@ import torch
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import (BEYOND_SLABS_TOL, DipMeasurement, estimate_slab_sigma, reading_slab_sigma,
                                      robust_volume)
+from dipnet.core.warn import log_and_warn
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.quantisation import (COARSE_SHARE, Quantum, centroid_allowance, coarse_quantum_message,
@@ -561,8 +561,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     result.verdict = "inconsistent" if result.warnings else "consistent"
     if warn:
         for message in result.warnings:
-            log.warning(message)
-            warnings.warn(message, DataConsistencyWarning, stacklevel=2)
+            log_and_warn(log, message, DataConsistencyWarning, stacklevel=2)
         from dipnet.evaluation.resolvability import warn_unmeasured_band  # (that module imports this one)
         warn_unmeasured_band(measurement.directions)  # a property of the plan: the verdict above stands
     return result

@@ -10,7 +10,6 @@ box, so they are dimensionless. All functions are pure and return plain Python f
 from __future__ import annotations
 
 import logging
-import warnings
 from typing import Union
 
 import igl
@@ -19,6 +18,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from dipnet.core.warn import log_and_warn
 from dipnet.shapes.base import Shape
 from dipnet.shapes.isosurface import volume_to_contours, volume_to_mesh
 from dipnet.core.grid import Grid, as_grid
@@ -252,16 +252,14 @@ def evaluate(reconstruction: Reconstruction, truth_occupancy: np.ndarray | torch
         message = (f"the true shape has no surface on the grid ({grid.n} voxels per axis over {grid.extent:g} mm, "
                    f"no voxel more than half inside): it is smaller than the grid resolves, so Chamfer and "
                    "Hausdorff are null; use a smaller extent_mm or a higher resolution")
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     scores = {"iou": iou(binary, truth > truth_level), "chamfer": dist["chamfer"], "hausdorff": dist["hausdorff"],
               "volume_error": volume_error(binary, truth_volume, grid), "empty": not bool(binary.any())}
     if np.isnan(scores["iou"]):
         scores["overlap_undefined"] = overlap_undefined_reason(grid)
         message = (f"{scores['overlap_undefined']}, so IoU and the false rates are undefined (null), not a score; "
                    "use a higher resolution or a smaller extent_mm")
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     return scores
 
 
@@ -310,6 +308,5 @@ def reference_check(truth_occupancy: np.ndarray | torch.Tensor, grid: Grid, exac
     if REFERENCE_VOLUME_TOL < abs(binary) and binary > -1.0:  # -1 (empty): IoU is undefined, see evaluate
         message = (f"the IoU reference voxelisation is {100 * binary:+.1f}% off the exact volume at "
                    f"{grid.n} voxels per axis: IoU and false rates are approximate; volume_error uses the exact volume")
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     return {"truth_voxel_volume_error": partial, "truth_binary_volume_error": binary, "truth_level": level}

@@ -34,13 +34,13 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from dipnet.core.warn import log_and_warn
 from dipnet.evaluation.consistency import estimate_slab_sigma
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
@@ -152,8 +152,7 @@ def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> 
     message = _wedge_message(d, limit_deg) if d.ndim == 2 and d.shape[1] == 2 else \
         (_band_message(d, limit_deg) or _cone_message(d, limit_deg))
     if message is not None:
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     return message
 
 

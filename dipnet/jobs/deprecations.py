@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import copy
 import logging
-import warnings
 
 from omegaconf import DictConfig, OmegaConf, open_dict
+
+from dipnet.core.warn import log_and_warn
 
 log = logging.getLogger(__name__)
 
@@ -23,8 +24,7 @@ class ConfigDeprecation(DeprecationWarning):
 def deprecated(old: str, new: str) -> None:
     """Warn (and log) that config spelling ``old`` is deprecated in favour of ``new``."""
     message = f"{old} is deprecated: use {new}"
-    log.warning(message)
-    warnings.warn(message, ConfigDeprecation, stacklevel=3)
+    log_and_warn(log, message, ConfigDeprecation, stacklevel=3)
 
 
 def _move(cfg: DictConfig, old: str, new: str) -> None:

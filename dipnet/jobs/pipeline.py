@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-import warnings
 from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from dipnet.core.warn import log_and_warn
 from dipnet.evaluation import consistency, metrics
 from dipnet.outputs import export, plots
 from dipnet.outputs.progress import OutputStages, planned_stages
@@ -189,8 +189,7 @@ def warn_empty(recon: Reconstruction) -> bool:
                f"Hausdorff are {metrics.EMPTY_DISTANCE:.1f} by convention (one truth diagonal, a stand-in that "
                "compare.py counts as an empty run, not a distance), and its uncertainty is not judged against the "
                "truth; look at the solver's settings (prior weights, iterations, threshold) and its log above")
-    log.warning("%s", message)
-    warnings.warn(message, stacklevel=2)
+    log_and_warn(log, message, stacklevel=2)
     return True
 
 
@@ -252,8 +251,7 @@ def warn_earlier_outputs(out: Path, earlier: dict[str, tuple[int, int]], cfg: Di
         message = (f"{out} holds {len(stale)} file(s) of an earlier run that this run did not write: "
                    f"{', '.join(stale)}; they are not this run's results: delete them, or give each run its own "
                    "hydra.run.dir")
-        log.warning("%s", message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     return stale
 
 

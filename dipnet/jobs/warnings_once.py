@@ -1,7 +1,7 @@
 """Each warning of a command-line job shown once, through logging.
 
-dipnet's modules report a problem twice on purpose: ``log.warning(message)`` for the run's log
-and ``warnings.warn(message)`` for Python callers (``pytest.warns``, ``-W error``). Under a
+dipnet's modules report a problem twice on purpose (:func:`dipnet.core.warn.log_and_warn`): ``log.warning``
+for the run's log and ``warnings.warn`` for Python callers (``pytest.warns``, ``-W error``). Under a
 script both reached the console: the log record through Hydra's log handlers, the warning
 through Python's default ``warnings.showwarning`` (a second, differently formatted line on
 stderr, with the source line of the caller). :func:`log_warnings_once` replaces

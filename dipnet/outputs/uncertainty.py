@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +10,7 @@ import numpy as np
 
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
+from dipnet.core.warn import log_and_warn
 from dipnet.evaluation.ensemble import brier_score, ensemble_uncertainty, occupancy_probability
 from dipnet.evaluation.uncertainty import SURE_P_WRONG, calibration_by_decile, sure_error_rate, uncertainty
 from dipnet.operators import DipOperator
@@ -70,15 +70,13 @@ def write_uncertainty(out: Path, reconstruction: Reconstruction, measurement: Di
                        f"where the map is certain, e.g. parts the reconstruction misses far from its boundary (a "
                        f"missing cone, too few dips); judge this run by its consistency and resolvability, not its "
                        f"uncertainty")
-            log.warning(message)
-            warnings.warn(message, stacklevel=2)
+            log_and_warn(log, message, stacklevel=2)
         # no wrong call or voxel: nothing to calibrate; an empty reconstruction calls every true voxel wrong, so its
         # deciles all read 1 whatever the uncertainty (the job said it is empty)
         if np.any(deciles > 0) and not deciles[-1] > deciles[0] and reconstruction.binary.any():
             message = (f"uncertainty is not calibrated on this run: error rate {deciles[-1]:.3f} in the most "
                        f"uncertain decile vs {deciles[0]:.3f} in the least")
-            log.warning(message)
-            warnings.warn(message, stacklevel=2)
+            log_and_warn(log, message, stacklevel=2)
     if figure:
         plot_uncertainty(reconstruction.binary, maps, out / "uncertainty.png", reconstruction.grid.extent,
                          std_label="ensemble std" if method == "samples" else "posterior std")

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -26,6 +25,7 @@ import numpy as np
 import torch
 
 from dipnet.core.measurement import DipMeasurement
+from dipnet.core.warn import log_and_warn
 from dipnet.operators import DipOperator
 from dipnet.core.orientations import Reach
 from dipnet.planning.planner import MEASURED_DEG, Planner, repeated_directions, unmeasured_lines
@@ -138,8 +138,7 @@ def _warn_few_candidates(left: int, wanted: int, n_dips: int, n_candidates: int,
                f"short of the budget of {budget} (a dip along a measured direction measures the same planes again); "
                f"for more candidates give a finer reach.step_deg (now {reach.step_deg:g} deg) or a wider reach "
                f"(tilt {reach.tilt_range_deg[0]:g}-{reach.tilt_range_deg[1]:g} deg)")
-    log.warning(message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
 
 
 def _warn_repeated_initial(repeated: int, planned: int, reach: Reach) -> None:
@@ -149,8 +148,7 @@ def _warn_repeated_initial(repeated: int, planned: int, reach: Reach) -> None:
                f"repeat an earlier direction (within {MEASURED_DEG:g} deg), which "
                f"measures the same planes again: the loop starts from the other {planned - repeated}; a wider reach "
                f"gives more directions")
-    log.warning(message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
 
 
 def warn_linear_loop_solver(solver) -> None:
@@ -160,8 +158,7 @@ def warn_linear_loop_solver(solver) -> None:
     if isinstance(solver, MinNormSolver):
         message = ("planner=adaptive with solver=minnorm: the planner's noise level comes from the estimate's "
                    "misfit, which for minnorm is model error, so the candidates score alike; use solver=voxel")
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
 
 
 def keep_recorded(recorded: RawScan, planned: list[tuple[float, float]], first: int, reach: Reach | None,
@@ -186,6 +183,5 @@ def keep_recorded(recorded: RawScan, planned: list[tuple[float, float]], first: 
         message = (f"{path}: the replayed plan differs from the recorded dips ({'; '.join(moved)}); the recorded "
                    f"dips are kept and planning goes on from them (a different thread count or library version "
                    f"changes floating-point sums, or the planner's config changed)")
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     return out

@@ -13,7 +13,6 @@ Both return a :class:`PlanResult`: the final measurement and, for the loop, its 
 from __future__ import annotations
 
 import logging
-import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -22,6 +21,7 @@ import torch
 from dipnet.core.counts import whole_number
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import Reach, make_directions
+from dipnet.core.warn import log_and_warn
 from dipnet.operators import DipOperator
 from dipnet.planning.adaptive import Acquire, AdaptiveSettings, adaptive_loop, warn_linear_loop_solver
 from dipnet.planning.planner import MEASURED_DEG, NextBestDipPlanner, Planner, repeated_directions
@@ -72,8 +72,7 @@ class FixedPlan:
                            f"an earlier direction "
                            f"(within {MEASURED_DEG:g} deg) and measure the same planes again, "
                            f"{self.n_dips - repeated} distinct direction(s) in all; a wider reach gives more")
-                log.warning(message)
-                warnings.warn(message, stacklevel=2)
+                log_and_warn(log, message, stacklevel=2)
             return directions
         raise ValueError(f"orientations={self.orientations} leaves the reach (tilt {reach.tilt_range_deg}, spin "
                          f"{reach.spin_range_deg} deg): use orientations=fibonacci or another reach")

@@ -57,7 +57,6 @@ from __future__ import annotations
 import logging
 import math
 import numbers
-import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -71,6 +70,7 @@ from dipnet.core.grid import Grid, slab_count
 from dipnet.core.measurement import BEYOND_SLABS_TOL, REACH_SIGMAS, DipMeasurement
 from dipnet.core.strict_json import finite_or_none
 from dipnet.core.rawscan import OrientationScan, RawScan, complete_dips, naming_file, read_rawscan
+from dipnet.core.warn import log_and_warn
 from dipnet.preprocessing.level_trend import MIN_TAIL_READINGS, least_squares_slope, level_drop, tail_slope
 from dipnet.preprocessing.readings import ReadingsReport, max_object_section, repair_readings
 from dipnet.preprocessing.validation import NOISE_LEAK_MAX, reading_noise, reading_noise_leak
@@ -286,8 +286,7 @@ def _check_step(step_mm: float | None, slab_mm: float) -> None:
                          "step: a mesh in metres needs shape.scale=1000; else a smaller protocol.step_mm or a "
                          "lower resolution)")
     message = f"{found}: the profiles between readings are interpolated"
-    log.warning("%s", message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
 
 
 def reach_from_readings(heights: np.ndarray, volume: np.ndarray, tol: float, drift: float = 0.0
@@ -350,8 +349,7 @@ def _warn_outside(shares: list[float], ks: list[int], sigmas: list[float | None]
                f"slabs [{edges[0]:.1f}, {edges[-1]:.1f}] mm (up to {shares[worst]:.1%}, orientation {ks[worst]}), "
                "which the profiles leave out: the object reaches beyond the grid, and extent_mm must grow to hold "
                "it (or a level drifting in time rises there, or a wrong rig geometry misplaces the dips' heights)")
-    log.warning("%s", message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
 
 
 def _resolve_edges(edges, grid: Grid | None, n_slabs: int | None) -> np.ndarray:

@@ -35,7 +35,6 @@ import csv
 import io
 import logging
 import math
-import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -46,6 +45,7 @@ from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
 from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.warn import log_and_warn
 from dipnet.preprocessing.preprocess import level_drift_removed, preprocess, repair_without_drift
 from dipnet.core.rawscan import (OrientationScan, RawScan, RawScanFileError, ScanHeader, check_level_unit,
                                  check_reading_sign, complete_dips, read_rawscan)
@@ -102,8 +102,7 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
             continue
         if len(row) < 5 and lineno == last:  # cut off while it was written, as a .jsonl's last line
             message = f"{path}:{lineno}: the last row is cut off ({len(row)} of 5 fields): dropped"
-            log.warning("%s", message)
-            warnings.warn(message, stacklevel=2)
+            log_and_warn(log, message, stacklevel=2)
             continue
         if len(row) != 5:
             raise RawScanFileError(f"{path}:{lineno}: expected 5 fields, got {len(row)}")
@@ -457,8 +456,7 @@ def _warn_recorded_geometry_unused(raw: RawScan, path: str | Path) -> None:
     message = (f"{path} was scanned with a rig geometry ({differ}; recorded in its header) and is read on the ideal "
                f"rig, since the reader is given no geometry: the dips' start heights, directions and stage travel are "
                f"then not the rig's; {remedy}")
-    log.warning("%s", message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
 
 
 #: Dropping more than this share of the dips as truncated is refused: the rest cannot stand for the scan (the
@@ -476,8 +474,7 @@ def _warn_dropped(path: str | Path, cut: list[int], total: int) -> None:
         raise ValueError(f"{found}: dropping more than {MAX_DROPPED_SHARE:.0%} of the dips leaves too few to stand "
                          f"for the scan ({remedy})")
     message = f"{found}: dropped ({remedy})"
-    log.warning("%s", message)
-    warnings.warn(message, stacklevel=3)
+    log_and_warn(log, message, stacklevel=3)
 
 
 def finish_measurement(measurement: DipMeasurement, symmetry: dict | None = None,

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,6 +58,7 @@ from dipnet.core.framing import extent_around
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.grid import Grid, as_grid
 from dipnet.core.measurement import DipMeasurement
+from dipnet.core.warn import log_and_warn
 
 log = logging.getLogger(__name__)
 
@@ -202,8 +202,7 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     _check_totals(totals, noise, total_tol, source, report, unit)
     _check_duplicates(measurement, totals, noise, total_tol, dup_deg, source, report, unit)
     for message in report.warnings:
-        log.warning("%s", message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
     return report
 
 

@@ -42,6 +42,7 @@ from typing import Any
 
 import torch
 
+from dipnet.core.warn import log_and_warn
 from dipnet.solvers.base import Solver
 
 log = logging.getLogger(__name__)
@@ -292,8 +293,7 @@ def _put(values: list[torch.Tensor], optimizer_state: dict, scheduler_state: dic
 
 
 def _warn(message: str) -> None:
-    log.warning("%s", message)
-    warnings.warn(message, stacklevel=4)
+    log_and_warn(log, message, stacklevel=4)
 
 
 def attach_checkpoint(solver, setting, run_dir: str | Path, every: int = 25) -> Checkpoint | None:
@@ -322,8 +322,7 @@ def attach_checkpoint(solver, setting, run_dir: str | Path, every: int = 25) -> 
     if not hasattr(solver, "checkpoint"):
         message = (f"output.checkpoint: solver {type(solver).__name__} does not checkpoint (the optimisation "
                    "solvers voxel and implicit do); ignored")
-        log.warning(message)
-        warnings.warn(message, stacklevel=2)
+        log_and_warn(log, message, stacklevel=2)
         return None
     solver.checkpoint = Checkpoint(directory, every)
     log.info("checkpointing the solve to %s every %d steps (a rerun with it resumes)", directory, every)
