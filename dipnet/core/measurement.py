@@ -388,6 +388,9 @@ class DipMeasurement:
             meta = json.loads(str(arrays["metadata"]))
         except json.JSONDecodeError as exc:
             raise MeasurementFileError(f"{path}: metadata is not valid JSON ({exc})") from exc
+        if not isinstance(meta, dict):  # valid JSON, but a list, string or number: no format to read
+            raise MeasurementFileError(f"{path}: metadata must be a JSON object (format, version, slab_thickness, "
+                                       f"provenance), got a {type(meta).__name__}: not a dipnet measurement")
         if meta.get("format") != FORMAT_NAME:
             raise MeasurementFileError(f"{path}: not a dipnet measurement (format={meta.get('format')!r})")
         if meta.get("version") != FORMAT_VERSION:

@@ -51,6 +51,17 @@ def test_mismatched_shapes_are_reported(tmp_path):
         DipMeasurement.load(path)
 
 
+@pytest.mark.parametrize("metadata", ["[1, 2]", '"x"', "3", "null"])
+def test_metadata_that_is_no_json_object_names_the_file(metadata, tmp_path):
+    path = _measurement().save(tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays["metadata"] = np.array(metadata)  # valid JSON, but no mapping (was: AttributeError from meta.get)
+    np.savez(path, **arrays)
+    with pytest.raises(MeasurementFileError, match=r"m.npz: metadata must be a JSON object"):
+        DipMeasurement.load(path)
+
+
 def test_resampling_keeps_volume_and_matches_on_same_edges():
     m = _measurement()
     same = m.resampled(m.offsets[0] + 2.5 * torch.arange(11, dtype=torch.float64))
