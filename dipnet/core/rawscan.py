@@ -130,6 +130,10 @@ class ScanHeader:
                 raise ValueError(f"{name} must be a positive number or None, got {value!r}")
         if not self.density_g_per_mm3 > 0:
             raise ValueError(f"density_g_per_mm3 must be positive, got {self.density_g_per_mm3!r}")
+        _check_start_height(self.t_start_mm, "t_start_mm")
+        for name in ("config", "metadata"):
+            if not isinstance(getattr(self, name), dict):
+                raise ValueError(f"{name} must be a JSON object (name: value), got {getattr(self, name)!r}")
         for name, option in (("resolution", "rig.resolution"), ("noise_sigma", "")):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, numbers.Real) and 0 <= value < np.inf):
@@ -288,6 +292,14 @@ def setting_differences(recorded: dict, new: dict) -> list[str]:
     return found
 
 
+def _check_start_height(value: Any, name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` (a water line height, mm) is a finite number or
+    ``None`` (unknown): a string, list or NaN would fail deep in the preprocessing without naming the field."""
+    if value is not None and not (isinstance(value, numbers.Real) and np.isfinite(value)):
+        raise ValueError(f"{name} (the water line's height at stage 0, mm) must be a finite number or null, "
+                         f"got {value!r}")
+
+
 @dataclass
 class OrientationScan:
     """The readings of one orientation.
@@ -317,6 +329,13 @@ class OrientationScan:
     complete: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.meta, dict):
+            raise ValueError(f"orientation {self.k}: meta must be a JSON object (name: value), got {self.meta!r}")
+        _check_start_height(self.meta.get("t_start_mm"), f"orientation {self.k}: meta.t_start_mm")
+        noise = self.meta.get("noise_sigma")
+        if noise is not None and not (isinstance(noise, numbers.Real) and 0 <= noise < np.inf):
+            raise ValueError(f"orientation {self.k}: meta.noise_sigma (the readings' noise, in their unit) must be a "
+                             f"number >= 0 or null, got {noise!r}")
         if self.direction is not None:
             self.direction = np.asarray(self.direction, dtype=np.float64).reshape(-1)
         elif self.tilt_deg is None or self.spin_deg is None:
@@ -468,7 +487,7 @@ def read_rawscan(path: str | Path) -> RawScan:
                 tilt, spin = (None if obj.get(key) is None else float(obj[key]) * factors["angles"]
                               for key in ("tilt_deg", "spin_deg"))
                 o = OrientationScan(k=k, direction=obj.get("direction"), tilt_deg=tilt, spin_deg=spin,
-                                    meta=dict(obj.get("meta") or {}))
+                                    meta=obj.get("meta") or {})
                 if o.direction is not None and o.direction.shape != (scan.header.ndim,):
                     raise ValueError(f"direction must have {scan.header.ndim} components")
                 _check_direction(o)

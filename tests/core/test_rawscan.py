@@ -269,3 +269,28 @@ def test_a_negative_reading_quantum_or_noise_is_refused_naming_it():
     with pytest.raises(ValueError, match=r"^noise_sigma \(the readings' noise, in their unit\) must be .*got nan$"):
         ScanHeader(quantity="level_mm", step_mm=2.0, noise_sigma=float("nan"))
     assert ScanHeader(quantity="level_mm", step_mm=2.0, resolution=0.0, noise_sigma=None).resolution == 0.0
+
+
+@pytest.mark.parametrize("header, orientation, message", [
+    ({"t_start_mm": "abc"}, {}, r":1: t_start_mm \(the water line's height at stage 0, mm\) must be a finite number "
+                                r"or null, got 'abc'"),
+    ({"t_start_mm": [1, 2]}, {}, r":1: t_start_mm .* got \[1, 2\]"),
+    ({"config": [1]}, {}, r":1: config must be a JSON object"),
+    ({"metadata": "cup"}, {}, r":1: metadata must be a JSON object"),
+    ({}, {"meta": [1]}, r":2: orientation 0: meta must be a JSON object"),
+    ({}, {"meta": {"t_start_mm": "x"}}, r":2: orientation 0: meta.t_start_mm .* got 'x'"),
+    ({}, {"meta": {"noise_sigma": -5.0}}, r":2: orientation 0: meta.noise_sigma .* must be a number >= 0 or null, "
+                                          r"got -5.0"),
+    ({}, {"meta": {"noise_sigma": "x"}}, r":2: orientation 0: meta.noise_sigma"),
+])
+def test_header_and_orientation_fields_of_the_wrong_type_name_file_and_line(tmp_path, header, orientation, message):
+    """Before: a traceback once preprocessing used them (``TypeError: can only concatenate str``, ``AttributeError:
+    'list' object has no attribute 'get'``), and an orientation's negative ``noise_sigma`` was read as its
+    magnitude (the header's is refused)."""
+    path = tmp_path / "bad.jsonl"
+    lines = [{**_header().to_json(), **header},
+             {"type": "orientation", "k": 0, "direction": [0, 0, 1], **orientation},
+             {"type": "reading", "k": 0, "stage_mm": 0.0, "value": 150.0, "time_s": 2.0}]
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    with pytest.raises(RawScanFileError, match=message):
+        read_rawscan(path)
