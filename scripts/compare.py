@@ -21,6 +21,7 @@ directory holds no job, 1 when no job finished or none records a metric to compa
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -68,7 +69,16 @@ def main(argv: list[str] | None = None) -> int:
     if out.exists() and not out.is_dir():
         print(f"error: --out {out} is a file: give a folder for the comparison's tables and plots", file=sys.stderr)
         return 2
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a parent that is a file, a missing or read-only mount: one line, not a traceback
+        print(f"error: --out {out}: cannot create the folder for the comparison's tables and plots "
+              f"({exc.strerror or exc}): give a folder you can write", file=sys.stderr)
+        return 2
+    if not os.access(out, os.W_OK):  # a read-only folder failed at the first table, after the scan of the runs
+        print(f"error: --out {out} is not writable: give a folder you can write for the comparison's tables "
+              "and plots", file=sys.stderr)
+        return 2
     earlier = output_files(out, COMPARE_OUTPUTS)
     metrics = collect.compared_metrics(rows)
     groups = collect.aggregate(rows, args.by, metrics)

@@ -236,3 +236,14 @@ def test_an_output_path_that_is_a_file_is_refused_in_one_line(sweep, tmp_path, c
     err = capsys.readouterr().err
     assert err == f"error: --out {out} is a file: give a folder for the comparison's tables and plots\n"
     assert out.read_text() == "kept"
+
+
+def test_an_output_folder_that_cannot_be_created_is_refused_in_one_line(sweep, tmp_path, capsys):
+    """``compare.py SWEEP -o notes.txt/results`` (a folder under a file; alike a missing or read-only mount)
+    printed a raw ``NotADirectoryError`` traceback."""
+    (tmp_path / "notes.txt").write_text("kept")
+    out = tmp_path / "notes.txt" / "results"
+    assert _load_compare().main([str(sweep), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --out {out}: cannot create the folder") and err.count("\n") == 1, err
+    assert (tmp_path / "notes.txt").read_text() == "kept"
