@@ -282,8 +282,11 @@ def summary(rows: list[dict], groups: list[dict]) -> str:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    with user_errors():  # a bad mesh name or override: one line and exit 2, before any job
-        check_settings(args)
+    with user_errors():  # a bad mesh name or override, an --out that cannot hold the jobs: one line and exit 2,
+        check_settings(args)  # before any job
+        if args.out.exists() and not args.out.is_dir():
+            raise ValueError(f"--out {args.out} is a file: give a folder for the job directories and figures")
+        args.out.mkdir(parents=True, exist_ok=True)  # a parent that is a file, a read-only mount: named here
     note = replaced_note(args.overrides)
     if note:  # an override that replaced a default used to do so without a word
         print(note)
@@ -293,7 +296,6 @@ def main(argv=None) -> int:
               f"{f'; and {len(other) - 3} more' if len(other) > 3 else ''}): use another --out for this one",
               file=sys.stderr)
         return 2
-    args.out.mkdir(parents=True, exist_ok=True)
     run_jobs(args)
     rows, runs = nominal_rows(args)
     failed = tables.markdown_problems(runs, args.out)

@@ -152,6 +152,21 @@ def test_settings_the_jobs_cannot_run_with_are_one_line_and_exit_2(paper_figures
     assert not out.exists()
 
 
+@pytest.mark.parametrize("under_a_file", [False, True])
+def test_an_out_that_cannot_hold_the_jobs_is_one_line_and_exit_2(paper_figures, tmp_path, capsys, under_a_file):
+    """``--out notes.txt`` (a file) or ``--out notes.txt/figs`` printed a raw ``FileExistsError`` or
+    ``NotADirectoryError`` traceback, exit 1."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("kept")
+    out = notes / "figs" if under_a_file else notes
+    with pytest.raises(SystemExit) as exit_:
+        paper_figures.main(["--n", "12", "--percent", "10", "--meshes", "bunny", "--out", str(out)])
+    err = capsys.readouterr().err
+    message = f"{out}: Not a directory" if under_a_file else f"--out {out} is a file: give a folder"
+    assert exit_.value.code == 2 and err.count("\n") == 1 and err.startswith(f"error: {message}"), err
+    assert notes.read_text() == "kept"
+
+
 def test_an_empty_reconstruction_is_shown_as_such_and_kept_out_of_the_means(paper_figures):
     """Before: an empty result's Chamfer and Hausdorff of 1.0 (a stand-in, one truth diagonal) were tabled as its
     distances and entered the budget's mean (0.5060 from 0.012 and the empty run's 1.0)."""
