@@ -267,6 +267,10 @@ def _check_params(params) -> tuple[str, ...]:
     unknown = [p for p in params if p not in PARAMETERS]
     if unknown or not params:
         raise CalibrationError(f"unknown or no calibration parameter(s) {unknown}; choose from {list(PARAMETERS)}")
+    repeated = sorted({p for p in params if params.count(p) > 1})
+    if repeated:  # one column of the fit each: a repeat broke the fit's arrays (a numpy message) or passed unsaid
+        raise CalibrationError(f"calibration parameter(s) {', '.join(repeated)} given more than once; each is "
+                               f"estimated once: list it once (calibrate.py --params, calibration.params)")
     return params
 
 

@@ -205,7 +205,7 @@ class SelfCalibrator:
                  max_section_change: float | None = None, section_min_resolution: int = SECTION_MIN_RESOLUTION,
                  section_min_dips: int = SECTION_MIN_DIPS,
                  shape: str = "binary", dip_offset_sigma_mm: float | None = None, tank: str | None = None) -> None:
-        self.params, self.iterations, self.gain_solver = tuple(params), int(iterations), gain_solver
+        self.params, self.iterations, self.gain_solver = _check_params(params), int(iterations), gain_solver
         check_section_change(max_section_change)
         self.max_section_change = None if max_section_change is None else float(max_section_change)
         self.section_min_resolution, self.section_min_dips = int(section_min_resolution), int(section_min_dips)

@@ -83,6 +83,14 @@ def test_unknown_or_no_parameters_are_named(box_scan, params):
         fit_geometry(model, occupancy, State(TRUE), params)
 
 
+def test_a_parameter_given_twice_is_named(box_scan):
+    """``calibrate.py --params ... pivot_mm`` (or ``calibration.params``) with a repeat: a numpy ``setting an array
+    element with a sequence`` error, or a fit that passed unsaid."""
+    model, occupancy = box_scan
+    with pytest.raises(CalibrationError, match=r"calibration parameter\(s\) pivot_mm given more than once"):
+        fit_geometry(model, occupancy, State(TRUE), ("pivot_mm", "tilt_zero_deg", "pivot_mm"))
+
+
 def test_the_self_section_bias_grows_with_the_partial_volume_and_is_capped():
     assert self_section_bias(0.0) == 0.0
     assert self_section_bias(0.1) == pytest.approx(0.0095)

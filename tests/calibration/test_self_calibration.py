@@ -447,3 +447,10 @@ def test_the_shape_rounds_solve_without_the_surface_refit_and_the_final_solve_re
     assert len([row for row in result.history if row["stage"].startswith("shape")]) == 3
     assert len(refits) == 1 and result.reconstruction.info["surface_refit"]["reason"]
     assert solver.surface_refit is not None  # the caller's solver is left as it was
+
+
+def test_a_parameter_given_twice_is_refused_when_the_calibrator_is_built():
+    """``reconstruct.py calibration=self 'calibration.params=[pivot_mm,tilt_axis_offset_mm,pivot_mm]'`` ended in
+    numpy's ``setting an array element with a sequence ...``, naming no parameter."""
+    with pytest.raises(CalibrationError, match=r"calibration parameter\(s\) pivot_mm given more than once"):
+        SelfCalibrator(params=["pivot_mm", "tilt_axis_offset_mm", "pivot_mm"])
