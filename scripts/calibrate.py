@@ -78,7 +78,8 @@ def check_options(args: argparse.Namespace) -> Ball:
     """The reference ball of ``args`` (``--ball-radius``, ``--centre``, mm) after refusing, with a
     ``ValueError`` naming the option, the numbers no calibration can use: a radius or centre not finite and
     positive, ``--max-residual`` not above 0, a tolerance negative or NaN, a ``--section-tolerance`` outside [0, 1)
-    (2 meant as 2 %), a sensor lag outside [0, 600] s, an unphysical ``--cross-section``."""
+    (2 meant as 2 %), a sensor lag outside [0, 600] s, an unphysical ``--cross-section``, an ``--output`` that
+    cannot be written (:func:`check_output`)."""
     if not all(math.isfinite(c) for c in args.centre):
         raise ValueError(f"--centre must be 3 finite coordinates (mm), got {' '.join(f'{c:g}' for c in args.centre)}")
     ball = Ball(args.ball_radius, center=tuple(args.centre))
@@ -87,7 +88,18 @@ def check_options(args: argparse.Namespace) -> Ball:
         raise ValueError(f"--sensor-lag must be a time constant in [0, {MAX_SENSOR_LAG_S:g}] s, "
                          f"got {args.sensor_lag:g}")
     initial_geometry(args)  # an unphysical --cross-section is named before the scan is read
+    check_output(args.output)
     return ball
+
+
+def check_output(path: Path) -> None:
+    """Raise ``ValueError`` when the calibration file ``path`` cannot be written (a folder, or under a file), before
+    the scan is read: it was named only once the whole fit had run."""
+    if path.is_dir():
+        raise ValueError(f"--output {path} is a folder: give the calibration file's name (.yaml or .json)")
+    parent = next((p for p in path.parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise ValueError(f"--output {path}: {parent} is a file, not a folder")
 
 
 def initial_geometry(args: argparse.Namespace) -> RigGeometry:

@@ -368,6 +368,20 @@ def test_calibrate_refuses_an_option_slip_before_reading_the_scan(tmp_path, monk
     assert message in one_line_error(done)
 
 
+@pytest.mark.parametrize("under_a_file", [False, True])
+def test_calibrate_refuses_an_output_it_cannot_write_before_reading_the_scan(tmp_path, monkeypatch, capsys,
+                                                                             under_a_file):
+    """``--output`` naming a folder, or a file under a file: ``error: ...: Is a directory`` (or ``Not a directory``)
+    only after the whole fit. Now before the scan is read (here it does not exist)."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("kept")
+    output, message = ((notes / "cal.yaml", f"--output {notes / 'cal.yaml'}: {notes} is a file, not a folder")
+                       if under_a_file else (tmp_path, f"--output {tmp_path} is a folder: give the calibration file's"))
+    done = run_script("calibrate", str(tmp_path / "missing.jsonl"), "--ball-radius", "30", "--tank", "t",
+                      "--output", str(output), monkeypatch=monkeypatch, capsys=capsys)
+    assert message in one_line_error(done) and notes.read_text() == "kept"
+
+
 def test_calibrate_reference_refuses_a_residual_bound_no_fit_can_meet():
     raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(6), tank=Tank(60000.0), progress=False)
     with pytest.raises(CalibrationError, match="max_relative_residual must be a positive fraction"):
