@@ -42,12 +42,30 @@ HYDRA_KEYS = frozenset({"_target_", "_partial_", "_args_", "_recursive_", "_conv
 _UNSET = object()
 #: Mesh formats of ``output.mesh_formats`` (:func:`dipnet.outputs.export.save_mesh`).
 MESH_FORMATS = ("ply", "stl", "obj")
+#: The reader's options for a raw recording (:func:`~dipnet.preprocessing.recorded.read_raw_recording`), which a
+#: ``.npz`` measurement does not read (:func:`~dipnet.preprocessing.sources.read_recorded` re-bins its profiles).
+RAW_READER_OPTIONS = ("truncated", "calibration", "smooth", "geometry", "cross_section_mm2", "fixture", "t_start",
+                      "centre", "tail_fraction", "tail_tol", "interpolate")  # (symmetry: moved to the top level)
+
+
+def reads_a_measurement_file(cfg: DictConfig) -> bool:
+    """Whether ``cfg`` reads a recorded ``.npz`` measurement (``source=recorded``, ``source.reader.path=*.npz``)."""
+    if not instantiates(cfg, "source", RecordedSource):
+        return False
+    path = OmegaConf.select(cfg, "source.reader.path", default=None, throw_on_missing=False)
+    return isinstance(path, str) and path.lower().endswith(".npz")
+
+
 #: Options (or config groups) a choice does not read: ``(the choice as typed, whether a config makes it,
 #: ignored options (an option or a node, with every key below it), why)``.
 IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], ...] = (
     ("source=recorded", lambda cfg: instantiates(cfg, "source", RecordedSource),
      ("n_dips", "orientations", "snr_db", "shape", "reach"),
      "the recording fixes the dips, their directions, their noise and the object"),
+    ("an .npz source.reader.path", reads_a_measurement_file,
+     tuple(f"source.reader.{key}" for key in RAW_READER_OPTIONS),
+     "a measurement file holds slab profiles already made from readings: its rig geometry, calibration, tank section, "
+     "smoothing and dropped dips were applied when it was written; read the raw scan (.jsonl, .csv) to change them"),
     ("planner=adaptive", lambda cfg: instantiates(cfg, "planner", AdaptivePlan), ("n_dips", "orientations"),
      "the planner chooses the dips: set planner.budget"),
     ("ndim=2", lambda cfg: cfg.get("ndim") == 2, ("reach",),

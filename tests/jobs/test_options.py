@@ -175,6 +175,27 @@ def test_an_option_the_dimension_ignores_is_refused(overrides, message, fine):
         check_config(cfg, overrides, ["reach", "shape"])
 
 
+@pytest.mark.parametrize("option", ["source.reader.calibration=cal.yaml", "source.reader.smooth=true",
+                                    "+source.reader.cross_section_mm2=600", "source.reader.geometry.pivot_mm=20",
+                                    "source.reader.truncated=keep"])
+def test_a_raw_reader_option_given_with_an_npz_measurement_is_refused(option):
+    """A ``.npz`` holds profiles already made from readings: ``source.reader.calibration=cal.yaml`` (a rig
+    calibration), a smoothing, a tank section or a rig geometry given with one were ignored, exit 0, without a
+    word (the result that of the file's own geometry). The same options with a raw scan, and a preset's values
+    (not typed), stay fine."""
+    npz = ["source=recorded", "source.reader.path=run/measurement.npz"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[*npz, option])
+        raw = ["source=recorded", "source.reader.path=scan.jsonl", option]
+        check_config(compose(config_name="config", overrides=raw), raw, ["source"])
+        preset = ["experiment=cats_real", "source.reader.path=run/measurement.npz"]
+        check_config(compose(config_name="config", overrides=preset), preset, ["source", "experiment"])
+    key = option.lstrip("+").split("=")[0]
+    with pytest.raises(ConfigError, match=rf"option {key} is ignored with an .npz source.reader.path \(a "
+                                          r"measurement file holds slab profiles already made from readings"):
+        check_config(cfg, [*npz, option], ["source"])
+
+
 @pytest.mark.parametrize("overrides,says,not_about", [
     (["ndim=2", "output.mesh_formats=[stl]"], "writes no mesh", "reach"),
     (["ndim=2", "reach=authors_rig"], "tilt and spin range", "mesh"),
