@@ -60,6 +60,8 @@ class Param:
         log_scale = len(parts) == 2 or parts[2] == "log"
         if not low < high or (log_scale and not low > 0):
             raise ValueError(f"{text!r}: need LOW < HIGH (and LOW > 0 on a log scale)")
+        if not math.isfinite(low) or not math.isfinite(high):  # an infinite end: no sampler draws from it
+            raise ValueError(f"{text!r}: LOW and HIGH must be finite numbers (a range to sample the option from)")
         return cls(key, low, high, log_scale)
 
 

@@ -88,6 +88,14 @@ def test_a_bad_tuned_option_is_refused(text):
         Param.parse(text)
 
 
+@pytest.mark.parametrize("text", ["solver.lr=0.001:inf", "fill=-inf:0.9:linear"])
+def test_a_tuned_range_with_an_infinite_end_is_refused(text):
+    """``tune.py --param solver.lr=0.001:inf`` ran the study and died in its first trial with numpy's
+    ``OverflowError: Range exceeds valid bounds`` (a traceback, exit 1)."""
+    with pytest.raises(ValueError, match=r"LOW and HIGH must be finite numbers"):
+        Param.parse(text)
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--trials", "0"], "error: the number of trials (--trials) must be a positive integer, got 0"),
     (["--trials", "2", "resolution=-3"], "error: resolution must be an integer >= 4 (voxels per axis), got -3"),
