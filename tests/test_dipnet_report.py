@@ -34,6 +34,21 @@ def test_no_job_directory_is_a_usage_error(monkeypatch, capsys):
     assert "usage: python -m dipnet.report" in err and "the following arguments are required: jobs" in err
 
 
+@pytest.mark.parametrize("kind", ["missing", "empty"])
+def test_a_folder_that_is_no_run_is_one_error_line_and_no_page(tmp_path, monkeypatch, capsys, kind):
+    """A missing folder printed a ``FileNotFoundError`` traceback (exit 1); an empty one (or any folder that is no
+    run) got a report.html of nothing, exit 0. Neither the run given before it gets a page."""
+    job = write_job(tmp_path / "a", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics={"iou": 0.5})
+    other = tmp_path / "typo"
+    if kind == "empty":
+        other.mkdir()
+    assert _report(monkeypatch, str(job), str(other)) == 2
+    err = capsys.readouterr().err
+    what = "not a folder" if kind == "missing" else "holds no run"
+    assert err.startswith(f"error: {other}: {what}") and err.count("\n") == 1, err
+    assert not (job / "report.html").exists() and not (other / "report.html").exists()
+
+
 def test_importing_the_module_runs_nothing(monkeypatch, capsys):
     """Imported (not run), the module only names the entry point: the report's own ``main``."""
     from dipnet import report

@@ -90,7 +90,8 @@ def _load_yaml(path: Path) -> Any:
         return OmegaConf.to_container(cfg, resolve=False)
 
 
-def _is_job_dir(path: Path) -> bool:
+def is_job_dir(path: Path) -> bool:
+    """Whether ``path`` is a job's run directory: it holds ``.hydra/config.yaml``, ``metrics.json`` or ``error.txt``."""
     return (path / ".hydra" / "config.yaml").is_file() or (path / METRICS_FILE).is_file() \
         or (path / ERROR_FILE).is_file()
 
@@ -105,7 +106,7 @@ def find_job_dirs(root: str | Path) -> list[Path]:
     root = Path(root)
     if not root.is_dir():
         raise NoRunsError(f"{root}: not a directory")
-    if _is_job_dir(root):
+    if is_job_dir(root):
         return [root]
     found: set[Path] = set()
     for marker in ("config.yaml", METRICS_FILE, ERROR_FILE):

@@ -23,6 +23,7 @@ from __future__ import annotations
 import html
 import json
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
@@ -490,6 +491,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description="Write report.html into reconstruction job directories.")
     parser.add_argument("jobs", nargs="+", type=Path, help="job directories (Hydra run or sweep job dirs)")
     args = parser.parse_args(argv)
+    for job in args.jobs:  # every one before any page: a missing folder was a traceback, an empty one got a page
+        if not collect.is_job_dir(job):
+            what = "not a folder" if not job.is_dir() else \
+                "holds no run (no .hydra/config.yaml, metrics.json or error.txt)"
+            print(f"error: {job}: {what}: give the run directory of a reconstruct.py job (a sweep's jobs: "
+                  "scripts/compare.py SWEEP --html)", file=sys.stderr)
+            return 2
     for job in args.jobs:
         print(write_run_report(job))
     return 0
