@@ -44,6 +44,8 @@ log = logging.getLogger("dipnet")
 #: Keys the scan reads that no config file declares, so they are added with ``+``: the tank's name and the
 #: calibration file (``+rig.tank=lab-tank-1 +rig.calibration=rig_calibration.yaml``) and free-form metadata.
 ADDED_KEYS = ("rig.tank", "rig.calibration", "metadata")
+#: The scan's on/off options (``home`` may also be null: home when the board can).
+BOOLEAN_OPTIONS = ("home", "rehome_on_fault", "confirm_position", "fsync", "progress", "monitor")
 
 
 @hydra.main(version_base="1.3", config_path="pkg://dipnet.conf", config_name="scan")
@@ -76,10 +78,16 @@ def main(cfg: DictConfig) -> None:
 def check_scan_options(cfg: DictConfig) -> None:
     """Refuse, before anything moves, a command-line option no scan code reads (``+n_dip=4`` for
     ``n_dips=4``; the check of ``scripts/reconstruct.py``: :func:`~dipnet.jobs.options.check_overrides`,
-    with :data:`ADDED_KEYS` allowed) and a grid of tilts the rig cannot reach
+    with :data:`ADDED_KEYS` allowed), an on/off option (:data:`BOOLEAN_OPTIONS`) given as anything but true or false
+    (``home=no``, a string, is true) and a grid of tilts the rig cannot reach
     (:func:`~dipnet.core.orientations.check_grid_angles`); raises ``ValueError`` naming the option."""
     overrides, groups = hydra_overrides()
     check_overrides(cfg, [o for o in overrides if not _adds_a_read_key(o)], groups)
+    for key in BOOLEAN_OPTIONS:  # a string is true to Python: home=no homed, confirm_position=off skipped homing
+        value = cfg.get(key)
+        if not isinstance(value, bool) and not (value is None and key == "home"):
+            raise ValueError(f"{key} must be true or false{' or null' if key == 'home' else ''}, got {value!r}; "
+                             "nothing moved")
     if cfg.get("orientations") == "grid":
         check_grid_angles(cfg.get("tilts"), cfg.get("spins"), float(cfg.max_tilt_deg))
     elif cfg.get("tilts") is not None or cfg.get("spins") is not None:

@@ -147,6 +147,11 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
     # before: the tilts were ignored and the 40-dip Fibonacci scan ran
     (["tilts=[0,30]", "spins=[0]"],
      "error: tilts and spins set a grid plan, but orientations=fibonacci: add orientations=grid, or drop them"),
+    # before: a string is true to Python: home=no homed the rig, confirm_position=off accepted an unhomed position
+    # after an alarm, fsync=no synced every line, all exit 0 without a word
+    (["home=no"], "error: home must be true or false or null, got 'no'; nothing moved"),
+    (["confirm_position=off"], "error: confirm_position must be true or false, got 'off'; nothing moved"),
+    (["fsync=no"], "error: fsync must be true or false, got 'no'; nothing moved"),
 ])
 def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, script_run, overrides, message):
     assert _error_line(script_run("scan", tmp_path, *QUICK_SCAN, *overrides)) == message
