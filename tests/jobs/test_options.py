@@ -112,6 +112,11 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("snr_db=1e308", r"snr_db must be a number of dB in \[-20, 200\] or null \(noise-free\), got 1e\+308"),
     ("snr_db=-300", r"snr_db must be a number of dB in \[-20, 200\].*got -300"),
     ("source.simulator.smooth=maybe", "source.simulator.smooth must be true or false, got 'maybe'"),
+    # a string is true to Python: output.figures=no drew every figure, output.report=no wrote report.html, exit 0
+    ("output.figures=no", "output.figures must be true or false, got 'no'"),
+    ("output.report=no", "output.report must be true or false, got 'no'"),
+    ("output.resolvability=off", "output.resolvability must be true or false, got 'off'"),
+    ("output.progress=no", "output.progress must be true or false, got 'no'"),
     ("solver.threshold=2.0", r"solver.threshold must be an occupancy level in \(0, 1\) or the solver's rule "
                              r"\(otsu, volume\), got 2.0"),
     ("solver.threshold=0", r"solver.threshold must be an occupancy level in \(0, 1\).*got 0"),
