@@ -364,10 +364,11 @@ def check_values(cfg: DictConfig) -> None:
         smooth = OmegaConf.select(cfg, key, default=False)
         if not isinstance(smooth, bool):
             raise ConfigError(f"{key} must be true or false, got {smooth!r}")
-    for key in ("figures", "progress", "report", "resolvability"):  # a string is true: figures=no drew them
-        value = cfg.output.get(key, False)
+    for key in ("output.figures", "output.progress", "output.report", "output.resolvability", "operator.single",
+                "shape.fill_sealed_voids"):  # a string is true: figures=no drew them, single=no ran in complex64
+        value = OmegaConf.select(cfg, key, default=False)
         if not isinstance(value, bool):
-            raise ConfigError(f"output.{key} must be true or false, got {value!r}")
+            raise ConfigError(f"{key} must be true or false, got {value!r}")
     formats = cfg.output.get("mesh_formats")
     if not isinstance(formats, ListConfig) or any(f not in MESH_FORMATS for f in formats):
         raise ConfigError(f"output.mesh_formats must be a list of {', '.join(MESH_FORMATS)}, got "

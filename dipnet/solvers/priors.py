@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dipnet.solvers.base import checked_flag
 from dipnet.solvers.learned import LearnedPrior
 
 
@@ -58,7 +59,8 @@ class TotalVariation(nn.Module):
 
     def __init__(self, isotropic: bool = True, eps: float = 1e-3) -> None:
         super().__init__()
-        self.isotropic, self.eps = bool(isotropic), float(eps)
+        self.isotropic = checked_flag("the tv prior's isotropic (solver.priors.tv.isotropic)", isotropic)
+        self.eps = float(eps)
 
     def forward(self, occupancy: torch.Tensor) -> torch.Tensor:
         n = occupancy.shape[-1]

@@ -117,6 +117,8 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("output.report=no", "output.report must be true or false, got 'no'"),
     ("output.resolvability=off", "output.resolvability must be true or false, got 'off'"),
     ("output.progress=no", "output.progress must be true or false, got 'no'"),
+    ("operator=fourier operator.single=no", "operator.single must be true or false, got 'no'"),
+    ("shape=mesh shape.path=m.ply shape.fill_sealed_voids=no", "shape.fill_sealed_voids must be true or false"),
     ("solver.threshold=2.0", r"solver.threshold must be an occupancy level in \(0, 1\) or the solver's rule "
                              r"\(otsu, volume\), got 2.0"),
     ("solver.threshold=0", r"solver.threshold must be an occupancy level in \(0, 1\).*got 0"),

@@ -149,3 +149,12 @@ def test_build_priors_from_config():
     for weight in (float("nan"), float("inf")):
         with pytest.raises(ValueError, match=r"prior 'tv' has weight (nan|inf): a weight is a finite number >= 0"):
             build_priors({"tv": {"weight": weight}})
+
+
+@pytest.mark.parametrize("isotropic", ["no", "false", 2])
+def test_tv_isotropic_given_as_another_word_is_refused(isotropic):
+    """``solver.priors.tv.isotropic=no`` was ``bool("no")``, true: the isotropic TV ran where the anisotropic was
+    asked for, without a word."""
+    with pytest.raises(ValueError, match=r"solver.priors.tv.isotropic\) must be true or false"):
+        TotalVariation(isotropic=isotropic)
+    assert TotalVariation(isotropic=False).isotropic is False
