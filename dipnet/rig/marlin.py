@@ -151,6 +151,8 @@ class MarlinController(Controller):
     def __init__(self, url: str, axes=None, *, line_numbers: bool = True, max_resends: int = 3,
                  home_command: str = "G28", startup_s: float = 0.0, **options) -> None:
         super().__init__(url, axes, **options)
+        if not isinstance(line_numbers, bool):  # bool("no") is true
+            raise ValueError(f"rig.controller.line_numbers must be true or false, got {line_numbers!r}")
         self.line_numbers = line_numbers
         self.max_resends = int(max_resends)
         self.home_command = home_command

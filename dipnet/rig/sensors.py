@@ -227,7 +227,9 @@ class LineSensor(Sensor):
             raise ValueError("sensor.device.terminator is empty: give the end of the sensor's lines ('\\n', '\\r' "
                              "or '\\r\\n')")
         self.query = None if query is None else query.encode("ascii").decode("unicode_escape")
-        self.unit, self.unit_optional = unit, bool(unit_optional)
+        if not isinstance(unit_optional, bool):  # bool("no") is true: bare numbers were read as mm
+            raise ValueError(f"sensor.device.unit_optional must be true or false, got {unit_optional!r}")
+        self.unit, self.unit_optional = unit, unit_optional
         self.max_lines = int(max_lines)
 
     def terminator_bytes(self) -> bytes:

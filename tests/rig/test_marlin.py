@@ -214,3 +214,9 @@ def test_a_marlin_software_endstop_that_clamps_the_lowering_stops_the_scan(meshe
     assert ("reading 1 at 10 mm: PositionMismatch: idle after the move, the controller counts lower 0.000 mm "
             "(commanded 10, Z count 0 at 400 steps/unit)") in message
     assert "inside the software endstops (M211)" in message and "kept 1 readings" in message
+
+
+def test_line_numbers_given_as_another_word_is_refused():
+    """``rig.controller.line_numbers=no`` was kept as the string "no", true: numbered, checksummed lines were sent."""
+    with pytest.raises(ValueError, match="rig.controller.line_numbers must be true or false, got 'no'"):
+        marlin.MarlinController("loop://", line_numbers="no")

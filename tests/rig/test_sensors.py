@@ -283,3 +283,9 @@ def test_a_busy_balance_is_asked_again_up_to_its_busy_retries():
         for bad in (-1, 1.5, True):
             with pytest.raises(ValueError, match=rf"^sensor\.device\.{name} must be a whole number >= 0"):
                 sensors.BalanceSensor("fakerig://nowhere/ad", **{name: bad})
+
+
+def test_unit_optional_given_as_another_word_is_refused():
+    """``sensor.device.unit_optional=no`` was ``bool("no")``, true: a bare number was read in mm."""
+    with pytest.raises(ValueError, match="sensor.device.unit_optional must be true or false, got 'no'"):
+        sensors.LineSensor("loop://", unit_optional="no")
