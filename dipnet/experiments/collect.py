@@ -141,6 +141,7 @@ def load_run(job_dir: str | Path) -> Run:
                 raise ValueError("not a JSON object")
             run.status = "ok"
         except ValueError as exc:
+            run.metrics = {}  # a list or number read from the file is no metrics (was an AttributeError in run_row)
             run.status, run.error = "failed", f"unreadable {metrics_path.name}: {exc}"
         if run.status == "ok" and error_path.is_file() and \
                 error_path.stat().st_mtime_ns >= metrics_path.stat().st_mtime_ns:

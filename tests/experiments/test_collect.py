@@ -40,6 +40,18 @@ def test_a_single_job_dir_and_a_corrupt_metrics_file(tmp_path):
     assert run.status == "failed" and "metrics.json" in run.error
 
 
+@pytest.mark.parametrize("text", ["[1, 2]", "3", '"done"'])
+def test_a_metrics_file_that_is_no_json_object_is_a_failed_row(tmp_path, text):
+    """``metrics.json`` holding ``[1, 2]`` was named failed, but kept as the run's metrics: ``compare.py`` then
+    died in ``run_row`` with ``AttributeError: 'list' object has no attribute 'get'``."""
+    job = write_job(tmp_path / "0", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics={"iou": 0.5})
+    (job / "metrics.json").write_text(text)
+    run = collect.load_run(job)
+    assert run.status == "failed" and "not a JSON object" in run.error and run.metrics == {}
+    row = collect.run_row(run)
+    assert row["status"] == "failed" and row["n_dips"] == 4
+
+
 def test_a_sweep_job_that_failed_after_writing_its_metrics_is_failed(tmp_path):
     """Before: a job that raised after ``metrics.json`` (a full disk while writing its meshes) was ``ok`` in
     ``compare.py``, its error.txt unread. An error.txt older than the metrics (a failed run, then the same sweep run
