@@ -10,7 +10,8 @@ Dip a ball of known radius (held with its centre at the object origin the rig as
 The file (:mod:`dipnet.core.calibration_file`) names the scan's rig and its tank (``--tank``, or the
 tank the scan recorded with ``scan.py +rig.tank=lab-tank-1``; a different ``--tank`` is refused); scans
 use it with ``+rig.calibration=rig_calibration.yaml`` (and ``+rig.tank=lab-tank-1``), readers with
-``source.reader.calibration=rig_calibration.yaml``. Every parameter is estimated by default;
+``source.reader.calibration=rig_calibration.yaml``. A file already at ``--output`` is kept, renamed with its
+modification time (``rig_calibration.20261130T194012.yaml``). Every parameter is estimated by default;
 those the dips cannot determine (a centred ball's spin zero, by its symmetry) are named with
 the reason and written under ``not_estimated`` with their configured values. A ball off the spin
 axis has its distance from the axis fitted: its fitted centre is printed and written as
@@ -36,7 +37,7 @@ from dipnet.jobs.warnings_once import log_warnings_once
 from dipnet.core.geometry import MAX_SENSOR_LAG_S, RigGeometry
 from dipnet.core.grid import Grid
 from dipnet.preprocessing.recorded import read_scan
-from dipnet.core.calibration_file import save_calibration, scan_tank
+from dipnet.core.calibration_file import keep_previous, save_calibration, scan_tank
 from dipnet.shapes import Ball
 
 
@@ -131,9 +132,12 @@ def main(argv=None) -> int:
             (f", fitted centre {[round(v, 3) for v in fitted]} mm" if fitted is not None else "") + \
             f", from {args.scan}"
         calibration = to_calibration(geometry, report, raw.header.rig, str(tank), notes=notes)
+        kept = keep_previous(args.output)  # an earlier calibration there is renamed, not overwritten
         path = save_calibration(calibration, args.output)
     print(report.table())
     print(f"wrote {path} (rig {raw.header.rig!r}, tank {tank!r})")
+    if kept is not None:
+        print(f"the file there before kept as {kept}")
     return 0
 
 

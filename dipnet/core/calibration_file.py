@@ -110,6 +110,22 @@ class Calibration:
                    else {"reference_centroid_mm": [float(v) for v in self.reference_centroid_mm]})}
 
 
+def keep_previous(path: str | Path) -> Path | None:
+    """Rename an existing file ``path`` to ``<stem>.<its modification time><suffix>`` beside it (``-1``, ``-2``, ...
+    added while that name is taken), so that writing a new calibration there loses no earlier one (another rig's or
+    tank's, or the last good one). Returns the new name, or ``None`` when ``path`` is no file."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    stamp = time.strftime("%Y%m%dT%H%M%S", time.localtime(path.stat().st_mtime))
+    kept, n = path.with_name(f"{path.stem}.{stamp}{path.suffix}"), 0
+    while kept.exists():
+        n += 1
+        kept = path.with_name(f"{path.stem}.{stamp}-{n}{path.suffix}")
+    path.rename(kept)
+    return kept
+
+
 def save_calibration(calibration: Calibration, path: str | Path) -> Path:
     """Write ``calibration`` to ``path`` (``.json``, else YAML); returns the path."""
     path = Path(path)

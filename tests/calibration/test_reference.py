@@ -32,11 +32,14 @@ def ball_scan(tmp_path_factory):
 def test_reference_ball_recovers_the_fake_rigs_geometry(ball_scan, tmp_path):
     """scripts/calibrate.py end to end: the file it writes holds the fake rig's true geometry, and a
     reader using that file places the ball's profiles where an ideal rig would have. The fake rig holds
-    the ball exactly at the configured position (``--height-tolerance 0 --position-tolerance 0``)."""
+    the ball exactly at the configured position (``--height-tolerance 0 --position-tolerance 0``). A file already
+    at ``--output`` is kept beside it under another name (it was overwritten without a word)."""
     calibrate = load_script("calibrate")
     out = tmp_path / "rig_calibration.yaml"
+    out.write_text("an earlier calibration")
     assert calibrate.main([str(ball_scan), "--ball-radius", str(RADIUS), "--n", "64", "--output", str(out),
                            "--height-tolerance", "0", "--position-tolerance", "0"]) == 0
+    assert [p.read_text() for p in tmp_path.glob("rig_calibration.*.yaml")] == ["an earlier calibration"]
     cal = load_calibration(out, rig="fake-grbl", tank="tank-1")
     g = cal.geometry
     assert g.pivot_mm == pytest.approx(20.0, abs=1.0) and g.tilt_axis_offset_mm == pytest.approx(10.0, abs=0.5)

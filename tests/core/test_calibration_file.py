@@ -1,11 +1,13 @@
 """Rig calibration files: round trips in YAML and JSON, and one clear refusal per bad file."""
 
 import math
+import os
+import time
 
 import pytest
 
-from dipnet.core.calibration_file import (TANK_CONFIG_KEY, Calibration, CalibrationFileError, load_calibration,
-                                          save_calibration, scan_calibration, scan_tank)
+from dipnet.core.calibration_file import (TANK_CONFIG_KEY, Calibration, CalibrationFileError, keep_previous,
+                                          load_calibration, save_calibration, scan_calibration, scan_tank)
 from dipnet.core.geometry import RigGeometry
 from dipnet.core.rawscan import ScanHeader
 
@@ -118,3 +120,16 @@ def test_an_unidentified_field_is_written_as_strict_json_and_read_as_unknown(tmp
     assert "Infinity" not in path.read_text()
     loaded = load_calibration(path)
     assert math.isnan(loaded.uncertainty["pivot_mm"]) and all(math.isnan(v) for v in loaded.intervals["pivot_mm"])
+
+
+def test_keep_previous_renames_an_earlier_file_by_its_time_and_never_over_another(tmp_path):
+    path = tmp_path / "cal.yaml"
+    assert keep_previous(path) is None  # nothing there: nothing to keep
+    kept = []
+    for text in ("first", "second"):
+        save_calibration(CAL, path).write_text(text)
+        os.utime(path, (1764531612, 1764531612))  # the same modification time both times
+        kept.append(keep_previous(path))
+    assert not path.exists() and [p.read_text() for p in kept] == ["first", "second"]
+    stamp = time.strftime("%Y%m%dT%H%M%S", time.localtime(1764531612))
+    assert [p.name for p in kept] == [f"cal.{stamp}.yaml", f"cal.{stamp}-1.yaml"]
