@@ -27,7 +27,7 @@ from dipnet.outputs.summary import headline, prior_weight_metrics, surface_refit
 from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.jobs.calibration_job import self_calibration_job
 from dipnet.jobs.deprecations import upgrade_config
-from dipnet.solvers.checkpoint import attach_checkpoint
+from dipnet.solvers.checkpoint import attach_checkpoint, checkpoint_directory
 from dipnet.core.framing import extent_around
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
@@ -92,6 +92,7 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     check_recording_not_overwritten(cfg, out)
+    checkpoint_directory(cfg.output.get("checkpoint"), out)  # a file there: refused before any work
     earlier = output_files(out)
     torch.manual_seed(int(cfg.seed))
     configure_threads(cfg.get("threads"))

@@ -296,6 +296,30 @@ def _warn(message: str) -> None:
     log_and_warn(log, message, stacklevel=4)
 
 
+def checkpoint_directory(setting, run_dir: str | Path) -> Path | None:
+    """The directory ``output.checkpoint`` names (``setting`` as :func:`attach_checkpoint` takes it), checked before
+    any work: ``None`` for no checkpoint.
+
+    Raises:
+        ValueError: ``setting`` is not null, true or a directory, or the directory is a file or lies under one (every
+            checkpoint write would fail, each with a warning, and the solve would go on without them).
+    """
+    if setting is None or setting is False:
+        return None
+    if setting is True:
+        directory = Path(run_dir) / "checkpoints"
+    elif isinstance(setting, (str, Path)) and str(setting).strip():
+        directory = Path(setting)
+    else:
+        raise ValueError(f"output.checkpoint must be null, true or a directory, got {setting!r}")
+    blocking = next((p for p in (directory, *directory.parents) if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"output.checkpoint={setting}: {blocking} is a file, not a directory, so no checkpoint "
+                         f"could be written into {directory}: give a directory (made when needed), or true for "
+                         "<run dir>/checkpoints")
+    return directory
+
+
 def attach_checkpoint(solver, setting, run_dir: str | Path, every: int = 25) -> Checkpoint | None:
     """Give ``solver`` the checkpoint the pipeline's ``output.checkpoint`` asks for.
 
@@ -311,14 +335,9 @@ def attach_checkpoint(solver, setting, run_dir: str | Path, every: int = 25) -> 
     Returns:
         The checkpoint given to the solver, or ``None``.
     """
-    if setting is None or setting is False:
+    directory = checkpoint_directory(setting, run_dir)
+    if directory is None:
         return None
-    if setting is True:
-        directory = Path(run_dir) / "checkpoints"
-    elif isinstance(setting, (str, Path)) and str(setting).strip():
-        directory = Path(setting)
-    else:
-        raise ValueError(f"output.checkpoint must be null, true or a directory, got {setting!r}")
     if not hasattr(solver, "checkpoint"):
         message = (f"output.checkpoint: solver {type(solver).__name__} does not checkpoint (the optimisation "
                    "solvers voxel and implicit do); ignored")

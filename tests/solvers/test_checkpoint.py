@@ -65,3 +65,16 @@ def test_checkpoint_setting_is_checked(tmp_path):
         attach_checkpoint(voxel, 3, tmp_path)
     with pytest.warns(UserWarning, match="does not checkpoint"):
         assert attach_checkpoint(MinNormSolver(progress=False), True, tmp_path) is None
+
+
+@pytest.mark.parametrize("where", ["file", "under_a_file", "true"])
+def test_a_checkpoint_directory_that_is_a_file_is_refused_before_any_work(tmp_path, where):
+    """output.checkpoint=FILE (or a folder under a file) was taken: the solve went on and warned at every checkpoint."""
+    blocking = tmp_path / ("job/checkpoints" if where == "true" else "ck.pt")
+    blocking.parent.mkdir(parents=True, exist_ok=True)
+    blocking.write_text("not a folder")
+    setting = {"file": f"'{blocking}'", "under_a_file": f"'{blocking / 'sub'}'", "true": "true"}[where]
+    with pytest.raises(ValueError, match=f"output.checkpoint=.*: {blocking} is a file, not a directory"):
+        run(_cfg(f"output.checkpoint={setting}"), tmp_path / "job")
+    assert not (tmp_path / "job" / "measurement.npz").exists()
+    assert blocking.read_text() == "not a folder"
