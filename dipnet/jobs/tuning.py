@@ -42,7 +42,8 @@ BASE_OVERRIDES = ("solver=voxel", "ndim=3", "resolution=32", "n_dips=51", "outpu
 
 @dataclass(frozen=True)
 class Param:
-    """One tuned option: a dotted config key, sampled in ``[low, high]`` (log-uniform with ``log``)."""
+    """One tuned option: a dotted config key, sampled in ``[low, high]`` (log-uniform with ``log``; whole numbers for
+    an integer option with whole ends, :func:`whole_number_keys`)."""
 
     key: str
     low: float
@@ -73,6 +74,18 @@ def compose_job(overrides: Sequence[str]) -> DictConfig:
     """The job config of ``conf/config.yaml`` with ``overrides`` (Hydra's compose API)."""
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides))
+
+
+def whole_number_keys(params: Sequence[Param], overrides: Sequence[str]) -> set[str]:
+    """The tuned options drawn as whole numbers (Optuna's ``suggest_int``): both ends of the range whole and the
+    option an integer in the job's config (``n_dips=5:50``, ``resolution``, ``solver.iterations``); a float option
+    stays a float whatever its range (``solver.priors.tv.weight=1:10``)."""
+    whole = [p for p in params if float(p.low).is_integer() and float(p.high).is_integer()]
+    if not whole:
+        return set()
+    job = compose_job([*BASE_OVERRIDES, *overrides])
+    values = {p.key: OmegaConf.select(job, p.key, default=None, throw_on_missing=False) for p in whole}
+    return {key for key, value in values.items() if isinstance(value, int) and not isinstance(value, bool)}
 
 
 def _save_job_config(cfg: DictConfig, overrides: list[str], out: Path) -> None:
@@ -296,11 +309,16 @@ def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]
                    else "a --param")
             raise ValueError(f"override {item} sets {key}, which the study tunes ({how}): each trial's value would "
                              "replace it; an option must be either fixed by an override or tuned, not both")
-    job = compose_job([*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.low!r}" for p in params)])
+    whole = whole_number_keys(params, overrides)  # n_dips=5:50 drawn as 5, not 5.0 (which the job refuses)
+
+    def ends(end: str) -> list[str]:
+        return [f"{p.key}={int(getattr(p, end)) if p.key in whole else getattr(p, end)!r}" for p in params]
+
+    job = compose_job([*BASE_OVERRIDES, *overrides, *ends("low")])
     check_config(job)
     check_ground_truth(job)
     try:   # the range's other end: a range running past what the option takes fails every trial drawn there
-        check_config(compose_job([*BASE_OVERRIDES, *overrides, *(f"{p.key}={p.high!r}" for p in params)]))
+        check_config(compose_job([*BASE_OVERRIDES, *overrides, *ends("high")]))
     except ValueError as exc:
         ranges = ", ".join(f"{p.key}={p.low:g}:{p.high:g}" for p in params)
         raise ConfigError(f"{exc} (the high end of a tuned range, --param {ranges}: every trial drawn near it would "
@@ -333,12 +351,14 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
                          f"got {n_startup_trials!r}")
     out = Path(out)
     check_out(out, stored_trials(storage, study_name))
+    whole = whole_number_keys(params, overrides)
     sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=n_startup_trials)
     study = optuna.create_study(direction="minimize", sampler=sampler, storage=storage, study_name=study_name,
                                 load_if_exists=storage is not None)
     for _ in range(n_trials):
         trial = study.ask()
-        values = {p.key: trial.suggest_float(p.key, p.low, p.high, log=p.log) for p in params}
+        values = {p.key: trial.suggest_int(p.key, int(p.low), int(p.high), log=p.log) if p.key in whole
+                  else trial.suggest_float(p.key, p.low, p.high, log=p.log) for p in params}
         job = [*BASE_OVERRIDES, *overrides, *(f"{k}={v!r}" for k, v in values.items())]
         trial_dir = out / str(trial.number)
         trial_dir.mkdir(parents=True, exist_ok=True)

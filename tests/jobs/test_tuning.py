@@ -318,3 +318,23 @@ def test_a_range_whose_high_end_the_option_refuses_is_refused_before_any_trial(t
     assert exit_.value.code == 2 and len(err.splitlines()) == 1, err
     assert err.startswith("error: snr_db must be a number of dB in [-20, 200]") and "high end of a tuned range" in err
     assert not (tmp_path / "study").exists()
+
+
+def test_an_integer_option_is_tuned_in_whole_numbers(tmp_path, monkeypatch):
+    """``tune.py --param n_dips=5:50`` was refused: "n_dips must be a positive integer, got 5.0" (every value drawn
+    was a float). An integer option with whole ends is drawn by ``suggest_int``; a float option stays a float."""
+    received = []
+
+    def fake_run(cfg, out):
+        received.append((cfg.n_dips, cfg.solver.iterations, cfg.solver.priors.tv.weight))
+        return SimpleNamespace(metrics={"chamfer": 0.1, "empty": False})
+
+    monkeypatch.setattr(tuning, "run", fake_run)
+    params = [Param.parse("n_dips=5:50"), Param.parse("solver.iterations=10:20:linear"),
+              Param.parse("solver.priors.tv.weight=1:10")]
+    tuning.check_study(3, params, ["resolution=16"])
+    study = tuning.tune(tmp_path / "study", n_trials=3, params=params, overrides=["resolution=16"])
+    assert len(received) == 3 and [t.state.name for t in study.trials] == ["COMPLETE"] * 3
+    for n_dips, iterations, weight in received:
+        assert type(n_dips) is int and 5 <= n_dips <= 50 and type(iterations) is int and 10 <= iterations <= 20
+        assert type(weight) is float and 1 <= weight <= 10
