@@ -481,7 +481,7 @@ def read_rawscan(path: str | Path) -> RawScan:
                 scan = RawScan(header=ScanHeader.from_json(obj), path=path, units=dict(obj.get("units") or {}))
                 factors = scan.header.unit_factors(obj.get("units"))
             elif kind == "orientation":
-                k = int(obj["k"])
+                k = _index(obj)
                 if k in by_k and by_k[k].complete:
                     raise ValueError(f"orientation {k} is begun again after it was completed")
                 tilt, spin = (None if obj.get(key) is None else float(obj[key]) * factors["angles"]
@@ -495,7 +495,7 @@ def read_rawscan(path: str | Path) -> RawScan:
                 by_k[k] = o
             elif kind == "reading":
                 o = _open_orientation(by_k, obj)
-                values = [float(obj[key]) * factors[field] for key, field in
+                values = [_reading_number(obj, key) * factors[field] for key, field in
                           (("stage_mm", "stage"), ("value", "value"), ("time_s", "time"))]
                 if not all(np.isfinite(values)):
                     raise ValueError("reading holds a non-finite number")
@@ -646,8 +646,24 @@ def complete_dips(raw: RawScan) -> list[OrientationScan]:
     return done
 
 
+def _index(obj: dict) -> int:
+    """A record's orientation index ``k``: a whole number (``0.5`` was read as 0; a string index ``"1"`` reads)."""
+    k = obj["k"]
+    if isinstance(k, bool) or (isinstance(k, numbers.Real) and not float(k).is_integer()):
+        raise ValueError(f"orientation index k must be a whole number, got {k!r}")
+    return int(k)
+
+
+def _reading_number(obj: dict, key: str) -> float:
+    """A reading's ``key`` (``stage_mm``, ``value``, ``time_s``): a JSON number (``"0"``, a string, was read as 0)."""
+    value = obj[key]
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{key} must be a number, got {value!r}")
+    return float(value)
+
+
 def _open_orientation(by_k: dict[int, OrientationScan], obj: dict) -> OrientationScan:
-    k = int(obj["k"])
+    k = _index(obj)
     if k not in by_k:
         raise ValueError(f"record for orientation {k}, which was never begun")
     if by_k[k].complete:

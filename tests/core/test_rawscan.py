@@ -294,3 +294,26 @@ def test_header_and_orientation_fields_of_the_wrong_type_name_file_and_line(tmp_
     path.write_text("".join(json.dumps(line) + "\n" for line in lines))
     with pytest.raises(RawScanFileError, match=message):
         read_rawscan(path)
+
+
+@pytest.mark.parametrize("orientation, reading, line_no, message", [
+    ({"k": 0.5}, {}, 2, r"orientation index k must be a whole number, got 0.5"),
+    ({}, {"k": 2.5}, 3, r"orientation index k must be a whole number, got 2.5"),
+    ({"k": True}, {}, 2, r"orientation index k must be a whole number, got True"),
+    ({}, {"stage_mm": "0"}, 3, r"stage_mm must be a number, got '0'"),
+    ({}, {"value": "150.0"}, 3, r"value must be a number, got '150.0'"),
+    ({}, {"time_s": True}, 3, r"time_s must be a number, got True"),
+])
+def test_an_index_or_reading_of_the_wrong_type_names_file_and_line(tmp_path, orientation, reading, line_no, message):
+    """Before: ``k: 0.5`` was read as orientation 0 and ``"stage_mm": "0"`` (a string) as 0 mm, without a word."""
+    path = tmp_path / "bad.jsonl"
+    lines = [_header().to_json(), {"type": "orientation", "k": 0, "direction": [0, 0, 1], **orientation},
+             {"type": "reading", "k": 0, "stage_mm": 0.0, "value": 150.0, "time_s": 2.0, **reading}]
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    with pytest.raises(RawScanFileError, match=f"^{path}:{line_no}: {message}$"):
+        read_rawscan(path)
+    whole = [lines[0], {"type": "orientation", "k": 1.0, "direction": [0, 0, 1]},
+             {"type": "reading", "k": "1", "stage_mm": 0, "value": 150, "time_s": 2.0}]
+    path.write_text("".join(json.dumps(line) + "\n" for line in whole))
+    read = read_rawscan(path).orientations[0]  # 1.0 and "1" (a string index) are still orientation 1
+    assert read.k == 1 and read.stage_mm.tolist() == [0.0] and read.values.tolist() == [150.0]
