@@ -39,9 +39,15 @@ class MeasurementFileError(ValueError):
     """A measurement file is missing, unreadable or inconsistent."""
 
 
-def _float64(values) -> torch.Tensor:
+def _float64(values, name: str) -> torch.Tensor:
     """``values`` (a tensor, a numpy array, a list) as a float64 tensor; a numpy view with negative strides
-    (``np.flip``, ``[::-1]``) is copied, as torch takes none."""
+    (``np.flip``, ``[::-1]``) is copied, as torch takes none. Complex values raise :class:`MeasurementFileError`
+    naming the array ``name`` (the cast dropped their imaginary parts with only torch's warning)."""
+    if values.is_complex() if isinstance(values, torch.Tensor) else np.iscomplexobj(values):
+        dtype = str(getattr(values, "dtype", "complex")).removeprefix("torch.")
+        raise MeasurementFileError(f"measurement array {name!r} holds complex numbers ({dtype}): a measurement's "
+                                   "arrays are real (slab volumes in mm^3, directions, offsets in mm); give the real "
+                                   "part where it was made, if that is what it means")
     if isinstance(values, np.ndarray):
         values = np.ascontiguousarray(values)
     return torch.as_tensor(values, dtype=torch.float64)
@@ -161,9 +167,9 @@ class DipMeasurement:
     metadata: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.directions = _float64(self.directions)
-        self.profiles = _float64(self.profiles)
-        self.offsets = _float64(self.offsets).reshape(-1)
+        self.directions = _float64(self.directions, "directions")
+        self.profiles = _float64(self.profiles, "profiles")
+        self.offsets = _float64(self.offsets, "offsets").reshape(-1)
         self.slab_thickness = _thickness(self.slab_thickness)
         if self.metadata is None:
             self.metadata = {}
@@ -171,7 +177,7 @@ class DipMeasurement:
             raise MeasurementFileError(f"metadata must be a dict (provenance, JSON-serialisable), got "
                                        f"{type(self.metadata).__name__}")
         if self.sigma is not None:
-            self.sigma = _float64(self.sigma)
+            self.sigma = _float64(self.sigma, "sigma")
             if self.sigma.numel() == 1:
                 self.sigma = self.sigma.reshape(1, 1).expand_as(self.profiles).clone()
         self.validate()

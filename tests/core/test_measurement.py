@@ -143,6 +143,23 @@ def test_a_measurement_without_dips_is_refused(tmp_path):
         DipMeasurement.load(path)
 
 
+@pytest.mark.parametrize("name", ["profiles", "sigma", "offsets"])
+def test_complex_arrays_are_refused_naming_the_file(tmp_path, name):
+    """Complex ``profiles`` in a ``.npz`` were cast to real (their imaginary parts dropped) with only torch's
+    warning."""
+    path = _measurement().save(tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays[name] = arrays[name] + 1j * arrays[name]
+    np.savez(path, **arrays)
+    with pytest.raises(MeasurementFileError, match=rf"^{path}: measurement array '{name}' holds complex numbers "
+                                                   r"\(complex128\): a measurement's arrays are real"):
+        DipMeasurement.load(path)
+    with pytest.raises(MeasurementFileError, match="'profiles' holds complex numbers"):  # made in Python alike
+        DipMeasurement(directions=fibonacci_hemisphere(4), profiles=torch.ones(4, 10, dtype=torch.complex128),
+                       slab_thickness=2.5, offsets=torch.zeros(4))
+
+
 def test_slab_centres_are_the_offsets_plus_half_a_slab_per_step():
     m = DipMeasurement(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), torch.ones(2, 3, dtype=torch.float64), 2.0,
                        torch.tensor([-3.0, 1.0], dtype=torch.float64))
