@@ -628,3 +628,24 @@ def test_a_ball_that_fills_much_of_the_tank_is_warned_about():
             calibrate_reference(raw, ball, Grid(24, extent=2.0 * (30.0 + 25.0 + 10.0)))
         said = [str(w.message) for w in caught if "the water line rises up to" in str(w.message)]
         assert bool(said) == snug and (not said or "Use a tank several times the object's section" in said[0])
+
+
+def test_a_tilt_zero_held_at_the_configured_value_widens_the_offset_by_the_pivots_arm():
+    """The audit's case: a centred 19 mm ball on a long arm (pivot 105 mm, 24 dips) cannot show a 3.1 deg tilt zero
+    (its dips fit any tilt zero with the offset moved by the pivot's 1.8 mm per degree), which is held at the
+    configured 0; the offset, refitted around the held 0, kept the joint fit's bootstrap interval, which stayed in
+    one part of the flat valley: -0.07 mm in [-1.27, 1.33] for a true 6.14 (6.7 standard errors). Its interval
+    now carries the held tilt zero's configured uncertainty and holds the truth."""
+    true = RigGeometry(pivot_mm=105.2, tilt_axis_offset_mm=6.143, tilt_zero_deg=3.116, spin_zero_deg=1.58,
+                       step_scale=1.00886, cross_section_mm2=110675.6, level_drift_mm_per_s=8.563e-6)
+    raw = simulate_scan(Ball(19.15, center=(0.148, 0.262, 0.564)), fibonacci_hemisphere(24), tank=Tank(126270.0),
+                        geometry=true, sensor=LevelSensor(snr_db=27.76, seed=12), progress=False)
+    raw.header.t_start_mm += 0.445  # the ball held 0.56 mm high, its start height recorded 0.45 mm off
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        _, report = calibrate_reference(raw, Ball(19.15), Grid(24, extent=60.0), seed=12)
+    assert "tilt_zero_deg" in report.undetermined
+    low, high = report.intervals["tilt_axis_offset_mm"]
+    assert low <= true.tilt_axis_offset_mm <= high
+    error = report.estimates["tilt_axis_offset_mm"] - true.tilt_axis_offset_mm
+    assert abs(error) < 3 * report.standard_errors["tilt_axis_offset_mm"]
