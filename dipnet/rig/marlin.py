@@ -28,6 +28,7 @@ import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+from dipnet.core.flags import checked_flag
 from dipnet.rig.controller import (AlarmError, Axis, Controller, ControllerError, Position, PositionMismatch,
                                    PositionUnknown, ResetError, RigTimeout, require_link)
 
@@ -151,8 +152,7 @@ class MarlinController(Controller):
     def __init__(self, url: str, axes=None, *, line_numbers: bool = True, max_resends: int = 3,
                  home_command: str = "G28", startup_s: float = 0.0, **options) -> None:
         super().__init__(url, axes, **options)
-        if not isinstance(line_numbers, bool):  # bool("no") is true
-            raise ValueError(f"rig.controller.line_numbers must be true or false, got {line_numbers!r}")
+        line_numbers = checked_flag("rig.controller.line_numbers", line_numbers)  # bool("no") is true
         self.line_numbers = line_numbers
         self.max_resends = int(max_resends)
         self.home_command = home_command

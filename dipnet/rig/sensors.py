@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 import serial
 
+from dipnet.core.flags import checked_flag
 from dipnet.core.optional import optional_import
 from dipnet.rig.controller import (LineChannel, PortLock, RigDisconnected, RigError, RigTimeout, SerialDevice,
                                    open_channel, open_port, seconds)
@@ -227,9 +228,8 @@ class LineSensor(Sensor):
             raise ValueError("sensor.device.terminator is empty: give the end of the sensor's lines ('\\n', '\\r' "
                              "or '\\r\\n')")
         self.query = None if query is None else query.encode("ascii").decode("unicode_escape")
-        if not isinstance(unit_optional, bool):  # bool("no") is true: bare numbers were read as mm
-            raise ValueError(f"sensor.device.unit_optional must be true or false, got {unit_optional!r}")
-        self.unit, self.unit_optional = unit, unit_optional
+        # bool("no") is true: bare numbers were read as mm
+        self.unit, self.unit_optional = unit, checked_flag("sensor.device.unit_optional", unit_optional)
         self.max_lines = int(max_lines)
 
     def terminator_bytes(self) -> bytes:

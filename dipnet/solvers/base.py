@@ -46,14 +46,6 @@ def checked_threshold(threshold: float | str, rule: str) -> float | str:
     return float(threshold)
 
 
-def checked_flag(name: str, value) -> bool:
-    """A solver's on / off option ``name`` as a bool: ``True`` or ``False`` (or the integers 1 and 0); anything else
-    raises a ``ValueError`` (a string such as ``"no"`` was read as on)."""
-    if isinstance(value, (bool, np.bool_)) or (isinstance(value, numbers.Integral) and value in (0, 1)):
-        return bool(value)
-    raise ValueError(f"{name} must be true or false, got {value!r}")
-
-
 def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor:
     """The measured slab volumes on the operator's slabs, ``(K, M)`` float64, mm^3.
 

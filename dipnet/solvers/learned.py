@@ -45,7 +45,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dipnet.core.orientations import Reach, fibonacci_hemisphere, unmeasured_band_deg
-from dipnet.solvers.base import checked_flag
+from dipnet.core.flags import checked_flag
 from dipnet.solvers.denoiser import OccupancyDenoiser, PriorMismatchError, load_weights_with_digest
 
 #: Dips whose unmeasured band about the horizontal exceeds the training plan's by more than this (degrees) are

@@ -33,13 +33,14 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from dipnet.core.flags import checked_flag
 from dipnet.core.grid import Grid
 from dipnet.core.counts import whole_number
 from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
-from dipnet.solvers.base import (SIGMA_FLOOR, SMOOTHED_NOISE_MODEL, Solver, checked_flag, checked_threshold,
+from dipnet.solvers.base import (SIGMA_FLOOR, SMOOTHED_NOISE_MODEL, Solver, checked_threshold,
                                  measured_profiles, noise_sigma, readings_differenced)
 from dipnet.solvers.checkpoint import solver_settings
 from dipnet.solvers.noise_covariance import correlated_precision

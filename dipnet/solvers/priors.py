@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dipnet.solvers.base import checked_flag
+from dipnet.core.flags import checked_flag
 from dipnet.solvers.learned import LearnedPrior
 
 

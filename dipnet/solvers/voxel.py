@@ -46,7 +46,8 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.solvers.base import checked_flag, on_operator_slabs
+from dipnet.core.flags import checked_flag
+from dipnet.solvers.base import on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.weights import KNOWN_NOISE, prior_options, with_weight
