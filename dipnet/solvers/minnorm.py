@@ -67,6 +67,7 @@ import torch
 from skimage.filters import threshold_otsu
 from tqdm.auto import tqdm
 
+from dipnet.core.counts import whole_number
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
 from dipnet.operators import SPLAT_MATRIX_BACKENDS, DipOperator, backend_name, make_operator
@@ -131,8 +132,8 @@ class MinNormSolver(Solver):
 
     Args:
         method: ``"auto"``, ``"cholesky"``, ``"lsqr"`` or ``"lsmr"`` (see the module docstring).
-        tikhonov: relative Tikhonov weight ``s / mean(diag(B B^T))``, >= 0.
-        iter_lim: iteration limit of ``lsqr`` / ``lsmr``.
+        tikhonov: relative Tikhonov weight ``s / mean(diag(B B^T))``, finite and >= 0.
+        iter_lim: iteration limit of ``lsqr`` / ``lsmr``, a whole number >= 1.
         atol, btol: stopping tolerances of ``lsqr`` / ``lsmr`` (scipy's meaning).
         max_cholesky_rows: largest ``K*M`` for which ``auto`` picks ``cholesky``.
         max_cholesky_bytes: largest :func:`cholesky_bytes` for which ``auto`` picks ``cholesky``.
@@ -149,11 +150,11 @@ class MinNormSolver(Solver):
                  progress: bool = True) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown minnorm method {method!r}; choose one of {METHODS}")
-        if not tikhonov >= 0:
-            raise ValueError(f"tikhonov must be >= 0, got {tikhonov}")
-        if int(iter_lim) < 1 or int(max_cholesky_rows) < 1:
-            raise ValueError("iter_lim and max_cholesky_rows must be positive")
-        self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), int(iter_lim)
+        if not 0 <= tikhonov < math.inf:  # inf damps every voxel to 0: an empty result
+            raise ValueError(f"tikhonov must be a finite number >= 0 (relative Tikhonov weight), got {tikhonov}")
+        iter_lim = whole_number("iter_lim", iter_lim, low=1)
+        max_cholesky_rows = whole_number("max_cholesky_rows", max_cholesky_rows, low=1)
+        self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), iter_lim
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
         self.threshold = checked_threshold(threshold, "otsu")
         self.max_cholesky_rows, self.progress = int(max_cholesky_rows), progress

@@ -140,6 +140,12 @@ def test_fixed_threshold_and_bad_options():
         MinNormSolver(method="svd")
     with pytest.raises(ValueError, match="tikhonov"):
         MinNormSolver(tikhonov=-1.0)
+    with pytest.raises(ValueError, match="tikhonov must be a finite number"):
+        MinNormSolver(tikhonov=math.inf)  # was: every voxel damped to 0, an empty result with exit 0
+    with pytest.raises(ValueError, match="iter_lim must be a whole number"):
+        LSMRSolver(iter_lim=2.5)  # was: cut to 2 iterations unsaid
+    with pytest.raises(ValueError, match="max_cholesky_rows"):
+        MinNormSolver(max_cholesky_rows=100.5)
     with pytest.raises(ValueError, match="threshold"):
         MinNormSolver(threshold="mean")
 
