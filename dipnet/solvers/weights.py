@@ -49,6 +49,8 @@ from dipnet.core.measurement import estimate_slab_sigma, filled_slabs
 
 AUTO = "auto"
 RULES = ("discrepancy",)
+#: The weight rule's numeric options: each must be a finite number.
+NUMBERS = ("tau", "start", "floor", "largest", "slope", "tolerance", "refit", "refit_lr")
 #: Noise sources (:func:`dipnet.solvers.base.noise_sigma`) known well enough to raise a prior's weight or license a
 #: further round: a stated noise, or the readings' own scatter; not the profiles' estimate
 KNOWN_NOISE = ("sigma", "readings")
@@ -60,6 +62,7 @@ class WeightRule:
 
     Args:
         rule: ``"discrepancy"`` (the only rule).
+        Every other option is a finite number (an infinite one is refused).
         tau: the residual target is ``tau`` times the noise's relative residual.
         start: the weight of the first solve.
         floor, largest: the chosen weight stays in ``[floor, largest]``.
@@ -87,6 +90,9 @@ class WeightRule:
                 and self.tolerance >= 0 and 0 < self.refit <= 1 and self.refit_lr > 0):
             raise ValueError("the weight rule needs tau > 0, 0 < floor <= start <= largest, slope > 0, "
                              f"tolerance >= 0, 0 < refit <= 1 and refit_lr > 0, got {self}")
+        infinite = [name for name in NUMBERS if not math.isfinite(getattr(self, name))]
+        if infinite:  # tau = inf aims at an infinite data term (the largest weight), slope = inf never moves the start
+            raise ValueError(f"the weight rule's {', '.join(infinite)} must be finite numbers, got {self}")
 
     def target(self, delta2: float) -> float:
         """The data term aimed at for noise ``delta2``: ``tau^2 delta^2``."""

@@ -159,6 +159,9 @@ def test_auto_spec_helpers_and_bad_rules():
         WeightRule(rule="sure")
     with pytest.raises(ValueError, match="floor <= start <= largest"):
         VoxelSolver(weight_rule={"floor": 1e-2, "start": 1e-3})
+    for name in ("tau", "slope", "largest", "tolerance", "refit_lr"):  # was: run, tau=inf at the largest weight
+        with pytest.raises(ValueError, match=f"the weight rule's {name} must be finite"):
+            VoxelSolver(weight_rule={name: math.inf})
     with pytest.raises(TypeError):
         VoxelSolver(weight_rule={"taux": 1.0})
     with pytest.raises(ValueError, match="unknown prior"):
