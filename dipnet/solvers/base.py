@@ -46,6 +46,17 @@ def checked_threshold(threshold: float | str, rule: str) -> float | str:
     return float(threshold)
 
 
+def checked_temperatures(start: float, end: float) -> tuple[float, float]:
+    """A solver's sigmoid temperatures ``(temperature_start, temperature_end)`` as floats: finite numbers with
+    ``0 < end <= start``. Anything else raises a ``ValueError`` (an infinite temperature flattens every logit to an
+    occupancy of 0.5: a NaN loss once solving)."""
+    if isinstance(start, (bool, str)) or isinstance(end, (bool, str)) \
+            or not all(isinstance(t, numbers.Real) for t in (start, end)) or not 0 < end <= start < math.inf:
+        raise ValueError(f"need finite temperatures 0 < temperature_end <= temperature_start, got "
+                         f"temperature_start={start!r}, temperature_end={end!r}")
+    return float(start), float(end)
+
+
 def measured_profiles(measurement: DipMeasurement, operator: DipOperator) -> torch.Tensor:
     """The measured slab volumes on the operator's slabs, ``(K, M)`` float64, mm^3.
 

@@ -50,7 +50,7 @@ from dipnet.core.keywords import forwards_to
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators import DipOperator
-from dipnet.solvers.base import on_operator_slabs
+from dipnet.solvers.base import checked_temperatures, on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, seeded
 
 
@@ -127,8 +127,7 @@ class DeepImagePriorSolver(OptimisationSolver):
         super().__init__(**options)
         if self.warm_start is not None:
             raise ValueError("solver=dip takes no warm_start: its start is the random network of its seed")
-        if not 0 < temperature_end <= temperature_start:
-            raise ValueError("need 0 < temperature_end <= temperature_start")
+        temperature_start, temperature_end = checked_temperatures(temperature_start, temperature_end)
         DeepDecoder((8, 8), channels, levels, kernel_size, fine_kernel)  # validate the network options now
         self.channels, self.levels, self.kernel_size = int(channels), int(levels), int(kernel_size)
         self.fine_kernel = int(fine_kernel)

@@ -41,13 +41,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dipnet.core.counts import whole_number
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.core.flags import checked_flag
-from dipnet.solvers.base import on_operator_slabs
+from dipnet.solvers.base import checked_temperatures, on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 from dipnet.solvers.priors import build_priors
 from dipnet.solvers.weights import KNOWN_NOISE, prior_options, with_weight
@@ -95,12 +96,10 @@ class VoxelSolver(OptimisationSolver):
         options.setdefault("priors", {"tv": {"weight": "auto"}, "binary": {"weight": 0.0},
                                       "volume": {"weight": 0.0}})
         super().__init__(**options)
-        if not 0 < temperature_end <= temperature_start:
-            raise ValueError("need 0 < temperature_end <= temperature_start")
+        temperature_start, temperature_end = checked_temperatures(temperature_start, temperature_end)
         if not 0 <= coarse_fraction < 1:
             raise ValueError(f"coarse_fraction must be in [0, 1), got {coarse_fraction}")
-        if int(rounds) < 1:
-            raise ValueError(f"rounds must be a positive integer, got {rounds!r}")
+        rounds, min_rounds = whole_number("rounds", rounds, low=1), whole_number("min_rounds", min_rounds, low=1)
         if rounds_tau is not None and not rounds_tau > 0:
             raise ValueError(f"rounds_tau must be positive or None, got {rounds_tau!r}")
         if not 1 <= int(min_rounds) <= int(rounds):

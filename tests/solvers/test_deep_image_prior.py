@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -63,6 +65,8 @@ def test_bad_options_are_named():
         DeepImagePriorSolver(kernel_size=2)
     with pytest.raises(ValueError, match="temperature"):
         DeepImagePriorSolver(temperature_start=0.1, temperature_end=1.0)
+    with pytest.raises(ValueError, match="need finite temperatures"):
+        DeepImagePriorSolver(temperature_start=math.inf, temperature_end=math.inf)  # was: a NaN loss once solving
     with pytest.raises(ValueError, match="cubic"):
         DeepDecoder((8, 9))
 

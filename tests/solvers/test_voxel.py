@@ -229,6 +229,10 @@ def test_rounds_chain_solves_each_warm_started_from_the_last():
     assert len(chained.history["loss"]) == len(first.history["loss"]) + len(second.history["loss"])
     with pytest.raises(ValueError, match="rounds"):
         VoxelSolver(rounds=0)
+    with pytest.raises(ValueError, match="rounds must be a whole number"):
+        VoxelSolver(rounds=2.5)  # was: 2 rounds run unsaid
+    with pytest.raises(ValueError, match="min_rounds must be a whole number"):
+        VoxelSolver(rounds=3, min_rounds=1.5)
 
 
 def test_rounds_stop_when_the_data_term_exceeds_the_noise_target():
@@ -272,3 +276,10 @@ def test_min_rounds_run_whatever_the_rule_says_and_later_priors_change_them():
         VoxelSolver(rounds=2, min_rounds=3)
     with pytest.raises(ValueError, match="unknown prior"):
         VoxelSolver(later_priors={"nonsense": {"weight": 1.0}})
+
+
+@pytest.mark.parametrize("start, end", [(math.inf, math.inf), (math.inf, 0.25), (1.0, math.nan), ("1", 0.25)])
+def test_temperatures_must_be_finite_and_annealing(start, end):
+    """An infinite temperature flattened every logit to 0.5: a NaN loss named as a divergence, "try a lower lr"."""
+    with pytest.raises(ValueError, match="need finite temperatures 0 < temperature_end <= temperature_start"):
+        VoxelSolver(temperature_start=start, temperature_end=end)
