@@ -77,6 +77,15 @@ class Problem(NamedTuple):
 NOISE_MODELS = ("independent", "correlated")
 
 
+def checked_white_share(white_share: float) -> float:
+    """The correlated noise model's white part (units of ``sigma^2 / 2``) as a float: a finite number > 0, else a
+    ``ValueError`` (an infinite white part weighs every slab by 0: no data term, an empty result)."""
+    if isinstance(white_share, (bool, str)) or not isinstance(white_share, numbers.Real) \
+            or not 0 < white_share < math.inf:
+        raise ValueError(f"white_share must be a finite number > 0 (the white part, in sigma^2 / 2), got {white_share}")
+    return float(white_share)
+
+
 class DataTerm(nn.Module):
     """Weighted squared relative residual ``sum w (a A o - g)^2 / sum w g^2`` (see module docstring).
 
@@ -126,8 +135,7 @@ class DataTerm(nn.Module):
         super().__init__()
         if noise_model not in NOISE_MODELS:
             raise ValueError(f"unknown noise_model {noise_model!r}; choose one of {NOISE_MODELS}")
-        if not white_share > 0:
-            raise ValueError(f"white_share must be > 0, got {white_share}")
+        white_share = checked_white_share(white_share)
         self.operator = operator
         self.log_gain = nn.Parameter(torch.tensor(float(log_gain), dtype=dtype)) if fit_gain else None
         if sigma is None or not bool((sigma > 0).any()):
@@ -525,7 +533,7 @@ class OptimisationSolver(Solver):
         self.hull_margin = float(hull_margin)
         self.checkpoint = checkpoint
         self.fit_gain = checked_flag("fit_gain", fit_gain)
-        self.noise_model, self.white_share = noise_model, float(white_share)
+        self.noise_model, self.white_share = noise_model, checked_white_share(white_share)
         self.surface_refit = surface_refit if surface_refit is None or isinstance(surface_refit, SurfaceRefit) \
             else SurfaceRefit.from_options(plain(surface_refit) if isinstance(surface_refit, Mapping)
                                            else surface_refit)

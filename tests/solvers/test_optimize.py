@@ -190,6 +190,8 @@ def test_correlated_model_needs_sigma_and_a_bounded_problem(monkeypatch):
         DataTerm(op, target, noise_model="white")
     with pytest.raises(ValueError, match="white_share"):
         DataTerm(op, target, sigma, noise_model="correlated", white_share=0.0)
+    with pytest.raises(ValueError, match="white_share must be a finite number"):
+        VoxelSolver(white_share=math.inf)  # was: every slab weighed 0 once solving, an empty result with exit 0
     with pytest.raises(ValueError, match="noise_model"):
         VoxelSolver(noise_model="cumulative")
     monkeypatch.setattr(noise_covariance, "PRECISION_ENTRIES", 100)
