@@ -17,12 +17,14 @@ Encodings (:func:`make_encoding`, selected by ``{"type": name, **options}``):
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dipnet.core.flags import checked_flag
 from dipnet.solvers.priors import rotation_order, symmetry_maps
 
 
@@ -34,14 +36,17 @@ class FourierFeatures(nn.Module):
         ndim: 2 or 3.
         n_features: number of frequencies (output ``2 n_features (+ ndim)``).
         scale: standard deviation of the frequencies, in cycles per unit of the normalised
-            cube (``scale=4`` ~ features down to a quarter of the half-width).
-        include_input: append the raw coordinates.
+            cube (``scale=4`` ~ features down to a quarter of the half-width); finite and > 0.
+        include_input: append the raw coordinates (true or false).
     """
 
     def __init__(self, ndim: int, n_features: int = 128, scale: float = 4.0, include_input: bool = True) -> None:
         super().__init__()
+        if isinstance(scale, (bool, str)) or not isinstance(scale, numbers.Real) or not 0 < scale < math.inf:
+            raise ValueError(f"the fourier encoding's scale must be a finite number > 0 (the frequencies' standard "
+                             f"deviation, cycles per half-width), got {scale!r}")
         self.register_buffer("freqs", torch.randn(ndim, int(n_features)) * float(scale))
-        self.include_input = bool(include_input)
+        self.include_input = checked_flag("the fourier encoding's include_input", include_input)
         self.out_dim = 2 * int(n_features) + (ndim if include_input else 0)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -89,3 +89,12 @@ def test_the_output_bias_starts_a_uniform_field_and_bad_symmetries_are_named():
     torch.testing.assert_close(occupancy, torch.full((20,), 0.3))
     with pytest.raises(ValueError, match="unknown symmetry options"):
         OccupancyField(3, symmetry={"mirror": [1, 0, 0]})
+
+
+@pytest.mark.parametrize("options, message", [({"scale": math.nan}, "scale must be a finite number > 0"),
+                                              ({"scale": 0.0}, "scale must be a finite number > 0"),
+                                              ({"include_input": "no"}, "include_input must be true or false")])
+def test_fourier_encoding_options_are_checked(options, message):
+    """A NaN scale was a NaN loss named a divergence ("try a lower lr"); ``include_input: no`` was read as true."""
+    with pytest.raises(ValueError, match=message):
+        make_encoding(3, {"type": "fourier", **options})
