@@ -68,6 +68,7 @@ from skimage.filters import threshold_otsu
 from tqdm.auto import tqdm
 
 from dipnet.core.counts import whole_number
+from dipnet.core.flags import checked_flag
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
 from dipnet.operators import SPLAT_MATRIX_BACKENDS, DipOperator, backend_name, make_operator
@@ -157,7 +158,7 @@ class MinNormSolver(Solver):
         self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), iter_lim
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
         self.threshold = checked_threshold(threshold, "otsu")
-        self.max_cholesky_rows, self.progress = int(max_cholesky_rows), progress
+        self.max_cholesky_rows, self.progress = max_cholesky_rows, checked_flag("progress", progress)
         self.max_cholesky_bytes = float(max_cholesky_bytes)
 
     # ------------------------------------------------------------------ public

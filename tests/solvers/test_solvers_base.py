@@ -166,6 +166,9 @@ def test_a_solver_flag_that_is_not_true_or_false_is_refused(value):
         make_solver("voxel", coarse_to_fine=value)
     with pytest.raises(ValueError, match="fit_gain must be true or false"):
         make_solver("voxel", fit_gain=value)
+    for name in ("voxel", "implicit", "dip", "minnorm"):  # solver.progress=no drew the progress bars
+        with pytest.raises(ValueError, match="progress must be true or false"):
+            make_solver(name, progress=value)
 
 
 def test_a_misspelt_option_or_another_solvers_is_named_with_the_fix():
