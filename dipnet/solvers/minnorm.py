@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import time
 
 import numpy as np
@@ -135,10 +136,10 @@ class MinNormSolver(Solver):
         method: ``"auto"``, ``"cholesky"``, ``"lsqr"`` or ``"lsmr"`` (see the module docstring).
         tikhonov: relative Tikhonov weight ``s / mean(diag(B B^T))``, finite and >= 0.
         iter_lim: iteration limit of ``lsqr`` / ``lsmr``, a whole number >= 1.
-        atol, btol: stopping tolerances of ``lsqr`` / ``lsmr`` (scipy's meaning).
+        atol, btol: stopping tolerances of ``lsqr`` / ``lsmr`` (scipy's meaning), finite and >= 0.
         max_cholesky_rows: largest ``K*M`` for which ``auto`` picks ``cholesky``.
-        max_cholesky_bytes: largest :func:`cholesky_bytes` for which ``auto`` picks ``cholesky``.
-        rcond: relative eigenvalue cut-off of the pseudo-inverse fallback.
+        max_cholesky_bytes: largest :func:`cholesky_bytes` for which ``auto`` picks ``cholesky``, bytes (finite).
+        rcond: relative eigenvalue cut-off of the pseudo-inverse fallback, finite and >= 0.
         threshold: ``"otsu"`` or a fixed occupancy level in ``(0, 1)``.
         progress: show a progress bar.
     """
@@ -156,6 +157,10 @@ class MinNormSolver(Solver):
         iter_lim = whole_number("iter_lim", iter_lim, low=1)
         max_cholesky_rows = whole_number("max_cholesky_rows", max_cholesky_rows, low=1)
         self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), iter_lim
+        for name, value, low in (("atol", atol, 0.0), ("btol", btol, 0.0), ("rcond", rcond, 0.0),
+                                 ("max_cholesky_bytes", max_cholesky_bytes, 1.0)):  # NaN compares false: no limit
+            if isinstance(value, (bool, str)) or not isinstance(value, numbers.Real) or not low <= value < math.inf:
+                raise ValueError(f"{name} must be a finite number >= {low:g}, got {value!r}")
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
         self.threshold = checked_threshold(threshold, "otsu")
         self.max_cholesky_rows, self.progress = max_cholesky_rows, checked_flag("progress", progress)

@@ -146,6 +146,9 @@ def test_fixed_threshold_and_bad_options():
         LSMRSolver(iter_lim=2.5)  # was: cut to 2 iterations unsaid
     with pytest.raises(ValueError, match="max_cholesky_rows"):
         MinNormSolver(max_cholesky_rows=100.5)
+    for name in ("atol", "btol", "rcond", "max_cholesky_bytes"):  # rcond=nan: an empty result; bytes=nan: no limit
+        with pytest.raises(ValueError, match=f"{name} must be a finite number"):
+            MinNormSolver(**{name: math.nan})
     with pytest.raises(ValueError, match="threshold"):
         MinNormSolver(threshold="mean")
 
