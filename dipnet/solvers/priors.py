@@ -123,8 +123,8 @@ def symmetry_maps(ndim: int, plane_normal: Sequence[float] | None = None, axis: 
     maps = []
     if plane_normal is not None:
         n = torch.as_tensor(plane_normal, dtype=torch.float64)
-        if n.shape != (ndim,) or n.norm() == 0:
-            raise ValueError(f"plane_normal must be a non-zero {ndim}-vector, got {plane_normal!r}")
+        if n.shape != (ndim,) or n.norm() == 0 or not bool(torch.isfinite(n).all()):
+            raise ValueError(f"plane_normal must be a non-zero, finite {ndim}-vector, got {plane_normal!r}")
         n = n / n.norm()
         maps.append(torch.eye(ndim, dtype=torch.float64) - 2 * torch.outer(n, n))
     order = rotation_order(order)
@@ -137,8 +137,8 @@ def symmetry_maps(ndim: int, plane_normal: Sequence[float] | None = None, axis: 
             if axis is None:
                 raise ValueError("an n-fold rotation in 3D needs its axis")
             ax = torch.as_tensor(axis, dtype=torch.float64)
-            if ax.shape != (3,) or ax.norm() == 0:
-                raise ValueError(f"axis must be a non-zero 3-vector, got {axis!r}")
+            if ax.shape != (3,) or ax.norm() == 0 or not bool(torch.isfinite(ax).all()):
+                raise ValueError(f"axis must be a non-zero, finite 3-vector, got {axis!r}")
             maps.append(_rotation_matrix(ax, angle))
     return maps
 

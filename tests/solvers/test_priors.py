@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -77,6 +79,10 @@ def test_symmetry_prior_needs_a_symmetry():
         SymmetryPrior()
     with pytest.raises(ValueError, match="axis"):
         SymmetryPrior(order=3)(torch.zeros(4, 4, 4))
+    with pytest.raises(ValueError, match="plane_normal must be a non-zero, finite 3-vector"):
+        SymmetryPrior(plane_normal=[1.0, 0.0, math.nan])(torch.zeros(4, 4, 4))  # was: "a group of more than 240"
+    with pytest.raises(ValueError, match="axis must be a non-zero, finite 3-vector"):
+        SymmetryPrior(axis=[0.0, math.inf, 1.0], order=2)(torch.zeros(4, 4, 4))
 
 
 @pytest.mark.parametrize("order", [2.5, True, float("nan"), 0, "3"])
