@@ -526,7 +526,8 @@ class OptimisationSolver(Solver):
         if hull_tol is not None and not 0 <= hull_tol < 1:
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
         self.threshold = checked_threshold(threshold, "volume")
-        self.warm_start, self.seed, self.progress = warm_start, int(seed), checked_flag("progress", progress)
+        self.warm_start, self.seed = warm_start, whole_number("seed", seed, low=0)  # 1.5 was cut to 1 unsaid
+        self.progress = checked_flag("progress", progress)
         self.hull_tol = None if hull_tol is None else float(hull_tol)
         if not hull_margin >= 0:
             raise ValueError(f"hull_margin must be >= 0 voxels, got {hull_margin}")

@@ -192,6 +192,8 @@ def test_correlated_model_needs_sigma_and_a_bounded_problem(monkeypatch):
         DataTerm(op, target, sigma, noise_model="correlated", white_share=0.0)
     with pytest.raises(ValueError, match="white_share must be a finite number"):
         VoxelSolver(white_share=math.inf)  # was: every slab weighed 0 once solving, an empty result with exit 0
+    with pytest.raises(ValueError, match="seed must be a whole number"):
+        VoxelSolver(seed=1.5)  # was: the seed-1 solve, unsaid
     with pytest.raises(ValueError, match="noise_model"):
         VoxelSolver(noise_model="cumulative")
     monkeypatch.setattr(noise_covariance, "PRECISION_ENTRIES", 100)
