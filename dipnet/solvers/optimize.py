@@ -516,7 +516,7 @@ class OptimisationSolver(Solver):
         if isinstance(lr, (bool, str)) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf:
             raise ValueError(f"lr must be a positive, finite learning rate, got {lr!r}")
         priors = plain(priors or {})
-        self.weight_rule = WeightRule(**plain(weight_rule or {}))
+        self.weight_rule = WeightRule.from_options(plain(weight_rule or {}))
         build_priors(with_weight(priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.iterations, self.lr, self.optimizer, self.schedule = int(iterations), float(lr), optimizer, schedule
         self.tol, self.window = float(tol), int(window)

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -93,6 +93,16 @@ class WeightRule:
         infinite = [name for name in NUMBERS if not math.isfinite(getattr(self, name))]
         if infinite:  # tau = inf aims at an infinite data term (the largest weight), slope = inf never moves the start
             raise ValueError(f"the weight rule's {', '.join(infinite)} must be finite numbers, got {self}")
+
+    @classmethod
+    def from_options(cls, options: Mapping) -> "WeightRule":
+        """The rule of a config's ``weight_rule`` mapping (``{}``: the defaults). An option it does not take raises a
+        ``ValueError`` naming the options it takes (was a ``TypeError`` the job read as a value of the wrong type)."""
+        names = [f.name for f in fields(cls)]
+        unknown = sorted(set(options) - set(names), key=str)
+        if unknown:
+            raise ValueError(f"weight_rule takes {', '.join(names)}; not {', '.join(map(str, unknown))}")
+        return cls(**options)
 
     def target(self, delta2: float) -> float:
         """The data term aimed at for noise ``delta2``: ``tau^2 delta^2``."""

@@ -162,7 +162,7 @@ def test_auto_spec_helpers_and_bad_rules():
     for name in ("tau", "slope", "largest", "tolerance", "refit_lr"):  # was: run, tau=inf at the largest weight
         with pytest.raises(ValueError, match=f"the weight rule's {name} must be finite"):
             VoxelSolver(weight_rule={name: math.inf})
-    with pytest.raises(TypeError):
-        VoxelSolver(weight_rule={"taux": 1.0})
+    with pytest.raises(ValueError, match="weight_rule takes rule, tau, .*; not taux"):
+        VoxelSolver(weight_rule={"taux": 1.0})  # was: a TypeError, "an option of the wrong type" in a job
     with pytest.raises(ValueError, match="unknown prior"):
         VoxelSolver(priors={"tvv": {"weight": "auto"}})
