@@ -519,6 +519,9 @@ class OptimisationSolver(Solver):
         self.weight_rule = WeightRule.from_options(plain(weight_rule or {}))
         build_priors(with_weight(priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.iterations, self.lr, self.optimizer, self.schedule = int(iterations), float(lr), optimizer, schedule
+        if isinstance(tol, (bool, str)) or not isinstance(tol, numbers.Real) or not -math.inf < tol < math.inf:
+            raise ValueError(f"tol must be a finite number (the plateau's relative improvement; <= 0: no early stop), "
+                             f"got {tol!r}")  # NaN never stopped early, inf stopped after the first window
         self.tol, self.window = float(tol), int(window)
         self.priors = priors
         self._weights_choices: list[dict] = []  # the learned prior's choices among candidate weights, per solve

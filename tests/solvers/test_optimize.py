@@ -194,6 +194,9 @@ def test_correlated_model_needs_sigma_and_a_bounded_problem(monkeypatch):
         VoxelSolver(white_share=math.inf)  # was: every slab weighed 0 once solving, an empty result with exit 0
     with pytest.raises(ValueError, match="seed must be a whole number"):
         VoxelSolver(seed=1.5)  # was: the seed-1 solve, unsaid
+    for tol in (math.nan, math.inf):  # NaN never stopped early, inf stopped after the first window, unsaid
+        with pytest.raises(ValueError, match="tol must be a finite number"):
+            VoxelSolver(tol=tol)
     with pytest.raises(ValueError, match="noise_model"):
         VoxelSolver(noise_model="cumulative")
     monkeypatch.setattr(noise_covariance, "PRECISION_ENTRIES", 100)
