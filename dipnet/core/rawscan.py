@@ -484,7 +484,7 @@ def read_rawscan(path: str | Path) -> RawScan:
                 k = _index(obj)
                 if k in by_k and by_k[k].complete:
                     raise ValueError(f"orientation {k} is begun again after it was completed")
-                tilt, spin = (None if obj.get(key) is None else float(obj[key]) * factors["angles"]
+                tilt, spin = (None if obj.get(key) is None else _reading_number(obj, key) * factors["angles"]
                               for key in ("tilt_deg", "spin_deg"))
                 o = OrientationScan(k=k, direction=obj.get("direction"), tilt_deg=tilt, spin_deg=spin,
                                     meta=obj.get("meta") or {})
@@ -510,7 +510,7 @@ def read_rawscan(path: str | Path) -> RawScan:
                 o._append(*values, [str(f) for f in flags])
             elif kind == "complete":
                 o = _open_orientation(by_k, obj)
-                if "n_readings" in obj and int(obj["n_readings"]) != o.n_readings:
+                if "n_readings" in obj and _reading_number(obj, "n_readings", whole=True) != o.n_readings:
                     raise ValueError(f"orientation {o.k} is marked complete with {obj['n_readings']} "
                                      f"readings but {o.n_readings} were recorded")
                 o.complete = True
@@ -654,11 +654,13 @@ def _index(obj: dict) -> int:
     return int(k)
 
 
-def _reading_number(obj: dict, key: str) -> float:
-    """A reading's ``key`` (``stage_mm``, ``value``, ``time_s``): a JSON number (``"0"``, a string, was read as 0)."""
+def _reading_number(obj: dict, key: str, whole: bool = False) -> float:
+    """A record's number ``key`` (a reading's ``stage_mm``, ``value``, ``time_s``; an orientation's ``tilt_deg``,
+    ``spin_deg``; a ``complete`` record's ``n_readings``, ``whole``): a JSON number (``"0"``, a string, was read
+    as 0; ``"10"`` degrees as 10; ``87.5`` readings as 87)."""
     value = obj[key]
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{key} must be a number, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or (whole and not float(value).is_integer()):
+        raise ValueError(f"{key} must be a {'whole ' if whole else ''}number, got {value!r}")
     return float(value)
 
 

@@ -317,3 +317,29 @@ def test_an_index_or_reading_of_the_wrong_type_names_file_and_line(tmp_path, ori
     path.write_text("".join(json.dumps(line) + "\n" for line in whole))
     read = read_rawscan(path).orientations[0]  # 1.0 and "1" (a string index) are still orientation 1
     assert read.k == 1 and read.stage_mm.tolist() == [0.0] and read.values.tolist() == [150.0]
+
+
+@pytest.mark.parametrize("orientation, complete, line_no, message", [
+    ({"tilt_deg": "10", "spin_deg": 0.0}, {}, 2, r"tilt_deg must be a number, got '10'"),
+    ({"tilt_deg": 0.0, "spin_deg": True}, {}, 2, r"spin_deg must be a number, got True"),
+    ({}, {"n_readings": "1"}, 4, r"n_readings must be a whole number, got '1'"),
+    ({}, {"n_readings": True}, 4, r"n_readings must be a whole number, got True"),
+    ({}, {"n_readings": 1.5}, 4, r"n_readings must be a whole number, got 1.5"),
+])
+def test_rig_angles_or_a_reading_count_of_the_wrong_type_name_file_and_line(tmp_path, orientation, complete, line_no,
+                                                                          message):
+    """Before: ``"tilt_deg": "10"`` (a string) was read as 10 degrees, ``"n_readings": true`` as 1 reading and
+    ``1.5`` as 1, without a word."""
+    path = tmp_path / "bad.jsonl"
+    lines = [_header().to_json(), {"type": "orientation", "k": 0, "direction": None, "tilt_deg": 0.0,
+                                   "spin_deg": 0.0, **orientation},
+             {"type": "reading", "k": 0, "stage_mm": 0.0, "value": 150.0, "time_s": 2.0},
+             {"type": "complete", "k": 0, "n_readings": 1, **complete}]
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    with pytest.raises(RawScanFileError, match=f"^{path}:{line_no}: {message}$"):
+        read_rawscan(path)
+    lines[1].update(tilt_deg=10, spin_deg=0)
+    lines[3].update(n_readings=1.0)
+    path.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    read = read_rawscan(path).orientations[0]  # whole numbers (and 1.0 readings) still read
+    assert read.tilt_deg == 10.0 and read.complete
