@@ -11,6 +11,7 @@ increasing ``t``. Since a profile along ``-theta`` is the same profile reversed,
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from dataclasses import dataclass
 
@@ -281,6 +282,11 @@ def within_reach(directions, tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 36
 
 
 
+def _is_number(value) -> bool:
+    """Whether ``value`` is a real number and not a boolean (``True`` is the number 1 to Python)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 @dataclass(frozen=True)
 class Reach:
     """The orientations a rig can reach: tilt and spin ranges (degrees) and the candidate step.
@@ -295,8 +301,17 @@ class Reach:
     step_deg: float = 10.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "tilt_range_deg", tuple(float(v) for v in self.tilt_range_deg))
-        object.__setattr__(self, "spin_range_deg", tuple(float(v) for v in self.spin_range_deg))
+        """Raise ``ValueError`` naming the option unless each range is two numbers (degrees) and the step one
+        (a ``true`` was read as 1 degree, ``[0, 35, 90]`` failed as "too many values to unpack"); then the limits
+        are checked by :func:`reachable_candidates`."""
+        for name in ("tilt_range_deg", "spin_range_deg"):
+            value = getattr(self, name)
+            if isinstance(value, str) or not hasattr(value, "__len__") or len(value) != 2 \
+                    or not all(map(_is_number, value)):
+                raise ValueError(f"reach.{name} must be two numbers [min, max] (degrees), got {value!r}")
+            object.__setattr__(self, name, tuple(float(v) for v in value))
+        if not _is_number(self.step_deg):
+            raise ValueError(f"reach.step_deg must be a number of degrees, got {self.step_deg!r}")
         reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)  # validates
 
     def ranges(self) -> str:

@@ -124,6 +124,22 @@ def test_presets_and_bad_limits():
         Reach(step_deg=0)
 
 
+@pytest.mark.parametrize("option, message", [
+    ({"tilt_range_deg": [0, 35, 90]},
+     r"reach.tilt_range_deg must be two numbers \[min, max\] \(degrees\), got \[0, 35, 90\]"),
+    ({"tilt_range_deg": [True, 35]}, r"reach.tilt_range_deg must be two numbers .*, got \[True, 35\]"),
+    ({"spin_range_deg": [0, "abc"]}, r"reach.spin_range_deg must be two numbers .*, got \[0, 'abc'\]"),
+    ({"spin_range_deg": "09"}, r"reach.spin_range_deg must be two numbers"),  # was read as spins 0-9 deg
+    ({"step_deg": True}, r"reach.step_deg must be a number of degrees, got True"),
+])
+def test_a_reach_of_the_wrong_shape_or_type_is_named(option, message):
+    """Before: ``tilt_range_deg=[true, 35]`` was read as tilts 1-35 deg and ``step_deg=true`` as a 1 deg step,
+    without a word; ``[0, 35, 90]`` failed as "too many values to unpack (expected 2)", naming no option."""
+    with pytest.raises(ValueError, match=message):
+        Reach(**option)
+    assert Reach(tilt_range_deg=np.array([0, 35]), spin_range_deg=[0.0, 90], step_deg=5).tilt_range_deg == (0.0, 35.0)
+
+
 def test_direction_rig_round_trip():
     tilt, spin = np.array([0.0, 10.0, 35.0, 80.0]), np.array([0.0, 20.0, 300.0, 123.0])
     t2, s2 = direction_to_rig(rig_to_direction(tilt, spin))
