@@ -235,7 +235,7 @@ class DipProtocol:
     reorient_s: float = 30.0
 
     def __post_init__(self) -> None:
-        if not 0 < self.step_mm < math.inf:
+        if isinstance(self.step_mm, bool) or not 0 < self.step_mm < math.inf:  # True was a 1 mm step
             raise ValueError(f"step_mm must be a finite, positive number (mm), got {self.step_mm!r}")
         for name, unit in (("clearance_mm", "mm"), ("settle_s", "s"), ("reorient_s", "s")):
             value = getattr(self, name)

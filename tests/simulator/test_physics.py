@@ -84,6 +84,7 @@ def test_timing_and_schedule():
     ({"clearance_mm": float("inf")}, r"protocol clearance_mm .* got inf"),
     ({"step_mm": float("inf")}, r"step_mm must be a finite, positive number \(mm\), got inf"),
     ({"extra_steps": 2.5}, r"extra_steps must be a whole number of readings >= 0, got 2.5"),
+    ({"step_mm": True}, r"step_mm must be a finite, positive number \(mm\), got True"),  # was a 1 mm step, unsaid
 ])
 def test_a_protocol_value_that_is_not_finite_is_named(option, message):
     """Before: DipProtocol(clearance_mm=nan) was accepted and the simulation failed with "cannot convert float NaN
