@@ -78,8 +78,9 @@ class Tank:
     rest_level_mm: float = 150.0
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.cross_section_mm2) and self.cross_section_mm2 > 0):
-            raise ValueError(f"tank cross_section_mm2 must be positive, got {self.cross_section_mm2!r}")
+        area = self.cross_section_mm2  # True was read as 1 mm^2, a string failed in numpy naming no option
+        if isinstance(area, bool) or not isinstance(area, numbers.Real) or not 0 < area < math.inf:
+            raise ValueError(f"tank cross_section_mm2 must be a finite, positive number (mm^2; mm in 2D), got {area!r}")
         if isinstance(self.rest_level_mm, bool) or not math.isfinite(self.rest_level_mm):
             raise ValueError(f"tank rest_level_mm must be a finite level (mm), got {self.rest_level_mm!r}")
 

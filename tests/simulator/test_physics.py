@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -176,6 +178,16 @@ def test_a_tank_without_its_class_is_named():
     with pytest.raises(ValueError, match=r"the simulator's tank must be a Tank, got dict .*_target_: "
                                          r"dipnet.simulator.physics.Tank"):
         simulate_scan(BALL, DIRS, tank={"cross_section_mm2": 100.0}, progress=False)
+
+
+@pytest.mark.parametrize("area", [True, "abc", float("nan"), -5.0])
+def test_a_tank_section_that_is_not_a_positive_number_is_named(area):
+    """Before: ``cross_section_mm2=true`` was read as a 1 mm^2 tank (refused later as one smaller than the object,
+    "the tank's free cross-section (1)"), and a string failed in numpy's isfinite, naming no option."""
+    message = r"tank cross_section_mm2 must be a finite, positive number \(mm\^2; mm in 2D\), got "
+    with pytest.raises(ValueError, match=message + re.escape(repr(area))):
+        Tank(cross_section_mm2=area)
+    assert Tank(cross_section_mm2=np.float64(4000.0)).cross_section_mm2 == 4000.0
 
 
 @pytest.mark.parametrize("level", [float("nan"), float("inf")])
