@@ -94,6 +94,7 @@ from __future__ import annotations
 
 import inspect
 import logging
+import numbers
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -175,6 +176,14 @@ class Planner(ABC):
         return {"method": "linearised", **_keyword_defaults(fit_posterior)}
 
 
+def _number(name: str, value: Any) -> float:
+    """``value`` (the planner option ``name``) as a float; ``ValueError`` naming it for a boolean or text (``true``
+    was read as 1, ``"abc"`` failed as "could not convert string to float" naming no option)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    return float(value)
+
+
 class NextBestDipPlanner(Planner):
     """Greedy information-based planner (see the module docstring).
 
@@ -192,7 +201,8 @@ class NextBestDipPlanner(Planner):
         self.criterion = criterion
         self.options = {"resolution": whole_number("resolution", resolution),
                         "n_samples": whole_number("n_samples", n_samples),
-                        "band_voxels": float(band_voxels), "floor": float(floor), "seed": int(seed)}
+                        "band_voxels": _number("band_voxels", band_voxels), "floor": _number("floor", floor),
+                        "seed": whole_number("seed", seed, low=0)}
         check_posterior_options(self.options["resolution"], self.options["n_samples"], self.options["band_voxels"],
                                 self.options["floor"])  # before the first dip, not after the initial ones
         self._cached: tuple[tuple, scipy.sparse.csr_matrix] | None = None

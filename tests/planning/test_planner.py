@@ -78,6 +78,22 @@ def test_the_posterior_grid_and_samples_must_be_whole_numbers():
         NextBestDipPlanner(n_samples="64")
 
 
+@pytest.mark.parametrize("option, message", [
+    ({"floor": True}, r"floor must be a number, got True"),
+    ({"band_voxels": True}, r"band_voxels must be a number, got True"),
+    ({"band_voxels": "abc"}, r"band_voxels must be a number, got 'abc'"),
+    ({"seed": 1.5}, r"seed must be a whole number, got 1.5"),
+    ({"seed": True}, r"seed must be a whole number, got True"),
+    ({"seed": -1}, r"seed must be a whole number >= 0, got -1"),
+])
+def test_a_planner_option_of_the_wrong_type_is_named(option, message):
+    """Before: ``planner.planner.floor=true`` and ``band_voxels=true`` were read as 1, ``seed=1.5`` as seed 1 and
+    ``seed=true`` as 1, a run with exit 0; ``band_voxels=abc`` failed as "could not convert string to float"."""
+    with pytest.raises(ValueError, match=message):
+        NextBestDipPlanner(**option)
+    assert NextBestDipPlanner(floor=1, band_voxels=np.float64(2.0), seed=3.0).options["seed"] == 3
+
+
 def test_a_batch_never_holds_a_direction_and_its_opposite_even_with_noisy_data():
     """The audit's case: with 2 dips at -10 dB the hemisphere's candidates at tilt 90 deg hold ``c`` and ``-c`` (the
     same planes); the conditioning on a pick hardly lowered its opposite's score when the noise dwarfs the predicted
