@@ -50,12 +50,17 @@ class FixedPlan:
 
     Args:
         orientations: ``"fibonacci"`` | ``"random"`` | ``"uniform"`` (:func:`dipnet.core.orientations.make_directions`).
-        n_dips: the number of dips ``K``.
-        seed: seed of ``"random"``.
+        n_dips: the number of dips ``K``, a whole number >= 1.
+        seed: seed of ``"random"``, a whole number >= 0.
+
+    Raises:
+        ValueError: naming ``n_dips`` or ``seed`` when it is not a whole number in range (``planner.n_dips=8.5``
+            was cut to 8 dips, ``planner.seed=1.5`` to seed 1, unsaid).
     """
 
     def __init__(self, orientations: str = "fibonacci", n_dips: int = 120, seed: int = 0) -> None:
-        self.orientations, self.n_dips, self.seed = str(orientations), int(n_dips), int(seed)
+        self.orientations, self.n_dips, self.seed = (str(orientations), whole_number("n_dips", n_dips, low=1),
+                                                     whole_number("seed", seed, low=0))  # 8.5 was cut to 8 dips
 
     def directions(self, ndim: int, reach: Reach | None = None) -> torch.Tensor:
         """The planned unit directions ``(K, ndim)``, kept within ``reach`` (3D): a Fibonacci or

@@ -47,6 +47,21 @@ def test_a_random_plan_leaving_the_reach_is_refused():
         FixedPlan("random", 20, seed=1).directions(3, AUTHORS_RIG)
 
 
+@pytest.mark.parametrize("option, message", [
+    ({"n_dips": 8.5}, r"n_dips must be a whole number, got 8.5"),
+    ({"n_dips": True}, r"n_dips must be a whole number, got True"),
+    ({"n_dips": 0}, r"n_dips must be a whole number >= 1, got 0"),
+    ({"seed": 1.5}, r"seed must be a whole number, got 1.5"),
+    ({"seed": -1}, r"seed must be a whole number >= 0, got -1"),
+])
+def test_a_fixed_plan_count_or_seed_that_is_not_whole_is_named(option, message):
+    """Before: ``planner.n_dips=8.5`` planned 8 dips and ``planner.seed=1.5`` used seed 1, exit 0 (the top-level
+    ``n_dips`` and ``seed`` were checked, the planner's own keys were not)."""
+    with pytest.raises(ValueError, match=message):
+        FixedPlan("random", **{"n_dips": 4, "seed": 0, **option})
+    assert FixedPlan("random", 4.0, seed=2.0).directions(3).shape == (4, 3)
+
+
 def test_2d_plans_ignore_the_reach():
     directions = FixedPlan("uniform", 6).directions(2, AUTHORS_RIG)
     angles = np.degrees(np.arctan2(directions[:, 1].numpy(), directions[:, 0].numpy())) % 180
