@@ -32,6 +32,7 @@ from dipnet.preprocessing.sources import RecordedSource
 from dipnet.preprocessing.symmetry import MAX_MERGE_DEG
 from dipnet.shapes.procedural import generated_shape
 from dipnet.simulator.physics import check_snr_db
+from dipnet.simulator.source import SimulatedSource
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.optimize import OptimisationSolver
 from dipnet.solvers.priors import prior_weight
@@ -74,6 +75,8 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
      "a 2D job writes no mesh: its shape is in reconstruction.npz and slices.png"),
     ("ndim=3", lambda cfg: cfg.get("ndim") == 3, ("shape.axis",),
      "the axis a mesh is projected along makes its 2D silhouette, for ndim=2"),
+    ("source=simulated", lambda cfg: instantiates(cfg, "source", SimulatedSource), ("source.simulator.sensor.seed",),
+     "the job's seed sets the simulated noise: give seed=... instead"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")

@@ -44,6 +44,8 @@ def _cli(run_dir: Path, *overrides: str, env: dict | None = None) -> subprocess.
     ([*RECORDED, "snr_db=20"], "error: option snr_db is ignored with source=recorded"),
     ([*RECORDED, "reach=authors_rig"], "error: option reach is ignored with source=recorded"),
     (["planner=adaptive", "orientations=random"], "error: option orientations is ignored with planner=adaptive"),
+    (["+source.simulator.sensor.seed=5"], "error: option source.simulator.sensor.seed is ignored with "
+     "source=simulated (the job's seed sets the simulated noise: give seed=... instead): remove it"),  # was ignored
     (["output.mesh_formats=[xyz]"], "error: output.mesh_formats must be a list of ply, stl, obj, got ['xyz']"),
     (["output.checkpoint_every=0"], "error: output.checkpoint_every must be a positive integer, got 0"),
     (["calibration=self", "solver=voxel", "calibration.iterations=0"],
