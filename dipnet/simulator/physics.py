@@ -206,6 +206,15 @@ class Balance(SensorModel):
     seed: int = 0
     quantity: ClassVar[str] = "mass_g"
 
+    def __post_init__(self) -> None:
+        """As :meth:`SensorModel.__post_init__`, and a ``ValueError`` for a density (g/mm^3) that is not a finite,
+        positive number (``true`` was read as 1 g/mm^3, a thousand times water's, exit 0)."""
+        super().__post_init__()
+        density = self.density_g_per_mm3
+        if isinstance(density, bool) or not isinstance(density, numbers.Real) or not 0 < density < math.inf:
+            raise ValueError(f"sensor density_g_per_mm3 must be a finite, positive number (g/mm^3; water 1e-3), "
+                             f"got {density!r}")
+
     def ideal(self, tank: Tank, submerged: np.ndarray) -> np.ndarray:
         return self.density_g_per_mm3 * submerged
 

@@ -174,6 +174,16 @@ def test_balance_checks_its_own_units():
         Balance(quantum_g=-0.01)
 
 
+@pytest.mark.parametrize("density", [True, "1e-3", 0.0, float("nan")])
+def test_a_balance_density_that_is_not_a_positive_number_is_named(density):
+    """Before: ``density_g_per_mm3=true`` was read as 1 g/mm^3 (a thousand times water's), exit 0; text failed when
+    the readings were made, NaN and 0 only when the scan's header was written."""
+    with pytest.raises(ValueError, match=r"sensor density_g_per_mm3 must be a finite, positive number \(g/mm\^3; "
+                                         r"water 1e-3\), got " + re.escape(repr(density))):
+        Balance(density_g_per_mm3=density)
+    assert Balance(density_g_per_mm3=1).density_g_per_mm3 == 1
+
+
 def test_a_tank_without_its_class_is_named():
     with pytest.raises(ValueError, match=r"the simulator's tank must be a Tank, got dict .*_target_: "
                                          r"dipnet.simulator.physics.Tank"):
