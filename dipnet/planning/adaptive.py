@@ -16,6 +16,7 @@ left).
 from __future__ import annotations
 
 import logging
+import numbers
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +62,12 @@ class AdaptiveSettings:
         if not 1 <= self.initial_dips <= self.budget or self.batch_size < 1:
             raise ValueError(f"need 1 <= initial_dips <= budget and batch_size >= 1, got initial_dips "
                              f"{self.initial_dips}, budget {self.budget}, batch_size {self.batch_size}")
+        stop = self.stop_uncertainty
+        if stop is not None and (isinstance(stop, bool) or not isinstance(stop, numbers.Real)):  # true read as 1
+            raise ValueError(f"stop_uncertainty must be a fraction in (0, 1) or null (the share of the object's "
+                             f"volume expected misclassified, e.g. 0.05), got {stop!r}")
+        if stop is not None:
+            object.__setattr__(self, "stop_uncertainty", float(stop))
         if self.stop_uncertainty is not None and not 0 < self.stop_uncertainty < 1:
             hint = (f" ({self.stop_uncertainty:g} would stop after the first {self.initial_dips} dips, whatever the "
                     f"budget; for {self.stop_uncertainty:g} % give {self.stop_uncertainty / 100:g})"

@@ -98,7 +98,7 @@ class AdaptivePlan:
         self.settings = AdaptiveSettings(budget=whole_number("budget", budget),
                                          batch_size=whole_number("batch_size", batch_size),
                                          initial_dips=whole_number("initial_dips", initial_dips),
-                                         stop_uncertainty=None if stop_uncertainty is None else float(stop_uncertainty))
+                                         stop_uncertainty=stop_uncertainty)
         self.planner = planner or NextBestDipPlanner()
 
     def run(self, acquire: Acquire, ndim: int, reach: Reach | None, solver=None,

@@ -4,6 +4,7 @@ per step and plans with it; bad settings are user errors."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -111,6 +112,21 @@ def test_bad_loop_settings_are_user_errors(tmp_path):
         AdaptiveSettings(stop_uncertainty=0)
     with pytest.raises(ValueError, match="plans 3D dips"):
         run(reconstruct_cfg("ndim=2", "planner=adaptive"), tmp_path)
+
+
+@pytest.mark.parametrize("stop", ["abc", True, "0.05"])
+def test_a_stop_uncertainty_that_is_not_a_number_is_named(stop):
+    """Before: ``planner.stop_uncertainty=abc`` failed as "could not convert string to float: 'abc'" (naming no
+    option), ``true`` was read as 1 ("got 1 ... for 1 % give 0.01") and the text "0.05" as 0.05."""
+    from dipnet.planning.adaptive import AdaptiveSettings
+    from dipnet.planning.plans import AdaptivePlan
+
+    message = r"stop_uncertainty must be a fraction in \(0, 1\) or null \(.*\), got " + re.escape(repr(stop)) + "$"
+    with pytest.raises(ValueError, match=message):
+        AdaptivePlan(stop_uncertainty=stop)
+    with pytest.raises(ValueError, match=message):
+        AdaptiveSettings(stop_uncertainty=stop)
+    assert AdaptivePlan(stop_uncertainty=np.float32(0.5)).settings.stop_uncertainty == 0.5
 
 
 def test_the_loop_never_dips_a_measured_direction_again(box_problem):
