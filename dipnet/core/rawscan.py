@@ -486,6 +486,9 @@ def read_rawscan(path: str | Path) -> RawScan:
                     raise ValueError(f"orientation {k} is begun again after it was completed")
                 tilt, spin = (None if obj.get(key) is None else _reading_number(obj, key) * factors["angles"]
                               for key in ("tilt_deg", "spin_deg"))
+                for key, angle in (("tilt_deg", tilt), ("spin_deg", spin)):
+                    if angle is not None and not np.isfinite(angle):  # NaN gave a NaN direction, unsaid
+                        raise ValueError(f"{key} must be a finite number, got {obj[key]!r}")
                 o = OrientationScan(k=k, direction=obj.get("direction"), tilt_deg=tilt, spin_deg=spin,
                                     meta=obj.get("meta") or {})
                 if o.direction is not None and o.direction.shape != (scan.header.ndim,):

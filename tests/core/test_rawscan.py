@@ -322,6 +322,8 @@ def test_an_index_or_reading_of_the_wrong_type_names_file_and_line(tmp_path, ori
 @pytest.mark.parametrize("orientation, complete, line_no, message", [
     ({"tilt_deg": "10", "spin_deg": 0.0}, {}, 2, r"tilt_deg must be a number, got '10'"),
     ({"tilt_deg": 0.0, "spin_deg": True}, {}, 2, r"spin_deg must be a number, got True"),
+    ({"tilt_deg": float("nan"), "spin_deg": 0.0}, {}, 2, r"tilt_deg must be a finite number, got nan"),
+    ({"tilt_deg": 0.0, "spin_deg": float("inf")}, {}, 2, r"spin_deg must be a finite number, got inf"),
     ({}, {"n_readings": "1"}, 4, r"n_readings must be a whole number, got '1'"),
     ({}, {"n_readings": True}, 4, r"n_readings must be a whole number, got True"),
     ({}, {"n_readings": 1.5}, 4, r"n_readings must be a whole number, got 1.5"),
@@ -329,7 +331,7 @@ def test_an_index_or_reading_of_the_wrong_type_names_file_and_line(tmp_path, ori
 def test_rig_angles_or_a_reading_count_of_the_wrong_type_name_file_and_line(tmp_path, orientation, complete, line_no,
                                                                           message):
     """Before: ``"tilt_deg": "10"`` (a string) was read as 10 degrees, ``"n_readings": true`` as 1 reading and
-    ``1.5`` as 1, without a word."""
+    ``1.5`` as 1, and a NaN or infinite angle gave a NaN direction, without a word."""
     path = tmp_path / "bad.jsonl"
     lines = [_header().to_json(), {"type": "orientation", "k": 0, "direction": None, "tilt_deg": 0.0,
                                    "spin_deg": 0.0, **orientation},
