@@ -486,6 +486,10 @@ def read_rawscan(path: str | Path) -> RawScan:
                     raise ValueError(f"orientation {k} is begun again after it was completed")
                 tilt, spin = (None if obj.get(key) is None else _reading_number(obj, key) * factors["angles"]
                               for key in ("tilt_deg", "spin_deg"))
+                direction = obj.get("direction")
+                if direction is not None and (not isinstance(direction, list) or not all(
+                        isinstance(v, numbers.Real) and not isinstance(v, bool) for v in direction)):
+                    raise ValueError(f"direction must be a list of numbers, got {direction!r}")  # ["1", 0, 0] read
                 for key, angle in (("tilt_deg", tilt), ("spin_deg", spin)):
                     if angle is not None and not np.isfinite(angle):  # NaN gave a NaN direction, unsaid
                         raise ValueError(f"{key} must be a finite number, got {obj[key]!r}")

@@ -324,6 +324,8 @@ def test_an_index_or_reading_of_the_wrong_type_names_file_and_line(tmp_path, ori
     ({"tilt_deg": 0.0, "spin_deg": True}, {}, 2, r"spin_deg must be a number, got True"),
     ({"tilt_deg": float("nan"), "spin_deg": 0.0}, {}, 2, r"tilt_deg must be a finite number, got nan"),
     ({"tilt_deg": 0.0, "spin_deg": float("inf")}, {}, 2, r"spin_deg must be a finite number, got inf"),
+    ({"direction": ["0", 0, 1]}, {}, 2, r"direction must be a list of numbers, got \['0', 0, 1\]"),
+    ({"direction": [False, False, True]}, {}, 2, r"direction must be a list of numbers, got \[False, False, True\]"),
     ({}, {"n_readings": "1"}, 4, r"n_readings must be a whole number, got '1'"),
     ({}, {"n_readings": True}, 4, r"n_readings must be a whole number, got True"),
     ({}, {"n_readings": 1.5}, 4, r"n_readings must be a whole number, got 1.5"),
@@ -331,7 +333,8 @@ def test_an_index_or_reading_of_the_wrong_type_names_file_and_line(tmp_path, ori
 def test_rig_angles_or_a_reading_count_of_the_wrong_type_name_file_and_line(tmp_path, orientation, complete, line_no,
                                                                           message):
     """Before: ``"tilt_deg": "10"`` (a string) was read as 10 degrees, ``"n_readings": true`` as 1 reading and
-    ``1.5`` as 1, and a NaN or infinite angle gave a NaN direction, without a word."""
+    ``1.5`` as 1, a NaN or infinite angle gave a NaN direction and ``"direction": ["0", 0, 1]`` was read as
+    numbers, without a word."""
     path = tmp_path / "bad.jsonl"
     lines = [_header().to_json(), {"type": "orientation", "k": 0, "direction": None, "tilt_deg": 0.0,
                                    "spin_deg": 0.0, **orientation},
@@ -340,7 +343,7 @@ def test_rig_angles_or_a_reading_count_of_the_wrong_type_name_file_and_line(tmp_
     path.write_text("".join(json.dumps(line) + "\n" for line in lines))
     with pytest.raises(RawScanFileError, match=f"^{path}:{line_no}: {message}$"):
         read_rawscan(path)
-    lines[1].update(tilt_deg=10, spin_deg=0)
+    lines[1].update(direction=None, tilt_deg=10, spin_deg=0)
     lines[3].update(n_readings=1.0)
     path.write_text("".join(json.dumps(line) + "\n" for line in lines))
     read = read_rawscan(path).orientations[0]  # whole numbers (and 1.0 readings) still read
