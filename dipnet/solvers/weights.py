@@ -58,11 +58,11 @@ KNOWN_NOISE = ("sigma", "readings")
 
 @dataclass(frozen=True)
 class WeightRule:
-    """How ``"auto"`` prior weights are chosen (see the module docstring).
+    """How ``"auto"`` prior weights are chosen (see the module docstring). Every option but ``rule`` is a finite
+    number (an infinite one is refused).
 
     Args:
         rule: ``"discrepancy"`` (the only rule).
-        Every other option is a finite number (an infinite one is refused).
         tau: the residual target is ``tau`` times the noise's relative residual.
         start: the weight of the first solve.
         floor, largest: the chosen weight stays in ``[floor, largest]``.
