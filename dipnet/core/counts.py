@@ -1,10 +1,17 @@
-"""Counts given as options: whole numbers, never silently cut (``iterations=2.5`` would run 2 unsaid)."""
+"""Numbers given as options: :func:`is_real` (no boolean or text passes for one) and :func:`whole_number` (counts,
+never silently cut: ``iterations=2.5`` would run 2 unsaid)."""
 
 from __future__ import annotations
 
 import math
 import numbers
 from typing import Any
+
+
+def is_real(value: Any) -> bool:
+    """Whether ``value`` is a real number: not a boolean (``True`` is 1 to Python, so ``step_mm=true`` ran a 1 mm
+    step), text or a complex number. NaN and infinities pass: a caller checks its range."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def whole_number(name: str, value: Any, low: int | None = None) -> int:
@@ -14,7 +21,7 @@ def whole_number(name: str, value: Any, low: int | None = None) -> int:
         ValueError: naming the option, unless ``value`` is a finite whole number (``3.0`` is 3; ``2.5``, ``True``
             and ``"3"`` are refused, not cut or parsed), at least ``low`` when given.
     """
-    if isinstance(value, (bool, str)) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
+    if not is_real(value) or not math.isfinite(value) \
             or value != int(value):
         raise ValueError(f"{name} must be a whole number, got {value!r} (2.5 is not cut to 2)")
     if low is not None and value < low:

@@ -14,11 +14,12 @@ Convention (used everywhere in dipnet)
 from __future__ import annotations
 
 import math
-import numbers
 import sys
 from dataclasses import dataclass
 
 import torch
+
+from dipnet.core.counts import is_real
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ def slab_count(grid: Grid, n_slabs: int | None = None) -> int:
     whole number >= 2 (``24.0`` is 24, ``7.5`` is refused rather than cut to 7)."""
     if n_slabs is None:
         return grid.n
-    if isinstance(n_slabs, bool) or not isinstance(n_slabs, numbers.Real) or int(n_slabs) != n_slabs or n_slabs < 2:
+    if not is_real(n_slabs) or int(n_slabs) != n_slabs or n_slabs < 2:
         raise ValueError(f"n_slabs must be a whole number >= 2 (slabs per profile), got {n_slabs!r}")
     return int(n_slabs)
 

@@ -11,12 +11,13 @@ increasing ``t``. Since a profile along ``-theta`` is the same profile reversed,
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from dipnet.core.counts import is_real
 
 
 def unit_directions(directions, ndim: int) -> torch.Tensor:
@@ -282,11 +283,6 @@ def within_reach(directions, tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 36
 
 
 
-def _is_number(value) -> bool:
-    """Whether ``value`` is a real number and not a boolean (``True`` is the number 1 to Python)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
 @dataclass(frozen=True)
 class Reach:
     """The orientations a rig can reach: tilt and spin ranges (degrees) and the candidate step.
@@ -307,10 +303,10 @@ class Reach:
         for name in ("tilt_range_deg", "spin_range_deg"):
             value = getattr(self, name)
             if isinstance(value, str) or not hasattr(value, "__len__") or len(value) != 2 \
-                    or not all(map(_is_number, value)):
+                    or not all(map(is_real, value)):
                 raise ValueError(f"reach.{name} must be two numbers [min, max] (degrees), got {value!r}")
             object.__setattr__(self, name, tuple(float(v) for v in value))
-        if not _is_number(self.step_deg):
+        if not is_real(self.step_deg):
             raise ValueError(f"reach.step_deg must be a number of degrees, got {self.step_deg!r}")
         reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)  # validates
 

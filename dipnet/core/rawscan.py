@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real
 from dipnet.core.orientations import rig_to_direction
 from dipnet.core.warn import log_and_warn
 
@@ -488,7 +489,7 @@ def read_rawscan(path: str | Path) -> RawScan:
                               for key in ("tilt_deg", "spin_deg"))
                 direction = obj.get("direction")
                 if direction is not None and (not isinstance(direction, list) or not all(
-                        isinstance(v, numbers.Real) and not isinstance(v, bool) for v in direction)):
+                        is_real(v) for v in direction)):
                     raise ValueError(f"direction must be a list of numbers, got {direction!r}")  # ["1", 0, 0] read
                 for key, angle in (("tilt_deg", tilt), ("spin_deg", spin)):
                     if angle is not None and not np.isfinite(angle):  # NaN gave a NaN direction, unsaid
@@ -666,7 +667,7 @@ def _reading_number(obj: dict, key: str, whole: bool = False) -> float:
     ``spin_deg``; a ``complete`` record's ``n_readings``, ``whole``): a JSON number (``"0"``, a string, was read
     as 0; ``"10"`` degrees as 10; ``87.5`` readings as 87)."""
     value = obj[key]
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or (whole and not float(value).is_integer()):
+    if not is_real(value) or (whole and not float(value).is_integer()):
         raise ValueError(f"{key} must be a {'whole ' if whole else ''}number, got {value!r}")
     return float(value)
 

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real
 from dipnet.core.grid import Grid, as_grid
 
 if TYPE_CHECKING:
@@ -54,7 +54,7 @@ class Reconstruction:
         if tuple(self.occupancy.shape) != self.grid.shape:
             raise ValueError(f"occupancy has shape {tuple(self.occupancy.shape)}, but {self.grid} holds "
                              f"{self.grid.shape}: give the reconstruction the grid its volume was solved on")
-        if isinstance(self.threshold, (bool, str)) or not isinstance(self.threshold, numbers.Real) \
+        if not is_real(self.threshold) \
                 or math.isnan(self.threshold):
             raise ValueError(f"threshold must be a number (the occupancy level between inside and outside), got "
                              f"{self.threshold!r}: with NaN nothing is inside")

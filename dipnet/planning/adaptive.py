@@ -16,7 +16,6 @@ left).
 from __future__ import annotations
 
 import logging
-import numbers
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.warn import log_and_warn
 from dipnet.operators import DipOperator
@@ -63,7 +63,7 @@ class AdaptiveSettings:
             raise ValueError(f"need 1 <= initial_dips <= budget and batch_size >= 1, got initial_dips "
                              f"{self.initial_dips}, budget {self.budget}, batch_size {self.batch_size}")
         stop = self.stop_uncertainty
-        if stop is not None and (isinstance(stop, bool) or not isinstance(stop, numbers.Real)):  # true read as 1
+        if stop is not None and not is_real(stop):  # true read as 1
             raise ValueError(f"stop_uncertainty must be a fraction in (0, 1) or null (the share of the object's "
                              f"volume expected misclassified, e.g. 0.05), got {stop!r}")
         if stop is not None:

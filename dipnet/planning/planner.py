@@ -94,7 +94,6 @@ from __future__ import annotations
 
 import inspect
 import logging
-import numbers
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -104,7 +103,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
-from dipnet.core.counts import whole_number
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, make_operator
 from dipnet.core.reconstruction import Reconstruction
@@ -179,7 +178,7 @@ class Planner(ABC):
 def _number(name: str, value: Any) -> float:
     """``value`` (the planner option ``name``) as a float; ``ValueError`` naming it for a boolean or text (``true``
     was read as 1, ``"abc"`` failed as "could not convert string to float" naming no option)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+    if not is_real(value):
         raise ValueError(f"{name} must be a number, got {value!r}")
     return float(value)
 

@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 from dataclasses import replace
 from pathlib import Path
 
@@ -65,6 +64,7 @@ import scipy.ndimage
 import scipy.optimize
 from scipy.interpolate import PchipInterpolator
 
+from dipnet.core.counts import is_real
 from dipnet.core.geometry import CROSS_SECTION_RANGE_MM2
 from dipnet.core.grid import Grid, slab_count
 from dipnet.core.measurement import BEYOND_SLABS_TOL, REACH_SIGMAS, DipMeasurement
@@ -180,12 +180,12 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
     if area is None:
         raise ValueError("the tank cross-section is unknown: pass cross_section_mm2 (mm^2; mm in 2D)")
     low, high = CROSS_SECTION_RANGE_MM2
-    if isinstance(area, bool) or not isinstance(area, numbers.Real) or not low <= area <= high:  # NaN fails too
+    if not is_real(area) or not low <= area <= high:  # NaN fails too
         source = "cross_section_mm2" if cross_section_mm2 is not None else "the scan header's tank_cross_section_mm2"
         raise ValueError(f"the tank cross-section {area!r} ({source}) is outside [{low:g}, {high:g}] mm^2 (mm in 2D): "
                          "wrong units?")
     if (t_start not in T_START_METHODS if isinstance(t_start, str)
-            else isinstance(t_start, bool) or not isinstance(t_start, numbers.Real) or not math.isfinite(t_start)):
+            else not is_real(t_start) or not math.isfinite(t_start)):
         raise ValueError(f"t_start must be a finite number (mm) or one of {T_START_METHODS}, got {t_start!r}")
     scans = raw.orientations if include_incomplete else complete_dips(raw)
     if not scans:

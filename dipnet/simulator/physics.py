@@ -34,7 +34,6 @@ and quantisation, in that order.
 from __future__ import annotations
 
 import math
-import numbers
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, replace
 from typing import ClassVar
@@ -42,6 +41,7 @@ from typing import ClassVar
 import numpy as np
 from tqdm.auto import tqdm
 
+from dipnet.core.counts import is_real
 from dipnet.core.rawscan import WATER_DENSITY_G_PER_MM3, OrientationScan, RawScan, ScanHeader
 from dipnet.simulator.size import check_simulation
 from dipnet.core.geometry import RigGeometry
@@ -58,8 +58,7 @@ SNR_DB_RANGE = (-20.0, 200.0)
 def check_snr_db(snr_db: float | None) -> None:
     """Raise ``ValueError`` unless ``snr_db`` (dB) is null or a number in :data:`SNR_DB_RANGE`."""
     low, high = SNR_DB_RANGE
-    if snr_db is not None and (isinstance(snr_db, bool) or not isinstance(snr_db, numbers.Real)
-                               or not low <= snr_db <= high):
+    if snr_db is not None and (not is_real(snr_db) or not low <= snr_db <= high):
         raise ValueError(f"snr_db must be a number of dB in [{low:g}, {high:g}] or null (noise-free), "
                          f"got {snr_db!r}")
 
@@ -79,7 +78,7 @@ class Tank:
 
     def __post_init__(self) -> None:
         area = self.cross_section_mm2  # True was read as 1 mm^2, a string failed in numpy naming no option
-        if isinstance(area, bool) or not isinstance(area, numbers.Real) or not 0 < area < math.inf:
+        if not is_real(area) or not 0 < area < math.inf:
             raise ValueError(f"tank cross_section_mm2 must be a finite, positive number (mm^2; mm in 2D), got {area!r}")
         if isinstance(self.rest_level_mm, bool) or not math.isfinite(self.rest_level_mm):
             raise ValueError(f"tank rest_level_mm must be a finite level (mm), got {self.rest_level_mm!r}")
@@ -116,7 +115,7 @@ class SensorModel(ABC):
                 check_snr_db(value)
                 continue
             low = -math.inf if name.startswith("drift") else 0.0
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not low <= value < math.inf:
+            if not is_real(value) or not low <= value < math.inf:
                 kind = "a finite number" if low < 0 else "a number >= 0 (0: none)"
                 raise ValueError(f"sensor {name} must be {kind}, got {value!r}")
         sigma, snr_db, _, _ = self._params()
@@ -211,7 +210,7 @@ class Balance(SensorModel):
         positive number (``true`` was read as 1 g/mm^3, a thousand times water's, exit 0)."""
         super().__post_init__()
         density = self.density_g_per_mm3
-        if isinstance(density, bool) or not isinstance(density, numbers.Real) or not 0 < density < math.inf:
+        if not is_real(density) or not 0 < density < math.inf:
             raise ValueError(f"sensor density_g_per_mm3 must be a finite, positive number (g/mm^3; water 1e-3), "
                              f"got {density!r}")
 

@@ -6,13 +6,13 @@ Solvers never read files or configs; scripts and Hydra build them.
 from __future__ import annotations
 
 import math
-import numbers
 from abc import ABC, abstractmethod
 from dataclasses import replace
 
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real
 from dipnet.core.measurement import BEYOND_SLABS_TOL, DipMeasurement
 from dipnet.operators.base import DipOperator
 from dipnet.core.reconstruction import Reconstruction
@@ -38,7 +38,7 @@ def checked_threshold(threshold: float | str, rule: str) -> float | str:
     or the whole grid, beyond the working ball (the same limit as ``check_thresholds`` of a config)."""
     if threshold == rule:
         return rule
-    if isinstance(threshold, (bool, str)) or not isinstance(threshold, numbers.Real) or not 0 < threshold < 1:
+    if not is_real(threshold) or not 0 < threshold < 1:
         reason = (f"this solver's only named rule is {rule!r} ('volume' is the optimisation solvers' rule, 'otsu' the "
                   "linear solvers')" if isinstance(threshold, str) else
                   "a level of 1 or above leaves an occupancy in [0, 1] empty, one of 0 or below takes the whole grid")
@@ -50,8 +50,7 @@ def checked_temperatures(start: float, end: float) -> tuple[float, float]:
     """A solver's sigmoid temperatures ``(temperature_start, temperature_end)`` as floats: finite numbers with
     ``0 < end <= start``. Anything else raises a ``ValueError`` (an infinite temperature flattens every logit to an
     occupancy of 0.5: a NaN loss once solving)."""
-    if isinstance(start, (bool, str)) or isinstance(end, (bool, str)) \
-            or not all(isinstance(t, numbers.Real) for t in (start, end)) or not 0 < end <= start < math.inf:
+    if not (is_real(start) and is_real(end)) or not 0 < end <= start < math.inf:
         raise ValueError(f"need finite temperatures 0 < temperature_end <= temperature_start, got "
                          f"temperature_start={start!r}, temperature_end={end!r}")
     return float(start), float(end)
@@ -124,7 +123,7 @@ def noise_sigma(measurement: DipMeasurement, operator: DipOperator) -> tuple[tor
     if sigma is not None:
         return sigma, "sigma"
     reading = measurement.metadata.get("readings_slab_sigma")
-    if isinstance(reading, numbers.Real) and not isinstance(reading, bool) and math.isfinite(reading) and reading > 0:
+    if is_real(reading) and math.isfinite(reading) and reading > 0:
         shape = (operator.n_orientations, operator.n_slabs)
         return torch.full(shape, float(reading), dtype=torch.float64), "readings"
     return None, "estimated"

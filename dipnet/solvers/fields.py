@@ -17,13 +17,13 @@ Encodings (:func:`make_encoding`, selected by ``{"type": name, **options}``):
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dipnet.core.counts import is_real
 from dipnet.core.flags import checked_flag
 from dipnet.solvers.priors import rotation_order, symmetry_maps
 
@@ -42,7 +42,7 @@ class FourierFeatures(nn.Module):
 
     def __init__(self, ndim: int, n_features: int = 128, scale: float = 4.0, include_input: bool = True) -> None:
         super().__init__()
-        if isinstance(scale, (bool, str)) or not isinstance(scale, numbers.Real) or not 0 < scale < math.inf:
+        if not is_real(scale) or not 0 < scale < math.inf:
             raise ValueError(f"the fourier encoding's scale must be a finite number > 0 (the frequencies' standard "
                              f"deviation, cycles per half-width), got {scale!r}")
         self.register_buffer("freqs", torch.randn(ndim, int(n_features)) * float(scale))

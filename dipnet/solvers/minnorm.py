@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 import time
 
 import numpy as np
@@ -68,7 +67,7 @@ import torch
 from skimage.filters import threshold_otsu
 from tqdm.auto import tqdm
 
-from dipnet.core.counts import whole_number
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.flags import checked_flag
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
@@ -159,7 +158,7 @@ class MinNormSolver(Solver):
         self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), iter_lim
         for name, value, low in (("atol", atol, 0.0), ("btol", btol, 0.0), ("rcond", rcond, 0.0),
                                  ("max_cholesky_bytes", max_cholesky_bytes, 1.0)):  # NaN compares false: no limit
-            if isinstance(value, (bool, str)) or not isinstance(value, numbers.Real) or not low <= value < math.inf:
+            if not is_real(value) or not low <= value < math.inf:
                 raise ValueError(f"{name} must be a finite number >= {low:g}, got {value!r}")
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
         self.threshold = checked_threshold(threshold, "otsu")

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 import time
 import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -35,7 +34,7 @@ from tqdm.auto import tqdm
 
 from dipnet.core.flags import checked_flag
 from dipnet.core.grid import Grid
-from dipnet.core.counts import whole_number
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.measurement import DipMeasurement, filled_slabs, robust_volume
 from dipnet.operators import DipOperator
 from dipnet.core.reconstruction import Reconstruction
@@ -80,7 +79,7 @@ NOISE_MODELS = ("independent", "correlated")
 def checked_white_share(white_share: float) -> float:
     """The correlated noise model's white part (units of ``sigma^2 / 2``) as a float: a finite number > 0, else a
     ``ValueError`` (an infinite white part weighs every slab by 0: no data term, an empty result)."""
-    if isinstance(white_share, (bool, str)) or not isinstance(white_share, numbers.Real) \
+    if not is_real(white_share) \
             or not 0 < white_share < math.inf:
         raise ValueError(f"white_share must be a finite number > 0 (the white part, in sigma^2 / 2), got {white_share}")
     return float(white_share)
@@ -513,13 +512,13 @@ class OptimisationSolver(Solver):
             raise ValueError(f"unknown schedule {schedule!r}; choose one of {SCHEDULES}")
         for name, value in (("iterations", iterations), ("window", window)):
             whole_number(name, value, low=1)
-        if isinstance(lr, (bool, str)) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf:
+        if not is_real(lr) or not 0 < lr < math.inf:
             raise ValueError(f"lr must be a positive, finite learning rate, got {lr!r}")
         priors = plain(priors or {})
         self.weight_rule = WeightRule.from_options(plain(weight_rule or {}))
         build_priors(with_weight(priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.iterations, self.lr, self.optimizer, self.schedule = int(iterations), float(lr), optimizer, schedule
-        if isinstance(tol, (bool, str)) or not isinstance(tol, numbers.Real) or not -math.inf < tol < math.inf:
+        if not is_real(tol) or not -math.inf < tol < math.inf:
             raise ValueError(f"tol must be a finite number (the plateau's relative improvement; <= 0: no early stop), "
                              f"got {tol!r}")  # NaN never stopped early, inf stopped after the first window
         self.tol, self.window = float(tol), int(window)

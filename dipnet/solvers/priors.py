@@ -24,13 +24,13 @@ modules (weight 0 = off), e.g. ``{"tv": {"weight": 0.01}, "symmetry": {"weight":
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dipnet.core.counts import is_real
 from dipnet.core.flags import checked_flag
 from dipnet.solvers.learned import LearnedPrior
 
@@ -103,7 +103,7 @@ def _rotation_matrix(axis: torch.Tensor, angle: float) -> torch.Tensor:
 def rotation_order(order) -> int:
     """``order`` (the ``n`` of an ``n``-fold rotation) as an int; a ``ValueError`` unless it is a whole number >= 1
     (``3.0`` is 3; ``2.5`` or ``True`` are refused rather than read as a 2- or 1-fold rotation)."""
-    if isinstance(order, bool) or not isinstance(order, numbers.Real) or not math.isfinite(order) \
+    if not is_real(order) or not math.isfinite(order) \
             or int(order) != order or order < 1:
         raise ValueError(f"rotation order must be a whole number >= 1 (the n of an n-fold rotation), got {order!r}")
     return int(order)

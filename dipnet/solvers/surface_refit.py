@@ -35,7 +35,6 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import numbers
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
@@ -46,7 +45,7 @@ import torch
 import trimesh
 from tqdm.auto import tqdm
 
-from dipnet.core.counts import whole_number
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.operators.mesh_slabs import mesh_slab_volumes
 from dipnet.shapes.isosurface import volume_to_mesh
@@ -100,7 +99,7 @@ class SurfaceRefit:
             value = getattr(self, name)
             if name == "white_share" and value is None:
                 continue
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not inside(float(value)):
+            if not is_real(value) or not inside(float(value)):
                 raise ValueError(f"surface_refit.{name} must be a number in {span}, got {value!r}")
 
     @classmethod

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from dipnet.core.counts import whole_number
+from dipnet.core.counts import is_real, whole_number
 
 
 @pytest.mark.parametrize("value", [3, 3.0, np.int64(3), np.float32(3.0)])
@@ -20,3 +20,8 @@ def test_a_lower_bound_is_named():
     assert whole_number("window", 1, low=1) == 1
     with pytest.raises(ValueError, match=r"window must be a whole number >= 1, got 0"):
         whole_number("window", 0, low=1)
+
+
+def test_is_real_takes_numbers_and_refuses_booleans_text_and_complex():
+    assert [is_real(v) for v in (3, 2.5, np.float32(1.0), float("nan"), -np.inf)] == [True] * 5
+    assert [is_real(v) for v in (True, np.bool_(False), "3", 1j, None, [1])] == [False] * 6
