@@ -82,16 +82,8 @@ class LearnedPrior(nn.Module):
     def __init__(self, weights: str | Path | None | Sequence[str | Path | None] = None, refresh: int = 10,
                  mode: str = "red", flips: bool = False) -> None:
         super().__init__()
-        if isinstance(refresh, bool) or not isinstance(refresh, numbers.Integral) or refresh < 1:
-            raise ValueError(f"refresh must be a whole number >= 1 (calls between denoiser evaluations), "
-                             f"got {refresh!r}")
-        if mode not in self.MODES:
-            raise ValueError(f"unknown learned-prior mode {mode!r}; choose one of {self.MODES}")
+        names = self.check_options(weights, refresh, mode, flips)
         self.mode, self.flips = mode, checked_flag("the learned prior's flips", flips)
-        names = list(weights) if isinstance(weights, Sequence) and not isinstance(weights, str) else [weights]
-        if not names:
-            raise ValueError("the learned prior's weights: an empty list; give a weights file or shipped name, "
-                             "or a list of them")
         self.candidates = [(name, *_load(name)) for name in names]
         for _, denoiser, _, _ in self.candidates:
             for p in denoiser.parameters():
@@ -99,6 +91,27 @@ class LearnedPrior(nn.Module):
         self._keep(0, None)
         self.refresh = int(refresh)
         self._calls, self._denoised = 0, None
+
+    @classmethod
+    def check_options(cls, weights: str | Path | None | Sequence[str | Path | None] = None, refresh: int = 10,
+                      mode: str = "red", flips: bool = False) -> list:
+        """Check the options as the constructor does, without loading any weights (a prior of weight 0 is checked
+        this way: :func:`~dipnet.solvers.priors.build_priors`); returns the list of weights names.
+
+        Raises:
+            ValueError: a ``refresh``, ``mode``, ``flips`` or empty ``weights`` list the constructor refuses.
+        """
+        if isinstance(refresh, bool) or not isinstance(refresh, numbers.Integral) or refresh < 1:
+            raise ValueError(f"refresh must be a whole number >= 1 (calls between denoiser evaluations), "
+                             f"got {refresh!r}")
+        if mode not in cls.MODES:
+            raise ValueError(f"unknown learned-prior mode {mode!r}; choose one of {cls.MODES}")
+        checked_flag("the learned prior's flips", flips)
+        names = list(weights) if isinstance(weights, Sequence) and not isinstance(weights, str) else [weights]
+        if not names:
+            raise ValueError("the learned prior's weights: an empty list; give a weights file or shipped name, "
+                             "or a list of them")
+        return names
 
     def _keep(self, index: int, reason: str | None) -> None:
         """Use the candidate weights ``index``; :attr:`choice` records which and why (``reason`` ``None``: the only

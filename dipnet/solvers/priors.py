@@ -23,6 +23,7 @@ modules (weight 0 = off), e.g. ``{"tv": {"weight": 0.01}, "symmetry": {"weight":
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Mapping, Sequence
 
@@ -319,7 +320,8 @@ def prior_weight(name: str, weight: float) -> float:
 
 def build_priors(spec: Mapping[str, Mapping] | None, volume_fraction: float | None = None
                  ) -> list[tuple[str, float, nn.Module]]:
-    """``[(name, weight, module)]`` for the priors of ``spec`` with a non-zero weight.
+    """``[(name, weight, module)]`` for the priors of ``spec`` with a non-zero weight; the options of those of weight 0
+    are checked all the same (:func:`check_off_prior`), so a misspelt or refused option fails whatever the weight.
 
     Args:
         spec: ``{name: {"weight": w, **options}}`` with names from :data:`PRIORS`; a bare
@@ -333,7 +335,8 @@ def build_priors(spec: Mapping[str, Mapping] | None, volume_fraction: float | No
             raise ValueError(f"unknown prior {name!r}; choose from {sorted(PRIORS)}")
         options = {"weight": options} if isinstance(options, (int, float)) else dict(options)
         weight = prior_weight(name, options.pop("weight", 0.0))
-        if weight == 0:
+        if weight == 0:  # off, but its options are checked as an active prior's (a typo is no less one at 0)
+            check_off_prior(name, options)
             continue
         if name == "volume" and "fraction" not in options:
             if volume_fraction is None:
@@ -345,3 +348,26 @@ def build_priors(spec: Mapping[str, Mapping] | None, volume_fraction: float | No
             raise ValueError(f"bad options for prior {name!r}: {exc}") from exc
         out.append((name, weight, module))
     return out
+
+
+def check_off_prior(name: str, options: Mapping) -> None:
+    """Check the ``options`` (without ``weight``) of prior ``name`` at weight 0 as those of an active one: unknown
+    names and refused values raise the same ``ValueError``. What only an active prior needs is not asked for: the
+    ``volume`` prior's measured fraction, a declared symmetry (``symmetry``'s defaults declare none), the
+    ``learned`` prior's weights file (:meth:`~dipnet.solvers.learned.LearnedPrior.check_options`, nothing loaded).
+    """
+    options = dict(options)
+    cls = PRIORS[name]
+    try:
+        inspect.signature(cls).bind_partial(**options)  # unknown option names
+        if name == "learned":
+            LearnedPrior.check_options(**options)
+            return
+        if name == "symmetry" and options.get("plane_normal") is None:
+            rotation_order(options.get("order", 1))  # none declared: only the order to check
+            return
+        if name == "volume":
+            options.setdefault("fraction", 1.0)
+        cls(**options)
+    except TypeError as exc:
+        raise ValueError(f"bad options for prior {name!r}: {exc}") from exc

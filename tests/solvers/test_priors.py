@@ -164,3 +164,33 @@ def test_tv_isotropic_given_as_another_word_is_refused(isotropic):
     with pytest.raises(ValueError, match=r"solver.priors.tv.isotropic\) must be true or false"):
         TotalVariation(isotropic=isotropic)
     assert TotalVariation(isotropic=False).isotropic is False
+
+
+@pytest.mark.parametrize("spec, match", [
+    ({"tv": {"weight": 0.0, "isotropc": True}}, r"bad options for prior 'tv'.*isotropc"),
+    ({"tv": {"weight": 0, "isotropic": "no"}}, r"solver.priors.tv.isotropic\) must be true or false"),
+    ({"gradient": {"weight": 0.0, "order": 3}}, r"order must be 1 \(gradient\) or 2 \(Laplacian\), got 3"),
+    ({"transform_l1": {"weight": 0.0, "transform": "fft"}}, r"unknown sparsifying transform 'fft'"),
+    ({"symmetry": {"weight": 0.0, "order": 2.5}}, r"rotation order must be a whole number >= 1.*2\.5"),
+    ({"volume": {"weight": 0.0, "fraction": -0.1}}, r"positive volume fraction, got -0\.1"),
+    ({"l1": {"weight": 0.0, "scale": 2}}, r"bad options for prior 'l1'.*scale"),
+    ({"learned": {"weight": 0.0, "mode": "nonsense"}}, r"unknown learned-prior mode 'nonsense'"),
+    ({"learned": {"weight": 0.0, "refresh": 0}}, r"refresh must be a whole number >= 1.*got 0"),
+    ({"learned": {"weight": 0.0, "wieghts": "x"}}, r"bad options for prior 'learned'.*wieghts"),
+])
+def test_options_of_a_prior_of_weight_0_are_checked(spec, match):
+    """A prior of weight 0 was skipped before its options were looked at: ``solver.priors.tv={weight: 0,
+    isotropc: true}`` (a typo) or a nonsense value was accepted without a word, and failed only once the weight
+    was raised."""
+    with pytest.raises(ValueError, match=match):
+        build_priors(spec, volume_fraction=0.2)
+
+
+def test_a_prior_of_weight_0_needs_nothing_an_active_one_needs():
+    """Off priors stay off without what only an active one needs: the volume prior's measured fraction, a declared
+    symmetry (the solver configs' defaults declare none), the learned prior's weights file (nothing is loaded)."""
+    spec = {"volume": {"weight": 0.0}, "symmetry": {"weight": 0.0, "plane_normal": None, "axis": None, "order": 1},
+            "learned": {"weight": 0.0, "weights": "no_such_weights_file.pt", "refresh": 10, "mode": "red",
+                        "flips": False},
+            "gradient": {"weight": 0.0, "order": 1}, "tv": 0, "binary": {"weight": 0.0}}
+    assert build_priors(spec) == []
