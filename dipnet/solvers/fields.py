@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dipnet.core.counts import is_real
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.flags import checked_flag
 from dipnet.solvers.priors import rotation_order, symmetry_maps
 
@@ -34,7 +34,7 @@ class FourierFeatures(nn.Module):
 
     Args:
         ndim: 2 or 3.
-        n_features: number of frequencies (output ``2 n_features (+ ndim)``).
+        n_features: number of frequencies (output ``2 n_features (+ ndim)``), a whole number >= 1.
         scale: standard deviation of the frequencies, in cycles per unit of the normalised
             cube (``scale=4`` ~ features down to a quarter of the half-width); finite and > 0.
         include_input: append the raw coordinates (true or false).
@@ -42,6 +42,7 @@ class FourierFeatures(nn.Module):
 
     def __init__(self, ndim: int, n_features: int = 128, scale: float = 4.0, include_input: bool = True) -> None:
         super().__init__()
+        n_features = whole_number("the fourier encoding's n_features", n_features, low=1)
         if not is_real(scale) or not 0 < scale < math.inf:
             raise ValueError(f"the fourier encoding's scale must be a finite number > 0 (the frequencies' standard "
                              f"deviation, cycles per half-width), got {scale!r}")
@@ -56,10 +57,12 @@ class FourierFeatures(nn.Module):
 
 
 class PositionalEncoding(nn.Module):
-    """``[x, sin(2^k pi x), cos(2^k pi x)]`` for ``k = 0 .. n_frequencies - 1``, per axis."""
+    """``[x, sin(2^k pi x), cos(2^k pi x)]`` for ``k = 0 .. n_frequencies - 1``, per axis (``n_frequencies`` a whole
+    number >= 0; 0: the coordinates alone)."""
 
     def __init__(self, ndim: int, n_frequencies: int = 6) -> None:
         super().__init__()
+        n_frequencies = whole_number("the positional encoding's n_frequencies", n_frequencies, low=0)
         self.register_buffer("scales", math.pi * 2.0 ** torch.arange(int(n_frequencies), dtype=torch.float32))
         self.out_dim = ndim * (1 + 2 * int(n_frequencies))
 
@@ -84,14 +87,23 @@ class DenseGridEncoding(nn.Module):
         levels: number of resolutions.
         features: features per level (output ``levels * features``).
         base_resolution, max_resolution: coarsest and finest cells per axis.
-        init_scale: features start uniform in ``[-init_scale, init_scale]``.
+        init_scale: features start uniform in ``[-init_scale, init_scale]`` (finite, > 0).
+
+    Every count is a whole number (``2.5``, ``True`` or ``"4"`` are refused, naming the option).
     """
 
     def __init__(self, ndim: int, levels: int = 6, features: int = 2, base_resolution: int = 4,
                  max_resolution: int = 64, init_scale: float = 1e-4) -> None:
         super().__init__()
-        if levels < 1 or features < 1 or base_resolution < 2 or max_resolution < base_resolution:
-            raise ValueError("densegrid needs levels, features >= 1 and 2 <= base_resolution <= max_resolution")
+        levels = whole_number("the densegrid encoding's levels", levels, low=1)
+        features = whole_number("the densegrid encoding's features", features, low=1)
+        base_resolution = whole_number("the densegrid encoding's base_resolution", base_resolution, low=2)
+        max_resolution = whole_number("the densegrid encoding's max_resolution", max_resolution, low=2)
+        if max_resolution < base_resolution:
+            raise ValueError(f"densegrid needs base_resolution <= max_resolution (max_resolution null: the grid's N), "
+                             f"got base_resolution {base_resolution} and max_resolution {max_resolution}")
+        if not is_real(init_scale) or not 0 < init_scale < math.inf:
+            raise ValueError(f"the densegrid encoding's init_scale must be a finite number > 0, got {init_scale!r}")
         self.ndim, self.features = ndim, int(features)
         growth = (max_resolution / base_resolution) ** (1 / max(levels - 1, 1))
         self.resolutions = [round(base_resolution * growth**i) for i in range(int(levels))]

@@ -19,6 +19,7 @@ operator and the MLP over the support-hull voxels (see :func:`~dipnet.solvers.op
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 
@@ -26,12 +27,13 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
+from dipnet.core.counts import is_real
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator
 from dipnet.core.keywords import forwards_to
 from dipnet.core.reconstruction import Reconstruction
-from dipnet.solvers.fields import OccupancyField
+from dipnet.solvers.fields import OccupancyField, make_encoding
 from dipnet.solvers.base import on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
 from dipnet.solvers.priors import symmetry_spec
@@ -92,9 +94,25 @@ class ImplicitSolver(OptimisationSolver):
         sym = self.symmetry or {}
         ndim = len(sym["plane_normal"]) if sym.get("plane_normal") else 3 if sym.get("axis") is not None or not sym \
             else 2
-        with seeded(self.seed):  # fail on bad encoding / symmetry options at construction
-            OccupancyField(ndim, self._encoding_for(Grid(16, ndim)), self.hidden_width, self.hidden_layers,
+        # fail on bad encoding / symmetry options at construction, before any dip is simulated or read; a densegrid's
+        # max_resolution null is the grid's N, unknown here: checked against the grid by check_grid and solve
+        base = self.encoding.get("base_resolution", 4)
+        n = max(16, int(base)) if is_real(base) and math.isfinite(base) else 16
+        with seeded(self.seed):
+            OccupancyField(ndim, self._encoding_for(Grid(n, ndim)), self.hidden_width, self.hidden_layers,
                            self.symmetry)
+
+    def check_grid(self, grid: Grid, n_slabs: int) -> None:
+        """What :meth:`OptimisationSolver.check_grid` refuses, and an encoding that does not fit ``grid`` (a densegrid
+        whose ``base_resolution`` exceeds the grid's ``N`` when its ``max_resolution`` is null): a job calls this
+        before it simulates or reads any dip.
+
+        Raises:
+            ValueError: naming the options.
+        """
+        super().check_grid(grid, n_slabs)
+        with seeded(self.seed):  # the encoding's random start leaves the caller's random state alone
+            make_encoding(grid.ndim, self._encoding_for(grid))
 
     def solve(self, measurement: DipMeasurement, operator: DipOperator) -> Reconstruction:
         """Fit the field and sample it on ``operator.grid`` (and the fine grid, see the module

@@ -69,7 +69,8 @@ def test_densegrid_resolutions_grow_geometrically():
 @pytest.mark.parametrize("spec,message", [
     ({"type": "hash"}, "unknown field encoding 'hash'"),
     ({"type": "positional", "octaves": 3}, "bad options for encoding 'positional'"),
-    ({"type": "densegrid", "base_resolution": 8, "max_resolution": 4}, "2 <= base_resolution <= max_resolution"),
+    ({"type": "densegrid", "base_resolution": 8, "max_resolution": 4},
+     "base_resolution <= max_resolution .*got base_resolution 8 and max_resolution 4"),
 ])
 def test_bad_encodings_are_named(spec, message):
     with pytest.raises(ValueError, match=message):
@@ -98,3 +99,26 @@ def test_fourier_encoding_options_are_checked(options, message):
     """A NaN scale was a NaN loss named a divergence ("try a lower lr"); ``include_input: no`` was read as true."""
     with pytest.raises(ValueError, match=message):
         make_encoding(3, {"type": "fourier", **options})
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"type": "fourier", "n_features": 2.5}, r"fourier encoding's n_features must be a whole number, got 2.5"),
+    ({"type": "fourier", "n_features": True}, r"fourier encoding's n_features must be a whole number, got True"),
+    ({"type": "fourier", "n_features": "8"}, r"fourier encoding's n_features must be a whole number, got '8'"),
+    ({"type": "fourier", "n_features": 0}, r"fourier encoding's n_features must be a whole number >= 1, got 0"),
+    ({"type": "fourier", "n_features": -3}, r"fourier encoding's n_features must be a whole number >= 1, got -3"),
+    ({"type": "positional", "n_frequencies": 2.5}, r"positional encoding's n_frequencies must be a whole number"),
+    ({"type": "positional", "n_frequencies": "6"}, r"positional encoding's n_frequencies must be a whole number"),
+    ({"type": "positional", "n_frequencies": -1}, r"positional encoding's n_frequencies must be a whole number >= 0"),
+    ({"type": "densegrid", "levels": 2.5}, r"densegrid encoding's levels must be a whole number, got 2.5"),
+    ({"type": "densegrid", "features": True}, r"densegrid encoding's features must be a whole number, got True"),
+    ({"type": "densegrid", "max_resolution": 8.5}, r"densegrid encoding's max_resolution must be a whole number"),
+    ({"type": "densegrid", "init_scale": -1.0}, r"densegrid encoding's init_scale must be a finite number > 0"),
+])
+def test_encoding_counts_are_whole_numbers(spec, message):
+    """``n_features: 2.5`` (or ``true``, ``"8"``) was cut or parsed to a count without a word, ``n_frequencies: 2.5`` as
+    well, and a negative one was torch's "negative dimension" / "bound inconsistent with step sign" naming no
+    option."""
+    with pytest.raises(ValueError, match=message):
+        make_encoding(3, spec)
+    assert make_encoding(2, {"type": "positional", "n_frequencies": 0}).out_dim == 2  # the coordinates alone

@@ -125,3 +125,32 @@ def test_a_rotation_alone_is_a_2d_symmetry():
         else:
             with pytest.raises(ValueError, match="an n-fold rotation in 3D needs its axis"):
                 solver.solve(m, op)
+
+
+@pytest.mark.parametrize("encoding, message", [
+    ({"type": "fourier", "n_features": 2.5}, "fourier encoding's n_features must be a whole number, got 2.5"),
+    ({"type": "fourier", "n_features": -3}, "fourier encoding's n_features must be a whole number >= 1, got -3"),
+    ({"type": "positional", "n_frequencies": -1}, "positional encoding's n_frequencies must be a whole number >= 0"),
+    ({"type": "densegrid", "levels": 2.5, "max_resolution": None}, "densegrid encoding's levels must be a whole"),
+])
+def test_encoding_options_are_refused_at_construction(encoding, message):
+    """Counts of the positional encodings were cut (2.5 ran as 2) or failed in torch naming no option."""
+    with pytest.raises(ValueError, match=message):
+        ImplicitSolver(encoding=encoding, progress=False)
+
+
+def test_a_densegrid_that_does_not_fit_the_grid_is_refused_before_any_solve():
+    """``max_resolution: null`` is the grid's N, which the constructor does not know: it checked the encoding against
+    16 voxels, so a base_resolution of 12 passed and a 8^3 job failed only once it solved, after simulating its dips;
+    and a base_resolution of 20 was refused for every grid, 64^3 included. ``check_grid`` (which a job calls before
+    any dip) now refuses the first, naming both options, and the second is accepted."""
+    solver = ImplicitSolver(encoding={"type": "densegrid", "base_resolution": 12, "max_resolution": None},
+                            progress=False)
+    with pytest.raises(ValueError, match="got base_resolution 12 and max_resolution 8"):
+        solver.check_grid(Grid(8, 3), 8)
+    solver.check_grid(Grid(16, 3), 16)
+    coarse = ImplicitSolver(encoding={"type": "densegrid", "base_resolution": 20, "max_resolution": None},
+                            progress=False)
+    state = torch.random.get_rng_state()
+    coarse.check_grid(Grid(32, 3), 32)
+    assert torch.equal(torch.random.get_rng_state(), state)  # the job's simulation draws the same noise
