@@ -876,3 +876,21 @@ def test_swapped_dips_a_solver_fits_anyway_are_named():
     right = make_operator(grid, measurement.directions)
     result, caught = _check_on(measurement, right, make_solver("voxel", progress=False).solve(measurement, right))
     assert result.dip_outliers == [] and not any("disagree with the others" in str(w.message) for w in caught)
+
+
+def test_a_coarse_threshold_off_the_volume_names_the_resolution():
+    """A ball of radius 14 mm on a 16^3 grid of 100 mm (6.25 mm voxels), as its exact partial-volume occupancy: the
+    occupancy holds the measured volume and explains the dips, its threshold at 0.5 adds the half-filled surface
+    voxels (ratio 1.19). The volume's finding says why (the threshold at this voxel size) and what to do."""
+    grid = Grid(16, 3, 100.0)
+    operator = make_operator(grid, fibonacci_hemisphere(30))
+    ball = builtin_shape("ball", 3, radius=14.0).occupancy(grid, supersample=4).double()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = check_consistency(_exact_measurement(operator, ball), operator,
+                                   Reconstruction(occupancy=ball.float(), grid=grid))
+    messages = [str(w.message) for w in caught if issubclass(w.category, DataConsistencyWarning)]
+    assert result.profile_residual < result.residual_limit and result.volume_ratio > 1.15
+    assert result.continuous_volume_mm3 == pytest.approx(result.measured_volume_mm3, rel=1e-6)
+    finding, = [m for m in messages if m.startswith("the reconstruction holds ")]
+    assert "raise resolution, or use the occupancy in reconstruction.npz" in finding
