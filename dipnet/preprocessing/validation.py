@@ -39,6 +39,11 @@ when the measurement carries ``sigma``, else 0):
   height, on the slabs' own heights) differ anywhere by more than ``max(5 noise, total_tol V)``, a
   warning gives the discrepancy (a direction mislabelled, or repeated by mistake, measures another
   profile with the same total). The profiles are kept (a least-squares solver averages them).
+* **hemisphere**: a direction is the object's "up" in the tank, and every rig's and every orientation set's
+  lie on the upper half (last component >= 0: tilts up to 90 deg). Two or more directions, none above the
+  horizontal and some below: a warning. A file that records the direction of motion (down) instead dips the
+  object along the reversed directions, whose profiles are the point-reflected object's: a shape that explains
+  the dips exactly, mirrored through the centre, which no data check can tell from the right one.
 
 Errors raise :class:`MeasurementValidationError` (one line, the first problem found);
 warnings go to the log and to :mod:`warnings`.
@@ -201,6 +206,7 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     _check_not_tiny(totals, grid, source)
     _check_totals(totals, noise, total_tol, source, report, unit)
     _check_duplicates(measurement, totals, noise, total_tol, dup_deg, source, report, unit)
+    _check_hemisphere(measurement.directions.double().numpy(), source, report)
     for message in report.warnings:
         log_and_warn(log, message, stacklevel=2)
     return report
@@ -489,3 +495,19 @@ def _check_duplicates(measurement: DipMeasurement, totals, noise, total_tol: flo
             f"up to {gap[worst]:.4g} {unit}, {gap[worst] / scale[worst]:.1%} of {scale[worst]:.4g} {unit}): "
             "a direction "
             "mislabelled, or the same direction recorded for different dips?")
+
+
+def _check_hemisphere(directions: np.ndarray, source: str, report: ValidationReport) -> None:
+    """Warn when two or more ``directions`` ``(K, d)`` point below the horizontal and none above it (the module's
+    **hemisphere** rule)."""
+    down = directions[:, -1] < 0.0
+    report.stats["directions_down"] = int(down.sum())
+    if len(directions) >= 2 and down.any() and (directions[:, -1] <= 0.0).all():  # horizontal ones go either way
+        axis = "z" if directions.shape[1] == 3 else "y"
+        report.warnings.append(
+            f"{source}: every direction points down ({axis} < 0 in {int(down.sum())} of {len(directions)}, none "
+            f"above 0), where a direction is the "
+            "object's up in the tank and every rig's lie on the upper half: if the file records the direction of "
+            "motion, negate them, or the shape comes out point-reflected through the centre (it explains the dips "
+            "as well, so no later check can tell)")
+

@@ -327,3 +327,26 @@ def test_2d_warnings_name_areas_not_volumes():
         report = validate_measurement(DipMeasurement(m.directions, profiles, m.slab_thickness, m.offsets),
                                       Grid(16, 2, 100.0))
     assert not any("mm^3" in w for w in report.warnings)
+
+
+def test_directions_all_pointing_down_are_named():
+    """A file recording each dip's direction of motion (down) instead of the object's up: the dips of a ball 15 mm
+    off the centre along the reversed directions are exactly those of the ball mirrored through the centre along
+    the true ones, so only the directions' half tells. All down: a warning; some down (a rig tilting past 90
+    deg): none. In 2D the horizontal direction of the equal angles is either way."""
+    centre = torch.tensor([15.0, 0.0, 5.0], dtype=torch.float64)
+    up = fibonacci_hemisphere(12)
+    down = ball_profiles(-up, EDGES, centre, 20.0)
+    assert torch.allclose(down, ball_profiles(up, EDGES, -centre, 20.0))  # the point-reflected object's dips
+    with pytest.warns(UserWarning, match=r"points down \(z < 0 in 12 of 12, none above 0\).*negate them"):
+        report = validate_measurement(DipMeasurement(-up, down, 100.0 / 16, np.full(12, -50.0)), GRID)
+    assert report.stats["directions_down"] == 12
+    mixed = up.clone()
+    mixed[:3] = -mixed[:3]
+    report = validate_measurement(DipMeasurement(mixed, ball_profiles(mixed, EDGES, centre, 20.0), 100.0 / 16,
+                                                 np.full(12, -50.0)), GRID)
+    assert report.warnings == [] and report.stats["directions_down"] == 3
+    m = _disk_2d()
+    with pytest.warns(UserWarning, match=r"every direction points down \(y < 0 in 7 of 8"):  # one horizontal
+        validate_measurement(DipMeasurement(-m.directions, m.profiles.flip(1), m.slab_thickness, m.offsets),
+                             Grid(16, 2, 100.0))
