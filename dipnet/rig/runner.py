@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import warnings
 import signal
 import time
@@ -52,6 +53,33 @@ from dipnet.rig.sensors import AveragingSensor, Reading, SensorError
 log = logging.getLogger(__name__)
 
 UNITS = {"level_mm": "mm", "mass_g": "g"}
+
+
+def _write_marker(path: Path, record: dict) -> None:
+    """Write a position-lost marker whole or not at all (a temporary file renamed over ``path``): a run killed
+    while writing it leaves no marker cut short."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(record) + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _read_marker(path: Path) -> dict:
+    """A position-lost marker's record; one that cannot be read (cut short by a kill, emptied, edited) still says that
+    the position was lost, its reason naming the file: the run moves nothing until it homes or the operator confirms
+    the position, which removes the marker (it was: a ``JSONDecodeError`` that even ``home=true`` repeated)."""
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        problem = f"its marker {path} cannot be read: {type(exc).__name__}: {' '.join(str(exc).split())[:120]}"
+    else:
+        if isinstance(record, dict):
+            return record
+        problem = f"its marker {path} holds no record: {type(record).__name__}"
+    return {"reason": f"unknown: {problem}", "scan": "unknown"}
 
 
 class ScanAborted(RuntimeError):
@@ -429,11 +457,11 @@ class ScanRunner:
         """Home, or accept the position, before anything moves (see the module docstring)."""
         ctl = self.controller
         if self.marker.exists():
-            previous = json.loads(self.marker.read_text()).get("reason", "unknown")
+            previous = _read_marker(self.marker).get("reason", "unknown")
             ctl.position_lost = None  # the marker says more than the controller's own state
             ctl.lose_position(f"the previous run lost the position ({previous})")
         elif self.rig_marker is not None and self.rig_marker.exists():
-            previous = json.loads(self.rig_marker.read_text())
+            previous = _read_marker(self.rig_marker)
             ctl.position_lost = None
             ctl.lose_position(f"a run of the scan {previous.get('scan', 'unknown')} on this rig ({ctl.url}) lost the "
                               f"position ({previous.get('reason', 'unknown')})")
@@ -548,11 +576,11 @@ class ScanRunner:
         position is lost: a later run, of this scan or another, moves nothing until it homes or the operator
         confirms the position."""
         record = {"reason": reason, "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "scan": str(self.path)}
-        self.marker.write_text(json.dumps(record) + "\n")
+        _write_marker(self.marker, record)
         if self.rig_marker is not None:
             try:
                 self.rig_marker.parent.mkdir(parents=True, exist_ok=True)
-                self.rig_marker.write_text(json.dumps(record) + "\n")
+                _write_marker(self.rig_marker, record)
             except OSError as exc:  # the scan's own marker still holds its resume
                 log.warning("could not record the lost position for other scans on %s in %s: %s",
                             self.controller.url, self.rig_marker, exc)

@@ -301,3 +301,22 @@ def test_a_file_not_recorded_by_a_rig_scan_is_refused_not_resumed(world, tmp_pat
                                                r"\(its header records no plan; rig 'simulator'\)"):
         scan(world, "grbl", "level", plan, path)
     assert path.read_bytes() == before and world.max_lower_seen == 0.0
+
+
+@pytest.mark.parametrize("text", ['{"reason": "ALARM:1 hard li', "", "[]"])
+def test_a_position_lost_marker_cut_short_still_stops_the_scan_and_homing_clears_it(world, tmp_path, text):
+    """A marker cut short (a run killed while it wrote it: the write truncated the file first), emptied or edited.
+    Before: every resume stopped with "JSONDecodeError: Unterminated string ..." (or "AttributeError: 'list' object
+    has no attribute 'get'"), naming no file, and so did ``home=true``, the remedy its message gave: the scan could
+    not go on until the marker was found and deleted by hand. Now the unreadable marker still says that the position
+    was lost, naming it: nothing moves without homing or confirmation, and homing clears it."""
+    plan, path = plan_for(2, step=10.0), tmp_path / "scan.jsonl"
+    marker = path.with_name(path.name + ".position-lost.json")
+    marker.write_text(text)
+    world.reset()
+    with pytest.raises(ScanAborted, match=r"the previous run lost the position \(unknown: its marker .*"
+                                          r"position-lost\.json (cannot be read|holds no record).*nothing had moved"):
+        scan(world, "grbl", "level", plan, path, home=False)
+    assert world.motion_count == 0
+    raw = scan(world, "grbl", "level", plan, path, home=True)
+    assert len(raw.completed()) == 2 and not marker.exists()
