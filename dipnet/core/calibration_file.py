@@ -44,7 +44,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
+from contextlib import suppress
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -127,13 +129,27 @@ def keep_previous(path: str | Path) -> Path | None:
 
 
 def save_calibration(calibration: Calibration, path: str | Path) -> Path:
-    """Write ``calibration`` to ``path`` (``.json``, else YAML); returns the path."""
+    """Write ``calibration`` to ``path`` (``.json``, else YAML); returns the path.
+
+    The file is written whole or not at all: a temporary file beside it, flushed to disk, renamed over ``path``, so a
+    run killed mid-write leaves the previous file (or none), never one cut short (a YAML file cut in its last section
+    read without a word, its fitted ball centre ``reference_centroid_mm`` or its notes cut)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = calibration.to_dict()
     text = strict_json.dumps(data, indent=2) if path.suffix.lower() == ".json" \
         else yaml.safe_dump(data, sort_keys=False)
-    path.write_text(text)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "w", encoding="utf-8") as stream:
+            stream.write(text)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -80,6 +80,47 @@ def test_a_truncated_file_is_refused_naming_the_missing_keys(tmp_path):
         load_calibration(path)
 
 
+
+@pytest.mark.parametrize("name", ["cal.yaml", "cal.json"])
+def test_a_save_killed_mid_write_leaves_the_previous_file_whole(tmp_path, monkeypatch, name):
+    """A run killed while it wrote the file (simulated: the write stops halfway with ``KeyboardInterrupt``). Before:
+    the file was written in place, so it was left cut short; a YAML file cut in its last section was read without a
+    word (its fitted ball centre ``reference_centroid_mm: [24.9, 0.0, 0.0]`` for ``0.05123``, or none; its notes
+    cut). Now it is written to a temporary file and renamed: the previous file stays whole, and no temporary is left."""
+    import builtins
+    import io
+    from dataclasses import replace
+
+    path = save_calibration(CAL, tmp_path / name)
+    real_open = builtins.open
+
+    class Killed:
+        def __init__(self, stream):
+            self.stream = stream
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.stream.close()
+
+        def write(self, text):
+            self.stream.write(text[:len(text) // 2])
+            self.stream.flush()
+            raise KeyboardInterrupt
+
+    def open_killed(file, mode="r", *args, **kwargs):
+        stream = real_open(file, mode, *args, **kwargs)
+        return Killed(stream) if "w" in mode and str(tmp_path) in os.fspath(file) else stream
+
+    monkeypatch.setattr(builtins, "open", open_killed)
+    monkeypatch.setattr(io, "open", open_killed)
+    with pytest.raises(KeyboardInterrupt):
+        save_calibration(replace(CAL, notes="a new calibration", reference_centroid_mm=(24.9, 0.0, 0.05123)), path)
+    monkeypatch.undo()
+    assert load_calibration(path) == CAL
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
 @pytest.mark.parametrize("name", ["cal.yaml", "cal.json"])
 def test_a_reference_calibrations_fitted_ball_centre_round_trips(tmp_path, name):
     """A reference ball off the spin axis records where it was fitted to be; a file without it (self-calibration,
