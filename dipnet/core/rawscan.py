@@ -471,6 +471,10 @@ def read_rawscan(path: str | Path) -> RawScan:
             if lineno == len(lines) and scan is not None:
                 scan.truncated = True  # a crash mid-write: the last line is cut short
                 break
+            if lineno == len(lines):  # the only line: a header cut short (a scan stopped as it began?)
+                raise RawScanFileError(f"{path}:{lineno}: its only line is not valid JSON ({exc.msg}): a raw scan "
+                                       "header cut short (a scan stopped as it began?) holds no reading; delete the "
+                                       "file to scan afresh, or give the right file") from exc
             raise RawScanFileError(f"{path}:{lineno}: not valid JSON ({exc.msg})") from exc
         try:
             if not isinstance(obj, dict) or "type" not in obj:

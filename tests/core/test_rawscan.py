@@ -93,6 +93,22 @@ def test_truncated_last_line_is_tolerated_and_resume_info(tmp_path):
     assert scan.orientations[1].n_readings == 2 and not scan.orientations[1].complete
 
 
+
+@pytest.mark.parametrize("resume", [False, True])
+def test_a_header_cut_short_says_the_file_holds_no_reading_and_to_delete_it(tmp_path, resume):
+    """A scan that stopped as it began (power lost while its header was written): the file holds a part of its header
+    only. Before: ``scan.jsonl:1: not valid JSON (Unterminated string starting at)``, for a read and for the
+    resume alike, saying neither that nothing was recorded nor what to do."""
+    path = tmp_path / "scan.jsonl"
+    path.write_text(json.dumps(_header().to_json())[:60])
+    with pytest.raises(RawScanFileError, match=r"scan\.jsonl:1: its only line is not valid JSON \(.+\): "
+                                               r"a raw scan header cut short .* holds no reading; "
+                                               r"delete the file to scan afresh"):
+        if resume:
+            RawScanWriter(path, _header(), resume=True)
+        else:
+            read_rawscan(path)
+
 def test_resume_restarts_the_incomplete_orientation(tmp_path):
     path = tmp_path / "scan.jsonl"
     _write_partial(path)
