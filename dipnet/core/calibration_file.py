@@ -44,9 +44,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
-from contextlib import suppress
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -55,6 +53,7 @@ import yaml
 
 from dipnet.core.rawscan import ScanHeader
 from dipnet.core import strict_json
+from dipnet.core.atomic_write import write_atomically
 from dipnet.core.geometry import GeometryError, RigGeometry
 
 FORMAT_NAME = "dipnet.rig_calibration"
@@ -139,18 +138,7 @@ def save_calibration(calibration: Calibration, path: str | Path) -> Path:
     data = calibration.to_dict()
     text = strict_json.dumps(data, indent=2) if path.suffix.lower() == ".json" \
         else yaml.safe_dump(data, sort_keys=False)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        with open(tmp, "w", encoding="utf-8") as stream:
-            stream.write(text)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomically(path, lambda stream: stream.write(text))
 
 
 def load_calibration(path: str | Path, rig: str | None = None, tank: str | None = None) -> Calibration:

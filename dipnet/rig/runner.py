@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import warnings
 import signal
 import time
@@ -42,6 +41,7 @@ import torch
 from tqdm.auto import tqdm
 
 from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig, distinct_rig_angles, make_directions
+from dipnet.core.atomic_write import write_atomically
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
 from dipnet.core.rawscan_writer import RawScanWriter, check_resumable
 from dipnet.core.memory import MAX_READINGS_PER_DIP
@@ -58,13 +58,7 @@ UNITS = {"level_mm": "mm", "mass_g": "g"}
 def _write_marker(path: Path, record: dict) -> None:
     """Write a position-lost marker whole or not at all (a temporary file renamed over ``path``): a run killed
     while writing it leaves no marker cut short."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(json.dumps(record) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    write_atomically(path, lambda stream: stream.write(json.dumps(record) + "\n"))
 
 
 def _read_marker(path: Path) -> dict:

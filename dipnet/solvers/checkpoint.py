@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import pickle
 import re
 import warnings
@@ -42,6 +41,7 @@ from typing import Any
 
 import torch
 
+from dipnet.core.atomic_write import write_atomically
 from dipnet.core.warn import log_and_warn
 from dipnet.solvers.base import Solver
 
@@ -144,17 +144,7 @@ def write_state(state: dict, file: Path) -> None:
     Raises:
         OSError, RuntimeError: the write failed (``torch.save`` reports a full disk as a ``RuntimeError``).
     """
-    tmp = _tmp(Path(file))
-    try:
-        with open(tmp, "wb") as stream:
-            torch.save(state, stream)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, file)
-    except BaseException:
-        with suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise
+    write_atomically(file, lambda stream: torch.save(state, stream), binary=True, tmp=_tmp(Path(file)))
 
 
 def read_state(file: Path) -> tuple[Any, str | None]:
