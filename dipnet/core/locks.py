@@ -2,9 +2,10 @@
 
 One mechanism, :class:`HeldLock`, for everything a second process must not share: a raw scan
 file being written (:class:`dipnet.core.rawscan_writer.RawScanWriter`), a serial port
-(:class:`dipnet.rig.controller.PortLock`) and a job's output directory (:func:`run_directory_lock`,
-entered by ``scripts/reconstruct.py`` and ``scripts/scan.py``). The lock is the maintained
-``filelock`` package's OS lock on a lock file (``flock`` on Unix, ``LockFileEx`` on Windows),
+(:class:`dipnet.rig.controller.PortLock`), a job's output directory (:func:`run_directory_lock`,
+entered by ``scripts/reconstruct.py`` and ``scripts/scan.py``) and a solve's checkpoint directory
+(:func:`checkpoint_directory_lock`, held by :func:`dipnet.jobs.pipeline.run` while it solves).
+The lock is the maintained ``filelock`` package's OS lock on a lock file (``flock`` on Unix, ``LockFileEx`` on Windows),
 released by the operating system when the process dies, so a crash never leaves a stale lock.
 Beside it the holder writes who it is (pid, host, start time) into ``<lock file>.holder``, so a
 refused second process can say whom it waits for; that file is removed on release.
@@ -25,6 +26,8 @@ from filelock import FileLock, Timeout
 #: the job (a rejected one too): it is harmless, the lock being the OS lock on it, and deleting it on release
 #: would let a process that opened it just before lock the deleted file while a third one locks a new one.
 RUN_LOCK_NAME = ".dipnet-run.lock"
+#: The lock file a solve locks in its checkpoint directory (``output.checkpoint``) while it solves.
+CHECKPOINT_LOCK_NAME = ".dipnet-checkpoint.lock"
 
 
 class LockHeld(OSError):
@@ -90,6 +93,34 @@ def run_directory_lock(directory: str | Path) -> Iterator[Path]:
     except LockHeld as exc:
         raise LockHeld(f"run directory {directory} is in use by another job ({exc}): wait for it to finish, "
                        "stop it, or choose another output directory (hydra.run.dir=...)") from None
+    try:
+        yield directory
+    finally:
+        lock.release()
+
+
+@contextmanager
+def checkpoint_directory_lock(directory: str | Path | None) -> Iterator[Path | None]:
+    """Hold ``directory`` (a solve's checkpoint directory, created when needed; ``None``: nothing to hold) for the
+    ``with`` block.
+
+    ``output.checkpoint=DIR`` may name one directory for several jobs; two solving at once would overwrite each
+    other's ``<stage>.pt`` files, each then ignoring the other's on a resume: the second one is refused before it
+    solves.
+
+    Raises:
+        LockHeld: another solve checkpoints into ``directory``; the message names it and says what to do.
+    """
+    if directory is None:
+        yield None
+        return
+    directory = Path(directory)
+    try:
+        lock = HeldLock(directory / CHECKPOINT_LOCK_NAME)
+    except LockHeld as exc:
+        raise LockHeld(f"checkpoint directory {directory} is in use by another solve ({exc}): two solves "
+                       "checkpointing into one directory would overwrite each other's checkpoints; wait for it to "
+                       "finish, or give this job its own (output.checkpoint=true: <run dir>/checkpoints)") from None
     try:
         yield directory
     finally:

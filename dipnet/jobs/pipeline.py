@@ -19,6 +19,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from dipnet.core.locks import checkpoint_directory_lock
 from dipnet.core.warn import log_and_warn
 from dipnet.evaluation import consistency, metrics
 from dipnet.outputs import export, plots
@@ -117,14 +118,16 @@ def run(cfg: DictConfig, out: Path) -> JobResult:
 
     t0 = time.perf_counter()
     solver = instantiate(cfg.solver)
-    attach_checkpoint(solver, cfg.output.get("checkpoint"), out, int(cfg.output.get("checkpoint_every", 25)))
-    if calibration is not None:  # the rig geometry estimated jointly with the shape, before any check on it
-        measurement, operator, recon = self_calibration_job(calibration, recording, grid, solver, options["n_slabs"],
-                                                             factory, out)
-        validation = validate_measurement(measurement, grid)
-    else:
-        operator = options["make_operator"](measurement.directions)
-        recon = solver.solve(measurement, operator)
+    checkpoint = attach_checkpoint(solver, cfg.output.get("checkpoint"), out,
+                                   int(cfg.output.get("checkpoint_every", 25)))
+    with checkpoint_directory_lock(None if checkpoint is None else checkpoint.directory):
+        if calibration is not None:  # the rig geometry estimated jointly with the shape, before any check on it
+            measurement, operator, recon = self_calibration_job(calibration, recording, grid, solver,
+                                                                 options["n_slabs"], factory, out)
+            validation = validate_measurement(measurement, grid)
+        else:
+            operator = options["make_operator"](measurement.directions)
+            recon = solver.solve(measurement, operator)
     seconds = time.perf_counter() - t0
     recon.save(out / "reconstruction.npz")
     empty = warn_empty(recon)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import functools
 import json
+import os
 import pickle
 import re
 import shutil
@@ -23,6 +24,7 @@ import torch
 from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
+from dipnet.core.locks import CHECKPOINT_LOCK_NAME, HeldLock
 from dipnet.experiments.collect import collect_runs
 from script_modules import load_script
 from script_runs import one_line_error, run_script
@@ -189,14 +191,36 @@ def test_checkpoint_of_another_operator_is_not_resumed(finished, tmp_path):
         f"starting {stage!r} afresh" for stage in ("voxel 8^3", "voxel 16^3", "voxel 16^3 refit")]
 
 
+def test_second_solve_into_a_busy_checkpoint_directory_is_refused(tmp_path, monkeypatch, capsys):
+    """Before: two jobs with one explicit ``output.checkpoint=DIR`` (each in its own run directory) both solved,
+    overwriting each other's checkpoints, and each ignored the other's on a resume."""
+    shared = tmp_path / "shared"
+    holder = HeldLock(shared / CHECKPOINT_LOCK_NAME)  # another job solving into it
+    try:
+        proc = run_script("reconstruct", f"hydra.run.dir={tmp_path / 'run'}", *CHECKPOINTED,
+                          f"output.checkpoint={shared}", monkeypatch=monkeypatch, capsys=capsys)
+    finally:
+        holder.release()
+    line = one_line_error(proc)
+    assert re.match(rf"error: checkpoint directory {re.escape(str(shared))} is in use by another solve \(pid "
+                    rf"{os.getpid()} on .+\): two solves checkpointing into one directory would overwrite each "
+                    r"other's checkpoints; wait for it to finish, or give this job its own \(output\.checkpoint="
+                    r"true: <run dir>/checkpoints\)$", line), line
+    assert not list(shared.glob("*.pt"))  # refused before its first step
+    metrics = _rerun(tmp_path / "run", f"output.checkpoint={shared}")  # the lock went with its holder
+    assert metrics["chamfer"] < 0.1 and sorted(p.name for p in shared.glob("*.pt")) == [
+        "voxel_16_3.pt", "voxel_16_3_refit.pt", "voxel_8_3.pt"]
+    assert not (shared / f"{CHECKPOINT_LOCK_NAME}.holder").exists()
+
+
 def test_stale_tmp_beside_a_checkpoint_is_harmless(finished, tmp_path):
     shutil.copytree(finished / "checkpoints", tmp_path / "checkpoints")
     (tmp_path / "checkpoints" / f"{FINE}.tmp").write_bytes(b"half a checkpoint")  # a kill mid-write
     with pytest.warns(UserWarning) as record:
         _rerun(tmp_path)
     assert _checkpoint_warnings(record) == []  # resumed from the finished stages
-    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [
-        "voxel_16_3.pt", "voxel_16_3_refit.pt", "voxel_8_3.pt"]  # the refit: the TV weight's (weight_rule)
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [  # the lock file stays, empty
+        ".dipnet-checkpoint.lock", "voxel_16_3.pt", "voxel_16_3_refit.pt", "voxel_8_3.pt"]  # refit: weight_rule's
 
 
 def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(finished, tmp_path, monkeypatch):
@@ -217,7 +241,8 @@ def test_full_disk_during_a_checkpoint_write_warns_once_and_the_solve_goes_on(fi
     assert message.startswith(f"checkpoint {tmp_path / 'checkpoints' / FINE} could not be written (RuntimeError: ")
     assert message.endswith("the solve goes on, a rerun resumes from the previous checkpoint (if any)")
     # no partial file of the fine stage (the TV weight's refit after it saved its own)
-    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["voxel_16_3_refit.pt", "voxel_8_3.pt"]
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == [  # (the lock file stays, empty)
+        ".dipnet-checkpoint.lock", "voxel_16_3_refit.pt", "voxel_8_3.pt"]
     reference = json.loads((finished / "metrics.json").read_text())
     assert metrics["chamfer"] == pytest.approx(reference["chamfer"], rel=1e-4)
 
