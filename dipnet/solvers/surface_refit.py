@@ -55,6 +55,10 @@ from dipnet.solvers.progress import stop_bar
 
 log = logging.getLogger(__name__)
 
+#: The width below which :meth:`_Fit.normal_variation` is quadratic in the normals' difference (a unit vector's:
+#: about 3 deg), so that it is smooth where adjacent faces agree.
+NORMAL_TV_EPS = 0.05
+
 
 @dataclass(frozen=True)
 class SurfaceRefit:
@@ -76,6 +80,11 @@ class SurfaceRefit:
         white_share: with a stated noise, the slabs' errors are weighed as differences of cumulative readings
             (:func:`~dipnet.solvers.noise_covariance.correlated_precision`) with a white part of this many
             ``sigma^2 / 2``; ``None``: as independent slabs.
+        normal_tv: with a stated noise weighed as the readings' differences, the weight of the total variation of
+            the surface's unit normals (the mean over adjacent faces of ``sqrt(|n_a - n_b|^2 + eps^2) - eps``,
+            :data:`NORMAL_TV_EPS`) in units of the noise's expected relative misfit: the refit then runs all
+            ``steps`` under it (a regularised fit, flat faces and edges kept, the noise's bumps not) instead of
+            stopping at the noise's misfit; 0: the discrepancy stop.
     """
 
     steps: int = 150
@@ -87,12 +96,14 @@ class SurfaceRefit:
     still_falling: float = 0.75
     unfold_passes: int = 100
     white_share: float | None = 0.001
+    normal_tv: float = 50.0
 
     def __post_init__(self) -> None:
         for name, low in (("steps", 1), ("holdout_every", 2), ("probe_steps", 1), ("unfold_passes", 0)):
             object.__setattr__(self, name, whole_number(f"surface_refit.{name}", getattr(self, name), low))
         for name, span, inside in (("lr", "(0, inf)", lambda x: 0 < x < math.inf),
                                    ("smoothness", "[0, inf)", lambda x: 0 <= x < math.inf),
+                                   ("normal_tv", "[0, inf)", lambda x: 0 <= x < math.inf),
                                    ("min_gain", "[0, 1)", lambda x: 0 <= x < 1),
                                    ("still_falling", "[0, 1]", lambda x: 0 <= x <= 1),
                                    ("white_share", "(0, inf) or null", lambda x: 0 < x < math.inf)):
@@ -156,10 +167,14 @@ class SurfaceRefit:
         measured_volume = float(target.sum(1).median())
         start_slabs = fit.slabs(fit.start)
         record["residual_before"] = fit.residual(start_slabs)
+        regularised = fit.precision is not None and self.normal_tv > 0  # a stated noise, the readings model
         if sigma is not None:
             record.update(noise_model=fit.noise_model, noise_ratio=fit.noise_ratio(start_slabs))
             limit = fit.noise_limit()
-            if record["noise_ratio"] <= limit:
+            if regularised:
+                fit.tv_weight = self.normal_tv * fit.noise_relative_misfit()
+                record["normal_tv_weight"] = fit.tv_weight
+            elif record["noise_ratio"] <= limit:
                 record["reason"] = (f"the result's dips agree with the measured ones within their stated noise "
                                     f"({fit.noise_model} model: misfit {record['noise_ratio']:.2f} x the noise's, at "
                                     f"most {limit:.2f}: the noise's own 1 plus 3 standard deviations): a surface "
@@ -180,6 +195,14 @@ class SurfaceRefit:
                     pass
                 why = (f"the held-out dips' misfit fell by {record['heldout_gain']:.1%} in the probe and was still "
                        f"falling at its end (lowest at step {record['heldout_best_step']} of {self.probe_steps})")
+            elif regularised:  # the normals' variation, weighed against the noise's misfit, keeps it from the noise
+                vertices = fit.start.clone()
+                for _step, _slabs in fit.descend(vertices, every, self.steps, self.lr, bar):
+                    pass
+                record["steps_run"] = self.steps
+                why = (f"its misfit was {record['noise_ratio']:.2f} x the stated noise's ({fit.noise_model} model), "
+                       f"so the surface was fitted to the dips for {self.steps} steps under the total variation of "
+                       f"its normals, weighted {self.normal_tv:g} x the noise's expected relative misfit")
             else:  # the discrepancy principle: fitted until the dips' misfit is the noise's, no closer
                 vertices, ran = fit.start.clone(), self.steps
                 for step, slabs in fit.descend(vertices, every, self.steps, self.lr, bar):
@@ -191,7 +214,7 @@ class SurfaceRefit:
                        f"above {limit:.2f}), so the surface was fitted to the dips "
                        + (f"until their misfit reached the noise's ({ran} of {self.steps} steps)" if ran < self.steps
                           else f"for {self.steps} steps, the most it may take"))
-        return self._take(recon, mesh, fit, vertices, why, record, started, measured_volume)
+        return self._take(recon, mesh, fit, vertices, why, record, started, measured_volume, regularised)
 
     def _probe(self, fit: "_Fit", held: torch.Tensor, record: dict, bar: tqdm) -> str | None:
         """Fit the dips not ``held`` for :attr:`probe_steps` from the start; record the held-out dips' misfit and
@@ -214,10 +237,11 @@ class SurfaceRefit:
                 "fitted closer would fit the dips' noise, not the shape, so its surface is kept")
 
     def _take(self, recon: Reconstruction, mesh: trimesh.Trimesh, fit: "_Fit", vertices: torch.Tensor, why: str,
-              record: dict, started: float, measured_volume: float) -> Reconstruction:
+              record: dict, started: float, measured_volume: float, regularised: bool = False) -> Reconstruction:
         """``recon`` with the refitted ``vertices`` as its mesh, unless folds they leave cannot be undone or they
         end no closer to the dips than the start (then its surface is kept, with a warning); ``why``: why the refit
-        ran."""
+        ran; ``regularised``: under :attr:`normal_tv`, where a surface that ends within the noise's misfit (its
+        mean and 3 standard deviations) is taken too (a start that fitted the noise may end further off)."""
         folded = int(fit.folded(vertices).sum())  # a fold may come and go on the way: the last step's counts
         if folded:
             passes, left = fit.unfold(vertices, self.unfold_passes)
@@ -233,15 +257,16 @@ class SurfaceRefit:
         residual = fit.residual(after)
         unfolded = (f"; the {folded} faces its last step folded over were unfolded by moving their corners "
                     f"to their neighbours' mean ({passes} passes)") if folded else ""
-        if residual < record["residual_before"]:
+        if residual < record["residual_before"] or (regularised and fit.noise_ratio(after) <= fit.noise_limit()):
             recon.mesh = trimesh.Trimesh(vertices.numpy(), mesh.faces, process=False)
             record.update(applied=True, residual_after=residual, reason=f"{why}{unfolded}")
             if "noise_ratio" in record:
                 record["noise_ratio_after"] = fit.noise_ratio(after)
         else:  # a fit that ends no closer to the dips than it began has gone wrong: keep the surface
             record["reason"] = (f"the refit ended no closer to the dips than it began (relative residual "
-                                f"{record['residual_before']:.3g} -> {residual:.3g}){unfolded}, so the "
-                                "surface is kept")
+                                f"{record['residual_before']:.3g} -> {residual:.3g}"
+                                + (", outside the noise's misfit" if regularised else "")
+                                + f"){unfolded}, so the surface is kept")
             log.warning("surface refit: %s", record["reason"])
         return self._finish(recon, mesh, record, started, measured_volume)
 
@@ -304,6 +329,8 @@ class _Fit:
         values = np.concatenate([-average.data, np.ones(len(mesh.vertices))])
         self.laplacian = torch.sparse_coo_tensor(torch.from_numpy(index), torch.from_numpy(values),
                                                  (len(mesh.vertices),) * 2, check_invariants=False).coalesce()
+        self.adjacent = torch.from_numpy(np.array(mesh.face_adjacency, dtype=np.int64).reshape(-1, 2))
+        self.tv_weight = 0.0  # of normal_variation, set by SurfaceRefit.refit under normal_tv
 
     def misfit(self, slabs: torch.Tensor, dips: torch.Tensor) -> torch.Tensor:
         """The noise-weighted squared residual of ``slabs`` (K, M) over the dips ``dips`` (bool ``(K,)``):
@@ -354,6 +381,21 @@ class _Fit:
         independent slabs: the mean of ``(slabs - measured)^2 / sigma^2``)."""
         return float(self.misfit(slabs, torch.ones(len(self.directions), dtype=torch.bool))) / self.noise_mean
 
+    def noise_relative_misfit(self) -> float:
+        """The noise's expected :meth:`relative_misfit` on every dip (its mean misfit over ``sum w target^2``)."""
+        return self.noise_mean / float((self.weight * self.target.pow(2)).sum().clamp_min(1e-300))
+
+    def normal_variation(self, vertices: torch.Tensor) -> torch.Tensor:
+        """The total variation of the unit face normals of ``vertices``: the mean over adjacent faces of
+        ``sqrt(|n_a - n_b|^2 + eps^2) - eps`` (:data:`NORMAL_TV_EPS`; 0 for a plane), differentiable."""
+        corners = vertices[self.faces]
+        normals = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        normals = normals / normals.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        if len(self.adjacent) == 0:
+            return normals.new_zeros(())
+        step = (normals[self.adjacent[:, 0]] - normals[self.adjacent[:, 1]]).pow(2).sum(1)
+        return ((step + NORMAL_TV_EPS ** 2).sqrt() - NORMAL_TV_EPS).mean()
+
     def noise_limit(self) -> float:
         """The largest :meth:`noise_ratio` the noise itself gives: its mean and 3 standard deviations, over its mean
         (independent slabs: ``1 + 3 sqrt(2 / slabs)``)."""
@@ -370,7 +412,10 @@ class _Fit:
                 optimiser.zero_grad()
                 slabs = mesh_slab_volumes(vertices, self.faces, self.directions, self.edges)
                 smooth = torch.sparse.mm(self.laplacian, vertices).pow(2).sum(1).mean()
-                (self.relative_misfit(slabs, dips) + self.smoothness * smooth).backward()
+                loss = self.relative_misfit(slabs, dips) + self.smoothness * smooth
+                if self.tv_weight:
+                    loss = loss + self.tv_weight * self.normal_variation(vertices)
+                loss.backward()
                 yield step, slabs.detach()
                 optimiser.step()
                 bar.update()

@@ -1,8 +1,11 @@
 """The surface refit: it moves a wrong surface to its dips when held-out dips license it, and keeps it otherwise."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
@@ -10,12 +13,12 @@ from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.metrics import chamfer_hausdorff, evaluate, volume_surface
 from dipnet.operators import make_operator
-from dipnet.shapes import Ball
+from dipnet.shapes import Ball, Box
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers import noise_covariance
 from dipnet.solvers.optimize import target_and_sigma
-from dipnet.solvers.surface_refit import SurfaceRefit
+from dipnet.solvers.surface_refit import NORMAL_TV_EPS, SurfaceRefit, _Fit
 from dipnet.solvers.voxel import VoxelSolver
 from tests.solvers.solver_helpers import one_thread, partial_volume  # noqa: F401  (one_thread: a fixture)
 
@@ -241,3 +244,42 @@ def test_smoothed_profiles_are_weighed_as_independent_slabs_and_held_out_dips_de
     assert record["noise_ratio"] == pytest.approx(SurfaceRefit(white_share=None).refit(
         ball_result(0.97 * RADIUS), noisy, sigma, directions, edges).info["surface_refit"]["noise_ratio"])
     assert "heldout_gain" in record and "steps_run" not in record
+
+
+def test_the_normals_variation_of_a_box_counts_its_twelve_right_angled_edges():
+    """A box's 12 triangles meet over 18 edges: 6 diagonals inside a face (normals equal: 0) and its 12 edges, where
+    unit normals at right angles differ by sqrt(2)."""
+    box = trimesh.creation.box(extents=(20.0, 30.0, 40.0))
+    directions, edges, slabs = ball_problem(4)
+    fit = _Fit(box, slabs, None, directions, edges, 0.0)
+    eps = NORMAL_TV_EPS
+    expected = 12 / 18 * ((2 + eps**2) ** 0.5 - eps)
+    assert float(fit.normal_variation(torch.tensor(box.vertices))) == pytest.approx(expected, rel=1e-12)
+
+
+def readings_box(snr_db: float) -> tuple[Box, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A 60 x 40 x 50 mm box dipped by the simulator at ``snr_db`` along 24 directions: ``(box, directions, edges,
+    slab volumes, their sigma)``, as :func:`readings_ball`."""
+    box = Box((30.0, 20.0, 25.0))
+    directions = fibonacci_hemisphere(24).double()
+    sensor = LevelSensor(snr_db=snr_db, seed=0)
+    _, measurement = simulate_measurement(box, directions, grid=GRID, sensor=sensor, seed=0, progress=False)
+    operator = make_operator(GRID, measurement.directions, GRID.n)
+    target, sigma, _ = target_and_sigma(measurement, operator)
+    return box, operator.directions.double(), operator.slab_edges().double(), target, sigma
+
+
+def test_with_a_stated_noise_the_refit_runs_all_its_steps_under_the_normals_variation_weighted_from_the_noise():
+    """20 dB, a box: the refit runs its 150 steps under the normals' variation, weighted 50 x the noise's expected
+    relative misfit (``normal_tv``); with ``normal_tv=0`` it would stop where its misfit reaches the noise's, unweighted
+    (test_with_a_stated_noise_the_refit_stops_where_the_misfit_reaches_the_noises)."""
+    _, directions, edges, noisy, sigma = readings_box(20.0)
+    start = Reconstruction(Box((30.0, 20.0, 25.0)).occupancy(GRID, supersample=3).float(), GRID, 0.5)
+    record = SurfaceRefit().refit(copy.deepcopy(start), noisy, sigma, directions, edges).info["surface_refit"]
+    assert record["applied"] and record["steps_run"] == record["steps"] == 150 and "total variation" in record["reason"]
+    fit = _Fit(volume_surface(start.occupancy, GRID, 0.5), noisy, sigma, directions, edges, 0.0, 0.001)
+    assert record["normal_tv_weight"] == pytest.approx(50 * fit.noise_relative_misfit(), rel=1e-9)
+    assert fit.noise_relative_misfit() == pytest.approx(fit.noise_mean / float((noisy / sigma).pow(2).sum()))
+    plain = SurfaceRefit(normal_tv=0.0).refit(copy.deepcopy(start), noisy, sigma, directions, edges)
+    record = plain.info["surface_refit"]
+    assert record["applied"] and "normal_tv_weight" not in record and "total variation" not in record["reason"]
