@@ -77,6 +77,8 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
      "the axis a mesh is projected along makes its 2D silhouette, for ndim=2"),
     ("source=simulated", lambda cfg: instantiates(cfg, "source", SimulatedSource), ("source.simulator.sensor.seed",),
      "the job's seed sets the simulated noise: give seed=... instead"),
+    ("extent_mm set", lambda cfg: cfg.get("extent_mm") is not None, ("fill",),
+     "fill chooses the grid's side around the object only when extent_mm is null; the extent_mm given is the side"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")

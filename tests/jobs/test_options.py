@@ -175,6 +175,9 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
     # shape.axis picks the 2D silhouette of a mesh: with ndim=3 it was ignored, exit 0, without a word
     (["shape=mesh", "shape.path=m.ply", "shape.axis=x"], r"option shape.axis is ignored with ndim=3 \(.*2D silhouette",
      ["shape=mesh", "shape.path=m.ply", "shape.axis=x", "ndim=2"]),
+    # fill sizes the grid only when extent_mm is null: extent_mm=150 fill=0.3 ran the extent_mm=150 job, exit 0
+    (["extent_mm=150", "fill=0.3"], r"option fill is ignored with extent_mm set \(fill chooses the grid's side",
+     ["fill=0.3"]),  # with extent_mm=null (the default), fill sizes the grid
 ])
 def test_an_option_the_dimension_ignores_is_refused(overrides, message, fine):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
