@@ -79,6 +79,9 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
      "the job's seed sets the simulated noise: give seed=... instead"),
     ("extent_mm set", lambda cfg: cfg.get("extent_mm") is not None, ("fill",),
      "fill chooses the grid's side around the object only when extent_mm is null; the extent_mm given is the side"),
+    ("solver.method=cholesky", lambda cfg: OmegaConf.select(cfg, "solver.method") == "cholesky",
+     ("solver.iter_lim",), "iter_lim bounds the iterative methods (lsmr, lsqr; auto on large problems), "
+     "the Cholesky factorisation is direct"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")

@@ -178,6 +178,10 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
     # fill sizes the grid only when extent_mm is null: extent_mm=150 fill=0.3 ran the extent_mm=150 job, exit 0
     (["extent_mm=150", "fill=0.3"], r"option fill is ignored with extent_mm set \(fill chooses the grid's side",
      ["fill=0.3"]),  # with extent_mm=null (the default), fill sizes the grid
+    # iter_lim bounds LSMR / LSQR only: solver.method=cholesky solver.iter_lim=5 ran the direct solve, exit 0
+    (["solver=minnorm", "solver.method=cholesky", "solver.iter_lim=5"],
+     r"option solver.iter_lim is ignored with solver.method=cholesky \(iter_lim bounds the iterative methods",
+     ["solver=minnorm", "solver.method=lsmr", "solver.iter_lim=5"]),
 ])
 def test_an_option_the_dimension_ignores_is_refused(overrides, message, fine):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
