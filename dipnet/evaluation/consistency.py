@@ -256,6 +256,7 @@ class Consistency:
     volume_unit: str = "mm^3"
     verdict: str = "consistent"
     warnings: list[str] = field(default_factory=list)
+    plan_warning: str = ""
 
     def metrics(self) -> dict:
         """The numbers as a flat, JSON-serialisable dict (for ``metrics.json``)."""
@@ -563,7 +564,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         for message in result.warnings:
             log_and_warn(log, message, DataConsistencyWarning, stacklevel=2)
         from dipnet.evaluation.resolvability import warn_unmeasured_band  # (that module imports this one)
-        warn_unmeasured_band(measurement.directions)  # a property of the plan: the verdict above stands
+        result.plan_warning = warn_unmeasured_band(measurement.directions) or ""  # the plan's: the verdict stands
     return result
 
 

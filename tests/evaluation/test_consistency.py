@@ -49,6 +49,18 @@ def _check(measurement, operator, volume, **options):
     return result, [w for w in caught if issubclass(w.category, DataConsistencyWarning)]
 
 
+@pytest.mark.parametrize("n_dips, plan_warning",
+                         [(30, ""), (4, "the 4 dips leave directions up to 56 deg from every dip")])
+def test_what_the_plan_leaves_unmeasured_is_recorded_beside_the_verdict(n_dips, plan_warning):
+    """Before: the plan's warning (4 dips: so few that the shape is the priors' guess) went to the log only, and
+    metrics.json of such a result said ``consistent`` without it."""
+    operator = make_operator(GRID, fibonacci_hemisphere(n_dips))
+    ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
+    result, _ = _check(_exact_measurement(operator, ball), operator, ball)
+    assert result.verdict == "consistent" and result.metrics()["plan_warning"].startswith(plan_warning)
+    assert bool(result.metrics()["plan_warning"]) == bool(plan_warning)
+
+
 def test_exact_answer_has_no_residual_and_a_wrong_one_does(problem):
     operator, ball, measurement = problem
     exact, caught = _check(measurement, operator, ball)
