@@ -6,7 +6,8 @@ before its first step and :meth:`Checkpoint.save` after every step. Every ``ever
 when a stage ends, it writes the parameters, the optimiser's and scheduler's state, the loss
 history and the lagged state of the stage's priors (a ``red`` mode learned prior's reused denoiser output and call
 count, :meth:`~dipnet.solvers.learned.LearnedPrior.lag_state`) to ``<directory>/<stage>.pt``. A finished stage
-is marked done, so a resumed multi-stage solve (coarse then fine) skips it.
+is marked done, so a resumed multi-stage solve (coarse then fine) skips it. A job holds its checkpoint directory
+while it solves (:func:`dipnet.core.locks.checkpoint_directory_lock`), so two jobs never write into one at once.
 
 Writing is atomic: a temporary file, flushed to disk (``fsync``), then renamed over the old
 one, so a kill mid-write leaves the previous checkpoint intact. A write that fails (a full

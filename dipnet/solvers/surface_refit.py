@@ -31,8 +31,8 @@ steps 2-9, after which it rose as the surface took in the noise. A face the last
 turned against the start's: a surface that intersects itself is no solid's) has its corners moved to their
 neighbours' mean until none is (one face on the penguin, untangled in one pass; eight on a public dinosaur, in 31;
 their Chamfer unchanged; folds that come and go on the way, as on most meshes in the first steps, are left to the
-fit); a surface still folded after ``unfold_passes`` passes, or a refit that ends no closer to the dips, keeps the
-start.
+fit); a surface still folded after ``unfold_passes`` passes, or a refit that ends no closer to the dips (under
+``normal_tv``: and outside the noise's misfit), keeps the start.
 """
 
 from __future__ import annotations
