@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import socket
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 
@@ -77,6 +77,20 @@ class HeldLock:
 
 
 @contextmanager
+def _held_directory(directory: Path, lock_name: str, refused: Callable[[LockHeld], str]) -> Iterator[Path]:
+    """Hold ``directory`` (created when needed) by its lock file ``lock_name`` for the ``with`` block; when another
+    process holds it, raise :class:`LockHeld` with the message ``refused(holder)``."""
+    try:
+        lock = HeldLock(directory / lock_name)
+    except LockHeld as exc:
+        raise LockHeld(refused(exc)) from None
+    try:
+        yield directory
+    finally:
+        lock.release()
+
+
+@contextmanager
 def run_directory_lock(directory: str | Path) -> Iterator[Path]:
     """Hold ``directory`` (a job's output directory, created when needed) for the ``with`` block.
 
@@ -88,15 +102,10 @@ def run_directory_lock(directory: str | Path) -> Iterator[Path]:
             start time) and says what to do.
     """
     directory = Path(directory)
-    try:
-        lock = HeldLock(directory / RUN_LOCK_NAME)
-    except LockHeld as exc:
-        raise LockHeld(f"run directory {directory} is in use by another job ({exc}): wait for it to finish, "
-                       "stop it, or choose another output directory (hydra.run.dir=...)") from None
-    try:
-        yield directory
-    finally:
-        lock.release()
+    with _held_directory(directory, RUN_LOCK_NAME, lambda holder: (
+            f"run directory {directory} is in use by another job ({holder}): wait for it to finish, stop it, or "
+            "choose another output directory (hydra.run.dir=...)")) as held:
+        yield held
 
 
 @contextmanager
@@ -115,13 +124,8 @@ def checkpoint_directory_lock(directory: str | Path | None) -> Iterator[Path | N
         yield None
         return
     directory = Path(directory)
-    try:
-        lock = HeldLock(directory / CHECKPOINT_LOCK_NAME)
-    except LockHeld as exc:
-        raise LockHeld(f"checkpoint directory {directory} is in use by another solve ({exc}): two solves "
-                       "checkpointing into one directory would overwrite each other's checkpoints; wait for it to "
-                       "finish, or give this job its own (output.checkpoint=true: <run dir>/checkpoints)") from None
-    try:
-        yield directory
-    finally:
-        lock.release()
+    with _held_directory(directory, CHECKPOINT_LOCK_NAME, lambda holder: (
+            f"checkpoint directory {directory} is in use by another solve ({holder}): two solves checkpointing into "
+            "one directory would overwrite each other's checkpoints; wait for it to finish, or give this job its own "
+            "(output.checkpoint=true: <run dir>/checkpoints)")) as held:
+        yield held
