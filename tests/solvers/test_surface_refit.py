@@ -306,3 +306,17 @@ def test_a_regularised_refit_that_ends_within_the_noise_is_taken_though_further_
                                      float(exact.sum(1).median()), regularised)
         assert record["applied"] is applied and (recon.mesh is not None) is applied
         assert applied or "no closer to the dips" in record["reason"]
+
+
+@pytest.mark.parametrize("solver", ["voxel_learned", "implicit_learned"])
+def test_the_learned_solvers_configs_refit_with_the_modules_defaults(solver):
+    """conf/surface_refit/default.yaml (both learned solvers' refit) states SurfaceRefit's own defaults, so the
+    documented defaults and a job's refit are one; implicit_learned refits its field's result, not its start's."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"solver={solver}"])
+    assert SurfaceRefit.from_options(OmegaConf.to_container(cfg.solver.surface_refit)) == SurfaceRefit()
+    if solver == "implicit_learned":
+        assert cfg.solver.warm_start.surface_refit is None
