@@ -98,8 +98,10 @@ def dip_scores(measurement: DipMeasurement) -> DipScores | None:
     A dip that disagrees pulls the least-squares fit toward itself and makes dips that agree miss it too, so the
     worst outlier is set aside and the rest refitted, up to a third of the dips; each is then scored against the
     fit of the dips kept (by its prediction error, ``sqrt(1 + h)`` for its leverage ``h``)."""
+    if measurement.ndim != 3 or "symmetry_group_order" in (measurement.metadata or {}):
+        return None  # before whole_dip_profiles: an expansion's merged rows are not the truncated dips' indices
     dips = whole_dip_profiles(measurement)
-    if measurement.ndim != 3 or "symmetry_group_order" in (measurement.metadata or {}) or dips is None:
+    if dips is None:
         return None
     d, p, u, totals, radius, index = dips.directions, dips.profiles, dips.offsets, dips.totals, dips.radius, dips.index
     sigma_r = reading_sigma(measurement)

@@ -98,3 +98,12 @@ def test_what_cannot_be_tested_is_not(chamber_box):
     images = replace(chamber_box, metadata={**chamber_box.metadata, "symmetry_group_order": 2})
     assert dip_agreement(images).tested == 0  # a symmetry's images repeat the dips
     assert dip_agreement(_dipped(directions=fibonacci_hemisphere(8))).tested == 0  # too few dips for any order
+
+
+def test_images_whose_merges_renumber_the_rows_are_not_tested(chamber_box):
+    """A symmetry expansion merges near directions, so its rows are no longer the recording's dips: the truncated
+    dips' indices (``recorded.truncated``) may lie past them. Tilts read in radians as degrees (every dip within
+    1 deg of the axis) merged the cats' 32 dips into 7 rows, and the check ended in an IndexError after the solve."""
+    merged = replace(chamber_box, metadata={**chamber_box.metadata, "symmetry_group_order": 6,
+                                            "recorded": {"truncated_policy": "keep", "truncated": [DIPS + 5]}})
+    assert dip_agreement(merged).tested == 0
