@@ -31,6 +31,7 @@ that solve ends near, not bit-identical to, an uninterrupted one (logged).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import pickle
 import re
@@ -158,6 +159,18 @@ def read_state(file: Path) -> tuple[Any, str | None]:
             return torch.load(file, map_location="cpu", weights_only=True), None
     except Exception as exc:  # noqa: BLE001 - whatever is wrong with the file, it is not read
         return None, _unreadable(Path(file), exc)
+
+
+def tensor_digest(*tensors: torch.Tensor | None) -> str:
+    """The sha256 (16 hex characters) of ``tensors``' shapes and float64 values, in order (``None`` counts too): the
+    fingerprint of a stage's measured data and directions. A sum, as before, matched other data with the same total:
+    two dips' directions swapped, or two slabs, resumed the other measurement's finished solve, whose result came out
+    with exit code 0."""
+    sha = hashlib.sha256()
+    for tensor in tensors:
+        values = b"none" if tensor is None else tensor.detach().to("cpu", torch.float64).contiguous().numpy().tobytes()
+        sha.update(repr(None if tensor is None else tuple(tensor.shape)).encode() + values)
+    return sha.hexdigest()[:16]
 
 
 def _check_state(state, fingerprint: dict, params: list[torch.Tensor], lagged: Mapping[str, Any] | None = None

@@ -41,7 +41,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.shapes.isosurface import enclosed_volume, level_for_volume
 from dipnet.solvers.base import (SIGMA_FLOOR, SMOOTHED_NOISE_MODEL, Solver, checked_threshold,
                                  measured_profiles, noise_sigma, readings_differenced)
-from dipnet.solvers.checkpoint import solver_settings
+from dipnet.solvers.checkpoint import solver_settings, tensor_digest
 from dipnet.solvers.noise_covariance import correlated_precision
 from dipnet.solvers.progress import stop_bar
 from dipnet.solvers.priors import SymmetryPrior, build_priors
@@ -365,9 +365,9 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
         sched = None
     op = data.operator
     fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [list(p.shape) for p in flat],
-                   "target": float(data.target.double().sum()), "terms": list(history),
+                   "target": tensor_digest(data.target, data.weight, data.precision), "terms": list(history),
                    "operator": [type(op).__name__, *op.grid.shape, float(op.grid.extent), int(op.n_slabs),
-                                float(op.directions.double().sum())], "options": plain(options or {}),
+                                tensor_digest(op.directions)], "options": plain(options or {}),
                    "weights": [module.digest for _, _, module in priors if hasattr(module, "digest")]}
     first, ended = 0, False
     # priors whose next calls depend on more than the occupancy (a red mode learned prior's lag): checkpointed too

@@ -3,16 +3,23 @@ uninterrupted result."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import warnings
 
 import pytest
 import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
 
+from dipnet.core.grid import Grid
+from dipnet.core.measurement import DipMeasurement
+from dipnet.core.orientations import angles_2d, directions_2d
+from dipnet.operators import make_operator
 from dipnet.solvers.checkpoint import Checkpoint, attach_checkpoint
 from dipnet.jobs.pipeline import run
 from dipnet.solvers.minnorm import MinNormSolver
+from dipnet.solvers.voxel import VoxelSolver
 
 SMALL = ["output.progress=false", "output.figures=false", "output.uncertainty=false", "output.resolvability=false",
          "resolution=24", "n_dips=24", "shape.name=ball", "solver=voxel", "solver.iterations=80", "solver.tol=0"]
@@ -78,3 +85,46 @@ def test_a_checkpoint_directory_that_is_a_file_is_refused_before_any_work(tmp_pa
         run(_cfg(f"output.checkpoint={setting}"), tmp_path / "job")
     assert not (tmp_path / "job" / "measurement.npz").exists()
     assert blocking.read_text() == "not a folder"
+
+
+def _disk_dips() -> DipMeasurement:
+    """Noise-free dips of an off-centre disk on a 16^2 grid, 8 angles, with a stated noise."""
+    grid = Grid(16, 2, 100.0)
+    centres = grid.centers()
+    disk = (((centres - torch.tensor([12.0, -6.0], dtype=centres.dtype)) ** 2).sum(-1) < 25.0**2).double()
+    op = make_operator(grid, directions_2d(angles_2d(8, start_deg=10.0)), backend="splat")
+    with torch.no_grad():
+        profiles = op(disk)
+    return DipMeasurement(op.directions, profiles, op.slab_thickness, op.slab_edges()[:1].expand(8),
+                          torch.full_like(profiles, 5.0))
+
+
+def _swapped(values: torch.Tensor, i: int, j: int, dim: int = 0) -> torch.Tensor:
+    index = torch.arange(values.shape[dim])
+    index[[i, j]] = index[[j, i]]
+    return values.index_select(dim, index)
+
+
+OTHER_DATA = {  # each keeps the sums the fingerprint held before: the profiles' total and the directions'
+    "two dips' directions swapped": lambda m: dataclasses.replace(m, directions=_swapped(m.directions, 0, 3)),
+    "two slabs swapped": lambda m: dataclasses.replace(m, profiles=_swapped(m.profiles, 6, 9, dim=1)),
+    "another stated noise": lambda m: dataclasses.replace(m, sigma=_swapped(m.sigma * torch.linspace(1, 3, 8)[:, None],
+                                                                            0, 7)),
+}
+
+
+@pytest.mark.parametrize("change", OTHER_DATA)
+def test_a_checkpoint_of_other_data_with_the_same_sums_is_not_resumed(tmp_path, change):
+    """The fingerprint held the sums of the profiles and of the directions: a measurement with two dips or slabs
+    swapped resumed the other one's finished solve, and its result came out with exit code 0."""
+    torch.set_num_threads(1)
+    first = _disk_dips()
+    solver = VoxelSolver(iterations=20, progress=False, seed=0)
+    solver.checkpoint = Checkpoint(tmp_path, every=5)
+    solver.solve(first, make_operator(Grid(16, 2, 100.0), first.directions, backend="splat"))
+    other = OTHER_DATA[change](first)
+    with pytest.warns(UserWarning, match="is not used: it was made for another problem"):
+        solver.solve(other, make_operator(Grid(16, 2, 100.0), other.directions, backend="splat"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same data again resume: no warning
+        solver.solve(other, make_operator(Grid(16, 2, 100.0), other.directions, backend="splat"))
