@@ -35,7 +35,7 @@ A field of ``geometry`` that is listed under ``not_estimated`` is the configured
 estimate; with ``method: reference`` or ``self`` every other field given was estimated.
 
 :func:`load_calibration` validates everything and raises :class:`CalibrationFileError` (a
-``ValueError``) naming the file and the cause: unknown keys, wrong format or version,
+``ValueError``) naming the file and the cause: unknown keys, a key given twice, wrong format or version,
 unphysical values, or a rig / tank other than the one it is used for. It is never used
 silently: :func:`check_identity` compares it with the scan it is applied to.
 """
@@ -45,6 +45,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Hashable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -141,6 +142,19 @@ def save_calibration(calibration: Calibration, path: str | Path) -> Path:
     return write_atomically(path, lambda stream: stream.write(text))
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.safe_load`` refusing a mapping that names a key twice (:func:`~dipnet.core.strict_json.unique_keys`):
+    it keeps the last silently, so a hand-edit that adds ``pivot_mm: 0.0`` below ``pivot_mm: 188.0`` read the scan
+    with a pivot of 0."""
+
+    def construct_mapping(self, node: yaml.Node, deep: bool = False) -> dict:
+        if isinstance(node, yaml.MappingNode):  # the keys as written (a merge ``<<`` may override its keys)
+            written = [(self.construct_object(k, deep=True), v.value if isinstance(v, yaml.ScalarNode) else "...")
+                       for k, v in node.value if k.tag != "tag:yaml.org,2002:merge"]
+            strict_json.unique_keys([(k, v) for k, v in written if isinstance(k, Hashable)])
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_calibration(path: str | Path, rig: str | None = None, tank: str | None = None) -> Calibration:
     """Read and validate a calibration file; ``rig`` / ``tank``, when given, must match its identity."""
     path = Path(path)
@@ -148,8 +162,9 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         raise CalibrationFileError(f"calibration file not found: {path}")
     try:
         text = path.read_text(encoding="utf-8")
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError) as exc:
+        data = json.loads(text, object_pairs_hook=strict_json.unique_keys) if path.suffix.lower() == ".json" \
+            else yaml.load(text, Loader=_UniqueKeyLoader)
+    except (UnicodeDecodeError, json.JSONDecodeError, yaml.YAMLError, strict_json.DuplicateKeyError) as exc:
         raise CalibrationFileError(f"{path}: not a readable calibration file ({' '.join(str(exc).split())})") from exc
     if not isinstance(data, dict):
         raise CalibrationFileError(f"{path}: expected a mapping with format {FORMAT_NAME!r}")

@@ -32,6 +32,26 @@ def dumps(obj: Any, **kwargs: Any) -> str:
     return json.dumps(finite_or_none(obj), allow_nan=False, **kwargs)
 
 
+class DuplicateKeyError(ValueError):
+    """A JSON object (or YAML mapping) of a file names one key twice."""
+
+
+def unique_keys(pairs: list[tuple[Any, Any]]) -> dict:
+    """A mapping from ``pairs`` (``json.loads(..., object_pairs_hook=unique_keys)``), refusing a key given twice:
+    JSON and YAML readers keep the last silently, so a hand-edited file read another value than the one its
+    author saw first.
+
+    Raises:
+        DuplicateKeyError: naming the key and both values.
+    """
+    data: dict = {}
+    for key, value in pairs:
+        if key in data:
+            raise DuplicateKeyError(f"key {key!r} is given twice ({data[key]!r} and {value!r}): keep one")
+        data[key] = value
+    return data
+
+
 def write_json(path: str | Path, obj: Any, **kwargs: Any) -> Path:
     """Write ``obj`` to ``path`` as strict JSON (:func:`dumps` with ``kwargs``) ending in a newline;
     returns the path."""

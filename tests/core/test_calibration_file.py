@@ -2,6 +2,7 @@
 
 import math
 import os
+import re
 import time
 
 import pytest
@@ -174,3 +175,17 @@ def test_keep_previous_renames_an_earlier_file_by_its_time_and_never_over_anothe
     assert not path.exists() and [p.read_text() for p in kept] == ["first", "second"]
     stamp = time.strftime("%Y%m%dT%H%M%S", time.localtime(1764531612))
     assert [p.name for p in kept] == [f"cal.{stamp}.yaml", f"cal.{stamp}-1.yaml"]
+
+
+@pytest.mark.parametrize("name,line", [("cal.yaml", r"\g<0>\n\1pivot_mm: 0.0"),
+                                       ("cal.json", r'\g<0>\n\1"pivot_mm": 0.0,')])
+def test_a_key_given_twice_is_refused_naming_it(tmp_path, name, line):
+    """YAML and JSON readers keep the last of two equal keys: a hand-edit adding ``pivot_mm: 0.0`` below the
+    calibrated pivot read the authors' cats with a pivot of 0 mm, exit 0 and ``consistent``."""
+    path = save_calibration(CAL, tmp_path / name)
+    text = path.read_text()
+    path.write_text(re.sub(r'(?m)^( +)"?pivot_mm"?: .*$', line, text, count=1))
+    with pytest.raises(CalibrationFileError, match=rf"{name}: .*key 'pivot_mm' is given twice"):
+        load_calibration(path)
+    path.write_text(text)
+    assert load_calibration(path).geometry == CAL.geometry
