@@ -60,6 +60,7 @@ import torch
 
 from dipnet.core.counts import is_real
 from dipnet.core.orientations import rig_to_direction
+from dipnet.core.strict_json import DuplicateKeyError, unique_keys
 from dipnet.core.warn import log_and_warn
 
 log = logging.getLogger(__name__)
@@ -466,7 +467,9 @@ def read_rawscan(path: str | Path) -> RawScan:
         if not text.strip():
             continue
         try:
-            obj = json.loads(text)
+            obj = json.loads(text, object_pairs_hook=unique_keys)
+        except DuplicateKeyError as exc:  # the last value was read silently: another tank section, level, stage
+            raise RawScanFileError(f"{path}:{lineno}: {exc}") from exc
         except json.JSONDecodeError as exc:
             if lineno == len(lines) and scan is not None:
                 scan.truncated = True  # a crash mid-write: the last line is cut short

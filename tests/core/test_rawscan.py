@@ -364,3 +364,19 @@ def test_rig_angles_or_a_reading_count_of_the_wrong_type_name_file_and_line(tmp_
     path.write_text("".join(json.dumps(line) + "\n" for line in lines))
     read = read_rawscan(path).orientations[0]  # whole numbers (and 1.0 readings) still read
     assert read.tilt_deg == 10.0 and read.complete
+
+
+@pytest.mark.parametrize(("line_no", "old", "new"), [
+    (1, '"tank_cross_section_mm2": 60000.0', '"tank_cross_section_mm2": 60000.0, "tank_cross_section_mm2": 3e4'),
+    (3, '"value": 150.0', '"value": 150.0, "value": 160.0')])
+def test_a_key_given_twice_names_file_line_and_key(tmp_path, line_no, old, new):
+    """``json.loads`` keeps the last of two equal keys: a header edited to hold the tank section twice read the
+    second (every volume halved, exit 0, no warning)."""
+    path = _scan().save(tmp_path / "scan.jsonl")
+    lines = path.read_text().splitlines()
+    assert old in lines[line_no - 1]
+    lines[line_no - 1] = lines[line_no - 1].replace(old, new, 1)
+    path.write_text("\n".join(lines) + "\n")
+    key = old.split('"')[1]
+    with pytest.raises(RawScanFileError, match=rf"scan\.jsonl:{line_no}: key '{key}' is given twice"):
+        read_rawscan(path)
