@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real
 from dipnet.core.warn import log_and_warn
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,39 @@ def filled_slabs(target: torch.Tensor, rel_tol: float = FILLED_REL_TOL) -> torch
     """Boolean ``(K, M)``: the slabs of each profile ``target`` (``(K, M)``, mm^3) holding more than
     ``rel_tol`` x the profile's largest volume."""
     return target > rel_tol * target.abs().amax(dim=-1, keepdim=True)
+
+
+#: Provenance entries a job reads after the solve, by their form: a hand-edited ``.npz`` holding another form ended
+#: in a traceback there, the result lost (mappings; lists of a number or ``None`` per dip; lists of a pair per dip;
+#: numbers or ``None``).
+PROVENANCE_MAPPINGS = ("recorded", "readings", "symmetry_fit")
+PROVENANCE_PER_DIP = ("outside_share", "outside_mm", "tail_slope", "readings_per_dip")
+PROVENANCE_PAIRS = ("reach_mm", "level_drop")
+PROVENANCE_NUMBERS = ("reading_noise_volume", "reading_noise_ratio", "reading_noise_leak", "reading_quantum",
+                      "reading_quantum_volume")
+
+
+def check_provenance(provenance: dict) -> None:
+    """Raise :class:`MeasurementFileError` naming the first entry of ``provenance`` not of the form the job reads
+    (:data:`PROVENANCE_MAPPINGS`, :data:`PROVENANCE_PER_DIP`, :data:`PROVENANCE_PAIRS`, :data:`PROVENANCE_NUMBERS`);
+    a missing or ``null`` entry is not known, and fine."""
+    def number(v) -> bool:
+        return v is None or is_real(v)
+
+    def pairs(v) -> bool:
+        return isinstance(v, list) and all(isinstance(r, list) and len(r) == 2 and all(map(number, r)) for r in v)
+
+    forms = [(PROVENANCE_MAPPINGS, lambda v: isinstance(v, dict), "a JSON object"),
+             (PROVENANCE_PER_DIP, lambda v: isinstance(v, list) and all(map(number, v)),
+              "a list with a number per dip"),
+             (PROVENANCE_PAIRS, pairs, "a list with a [number, number] pair per dip"),
+             (PROVENANCE_NUMBERS, is_real, "a number")]
+    for keys, fits, form in forms:
+        for key in keys:
+            value = provenance.get(key)
+            if value is not None and not fits(value):
+                raise MeasurementFileError(f"metadata provenance {key!r} must be {form} or null, got "
+                                           f"{json.dumps(value)[:60]}: a hand-edited file?")
 
 
 def _per_dip(values, k: int, default: float) -> np.ndarray:
@@ -402,6 +436,8 @@ class DipMeasurement:
         if meta.get("version") != FORMAT_VERSION:
             raise MeasurementFileError(f"{path}: unsupported format version {meta.get('version')!r}")
         try:
+            if isinstance(meta.get("provenance"), dict):
+                check_provenance(meta["provenance"])
             return cls(directions=torch.from_numpy(arrays["directions"]),
                        profiles=torch.from_numpy(arrays["profiles"]),
                        slab_thickness=float(meta["slab_thickness"]),

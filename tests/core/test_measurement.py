@@ -62,6 +62,24 @@ def test_metadata_that_is_no_json_object_names_the_file(metadata, tmp_path):
         DipMeasurement.load(path)
 
 
+PROVENANCE_EDITS = {"recorded": [1, 2], "readings": [1, 2], "level_drop": 5, "reach_mm": [[0.0, "x"]],
+                    "outside_share": "abc", "reading_noise_volume": "x"}
+
+
+@pytest.mark.parametrize("key", PROVENANCE_EDITS)
+def test_provenance_of_another_form_is_refused_naming_the_file_and_entry(key, tmp_path):
+    """A hand-edited provenance the job reads after the solve: was an AttributeError or TypeError traceback there
+    (the result lost), or ``error: could not convert string to float: 'x'`` naming neither file nor entry."""
+    m = _measurement()
+    m.metadata = {"readings": {"readings_repaired": 0}, "level_drop": [[0.0, None]] * 4, "reach_mm": [[-3.0, 4.0]] * 4,
+                  "outside_share": [0.0] * 4, "reading_noise_volume": None}
+    path = m.save(tmp_path / "m.npz")
+    assert DipMeasurement.load(path).metadata == m.metadata  # the forms the readers write
+    m.metadata = {**m.metadata, key: PROVENANCE_EDITS[key]}
+    with pytest.raises(MeasurementFileError, match=rf"m.npz: metadata provenance '{key}' must be "):
+        DipMeasurement.load(m.save(path))
+
+
 def test_resampling_keeps_volume_and_matches_on_same_edges():
     m = _measurement()
     same = m.resampled(m.offsets[0] + 2.5 * torch.arange(11, dtype=torch.float64))
