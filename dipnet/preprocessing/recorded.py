@@ -81,7 +81,8 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
     The file may start with a byte-order mark (spreadsheet programs write one). Rows are grouped
     into orientations by consecutive equal ``(R1, R2)``; ``stage_mm =
     -Height_mm`` (increasing = lowered), ``values`` = water level (mm), tilt = R1, spin = R2.
-    Every orientation is complete; times are unknown (the row index is stored as time). The reading
+    Every orientation is complete but a last one that ends above every other's deepest height (a file cut off
+    mid-dip: :func:`_last_dip_cut_short`); times are unknown (the row index is stored as time). The reading
     quantum is the authors' 0.04 mm when every level is a multiple of it, else unknown (:func:`authors_quantum`).
 
     Raises:
@@ -141,12 +142,27 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
         rig="Aberman et al. 2017 dipping robot (Kewiee/DipTransform)",
         metadata={"source": str(path), "format": "authors_csv", "columns": list(AUTHORS_COLUMNS)})
     scan = RawScan(header=header, path=path)
+    cut = _last_dip_cut_short(a[:, 3], blocks)
+    if cut:
+        reached = max(a[idx[-1], 3] for idx in blocks[:-1])
+        log_and_warn(log, f"{path}:{linenos[-1]}: the last dip ends at Height_mm {a[-1, 3]:g}, short of the "
+                          f"{reached:g} or deeper every other dip reaches: the file is cut off mid-dip?", stacklevel=2)
     for k, idx in enumerate(blocks):
         scan.orientations.append(OrientationScan(
             k=k, tilt_deg=float(a[idx[0], 1]), spin_deg=float(a[idx[0], 2]), stage_mm=-a[idx, 3],
             values=a[idx, 4], time_s=a[idx, 0], meta={"rows": [int(a[idx[0], 0]), int(a[idx[-1], 0])]},
-            complete=True))
+            complete=not (cut and k == len(blocks) - 1)))
     return scan
+
+
+def _last_dip_cut_short(heights: np.ndarray, blocks: list[np.ndarray]) -> bool:
+    """Whether the last dip of the authors' CSV (rows ``blocks[-1]`` of ``heights``, ``Height_mm``, falling as the
+    object is lowered) ends above the deepest height every other dip reaches: the robot lowers every dip through
+    the same travel, so a file cut off on a row boundary leaves a last dip that looks complete, with its volume
+    missing (the CSV has no record of a dip's end, as a raw scan's ``complete`` line)."""
+    if len(blocks) < 2:
+        return False
+    return bool(heights[blocks[-1][-1]] > max(heights[idx[-1]] for idx in blocks[:-1]))
 
 
 def authors_quantum(levels: np.ndarray, path: str | Path) -> float | None:

@@ -106,6 +106,23 @@ def test_authors_csv_errors(tmp_path):
         read_authors_csv(bad)
 
 
+def test_an_authors_csv_cut_off_mid_dip_leaves_its_last_dip_out(tmp_path):
+    """A CSV cut on a row boundary has no cut-off row: its last dip (17th of the cats, 25 of 111 rows) was read as
+    complete, its total 6% of the others', and the result came out with a residual of 0.96. Now it is incomplete,
+    left out (warned, ``dips_incomplete_dropped``) as a raw scan's dip without its ``complete`` line."""
+    lines = CSV.read_text().splitlines()
+    cut = tmp_path / "cut.csv"
+    cut.write_text("\n".join(lines[:1801]) + "\n")
+    with pytest.warns(UserWarning, match=r"cut.csv:1801: the last dip ends at Height_mm -94, short of the -355 "):
+        scan = read_authors_csv(cut)
+    assert [o.complete for o in scan.orientations] == [True] * 16 + [False]
+    whole = tmp_path / "whole.csv"
+    whole.write_text("\n".join(lines[:1777]) + "\n")  # 16 whole dips: nothing cut off
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all(o.complete for o in read_authors_csv(whole).orientations)
+
+
 def test_cats_preprocessing(cats_csv):
     grid = Grid(24, extent=360.0)
     m = read_raw_recording(cats_csv, grid, truncated="keep", smooth=True)
