@@ -262,6 +262,7 @@ def subtract_fixture(raw: RawScan, fixture: RawScan, area: float | None = None, 
         raise ValueError("fixture subtraction needs the tank cross-section")
     if raw.header.quantity != fixture.header.quantity:
         raise ValueError(f"the fixture recording measures {fixture.header.quantity}, the scan {raw.header.quantity}")
+    _check_fixture_tank(raw, fixture)
     scale, _ = _level_scale(raw.header, area)
     curves = []
     for f in fixture.orientations:
@@ -277,6 +278,22 @@ def subtract_fixture(raw: RawScan, fixture: RawScan, area: float | None = None, 
         out.orientations.append(replace(o, stage_mm=o.stage_mm + f_i / area, values=o.values - f_i / scale,
                                         flags=[list(x) for x in o.flags]))
     return out
+
+
+#: A fixture recording whose tank section differs from the scan's by more than this (relative) is refused.
+FIXTURE_SECTION_TOL = 0.01
+
+
+def _check_fixture_tank(scan: RawScan, fixture: RawScan) -> None:
+    """Raise ``ValueError`` when the fixture recording states another tank section than the scan (mm^2; both
+    stated): its level rises are turned into volumes with the scan's section, so a fixture recorded in another tank
+    took off a volume scaled by the sections' ratio, without a word. A configured ``cross_section_mm2`` sets both."""
+    mine, theirs = scan.header.tank_cross_section_mm2, fixture.header.tank_cross_section_mm2
+    if mine and theirs and abs(theirs / mine - 1.0) > FIXTURE_SECTION_TOL:
+        name = f" {fixture.path}" if fixture.path is not None else ""
+        raise ValueError(f"the fixture recording{name} states a tank section of {theirs:g} mm^2, the scan "
+                         f"{mine:g} mm^2: record the fixture in the scan's tank (its level rises are read with the "
+                         "scan's section), or, when both are the same tank, set source.reader.cross_section_mm2")
 
 
 def profile_centroids(raw: RawScan, area: float) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from pathlib import Path
@@ -237,6 +238,10 @@ def test_fixture_subtraction_recovers_object():
     b = preprocess(alone, edges=edges, t_start="metadata").profiles[0]
     assert torch.allclose(a, b, atol=0.02 * b.max().item())
     assert a.sum().item() == pytest.approx(obj.volume, rel=0.01)
+    # a fixture recorded in another tank: its rises were read with the scan's section, the volume taken off scaled
+    fix.header = dataclasses.replace(fix.header, tank_cross_section_mm2=16000.0)
+    with pytest.raises(ValueError, match=r"fixture recording states a tank section of 16000 mm\^2, the scan 8000"):
+        subtract_fixture(combined, fix, n_baseline=2)
 
 
 def test_geometry_start_heights_recover_rig_geometry(tmp_path):
