@@ -44,6 +44,7 @@ class MeshShape(Shape):
         frame_scale: mm per unit of that file: what :func:`from_trimesh` scaled the mesh by (``scale``, or the
             factor that brought it to ``radius``; 1 when kept as it was). A point ``p`` (mm) of the grid frame
             is ``(p + frame_offset) / frame_scale`` in the file's own coordinates and units.
+        source: the file the mesh came from (``None``: built in memory), for messages that name it.
     """
 
     ndim = 3
@@ -60,6 +61,7 @@ class MeshShape(Shape):
         self.exact = exact
         self.frame_offset = np.zeros(3)
         self.frame_scale = 1.0
+        self.source: str | None = None
         self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         self._triangles = self._vertices[self._faces]  # (F, 3, 3) mm, closed by caps below
@@ -218,6 +220,7 @@ def from_trimesh(
     shape = MeshShape(mesh, name=name, exact=mesh.is_watertight)
     shape.frame_offset = factor * shift
     shape.frame_scale = factor
+    shape.source = source
     if problems:
         _check_repair(shape, where)
         if uncertain > HOLE_VOLUME_TOL:

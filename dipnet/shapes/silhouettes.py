@@ -172,4 +172,5 @@ def project_mesh(shape: MeshShape, axis: str = "z", pixels: int = 1024) -> Polyg
     polygon.frame_axes = "".join("xyz"[i] for i in plane)
     polygon.frame_offset = np.asarray(getattr(shape, "frame_offset", np.zeros(3)), dtype=np.float64)[plane]
     polygon.frame_scale = float(getattr(shape, "frame_scale", 1.0))
+    polygon.source = getattr(shape, "source", None)
     return polygon

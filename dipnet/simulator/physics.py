@@ -312,8 +312,12 @@ def solve_dip(shape, direction, tank: Tank, stage_mm: np.ndarray, t_start_mm: fl
         submerged, section = curve.volume_and_area(base + delta)
         largest = max(largest, float(section.max(initial=0.0)))
         if largest >= area:
-            raise ValueError(f"the object's cross-section ({largest:.0f}) is not smaller than the tank's "
-                             f"free cross-section ({area:.0f}): it cannot be dipped in this tank")
+            source = getattr(shape, "source", None)  # a mesh file's path
+            what = f"mesh file {source}" if source else f"shape {getattr(shape, 'name', type(shape).__name__)!r}"
+            raise ValueError(f"{what}: the object's cross-section ({largest:.0f}) is not smaller than the tank's "
+                             f"free cross-section ({area:.0f}): it cannot be dipped in this tank; make it smaller "
+                             "with shape.radius= (mm) or, for a mesh in its own units, shape.scale= (mm per file "
+                             "unit), or dip it in a larger tank")
         g = area * delta - submerged
         if np.abs(g).max(initial=0.0) <= tol:
             break

@@ -7,10 +7,11 @@ import re
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from dipnet.core.orientations import directions_2d, fibonacci_hemisphere
 from dipnet.simulator.physics import Balance, DipProtocol, LevelSensor, Tank, simulate_scan, solve_dip
-from dipnet.shapes import Ball, Disk
+from dipnet.shapes import Ball, Disk, load_mesh
 
 BALL = Ball(40.0, center=(3.0, -2.0, 1.0))
 DIRS = fibonacci_hemisphere(6)
@@ -230,3 +231,10 @@ def test_a_balance_quantum_as_large_as_the_displaced_mass_is_refused_naming_the_
     mass = BALL.volume * 1e-3
     with pytest.raises(ValueError, match=rf"\({mass:.3g} g, the mass of water it displaces\).*or dip a larger object"):
         simulate_scan(BALL, DIRS[:2], sensor=Balance(quantum_g=2 * mass), progress=False)
+
+
+def test_mesh_wider_than_tank_is_refused_naming_file_and_option(tmp_path):
+    path = tmp_path / "huge.stl"
+    trimesh.creation.box(extents=(400.0, 400.0, 400.0)).export(str(path))
+    with pytest.raises(ValueError, match=r"(?s)huge\.stl.*cannot be dipped.*shape\.scale="):
+        simulate_scan(load_mesh(path), DIRS, sensor=EXACT, progress=False)
