@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from dipnet.core.counts import is_real
 from dipnet.evaluation.metrics import EMPTY_DISTANCE, REFERENCE_VOLUME_TOL
 
 log = logging.getLogger(__name__)
@@ -160,7 +161,20 @@ def load_run(job_dir: str | Path) -> Run:
         logged = logged_error(job_dir)
         if logged is not None:
             run.status, run.error = "failed", logged
+    _warn_non_numeric_metrics(run)
     return run
+
+
+def _warn_non_numeric_metrics(run: Run) -> None:
+    """Warn, naming the run's folder and the value, for every compared metric (:data:`METRICS`) its
+    ``metrics.json`` holds as something other than a number or ``null`` (``"0.8"``, ``true``, a list): the
+    statistics leave it out, and a column none of whose values is a number drops out of the tables."""
+    for name in METRICS:
+        value = run.metrics.get(name)
+        if value is not None and not is_real(value):
+            warnings.warn(f"{run.path}: {METRICS_FILE}'s {name} is {value!r}, not a number: left out of the "
+                          f"{LABELS.get(name, name)} column's statistics (a column with no number in any run is "
+                          "dropped)", stacklevel=3)
 
 
 def _first_line(error_path: Path) -> str:

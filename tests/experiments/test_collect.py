@@ -258,3 +258,13 @@ def test_runs_with_an_option_set_to_an_empty_mapping_are_compared(tmp_path):
         runs.append(collect.load_run(job))
     assert collect.flat_config(runs[0].config)["solver.surface_refit"] == "{}"
     assert collect.pooled_options(runs, collect.run_rows(runs)) == {"solver.surface_refit": ["{}", None]}
+
+
+def test_a_non_numeric_iou_is_warned_naming_the_run_and_value(tmp_path):
+    """``"iou": "0.8"`` was left out of the statistics, and the IoU column dropped from the tables, without a word."""
+    write_job(tmp_path / "0", solver="minnorm", n_dips=4, snr_db=None, seed=0, metrics={"iou": 0.5})
+    write_job(tmp_path / "1", solver="minnorm", n_dips=4, snr_db=None, seed=1, metrics={"iou": "0.8"})
+    with pytest.warns(UserWarning, match=r"1: metrics\.json's iou is '0\.8', not a number") as caught:
+        runs = collect.collect_runs(tmp_path)
+    assert len([w for w in caught if "not a number" in str(w.message)]) == 1  # the numeric run is not named
+    assert [r.status for r in runs] == ["ok", "ok"]
