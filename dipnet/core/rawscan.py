@@ -540,6 +540,7 @@ def read_rawscan(path: str | Path) -> RawScan:
             raise RawScanFileError(f"{path}:{lineno}: {detail}") from exc
     assert scan is not None  # the first non-blank line either parses as a header or raised
     _warn_clock_back(path, clock_back)
+    _warn_step_mismatch(path, scan)
     return scan
 
 
@@ -558,6 +559,30 @@ def _warn_clock_back(path: Path, steps: list[tuple[int, int, float, float]]) -> 
                   f"backwards within the dip{more} (a clock set back, or readings edited?); the readings are kept, "
                   "but a level drift or sensor lag fitted against these times is wrong: fix the times, or do not "
                   "fit level_drift_mm_per_s or sensor_lag_s from this recording", stacklevel=3)
+
+
+#: How far (a fraction) the readings' median stage step may differ from the header's ``step_mm`` unwarned.
+STEP_TOLERANCE = 0.1
+
+
+def _warn_step_mismatch(path: Path, scan: RawScan) -> None:
+    """Warn, naming the file, the header's ``step_mm`` and the steps found, when the median of the readings'
+    stage steps (mm; within each orientation, repeats left out) differs from the header's ``step_mm`` by more than
+    :data:`STEP_TOLERANCE` of it. Not refused: the per-reading stage positions are authoritative and the results
+    use them alone, but a disagreement this large means one of the two is in another unit (stage readings in cm?)
+    or belongs to another scan."""
+    nominal = scan.header.step_mm
+    steps = np.concatenate([np.diff(o.stage_mm) for o in scan.orientations] + [np.zeros(0)])
+    steps = steps[steps > 0]
+    if nominal is None or steps.size == 0:
+        return
+    found = float(np.median(steps))
+    if abs(found - nominal) <= STEP_TOLERANCE * nominal:
+        return
+    log_and_warn(log, f"{path}: the header's step_mm={nominal:g} mm, but the readings' stage steps are "
+                      f"{found:g} mm (median; {float(steps.min()):g} to {float(steps.max()):g} mm): one of the two "
+                      "is in another unit (stage readings in cm?) or from another scan; the readings' stage positions "
+                      "are used, the header's step is ignored", stacklevel=3)
 
 
 #: How far (degrees) an orientation's recorded direction may lie from the one its rig angles give.

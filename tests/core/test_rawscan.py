@@ -380,3 +380,16 @@ def test_a_key_given_twice_names_file_line_and_key(tmp_path, line_no, old, new):
     key = old.split('"')[1]
     with pytest.raises(RawScanFileError, match=rf"scan\.jsonl:{line_no}: key '{key}' is given twice"):
         read_rawscan(path)
+
+
+def test_a_header_step_that_contradicts_the_stage_readings_is_warned_naming_both(tmp_path, recwarn):
+    path = _scan().save(tmp_path / "ok.jsonl")  # readings 1 mm apart, as the header says: no word
+    read_rawscan(path)
+    assert not [w for w in recwarn if "step_mm" in str(w.message)]
+    scan = _scan()
+    for o in scan.orientations:  # stage readings in cm: 0.1 mm steps against the header's 1 mm
+        o.stage_mm = o.stage_mm / 10
+    path = scan.save(tmp_path / "cm.jsonl")
+    with pytest.warns(UserWarning, match=r"cm\.jsonl: the header's step_mm=1 mm, .*stage steps are 0\.1 mm"):
+        read = read_rawscan(path)
+    np.testing.assert_array_equal(read.orientations[0].stage_mm, [0.0, 0.1, 0.2])  # results unchanged

@@ -121,7 +121,7 @@ def test_a_fake_rig_scan_resumed_with_another_object_is_refused_naming_it(tmp_pa
     is recorded under ``config.scan``; a real rig's scan records none, and is not compared."""
     def header(shape: dict | None) -> ScanHeader:
         rig = {"name": "fake-grbl", "fake": None if shape is None else {"shape": shape}}
-        return ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=2e4, step_mm=4.0,
+        return ScanHeader(quantity="level_mm", ndim=3, tank_cross_section_mm2=2e4, step_mm=1.0,
                           config={"scan": {"rig": rig, "n_dips": 12}})
 
     torus = {"_target_": "dipnet.shapes.builtin_shape", "name": "torus", "ndim": 3, "radius": 40.0}
