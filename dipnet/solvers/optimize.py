@@ -364,11 +364,12 @@ def optimise(parameters: Iterable, occupancy: Callable[[], torch.Tensor], data: 
                                 tolerance_grad=0.0, tolerance_change=0.0)
         sched = None
     op = data.operator
-    fingerprint = {"iterations": iterations, "optimizer": optimizer, "shapes": [list(p.shape) for p in flat],
-                   "target": tensor_digest(data.target, data.weight, data.precision), "terms": list(history),
-                   "operator": [type(op).__name__, *op.grid.shape, float(op.grid.extent), int(op.n_slabs),
-                                tensor_digest(op.directions)], "options": plain(options or {}),
-                   "weights": [module.digest for _, _, module in priors if hasattr(module, "digest")]}
+    fingerprint = None if checkpoint is None else {  # hashes the data: only for a checkpoint to check
+        "iterations": iterations, "optimizer": optimizer, "shapes": [list(p.shape) for p in flat],
+        "target": tensor_digest(data.target, data.weight, data.precision), "terms": list(history),
+        "operator": [type(op).__name__, *op.grid.shape, float(op.grid.extent), int(op.n_slabs),
+                     tensor_digest(op.directions)], "options": plain(options or {}),
+        "weights": [module.digest for _, _, module in priors if hasattr(module, "digest")]}
     first, ended = 0, False
     # priors whose next calls depend on more than the occupancy (a red mode learned prior's lag): checkpointed too
     lagged = {name: module for name, _, module in priors
