@@ -126,6 +126,11 @@ by more than ``LEVEL_DROP_TOL`` of the volume while the object goes down, a dip 
 its noise and ``EXCESS_TOTAL_TOL`` of the volume, or the dips reject a declared symmetry. Each
 failed check is logged and raised as a :class:`DataConsistencyWarning` (``warnings.warn``),
 so a result that does not explain its data never passes silently.
+
+A result that passes every check is still ``"underdetermined"``, not ``"consistent"``, when its dips are too few to
+determine any shape (``underdetermined`` holds why: :func:`~dipnet.evaluation.resolvability.underdetermined_plan`,
+3D 6 or fewer distinct directions, 2D 2 or fewer): a single dip is fitted by every shape with its profile, so fitting
+it proves nothing (`solver=voxel` at 24^3 from 4 dips: the fish's IoU 0.56, passing every check).
 """
 
 from __future__ import annotations
@@ -257,6 +262,7 @@ class Consistency:
     verdict: str = "consistent"
     warnings: list[str] = field(default_factory=list)
     plan_warning: str = ""
+    underdetermined: str = ""
 
     def metrics(self) -> dict:
         """The numbers as a flat, JSON-serialisable dict (for ``metrics.json``)."""
@@ -476,7 +482,8 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
         volume_tol: flag ``|volume_ratio - 1|`` above this (or 3 noise spreads, if larger).
         hull_fill_min: flag a measured volume filling less than this share of the dips' support hull.
         warn: log and ``warnings.warn`` a :class:`DataConsistencyWarning` per failed check, and a ``UserWarning``
-            (not part of the verdict) naming the band of directions no dip reaches when it is wider than
+            naming why the dips are too few to determine a shape (the verdict ``underdetermined``), else (not part
+            of the verdict) the band of directions no dip reaches when it is wider than
             :data:`~dipnet.evaluation.resolvability.UNMEASURED_BAND_DEG` (the sides are then the priors' guess).
     """
     got = (measurement, operator, reconstruction)
@@ -559,12 +566,18 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     result.symmetry_misfit_order, result.symmetry_rejected = fit.order, fit.rejected
     result.warnings = _findings(result, metadata.get("symmetry_group_order", 1), quantum, operator.grid) + \
         _refit_findings(result, reconstruction.info.get("surface_refit") or {})
-    result.verdict = "inconsistent" if result.warnings else "consistent"
+    from dipnet.evaluation.resolvability import underdetermined_plan, warn_unmeasured_band  # (it imports this one)
+    result.underdetermined = underdetermined_plan(measurement.directions) or ""
+    result.verdict = "inconsistent" if result.warnings else "underdetermined" if result.underdetermined else \
+        "consistent"
     if warn:
         for message in result.warnings:
             log_and_warn(log, message, DataConsistencyWarning, stacklevel=2)
-        from dipnet.evaluation.resolvability import warn_unmeasured_band  # (that module imports this one)
-        result.plan_warning = warn_unmeasured_band(measurement.directions) or ""  # the plan's: the verdict stands
+        if result.underdetermined:
+            log_and_warn(log, result.underdetermined, stacklevel=2)
+            result.plan_warning = result.underdetermined
+        else:  # the plan's gaps: the verdict stands
+            result.plan_warning = warn_unmeasured_band(measurement.directions) or ""
     return result
 
 

@@ -57,6 +57,9 @@ UNMEASURED_BAND_DEG = 10.0
 #: a shape however evenly it is spread (:func:`warn_unmeasured_band`): 6 or fewer Fibonacci dips (4: 55.9 deg, 6: 47.6,
 #: 8: 41.4). ``solver=voxel`` at 24^3 from 4 dips: IoU 0.56 (fish), 0.66 (bunny), ``consistent`` without a word.
 SPARSE_CONE_DEG = 45.0
+#: Two dips whose lines lie closer than this (deg) are one line (:func:`distinct_lines`): a repeated dip averages the
+#: noise but measures no new direction.
+SAME_LINE_DEG = 1.0
 
 log = logging.getLogger(__name__)
 
@@ -160,6 +163,48 @@ def warn_unmeasured_band(directions, limit_deg: float = UNMEASURED_BAND_DEG) -> 
     return message
 
 
+def even_gap_deg(k: int, ndim: int) -> float:
+    """The largest angle (deg) from any direction to the nearest of ``k`` dips spread evenly: 2D ``90 / k`` (equal
+    angles), 3D over the Fibonacci hemisphere (:func:`~dipnet.core.orientations.fibonacci_hemisphere`: 1 and 2 dips
+    90, 3 67.4, 4 55.9, 6 47.6, 7 43.1, 8 41.4, 41 18.0)."""
+    if ndim == 2:
+        return 90.0 / k
+    return float(np.degrees(angle_to_plan(hemisphere_samples(3), fibonacci_hemisphere(k).numpy())).max())
+
+
+def distinct_lines(directions) -> int:
+    """How many dip lines ``directions`` ``(K, d)`` hold, ``d`` and ``-d`` one line and lines closer than
+    :data:`SAME_LINE_DEG` merged (greedily, in the given order)."""
+    d = torch.as_tensor(directions, dtype=torch.float64).numpy()
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    kept: list[np.ndarray] = []
+    cos_same = math.cos(math.radians(SAME_LINE_DEG))
+    for direction in d:
+        if not kept or np.abs(np.stack(kept) @ direction).max() < cos_same:
+            kept.append(direction)
+    return len(kept)
+
+
+def underdetermined_plan(directions) -> str | None:
+    """Why the dips ``directions`` ``(K, d)`` cannot determine a shape, or ``None`` when they may: fewer distinct
+    lines (:func:`distinct_lines`) than leave every direction within :data:`SPARSE_CONE_DEG` of a dip when spread
+    evenly (:func:`even_gap_deg`: 3D 6 or fewer, 2D 2 or fewer). Whatever shape fits so few profiles passes the
+    residual check, so :func:`~dipnet.evaluation.consistency.check_consistency` calls such a result
+    ``underdetermined``, not ``consistent`` (a single dip: every shape with the same profile fits it)."""
+    d = torch.as_tensor(directions, dtype=torch.float64)
+    ndim, lines = int(d.shape[1]), distinct_lines(d)
+    gap = even_gap_deg(lines, ndim)
+    if gap < SPARSE_CONE_DEG:
+        return None
+    needed = next(k for k in range(lines + 1, 64) if even_gap_deg(k, ndim) < SPARSE_CONE_DEG)
+    dips = f"the {len(d)} dips hold {lines} distinct direction{'s' if lines > 1 else ''}" if lines < len(d) else \
+        f"the {len(d)} dip{'s' if len(d) > 1 else ''}"
+    return (f"{dips}: so few that even spread they leave some direction {gap:.0f} deg from every dip, so they do not "
+            f"determine the shape: any shape with these profiles fits them, so a result that fits them is the "
+            f"priors' guess and its verdict underdetermined, not consistent; dip along {needed} or more directions "
+            f"spread over the {'half-circle' if ndim == 2 else 'hemisphere'}")
+
+
 def _band_message(directions: torch.Tensor, limit_deg: float) -> str | None:
     """:func:`warn_unmeasured_band`'s message for 3D ``directions`` ``(K, 3)``, or ``None``."""
     band = unmeasured_band_deg(directions)
@@ -179,7 +224,7 @@ def _cone_message(directions: torch.Tensor, limit_deg: float) -> str | None:
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
     sphere = hemisphere_samples(3)
     gap = np.degrees(angle_to_plan(sphere, d))
-    even = float(np.degrees(angle_to_plan(sphere, fibonacci_hemisphere(len(d)).numpy())).max())
+    even = even_gap_deg(len(d), 3)
     cone = float(gap.max())
     if not (cone > limit_deg and cone > 2 * even):
         if not cone > SPARSE_CONE_DEG:

@@ -125,7 +125,9 @@ METRIC_LABELS: dict[str, tuple[str, str]] = {
     "mean_slab_mm3": ("how consistent with the data", "mean slab the object fills (mm³)"),
     "consistency": ("how consistent with the data", "verdict"),
     "consistency_warnings": ("how consistent with the data", "findings"),
-    "plan_warning": ("how consistent with the data", "what the dips' plan leaves unmeasured (not part of the verdict)"),
+    "plan_warning": ("how consistent with the data", "what the dips' plan leaves unmeasured"),
+    "underdetermined": ("how consistent with the data", "why the dips are too few to determine a shape (the verdict "
+                        "underdetermined)"),
     "uncertainty_mean": ("how sure", "mean posterior (or ensemble) std over the support"),
     "uncertain_fraction": ("how sure", "share of the support with P(wrong) > 0.2"),
     "expected_error_fraction": ("how sure", "expected wrong voxels / reconstructed voxels"),

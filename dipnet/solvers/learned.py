@@ -192,7 +192,7 @@ class LearnedPrior(nn.Module):
                 f"the learned prior's denoiser ({self.choice['weights']}) was trained on {dips} dips {where}, and "
                 f"checked down to {fewest}; these are {len(directions)}: so few dips leave most of the shape open, "
                 "and what the denoiser fills in there is a guess the data cannot check, so a shape far off passes as "
-                "consistent (the hand at 64^3 from 6 dips: IoU 0.57, consistent); add dips, or compare with "
+                "consistent (the hand at 64^3 from 6 dips: IoU 0.57, passing every check); add dips, or compare with "
                 "solver=voxel")
         return "; and ".join(messages) or None
 

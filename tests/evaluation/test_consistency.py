@@ -4,6 +4,7 @@ import math
 import re
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -14,7 +15,7 @@ from dipnet.evaluation.consistency import (NOISE_RATIO_MAX, RESIDUAL_FLOOR, Data
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import make_operator
-from dipnet.core.orientations import fibonacci_hemisphere
+from dipnet.core.orientations import fibonacci_hemisphere, rig_to_direction
 from dipnet.core.reconstruction import Reconstruction
 from dipnet.preprocessing.datasets import data_path
 from dipnet.preprocessing.preprocess import preprocess
@@ -49,16 +50,35 @@ def _check(measurement, operator, volume, **options):
     return result, [w for w in caught if issubclass(w.category, DataConsistencyWarning)]
 
 
-@pytest.mark.parametrize("n_dips, plan_warning",
-                         [(30, ""), (4, "the 4 dips leave directions up to 56 deg from every dip")])
-def test_what_the_plan_leaves_unmeasured_is_recorded_beside_the_verdict(n_dips, plan_warning):
-    """Before: the plan's warning (4 dips: so few that the shape is the priors' guess) went to the log only, and
-    metrics.json of such a result said ``consistent`` without it."""
-    operator = make_operator(GRID, fibonacci_hemisphere(n_dips))
+@pytest.mark.parametrize("directions, verdict, plan_warning", [
+    (fibonacci_hemisphere(30), "consistent", ""),
+    (fibonacci_hemisphere(7), "consistent", ""),
+    (fibonacci_hemisphere(4), "underdetermined", "the 4 dips: so few that even spread they leave some direction 56"),
+    (torch.tensor([[0.0, 0.0, 1.0]]), "underdetermined", "the 1 dip: so few"),
+    (fibonacci_hemisphere(1).repeat(12, 1), "underdetermined", "the 12 dips hold 1 distinct direction: so few"),
+    (rig_to_direction(np.repeat([0.0, 10.0, 20.0], 4), np.tile([0.0, 90.0, 180.0, 270.0], 3)), "consistent",
+     "no dip is tilted more than 20 deg"),
+])
+def test_a_result_of_too_few_dips_is_underdetermined_not_consistent(directions, verdict, plan_warning):
+    """Before: the ball's exact answer from a single dip, from 4 dips or from one dip repeated 12 times came out
+    ``consistent`` with only a plan warning beside the verdict, though every shape with those profiles fits them.
+    Too few distinct directions now make the verdict ``underdetermined`` (why in metrics.json), and the plan's warning
+    says so; 7 even dips, and a band the rig cannot reach, keep the verdict and their plan warning."""
+    operator = make_operator(GRID, directions)
     ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
     result, _ = _check(_exact_measurement(operator, ball), operator, ball)
-    assert result.verdict == "consistent" and result.metrics()["plan_warning"].startswith(plan_warning)
-    assert bool(result.metrics()["plan_warning"]) == bool(plan_warning)
+    assert result.profile_residual < 1e-6 and not result.warnings  # it fits its data: every check passes
+    assert result.verdict == verdict and result.metrics()["consistency"] == verdict
+    assert result.metrics()["plan_warning"].startswith(plan_warning) and bool(result.plan_warning) == bool(plan_warning)
+    assert bool(result.metrics()["underdetermined"]) == (verdict == "underdetermined")
+
+
+def test_a_wrong_result_of_too_few_dips_is_inconsistent_first():
+    """A result that misses its data is ``inconsistent`` whatever the plan: the worse verdict wins."""
+    operator = make_operator(GRID, fibonacci_hemisphere(3))
+    ball = (GRID.centers().norm(dim=-1) <= 30.0).double()
+    result, caught = _check(_exact_measurement(operator, ball), operator, torch.roll(ball, shifts=3, dims=2))
+    assert result.verdict == "inconsistent" and caught and result.underdetermined
 
 
 def test_exact_answer_has_no_residual_and_a_wrong_one_does(problem):

@@ -1,6 +1,7 @@
 """Resolvability: missing cone and frequency coverage of a dipping plan."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -164,3 +165,32 @@ def test_a_2d_plan_is_warned_of_its_widest_wedge_wherever_it_lies(angles, warned
         width = {5.0: 165, 11.0: 149}[angles[0]]
         assert f"a wedge of {width} deg where equally spaced dips leave 60" in message
         assert "tilted" not in message and "horizontal plane" not in message
+
+
+@pytest.mark.parametrize("directions, lines, determined", [
+    (fibonacci_hemisphere(6), 6, False),
+    (fibonacci_hemisphere(7), 7, True),
+    (torch.cat([fibonacci_hemisphere(7), -fibonacci_hemisphere(7)]), 7, True),  # d and -d: one line
+    (torch.cat([fibonacci_hemisphere(5)] * 3), 5, False),  # repeats average noise, add no direction
+    (directions_2d([0.0, 90.0]), 2, False),  # 2D: two lines leave 45 deg
+    (directions_2d([0.0, 60.0, 120.0]), 3, True),
+    (directions_2d([0.0, 0.5, 60.0]), 2, False),  # 0.5 deg apart: one line
+])
+def test_a_plan_of_too_few_distinct_lines_does_not_determine_a_shape(directions, lines, determined):
+    """Even spread, 6 dips leave some direction 47.6 deg from every dip and 7 leave 43.1: the count of distinct lines
+    decides, ``d`` and ``-d`` and lines under 1 deg apart being one; in 2D 2 lines leave 45 deg, 3 leave 30."""
+    from dipnet.evaluation.resolvability import distinct_lines, underdetermined_plan
+
+    assert distinct_lines(directions) == lines
+    reason = underdetermined_plan(directions)
+    assert (reason is None) == determined
+    if not determined:
+        assert "do not determine the shape" in reason and "underdetermined" in reason
+        assert re.search(r"dip along (7|3) or more directions", reason)
+
+
+def test_the_even_gap_matches_its_documented_values():
+    from dipnet.evaluation.resolvability import even_gap_deg
+
+    assert [round(even_gap_deg(k, 3), 1) for k in (1, 3, 4, 6, 7, 8, 41)] == [90.0, 67.4, 55.9, 47.6, 43.1, 41.4, 18.0]
+    assert even_gap_deg(4, 2) == pytest.approx(22.5)
