@@ -130,8 +130,14 @@ def estimate_slab_sigma(profiles: torch.Tensor) -> float:
     profiles' totals is not used: on real rigs it is dominated by systematic errors
     (truncated dips, drift), which are exactly what the consistency check
     (:mod:`dipnet.evaluation.consistency`, which uses this estimate) should expose.
+
+    Profiles of fewer than 3 slabs have no high-pass residual: the robust spread (MAD) of their slab volumes is
+    returned instead, an upper bound that holds their signal too (it was NaN, which silently skipped the
+    consistency check's residual limit).
     """
     p = profiles.double().numpy()
+    if p.shape[-1] < 3:
+        return _MAD * float(np.median(np.abs(p - np.median(p))))
     high = p[:, 1:-1] - 0.25 * (p[:, :-2] + 2 * p[:, 1:-1] + p[:, 2:])
     return _MAD * float(np.median(np.abs(high - np.median(high)))) / _HIGHPASS_GAIN
 

@@ -316,7 +316,8 @@ def check_grid_options(cfg: DictConfig) -> None:
         raise ConfigError(f"ndim must be 2 or 3, got {cfg.get('ndim')!r}")
     _integer(cfg, "resolution", 4, meaning=" (voxels per axis)")
     _integer(cfg, "n_dips", 1)
-    _integer(cfg, "n_slabs", 2, nullable=True)
+    _integer(cfg, "n_slabs", 3, nullable=True,
+             meaning=" (slabs per profile: the noise the consistency check allows is estimated from 3 neighbours)")
     fill = cfg.get("fill")
     if isinstance(fill, bool) or not isinstance(fill, (int, float)) or not 0 < fill <= 1:
         raise ConfigError(f"fill must be a number in (0, 1], got {fill!r}")

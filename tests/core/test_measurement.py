@@ -254,3 +254,17 @@ def test_metadata_is_a_dict_and_numpy_values_are_saved(tmp_path):
     assert not (tmp_path / "bad.npz").exists()
     with pytest.raises(MeasurementFileError, match="is a folder: give the measurement file's name"):
         m.save(tmp_path)
+
+
+def test_the_noise_of_two_slab_profiles_is_a_finite_upper_bound():
+    """Profiles of 2 slabs have no [1, 2, 1] high-pass residual: the estimate was NaN (numpy's "Mean of empty
+    slice"), so the consistency check's residual limit was null and a residual of 0.80 passed it unsaid."""
+    import warnings
+
+    from dipnet.core.measurement import estimate_slab_sigma
+
+    profiles = torch.tensor([[10.0, 20.0], [12.0, 19.0], [11.0, 22.0]], dtype=torch.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sigma = estimate_slab_sigma(profiles)
+    assert np.isfinite(sigma) and sigma > 0

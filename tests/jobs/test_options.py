@@ -156,6 +156,8 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("shape=generated shape.mesh_resolution=2",
      r"shape.mesh_resolution must be an integer >= 16 \(marching-cubes cells per axis\), got 2"),
     ("shape=generated shape.seed=-3", r"shape.seed must be an integer >= 0 \(which solid\), got -3"),
+    # 2 slabs left no noise estimate: the residual limit was null and the residual check passed unsaid
+    ("n_slabs=2", r"n_slabs must be an integer >= 3 or null \(slabs per profile: .*got 2"),
 ])
 def test_out_of_range_values_are_refused_by_check_config(override, message):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
