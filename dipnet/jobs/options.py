@@ -82,6 +82,10 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
     ("solver.method=cholesky", lambda cfg: OmegaConf.select(cfg, "solver.method") == "cholesky",
      ("solver.iter_lim",), "iter_lim bounds the iterative methods (lsmr, lsqr; auto on large problems), "
      "the Cholesky factorisation is direct"),
+    ("output.uncertainty other than samples", lambda cfg: OmegaConf.select(cfg, "output.uncertainty") != "samples",
+     ("output.uncertainty_samples", "output.uncertainty_iterations"),
+     "they size the ensemble of output.uncertainty=samples; true / linearised is one Gaussian posterior, false none: "
+     "set output.uncertainty=samples for an ensemble"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")

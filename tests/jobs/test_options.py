@@ -184,6 +184,13 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
     (["solver=minnorm", "solver.method=cholesky", "solver.iter_lim=5"],
      r"option solver.iter_lim is ignored with solver.method=cholesky \(iter_lim bounds the iterative methods",
      ["solver=minnorm", "solver.method=lsmr", "solver.iter_lim=5"]),
+    # the ensemble's size and iterations: with the default (linearised) uncertainty they ran nothing, exit 0
+    (["output.uncertainty_samples=8"],
+     r"option output.uncertainty_samples is ignored with output.uncertainty other than samples \(they size the",
+     ["output.uncertainty=samples", "output.uncertainty_samples=8"]),
+    (["output.uncertainty=false", "output.uncertainty_iterations=0.2"],
+     r"option output.uncertainty_iterations is ignored with output.uncertainty other than samples",
+     ["output.uncertainty=samples", "output.uncertainty_iterations=0.2"]),
 ])
 def test_an_option_the_dimension_ignores_is_refused(overrides, message, fine):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
