@@ -86,6 +86,9 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
      ("output.uncertainty_samples", "output.uncertainty_iterations"),
      "they size the ensemble of output.uncertainty=samples; true / linearised is one Gaussian posterior, false none: "
      "set output.uncertainty=samples for an ensemble"),
+    ("output.checkpoint=null", lambda cfg: OmegaConf.select(cfg, "output.checkpoint") in (None, False),
+     ("output.checkpoint_every",), "it sets how often output.checkpoint saves a solve, and no checkpoint is kept: "
+     "set output.checkpoint=true (or a directory) to keep one"),
 )
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")

@@ -191,6 +191,10 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
     (["output.uncertainty=false", "output.uncertainty_iterations=0.2"],
      r"option output.uncertainty_iterations is ignored with output.uncertainty other than samples",
      ["output.uncertainty=samples", "output.uncertainty_iterations=0.2"]),
+    # checkpoint_every without a checkpoint: the solve ran unsaved, exit 0, no word (a killed run restarted from 0)
+    (["solver=voxel", "output.checkpoint_every=5"],
+     r"option output.checkpoint_every is ignored with output.checkpoint=null \(it sets how often",
+     ["solver=voxel", "output.checkpoint=true", "output.checkpoint_every=5"]),
 ])
 def test_an_option_the_dimension_ignores_is_refused(overrides, message, fine):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
