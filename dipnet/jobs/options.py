@@ -61,8 +61,9 @@ def reads_a_measurement_file(cfg: DictConfig) -> bool:
 #: ignored options (an option or a node, with every key below it), why)``.
 IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], ...] = (
     ("source=recorded", lambda cfg: instantiates(cfg, "source", RecordedSource),
-     ("n_dips", "orientations", "snr_db", "shape", "reach"),
-     "the recording fixes the dips, their directions, their noise and the object"),
+     ("n_dips", "orientations", "snr_db", "shape", "reach", "output.truth_supersample"),
+     "the recording fixes the dips, their directions, their noise and the object, and holds no ground truth to "
+     "sample"),
     ("an .npz source.reader.path", reads_a_measurement_file,
      tuple(f"source.reader.{key}" for key in RAW_READER_OPTIONS),
      "a measurement file holds slab profiles already made from readings: its rig geometry, calibration, tank section, "

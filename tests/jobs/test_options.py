@@ -191,6 +191,9 @@ def test_out_of_range_values_are_refused_by_check_config(override, message):
     (["output.uncertainty=false", "output.uncertainty_iterations=0.2"],
      r"option output.uncertainty_iterations is ignored with output.uncertainty other than samples",
      ["output.uncertainty=samples", "output.uncertainty_iterations=0.2"]),
+    # a recording has no ground truth to supersample: output.truth_supersample=5 ran, exit 0, no word
+    ([*RECORDED, "output.truth_supersample=5"], "option output.truth_supersample is ignored with source=recorded",
+     ["output.truth_supersample=5"]),
     # checkpoint_every without a checkpoint: the solve ran unsaved, exit 0, no word (a killed run restarted from 0)
     (["solver=voxel", "output.checkpoint_every=5"],
      r"option output.checkpoint_every is ignored with output.checkpoint=null \(it sets how often",
