@@ -241,6 +241,27 @@ def test_noisy_measurement_with_the_true_answer_does_not_warn(problem, give_sigm
     assert result.verdict == "consistent" and not caught
 
 
+@pytest.mark.parametrize("overstate, named", [(1.0, False), (3.0, False), (20.0, True)])
+def test_a_stated_noise_far_above_the_residual_is_named_without_readings(problem, overstate, named):
+    """The audit's case: a measurement without readings whose sigma was 20 times too large (a hand-edited .npz) gave
+    a residual limit of 3.6 for a residual of 0.16-0.21 and no word on the noise (the readings' check needs
+    readings): the true shape's residual is about its noise, so a residual under a fifth of a stated noise names it."""
+    operator, ball, measurement = problem
+    sigma = 0.02 * float(measurement.profiles.max())
+    noise = sigma * torch.randn(measurement.profiles.shape, generator=torch.Generator().manual_seed(1),
+                                dtype=torch.float64)
+    stated = DipMeasurement(measurement.directions, measurement.profiles + noise, measurement.slab_thickness,
+                            measurement.offsets, torch.full_like(noise, overstate * sigma))
+    result, caught = _check(stated, operator, ball)
+    share = result.profile_residual / result.profile_residual_expected
+    assert share == pytest.approx(1.0 / overstate, rel=0.25)
+    said = [m for m in result.warnings if m.startswith("the result fits its dips far closer than their stated noise")]
+    assert bool(said) == named and (result.verdict == "inconsistent") == named
+    if named:
+        assert re.search(r"relative profile residual 0\.0\d+, 0\.0\d of the 0\.\d+ the stated noise explains", said[0])
+        assert "sigma (its unit: mm^3 per slab" in said[0] and caught
+
+
 def test_noise_estimate_recovers_white_noise_on_smooth_profiles():
     t = torch.linspace(-1, 1, 60, dtype=torch.float64)
     smooth = 1000.0 * (1 - t**2).clamp(min=0).expand(200, -1)
