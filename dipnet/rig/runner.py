@@ -44,6 +44,7 @@ from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig,
 from dipnet.core.atomic_write import write_atomically
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
 from dipnet.core.rawscan_writer import RawScanWriter, check_resumable
+from dipnet.core.warn import log_and_warn
 from dipnet.core.memory import MAX_READINGS_PER_DIP
 from dipnet.rig.controller import (Controller, MotionHeld, PortBusy, PositionUnknown, RigDisconnected, RigError,
                                    SensorUnstable, rig_position_marker)
@@ -352,6 +353,7 @@ class ScanRunner:
         another set of directions, not more of them)."""
         planned = self.plan.orientations
         check_rig_scan(scan, self.path)
+        self._warn_metadata_kept(scan.header.metadata or {})
         recorded = scan.header.config["plan"].get("orientations")
         for o in scan.orientations:
             if o.k >= len(planned) or not np.allclose((o.tilt_deg, o.spin_deg), planned[o.k], atol=1e-6):
@@ -363,6 +365,18 @@ class ScanRunner:
                     "orientation options (n_dips, orientations, seed, tilts, spins, max_tilt_deg) differ from the "
                     "recorded scan's, and another set's directions are not more of the same: resume with the "
                     "recorded options, or scan into another file")
+
+    def _warn_metadata_kept(self, recorded: dict) -> None:
+        """Warn, naming the keys, when this run's header metadata (``+metadata.*``: object name, notes) differs from
+        the resumed file's ``recorded`` one: a header is written once, so the file keeps its own and this run's is
+        not recorded (it was dropped without a word)."""
+        given = self.header.metadata or {}
+        changed = sorted(k for k in set(given) | set(recorded) if given.get(k) != recorded.get(k))
+        if changed:
+            log_and_warn(log, f"{self.path}: resumed with metadata other than its header's ({', '.join(changed)}: "
+                              f"the file holds {json.dumps({k: recorded.get(k) for k in changed})}, this run gave "
+                              f"{json.dumps({k: given.get(k) for k in changed})}); a header is written once, so the "
+                              "file keeps its own: edit its first line to change them, or scan into another file")
 
     def _scan(self, writer: RawScanWriter, first: int) -> None:
         plan, ctl = self.plan, self.controller

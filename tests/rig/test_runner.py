@@ -4,6 +4,7 @@ sensor, faults that stop safely and keep the readings, a killed scan resumed to 
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -109,6 +110,30 @@ def test_a_resume_with_another_orientation_plan_names_the_options(world, tmp_pat
                      r"\([\d.]+, 0\) \(5 orientations; the file's plan holds 3 orientations\): the orientation options "
                      r"\(n_dips, orientations, seed, tilts, spins, max_tilt_deg\) differ", message), message
     assert message.endswith("resume with the recorded options, or scan into another file")
+
+
+def test_a_resume_with_other_metadata_says_the_file_keeps_its_own(world, tmp_path):
+    """The audit's case: a finished scan run again with ``+metadata.object=cat`` said "already complete", exit 0,
+    and dropped the new metadata without a word. The header is written once: the resume warns, naming the keys."""
+    from rig_helpers import make_runner
+
+    world.reset()
+    first = make_runner(world, "grbl", "level", plan_for(2, step=20.0), tmp_path / "scan.jsonl")
+    first.header.metadata = {"object": "bunny"}
+    first.run()
+    again = make_runner(world, "grbl", "level", plan_for(2, step=20.0), tmp_path / "scan.jsonl")
+    again.header.metadata = {"object": "cat", "operator": "ab"}
+    with pytest.warns(UserWarning, match=r"scan.jsonl: resumed with metadata other than its header's \(object, "
+                                         r"operator: the file holds \{\"object\": \"bunny\", \"operator\": null\}, "
+                                         r"this run gave \{\"object\": \"cat\", \"operator\": \"ab\"\}\).*"
+                                         r"scan into another file"):
+        again.run()
+    assert read_rawscan(tmp_path / "scan.jsonl").header.metadata == {"object": "bunny"}
+    same = make_runner(world, "grbl", "level", plan_for(2, step=20.0), tmp_path / "scan.jsonl")
+    same.header.metadata = {"object": "bunny"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        same.run()
 
 
 @pytest.mark.parametrize("protocol, message", [
