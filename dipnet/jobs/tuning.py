@@ -280,6 +280,30 @@ def stored_trials(storage: str | None, study_name: str) -> int:
         return 0
 
 
+def study_setting(overrides: Sequence[str], params: Sequence[Param]) -> dict[str, list[str]]:
+    """What makes the trials of a study comparable: the job overrides (sorted) and the tuned options, each with its
+    scale (``key:log`` or ``key:linear``; the ranges may change between runs, e.g. widened past an end)."""
+    return {"overrides": sorted(overrides), "tuned": sorted(f"{p.key}:{'log' if p.log else 'linear'}" for p in params)}
+
+
+def check_resumed_study(study: Any, overrides: Sequence[str], params: Sequence[Param]) -> None:
+    """Record the study's setting (:func:`study_setting`) in its storage, or raise
+    :class:`~dipnet.jobs.options.ConfigError` when a stored study that this run continues was run with other
+    overrides or other tuned options: its trials' Chamfer distances would be ranked with this run's, and
+    ``best.yaml`` would name options of a job this run's overrides do not make. A study stored before the setting
+    was recorded is continued as it is."""
+    setting = study_setting(overrides, params)
+    stored = {key: study.user_attrs[key] for key in setting if key in study.user_attrs}
+    if stored and stored != setting:
+        differ = "; ".join(f"{key}: {stored.get(key)} in the storage, {setting[key]} now"
+                           for key in setting if stored.get(key) != setting[key])
+        raise ConfigError(f"--storage study {study.study_name!r} was run with other settings ({differ}): its trials' "
+                          "Chamfer distances are not comparable with this run's; give the same overrides and --param "
+                          "options to continue it, or another --study-name and --out for a new study")
+    for key, value in setting.items():
+        study.set_user_attr(key, value)
+
+
 def check_ground_truth(cfg: DictConfig) -> None:
     """Raise :class:`~dipnet.jobs.options.ConfigError` for a job with no ground truth to score: a recorded
     source whose file names no shape (every file but a fake-rig scan, :mod:`dipnet.preprocessing.truth`)."""
@@ -355,6 +379,7 @@ def tune(out: str | Path, n_trials: int = 20, params: Sequence[Param] = DEFAULT_
     sampler = optuna.samplers.TPESampler(seed=seed, n_startup_trials=n_startup_trials)
     study = optuna.create_study(direction="minimize", sampler=sampler, storage=storage, study_name=study_name,
                                 load_if_exists=storage is not None)
+    check_resumed_study(study, overrides, params)
     for _ in range(n_trials):
         trial = study.ask()
         values = {p.key: trial.suggest_int(p.key, int(p.low), int(p.high), log=p.log) if p.key in whole

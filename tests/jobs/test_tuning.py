@@ -213,6 +213,25 @@ def test_a_study_in_a_storage_goes_on_in_its_out(tmp_path, capsys, fake_jobs, tu
     assert "already holds a study (3 trial folders)" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("changed", [["resolution=12", *TINY[1:]], ["--param", "solver.lr=0.01:0.3", *TINY]])
+def test_a_stored_study_continued_with_other_overrides_or_options_is_refused(tmp_path, capsys, fake_jobs, tune_script,
+                                                                              changed):
+    """Before: the new run's trials were ranked with the stored ones (another grid, other tuned options), exit 0, and
+    best.yaml named a stored trial's options under the new run's overrides."""
+    out, storage = tmp_path / "study", f"sqlite:///{tmp_path / 'optuna.db'}"
+    assert tune_script.main(["--trials", "2", "--out", str(out), "--storage", storage, *TINY]) == 0
+    best = (out / "best.yaml").read_text()
+    capsys.readouterr()
+    fake_jobs.append({"chamfer": 0.01, "empty": False})  # a trial that ran would take it
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "1", "--out", str(out), "--storage", storage, *changed])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("error: --storage study 'dipnet_prior_weights' was run with other settings (")
+    assert "--study-name" in err and fake_jobs and tuning.study_trial_numbers(out) == [0, 1]
+    assert (out / "best.yaml").read_text() == best
+
+
 def test_an_empty_reconstruction_is_never_the_best(tmp_path, capsys, fake_jobs, tune_script):
     """Before: a study whose only trial reconstructed nothing printed 'best chamfer 1.00000' and exit 0."""
     fake_jobs.append({"chamfer": 1.0, "empty": True})
