@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 
 from dipnet.core.console import interrupted
 from dipnet.jobs.cli import require_options, run_hydra, user_errors
-from dipnet.jobs.sweep_jobs import guarded_job, sweep_resume_hint
+from dipnet.jobs.sweep_jobs import guarded_job, sweep_resume_hint, unswept_params
 from dipnet.core.locks import run_directory_lock
 from dipnet.jobs.pipeline import JobResult, run
 
@@ -56,6 +56,9 @@ def main(cfg: DictConfig) -> float | None:
             return guarded_job(lambda: locked_run(cfg, out).metrics.get("chamfer"), out)
         with user_errors():
             require_options(cfg)
+            unswept = unswept_params(HydraConfig.get(), cfg)  # a sweep preset run without -m: one job, unsaid
+            if unswept:
+                log.warning("%s", unswept)
             result = locked_run(cfg, out)
     log.info("outputs written to %s", out)
     return result.metrics.get("chamfer")

@@ -153,6 +153,25 @@ def sweep_size(saved: DictConfig) -> int | None:
         return None
 
 
+def unswept_params(hydra_cfg: Any, cfg: DictConfig) -> str | None:
+    """The warning for a single run (no ``-m``) whose config sweeps (``hydra.sweeper.params``, set by a sweep preset
+    such as ``experiment=dips_sweep``): Hydra ignores those values without ``-m`` and runs one job with the config's
+    own value of each; ``None`` in a sweep, without such values, or when the command line sets each of them."""
+    node = OmegaConf.select(hydra_cfg, "sweeper.params", default=None)
+    if str(hydra_cfg.mode).endswith("MULTIRUN") or not node:  # RunMode.MULTIRUN, or "MULTIRUN" as saved
+        return None
+    typed = {str(o).lstrip("+~").partition("=")[0] for o in _typed(hydra_cfg, "overrides.task")}
+    swept = {k: v for k, v in OmegaConf.to_container(node, resolve=False).items() if k not in typed}
+    if not swept:
+        return None
+    ran = ", ".join(f"{k}={OmegaConf.select(cfg, k, default=None)}" for k in swept)
+    values = " ".join(f"{k}={v}" for k, v in swept.items())
+    preset = OmegaConf.select(hydra_cfg, "runtime.choices.experiment", default=None)
+    source = f"experiment={preset} sweeps {values}" if preset else f"hydra.sweeper.params sweeps {values}"
+    return (f"{source} only with -m: this single run ignores that and runs one "
+            f"job with {ran}; add -m to run the sweep, or set those options to silence this")
+
+
 def rest_of_sweep(hydra_cfg: Any, checkpointed: bool) -> str:
     """The hint's words on the rest of a cut job's sweep: which jobs did not start (none after the last job) and
     the command that finishes the sweep (:func:`sweep_command`), ``""`` without the sweep's ``multirun.yaml``."""

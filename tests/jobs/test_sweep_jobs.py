@@ -169,6 +169,30 @@ def test_a_sweep_with_a_failed_job_exits_1(tmp_path, monkeypatch, capsys):
     assert ok.returncode == 0 and "sweep finished: 2 of 2 jobs ok" in ok.stdout, ok.stderr[-2000:]
 
 
+QUICK = ["resolution=12", "threads=1", "solver=minnorm", "output.progress=false", "output.figures=false",
+         "output.uncertainty=false", "output.resolvability=false", "output.mesh_formats=[]"]
+
+
+def test_a_sweep_preset_run_without_m_says_it_runs_one_job(tmp_path, monkeypatch, capsys):
+    """``reconstruct.py experiment=dips_sweep`` (no ``-m``): before, one job (n_dips set, shape.name=chamber_box), exit
+    0, without a word that the preset's sweep over shape.name was not run. Options set on the command line are
+    not named; a sweep (``-m``) says nothing."""
+    out = tmp_path / "run"
+    done = run_script("reconstruct", "experiment=dips_sweep", "n_dips=8", *QUICK, f"hydra.run.dir={out}",
+                      monkeypatch=monkeypatch, capsys=capsys)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert ("experiment=dips_sweep sweeps shape.name=chamber_box,torus,box only with -m: this single run ignores "
+            "that and runs one job with shape.name=chamber_box; add -m") in (out / "reconstruct.log").read_text()
+    cfg = OmegaConf.create({"n_dips": 8, "shape": {"name": "torus"}})
+    hydra = {"mode": "RUN", "sweeper": {"params": {"n_dips": "10,20", "shape.name": "torus,box"}},
+             "runtime": {"choices": {"experiment": "dips_sweep"}}, "overrides": {"task": ["shape.name=torus"]}}
+    assert "n_dips=10,20 only with -m" in sweep_jobs.unswept_params(OmegaConf.create(hydra), cfg)
+    hydra["overrides"]["task"].append("n_dips=8")
+    assert sweep_jobs.unswept_params(OmegaConf.create(hydra), cfg) is None
+    assert sweep_jobs.unswept_params(OmegaConf.create({**hydra, "mode": "MULTIRUN"}), cfg) is None
+    assert sweep_jobs.unswept_params(OmegaConf.create({"mode": "RUN", "sweeper": {"params": None}}), cfg) is None
+
+
 def _cut_job(sweep: Path, num: int, task: list[str], sweep_task: list[str], launch: tuple[str, ...] = ()):
     """The Hydra config of sweep job ``num`` (``HydraConfig.get()`` in the job) and the sweep's ``multirun.yaml``."""
     hydra = {"mode": "MULTIRUN", "sweep": {"dir": str(sweep), "subdir": "${hydra.job.num}"},
