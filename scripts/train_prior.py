@@ -97,15 +97,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--noise-model", choices=("independent", "correlated"), default=defaults.noise_model,
                    help="the noise model of the noisy pairs' voxel solve and of stage 2's round "
                         "(correlated: as solver=voxel_learned uses it)")
-    p.add_argument("--refine-temperature", type=float, default=SHIPPED_REFINE_TEMPERATURE,
+    p.add_argument("--refine-temperature", type=float, default=None,
                    help="stage 2: the sigmoid temperature of the round that makes the inputs "
-                        "(0.25 made the shipped weights)")
+                        f"(default {SHIPPED_REFINE_TEMPERATURE}, which made the shipped weights)")
     p.add_argument("--family-seeds", nargs=3, action="append", default=[], metavar=("FAMILY", "FIRST", "STOP"),
                    help="more training shapes of one named family (repeatable), e.g. organic 3000 3032")
     p.add_argument("--meshes", type=Path, nargs="+", default=[], metavar="FILE",
                    help="more training shapes from mesh files, each under the rotations of --mesh-seeds")
-    p.add_argument("--mesh-seeds", type=int, nargs=2, default=list(defaults.mesh_seeds), metavar=("FIRST", "STOP"),
-                   help="the random rotations of each of --meshes")
+    p.add_argument("--mesh-seeds", type=int, nargs=2, default=None, metavar=("FIRST", "STOP"),
+                   help=f"the random rotations of each of --meshes (default {' '.join(map(str, defaults.mesh_seeds))})")
     p.add_argument("--init-weights", default=defaults.init_weights,
                    help="weights to start from (file or shipped name); default: a new network (stage 1)")
     p.add_argument("--refine-weights", default=None,
@@ -126,16 +126,34 @@ def refine_of(args: argparse.Namespace) -> dict | None:
         return None
     first = args.refine_weights or args.init_weights
     weights = None if first == STAGE2["init_weights"] else str(first)
-    return learned_round(args.refine_temperature, args.noise_model, weights)
+    temperature = SHIPPED_REFINE_TEMPERATURE if args.refine_temperature is None else args.refine_temperature
+    return learned_round(temperature, args.noise_model, weights)
+
+
+def check_ignored(args: argparse.Namespace) -> None:
+    """Raise ``ValueError`` for an option given that this command would ignore: stage 2's ``--refine-temperature``
+    or ``--refine-weights`` at stage 1 (its pairs are voxel results, made without a learned round: the weights
+    written would be a first stage's), or ``--mesh-seeds`` without ``--meshes`` (rotations of no mesh)."""
+    if args.stage != 2:
+        given = [f"--{name.replace('_', '-')}" for name in ("refine_temperature", "refine_weights")
+                 if getattr(args, name) is not None]
+        if given:
+            raise ValueError(f"{' and '.join(given)} set the second stage's round, which stage 1 does not run (its "
+                             "inputs are voxel results): add --stage 2 to train the second stage, or remove them")
+    if args.mesh_seeds is not None and not args.meshes:
+        raise ValueError(f"--mesh-seeds {args.mesh_seeds[0]} {args.mesh_seeds[1]} sets the rotations of each of "
+                         "--meshes, and no --meshes are given: add --meshes FILE ..., or remove --mesh-seeds")
 
 
 def config_of(args: argparse.Namespace) -> TrainConfig:
     """The :class:`TrainConfig` of the parsed command line."""
+    check_ignored(args)
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in vars(args).items() if k in fields}
+    mesh_seeds = TrainConfig.mesh_seeds if args.mesh_seeds is None else tuple(args.mesh_seeds)
     return TrainConfig(**{**values, "train_seeds": tuple(args.train_seeds), "val_seeds": tuple(args.val_seeds),
                           "refine": refine_of(args), "family_seeds": family_seeds(args.family_seeds),
-                          "meshes": mesh_files(args.meshes, args.mesh_seeds), "mesh_seeds": tuple(args.mesh_seeds)})
+                          "meshes": mesh_files(args.meshes, mesh_seeds), "mesh_seeds": mesh_seeds})
 
 
 def mesh_files(paths: list[Path], seeds: list[int]) -> tuple[str, ...]:

@@ -194,6 +194,10 @@ def test_the_second_stage_can_be_fine_tuned_from_itself_with_the_first_stage_rou
     (["--meshes", "none.ply"], "--meshes: no such file: none.ply"),
     (["--init-weights", "{tmp}/bad.pt"], r"learned-prior weights .*bad.pt are not a dipnet denoiser weights file"),
     (["--init-weights", "{tmp}/nan.pt"], r"learned-prior weights .*nan.pt: tensor down0.0.weight holds NaN"),
+    # stage 2's options at stage 1, --mesh-seeds without --meshes: ignored (first-stage weights written, exit 0)
+    (["--refine-temperature", "0.125"], "--refine-temperature set the second stage's round, which stage 1 does not"),
+    (["--refine-weights", "denoiser64"], "--refine-weights set the second stage's round, .*add --stage 2"),
+    (["--mesh-seeds", "0", "2"], "--mesh-seeds 0 2 sets the rotations of each of --meshes, and no --meshes are given"),
 ])
 def test_bad_options_of_the_script_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
     """Every bad option or weights file: ``error: ...`` in one line, exit code 2, before any pair or weights file."""
