@@ -76,8 +76,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--percent", type=float, nargs="+", default=[1.0, 3.0, 10.0], help="dips in %% of N^2")
     p.add_argument("--out", type=Path, default=Path("sweeps/paper_figures"), help="job directories and figures")
     args = p.parse_args(argv)
-    if any(x <= 0 for x in args.percent) or any(n < 8 for n in args.n):
-        p.error("--percent must be positive and --n at least 8")
+    if not all(math.isfinite(x) and x > 0 for x in args.percent) or any(n < 8 for n in args.n):
+        p.error(f"--percent must be finite, positive shares of N^2 and --n at least 8, got --percent "
+                f"{' '.join(f'{x:g}' for x in args.percent)} and --n {' '.join(map(str, args.n))}")
     for n in args.n:
         for percent in args.percent:
             message = budget_error(n, percent)

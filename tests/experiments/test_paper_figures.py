@@ -57,6 +57,18 @@ def test_another_operator_drops_the_default_operators_options(paper_figures, tmp
     assert json.loads((out / "bunny_n12_p10" / "metrics.json").read_text())["operator"] == "splat"
 
 
+@pytest.mark.parametrize("percent", ["nan", "inf", "-5"])
+def test_a_share_that_is_no_percentage_is_refused_naming_it(paper_figures, capsys, percent):
+    """``paper_figures.py --percent nan``: before, a ``ValueError: cannot convert float NaN to integer`` traceback,
+    exit 1 (``inf`` alike); now one argparse error naming the value, exit 2, before any job."""
+    with pytest.raises(SystemExit) as exit_:
+        paper_figures.parse_args(["--n", "16", "--percent", percent, "--out", "unused"])
+    err = capsys.readouterr().err
+    expected = ("--percent must be finite, positive shares of N^2 and --n at least 8, got --percent "
+                f"{float(percent):g} and --n 16")
+    assert exit_.value.code == 2 and expected in err, err
+
+
 @pytest.mark.parametrize("argv,message", [
     (["--n", "16", "--percent", "0.1"], r"--percent 0.1 at --n 16 asks 0.256 dips: the job would run 1 \(0.391 % of "
                                         r"N\^2\), tabled as 0.1 %; give a larger --n or --percent \(7.81 % or more"),
