@@ -326,6 +326,9 @@ def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
         raise ValueError(f"the number of trials (--trials) must be a positive integer, got {n_trials!r}")
     tuned = {p.key for p in params}
+    twice = sorted({p.key for p in params if sum(q.key == p.key for q in params) > 1})
+    if twice:  # Optuna draws the first range's value for both, and the job takes the last
+        raise ValueError(f"--param {', '.join(twice)} is given more than once: give each tuned option one range")
     for item in overrides:
         key = item.lstrip("+~").partition("=")[0]
         if key in tuned:

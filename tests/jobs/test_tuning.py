@@ -114,6 +114,19 @@ def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, 
         tuning.tune(tmp_path / "study", n_trials=int(argv[1]), overrides=argv[2:])
 
 
+def test_a_tuned_option_given_twice_is_refused_before_any_trial(tmp_path, capsys, tune_script):
+    """``--param K=1e-4:1 --param K=1e-3:1``: before, Optuna's "Inconsistent parameter values" warning per trial and
+    one of the ranges used unsaid."""
+    param = "solver.priors.tv.weight"
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "1", "--out", str(tmp_path / "study"), "--param", f"{param}=1e-4:1",
+                          "--param", f"{param}=1e-3:1", *TINY])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err == f"error: --param {param} is given more than once: give each tuned " \
+        "option one range\n", err
+    assert not (tmp_path / "study").exists()
+
+
 def test_a_range_of_negative_prior_weights_or_a_bad_range_is_refused_with_its_reason(tmp_path, capsys, tune_script):
     """``--param solver.priors.tv.weight=-1:1:linear``: before, the study ran, every trial drawing a negative weight
     failing alike; ``--param solver.lr=1:0.1`` (or ``=0:1`` on the log scale) said only "invalid parse value"."""
