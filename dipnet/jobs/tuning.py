@@ -25,6 +25,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from hydra import compose, initialize_config_module
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dipnet.core.optional import optional_import
@@ -317,11 +319,29 @@ def check_ground_truth(cfg: DictConfig) -> None:
                           "then reconstruct the recording with the best options")
 
 
+def check_shape(job: DictConfig, params: Sequence[Param]) -> None:
+    """Build the shape of a simulated ``job`` (the study at the low end of its ranges) once, and raise
+    :class:`~dipnet.jobs.options.ConfigError` with why it cannot be built: the option checks do not build it, so a
+    bad name, path or a number tuned where a name goes (``--param shape.name=1:2``: ``unknown built-in 3D shape
+    1.46``) failed every trial alike, the whole budget spent."""
+    if instantiates(job, "source", RecordedSource):
+        return
+    try:
+        instantiate(job.shape, ndim=int(job.ndim))
+    except InstantiationException as exc:
+        tuned = [f"--param {p.key}={p.low:g}:{p.high:g}" for p in params if p.key.startswith("shape.")]
+        raise ConfigError(f"the study's shape cannot be built: {exc.__cause__ or exc}"
+                          + (f" (with {', '.join(tuned)} at its low end: a study draws numbers, so tune a numeric "
+                             "shape option, or run names as a sweep: scripts/reconstruct.py -m shape.name=a,b)"
+                             if tuned else "") + "; every trial would fail alike") from None
+
+
 def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]) -> None:
     """Raise ``ValueError`` (:class:`~dipnet.jobs.options.ConfigError`, a Hydra error) for a study that cannot
     run: fewer than 1 trial, an override of a tuned option (each trial would replace it without a word), a job
     option out of range or unknown (the overrides and every tuned option
-    at its ``low``, then at its ``high``), or a job with no ground truth (:func:`check_ground_truth`), before any trial
+    at its ``low``, then at its ``high``), a job with no ground truth (:func:`check_ground_truth`) or a shape that
+    cannot be built (:func:`check_shape`), before any trial
     (else every trial would fail alike)."""
     if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
         raise ValueError(f"the number of trials (--trials) must be a positive integer, got {n_trials!r}")
@@ -344,6 +364,7 @@ def check_study(n_trials: int, params: Sequence[Param], overrides: Sequence[str]
     job = compose_job([*BASE_OVERRIDES, *overrides, *ends("low")])
     check_config(job)
     check_ground_truth(job)
+    check_shape(job, params)
     try:   # the range's other end: a range running past what the option takes fails every trial drawn there
         check_config(compose_job([*BASE_OVERRIDES, *overrides, *ends("high")]))
     except ValueError as exc:

@@ -114,6 +114,23 @@ def test_a_study_that_cannot_run_is_one_line_before_any_trial(tmp_path, capsys, 
         tuning.tune(tmp_path / "study", n_trials=int(argv[1]), overrides=argv[2:])
 
 
+@pytest.mark.parametrize("args, said", [
+    (["--param", "shape.name=1:2"], "unknown built-in 3D shape 1.0;"),
+    (["shape.name=cube"], "unknown built-in 3D shape 'cube'"),
+])
+def test_a_shape_that_cannot_be_built_is_refused_before_any_trial(tmp_path, capsys, tune_script, args, said):
+    """The audit's case: ``--param shape.name=1:2`` ran every trial to ``unknown built-in 3D shape 1.46...`` and
+    ended ``every trial failed`` (exit 1), the whole budget spent: the option checks before the trials build no
+    shape. A bad shape name given as an override was the same."""
+    with pytest.raises(SystemExit) as exit_:
+        tune_script.main(["--trials", "1", "--out", str(tmp_path / "study"), *args, *TINY])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.startswith(f"error: the study's shape cannot be built: {said}"), err
+    assert err.rstrip().endswith("every trial would fail alike")
+    assert ("a study draws numbers, so tune a numeric shape option" in err) == ("--param" in args)
+    assert not (tmp_path / "study").exists()
+
+
 def test_a_tuned_option_given_twice_is_refused_before_any_trial(tmp_path, capsys, tune_script):
     """``--param K=1e-4:1 --param K=1e-3:1``: before, Optuna's "Inconsistent parameter values" warning per trial and
     one of the ranges used unsaid."""
