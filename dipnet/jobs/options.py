@@ -315,6 +315,23 @@ def check_symmetry(cfg: DictConfig) -> None:
             raise ConfigError(f"symmetry.tol_deg must be at most {MAX_MERGE_DEG:g} (deg), got {spec.tol_deg!r}: "
                               "directions further apart have different profiles, and merging them would average "
                               "distinct dips into one")
+    _check_symmetry_declares_something(spec)
+
+
+def _check_symmetry_declares_something(spec: DictConfig) -> None:
+    """Raise :class:`ConfigError` for a ``symmetry`` whose group is the identity (``{}``, ``{n_fold: 1}``: no dip
+    gains an image, the job ran as without it) or whose ``mirror_azimuth_deg`` (deg) places no mirror (``mirror``
+    not true): both ran, exit 0, as if no symmetry was declared."""
+    mirror = bool(spec.get("mirror", False))
+    if "mirror_azimuth_deg" in spec and not mirror:
+        raise ConfigError(f"option symmetry.mirror_azimuth_deg is ignored with symmetry.mirror=false (it places the "
+                          f"mirror plane, deg): add mirror: true (symmetry={{n_fold: "
+                          f"{spec.get('n_fold', 1)}, mirror: true, mirror_azimuth_deg: {spec.mirror_azimuth_deg}}}), "
+                          "or remove it")
+    if int(spec.get("n_fold", 1)) == 1 and not mirror:
+        raise ConfigError(f"symmetry={OmegaConf.to_container(spec)} declares no symmetry (n_fold 1 without a "
+                          "mirror: the identity), so no dip gains an image: give n_fold >= 2 or mirror: true "
+                          "(e.g. symmetry={n_fold: 3, mirror: true}), or symmetry=null")
 
 
 def check_grid_options(cfg: DictConfig) -> None:

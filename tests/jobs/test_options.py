@@ -133,6 +133,12 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("symmetry={n_fold:2.5}", r"symmetry.n_fold must be a positive integer \(rotations about z\), got 2.5"),
     ("symmetry={n_fold:3,mirorr:true}", "unknown option symmetry.mirorr: .*did you mean symmetry.mirror"),
     ("symmetry={tol_deg:-1}", r"symmetry.tol_deg must be a number >= 0 \(deg\), got -1"),
+    # a symmetry that adds no image ran, exit 0, as without it; a mirror azimuth without a mirror was ignored
+    ("symmetry={}", r"symmetry=\{\} declares no symmetry \(n_fold 1 without a mirror: the identity\)"),
+    ("symmetry={n_fold:1,tol_deg:1}", r"symmetry=\{'n_fold': 1, 'tol_deg': 1\} declares no symmetry"),
+    ("symmetry={mirror_azimuth_deg:30}", r"option symmetry.mirror_azimuth_deg is ignored with symmetry.mirror=false "
+                                         r"\(it places the mirror plane, deg\): add mirror: true"),
+    ("symmetry={n_fold:3,mirror:false,mirror_azimuth_deg:30}", "symmetry.mirror_azimuth_deg is ignored"),
     ("symmetry={n_fold:4,tol_deg:15}", r"symmetry.tol_deg must be at most 2 \(deg\), got 15: .*distinct dips"),
     # 2D: refused after the dips were simulated ("symmetry expansion is for 3D measurements", no fix named)
     ("ndim=2 symmetry={n_fold:4,mirror:true}", r"symmetry=\{'n_fold': 4, 'mirror': True\} copies 3D dips .* set "
