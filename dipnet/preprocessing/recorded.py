@@ -135,6 +135,7 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
             raise RawScanFileError(f"{path}:{linenos[i]}: Height_mm {a[i, 3]:g} after {a[i - 1, 3]:g}: the stage "
                                    "moved backwards within a dip (rows out of order? or the same R1, R2 dipped twice "
                                    "in a row: dips are told apart by their angles)")
+    _warn_angles_in_radians(a[:, 1:3], path)
     steps = np.diff(-a[:, 3])[np.diff(-a[:, 3]) > 0]
     header = ScanHeader(
         quantity="level_mm", ndim=3, tank_cross_section_mm2=float(tank_cross_section_mm2),
@@ -153,6 +154,21 @@ def read_authors_csv(path: str | Path, tank_cross_section_mm2: float = AUTHORS_T
             values=a[idx, 4], time_s=a[idx, 0], meta={"rows": [int(a[idx[0], 0]), int(a[idx[-1], 0])]},
             complete=not (cut and k == len(blocks) - 1)))
     return scan
+
+
+def _warn_angles_in_radians(angles: np.ndarray, path: Path) -> None:
+    """Warn when the authors' CSV's ``R1_deg``, ``R2_deg`` columns (``angles`` ``(n, 2)``) look like radians: every
+    angle within ``[-2 pi, 2 pi]``, some not whole degrees, more than one direction. Read as degrees they span a few
+    degrees only, and the reader ran on (exit 0) with the dips bunched about the vertical."""
+    if len(np.unique(angles, axis=0)) < 2 or float(np.abs(angles).max()) > 2 * math.pi:
+        return
+    if np.allclose(angles, np.round(angles), rtol=0, atol=1e-9):  # whole degrees: a narrow plan, not radians
+        return
+    r1, r2 = angles[:, 0], angles[:, 1]
+    log_and_warn(log, f"{path}: every R1_deg and R2_deg lies within [-2 pi, 2 pi] (R1 {r1.min():g} to {r1.max():g}, "
+                      f"R2 {r2.min():g} to {r2.max():g}), and not in whole degrees: angles in radians? They are read "
+                      f"as degrees, so the dips tilt {np.abs(r1).max():.3g} deg at most; give the columns in degrees "
+                      "(degrees = radians x 180 / pi)", stacklevel=3)
 
 
 def _last_dip_cut_short(heights: np.ndarray, blocks: list[np.ndarray]) -> bool:

@@ -362,6 +362,23 @@ def test_a_recording_on_a_grid_of_the_other_dimension_is_refused_before_its_read
             read_raw_recording(path, Grid(16, ndim=2, extent=80.0))
 
 
+def test_a_csv_with_its_angles_in_radians_is_warned_about(tmp_path, recwarn):
+    """Before: R1_deg, R2_deg given in radians were read as degrees without a word (the dips bunched within 0.6 deg
+    of the vertical; exit 0, only the dips' disagreement warned). Now a warning names the columns and the unit;
+    the authors' own whole-degree file is not warned about."""
+    lines = CSV.read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    radians = [lines[0]] + [",".join([f[0], f"{math.radians(float(f[1])):.6f}", f"{math.radians(float(f[2])):.6f}",
+                                      *f[3:]]) for f in rows]
+    path = tmp_path / "rad.csv"
+    path.write_text("\n".join(radians) + "\n")
+    with pytest.warns(UserWarning, match=r"rad.csv: every R1_deg and R2_deg lies within \[-2 pi, 2 pi\] \(R1 0 to "
+                                         r"0.610865, R2 0 to 1.0472\), and not in whole degrees: angles in radians\?"):
+        assert len(read_authors_csv(path).orientations) == 32
+    read_authors_csv(CSV)
+    assert not [w for w in recwarn if "radians" in str(w.message)]
+
+
 def test_a_csv_counting_depth_as_positive_is_named_so(tmp_path):
     """Before: the authors' CSV with its Height_mm negated (depth counted as positive) was refused as a stage that
     "moved backwards within a dip (rows out of order? ...)", which every dip does alike. Now the sign is named."""
