@@ -312,6 +312,22 @@ def _check_fixture_tank(scan: RawScan, fixture: RawScan) -> None:
                          "scan's section), or, when both are the same tank, set source.reader.cross_section_mm2")
 
 
+def _dip_place(o: OrientationScan) -> str:
+    """Where dip ``o`` is in its file, for messages: its rig angles (deg) and, for the authors' CSV, its rows
+    (``SN``)."""
+    rows = o.meta.get("rows") if isinstance(o.meta, dict) else None
+    where = f", SN {rows[0]}-{rows[1]}" if rows and rows[0] != rows[1] else f", SN {rows[0]}" if rows else ""
+    angles = f"tilt {o.tilt_deg:g}, spin {o.spin_deg:g} deg" if o.tilt_deg is not None and o.spin_deg is not None \
+        else ""
+    inner = ", ".join(x for x in (angles, where.lstrip(", ")) if x)
+    return f" ({inner})" if inner else ""
+
+
+def _span(values: np.ndarray) -> str:
+    """The readings' range, in reading units, for messages."""
+    return f"all {values[0]:g}" if np.ptp(values) == 0 else f"{values.min():g} to {values.max():g}"
+
+
 def profile_centroids(raw: RawScan, area: float) -> np.ndarray:
     """Per orientation, the volume-weighted mean water line ``u`` (mm, relative to stage 0)."""
     out = []
@@ -321,7 +337,9 @@ def profile_centroids(raw: RawScan, area: float) -> np.ndarray:
         u = s + v / area
         dv = np.diff(v)
         if dv.sum() <= 0:
-            raise ValueError(f"orientation {o.k}: the reading never rises")
+            raise ValueError(f"orientation {o.k}{_dip_place(o)}: the reading never rises ({len(o.values)} reading(s), "
+                             f"{_span(o.values)}): the object never reached the water, or its rows are a stray one; "
+                             "remove the dip's rows or check the sensor")
         out.append(float(np.sum(0.5 * (u[1:] + u[:-1]) * dv) / dv.sum()))
     return np.asarray(out)
 

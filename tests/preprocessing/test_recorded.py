@@ -379,6 +379,21 @@ def test_a_csv_with_its_angles_in_radians_is_warned_about(tmp_path, recwarn):
     assert not [w for w in recwarn if "radians" in str(w.message)]
 
 
+def test_a_csv_dip_whose_level_never_rises_is_named_by_its_angles_and_rows(tmp_path):
+    """Before: "flat.csv: orientation 1: the reading never rises", a 0-based index the CSV does not hold. Now the
+    dip's R1, R2 and SN rows, its readings' count and range, and what to do."""
+    lines = CSV.read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    flat = [lines[0]] + [",".join(f[:4] + [rows[111][4]] if 111 <= i < 222 else f) for i, f in enumerate(rows)]
+    path = tmp_path / "flat.csv"
+    path.write_text("\n".join(flat) + "\n")
+    from dipnet.preprocessing.recorded import AUTHORS_TANK_MM2, profile_centroids
+    with pytest.raises(ValueError, match=r"orientation 1 \(tilt 0, spin 20 deg, SN 112-222\): the reading never "
+                                         r"rises \(111 reading\(s\), all 188.56\): the object never reached the "
+                                         r"water.*remove the dip's rows"):
+        profile_centroids(read_authors_csv(path), AUTHORS_TANK_MM2)
+
+
 def test_a_csv_counting_depth_as_positive_is_named_so(tmp_path):
     """Before: the authors' CSV with its Height_mm negated (depth counted as positive) was refused as a stage that
     "moved backwards within a dip (rows out of order? ...)", which every dip does alike. Now the sign is named."""
