@@ -78,12 +78,14 @@ def parse_args(argv=None) -> argparse.Namespace:
 def check_options(args: argparse.Namespace) -> Ball:
     """The reference ball of ``args`` (``--ball-radius``, ``--centre``, mm) after refusing, with a
     ``ValueError`` naming the option, the numbers no calibration can use: a radius or centre not finite and
-    positive, ``--max-residual`` not above 0, a tolerance negative or NaN, a ``--section-tolerance`` outside [0, 1)
-    (2 meant as 2 %), a sensor lag outside [0, 600] s, an unphysical ``--cross-section``, an ``--output`` that
-    cannot be written (:func:`check_output`)."""
+    positive, an ``--n`` below 4, ``--max-residual`` not above 0, a tolerance negative or NaN, a
+    ``--section-tolerance`` outside [0, 1) (2 meant as 2 %), a sensor lag outside [0, 600] s, an unphysical
+    ``--cross-section``, an ``--output`` that cannot be written (:func:`check_output`)."""
     if not all(math.isfinite(c) for c in args.centre):
         raise ValueError(f"--centre must be 3 finite coordinates (mm), got {' '.join(f'{c:g}' for c in args.centre)}")
     ball = Ball(args.ball_radius, center=tuple(args.centre))
+    if args.n < 4:  # was named after the scan was read, as "grid resolution n", no flag
+        raise ValueError(f"--n must be a grid resolution >= 4 (voxels per axis of the final fit check), got {args.n}")
     check_reference_options(args.max_residual, args.height_tolerance, args.position_tolerance, args.section_tolerance)
     if not 0 <= args.sensor_lag <= MAX_SENSOR_LAG_S:  # NaN fails too
         raise ValueError(f"--sensor-lag must be a time constant in [0, {MAX_SENSOR_LAG_S:g}] s, "

@@ -361,7 +361,9 @@ def test_a_reference_of_another_size_than_given_is_named_with_the_step_scale():
                                    "section's relative error: 0.02 for +-2 %), got 2.0 (2 would be 200 %; for 2 % give "
                                    "0.02) (calibrate.py --section-tolerance)"),
     (["--section-tolerance", "nan"], "got nan (calibrate.py --section-tolerance)"),
-    (["--cross-section", "-5"], "cross_section_mm2 must be positive, got -5.0")])
+    (["--cross-section", "-5"], "cross_section_mm2 must be positive, got -5.0"),
+    # was "grid resolution n must be an integer >= 4, got 0" once the scan was read, naming no flag
+    (["--n", "0"], r"--n must be a grid resolution >= 4 (voxels per axis of the final fit check), got 0")])
 def test_calibrate_refuses_an_option_slip_before_reading_the_scan(tmp_path, monkeypatch, capsys, option, message):
     """The audit's cases: ``--max-residual -1`` failed after the whole fit ("residual 0.002 > -1.0"), ``--centre
     nan 0 0`` said "grid extent must be positive (mm), got nan". Now one ``error:`` line, exit 2, before the scan is
