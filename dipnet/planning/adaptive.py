@@ -162,9 +162,11 @@ def warn_linear_loop_solver(solver) -> None:
     """Warn when the loop reconstructs with ``minnorm``: the planner takes its noise level from the
     estimate's misfit, which for a min-norm estimate is model error (120x the sensor noise on the
     bunny after 16 dips), and every candidate then scores about the same."""
-    if isinstance(solver, MinNormSolver):
-        message = ("planner=adaptive with solver=minnorm: the planner's noise level comes from the estimate's "
-                   "misfit, which for minnorm is model error, so the candidates score alike; use solver=voxel")
+    if isinstance(solver, MinNormSolver):  # lsqr, lsmr too: solver=lsqr was named solver=minnorm
+        name = getattr(solver, "name", "minnorm")
+        message = (f"planner=adaptive with solver={name}: the planner's noise level comes from the estimate's "
+                   f"misfit, which for {name} (a min-norm estimate) is model error, so the candidates score alike; "
+                   "use solver=voxel")
         log_and_warn(log, message, stacklevel=2)
 
 

@@ -25,6 +25,15 @@ def box_problem():
     return make_box_problem()
 
 
+@pytest.mark.parametrize("solver", ["lsqr", "lsmr"])
+def test_the_min_norm_warning_names_the_solver_the_job_uses(solver):
+    """``planner=adaptive solver=lsqr`` warned "planner=adaptive with solver=minnorm", a solver the job did not use."""
+    from dipnet.planning.adaptive import warn_linear_loop_solver
+    from dipnet.solvers.minnorm import LSMRSolver, LSQRSolver
+    with pytest.warns(UserWarning, match=f"planner=adaptive with solver={solver}: .*for {solver} \\(a min-norm"):
+        warn_linear_loop_solver({"lsqr": LSQRSolver, "lsmr": LSMRSolver}[solver]())
+
+
 def test_adaptive_loop_stops_at_the_budget(tmp_path):
     with pytest.warns(UserWarning, match="solver=minnorm: the planner's noise level"):  # the config's default solver
         result = run(reconstruct_cfg("resolution=16", "planner=adaptive", "planner.budget=11", "planner.batch_size=3",
