@@ -62,6 +62,11 @@ class AdaptiveSettings:
         if not 1 <= self.initial_dips <= self.budget or self.batch_size < 1:
             raise ValueError(f"need 1 <= initial_dips <= budget and batch_size >= 1, got initial_dips "
                              f"{self.initial_dips}, budget {self.budget}, batch_size {self.batch_size}")
+        if self.initial_dips == self.budget:
+            log_and_warn(log, f"planner=adaptive with initial_dips = budget = {self.budget}: every dip is spread "
+                              "evenly over the reach before the first plan, so none is planned from the data (the "
+                              "run is planner=fixed's with those dips): lower planner.initial_dips or raise "
+                              "planner.budget", stacklevel=3)
         stop = self.stop_uncertainty
         if stop is not None and not is_real(stop):  # true read as 1
             raise ValueError(f"stop_uncertainty must be a fraction in (0, 1) or null (the share of the object's "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -106,6 +107,19 @@ def test_the_loop_fits_one_posterior_per_step_and_plans_with_it(box_problem):
                           posterior=planner.posterior(recon, result.measurement, operator))
     assert torch.equal(shared,
                        NextBestDipPlanner(resolution=10).next(result.measurement, recon, candidates, 2, operator))
+
+
+def test_a_loop_whose_initial_dips_fill_the_budget_says_it_plans_nothing():
+    """The audit's case: ``planner=adaptive planner.budget=12 planner.initial_dips=12`` ran a fixed plan of 12 even dips
+    under the adaptive planner's name, exit 0, without a word. A budget above the initial dips is quiet."""
+    from dipnet.planning.adaptive import AdaptiveSettings
+
+    with pytest.warns(UserWarning, match=r"planner=adaptive with initial_dips = budget = 12: every dip is spread "
+                                         r"evenly .*none is planned from the data .*lower planner.initial_dips"):
+        AdaptiveSettings(budget=12, initial_dips=12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        AdaptiveSettings(budget=13, initial_dips=12)
 
 
 def test_bad_loop_settings_are_user_errors(tmp_path):
