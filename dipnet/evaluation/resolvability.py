@@ -32,6 +32,8 @@ costs about 0.1 s at 40^3.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import logging
 import math
 from dataclasses import dataclass
@@ -172,16 +174,25 @@ def even_gap_deg(k: int, ndim: int) -> float:
     return float(np.degrees(angle_to_plan(hemisphere_samples(3), fibonacci_hemisphere(k).numpy())).max())
 
 
-def distinct_lines(directions) -> int:
+@functools.cache
+def determining_lines(ndim: int) -> int:
+    """The fewest dip lines that, spread evenly, leave every direction within :data:`SPARSE_CONE_DEG` of a dip
+    (:func:`even_gap_deg`: 3D 7, 2D 3)."""
+    return next(k for k in itertools.count(1) if even_gap_deg(k, ndim) < SPARSE_CONE_DEG)
+
+
+def distinct_lines(directions, stop_at: int | None = None) -> int:
     """How many dip lines ``directions`` ``(K, d)`` hold, ``d`` and ``-d`` one line and lines closer than
-    :data:`SAME_LINE_DEG` merged (greedily, in the given order)."""
+    :data:`SAME_LINE_DEG` merged (greedily, in the given order); counting stops at ``stop_at`` lines."""
     d = torch.as_tensor(directions, dtype=torch.float64).numpy()
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    kept: list[np.ndarray] = []
+    kept = d[:0]
     cos_same = math.cos(math.radians(SAME_LINE_DEG))
     for direction in d:
-        if not kept or np.abs(np.stack(kept) @ direction).max() < cos_same:
-            kept.append(direction)
+        if len(kept) == stop_at:
+            break
+        if not len(kept) or np.abs(kept @ direction).max() < cos_same:
+            kept = np.vstack([kept, direction])
     return len(kept)
 
 
@@ -192,11 +203,12 @@ def underdetermined_plan(directions) -> str | None:
     residual check, so :func:`~dipnet.evaluation.consistency.check_consistency` calls such a result
     ``underdetermined``, not ``consistent`` (a single dip: every shape with the same profile fits it)."""
     d = torch.as_tensor(directions, dtype=torch.float64)
-    ndim, lines = int(d.shape[1]), distinct_lines(d)
-    gap = even_gap_deg(lines, ndim)
-    if gap < SPARSE_CONE_DEG:
+    ndim = int(d.shape[1])
+    needed = determining_lines(ndim)
+    lines = distinct_lines(d, stop_at=needed)  # counting past what is needed would not change the answer
+    if lines >= needed:
         return None
-    needed = next(k for k in range(lines + 1, 64) if even_gap_deg(k, ndim) < SPARSE_CONE_DEG)
+    gap = even_gap_deg(lines, ndim)
     dips = f"the {len(d)} dips hold {lines} distinct direction{'s' if lines > 1 else ''}" if lines < len(d) else \
         f"the {len(d)} dip{'s' if len(d) > 1 else ''}"
     return (f"{dips}: so few that even spread they leave some direction {gap:.0f} deg from every dip, so they do not "
