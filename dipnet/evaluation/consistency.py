@@ -122,7 +122,8 @@ noise sigmas (or its standard errors, when the dips' floors agree: :func:`floor_
 than ``volume_tol`` of the measured volume, or the level
 falls by more than ``volume_tol`` of it over a dip, ``FLOOR_SIGMAS`` standard errors below 0, the stated
 noise exceeds ``NOISE_RATIO_MAX`` times the readings' own or the binary shape's residual is under
-``RESIDUAL_NOISE_SHARE_MIN`` of what the stated noise explains (an overstated noise, without readings too), some
+``RESIDUAL_NOISE_SHARE_MIN`` of what the stated noise explains, at most 1 (an overstated noise, without readings
+too; the empty shape leaves all of the profiles, 1, so a noise said to explain more is measured against that), some
 dips disagree with the others, a dip's level falls by more than ``LEVEL_DROP_TOL`` of the volume while the object
 goes down, a dip measures more than the median dip beyond its noise and ``EXCESS_TOTAL_TOL`` of the volume, or the
 dips reject a declared symmetry. Each failed check is logged and raised as a :class:`DataConsistencyWarning`
@@ -199,7 +200,10 @@ NOISE_RATIO_MAX = 3.0
 #: closer than that noise allows: the noise is overstated (a shape that fits the dips and not their noise leaves about
 #: all of it; ``voxel`` results and the truth's own voxels on 183 simulated scans with a stated 5-40 dB noise left at
 #: least 0.46 and 0.55 of it, ``scripts/bench_consistency.py``), which the readings' own scatter shows only where
-#: there are readings (:data:`NOISE_RATIO_MAX`)
+#: there are readings (:data:`NOISE_RATIO_MAX`). What the noise explains counts up to 1, what the empty shape leaves:
+#: a noise said to explain more than the profiles themselves (the monotone slabs of readings at -20 dB hold far less
+#: noise than the readings: 2D, 10 dips, a ``voxel`` result under that true noise left 0.18 of the stated 3.7) is
+#: not read from it
 RESIDUAL_NOISE_SHARE_MIN = 0.2
 #: The disagreeing dips a message names (the rest are counted)
 MAX_NAMED_DIPS = 8
@@ -548,7 +552,7 @@ def check_consistency(measurement: DipMeasurement, operator: DipOperator, recons
     result.outside_share = beyond_slabs(measurement, result.profile_floor_mm3)
     result.floor_beyond_ratio = floor_beyond_ratio(measurement, result.profile_floor_mm3)
     result.outside_limit = max(BEYOND_SLABS_TOL, FLOOR_SIGMAS * slab_sigma / measured)
-    if result.outside_share > 0:  # NaN compares False
+    if result.outside_share > result.outside_limit:  # NaN compares False; a share within the noise is noise
         result.grid_volume_fraction *= 1.0 - result.outside_share
     result.object_reach_mm, _ = object_reach(measurement)
     result.working_radius_mm = operator.grid.radius
@@ -737,7 +741,8 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    f"{c.reading_noise_mm3:.3g} {c.volume_unit}): the solvers' prior weights, set from it, over-smooth "
                    f"the shape, and the residual limit ({c.residual_limit:.3f}) it sets is too generous to show it. "
                    "Correct the sensor's noise_sigma or snr_db (or leave the noise unstated to have it estimated)")
-    elif c.noise_source == "sigma" and c.profile_residual < RESIDUAL_NOISE_SHARE_MIN * c.profile_residual_expected \
+    elif c.noise_source == "sigma" and c.profile_residual < RESIDUAL_NOISE_SHARE_MIN * min(c.profile_residual_expected,
+                                                                                         1.0) \
             and not c.underdetermined:  # dips too few to determine a shape leave room to fit their noise
         out.append(f"the result fits its dips far closer than their stated noise allows: relative profile residual "
                    f"{c.profile_residual:.3g}, {c.profile_residual / c.profile_residual_expected:.2f} of the "
