@@ -20,6 +20,7 @@ from dipnet.core.orientations import Reach
 from dipnet.core.rawscan import RawScan
 from dipnet.preprocessing.recorded import finish_measurement
 from dipnet.preprocessing.sources import Acquisition, Recording, finish_dips
+from dipnet.preprocessing.validation import MeasurementValidationError
 from dipnet.shapes import Shape
 
 Simulate = Callable[..., tuple[RawScan, DipMeasurement]]
@@ -41,6 +42,24 @@ def merge_raw(first: RawScan, second: RawScan) -> RawScan:
     """The orientations of ``second`` appended to ``first``'s, renumbered after them."""
     offset = len(first.orientations)
     return replace(first, orientations=first.orientations + [replace(o, k=o.k + offset) for o in second.orientations])
+
+
+def simulated_drifts(keywords: dict, raw: RawScan | None) -> str:
+    """The drifts configured for the simulator (``keywords``: the sensor's ``drift_mm_per_s`` or ``drift_g_per_s``,
+    the geometry's ``level_drift_mm_per_s``), each named by its option with what it adds over the longest dip of
+    ``raw``; ``""`` without one."""
+    span = max((float(o.time_s[-1] - o.time_s[0]) for o in (raw.orientations if raw else []) if len(o.time_s) > 1),
+               default=0.0)
+    sensor, geometry = keywords.get("sensor"), keywords.get("geometry")
+    found = []
+    for option, owner, name in (("source.simulator.sensor", sensor, "drift_mm_per_s"),
+                                ("source.simulator.sensor", sensor, "drift_g_per_s"),
+                                ("source.simulator.geometry", geometry, "level_drift_mm_per_s")):
+        rate = owner.get(name) if isinstance(owner, dict) else getattr(owner, name, None)
+        if rate:
+            unit = "g" if name.startswith("drift_g") else "mm"
+            found.append(f"{option}.{name}={rate:g} ({unit}/s; {rate * span:.3g} {unit} over a dip of {span:.0f} s)")
+    return " and ".join(found)
 
 
 class SimulatedDips:
@@ -104,7 +123,14 @@ class SimulatedSource:
         for a plan that reconstructs as it goes), then check and symmetrise the measurement
         (:func:`dipnet.preprocessing.sources.finish_dips`)."""
         raw, result = self._dip(plan, grid, n_slabs, shape, seed, progress, reach, solver, make_operator)
-        measurement, validation = finish_dips(result.measurement, grid, symmetry)
+        try:
+            measurement, validation = finish_dips(result.measurement, grid, symmetry)
+        except MeasurementValidationError as err:
+            drifts = simulated_drifts(getattr(self.simulator, "keywords", {}), raw)
+            if not drifts:
+                raise
+            raise MeasurementValidationError(f"{err}; but the likely cause is the simulated drift: {drifts}, "
+                                             "which the dips read as the object's volume: lower it (0: none)") from err
         return Acquisition(measurement, validation, raw, result.report)
 
     def record(self, plan, grid: Grid, n_slabs: int, *, shape: Shape, seed: int = 0, progress: bool = True,

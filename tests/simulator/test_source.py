@@ -10,7 +10,8 @@ from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.planning.plans import FixedPlan
 from dipnet.shapes import builtin_shape
-from dipnet.simulator.physics import DipProtocol
+from dipnet.preprocessing.validation import MeasurementValidationError
+from dipnet.simulator.physics import DipProtocol, LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.simulator.source import SimulatedDips, SimulatedSource, concatenate, merge_raw
 
@@ -73,3 +74,14 @@ def test_the_recording_for_self_calibration_is_the_new_raw_scan():
     assert recording.new and recording.smooth and recording.finish is None and recording.initial is None
     assert len(recording.raw.orientations) == 4
     assert np.all(np.diff(recording.raw.orientations[0].values) >= -1e-12)  # the level only rises as it dips
+
+
+def test_a_simulated_drift_that_wrecks_the_measurement_is_named_with_its_option():
+    """A level sensor drifting 0.5 mm/s adds ~100 mm to every dip: the size check's "wrong units or scale" also
+    names the drift's option, its rate and what it adds over a dip."""
+    source = SimulatedSource(partial(simulate_measurement, sensor=LevelSensor(drift_mm_per_s=0.5),
+                                     protocol=DipProtocol(step_mm=1.0)))
+    with pytest.raises(MeasurementValidationError, match="wrong units or scale") as caught:
+        source.measure(FixedPlan("fibonacci", 4), GRID, 16, shape=BALL, seed=0, progress=False)
+    assert "source.simulator.sensor.drift_mm_per_s=0.5 (mm/s;" in str(caught.value)
+    assert "likely cause is the simulated drift" in str(caught.value)
