@@ -15,7 +15,7 @@ import torch
 import trimesh
 
 from dipnet.core.grid import Grid, as_grid
-from dipnet.shapes.base import Shape, ShapeError, check_dips
+from dipnet.shapes.base import Shape, ShapeError, check_dips, check_supersample
 from dipnet.shapes.divergence import boundary_volume_below
 
 #: Radii (mm) a :class:`Ball` accepts: its volume and dips stay finite and non-zero in float64 (a size in
@@ -104,9 +104,11 @@ class _BoxAlgebra(Shape):
 
     def occupancy(self, grid: Grid, supersample: int = 1) -> torch.Tensor:
         """Exact fraction of each voxel inside (box overlaps are products of 1D overlaps, the
-        holes are disjoint and inside the box), for any ``supersample`` (kept for the interface)."""
+        holes are disjoint and inside the box), for any valid ``supersample`` (kept for the interface, and checked
+        as every shape's: :func:`~dipnet.shapes.base.check_supersample`)."""
         if as_grid(grid).ndim != self.ndim:
             raise ShapeError(f"shape {self.name!r} is {self.ndim}D but the grid is {grid.ndim}D")
+        check_supersample(supersample)
         axis, h = grid.axis().numpy(), grid.voxel_size
 
         def overlap(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

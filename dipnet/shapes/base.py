@@ -93,9 +93,7 @@ class Shape(ABC):
         """
         if as_grid(grid).ndim != self.ndim:
             raise ShapeError(f"shape {self.name!r} is {self.ndim}D but the grid is {grid.ndim}D")
-        if int(supersample) != supersample or supersample < 1:
-            raise ValueError(f"supersample must be a positive integer, got {supersample!r}")
-        s = int(supersample)
+        s = check_supersample(supersample)
         h = grid.voxel_size
         centres = grid.centers().numpy().reshape(-1, self.ndim)
         lo, hi = self.bounds()
@@ -113,6 +111,20 @@ class Shape(ABC):
         """Record ``message`` in ``notes`` and emit it as a :class:`ShapeWarning`."""
         self.notes.append(message)
         warnings.warn(message, ShapeWarning, stacklevel=3)
+
+
+def check_supersample(supersample: int) -> int:
+    """``supersample`` as an ``int`` after refusing, with a ``ValueError`` naming it, anything but a whole number
+    >= 1: every shape's :meth:`Shape.occupancy` checks it, those that answer exactly without sampling too (a box
+    took 0 or -1 without a word).
+
+    Args:
+        supersample: sub-voxel points per axis, as given to :meth:`Shape.occupancy`.
+    """
+    number = isinstance(supersample, (int, float, np.integer, np.floating)) and not isinstance(supersample, bool)
+    if not (number and np.isfinite(supersample) and supersample >= 1 and int(supersample) == supersample):
+        raise ValueError(f"supersample must be a positive integer, got {supersample!r}")
+    return int(supersample)
 
 
 def check_dips(

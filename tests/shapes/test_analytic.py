@@ -6,7 +6,8 @@ import torch
 import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.shapes import DEFAULT_SHAPE, Ball, ChamberBox, ShapeError, Torus, builtin_names, builtin_shape, from_trimesh
+from dipnet.shapes import (DEFAULT_SHAPE, Ball, Box, ChamberBox, ShapeError, Torus, builtin_names, builtin_shape,
+                           from_trimesh)
 
 ALL_BUILTINS = [(3, n) for n in builtin_names(3)] + [(2, n) for n in builtin_names(2)]
 
@@ -152,3 +153,15 @@ def test_occupancy_on_a_resolution_instead_of_a_grid_is_named():
     for shape in (Ball(10.0), ChamberBox([10.0] * 3, chamber_half_sizes=5.0, channel_half_width=1.0)):
         with pytest.raises(TypeError, match=r"grid must be a dipnet.Grid, e.g. Grid\(16, "):
             shape.occupancy(16)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, float("nan")])
+def test_every_shape_refuses_a_supersample_below_one_even_the_exact_boxes(bad):
+    """The boxes answer exactly, without sampling, and took ``supersample=0`` or ``-1`` without a word; every shape
+    refuses it with the one message of :func:`dipnet.shapes.base.check_supersample`."""
+    grid = Grid(8, 3, 100.0)
+    for shape in (Box((20.0, 20.0, 20.0)), builtin_shape("chamber_box", ndim=3, radius=30.0), Ball(20.0),
+                  Torus(25.0, 8.0)):
+        with pytest.raises(ValueError, match="supersample must be a positive integer"):
+            shape.occupancy(grid, supersample=bad)
+    assert Box((20.0, 20.0, 20.0)).occupancy(grid, supersample=2.0).shape == grid.shape  # a whole float is fine

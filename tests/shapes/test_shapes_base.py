@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from dipnet.core.grid import Grid
-from dipnet.shapes.base import Shape, ShapeError, ShapeWarning, check_dips
+from dipnet.shapes.base import Shape, ShapeError, ShapeWarning, check_dips, check_supersample
 
 
 class Square(Shape):
@@ -66,6 +66,13 @@ def test_a_grid_of_the_wrong_dimension_or_a_bad_supersample_is_named():
     for bad in (0, 1.5, -2):
         with pytest.raises(ValueError, match="supersample must be a positive integer"):
             Square(1.0).occupancy(Grid(8, 3), supersample=bad)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, float("nan"), float("inf"), True, "2"])
+def test_check_supersample_refuses_anything_but_a_whole_number_from_one(bad):
+    with pytest.raises(ValueError, match="supersample must be a positive integer"):
+        check_supersample(bad)
+    assert check_supersample(3) == 3 and check_supersample(np.int64(2)) == 2 and check_supersample(2.0) == 2
 
 
 def test_a_repair_is_noted_and_warned():
