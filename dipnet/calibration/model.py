@@ -21,7 +21,7 @@ from dipnet.core.measurement import DipMeasurement
 from dipnet.core.rawscan import RawScan
 from dipnet.core.warn import log_and_warn
 from dipnet.operators import make_operator
-from dipnet.preprocessing.preprocess import preprocess, repair_without_drift
+from dipnet.preprocessing.preprocess import check_stage_step, preprocess, repair_without_drift
 from dipnet.preprocessing.readings import max_object_section
 
 log = logging.getLogger(__name__)
@@ -175,7 +175,9 @@ class ProfileModel:
     Args:
         raw: the raw scan (commanded angles and stage, readings); its outlier readings are repaired once
             here (:func:`~dipnet.preprocessing.readings.repair_readings`, the report in :attr:`readings`), not
-            in every trial geometry's preprocessing.
+            in every trial geometry's preprocessing; so is its stage step checked
+            (:func:`~dipnet.preprocessing.preprocess.check_stage_step`: a step thicker than a slab is warned about
+            once, not once per trial).
         grid, n_slabs: the reconstruction grid and slabs (default ``grid.n``).
         operator_factory: ``(grid, directions, n_slabs) -> DipOperator`` (default
             :func:`~dipnet.operators.make_operator`, auto backend).
@@ -183,16 +185,20 @@ class ProfileModel:
         finish: applied to every preprocessed measurement (e.g. the readers' symmetry expansion).
         drift_mm_per_s: the level drift (mm/s) taken out of the readings while they are repaired (the moment
             stage's estimate: :func:`~dipnet.preprocessing.preprocess.repair_without_drift`).
+        check_step: check the stage step here (above); ``False`` for a copy of a scan already checked (the same
+            stage, other readings: :func:`~dipnet.calibration.reference.noise_residual`).
     """
 
     def __init__(self, raw: RawScan, grid: Grid, n_slabs: int | None = None,
                  operator_factory: Callable | None = None, smooth: bool = False,
                  finish: Callable[[DipMeasurement], DipMeasurement] | None = None,
-                 drift_mm_per_s: float = 0.0) -> None:
+                 drift_mm_per_s: float = 0.0, check_step: bool = True) -> None:
         self.n_slabs = grid.n if n_slabs is None else int(n_slabs)
         self.raw, self.readings = repair_without_drift(raw, drift_mm_per_s,  # once, not per trial
                                                        max_cross_section=max_object_section(grid),
                                                        slab_mm=grid.extent / self.n_slabs)
+        if check_step:  # once (its warning too), not per trial
+            check_stage_step(self.raw, grid.extent / self.n_slabs)
         self.drift_mm_per_s = float(drift_mm_per_s)
         self.grid, self.finish = grid, finish
         self.operator_factory, self.smooth = operator_factory or make_operator, smooth
@@ -213,7 +219,7 @@ class ProfileModel:
             o.meta["t_start_mm"] = float(o.meta.get("t_start_mm", inverted.header.t_start_mm)) + extra \
                 + float(shift @ direction)
         m = preprocess(inverted, grid=self.grid, n_slabs=self.n_slabs, t_start="metadata", smooth=self.smooth,
-                       repair=False)
+                       repair=False, check_step=False)
         m.metadata["readings"] = self.readings.to_json()
         return m if self.finish is None or not finish else self.finish(m)
 

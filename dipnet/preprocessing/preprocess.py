@@ -136,7 +136,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                cross_section_mm2: float | None = None, t_start: str | float = "auto",
                object_centre=None, smooth: bool = False, drop_flags=("unstable",),
                onset_tol: float | None = None, include_incomplete: bool = False,
-               repair: bool = True) -> DipMeasurement:
+               repair: bool = True, check_step: bool = True) -> DipMeasurement:
     """Turn a raw scan into uniform slab volumes.
 
     Args:
@@ -159,6 +159,9 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         repair: repair outlier readings or reject their dips first
             (:func:`dipnet.preprocessing.readings.repair_readings`, bounded by the grid's working ball when
             ``grid`` is given); ``False`` when the caller already did.
+        check_step: refuse a stage step too coarse for the slabs and warn about one thicker than a slab
+            (:func:`check_stage_step`); ``False`` when the caller already did (a calibration, once per scan rather
+            than once per trial geometry).
 
     Returns:
         ``DipMeasurement`` with profiles ``(K, M)`` (mm^3; mm^2 in 2D), ``offsets = edges[0]``,
@@ -175,7 +178,8 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
         raw, report = repair_readings(raw, max_cross_section=None if grid is None else max_object_section(grid),
                                       slab_mm=float(edges[1] - edges[0]))
     header = raw.header
-    _check_step(_stage_step(raw), float(edges[1] - edges[0]))
+    if check_step:
+        _check_step(_stage_step(raw), float(edges[1] - edges[0]))
     area = cross_section_mm2 if cross_section_mm2 is not None else header.tank_cross_section_mm2
     if area is None:
         raise ValueError("the tank cross-section is unknown: pass cross_section_mm2 (mm^2; mm in 2D)")
@@ -274,6 +278,13 @@ def _stage_step(raw: RawScan) -> float | None:
     steps = [np.diff(np.unique(o.stage_mm)) for o in raw.orientations if len(o.stage_mm) > 1]
     steps = np.concatenate(steps) if steps else np.zeros(0)
     return float(np.median(steps)) if steps.size else None
+
+
+def check_stage_step(raw: RawScan, slab_mm: float) -> None:
+    """What :func:`preprocess` checks of ``raw``'s stage step against slabs ``slab_mm`` thick (mm): refused over
+    :data:`MAX_STEP_IN_SLABS` slabs, warned about over one. For a caller that preprocesses one scan many times
+    (a calibration's trial geometries) and so checks it once, passing ``check_step=False`` to every trial."""
+    _check_step(_stage_step(raw), float(slab_mm))
 
 
 def _check_step(step_mm: float | None, slab_mm: float) -> None:

@@ -152,3 +152,28 @@ def test_the_profile_model_repairs_a_level_spike_once_not_per_trial(monkeypatch)
     repaired = model.measurement(State(RigGeometry()))
     # interpolated
     np.testing.assert_allclose(repaired.profiles, clean.profiles, atol=1e-4 * float(clean.profiles.max()))
+
+
+def test_a_coarse_stage_step_is_warned_about_once_not_per_trial_geometry(caplog):
+    """A stage step thicker than a slab is warned about when the model is made; the trial geometries' preprocessing
+    and the noise residual's copy of the scan (the same stage) do not say it again (calibrate.py said it four
+    times)."""
+    import logging
+    import warnings
+
+    from dipnet.calibration.model import State
+    from dipnet.calibration.reference import noise_residual
+
+    grid = Grid(16, 3, 80.0)  # 5 mm slabs
+    raw = simulate_scan(Ball(RADIUS), fibonacci_hemisphere(6), tank=Tank(cross_section_mm2=AREA),
+                        protocol=DipProtocol(step_mm=8.0), progress=False)
+    with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.WARNING):
+        warnings.simplefilter("always")
+        model = ProfileModel(raw, grid)
+        for offset in (0.0, 2.0, 4.0):  # three trial geometries
+            model.measurement(State(RigGeometry(tilt_axis_offset_mm=offset)))
+        noise_residual(model, State(RigGeometry()))
+    said = [str(w.message) for w in caught if "the stage step" in str(w.message)]
+    logged = [r.getMessage() for r in caplog.records if "the stage step" in r.getMessage()]
+    assert len(said) == 1 and len(logged) == 1, (said, logged)
+    assert said[0].startswith("the stage step (8 mm) is 1.6 slabs thick (slab 5 mm)")

@@ -9,7 +9,8 @@ import pytest
 
 from dipnet.core.grid import Grid
 from dipnet.operators import make_operator
-from dipnet.preprocessing.preprocess import gausswin, preprocess, preprocess_file, slab_edges, smooth_profiles
+from dipnet.preprocessing.preprocess import (check_stage_step, gausswin, preprocess, preprocess_file, slab_edges,
+                                            smooth_profiles)
 from dipnet.core.rawscan import OrientationScan, RawScan, ScanHeader
 
 AREA = 60000.0  # tank cross-section, mm^2
@@ -233,6 +234,24 @@ def test_a_stage_step_coarser_than_the_slabs_is_refused_or_warned():
             with warnings.catch_warnings():
                 warnings.simplefilter("error")
                 assert preprocess(raw, grid=grid).n_orientations == 6
+
+
+def test_the_stage_step_is_checked_by_itself_or_left_to_a_caller_that_did():
+    """check_stage_step says what preprocess says of the step; preprocess(check_step=False) does not say it again
+    (a calibration checks once, then preprocesses every trial geometry)."""
+    from dipnet.core.orientations import fibonacci_hemisphere
+    from dipnet.shapes import Ball
+    from dipnet.simulator.physics import DipProtocol, simulate_scan
+
+    grid = Grid(16, 3, 100.0)  # slabs of 6.25 mm
+    raw = simulate_scan(Ball(30.0), fibonacci_hemisphere(6), protocol=DipProtocol(step_mm=10.0), progress=False)
+    with pytest.warns(UserWarning, match=r"step \(10 mm\) is 1.6 slabs thick"):
+        check_stage_step(raw, 6.25)
+    with pytest.raises(ValueError, match=r"step \(10 mm\) is 8 slabs thick"):
+        check_stage_step(raw, 1.25)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert preprocess(raw, grid=grid, check_step=False).n_orientations == 6
 
 
 def test_volume_beyond_the_slab_edges_is_recorded_and_warned_about():
