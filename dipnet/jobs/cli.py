@@ -19,6 +19,7 @@ import contextlib
 import logging
 import os
 import re
+import traceback
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -60,6 +61,9 @@ def error_message(exc: BaseException) -> str:
         return (f"the run directory {Path(cause.filename).parent} is not writable (its log file "
                 f"{cause.filename}: {cause.strerror or cause}): make it writable or choose another with "
                 f"hydra.run.dir=...")
+    maker = _making_run_dir(exc) if isinstance(exc, OSError) and exc.filename else None
+    if maker is not None:  # was "/tmp/x: File exists", naming no option
+        return run_dir_message(exc, maker)
     if isinstance(exc, OSError) and exc.filename and exc.strerror:
         return f"{exc.filename}: {exc.strerror}"
     text = str(exc).split("Config search path:")[0]  # Hydra appends its search path to composition errors
@@ -67,6 +71,31 @@ def error_message(exc: BaseException) -> str:
     if "Could not find 'hydra/launcher/" in text:
         text += ' (the joblib and submitit launchers come with pip install "dipnet[sweeps]")'
     return text
+
+
+def _making_run_dir(exc: OSError) -> str | None:
+    """``"run_job"`` or ``"sweep"`` when ``exc`` was raised by Hydra creating a job's run directory (``run_job``'s
+    ``mkdir``, before the job starts) or a sweep's folder (the sweeper's ``mkdir``), not by the job: the innermost
+    frame outside ``pathlib`` and ``os`` is that Hydra function; else None."""
+    frames = [frame for frame, _ in traceback.walk_tb(exc.__traceback__)
+              if Path(frame.f_code.co_filename).name not in ("pathlib.py", "os.py")]
+    if frames and frames[-1].f_code.co_name in ("run_job", "sweep") and \
+            "hydra" in Path(frames[-1].f_code.co_filename).parts:
+        return frames[-1].f_code.co_name
+    return None
+
+
+def run_dir_message(exc: OSError, maker: str = "run_job") -> str:
+    """The one line for a run (``maker="run_job"``) or sweep (``"sweep"``) directory Hydra cannot create
+    (``exc.filename``): a file in its place or above it, a missing or read-only parent, named with the option that
+    chooses it."""
+    path = Path(exc.filename)
+    blocking = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+    why = f"{blocking} is a file, not a folder" if blocking is not None else f"{exc.strerror or exc}"
+    option = "hydra.sweep.dir=..." if maker == "sweep" else \
+        "hydra.run.dir=... (hydra.sweep.dir=... for a sweep, -m)"
+    kind = "sweep directory" if maker == "sweep" else "run directory"
+    return f"cannot create the {kind} {path} ({why}): choose a folder you can write with {option}"
 
 
 @contextlib.contextmanager

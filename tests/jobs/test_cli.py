@@ -1,12 +1,14 @@
 """One-line user errors: the message behind a failed instantiation, exit codes, missing options."""
 
+import sys
 
+import hydra
 import pytest
 from hydra.errors import InstantiationException, MissingConfigException
 from omegaconf import OmegaConf
 
 from dipnet.core.optional import MissingExtraError
-from dipnet.jobs.cli import MissingOptionError, error_message, require_options, user_errors
+from dipnet.jobs.cli import MissingOptionError, error_message, require_options, run_hydra, user_errors
 
 
 def _instantiation_error(cause: Exception, message: str = "Error in call to target 'x'") -> InstantiationException:
@@ -74,3 +76,28 @@ def test_every_missing_option_is_named():
     require_options(OmegaConf.create({"a": 1}))
     with pytest.raises(MissingOptionError, match=r"option b, c.d is required: .* e.g. b=\.\.\."):
         require_options(OmegaConf.create({"a": 1, "b": "???", "c": {"d": "???"}}))
+
+
+@pytest.mark.parametrize("multirun", [False, True])
+def test_a_run_directory_hydra_cannot_create_names_the_option(tmp_path, monkeypatch, capsys, multirun):
+    """A file where the run (or sweep) directory goes: was "error: /x/afile: File exists" (or "Not a directory"),
+    naming no option; Hydra's own mkdir raises it before the job starts."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    (tmp_path / "app.yaml").write_text("a: 1\n")
+
+    @hydra.main(version_base=None, config_path=str(tmp_path), config_name="app")
+    def app(cfg) -> int:
+        return 0
+
+    option = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "1")
+    monkeypatch.setattr(sys, "argv", ["app", *(["-m"] if multirun else []), f"{option}={blocker}/sub"])
+    with pytest.raises(SystemExit) as exit_info:
+        run_hydra(app)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2
+    kind = "sweep" if multirun else "run"
+    assert f"error: cannot create the {kind} directory {blocker}/sub ({blocker} is a file, not a folder)" in err
+    assert f"with {option}=..." in err
+    assert "File exists" not in err and "Not a directory" not in err
