@@ -110,9 +110,16 @@ class Axis:
     def __post_init__(self) -> None:
         if len(self.letter) != 1 or not self.letter.isalpha():
             raise ValueError(f"axis letter must be one letter, got {self.letter!r}")
-        if self.sign not in (1, -1) or not self.scale > 0:
-            raise ValueError(f"axis {self.letter}: sign must be +1/-1 and scale positive")
-        if self.wrap is not None and not self.wrap > 0:
+        if self.sign not in (1, -1):
+            raise ValueError(f"axis {self.letter}: sign must be +1 or -1, got {self.sign!r}")
+        if not 0 < self.scale < math.inf:  # inf and NaN too: they made 'Zinf'/'Znan' G-code words
+            raise ValueError(f"axis {self.letter}: scale must be a finite positive number (machine units per rig "
+                             f"unit), got {self.scale!r}")
+        if not math.isfinite(self.offset):  # NaN was named only by the scan file's writer, as "Out of range float
+            # values are not JSON compliant", naming no option
+            raise ValueError(f"axis {self.letter}: offset must be a finite number (the machine coordinate of rig "
+                             f"value 0), got {self.offset!r}")
+        if self.wrap is not None and not 0 < self.wrap < math.inf:
             raise ValueError(f"axis {self.letter}: wrap must be a positive period or null, got {self.wrap!r}")
 
     def nearest(self, value: float, current: float | None) -> float:
@@ -148,8 +155,13 @@ class AxisMap:
         """From a plain mapping ``{lower: {letter, scale, sign, offset}, tilt: {...}, spin: {...}}`` (any subset)."""
         axes = dict(axes or {})
         default = cls()
-        return cls(**{name: Axis(**{**default.__dict__[name].__dict__, **dict(axes.get(name) or {})})
-                      for name in ("lower", "tilt", "spin")})
+        made = {}
+        for name in ("lower", "tilt", "spin"):
+            try:
+                made[name] = Axis(**{**default.__dict__[name].__dict__, **dict(axes.get(name) or {})})
+            except ValueError as exc:  # named by its option: "axis A: ..." named no config key
+                raise ValueError(f"rig.controller.axes.{name}: {exc}") from None
+        return cls(**made)
 
     def short_way(self, target: dict[str, float | None], current: dict[str, float]) -> dict[str, float | None]:
         """The rig values a move to ``target`` (``{"lower": mm, "tilt": deg, "spin": deg}``, ``None``

@@ -38,10 +38,25 @@ def test_an_axis_converts_rig_values_to_machine_words_and_back():
     assert axis.to_machine(10.0) == -15.0
     for bad, message in (({"letter": "ZZ"}, "one letter"), ({"letter": "1"}, "one letter"),
                          ({"letter": "Z", "sign": 2}, "sign must be"),
-                         ({"letter": "Z", "scale": 0.0}, "scale positive"),
+                         ({"letter": "Z", "scale": 0.0}, "scale must be a finite positive number"),
                          ({"letter": "B", "wrap": -360.0}, "wrap must be a positive period")):
         with pytest.raises(ValueError, match=message):
             Axis(**bad)
+
+
+@pytest.mark.parametrize(("axes", "message"), [
+    ({"lower": {"offset": float("nan")}}, "rig.controller.axes.lower: axis Z: offset must be a finite number"),
+    ({"tilt": {"scale": float("inf")}}, "rig.controller.axes.tilt: axis A: scale must be a finite positive number"),
+    ({"tilt": {"scale": 0.0}}, r"rig.controller.axes.tilt: axis A: scale must be .*, got 0.0"),
+    ({"spin": {"wrap": float("inf")}}, "rig.controller.axes.spin: axis B: wrap must be a positive period"),
+    ({"lower": {"sign": 2}}, r"rig.controller.axes.lower: axis Z: sign must be \+1 or -1, got 2"),
+])
+def test_an_axis_config_out_of_range_is_refused_naming_its_option(axes, message):
+    """scan.py rig.controller.axes.lower.offset=nan was refused only by the scan file's writer: "error: Out of range
+    float values are not JSON compliant" (an empty rawscan.jsonl left behind), and scale=inf the same;
+    scale=0 said "axis A: sign must be +1/-1 and scale positive", naming neither the option nor the value."""
+    with pytest.raises(ValueError, match=message):
+        AxisMap.from_config(axes)
 
 
 def test_a_wrapping_axis_takes_the_short_way_round():
