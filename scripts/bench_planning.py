@@ -54,6 +54,7 @@ from dipnet.simulator.source import SimulatedDips, concatenate
 from dipnet.preprocessing.datasets import check_mesh_names, mesh_names, mesh_path
 from dipnet.core.grid import Grid
 from dipnet.evaluation.metrics import evaluate
+from dipnet.experiments.bench_options import check_run_options
 from dipnet.operators import make_operator
 from dipnet.core.orientations import Reach, fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
@@ -96,6 +97,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     args.n = args.n or (32 if args.quick else 64)
     args.meshes = args.meshes or (QUICK_MESHES if args.quick else mesh_names())
+    if args.jobs is not None and args.jobs < 1:  # was taken as the default (0) or as 1 (-3), unsaid
+        p.error(f"--jobs must be 1 or more (meshes benchmarked at once), got {args.jobs}")
     args.jobs = args.jobs or (2 if args.quick else 1)
     try:
         check_mesh_names(args.meshes)
@@ -108,7 +111,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 def check_plan_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse (``p.error``: one line, exit 2) before any mesh what a case would fail on after minutes of solves, or
     run on without a word: ``--fill`` outside (0, 1] (a mesh larger than the working ball, which the grid cannot
-    hold), the loop's ``--budget`` / ``--batch`` / ``--initial``, the ``--cap-tilt`` reach, ``--large`` or ``--n``."""
+    hold), the loop's ``--budget`` / ``--batch`` / ``--initial``, the ``--cap-tilt`` reach, ``--large`` or ``--n``,
+    and the run options ``--snr``, ``--seed``, ``--threads``, ``--json`` (:func:`check_run_options`: ``--threads 0``
+    and ``--snr nan`` were tracebacks from the worker processes, after the first mesh's plans)."""
+    try:
+        check_run_options(args)
+    except ValueError as exc:
+        p.error(str(exc))
     if not 0 < args.fill <= 1:
         p.error(f"--fill must be in (0, 1] (the mesh's radius over the working ball's: above 1 the mesh reaches beyond "
                 f"the working ball, which the grid cannot hold), got {args.fill:g}")

@@ -1,5 +1,5 @@
-"""The benchmarks' run options shared by ``scripts/bench_quality.py`` and ``scripts/bench_uncertainty.py``,
-checked before any case runs.
+"""The benchmarks' run options shared by ``scripts/bench_quality.py``, ``scripts/bench_uncertainty.py`` and
+``scripts/bench_planning.py``, checked before any case runs.
 
 A bad value of one of these used to surface late: ``--threads -1`` as a traceback, ``--threads 0`` not at all
 (torch's default taken unsaid), ``--seed -1`` at the first simulation, ``--snr nan`` at the first noisy case (after
@@ -16,14 +16,15 @@ from dipnet.simulator.physics import check_snr_db
 def check_run_options(args: argparse.Namespace) -> None:
     """Refuse the shared run options of ``args`` that no case could use.
 
-    Reads ``args.noise`` and ``args.snr`` (dB; checked only when ``"snr"`` or ``"unstated"`` noise is asked for),
-    ``args.seed`` (``>= 0``), ``args.threads`` (``None`` or ``>= 1``), ``args.json`` (``None`` or a file in an
-    existing folder) and ``args.generated`` (the number of generated test shapes, ``>= 0``).
+    Reads ``args.noise`` and ``args.snr`` (dB; checked only when ``"snr"`` or ``"unstated"`` noise is asked for;
+    a benchmark without ``--noise`` is always noisy at ``--snr``), ``args.seed`` (``>= 0``), ``args.threads``
+    (``None`` or ``>= 1``), ``args.json`` (``None`` or a file in an existing folder) and ``args.generated`` (the
+    number of generated test shapes, ``>= 0``; a benchmark without it generates none).
 
     Raises:
         ValueError: naming the first bad option and its value.
     """
-    if {"snr", "unstated"} & set(args.noise):
+    if {"snr", "unstated"} & set(getattr(args, "noise", ("snr",))):
         try:
             check_snr_db(args.snr)
         except ValueError as exc:
@@ -34,5 +35,5 @@ def check_run_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--threads must be 1 or more, got {args.threads}")
     if args.json is not None and not args.json.parent.is_dir():
         raise ValueError(f"--json {args.json}: no folder {args.json.parent}")
-    if args.generated < 0:
+    if getattr(args, "generated", 0) < 0:
         raise ValueError(f"--generated must be 0 or more, got {args.generated}")

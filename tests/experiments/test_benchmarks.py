@@ -322,6 +322,11 @@ def test_a_mesh_name_not_bundled_is_refused_before_any_case(script, capsys):
     (["--batch", "0"], r".*need 1 <= initial_dips <= budget and batch_size >= 1"),
     (["--cap-tilt", "100"], r".*tilt range must satisfy 0 <= min <= max <= 90 degrees"),
     (["--large", "0"], r".*number of orientations must be a positive integer, got 0"),
+    # were a traceback (RuntimeError: set_num_threads expects a positive integer) from a worker process, rc 1; a
+    # traceback naming snr_db, not --snr; --jobs 0 run as the default (2 with --quick), unsaid
+    (["--threads", "0"], r"--threads must be 1 or more, got 0"),
+    (["--snr", "nan"], r"--snr: snr_db must be a number of dB in \[-20, 200\]"),
+    (["--jobs", "0"], r"--jobs must be 1 or more \(meshes benchmarked at once\), got 0"),
 ])
 def test_bad_options_of_the_planning_bench_are_refused_before_any_mesh(capsys, argv, message):
     """The audit's case: ``--fill 2`` (a torus twice the working ball, 16^3) ran every plan and printed
