@@ -65,6 +65,7 @@ from dipnet.shapes import load_mesh
 from dipnet.shapes.mesh import MeshShape
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
+from dipnet.experiments.bench_options import thread_count
 
 MESHES = ("bunny", "hammer", "part_B13", "spot")
 
@@ -78,7 +79,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--fill", type=float, default=0.8, help="mesh radius / working-ball radius")
     p.add_argument("--iterations", type=int, default=300, help="voxel solver iterations per shape step")
     p.add_argument("--quick", action="store_true", help="3 rigs at 32^3, 80 solver iterations")
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--threads", type=thread_count, default=2, help="torch threads")
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--ball-offset", type=float, default=25.0, metavar="MM",
                    help="the second ball's centre off the spin axis (along x, mm)")

@@ -54,7 +54,7 @@ from dipnet.simulator.source import SimulatedDips, concatenate
 from dipnet.preprocessing.datasets import check_mesh_names, mesh_names, mesh_path
 from dipnet.core.grid import Grid
 from dipnet.evaluation.metrics import evaluate
-from dipnet.experiments.bench_options import check_run_options
+from dipnet.experiments.bench_options import check_run_options, thread_count
 from dipnet.operators import make_operator
 from dipnet.core.orientations import Reach, fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
@@ -83,7 +83,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--plan-solver", choices=list(SOLVERS), default="voxel",
                    help="solver of the loop's intermediate reconstructions")
     p.add_argument("--fill", type=float, default=0.9, help="mesh radius / working-ball radius")
-    p.add_argument("--threads", type=int, default=1, help="torch threads per process")
+    p.add_argument("--threads", type=thread_count, default=1, help="torch threads per process")
     p.add_argument("--jobs", type=int, default=None, help="meshes benchmarked in parallel processes (default 1; "
                    "--quick: 2, one per core)")
     p.add_argument("--oracle", type=int, default=0, metavar="R",

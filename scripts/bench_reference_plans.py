@@ -39,6 +39,7 @@ from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.experiments.random_rigs import (BALL_POSITION_SD_MM, BALL_RADIUS, START_HEIGHT_SD_MM, covered, draw_rig,
                                            reference_ball)
 from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank
+from dipnet.experiments.bench_options import thread_count
 
 GRID_SPINS = (0.0, 90.0, 180.0, 270.0)
 
@@ -63,7 +64,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="the second ball's centre off the spin axis (along x, mm)")
     p.add_argument("--plans", nargs="+", choices=list(PLANS), default=["grid16", "fibonacci41"],
                    help="the plans to dip the ball along")
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--threads", type=thread_count, default=2, help="torch threads")
     p.add_argument("--quick", action="store_true", help="5 rigs")
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values

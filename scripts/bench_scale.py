@@ -52,6 +52,7 @@ from dipnet.shapes import load_mesh
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
+from dipnet.experiments.bench_options import thread_count
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -70,7 +71,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--upsampfac", type=float, default=1.25, help="NUFFT oversampling of the fourier operator")
     p.add_argument("--precision", choices=["single", "double"], default="single",
                    help="NUFFT arithmetic of the fourier operator (single: 1.65x faster at eps 1e-3)")
-    p.add_argument("--threads", type=int, default=1, help="torch and NUFFT threads (2 on a quiet 2-core machine)")
+    p.add_argument("--threads", type=thread_count, default=1,
+                   help="torch and NUFFT threads (2 on a quiet 2-core machine)")
     p.add_argument("--cache", type=Path, default=Path("outputs/bench_scale_cache"), help="simulated scans")
     p.add_argument("--json", type=Path, help="also write every row to this JSON file")
     p.add_argument("--checkpoint-dir", type=Path, help="checkpoint the voxel solves here (and resume from it)")

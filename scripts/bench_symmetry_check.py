@@ -38,6 +38,7 @@ from dipnet.preprocessing.symmetry_moments import P_LIMIT, group_closure, symmet
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.priors import symmetry_maps
+from dipnet.experiments.bench_options import thread_count
 
 RADIUS_MM, EXTENT_MM, RESOLUTION = 45.0, 100.0, 32
 DECLARATIONS = {
@@ -60,7 +61,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--shapes", nargs="+", metavar="NAME",
                    help="the shapes to dip (default: all; names as in the table, e.g. elephant_2d ball_3d bunny)")
     p.add_argument("--seed", type=int, default=2026)
-    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--threads", type=thread_count, default=2, help="torch threads")
     p.add_argument("--quick", action="store_true", help="2 scans per shape")
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values

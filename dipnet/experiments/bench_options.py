@@ -37,3 +37,15 @@ def check_run_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--json {args.json}: no folder {args.json.parent}")
     if getattr(args, "generated", 0) < 0:
         raise ValueError(f"--generated must be 0 or more, got {args.generated}")
+
+
+def thread_count(text: str) -> int:
+    """The ``argparse`` type of a benchmark's ``--threads``: a whole number >= 1 (``--threads 0`` was torch's
+    ``RuntimeError: set_num_threads expects a positive integer`` traceback, exit 1)."""
+    try:
+        threads = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number of torch threads, 1 or more, got {text!r}") from None
+    if threads < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more (torch threads), got {threads}")
+    return threads

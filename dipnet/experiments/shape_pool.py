@@ -17,6 +17,7 @@ import torch
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.shapes import builtin_shape, shape_from_file
 from dipnet.shapes.base import Shape
+from dipnet.experiments.bench_options import thread_count
 
 BUILTINS = {2: ("disk", "chamber_box", "elephant"), 3: ("ball", "box", "torus", "chamber_box")}
 
@@ -53,7 +54,7 @@ def add_pool_options(parser: argparse.ArgumentParser, *, trials: int, resolution
     parser.add_argument("--shapes", nargs="+", metavar="NAME", help=shapes_help)
     parser.add_argument("--resolution", type=int, default=resolution, help=resolution_help)
     parser.add_argument("--seed", type=int, default=2026)
-    parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--threads", type=thread_count, default=2, help="torch threads")
     parser.add_argument("--json", type=Path, help=json_help)
 
 

@@ -324,7 +324,7 @@ def test_a_mesh_name_not_bundled_is_refused_before_any_case(script, capsys):
     (["--large", "0"], r".*number of orientations must be a positive integer, got 0"),
     # were a traceback (RuntimeError: set_num_threads expects a positive integer) from a worker process, rc 1; a
     # traceback naming snr_db, not --snr; --jobs 0 run as the default (2 with --quick), unsaid
-    (["--threads", "0"], r"--threads must be 1 or more, got 0"),
+    (["--threads", "0"], r"argument --threads: must be 1 or more \(torch threads\), got 0"),
     (["--snr", "nan"], r"--snr: snr_db must be a number of dB in \[-20, 200\]"),
     (["--jobs", "0"], r"--jobs must be 1 or more \(meshes benchmarked at once\), got 0"),
 ])
@@ -535,3 +535,16 @@ def test_the_pockets_bench_runs_end_to_end_and_finds_the_chamber_boxs_flooding(c
     assert last.startswith("RESULT affected=") and last.endswith("cases=2")
     with pytest.raises(ValueError, match="no shape named disk_2d"):
         bench.shape_names(["disk_2d"], ndim=3)
+
+
+@pytest.mark.parametrize("script", ["bench_scale", "bench_reference_plans", "bench_calibration", "bench_symmetry_check",
+                                    "bench_consistency", "bench_pockets", "bench_dip_agreement", "bench_planning"])
+@pytest.mark.parametrize("threads", ["0", "-2", "two"])
+def test_threads_below_one_are_refused_by_every_benchmark(script, threads, capsys):
+    """``--threads 0`` was torch's ``RuntimeError: set_num_threads expects a positive integer`` traceback, exit 1,
+    in six benchmarks (the pool benchmarks and bench_scale, bench_reference_plans, bench_calibration,
+    bench_symmetry_check); now argparse's one line naming --threads, exit 2."""
+    with pytest.raises(SystemExit) as exit_:
+        load_script(script).parse_args(["--threads", threads])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "error: argument --threads: must be " in err, err
