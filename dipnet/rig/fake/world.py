@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 import warnings
@@ -10,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real
 from dipnet.core.geometry import RigGeometry, as_geometry
 from dipnet.rig.controller import AxisMap, Position
 from dipnet.simulator.physics import Tank
@@ -147,6 +149,11 @@ class FakeRig:
         self.created = time.monotonic()
         self.axes = axes if isinstance(axes, AxisMap) else AxisMap.from_config(axes)
         self.status_axes = status_axes.upper()
+        for name, value in (("level_sigma_mm", level_sigma_mm), ("level_quantum_mm", level_quantum_mm),
+                            ("balance_sigma_g", balance_sigma_g), ("balance_quantum_g", balance_quantum_g),
+                            ("latency_s", latency_s), ("move_s", move_s)):
+            if not (is_real(value) and 0 <= value < math.inf):  # a negative or NaN sigma gave noise-free readings
+                raise ValueError(f"rig.fake.{name} must be a finite number >= 0 (0: none), got {value!r}")
         self.level_sigma_mm, self.level_quantum_mm = float(level_sigma_mm), float(level_quantum_mm)
         self.balance_sigma_g, self.balance_quantum_g = float(balance_sigma_g), float(balance_quantum_g)
         self.density = float(density_g_per_mm3)
