@@ -121,6 +121,11 @@ def runner_from_config(cfg, plan: ScanPlan, path: str | Path, *, home: bool = Tr
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
+    for option, url in (("rig.controller.url", cfg.rig.controller.get("url")),
+                        ("rig.sensor_url", cfg.rig.get("sensor_url"))):
+        if isinstance(url, str) and not url.strip():  # was "RigDisconnected: cannot open : ...", exit 3
+            raise ConfigError(f"{option} is empty ({url!r}): give the port's pyserial URL (/dev/ttyUSB0, COM3, "
+                              "socket://host:port, fakerig://...); nothing moved")
     controller = instantiate(cfg.rig.controller, _convert_="all")
     device = instantiate(cfg.sensor.device, _convert_="all")
     sensor = AveragingSensor(device, **OmegaConf.to_container(cfg.sensor.average, resolve=True))

@@ -256,3 +256,15 @@ def test_an_adaptive_scan_replayed_whole_with_another_rig_geometry_is_refused(tm
         scan_job(_scan_cfg("rig.geometry.pivot_mm=5", *ADAPTIVE_QUICK), path)
     assert path.read_bytes() == recorded
     assert len(scan_job(_scan_cfg(*ADAPTIVE_QUICK), path).completed()) == 5 and path.read_bytes() == recorded
+
+
+@pytest.mark.parametrize("option", ["rig.controller.url", "rig.sensor_url"])
+def test_an_empty_port_url_is_refused_naming_its_option(tmp_path, option):
+    """``scan.py rig.controller.url=''`` stopped as a rig fault, exit 3: "scan stopped at connecting: RigDisconnected:
+    cannot open : [Errno 2] could not open port : ...", naming no option; now refused before connecting."""
+    from dipnet.jobs.scan import scan_from_config
+
+    cfg = _scan_cfg(f"{option}=''", "n_dips=2", "protocol.step_mm=10", "fsync=false", "progress=false")
+    with pytest.raises(ConfigError, match=rf"{option} is empty \(''\): give the port's pyserial URL .*nothing moved"):
+        scan_from_config(cfg, tmp_path / "rawscan.jsonl")
+    assert not (tmp_path / "rawscan.jsonl").exists()
