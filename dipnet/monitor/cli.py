@@ -53,6 +53,11 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+#: The finest running reconstruction (voxels per axis): the largest grid dipnet solves on two cores is 240^3, and the
+#: monitor re-solves its grid every few dips (``--resolution 100000`` was taken, then failed in the background).
+MAX_RESOLUTION = 256
+
+
 def terminated(signum: int, frame) -> None:
     """SIGTERM / SIGHUP handler: exit ``128 + signum`` through ``SystemExit``, so the ``finally`` blocks run (the
     running reconstruction is stopped and its queue released; ``scan.py monitor=true`` ends the monitor so). The
@@ -88,8 +93,9 @@ def check_args(args: argparse.Namespace) -> None:
 
     if not args.every >= 1:
         raise MonitorError(f"--every must be a positive number of dips, got {args.every}")
-    if not args.resolution >= 4:
-        raise MonitorError(f"--resolution must be an integer >= 4 (voxels per axis), got {args.resolution}")
+    if not 4 <= args.resolution <= MAX_RESOLUTION:
+        raise MonitorError(f"--resolution must be an integer in [4, {MAX_RESOLUTION}] (voxels per axis of a "
+                           f"reconstruction re-solved every --every dips), got {args.resolution}")
     if args.extent_mm is not None and not 0 < args.extent_mm < math.inf:
         raise MonitorError(f"--extent-mm must be a positive number (mm), got {args.extent_mm}")
     if not args.speed > 0:

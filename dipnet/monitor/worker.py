@@ -158,10 +158,20 @@ def worker_main(path: str, out: "mp.Queue", every: int, resolution: int, extent_
                 version += 1
                 out.put({**result, "version": version})
             except Exception as exc:  # noqa: BLE001 - the page shows why, the worker goes on
-                out.put({"error": f"{type(exc).__name__}: {exc}", "n_dips": n,
+                out.put({"error": f"{type(exc).__name__}: {exc}{grid_hint(exc, resolution, extent_mm)}", "n_dips": n,
                          "trace": traceback.format_exc(limit=3)})
             done = n
         stop.wait(poll_s)
+
+
+def grid_hint(exc: Exception, resolution: int, extent_mm: float | None) -> str:
+    """For a failure whose message asks for another resolution or extent (in a job's terms: ``resolution``,
+    ``extent_mm``), the monitor's options that set them; else ``""``."""
+    if "resolution" not in str(exc) and "extent_mm" not in str(exc):
+        return ""
+    extent = f"--extent-mm {extent_mm:g}" if extent_mm else "--extent-mm not given (chosen around the object)"
+    return (f" (the running reconstruction's grid is the monitor's --resolution {resolution}, {extent}: change them, "
+            "or pass --no-recon)")
 
 
 def quiet(path: Path) -> bool:

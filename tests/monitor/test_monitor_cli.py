@@ -59,7 +59,10 @@ def test_a_port_out_of_range_is_one_message(tmp_path, capsys, port):
 
 
 @pytest.mark.parametrize("option, message", [
-    (["--resolution", "0"], "--resolution must be an integer >= 4 (voxels per axis), got 0"),
+    (["--resolution", "0"], "--resolution must be an integer in [4, 256] (voxels per axis of a reconstruction "
+                            "re-solved every --every dips), got 0"),
+    (["--resolution", "100000"], "--resolution must be an integer in [4, 256] (voxels per axis of a reconstruction "
+                                 "re-solved every --every dips), got 100000"),
     (["--extent-mm", "-5"], "--extent-mm must be a positive number (mm), got -5.0"),
     (["--extent-mm", "inf"], "--extent-mm must be a positive number (mm), got inf"),
     (["--every", "0"], "--every must be a positive number of dips, got 0"),

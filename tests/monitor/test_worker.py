@@ -63,3 +63,16 @@ def test_ctrl_c_to_the_process_group_leaves_the_worker_to_the_monitor(recorded_s
     os.kill(worker.process.pid, signal.SIGINT)
     worker.close(timeout=120)
     assert worker.process.exitcode == 0   # ended by the monitor's stop, not by KeyboardInterrupt (1)
+
+
+def test_a_grid_the_scan_cannot_fill_names_the_monitors_options(recorded_scan):
+    """``--resolution`` far finer than the stage step: the update failed naming a job's ``resolution``, which a monitor
+    user does not set; the message now names the monitor's ``--resolution`` and ``--extent-mm`` too."""
+    from dipnet.monitor.worker import grid_hint
+
+    with pytest.raises(ValueError, match="lower resolution") as failed:
+        reconstruct_scan(recorded_scan, resolution=256, extent_mm=10.0)
+    assert grid_hint(failed.value, 256, 10.0) == (" (the running reconstruction's grid is the monitor's --resolution "
+                                                  "256, --extent-mm 10: change them, or pass --no-recon)")
+    assert "--extent-mm not given" in grid_hint(failed.value, 256, None)
+    assert grid_hint(ValueError("the scan file is empty"), 256, None) == ""
