@@ -37,7 +37,7 @@ class GrblController(Controller):
                  poll_s: float = 0.02, reset_on_connect: bool = True, status_retries: int = 3, **options) -> None:
         super().__init__(url, axes, **options)
         if wait not in ("dwell", "poll"):
-            raise ValueError(f"wait must be 'dwell' or 'poll', got {wait!r}")
+            raise ValueError(f"rig.controller.wait must be 'dwell' or 'poll', got {wait!r}")
         self.status_axes = status_axes.upper()
         self.wait = wait
         self.poll_s = float(poll_s)

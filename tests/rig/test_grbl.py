@@ -20,3 +20,9 @@ def test_a_port_that_streams_other_lines_names_them(world):
                                          r"\(not the sensor's\)\?$"):
         ctl.connect()
     ctl.close()
+
+
+def test_an_unknown_wait_mode_is_refused_naming_its_option():
+    """``scan.py rig.controller.wait=foo`` said "wait must be 'dwell' or 'poll'", without the option's path."""
+    with pytest.raises(ValueError, match=r"^rig.controller.wait must be 'dwell' or 'poll', got 'foo'$"):
+        GrblController("loop://", wait="foo")
