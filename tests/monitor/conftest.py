@@ -7,9 +7,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_module
-
-#: The small scan: 6 orientations, 4 mm steps (28 readings each) on the fake GRBL rig.
-SCAN_OVERRIDES = ("n_dips=6", "protocol.step_mm=4", "progress=false", "fsync=false")
+from monitor_helpers import SCAN_OVERRIDES
 
 
 def scan_config(*overrides: str):

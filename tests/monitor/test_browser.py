@@ -15,7 +15,7 @@ import pytest
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
 
-from conftest import SCAN_OVERRIDES
+from monitor_helpers import SCAN_OVERRIDES
 from dipnet.monitor.replay import Replay
 from dipnet.monitor.server import Monitor
 from dipnet.monitor.worker import ReconWorker

@@ -6,7 +6,7 @@ import socket
 import subprocess
 import sys
 
-from conftest import SCAN_OVERRIDES
+from monitor_helpers import SCAN_OVERRIDES
 from script_modules import SCRIPTS
 
 
