@@ -423,9 +423,16 @@ class DipMeasurement:
         if not path.is_file():
             raise MeasurementFileError(f"measurement file not found: {path}")
         try:
-            with np.load(path, allow_pickle=False) as data:
+            loaded = np.load(path, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):  # a bare .npy array: np.load gives the array itself
+                raise MeasurementFileError(f"{path}: a single .npy array ({loaded.shape} {loaded.dtype}), not a .npz "
+                                           "measurement file (directions, profiles, offsets, metadata): write it with "
+                                           "DipMeasurement.save")
+            with loaded as data:
                 arrays = {k: data[k] for k in data.files}
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+            if isinstance(exc, MeasurementFileError):
+                raise
             raise MeasurementFileError(f"{path}: not a readable .npz measurement file ({exc})") from exc
         missing = {"directions", "profiles", "offsets", "metadata"} - set(arrays)
         if missing:

@@ -268,3 +268,11 @@ def test_the_noise_of_two_slab_profiles_is_a_finite_upper_bound():
         warnings.simplefilter("error")
         sigma = estimate_slab_sigma(profiles)
     assert np.isfinite(sigma) and sigma > 0
+
+
+def test_a_bare_npy_array_is_refused_naming_the_file(tmp_path):
+    path = tmp_path / "m.npz"
+    with open(path, "wb") as fh:  # np.save to an open file keeps the name: an .npy array under a .npz name
+        np.save(fh, np.ones((4, 10)))
+    with pytest.raises(MeasurementFileError, match=r"m.npz: a single .npy array \(\(4, 10\) float64\), not a .npz"):
+        DipMeasurement.load(path)  # was: TypeError: 'numpy.ndarray' object does not support the context manager
