@@ -451,9 +451,11 @@ class DipMeasurement:
         try:
             if isinstance(meta.get("provenance"), dict):
                 check_provenance(meta["provenance"])
+            if "slab_thickness" not in meta:
+                raise MeasurementFileError("metadata has no slab_thickness (mm): not a dipnet measurement")
             return cls(directions=torch.from_numpy(arrays["directions"]),
                        profiles=torch.from_numpy(arrays["profiles"]),
-                       slab_thickness=float(meta["slab_thickness"]),
+                       slab_thickness=meta["slab_thickness"],  # checked as one number (true, "2.5" are refused)
                        offsets=torch.from_numpy(arrays["offsets"]),
                        sigma=torch.from_numpy(arrays["sigma"]) if "sigma" in arrays else None,
                        metadata=meta.get("provenance", {}))

@@ -276,3 +276,19 @@ def test_a_bare_npy_array_is_refused_naming_the_file(tmp_path):
         np.save(fh, np.ones((4, 10)))
     with pytest.raises(MeasurementFileError, match=r"m.npz: a single .npy array \(\(4, 10\) float64\), not a .npz"):
         DipMeasurement.load(path)  # was: TypeError: 'numpy.ndarray' object does not support the context manager
+
+
+@pytest.mark.parametrize("value", [True, "2.5", None])
+def test_a_slab_thickness_of_another_type_in_the_file_is_refused(value, tmp_path):
+    path = _measurement().save(tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    meta = json.loads(str(arrays["metadata"]))
+    if value is None:
+        del meta["slab_thickness"]
+    else:
+        meta["slab_thickness"] = value  # was: float(True) = 1.0 mm read without a word, "2.5" read as 2.5
+    arrays["metadata"] = np.array(json.dumps(meta))
+    np.savez(path, **arrays)
+    with pytest.raises(MeasurementFileError, match=r"m.npz: (slab_thickness must be one|metadata has no slab_t)"):
+        DipMeasurement.load(path)
