@@ -460,6 +460,11 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     raw.orientations = complete_dips(raw)
     if calibration is not None and as_geometry(geometry) != RigGeometry():
         raise ValueError("give the rig geometry either as a calibration file or as values, not both")
+    if calibration is not None and raw.header.ndim == 2:  # calibrate.py and calibration=self refuse 2D scans
+        raise ValueError(f"{path}: a 2D recording (its header's ndim) read with the rig calibration file {calibration} "
+                         "(source.reader.calibration): a calibration file holds a 3D rig's geometry (its tilt and "
+                         "spin axes, its section in mm^2), which a 2D recording's dips (angles in a plane, its tank a "
+                         "width in mm) cannot take; leave source.reader.calibration unset for a 2D recording")
     calibrated = None if calibration is None else scan_calibration(calibration, raw.header)
     if calibrated is not None:
         geometry = calibrated.geometry
@@ -581,7 +586,7 @@ def read_raw_recording(path: str | Path, grid: Grid, n_slabs: int | None = None,
             * ``fixture``: a fixture-only recording to subtract (:func:`subtract_fixture`);
             * ``geometry``: the rig geometry (:class:`~dipnet.core.geometry.RigGeometry` or its
               fields, e.g. ``{pivot_mm: 188, tilt_axis_offset_mm: -18}``); default the ideal rig;
-            * ``calibration``: a rig calibration file instead of ``geometry``
+            * ``calibration``: a rig calibration file instead of ``geometry``, for a 3D recording (a 2D one is refused)
               (:func:`~dipnet.core.calibration_file.scan_calibration`: it must be the
               recording's rig and tank); its cross-section wins unless ``cross_section_mm2`` is given;
             * ``centre``: see :func:`geometry_start_heights`;

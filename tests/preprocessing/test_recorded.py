@@ -427,3 +427,21 @@ def test_readings_are_repaired_with_the_geometrys_drift_taken_out(tmp_path):
         kept[drift] = [o.k for o in scan.orientations]
         assert not info["readings"]["rejected"]
     assert kept[-3e-5] == kept[0.0] and len(kept[0.0]) >= 7
+
+
+def test_a_calibration_file_for_a_2d_recording_is_refused_naming_the_option(tmp_path):
+    """Before: a 3D rig's calibration file on a 2D scan was refused as "orientation 0 has no rig angles: the rotary-axis
+    geometry cannot apply" (its pivot not 0) or "a profile holds 5.655e+05 mm^2, more than the working ball's ...:
+    wrong units or scale, or increase extent_mm" (its section of 60000 mm^2 taken for the 2D tank's width), naming
+    neither the file nor the option."""
+    from dipnet.core.calibration_file import Calibration, save_calibration
+    from dipnet.core.orientations import angles_2d, directions_2d
+    from dipnet.shapes import Disk
+
+    path = simulate_scan(Disk(20.0), directions_2d(angles_2d(8)), progress=False).save(tmp_path / "disk.jsonl")
+    for geometry in (RigGeometry(cross_section_mm2=60000.0), RigGeometry(pivot_mm=20.0, cross_section_mm2=60000.0)):
+        cal = save_calibration(Calibration(geometry, rig="dipnet.simulator", tank="t1"), tmp_path / "cal.yaml")
+        with pytest.raises(ValueError, match=r"disk.jsonl: a 2D recording .* rig calibration file .*cal.yaml "
+                                             r"\(source.reader.calibration\)"):
+            read_raw_recording(path, Grid(16, ndim=2, extent=80.0), calibration=cal)
+    read_raw_recording(path, Grid(16, ndim=2, extent=80.0))  # without one it reads
