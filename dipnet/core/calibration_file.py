@@ -184,9 +184,16 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         raise CalibrationFileError(f"{path}: 'geometry' must be a mapping of rig geometry values")
     try:
         geometry = RigGeometry.from_dict(data["geometry"])
-        uncertainty = {str(k): _number(v) for k, v in (data.get("uncertainty") or {}).items()}
-        intervals = {str(k): (_number(v[0]), _number(v[1])) for k, v in (data.get("intervals_90") or {}).items()}
-        not_estimated = {str(k): str(v) for k, v in (data.get("not_estimated") or {}).items()}
+        uncertainty = {k: _number(v) for k, v in _section(data, "uncertainty").items()}
+        for name, sd in uncertainty.items():
+            if sd < 0:  # NaN (null) is unknown
+                raise ValueError(f"uncertainty.{name}={sd:g}: a standard error is >= 0 (null if unknown)")
+        intervals = {}
+        for name, pair in _section(data, "intervals_90").items():
+            if not isinstance(pair, (list, tuple)) or len(pair) != 2:
+                raise ValueError(f"intervals_90.{name} must be [low, high] in the field's units, got {pair!r}")
+            intervals[name] = (_number(pair[0]), _number(pair[1]))
+        not_estimated = {k: str(v) for k, v in _section(data, "not_estimated").items()}
         for name, (low, high) in intervals.items():  # a hand-edited interval that cannot hold its estimate
             value = getattr(geometry, name, None)
             if math.isnan(low) or math.isnan(high):  # unknown (written as null)
@@ -220,6 +227,19 @@ def _missing_keys(data: dict[str, Any]) -> list[str]:
     required = {f.name for f in fields(RigGeometry)} - _OPTIONAL_GEOMETRY
     return sorted(_KEYS - _OPTIONAL_KEYS - set(data)) + [f"geometry.{name}"
                                                          for name in sorted(required - set(data["geometry"]))]
+
+
+def _section(data: dict[str, Any], key: str) -> dict[str, Any]:
+    """The mapping ``data[key]`` (``uncertainty``, ``intervals_90``, ``not_estimated``; missing or null: empty), keyed
+    by rig geometry fields: another key (a typo, ``pivot`` for ``pivot_mm``) was kept unread, unchecked."""
+    section = data.get(key) or {}
+    if not isinstance(section, dict):
+        raise ValueError(f"'{key}' must be a mapping of rig geometry fields, got {type(section).__name__} {section!r}")
+    known = [f.name for f in fields(RigGeometry)]
+    unknown = sorted(str(k) for k in section if k not in known)
+    if unknown:
+        raise ValueError(f"unknown rig geometry key(s) {unknown} in '{key}'; known: {known}")
+    return section
 
 
 def _number(value: Any) -> float:

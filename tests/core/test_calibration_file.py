@@ -189,3 +189,26 @@ def test_a_key_given_twice_is_refused_naming_it(tmp_path, name, line):
         load_calibration(path)
     path.write_text(text)
     assert load_calibration(path).geometry == CAL.geometry
+
+
+@pytest.mark.parametrize("section, value, message", [
+    ("uncertainty", {"pivot": 0.3}, r"unknown rig geometry key\(s\) \['pivot'\] in 'uncertainty'"),
+    ("intervals_90", {"pivot": [19.0, 21.0]}, r"unknown rig geometry key\(s\) \['pivot'\] in 'intervals_90'"),
+    ("not_estimated", {"spin_zero": "x"}, r"unknown rig geometry key\(s\) \['spin_zero'\] in 'not_estimated'"),
+    ("uncertainty", {"pivot_mm": -0.3}, r"uncertainty.pivot_mm=-0.3: a standard error is >= 0"),
+    ("uncertainty", [0.3], r"'uncertainty' must be a mapping of rig geometry fields, got list"),
+    ("intervals_90", {"pivot_mm": 20.1}, r"intervals_90.pivot_mm must be \[low, high\]"),
+    ("intervals_90", {"pivot_mm": [19.0, 20.1, 21.0]}, r"intervals_90.pivot_mm must be \[low, high\]"),
+])
+def test_a_hand_edited_section_is_refused_naming_its_key(tmp_path, section, value, message):
+    """Before: a typo's key was kept unread (its interval never checked against the estimate), a negative standard
+    error or a third interval bound read without a word, and a list or a number in place of a mapping or a pair gave
+    "'list' object has no attribute 'items'" / "'float' object is not subscriptable", naming no key."""
+    import yaml
+
+    path = save_calibration(CAL, tmp_path / "cal.yaml")
+    data = yaml.safe_load(path.read_text())
+    data[section] = value
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CalibrationFileError, match=r"cal.yaml: " + message):
+        load_calibration(path)
