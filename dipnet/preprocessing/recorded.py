@@ -471,6 +471,13 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
         if cross_section_mm2 is not None:
             geometry = geometry.with_values(cross_section_mm2=float(cross_section_mm2))
     geometry = as_geometry(geometry)
+    rotary = {name: getattr(geometry, name) for name in ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg",
+                                                          "spin_zero_deg") if getattr(geometry, name)}
+    if rotary and raw.header.ndim == 2:  # invert_scan: "orientation 0 has no rig angles", naming no option
+        given = ", ".join(f"source.reader.geometry.{name}={value:g}" for name, value in rotary.items())
+        raise ValueError(f"{path}: a 2D recording (its header's ndim) has no tilt and spin axes for the rig geometry "
+                         f"given ({given}) to move: leave them 0 for a 2D recording (its step_scale, "
+                         "cross_section_mm2, level_drift_mm_per_s and sensor_lag_s apply)")
     # with the level drift taken out: a drift over a dip's rest readings passes for outliers
     raw, readings = repair_without_drift(raw, geometry.level_drift_mm_per_s, max_cross_section=max_cross_section,
                                          slab_mm=slab_mm)

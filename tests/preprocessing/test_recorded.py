@@ -445,3 +445,16 @@ def test_a_calibration_file_for_a_2d_recording_is_refused_naming_the_option(tmp_
                                              r"\(source.reader.calibration\)"):
             read_raw_recording(path, Grid(16, ndim=2, extent=80.0), calibration=cal)
     read_raw_recording(path, Grid(16, ndim=2, extent=80.0))  # without one it reads
+
+
+def test_rotary_geometry_values_for_a_2d_recording_are_refused_naming_the_options(tmp_path):
+    """Before: ``ndim=2 source.reader.geometry.pivot_mm=20`` was refused as "orientation 0 has no rig angles: the
+    rotary-axis geometry cannot apply", naming no option."""
+    from dipnet.core.orientations import angles_2d, directions_2d
+    from dipnet.shapes import Disk
+
+    path = simulate_scan(Disk(20.0), directions_2d(angles_2d(8)), progress=False).save(tmp_path / "disk.jsonl")
+    with pytest.raises(ValueError, match=r"disk.jsonl: a 2D recording .* \(source.reader.geometry.pivot_mm=20, "
+                                         r"source.reader.geometry.tilt_zero_deg=1.5\) to move: leave them 0"):
+        read_raw_recording(path, Grid(16, ndim=2, extent=80.0), geometry={"pivot_mm": 20.0, "tilt_zero_deg": 1.5})
+    read_raw_recording(path, Grid(16, ndim=2, extent=80.0), geometry={"step_scale": 1.01})  # applies in 2D
