@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import igl
@@ -155,8 +156,13 @@ def load_mesh(
     try:
         mesh = trimesh.load(str(path), force="mesh", process=False)
     except Exception as err:  # trimesh raises many types for bad files
-        # trimesh falls back to decoding unparsable binary as text, which needs an optional module
-        why = "corrupt, or not a mesh format trimesh reads" if isinstance(err, ImportError) else err
+        # trimesh falls back to decoding unparsable binary as text, which needs an optional module (a charset
+        # detector); a format's own reader may need one too (lxml for .3mf): that file is not corrupt
+        module = re.search(r"No module named '(\w+)", str(err)) if isinstance(err, ImportError) else None
+        why = err if not isinstance(err, ImportError) else "corrupt, or not a mesh format trimesh reads"
+        if module and not module.group(1).startswith(("chardet", "charset")):
+            why = (f"reading a {path.suffix or 'suffixless'} file needs the Python module {module.group(1)}, which is "
+                   f"not installed: pip install {module.group(1)}, or export the mesh as .ply or .stl")
         raise ShapeError(f"cannot read mesh file {path}: {why}") from err
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ShapeError(f"mesh file {path}: corrupt, or not a mesh format trimesh reads (no triangles in it)")

@@ -294,3 +294,20 @@ def test_the_shape_remembers_its_scale_so_points_map_back_to_the_file(tmp_path):
         assert shape.frame_scale == pytest.approx(factor), options
         lo, hi = ((b + shape.frame_offset) / shape.frame_scale for b in shape.bounds())
         np.testing.assert_allclose(np.stack([lo, hi]), source.bounds, atol=1e-9, err_msg=str(options))
+
+
+@pytest.mark.parametrize("module, message", [
+    ("lxml", r"tet.3mf: reading a .3mf file needs the Python module lxml, which is not installed: pip install lxml"),
+    ("charset_normalizer", r"tet.3mf: corrupt, or not a mesh format trimesh reads"),
+])
+def test_a_format_whose_reader_module_is_missing_names_the_module(tmp_path, monkeypatch, module, message):
+    """Before: a valid .3mf without lxml installed was "corrupt, or not a mesh format trimesh reads" (every
+    ImportError was taken for trimesh's text fallback on unparsable binary, which needs a charset detector)."""
+    def load(*args, **kwargs):
+        raise ModuleNotFoundError(f"No module named '{module}'")
+
+    path = tmp_path / "tet.3mf"
+    path.write_bytes(b"PK")
+    monkeypatch.setattr(trimesh, "load", load)
+    with pytest.raises(ShapeError, match=message):
+        load_mesh(path)
