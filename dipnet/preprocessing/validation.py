@@ -188,7 +188,8 @@ def validate_measurement(measurement: DipMeasurement, grid: Grid, *, size_tol: f
     prof = measurement.profiles.numpy()
     grid = as_grid(grid)
     if measurement.ndim != grid.ndim:
-        raise MeasurementValidationError(f"{source}: {measurement.ndim}D directions for a {grid.ndim}D grid")
+        raise MeasurementValidationError(f"{source}: {measurement.ndim}D directions for a {grid.ndim}D grid: "
+                                         f"set ndim={measurement.ndim}")
     if not np.isfinite(prof).all() or not np.isfinite(measurement.directions.numpy()).all():
         raise MeasurementValidationError(f"{source}: the profiles or directions hold NaN or infinite values")
     sigma = None if measurement.sigma is None else measurement.sigma.numpy()

@@ -350,3 +350,11 @@ def test_directions_all_pointing_down_are_named():
     with pytest.warns(UserWarning, match=r"every direction points down \(y < 0 in 7 of 8"):  # one horizontal
         validate_measurement(DipMeasurement(-m.directions, m.profiles.flip(1), m.slab_thickness, m.offsets),
                              Grid(16, 2, 100.0))
+
+
+def test_a_measurement_of_the_other_dimension_names_the_ndim_to_set():
+    """Before: "m.npz: 2D directions for a 3D grid", naming no option (a raw scan's says "set ndim=2")."""
+    m = DipMeasurement(torch.tensor([[1.0, 0.0], [0.0, 1.0]]), torch.ones(2, 8), 1.0, torch.full((2,), -4.0),
+                       metadata={"path": "m.npz"})
+    with pytest.raises(MeasurementValidationError, match=r"m.npz: 2D directions for a 3D grid: set ndim=2$"):
+        validate_measurement(m, Grid(16, extent=80.0))
