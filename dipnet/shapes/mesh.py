@@ -140,7 +140,8 @@ def load_mesh(
         center: move the volume centroid (bounding-box centre if the volume is not meaningful)
             to the origin (the shape's ``frame_offset`` keeps the move).
         name: label (default: the file stem).
-        scale: mm per file unit (``None``: 1), applied when ``radius`` is ``None``.
+        scale: mm per file unit (``None``: 1), when ``radius`` is ``None`` (a scale other than 1 beside a radius is
+            refused: the radius sets the size).
 
     Raises:
         ShapeError: the file is missing, unreadable, empty, or encloses no volume, or ``radius`` or
@@ -188,6 +189,9 @@ def from_trimesh(
     if scale is not None and not 0 < scale < np.inf:
         raise ShapeError(f"mesh {where}: scale must be a finite, positive number of mm per file unit (1000 for a "
                          f"mesh in metres), got {scale!r}: 0 shrinks the mesh to a point, a negative scale mirrors it")
+    if radius is not None and scale is not None and scale != 1:  # shape_from_file refuses the pair alike
+        raise ShapeError(f"mesh {where}: radius={radius:g} and scale={scale:g} both set the mesh's size, and with a "
+                         "radius the scale is ignored: give one (radius=None to take the file's units times the scale)")
     mesh = trimesh.Trimesh(
         vertices=np.asarray(mesh.vertices, dtype=np.float64),
         faces=np.asarray(mesh.faces, dtype=np.int64), process=False,

@@ -311,3 +311,10 @@ def test_a_format_whose_reader_module_is_missing_names_the_module(tmp_path, monk
     monkeypatch.setattr(trimesh, "load", load)
     with pytest.raises(ShapeError, match=message):
         load_mesh(path)
+
+
+def test_a_scale_beside_a_radius_is_refused_by_the_api_as_by_shape_from_file():
+    """Before: ``load_mesh(path, radius=45, scale=1000)`` took the radius and dropped the scale without a word."""
+    with pytest.raises(ShapeError, match=r"torus.ply: radius=45 and scale=1000 both set the mesh's size"):
+        load_mesh(MESHES / "torus.ply", radius=45.0, scale=1000.0)
+    assert load_mesh(MESHES / "torus.ply", radius=45.0, scale=1.0).radius() == pytest.approx(45.0)
