@@ -288,3 +288,14 @@ def test_a_2d_scan_is_refused_as_2d():
     with pytest.raises(ValueError, match=r"is 2D \(its header's ndim\): its dips are angles in a plane, .*no rig "
                                          r"geometry can be calibrated"):
         dip_moments(raw, RigGeometry())
+
+
+def test_noise_free_dips_of_a_centred_ball_leave_its_tilt_zero_undetermined():
+    """The audit's case: a centred ball's dips do not depend on the tilt zero, but noise-free, their moments fit to
+    rounding, and the misfit in units of that rounding made every difference "data": ``calibration=self`` wrote a tilt
+    zero of -6.000 [-6.021, -5.980] deg, determined, for a true 0. The misfit's scale is floored at 1e-9 of the
+    moments' own (``ROUNDING_SCALE``), so the tilt zero is named undetermined, as it is at 30 dB."""
+    _, moments = ideal_ball_moments(RigGeometry())
+    fit = fit_moments(moments, ("pivot_mm", "tilt_axis_offset_mm", "tilt_zero_deg"), bootstrap=20)
+    assert fit.profile_rise["tilt_zero_deg"] < 2.71
+    assert "tilt_zero_deg" in fit.undetermined("self")
