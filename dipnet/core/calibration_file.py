@@ -173,7 +173,7 @@ def load_calibration(path: str | Path, rig: str | None = None, tank: str | None 
         raise CalibrationFileError(f"{path}: unknown key(s) {unknown}; known: {sorted(_KEYS)}")
     if data.get("format") != FORMAT_NAME:
         raise CalibrationFileError(f"{path}: not a rig calibration (format={data.get('format')!r})")
-    if data.get("version") not in READ_VERSIONS:
+    if isinstance(data.get("version"), bool) or data.get("version") not in READ_VERSIONS:  # true == 1 to Python
         raise CalibrationFileError(f"{path}: unsupported calibration version {data.get('version')!r}")
     for key in ("rig", "tank"):
         if not isinstance(data.get(key), str) or not data[key].strip():
@@ -243,7 +243,10 @@ def _section(data: dict[str, Any], key: str) -> dict[str, Any]:
 
 
 def _number(value: Any) -> float:
-    """A number of the file; ``null`` (how strict JSON writes a non-finite one) reads as NaN: unknown."""
+    """A number of the file; ``null`` (how strict JSON writes a non-finite one) reads as NaN: unknown. A boolean
+    is refused (``float(True)`` is 1.0: ``[true, 0, 0]`` was read as a centre at x = 1 mm)."""
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number or null, got {value!r}")
     return math.nan if value is None else float(value)
 
 

@@ -199,6 +199,8 @@ def test_a_key_given_twice_is_refused_naming_it(tmp_path, name, line):
     ("uncertainty", [0.3], r"'uncertainty' must be a mapping of rig geometry fields, got list"),
     ("intervals_90", {"pivot_mm": 20.1}, r"intervals_90.pivot_mm must be \[low, high\]"),
     ("intervals_90", {"pivot_mm": [19.0, 20.1, 21.0]}, r"intervals_90.pivot_mm must be \[low, high\]"),
+    ("reference_centroid_mm", [True, 0.0, 0.0], r"expected a number or null, got True"),  # was x = 1 mm
+    ("version", True, r"unsupported calibration version True"),  # was version 1: its missing keys unchecked
 ])
 def test_a_hand_edited_section_is_refused_naming_its_key(tmp_path, section, value, message):
     """Before: a typo's key was kept unread (its interval never checked against the estimate), a negative standard
