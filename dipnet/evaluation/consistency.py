@@ -741,9 +741,10 @@ def _findings(c: Consistency, symmetry_order: int = 1, quantum: Quantum | None =
                    f"{c.reading_noise_mm3:.3g} {c.volume_unit}): the solvers' prior weights, set from it, over-smooth "
                    f"the shape, and the residual limit ({c.residual_limit:.3f}) it sets is too generous to show it. "
                    "Correct the sensor's noise_sigma or snr_db (or leave the noise unstated to have it estimated)")
-    elif c.noise_source == "sigma" and c.profile_residual < RESIDUAL_NOISE_SHARE_MIN * min(c.profile_residual_expected,
-                                                                                         1.0) \
-            and not c.underdetermined:  # dips too few to determine a shape leave room to fit their noise
+    elif c.noise_source == "sigma" and not c.underdetermined \
+            and c.profile_residual < RESIDUAL_NOISE_SHARE_MIN * min(c.profile_residual_expected, 1.0):
+        # dips too few to determine a shape (underdetermined) leave room to fit their noise; what the noise explains
+        # counts up to 1, what the empty shape leaves
         out.append(f"the result fits its dips far closer than their stated noise allows: relative profile residual "
                    f"{c.profile_residual:.3g}, {c.profile_residual / c.profile_residual_expected:.2f} of the "
                    f"{c.profile_residual_expected:.3g} the stated noise explains (a shape that fits the dips and not "
