@@ -179,7 +179,7 @@ def preprocess(raw: RawScan, *, edges=None, grid: Grid | None = None, n_slabs: i
                                       slab_mm=float(edges[1] - edges[0]))
     header = raw.header
     if check_step:
-        _check_step(_stage_step(raw), float(edges[1] - edges[0]))
+        check_stage_step(raw, float(edges[1] - edges[0]))
     area = cross_section_mm2 if cross_section_mm2 is not None else header.tank_cross_section_mm2
     if area is None:
         raise ValueError("the tank cross-section is unknown: pass cross_section_mm2 (mm^2; mm in 2D)")
