@@ -23,6 +23,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real
 from dipnet.core.grid import Grid, as_grid
 
 
@@ -121,8 +122,8 @@ def check_supersample(supersample: int) -> int:
     Args:
         supersample: sub-voxel points per axis, as given to :meth:`Shape.occupancy`.
     """
-    number = isinstance(supersample, (int, float, np.integer, np.floating)) and not isinstance(supersample, bool)
-    if not (number and np.isfinite(supersample) and supersample >= 1 and int(supersample) == supersample):
+    if not (is_real(supersample) and np.isfinite(supersample) and supersample >= 1
+            and int(supersample) == supersample):
         raise ValueError(f"supersample must be a positive integer, got {supersample!r}")
     return int(supersample)
 
