@@ -27,6 +27,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from dipnet.calibration.model import CalibrationError
 from dipnet.calibration.self_calibration import SelfCalibrator, check_section_change
 from dipnet.core.keywords import accepted_keywords
+from dipnet.operators import ALIASES
+from dipnet.operators import fourier
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.preprocessing.sources import RecordedSource
 from dipnet.preprocessing.symmetry import MAX_MERGE_DEG
@@ -380,12 +382,27 @@ def check_prior_weights(cfg: DictConfig) -> None:
                     raise ConfigError(f"{path}.priors.{name}.weight: {exc}") from None
 
 
+def check_operator(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for a bad option of ``operator=fourier``
+    (:func:`dipnet.operators.fourier.check_options`) before any work: the operator is built only once the dips are
+    measured, and ``operator.upsampfac=nan`` crashed the process there (segmentation fault in finufft)."""
+    node = cfg.get("operator")
+    if not isinstance(node, DictConfig) or ALIASES.get(node.get("backend"), node.get("backend")) != "fourier":
+        return
+    keys = [k for k in accepted_keywords(fourier.check_options) or () if k in node]
+    try:
+        fourier.check_options(**{k: node.get(k) for k in keys})
+    except ValueError as exc:
+        raise ConfigError(f"operator.{exc}") from None
+
+
 def check_values(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for an option of :file:`conf/config.yaml` out of its range."""
     check_grid_options(cfg)
     check_thresholds(cfg)
     check_prior_weights(cfg)
     check_target_counts(cfg)
+    check_operator(cfg)
     check_self_calibration(cfg)
     check_symmetry(cfg)
     _integer(cfg, "seed", 0, 2.0 ** 32)

@@ -49,6 +49,7 @@ import finufft
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.grid import Grid
 from dipnet.operators.base import DipOperator
 
@@ -72,6 +73,32 @@ class _FourierApply(torch.autograd.Function):
 #: The largest NUFFT tolerance accepted: a random 24^3 volume's profiles err by 2.7e-5 at eps 1e-3, 2.2e-3 at
 #: 1e-2, 7.4e-3 at 3e-2 and 0.16 at 0.1 (relative, against eps 1e-9); a coarse eps ruins the operator silently.
 MAX_EPS = 1e-2
+#: The NUFFT oversampling factors finufft supports: it refuses 1 or less after the work before it, warns that
+#: values outside this range "may break the library", and a NaN crashed the process (segmentation fault).
+UPSAMPFAC_RANGE = (1.15, 3.0)
+
+
+def check_options(bandwidth: float = 4.0, axis_boost: float = 32.0, eps: float = 1e-6, nthreads: int | None = None,
+                  upsampfac: float | None = None, single: bool = False) -> None:
+    """Raise ``ValueError`` naming the option for a bad option of :class:`FourierOperator` (its defaults pass), so a
+    job can check them before any work (:func:`dipnet.jobs.options.check_operator`)."""
+    for name, value in (("bandwidth", bandwidth), ("axis_boost", axis_boost)):
+        if not is_real(value) or not 1.0 <= value < math.inf:
+            raise ValueError(f"{name} must be a finite number >= 1 (a multiple of the slab Nyquist frequency), "
+                             f"got {value!r}")
+    if not is_real(eps) or not 0.0 < eps <= MAX_EPS:
+        raise ValueError(f"eps (the NUFFT's relative tolerance) must lie in (0, {MAX_EPS:g}], got {eps!r}: "
+                         "finufft's error grows fast beyond it (0.2 % at 1e-2, 16 % at 0.1 on a 24^3 grid)")
+    if not isinstance(single, bool):
+        raise ValueError(f"single must be true or false, got {single!r}")
+    if single and eps < 1e-5:
+        raise ValueError(f"single-precision NUFFT needs eps >= 1e-5, got eps={eps!r}")
+    low, high = UPSAMPFAC_RANGE
+    if upsampfac is not None and (not is_real(upsampfac) or not low <= upsampfac <= high):
+        raise ValueError(f"upsampfac (the NUFFT's oversampling factor) must be null (finufft's choice) or a number "
+                         f"in [{low:g}, {high:g}] (finufft's range), got {upsampfac!r}")
+    if nthreads is not None:
+        whole_number("nthreads (NUFFT threads; null: as many as torch uses)", nthreads, 1)
 
 
 class FourierOperator(DipOperator):
@@ -99,15 +126,9 @@ class FourierOperator(DipOperator):
                  bandwidth: float = 4.0, axis_boost: float = 32.0, eps: float = 1e-6,
                  nthreads: int | None = None, upsampfac: float | None = None, single: bool = False) -> None:
         super().__init__(grid, directions, n_slabs)
-        if not bandwidth >= 1.0 or not axis_boost >= 1.0:
-            raise ValueError(f"bandwidth and axis_boost must be >= 1, got {bandwidth!r}, {axis_boost!r}")
+        check_options(bandwidth, axis_boost, eps, nthreads, upsampfac, single)
         self.bandwidth, self.axis_boost = float(bandwidth), float(axis_boost)
         self.eps = float(eps)
-        if not 0.0 < self.eps <= MAX_EPS:
-            raise ValueError(f"eps (the NUFFT's relative tolerance) must lie in (0, {MAX_EPS:g}], got {eps!r}: "
-                             "finufft's error grows fast beyond it (0.2 % at 1e-2, 16 % at 0.1 on a 24^3 grid)")
-        if single and self.eps < 1e-5:
-            raise ValueError(f"single-precision NUFFT needs eps >= 1e-5, got eps={eps!r}")
         self.single = bool(single)
         self._complex = np.complex64 if self.single else np.complex128
         self.upsampfac = None if upsampfac is None else float(upsampfac)

@@ -120,6 +120,13 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("output.resolvability=off", "output.resolvability must be true or false, got 'off'"),
     ("output.progress=no", "output.progress must be true or false, got 'no'"),
     ("operator=fourier operator.single=no", "operator.single must be true or false, got 'no'"),
+    # upsampfac=nan crashed the job in finufft (segmentation fault) after the dips were simulated; 1 or less ended
+    # in finufft's "opts.upsampfac not > 1.0", naming no option
+    ("operator=fourier operator.upsampfac=nan", r"operator.upsampfac \(the NUFFT's oversampling factor\) must be "
+                                                r"null \(finufft's choice\) or a number in \[1.15, 3\].*got nan"),
+    ("operator=fourier operator.upsampfac=1", r"operator.upsampfac .*got 1$"),
+    ("operator=fourier operator.eps=0.1", r"operator.eps \(the NUFFT's relative tolerance\) must lie in \(0, 0.01\]"),
+    ("operator=fourier +operator.nthreads=-1", r"operator.nthreads .* must be a whole number >= 1, got -1"),
     ("shape=mesh shape.path=m.ply shape.fill_sealed_voids=no", "shape.fill_sealed_voids must be true or false"),
     ("solver.threshold=2.0", r"solver.threshold must be an occupancy level in \(0, 1\) or the solver's rule "
                              r"\(otsu, volume\), got 2.0"),

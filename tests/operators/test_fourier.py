@@ -50,11 +50,29 @@ def test_fourier_single_precision_keeps_accuracy_and_adjoint():
         FourierOperator(grid, dirs, 20, eps=1e-7, single=True)
 
 
-@pytest.mark.parametrize("option", [{"bandwidth": 0.5}, {"axis_boost": 0.0}, {"bandwidth": float("nan")}])
+@pytest.mark.parametrize("option", [{"bandwidth": 0.5}, {"axis_boost": 0.0}, {"bandwidth": float("nan")},
+                                    {"bandwidth": float("inf")}, {"axis_boost": True}])
 def test_bandwidths_below_the_slab_nyquist_are_refused(option):
+    """Before: an infinite bandwidth ended in numpy's "repeats may not contain negative values", ``True`` ran as 1."""
     grid = Grid(8, 3)
-    with pytest.raises(ValueError, match="bandwidth and axis_boost must be >= 1"):
+    name = next(iter(option))
+    with pytest.raises(ValueError, match=f"{name} must be a finite number >= 1"):
         FourierOperator(grid, generic_directions(2, 3), **option)
+
+
+@pytest.mark.parametrize("option,message", [
+    # NaN: segmentation fault in finufft; <= 1: finufft's "opts.upsampfac not > 1.0" at the first transform
+    ({"upsampfac": float("nan")}, r"upsampfac \(the NUFFT's oversampling factor\) must be null"),
+    ({"upsampfac": 1.0}, r"upsampfac .* in \[1.15, 3\] \(finufft's range\), got 1.0"),
+    ({"upsampfac": 0}, r"upsampfac .*got 0"),  # ran as finufft's choice, unsaid
+    ({"nthreads": -1}, r"nthreads .* must be a whole number >= 1, got -1"),  # ran as the default
+    ({"nthreads": 2.5}, "nthreads .* must be a whole number, got 2.5"),  # ran 2 threads
+    ({"single": "no", "eps": 1e-3}, "single must be true or false, got 'no'"),  # ran in complex64
+])
+def test_nufft_options_are_checked_before_any_transform(option, message):
+    with pytest.raises(ValueError, match=message):
+        FourierOperator(Grid(8, 3), generic_directions(2, 3), **option)
+    FourierOperator(Grid(8, 3), generic_directions(2, 3), upsampfac=1.25, nthreads=1)  # in range
 
 
 def test_the_tolerance_is_limited_to_where_the_operator_stays_accurate():
