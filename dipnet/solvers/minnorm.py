@@ -151,8 +151,8 @@ class MinNormSolver(Solver):
                  progress: bool = True) -> None:
         if method not in METHODS:
             raise ValueError(f"unknown minnorm method {method!r}; choose one of {METHODS}")
-        if not 0 <= tikhonov < math.inf:  # inf damps every voxel to 0: an empty result
-            raise ValueError(f"tikhonov must be a finite number >= 0 (relative Tikhonov weight), got {tikhonov}")
+        if not is_real(tikhonov) or not 0 <= tikhonov < math.inf:  # inf damps every voxel to 0: an empty result
+            raise ValueError(f"tikhonov must be a finite number >= 0 (relative Tikhonov weight), got {tikhonov!r}")
         iter_lim = whole_number("iter_lim", iter_lim, low=1)
         max_cholesky_rows = whole_number("max_cholesky_rows", max_cholesky_rows, low=1)
         self.method, self.tikhonov, self.iter_lim = method, float(tikhonov), iter_lim
@@ -160,6 +160,10 @@ class MinNormSolver(Solver):
                                  ("max_cholesky_bytes", max_cholesky_bytes, 1.0)):  # NaN compares false: no limit
             if not is_real(value) or not low <= value < math.inf:
                 raise ValueError(f"{name} must be a finite number >= {low:g}, got {value!r}")
+        for name, value in (("atol", atol), ("btol", btol)):  # relative: 1 or more stops at the first step, x ~ 0
+            if value >= 1:
+                raise ValueError(f"{name} must be below 1 (a relative stopping tolerance of lsqr / lsmr: 1 or more "
+                                 f"is met by the first iterate, which explains little of the dips), got {value!r}")
         self.atol, self.btol, self.rcond = float(atol), float(btol), float(rcond)
         self.threshold = checked_threshold(threshold, "otsu")
         self.max_cholesky_rows, self.progress = max_cholesky_rows, checked_flag("progress", progress)

@@ -149,6 +149,11 @@ def test_fixed_threshold_and_bad_options():
     for name in ("atol", "btol", "rcond", "max_cholesky_bytes"):  # rcond=nan: an empty result; bytes=nan: no limit
         with pytest.raises(ValueError, match=f"{name} must be a finite number"):
             MinNormSolver(**{name: math.nan})
+    with pytest.raises(ValueError, match="tikhonov must be a finite number >= 0 .*got 'abc'"):
+        MinNormSolver(tikhonov="abc")  # was: "'<=' not supported between instances of 'int' and 'str'"
+    for name in ("atol", "btol"):  # was: btol=2 stopped lsmr at its first iterate, a shape far off its dips, exit 0
+        with pytest.raises(ValueError, match=f"{name} must be below 1 .*got 2"):
+            LSMRSolver(**{name: 2})
     with pytest.raises(ValueError, match="threshold"):
         MinNormSolver(threshold="mean")
 
