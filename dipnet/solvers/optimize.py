@@ -44,7 +44,7 @@ from dipnet.solvers.base import (SIGMA_FLOOR, SMOOTHED_NOISE_MODEL, Solver, chec
 from dipnet.solvers.checkpoint import solver_settings, tensor_digest
 from dipnet.solvers.noise_covariance import correlated_precision
 from dipnet.solvers.progress import stop_bar
-from dipnet.solvers.priors import SymmetryPrior, build_priors
+from dipnet.solvers.priors import SymmetryPrior, build_priors, checked_priors
 from dipnet.solvers.weights import KNOWN_NOISE, WeightRule, auto_names, noise_level, with_weight
 from dipnet.solvers.learned import object_fill
 from dipnet.solvers.surface_refit import SurfaceRefit
@@ -515,7 +515,7 @@ class OptimisationSolver(Solver):
             whole_number(name, value, low=1)
         if not is_real(lr) or not 0 < lr < math.inf:
             raise ValueError(f"lr must be a positive, finite learning rate, got {lr!r}")
-        priors = plain(priors or {})
+        priors = plain(checked_priors("priors", priors) or {})
         self.weight_rule = WeightRule.from_options(plain(weight_rule or {}))
         build_priors(with_weight(priors, self.weight_rule.start), volume_fraction=1.0)  # validate now
         self.iterations, self.lr, self.optimizer, self.schedule = int(iterations), float(lr), optimizer, schedule

@@ -318,6 +318,19 @@ def prior_weight(name: str, weight: float) -> float:
     return weight
 
 
+def checked_priors(name: str, spec):
+    """``spec`` (the option ``name``: ``priors``, ``later_priors``), unless it is neither null nor a mapping
+    ``{prior: options}``.
+
+    Raises:
+        ValueError: naming the option (was: ``solver.later_priors=5`` "'int' object has no attribute 'items'").
+    """
+    if spec is not None and not isinstance(spec, Mapping):
+        raise ValueError(f"{name} must be null or a mapping {{prior: options}} with priors from {sorted(PRIORS)}, e.g. "
+                         f"{{tv: {{weight: 1.0e-3}}}}, got {spec!r}")
+    return spec
+
+
 def build_priors(spec: Mapping[str, Mapping] | None, volume_fraction: float | None = None
                  ) -> list[tuple[str, float, nn.Module]]:
     """``[(name, weight, module)]`` for the priors of ``spec`` with a non-zero weight; the options of those of weight 0

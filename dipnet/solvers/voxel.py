@@ -34,6 +34,7 @@ anchors to ``D2`` (trained on round-1 results, the artifacts it meets there), an
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
 
@@ -41,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dipnet.core.counts import whole_number
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.operators import DipOperator, backend_name, make_operator
@@ -50,7 +51,7 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.core.flags import checked_flag
 from dipnet.solvers.base import checked_temperatures, on_operator_slabs
 from dipnet.solvers.optimize import OptimisationSolver, merge_histories, plain, seeded
-from dipnet.solvers.priors import build_priors
+from dipnet.solvers.priors import build_priors, checked_priors
 from dipnet.solvers.weights import KNOWN_NOISE, prior_options, with_weight
 
 _CLIP = 0.02  # initial occupancies are clipped to [_CLIP, 1 - _CLIP] before taking logits
@@ -97,14 +98,16 @@ class VoxelSolver(OptimisationSolver):
                                       "volume": {"weight": 0.0}})
         super().__init__(**options)
         temperature_start, temperature_end = checked_temperatures(temperature_start, temperature_end)
-        if not 0 <= coarse_fraction < 1:
-            raise ValueError(f"coarse_fraction must be in [0, 1), got {coarse_fraction}")
+        if not is_real(coarse_fraction) or not 0 <= coarse_fraction < 1:
+            raise ValueError(f"coarse_fraction must be in [0, 1), got {coarse_fraction!r}")
         rounds, min_rounds = whole_number("rounds", rounds, low=1), whole_number("min_rounds", min_rounds, low=1)
-        if rounds_tau is not None and not rounds_tau > 0:
-            raise ValueError(f"rounds_tau must be positive or None, got {rounds_tau!r}")
+        if rounds_tau is not None and (not is_real(rounds_tau) or not 0 < rounds_tau < math.inf):
+            raise ValueError(f"rounds_tau must be a positive, finite number or null (the data term's limit, in noise "
+                             f"units), got {rounds_tau!r}")
         if not 1 <= int(min_rounds) <= int(rounds):
             raise ValueError(f"min_rounds must be in [1, rounds={rounds}], got {min_rounds!r}")
         self.min_rounds = int(min_rounds)
+        later_priors = checked_priors("later_priors", later_priors)
         self.later_priors = None if later_priors is None else self._merged(plain(later_priors))
         if self.later_priors is not None:
             build_priors(with_weight(self.later_priors, self.weight_rule.start), volume_fraction=1.0)  # validate now

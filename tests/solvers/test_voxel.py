@@ -128,6 +128,17 @@ def test_optimise_validates_and_records_history():
         VoxelSolver(priors={"tvv": {"weight": 1.0}})
 
 
+@pytest.mark.parametrize("option,message", [
+    ({"later_priors": 5}, r"later_priors must be null or a mapping \{prior: options\}.*got 5"),  # 'int' ... 'items'
+    ({"priors": 5}, r"priors must be null or a mapping \{prior: options\}.*got 5"),
+    ({"rounds_tau": "abc"}, r"rounds_tau must be a positive, finite number or null .*got 'abc'"),  # '>' not supported
+    ({"coarse_fraction": "abc"}, r"coarse_fraction must be in \[0, 1\), got 'abc'"),  # '<=' not supported
+])
+def test_options_of_the_wrong_type_are_refused_naming_the_option(option, message):
+    with pytest.raises(ValueError, match=message):
+        VoxelSolver(**option)
+
+
 def test_plateau_test_stops_on_a_flat_loss_and_not_on_a_falling_one():
     flat_after_10 = [1.0 / (i + 1) for i in range(10)] + [0.1] * 40
     assert plateaued(flat_after_10, tol=1e-3, window=10)
