@@ -83,6 +83,10 @@ class ImplicitSolver(OptimisationSolver):
                                          ("hidden_layers", hidden_layers, 0, "hidden layers")):
             if isinstance(value, bool) or int(value) != value or value < low:  # 0 neurons: an empty shape
                 raise ValueError(f"{key} must be an integer >= {low} ({meaning}), got {value!r}")
+        for key, value, example in (("encoding", encoding, "{type: densegrid, levels: 6}"),
+                                    ("symmetry", symmetry, "{plane_normal: [1, 0, 0]}")):
+            if value is not None and not isinstance(value, Mapping):  # was: "'int' object has no attribute 'get'"
+                raise ValueError(f"{key} must be null or a mapping of its options, e.g. {example}, got {value!r}")
         self.encoding = plain(encoding) if encoding is not None else {
             "type": "densegrid", "levels": 6, "features": 2, "base_resolution": 4, "max_resolution": None}
         self.hidden_width, self.hidden_layers = int(hidden_width), int(hidden_layers)

@@ -90,6 +90,9 @@ def test_rejects_bad_options():
         ImplicitSolver(encoding={"type": "fourier", "freqs": 3})
     with pytest.raises(ValueError, match="symmetry options"):
         ImplicitSolver(symmetry={"mirror": [1, 0, 0]})
+    for key in ("encoding", "symmetry"):  # was: "'int' object has no attribute 'get'", naming no option
+        with pytest.raises(ValueError, match=f"{key} must be null or a mapping of its options, .*got 5"):
+            ImplicitSolver(**{key: 5})
     with pytest.raises(RuntimeError, match="solve"):
         ImplicitSolver().sample(Grid(8))
 
