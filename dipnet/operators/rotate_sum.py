@@ -22,6 +22,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from dipnet.core.counts import whole_number
 from dipnet.core.grid import Grid
 from dipnet.operators.base import DipOperator
 from dipnet.operators.splat import plane_slab_weights, planes_to_slabs, slabs_to_planes
@@ -72,7 +73,7 @@ class RotateSumOperator(DipOperator):
     def __init__(self, grid: Grid, directions: torch.Tensor, n_slabs: int | None = None, chunk: int = 8) -> None:
         super().__init__(grid, directions, n_slabs)
         self.register_buffer("slab_weights", plane_slab_weights(grid, self.n_slabs))
-        self.chunk = int(chunk)
+        self.chunk = whole_number("chunk (orientations rotated at once)", chunk, 1)  # 0, -1: obscure errors
         self.register_buffer("voxel_index", torch.nonzero(self.mask.reshape(-1)).squeeze(1))
         # grid_sample, align_corners=False: normalised coordinate = mm / (extent / 2) on every
         # rotated axis (the rotated grid has the same extent as the object grid).

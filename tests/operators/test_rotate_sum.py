@@ -60,3 +60,11 @@ def test_the_splat_computes_the_same_numbers(n_slabs):
     grid, dirs, x, _ = random_problem(3, seed=9)
     ref = RotateSumOperator(grid, dirs, n_slabs)(x)
     assert rel_error(SplatOperator(grid, dirs, n_slabs)(x), ref) < 1e-12
+
+
+@pytest.mark.parametrize("chunk", [0, -1, 2.5, True])
+def test_a_chunk_that_is_no_positive_whole_number_is_refused(chunk):
+    """Before: 0 "range() arg 3 must not be zero", -1 "torch.cat(): expected a non-empty list of Tensors", 2.5 and
+    ``True`` cut to 2 and 1, naming no option."""
+    with pytest.raises(ValueError, match=r"chunk \(orientations rotated at once\) must be a whole number"):
+        RotateSumOperator(Grid(8, 3), generic_directions(2, 3), chunk=chunk)
