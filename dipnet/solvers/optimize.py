@@ -529,6 +529,11 @@ class OptimisationSolver(Solver):
         if hull_tol is not None and not 0 <= hull_tol < 1:
             raise ValueError(f"hull_tol must be in [0, 1) or None, got {hull_tol}")
         self.threshold = checked_threshold(threshold, "volume")
+        if not (warm_start is None or isinstance(warm_start, (torch.Tensor, Reconstruction)) or callable(warm_start)
+                or hasattr(warm_start, "solve")):  # 5 was refused after the simulation, naming the tensor's shape
+            raise ValueError(f"warm_start must be null, a solver (a config with _target_, e.g. "
+                             f"{{_target_: dipnet.solvers.MinNormSolver}}), an occupancy tensor, a reconstruction "
+                             f"or a callable, got {warm_start!r}")
         self.warm_start, self.seed = warm_start, whole_number("seed", seed, low=0)  # 1.5 was cut to 1 unsaid
         self.progress = checked_flag("progress", progress)
         self.hull_tol = None if hull_tol is None else float(hull_tol)

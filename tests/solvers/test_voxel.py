@@ -89,6 +89,9 @@ def test_warm_start_from_solver_tensor_or_callable():
     torch.testing.assert_close(from_solver.occupancy, from_callable.solve(meas, op).occupancy)
     with pytest.raises(ValueError, match="warm start has shape"):
         VoxelSolver(warm_start=torch.zeros(5, 5), **opts).solve(meas, op)
+    for bad in (5, "minnorm", {"iterations": 3}):  # 5 was refused only after the simulation, naming a shape ()
+        with pytest.raises(ValueError, match=r"warm_start must be null, a solver .*got"):
+            VoxelSolver(warm_start=bad, **opts)
 
 
 def test_early_stopping_and_lbfgs():
