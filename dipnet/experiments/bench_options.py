@@ -19,7 +19,8 @@ def check_run_options(args: argparse.Namespace) -> None:
     Reads ``args.noise`` and ``args.snr`` (dB; checked only when ``"snr"`` or ``"unstated"`` noise is asked for;
     a benchmark without ``--noise`` is always noisy at ``--snr``), ``args.seed`` (``>= 0``), ``args.threads``
     (``None`` or ``>= 1``), ``args.json`` (``None`` or a file in an existing folder) and ``args.generated`` (the
-    number of generated test shapes, ``>= 0``; a benchmark without it generates none).
+    number of generated test shapes, ``>= 0``; a benchmark without it generates none) with ``args.generated_first``
+    (their first seed, ``>= 0``: was numpy's ``expected non-negative integer`` after the mesh cases, naming no option).
 
     Raises:
         ValueError: naming the first bad option and its value.
@@ -37,6 +38,9 @@ def check_run_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--json {args.json}: no folder {args.json.parent}")
     if getattr(args, "generated", 0) < 0:
         raise ValueError(f"--generated must be 0 or more, got {args.generated}")
+    if getattr(args, "generated", 0) and getattr(args, "generated_first", 0) < 0:  # numpy's seeds are >= 0
+        raise ValueError(f"--generated-first must be 0 or more (the seed of the first generated shape), "
+                         f"got {args.generated_first}")
 
 
 def thread_count(text: str) -> int:

@@ -29,6 +29,7 @@ def test_usable_run_options_pass(tmp_path):
     ({"threads": -2}, r"--threads must be 1 or more, got -2"),
     ({"json": Path("/nonexistent/dir/rows.json")}, r"--json /nonexistent/dir/rows.json: no folder /nonexistent/dir"),
     ({"generated": -2}, r"--generated must be 0 or more, got -2"),
+    ({"generated": 1, "generated_first": -1}, r"--generated-first must be 0 or more \(the seed of the first"),
 ])
 def test_each_bad_run_option_is_named(tmp_path, given, message):
     with pytest.raises(ValueError, match=message):

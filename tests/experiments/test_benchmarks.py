@@ -201,6 +201,7 @@ def test_a_mesh_name_the_quality_bench_does_not_find_is_refused(tmp_path):
     (["--noise", "snr", "--snr", "nan"], r"--snr: snr_db must be a number of dB in \[-20, 200\]"),
     (["--json", "{tmp}/missing/rows.json"], r"--json .*missing/rows\.json: no folder .*missing"),
     (["--generated", "-2"], r"--generated must be 0 or more, got -2"),
+    (["--generated", "1", "--generated-first", "-1"], r"--generated-first must be 0 or more"),
     (["--fill", "2"], r"--fill must be in \(0, 1\]"),
 ])
 def test_bad_options_of_the_quality_bench_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
