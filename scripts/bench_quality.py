@@ -83,6 +83,7 @@ from dipnet.solvers.deep_image_prior import DeepImagePriorSolver
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
+from dipnet.solvers import SOLVERS as SOLVER_CLASSES, check_solver_options
 
 SOLVERS = {"minnorm": MinNormSolver, "voxel": VoxelSolver, "implicit": ImplicitSolver, "dip": DeepImagePriorSolver,
            "prior": configured("voxel_learned"), "implicit_prior": configured("implicit_learned"), "truth": None}
@@ -194,6 +195,13 @@ def solver_options(specs: list[str]) -> dict[str, dict]:
         if not isinstance(out[name], dict):
             raise ValueError(f"--options {spec}: the options must be a JSON object of the solver's options, e.g. "
                              f"voxel='{{\"iterations\": 300}}' (got {out[name]})")
+        if name == "truth" and out[name]:
+            raise ValueError(f"--options {spec}: the truth row solves nothing and takes no options")
+        if name in SOLVER_CLASSES:  # was a TypeError traceback at its first solve, after the cases before it
+            try:
+                check_solver_options(name, out[name])
+            except TypeError as exc:
+                raise ValueError(f"--options {spec}: {exc}") from None
     return out
 
 

@@ -31,6 +31,15 @@ def make_solver(name: str, **options) -> Solver:
             that take them (an option of another solver), and its options."""
     if name not in SOLVERS:
         raise ValueError(f"unknown solver {name!r}; choose one of {sorted(SOLVERS)}")
+    check_solver_options(name, options)
+    return SOLVERS[name](**options)
+
+
+def check_solver_options(name: str, options: dict) -> None:
+    """Refuse ``options`` that the solver called ``name`` (a key of :data:`SOLVERS`) does not take.
+
+    Raises:
+        TypeError: as :func:`make_solver`, naming the closest option it takes or the solvers that take them."""
     takes = accepted_keywords(SOLVERS[name])
     unknown = sorted(set(options) - (takes or set(options)))
     if unknown:
@@ -42,8 +51,7 @@ def make_solver(name: str, **options) -> Solver:
                          f"{option} (an option of {', '.join(owners)})" if owners else option)
         raise TypeError(f"the {name} solver takes no option(s) {'; '.join(hints)}; its options: "
                         f"{', '.join(sorted(takes))}")
-    return SOLVERS[name](**options)
 
 
 __all__ = ["DeepImagePriorSolver", "ImplicitSolver", "LSMRSolver", "LSQRSolver", "MinNormSolver", "OptimisationSolver",
-           "SOLVERS", "VoxelSolver", "Solver", "make_solver", "measured_profiles"]
+           "SOLVERS", "VoxelSolver", "Solver", "check_solver_options", "make_solver", "measured_profiles"]

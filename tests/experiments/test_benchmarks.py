@@ -191,6 +191,9 @@ def test_a_mesh_name_the_quality_bench_does_not_find_is_refused(tmp_path):
     (["--from-json", "{tmp}/metrics.json"], r"--from-json .*metrics\.json: not the rows of a bench_quality\.py --json "
                                             r"run \(a list of objects holding mesh, .*; it holds a JSON dict\)"),
     (["--options", "voxel={{iterations: 3}}"], r"--options voxel=\{iterations: 3\}: the options must be a JSON object"),
+    (["--options", 'voxel={{"iteration": 3}}'], r'--options voxel=\{"iteration": 3\}: the voxel solver takes no '
+                                                r"option\(s\) iteration \(did you mean iterations\?\)"),
+    (["--options", 'truth={{"iterations": 3}}'], r"--options truth=.*: the truth row solves nothing"),
     (["--workers", "0"], r"--workers must be 1 or more, got 0"),
     (["--budgets", "0"], r"--budgets must be positive numbers of dips, got 0"),
     (["--n", "3"], r"grid resolution n must be an integer >= 4, got 3"),
