@@ -44,6 +44,7 @@ import logging
 import statistics
 import time
 import warnings
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -65,28 +66,36 @@ from dipnet.shapes import load_mesh
 from dipnet.shapes.mesh import MeshShape
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
-from dipnet.experiments.bench_options import thread_count
+from dipnet.experiments.bench_options import count_type, number_type, refuse_bad_run_options, thread_count
+from dipnet.jobs.cli import user_errors
 
 MESHES = ("bunny", "hammer", "part_B13", "spot")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--rigs", type=int, default=20, help="random rig geometries")
+    p.add_argument("--rigs", type=count_type(1, "random rigs"), default=20, help="random rig geometries")
     p.add_argument("--n", type=int, default=48, help="grid resolution N")
-    p.add_argument("--dips", type=int, default=123, help="number of dips (Fibonacci hemisphere)")
+    p.add_argument("--dips", type=count_type(1, "dips"), default=123, help="number of dips (Fibonacci hemisphere)")
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR (dB)")
     p.add_argument("--fill", type=float, default=0.8, help="mesh radius / working-ball radius")
-    p.add_argument("--iterations", type=int, default=300, help="voxel solver iterations per shape step")
+    p.add_argument("--iterations", type=count_type(1, "solver iterations"), default=300,
+                   help="voxel solver iterations per shape step")
     p.add_argument("--quick", action="store_true", help="3 rigs at 32^3, 80 solver iterations")
     p.add_argument("--threads", type=thread_count, default=2, help="torch threads")
     p.add_argument("--seed", type=int, default=2026)
-    p.add_argument("--ball-offset", type=float, default=25.0, metavar="MM",
-                   help="the second ball's centre off the spin axis (along x, mm)")
-    p.add_argument("--json", metavar="PATH", help="also write every rig's truth, estimates and intervals here")
+    p.add_argument("--ball-offset", type=number_type("mm off the spin axis", at_least=0), default=25.0,
+                   metavar="MM", help="the second ball's centre off the spin axis (along x, mm)")
+    p.add_argument("--json", type=Path, metavar="PATH",
+                   help="also write every rig's truth, estimates and intervals here")
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), rigs=3, n=32, iterations=80)
+    refuse_bad_run_options(p, args)  # --snr, --seed, --fill, --json: now, not at the first rig or after it
+    try:
+        Grid(args.n, 3)
+    except ValueError as exc:
+        p.error(f"--n: {exc}")
     return args
 
 
@@ -111,6 +120,12 @@ def self_truth(true: RigGeometry, t0: float) -> dict[str, float]:
 
 
 def main(argv=None) -> list[dict]:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2."""
+    with user_errors():
+        return run(argv)
+
+
+def run(argv=None) -> list[dict]:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     logging.getLogger("dipnet").setLevel(logging.ERROR)  # the reports' warnings are in the table

@@ -60,11 +60,13 @@ from dipnet.core.reconstruction import Reconstruction
 from dipnet.evaluation.consistency import RESIDUAL_FLOOR, RESIDUAL_FLOOR_VOXELS, allowed_residual, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.experiments.shape_pool import add_pool_options, shape_makers, shape_names, start_pool_run
+from dipnet.experiments.shape_pool import (add_pool_options, check_pool_options, shape_makers, shape_names,
+                                           start_pool_run)
 from dipnet.jobs.tuning import compose_job
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.base import measured_profiles
+from dipnet.jobs.cli import user_errors
 
 RADIUS_MM, FILL = 45.0, 0.9
 DIPS = {2: (10, 40), 3: (20, 80)}
@@ -110,6 +112,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), trials=2, shapes=QUICK_SHAPES)
+    check_pool_options(p, args)
     return args
 
 
@@ -236,6 +239,12 @@ def band(snr: float | None) -> str:
 
 
 def main(argv=None) -> list[dict]:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2, before any case."""
+    with user_errors():
+        return run(argv)
+
+
+def run(argv=None) -> list[dict]:
     """Run the benchmark; returns one row per checked result (reconstructions and candidates)."""
     args = parse_args(argv)
     rng = start_pool_run(args)

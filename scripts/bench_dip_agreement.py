@@ -36,12 +36,14 @@ from dipnet.core.grid import Grid
 from dipnet.core.orientations import fibonacci_hemisphere
 from dipnet.experiments.prior_pairs import plan_directions
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.experiments.shape_pool import add_pool_options, shape_makers, shape_names, start_pool_run
+from dipnet.experiments.shape_pool import (add_pool_options, check_pool_options, shape_makers, shape_names,
+                                           start_pool_run)
 from dipnet.preprocessing.datasets import CATS_CSV
 from dipnet.preprocessing.dip_agreement import OUTLIER_SHARE, OUTLIER_SIGMAS, dip_scores
 from dipnet.preprocessing.sources import read_recorded
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.jobs.cli import user_errors
 
 RADIUS_MM, FILL = 45.0, 0.9
 DIPS, RESOLUTIONS, RIG_SHARE, RIG_TILT_DEG = (12, 123), (24, 48), 1 / 3, 35.0
@@ -65,6 +67,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), trials=1, shapes=QUICK_SHAPES)
+    check_pool_options(p, args, random_resolution=True)
     return args
 
 
@@ -155,6 +158,12 @@ def print_table(rows: list[dict], cats: dict) -> None:
 
 
 def main(argv=None) -> list[dict]:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2, before any case."""
+    with user_errors():
+        return run(argv)
+
+
+def run(argv=None) -> list[dict]:
     """Run the benchmark; returns one row per scored scan."""
     args = parse_args(argv)
     names = shape_names(args.shapes, ndim=3)

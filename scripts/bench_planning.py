@@ -54,7 +54,7 @@ from dipnet.simulator.source import SimulatedDips, concatenate
 from dipnet.preprocessing.datasets import check_mesh_names, mesh_names, mesh_path
 from dipnet.core.grid import Grid
 from dipnet.evaluation.metrics import evaluate
-from dipnet.experiments.bench_options import check_run_options, thread_count
+from dipnet.experiments.bench_options import refuse_bad_run_options, thread_count
 from dipnet.operators import make_operator
 from dipnet.core.orientations import Reach, fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
@@ -112,15 +112,10 @@ def check_plan_options(p: argparse.ArgumentParser, args: argparse.Namespace) -> 
     """Refuse (``p.error``: one line, exit 2) before any mesh what a case would fail on after minutes of solves, or
     run on without a word: ``--fill`` outside (0, 1] (a mesh larger than the working ball, which the grid cannot
     hold), the loop's ``--budget`` / ``--batch`` / ``--initial``, the ``--cap-tilt`` reach, ``--large`` or ``--n``,
-    and the run options ``--snr``, ``--seed``, ``--threads``, ``--json`` (:func:`check_run_options`: ``--threads 0``
-    and ``--snr nan`` were tracebacks from the worker processes, after the first mesh's plans)."""
-    try:
-        check_run_options(args)
-    except ValueError as exc:
-        p.error(str(exc))
-    if not 0 < args.fill <= 1:
-        p.error(f"--fill must be in (0, 1] (the mesh's radius over the working ball's: above 1 the mesh reaches beyond "
-                f"the working ball, which the grid cannot hold), got {args.fill:g}")
+    and the run options ``--snr``, ``--seed``, ``--threads``, ``--json``
+    (:func:`~dipnet.experiments.bench_options.check_run_options`: ``--threads 0`` and ``--snr nan`` were tracebacks
+    from the worker processes, after the first mesh's plans)."""
+    refuse_bad_run_options(p, args)  # --fill among them
     try:
         Grid(args.n, 3)
         AdaptiveSettings(budget=args.budget, batch_size=args.batch, initial_dips=args.initial)

@@ -39,12 +39,14 @@ from dipnet.core.framing import extent_around
 from dipnet.core.grid import Grid
 from dipnet.evaluation.consistency import LEVEL_DROP_TOL, check_consistency
 from dipnet.evaluation.metrics import iou, reference_level
+from dipnet.experiments.bench_options import count_type
 from dipnet.experiments.quick_mode import apply_quick, given_options
-from dipnet.experiments.shape_pool import add_pool_options, shape_makers, shape_names
+from dipnet.experiments.shape_pool import add_pool_options, check_pool_options, shape_makers, shape_names
 from dipnet.jobs.tuning import compose_job
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.pockets import Pockets
 from dipnet.simulator.simulate import simulate_measurement
+from dipnet.jobs.cli import user_errors
 
 RADIUS_MM, FILL = 45.0, 0.9
 DIPS = (20, 60)
@@ -59,12 +61,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_pool_options(p, trials=1, resolution=32, shapes_help="the 3D shapes to dip (default: all; e.g. chamber_box_3d "
                      "boot)", json_help="also write every case's row to this JSON file")
-    p.add_argument("--dips", type=int, nargs=2, default=list(DIPS), metavar=("LOW", "HIGH"),
+    p.add_argument("--dips", type=count_type(1, "dips"), nargs=2, default=list(DIPS), metavar=("LOW", "HIGH"),
                    help="the range of the number of dips")
     p.add_argument("--quick", action="store_true", help=f"{len(QUICK_SHAPES)} shapes at 24^3, 20-30 dips")
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), shapes=QUICK_SHAPES, resolution=24, dips=[20, 30])
+    check_pool_options(p, args)
+    if args.dips[0] > args.dips[1]:  # was numpy's "low > high" traceback at the first case
+        p.error(f"--dips LOW HIGH: LOW must not be above HIGH, got {args.dips[0]} {args.dips[1]}")
     return args
 
 
@@ -112,6 +117,12 @@ def dip_counts(row: dict) -> tuple[int, int, int, int]:
 
 
 def main(argv=None) -> list[dict]:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2, before any case."""
+    with user_errors():
+        return run(argv)
+
+
+def run(argv=None) -> list[dict]:
     """Run the benchmark; returns one row per case."""
     args = parse_args(argv)
     torch.set_num_threads(args.threads)

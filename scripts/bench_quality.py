@@ -152,9 +152,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         raise ValueError(f"--workers must be 1 or more, got {args.workers}")
     if not 0 < args.max_tilt_deg <= 90:
         raise ValueError(f"--max-tilt-deg must be in (0, 90], got {args.max_tilt_deg:g}")
-    check_run_options(args)
-    if not 0 < args.fill <= 1:  # beyond the working ball the profiles lose volume past the grid's slabs
-        raise ValueError(f"--fill must be in (0, 1] (the mesh's radius over the working ball's), got {args.fill:g}")
+    check_run_options(args)  # --fill among them: beyond the working ball the profiles lose volume past the grid's slabs
     if min(args.budgets) < 1:
         raise ValueError(f"--budgets must be positive numbers of dips, got {' '.join(map(str, args.budgets))}")
     if args.dips:  # each solver at its own budgets, with --headline too (whose ratios take the smallest and largest)

@@ -39,7 +39,8 @@ from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.experiments.random_rigs import (BALL_POSITION_SD_MM, BALL_RADIUS, START_HEIGHT_SD_MM, covered, draw_rig,
                                            reference_ball)
 from dipnet.simulator.physics import DipProtocol, LevelSensor, Tank
-from dipnet.experiments.bench_options import thread_count
+from dipnet.experiments.bench_options import count_type, number_type, refuse_bad_run_options, thread_count
+from dipnet.jobs.cli import user_errors
 
 GRID_SPINS = (0.0, 90.0, 180.0, 270.0)
 
@@ -57,10 +58,10 @@ MIN_DETERMINED = 5  # a parameter determined on fewer rigs does not count for wo
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--rigs", type=int, default=24, help="random rig geometries")
+    p.add_argument("--rigs", type=count_type(1, "random rigs"), default=24, help="random rig geometries")
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR (dB)")
     p.add_argument("--seed", type=int, default=2026)
-    p.add_argument("--ball-offset", type=float, default=25.0, metavar="MM",
+    p.add_argument("--ball-offset", type=number_type("mm off the spin axis", at_least=0), default=25.0, metavar="MM",
                    help="the second ball's centre off the spin axis (along x, mm)")
     p.add_argument("--plans", nargs="+", choices=list(PLANS), default=["grid16", "fibonacci41"],
                    help="the plans to dip the ball along")
@@ -69,6 +70,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), rigs=5)
+    refuse_bad_run_options(p, args)  # --snr, --seed: now, not at the first rig
     return args
 
 
@@ -79,6 +81,12 @@ def standard_errors(report, truth: dict[str, float]) -> dict[str, float]:
 
 
 def main(argv=None) -> dict[tuple[str, str], dict[str, list]]:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2, before any case."""
+    with user_errors():
+        return run(argv)
+
+
+def run(argv=None) -> dict[tuple[str, str], dict[str, list]]:
     """Run the benchmark; returns, per (plan, ball), parameter -> ``[(covered, z), ...]`` over the rigs."""
     args = parse_args(argv)
     torch.set_num_threads(args.threads)

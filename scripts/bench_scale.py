@@ -52,7 +52,8 @@ from dipnet.shapes import load_mesh
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
-from dipnet.experiments.bench_options import thread_count
+from dipnet.experiments.bench_options import count_type, number_type, refuse_bad_run_options, thread_count
+from dipnet.jobs.cli import user_errors
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -60,15 +61,18 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="128^3, bunny, 3%% of N^2, clean, short voxel run")
     p.add_argument("--meshes", nargs="+", default=["bunny", "hand"], help="bundled mesh names")
     p.add_argument("--n", type=int, nargs="+", default=[64, 128, 240], help="grid resolutions N")
-    p.add_argument("--fractions", type=float, nargs="+", default=[0.01, 0.03, 0.10], help="dips as a share of N^2")
+    p.add_argument("--fractions", type=number_type("dips per N^2 (a share)", above=0), nargs="+",
+                   default=[0.01, 0.03, 0.10], help="dips as a share of N^2")
     p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=["clean", "snr"])
     p.add_argument("--snr", type=float, default=30.0, help="white-noise SNR in dB for --noise snr")
     p.add_argument("--solvers", nargs="*", default=["minnorm", "voxel"], choices=["minnorm", "voxel"])
     p.add_argument("--fill", type=float, default=0.9, help="mesh radius / working-ball radius")
-    p.add_argument("--minnorm-iters", type=int, default=60, help="LSMR iteration limit")
-    p.add_argument("--voxel-iters", type=int, default=200, help="voxel solver steps")
-    p.add_argument("--eps", type=float, default=1e-3, help="NUFFT tolerance of the fourier operator")
-    p.add_argument("--upsampfac", type=float, default=1.25, help="NUFFT oversampling of the fourier operator")
+    p.add_argument("--minnorm-iters", type=count_type(1, "LSMR iterations"), default=60, help="LSMR iteration limit")
+    p.add_argument("--voxel-iters", type=count_type(1, "voxel solver steps"), default=200, help="voxel solver steps")
+    p.add_argument("--eps", type=number_type("NUFFT tolerance", above=0),
+                   default=1e-3, help="NUFFT tolerance of the fourier operator")
+    p.add_argument("--upsampfac", type=number_type("NUFFT oversampling", above=1),
+                   default=1.25, help="NUFFT oversampling of the fourier operator")
     p.add_argument("--precision", choices=["single", "double"], default="single",
                    help="NUFFT arithmetic of the fourier operator (single: 1.65x faster at eps 1e-3)")
     p.add_argument("--threads", type=thread_count, default=1,
@@ -84,6 +88,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         check_mesh_names(args.meshes)
     except FileNotFoundError as exc:  # now, not after the meshes before it
         p.error(f"--meshes: {exc}")
+    refuse_bad_run_options(p, args)  # --snr, --fill, --json: now, not at the first noisy case or after the run
+    for n in args.n:
+        try:
+            Grid(n, 3)
+        except ValueError as exc:
+            p.error(f"--n: {exc}")
     return args
 
 
@@ -136,6 +146,12 @@ def make_solver(args, name: str, tag: str):
 
 
 def main(argv=None) -> dict[str, float]:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2, before any case."""
+    with user_errors():
+        return run(argv)
+
+
+def run(argv=None) -> dict[str, float]:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     result: dict[str, float] = {}

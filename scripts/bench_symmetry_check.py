@@ -38,7 +38,8 @@ from dipnet.preprocessing.symmetry_moments import P_LIMIT, group_closure, symmet
 from dipnet.simulator.physics import LevelSensor
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.priors import symmetry_maps
-from dipnet.experiments.bench_options import thread_count
+from dipnet.experiments.bench_options import count_type, refuse_bad_run_options, thread_count
+from dipnet.jobs.cli import user_errors
 
 RADIUS_MM, EXTENT_MM, RESOLUTION = 45.0, 100.0, 32
 DECLARATIONS = {
@@ -57,7 +58,7 @@ REFERENCE_DIPS = {2: 80, 3: 123}
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--trials", type=int, default=8, help="random scans per shape")
+    p.add_argument("--trials", type=count_type(1, "random scans per shape"), default=8, help="random scans per shape")
     p.add_argument("--shapes", nargs="+", metavar="NAME",
                    help="the shapes to dip (default: all; names as in the table, e.g. elephant_2d ball_3d bunny)")
     p.add_argument("--seed", type=int, default=2026)
@@ -66,6 +67,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), trials=2)
+    refuse_bad_run_options(p, args)  # --seed
     return args
 
 
@@ -96,6 +98,12 @@ def classify(misfit: float) -> str:
 
 
 def main(argv=None) -> list[dict]:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2, before any case."""
+    with user_errors():
+        return run(argv)
+
+
+def run(argv=None) -> list[dict]:
     """Run the benchmark; returns one row per (shape, declaration, trial)."""
     args = parse_args(argv)
     rng = start_pool_run(args)

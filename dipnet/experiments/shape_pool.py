@@ -17,7 +17,8 @@ import torch
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.shapes import builtin_shape, shape_from_file
 from dipnet.shapes.base import Shape
-from dipnet.experiments.bench_options import thread_count
+from dipnet.core.grid import Grid
+from dipnet.experiments.bench_options import count_type, refuse_bad_run_options, thread_count
 
 BUILTINS = {2: ("disk", "chamber_box", "elephant"), 3: ("ball", "box", "torus", "chamber_box")}
 
@@ -50,12 +51,27 @@ def add_pool_options(parser: argparse.ArgumentParser, *, trials: int, resolution
                      json_help: str = "also write every row to this JSON file") -> None:
     """Add the options of a benchmark over random scans of the pool to ``parser``: ``--trials`` (scans per shape),
     ``--shapes``, ``--resolution``, ``--seed`` (2026), ``--threads`` (2) and ``--json``."""
-    parser.add_argument("--trials", type=int, default=trials, help="random scans per shape")
+    parser.add_argument("--trials", type=count_type(1, "random scans per shape"), default=trials,
+                        help="random scans per shape")
     parser.add_argument("--shapes", nargs="+", metavar="NAME", help=shapes_help)
     parser.add_argument("--resolution", type=int, default=resolution, help=resolution_help)
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--threads", type=thread_count, default=2, help="torch threads")
     parser.add_argument("--json", type=Path, help=json_help)
+
+
+def check_pool_options(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
+                       random_resolution: bool = False) -> None:
+    """Refuse (``parser.error``: one line naming the option, exit 2) before any scan the options of
+    :func:`add_pool_options` that no case could use: ``--seed`` below 0 and ``--json`` in a missing folder
+    (:func:`~dipnet.experiments.bench_options.check_run_options`), a ``--resolution`` no grid takes (``0`` too unless
+    ``random_resolution``: a resolution drawn per case). ``--trials`` and ``--threads`` are checked by their types."""
+    refuse_bad_run_options(parser, args)
+    if not (random_resolution and args.resolution == 0):
+        try:
+            Grid(args.resolution, 3)
+        except ValueError as exc:
+            parser.error(f"--resolution: {exc}" + (" (or 0: drawn per case)" if random_resolution else ""))
 
 
 def start_pool_run(args: argparse.Namespace) -> np.random.Generator:

@@ -447,8 +447,9 @@ def test_the_dip_agreement_bench_scores_correct_scans_and_their_faults(capsys):
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert last.startswith("RESULT false_alarms=0.000 detected_swap=") and last.endswith(" cats_outliers=0 cases=2")
     for shapes in (["elephant_2d"], ["teapot"]):  # refused before the run sets its threads and quiets the log
-        with pytest.raises(ValueError, match="no shape named"):
+        with pytest.raises(SystemExit) as exit_:
             _main_in_this_process(bench, ["--shapes", *shapes])
+        assert exit_.value.code == 2 and "error: --shapes: no shape named" in capsys.readouterr().err
 
 
 def _consistency_row(kind, iou, residual, expected, snr_db=None, shape="ball_3d", seed=1):
@@ -552,3 +553,64 @@ def test_threads_below_one_are_refused_by_every_benchmark(script, threads, capsy
         load_script(script).parse_args(["--threads", threads])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and "error: argument --threads: must be " in err, err
+
+
+@pytest.mark.parametrize("script, argv, message", [
+    # bench_calibration: --rigs 0 was "StatisticsError: no median for empty data" after the run, rc 1; the others ran
+    # (--fill 2: a mesh past the working ball) or failed at the first rig (--snr nan, --seed -1, --dips 0), and --json
+    # in a missing folder after the first rig's minutes
+    ("bench_calibration", ["--quick", "--rigs", "0"], r"argument --rigs: must be 1 or more \(random rigs\), got 0"),
+    ("bench_calibration", ["--seed", "-1"], r"--seed must be 0 or more, got -1"),
+    ("bench_calibration", ["--snr", "nan"], r"--snr: snr_db must be a number of dB in \[-20, 200\]"),
+    ("bench_calibration", ["--fill", "2"], r"--fill must be in \(0, 1\]"),
+    ("bench_calibration", ["--dips", "0"], r"argument --dips: must be 1 or more \(dips\), got 0"),
+    ("bench_calibration", ["--iterations", "0"], r"argument --iterations: must be 1 or more"),
+    ("bench_calibration", ["--json", "/nonexistent/dir/rigs.json"], r"--json /nonexistent/dir/rigs.json: no folder"),
+    ("bench_calibration", ["--n", "3"], r"--n: grid resolution n must be an integer >= 4, got 3"),
+    ("bench_calibration", ["--ball-offset", "nan"], r"argument --ball-offset: must be a finite number of mm off"),
+    # bench_reference_plans: --snr nan was a ValueError traceback naming snr_db, rc 1
+    ("bench_reference_plans", ["--quick", "--rigs", "1", "--snr", "nan"], r"--snr: snr_db must be a number of dB"),
+    ("bench_reference_plans", ["--rigs", "0"], r"argument --rigs: must be 1 or more"),
+    ("bench_reference_plans", ["--seed", "-1"], r"--seed must be 0 or more, got -1"),
+    ("bench_reference_plans", ["--ball-offset", "-5"], r"argument --ball-offset: must be a finite number of mm off the "
+                                                       r"spin axis, 0 or more, got '-5'"),
+    # bench_symmetry_check --trials 0 ran 23 shapes of no trial, exit 0
+    ("bench_symmetry_check", ["--quick", "--trials", "0"], r"argument --trials: must be 1 or more \(random scans per"),
+    ("bench_symmetry_check", ["--seed", "-3"], r"--seed must be 0 or more, got -3"),
+    # the pool benchmarks (--trials, --seed, --resolution, --json of add_pool_options)
+    ("bench_dip_agreement", ["--trials", "0"], r"argument --trials: must be 1 or more"),
+    ("bench_dip_agreement", ["--resolution", "-1"], r"--resolution: grid resolution n must be an integer >= 4, got -1 "
+                                                    r"\(or 0: drawn per case\)"),
+    ("bench_dip_agreement", ["--json", "/nonexistent/dir/rows.json"], r"--json /nonexistent/dir/rows.json: no folder"),
+    ("bench_consistency", ["--resolution", "0"], r"--resolution: grid resolution n must be an integer >= 4, got 0"),
+    ("bench_consistency", ["--seed", "-1"], r"--seed must be 0 or more, got -1"),
+    ("bench_pockets", ["--dips", "30", "20"], r"--dips LOW HIGH: LOW must not be above HIGH, got 30 20"),
+    ("bench_pockets", ["--dips", "0", "5"], r"argument --dips: must be 1 or more \(dips\), got 0"),
+    ("bench_pockets", ["--resolution", "2"], r"--resolution: grid resolution n must be an integer >= 4, got 2"),
+    # bench_scale checked --meshes and --threads only
+    ("bench_scale", ["--n", "3"], r"--n: grid resolution n must be an integer >= 4, got 3"),
+    ("bench_scale", ["--fractions", "0"], r"argument --fractions: must be a finite number of dips per N\^2"),
+    ("bench_scale", ["--snr", "nan"], r"--snr: snr_db must be a number of dB"),
+    ("bench_scale", ["--fill", "0"], r"--fill must be in \(0, 1\]"),
+    ("bench_scale", ["--eps", "-1"], r"argument --eps: must be a finite number of NUFFT tolerance above 0"),
+    ("bench_scale", ["--upsampfac", "1"],
+     r"argument --upsampfac: must be a finite number of NUFFT oversampling above 1"),
+    ("bench_scale", ["--voxel-iters", "0"], r"argument --voxel-iters: must be 1 or more"),
+    ("bench_scale", ["--json", "/nonexistent/dir/rows.json"], r"--json /nonexistent/dir/rows.json: no folder"),
+])
+def test_bad_options_of_every_benchmark_are_refused_before_any_case(script, argv, message, capsys):
+    """Each benchmark refuses its own flags in ``parse_args`` (the shared types and checks of
+    ``dipnet.experiments.bench_options``): argparse's one line naming the flag, exit 2, before any case."""
+    with pytest.raises(SystemExit) as exit_:
+        load_script(script).parse_args(argv)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and re.search(f"error: {message}", err), err
+
+
+def test_a_bad_shape_name_is_one_line_and_exit_2(capsys):
+    """The benchmarks' ``main`` runs under ``user_errors``: a ``ValueError`` before the cases (here ``--shapes`` naming
+    no shape) was a traceback, exit 1; now one ``error:`` line, exit 2."""
+    with pytest.raises(SystemExit) as exit_:
+        load_script("bench_dip_agreement").main(["--shapes", "nosuch", "--threads", "1"])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.startswith("error: --shapes: no shape named nosuch") and err.count("\n") == 1
