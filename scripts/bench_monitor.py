@@ -34,7 +34,10 @@ import threading
 import time
 from pathlib import Path
 
+from dipnet.core.grid import Grid
+from dipnet.experiments.bench_options import count_type, number_type
 from dipnet.experiments.quick_mode import apply_quick, given_options
+from dipnet.jobs.cli import user_errors
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -118,19 +121,38 @@ def refresh_times(scan: Path, resolution: int, fractions: tuple[float, ...]) -> 
     return out
 
 
-def main() -> None:
+def parse_args(argv=None) -> argparse.Namespace:
+    """The options, each refused before any scan when no run could use it (one line naming it, exit 2): ``--dips``,
+    ``--repeats`` (``0`` ran no scan and ended in a traceback), ``--step``,
+    ``--settle``, ``--resolution``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="6 dips of 28 readings, 2 runs each way, 2 updates timed")
-    p.add_argument("--dips", type=int, default=40)
-    p.add_argument("--step", type=float, default=2.0, help="lowering step (mm)")
-    p.add_argument("--settle", type=float, default=0.1, help="wait before each reading (s): the rig's pace")
-    p.add_argument("--repeats", type=int, default=3, help="runs with and without the monitor")
+    p.add_argument("--dips", type=count_type(1, "dips"), default=40)
+    p.add_argument("--step", type=number_type("mm", above=0), default=2.0, help="lowering step (mm)")
+    p.add_argument("--settle", type=number_type("seconds", at_least=0), default=0.1,
+                   help="wait before each reading (s): the rig's pace")
+    p.add_argument("--repeats", type=count_type(1, "runs each way"), default=3,
+                   help="runs with and without the monitor")
     p.add_argument("--resolution", type=int, default=48)
-    args = p.parse_args()
-    fractions = (0.25, 0.5, 0.75, 1.0)
+    args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
-        apply_quick(args, given_options(p), dips=6, step=4.0, repeats=2)
-        fractions = (0.5, 1.0)
+        apply_quick(args, given_options(p, argv), dips=6, step=4.0, repeats=2)
+    try:
+        Grid(args.resolution, 3)
+    except ValueError as exc:
+        p.error(f"--resolution: {exc}")
+    return args
+
+
+def main(argv=None) -> None:
+    """Run the benchmark; a bad option: one line ``error: ...`` and exit 2, before any scan."""
+    with user_errors():
+        run(argv)
+
+
+def run(argv=None) -> None:
+    args = parse_args(argv)
+    fractions = (0.5, 1.0) if args.quick else (0.25, 0.5, 0.75, 1.0)
     runs = {False: [], True: []}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.repeats):

@@ -69,18 +69,20 @@ def count_type(minimum: int, what: str) -> Callable[[str], int]:
     return parse
 
 
-def number_type(what: str, *, above: float | None = None, at_least: float | None = None) -> Callable[[str], float]:
+def number_type(what: str, *, above: float | None = None, at_least: float | None = None,
+                no_limit: bool = False) -> Callable[[str], float]:
     """The ``argparse`` type of a finite number of ``what`` (with its unit), ``above`` or ``at_least`` a bound when
-    given (e.g. ``number_type("seconds", above=0)``): argparse refuses ``nan``, ``inf`` and a value out of range in
-    one line naming the option, exit 2, before any work."""
+    given (e.g. ``number_type("seconds", above=0)``): argparse refuses ``nan``, ``inf`` (unless ``no_limit``: a
+    limit's ``inf`` is none) and a value out of range in one line naming the option, exit 2, before any work."""
     bound = f" above {above:g}" if above is not None else f", {at_least:g} or more" if at_least is not None else ""
+    bound += " (inf: no limit)" if no_limit else ""
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not math.isfinite(value) or (above is not None and value <= above) or \
+        if not (math.isfinite(value) or (no_limit and value == math.inf)) or (above is not None and value <= above) or \
                 (at_least is not None and value < at_least):
             raise argparse.ArgumentTypeError(f"must be a finite number of {what}{bound}, got {text!r}")
         return value

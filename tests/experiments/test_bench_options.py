@@ -86,3 +86,10 @@ def test_a_number_type_takes_finite_numbers_in_range():
     parser = _parser(offset=number_type("mm", at_least=0), step=number_type("mm", above=0), any=number_type("mm"))
     assert vars(parser.parse_args(["--offset", "0", "--step", "1e-3", "--any", "-5"])) == \
         {"offset": 0.0, "step": 1e-3, "any": -5.0}
+
+
+def test_a_limit_may_be_no_limit():
+    parser = _parser(limit=number_type("seconds", above=0, no_limit=True))
+    assert parser.parse_args(["--limit", "inf"]).limit == float("inf")
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--limit", "nan"])

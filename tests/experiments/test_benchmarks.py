@@ -597,6 +597,21 @@ def test_threads_below_one_are_refused_by_every_benchmark(script, threads, capsy
      r"argument --upsampfac: must be a finite number of NUFFT oversampling above 1"),
     ("bench_scale", ["--voxel-iters", "0"], r"argument --voxel-iters: must be 1 or more"),
     ("bench_scale", ["--json", "/nonexistent/dir/rows.json"], r"--json /nonexistent/dir/rows.json: no folder"),
+    # bench_monitor and bench_operator checked none (--repeats 0: no scan, then a traceback; --limit nan
+    # skipped no case, however long)
+    ("bench_monitor", ["--dips", "0"], r"argument --dips: must be 1 or more \(dips\), got 0"),
+    ("bench_monitor", ["--step", "nan"], r"argument --step: must be a finite number of mm above 0, got 'nan'"),
+    ("bench_monitor", ["--settle", "-1"], r"argument --settle: must be a finite number of seconds, 0 or more"),
+    ("bench_monitor", ["--repeats", "0"], r"argument --repeats: must be 1 or more \(runs each way\), got 0"),
+    ("bench_monitor", ["--resolution", "2"], r"--resolution: grid resolution n must be an integer >= 4, got 2"),
+    ("bench_operator", ["--sizes", "64", "3"], r"--sizes: grid resolution n must be an integer >= 4, got 3"),
+    ("bench_operator", ["--orientations", "0"], r"argument --orientations: must be 1 or more \(dips\), got 0"),
+    ("bench_operator", ["--limit", "nan"], r"argument --limit: must be a finite number of seconds above 0 \(inf: no "
+                                           r"limit\), got 'nan'"),
+    ("bench_operator", ["--memory-limit", "0"], r"argument --memory-limit: must be a finite number of GB above 0"),
+    ("bench_operator", ["--radon-size", "-5"], r"--radon-size: grid resolution n must be an integer >= 4, got -5 "
+                                               r"\(or 0: skip\)"),
+    ("bench_operator", ["--lsqr-iterations", "0"], r"argument --lsqr-iterations: must be 1 or more"),
 ])
 def test_bad_options_of_every_benchmark_are_refused_before_any_case(script, argv, message, capsys):
     """Each benchmark refuses its own flags in ``parse_args`` (the shared types and checks of
@@ -605,6 +620,11 @@ def test_bad_options_of_every_benchmark_are_refused_before_any_case(script, argv
         load_script(script).parse_args(argv)
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and re.search(f"error: {message}", err), err
+
+
+def test_the_operator_benchmark_takes_no_limit_and_no_radon_comparison():
+    args = load_script("bench_operator").parse_args(["--limit", "inf", "--memory-limit", "inf", "--radon-size", "0"])
+    assert (args.limit, args.memory_limit, args.radon_size) == (float("inf"), float("inf"), 0)
 
 
 def test_a_bad_shape_name_is_one_line_and_exit_2(capsys):
