@@ -153,6 +153,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     if not 0 < args.max_tilt_deg <= 90:
         raise ValueError(f"--max-tilt-deg must be in (0, 90], got {args.max_tilt_deg:g}")
     check_run_options(args)  # --fill among them: beyond the working ball the profiles lose volume past the grid's slabs
+    if not args.from_json and not args.meshes_dir.is_dir():  # was "no meshes found in ... (names None)"
+        raise ValueError(f"--meshes-dir {args.meshes_dir}: " + ("a file, not a folder of mesh files"
+                         if args.meshes_dir.exists() else "no such folder"))
     if min(args.budgets) < 1:
         raise ValueError(f"--budgets must be positive numbers of dips, got {' '.join(map(str, args.budgets))}")
     if args.dips:  # each solver at its own budgets, with --headline too (whose ratios take the smallest and largest)
@@ -269,6 +272,10 @@ def write_whole(path: Path, write: Callable[[Path], object]) -> None:
     os.replace(part, path)
 
 
+#: The mesh files of ``--meshes-dir``.
+MESH_SUFFIXES = (".ply", ".stl", ".obj", ".off")
+
+
 #: Solvers in order of cost, the dearest first: with ``--workers`` their rows start first, so the workers end together.
 COST_ORDER = ("implicit_prior", "prior", "implicit", "dip", "voxel", "minnorm", "truth")
 
@@ -371,7 +378,7 @@ def run(argv=None) -> list[dict]:
     if args.threads:
         torch.set_num_threads(args.threads)
     options = solver_options(args.options)
-    paths = sorted(p for p in args.meshes_dir.glob("*") if p.suffix.lower() in {".ply", ".stl", ".obj", ".off"})
+    paths = sorted(p for p in args.meshes_dir.glob("*") if p.suffix.lower() in MESH_SUFFIXES)
     if args.meshes:
         unknown = sorted(set(args.meshes) - {p.stem for p in paths} - {NO_MESH})
         if unknown:
@@ -379,8 +386,10 @@ def run(argv=None) -> list[dict]:
                              f"{', '.join(sorted(p.stem for p in paths)) or 'none'}; --meshes {NO_MESH} runs the "
                              "generated shapes alone)")
         paths = [p for p in paths if p.stem in set(args.meshes)]
-    if not paths and not args.generated:
-        raise ValueError(f"no meshes found in {args.meshes_dir} (names {args.meshes})")
+    if not paths and not args.generated:  # was "no meshes found in ... (names None)"
+        raise ValueError(f"no meshes found: nothing to run (--meshes {NO_MESH} and --generated 0: give --generated N)"
+                         if args.meshes else f"no meshes found: --meshes-dir {args.meshes_dir} holds no mesh file "
+                         f"({', '.join(MESH_SUFFIXES)}) and --generated is 0, so nothing would run")
     if args.generated:
         check_test_seeds(args.generated_first, args.generated)
     grid = Grid(args.n, 3)

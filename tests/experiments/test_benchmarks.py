@@ -206,6 +206,8 @@ def test_a_mesh_name_the_quality_bench_does_not_find_is_refused(tmp_path):
     (["--generated", "-2"], r"--generated must be 0 or more, got -2"),
     (["--generated", "1", "--generated-first", "-1"], r"--generated-first must be 0 or more"),
     (["--fill", "2"], r"--fill must be in \(0, 1\]"),
+    (["--meshes-dir", "{tmp}/nosuch"], r"--meshes-dir .*nosuch: no such folder"),
+    (["--meshes-dir", "{tmp}/cut.json"], r"--meshes-dir .*cut\.json: a file, not a folder of mesh files"),
 ])
 def test_bad_options_of_the_quality_bench_are_one_line_and_exit_2(tmp_path, capsys, argv, message):
     """A cut-short or foreign ``--from-json`` file, ``--options`` that are not JSON, ``--n 3``: tracebacks before
@@ -223,6 +225,18 @@ def test_bad_options_of_the_quality_bench_are_one_line_and_exit_2(tmp_path, caps
                     "minnorm", *argv])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and re.match(f"error: {message}", err), err
+
+
+def test_a_meshes_dir_without_meshes_says_so(tmp_path):
+    """A missing folder, a file, or a folder of no mesh was ``no meshes found in ... (names None)``; the last now says
+    what it holds and that --generated is 0 (a missing folder or a file: see the bad-options test)."""
+    bench = load_script("bench_quality")
+    with pytest.raises(ValueError, match=r"no meshes found: --meshes-dir .* holds no mesh file \(\.ply, \.stl, \.obj, "
+                                         r"\.off\) and --generated is 0, so nothing would run"):
+        bench.run(["--meshes-dir", str(tmp_path), "--cache", str(tmp_path / "cache")])
+    with pytest.raises(ValueError, match=r"no meshes found: nothing to run \(--meshes none and --generated 0"):
+        bench.run(["--meshes", "none", "--cache", str(tmp_path / "cache")])
+    assert not (tmp_path / "cache").exists()
 
 
 def test_the_headline_runs_the_solvers_and_budgets_of_dips():
