@@ -54,7 +54,7 @@ from dipnet.simulator.source import SimulatedDips, concatenate
 from dipnet.preprocessing.datasets import check_mesh_names, mesh_names, mesh_path
 from dipnet.core.grid import Grid
 from dipnet.evaluation.metrics import evaluate
-from dipnet.experiments.bench_options import refuse_bad_run_options, thread_count
+from dipnet.experiments.bench_options import count_type, refuse_bad_run_options, thread_count
 from dipnet.operators import make_operator
 from dipnet.core.orientations import Reach, fibonacci_hemisphere
 from dipnet.simulator.physics import LevelSensor
@@ -86,9 +86,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=thread_count, default=1, help="torch threads per process")
     p.add_argument("--jobs", type=int, default=None, help="meshes benchmarked in parallel processes (default 1; "
                    "--quick: 2, one per core)")
-    p.add_argument("--oracle", type=int, default=0, metavar="R",
+    p.add_argument("--oracle", type=count_type(0, "random rotations"), default=0, metavar="R",
                    help="also the best of the Fibonacci plan and R random rotations of it, chosen with the true shape")
-    p.add_argument("--oracle-pool", type=int, default=0, metavar="P",
+    p.add_argument("--oracle-pool", type=count_type(0, "candidates per dip"), default=0, metavar="P",
                    help="also the adaptive loop with a greedy planner that knows the true shape, trying P candidates "
                         "per dip")
     p.add_argument("--seed", type=int, default=0)

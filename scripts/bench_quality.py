@@ -62,7 +62,7 @@ import numpy as np
 import torch
 
 from dipnet.jobs.configured import check_test_seeds, configured
-from dipnet.experiments.bench_options import check_run_options
+from dipnet.experiments.bench_options import check_run_options, number_type
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.core.code_version import simulation_digest
@@ -114,7 +114,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=NOISES,
                    help="noise-free and/or level-sensor noise at --snr dB, stated (snr) or not (unstated)")
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR in dB for --noise snr")
-    p.add_argument("--quantum-mm", type=float, default=0.0,
+    p.add_argument("--quantum-mm", type=number_type("mm", at_least=0), default=0.0,
                    help="level-sensor resolution in mm (0: exact readings, so 'clean' is noise-free; the "
                         "simulator's default 0.01 mm is ~600 mm^3 in its 300 x 200 mm tank)")
     p.add_argument("--fill", type=float, default=0.9, help="mesh radius / working-ball radius")

@@ -345,6 +345,9 @@ def test_a_mesh_name_not_bundled_is_refused_before_any_case(script, capsys):
     (["--threads", "0"], r"argument --threads: must be 1 or more \(torch threads\), got 0"),
     (["--snr", "nan"], r"--snr: snr_db must be a number of dB in \[-20, 200\]"),
     (["--jobs", "0"], r"--jobs must be 1 or more \(meshes benchmarked at once\), got 0"),
+    # were taken as asked (a negative count of rotations or candidates)
+    (["--oracle", "-1"], r"argument --oracle: must be 0 or more \(random rotations\), got -1"),
+    (["--oracle-pool", "-1"], r"argument --oracle-pool: must be 0 or more \(candidates per dip\), got -1"),
 ])
 def test_bad_options_of_the_planning_bench_are_refused_before_any_mesh(capsys, argv, message):
     """The audit's case: ``--fill 2`` (a torus twice the working ball, 16^3) ran every plan and printed
@@ -602,6 +605,9 @@ def test_threads_below_one_are_refused_by_every_benchmark(script, threads, capsy
     ("bench_pockets", ["--dips", "0", "5"], r"argument --dips: must be 1 or more \(dips\), got 0"),
     ("bench_pockets", ["--resolution", "2"], r"--resolution: grid resolution n must be an integer >= 4, got 2"),
     # bench_scale checked --meshes and --threads only
+    # bench_quality --quantum-mm -1 / nan were an error naming quantum_mm, not the flag, at the first simulated case
+    ("bench_quality", ["--quantum-mm", "-1"], r"argument --quantum-mm: must be a finite number of mm, 0 or more"),
+    ("bench_quality", ["--quantum-mm", "nan"], r"argument --quantum-mm: must be a finite number of mm, 0 or more"),
     ("bench_scale", ["--n", "3"], r"--n: grid resolution n must be an integer >= 4, got 3"),
     ("bench_scale", ["--fractions", "0"], r"argument --fractions: must be a finite number of dips per N\^2"),
     ("bench_scale", ["--snr", "nan"], r"--snr: snr_db must be a number of dB"),
