@@ -345,7 +345,7 @@ def test_a_mesh_name_not_bundled_is_refused_before_any_case(script, capsys):
     (["--threads", "0"], r"argument --threads: must be 1 or more \(torch threads\), got 0"),
     (["--snr", "nan"], r"--snr: snr_db must be a number of dB in \[-20, 200\]"),
     (["--jobs", "0"], r"--jobs must be 1 or more \(meshes benchmarked at once\), got 0"),
-    # were taken as asked (a negative count of rotations or candidates)
+    # were a late error (--oracle -1: "negative dimensions are not allowed", naming no option)
     (["--oracle", "-1"], r"argument --oracle: must be 0 or more \(random rotations\), got -1"),
     (["--oracle-pool", "-1"], r"argument --oracle-pool: must be 0 or more \(candidates per dip\), got -1"),
 ])
