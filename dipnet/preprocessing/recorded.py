@@ -35,12 +35,14 @@ import csv
 import io
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.keywords import forwards_to
@@ -423,6 +425,44 @@ def interpolate_orientations(measurement: DipMeasurement, targets, k: int = 3, m
 
 
 # ============================================================================ the reader
+def check_reader_options(tail_fraction: float = 0.1, tail_tol: float = 0.04, interpolate: dict | None = None,
+                         fixture: str | Path | None = None, geometry=None) -> None:
+    """Raise ``ValueError`` naming the reader's option (``source.reader.*``) for a value no recording can use, before
+    the file is read: ``tail_fraction`` not a fraction in (0, 1] (0 and -1 looked at the last 2 readings, 2 an
+    ``IndexError``), ``tail_tol`` not a fraction in (0, 1) (NaN, inf or 2 kept every still-rising dip as complete,
+    0 flagged every dip), an ``interpolate`` that is not ``{n, k, max_angle_deg, tol_deg}`` with a count ``n`` and
+    ``k`` >= 1 and angles (deg) in range (``max_angle_deg=-1`` or NaN added no direction, without a word), a
+    ``fixture`` that is no file, a ``geometry`` that is no mapping of the rig's values."""
+    if not is_real(tail_fraction) or not 0 < tail_fraction <= 1:  # NaN fails too
+        raise ValueError(f"tail_fraction (source.reader.tail_fraction) must be a fraction in (0, 1] (the share of a "
+                         f"dip's last readings that tells a truncated dip; default 0.1), got {tail_fraction!r}")
+    if not is_real(tail_tol) or not 0 < tail_tol < 1:
+        raise ValueError(f"tail_tol (source.reader.tail_tol) must be a fraction in (0, 1) (the share of a dip's total "
+                         f"rise its tail may still rise; default 0.04), got {tail_tol!r}")
+    if interpolate is not None and not isinstance(interpolate, Mapping):
+        raise ValueError(f"interpolate (source.reader.interpolate) must be null or {{n, k, max_angle_deg, tol_deg}}, "
+                         f"got {interpolate!r}")
+    if interpolate:
+        unknown = sorted(str(key) for key in interpolate if key not in ("n", "k", "max_angle_deg", "tol_deg"))
+        if unknown or "n" not in interpolate:
+            raise ValueError(f"interpolate (source.reader.interpolate) takes n (the Fibonacci targets, required), k, "
+                             f"max_angle_deg and tol_deg, got {dict(interpolate)!r}")
+        whole_number("source.reader.interpolate.n", interpolate["n"], 1)
+        whole_number("source.reader.interpolate.k", interpolate.get("k", 3), 1)
+        for key, default, zero in (("max_angle_deg", 10.0, False), ("tol_deg", 0.5, True)):
+            value = interpolate.get(key, default)
+            if not is_real(value) or not (0 <= value if zero else 0 < value) or not value <= 180:  # NaN fails too
+                raise ValueError(f"source.reader.interpolate.{key} must be an angle (deg) in {'[' if zero else '('}0, "
+                                 f"180], got {value!r}")
+    if fixture is not None and (not isinstance(fixture, (str, Path)) or not Path(fixture).is_file()):
+        found = "a folder" if isinstance(fixture, (str, Path)) and Path(fixture).is_dir() else "no file"
+        raise ValueError(f"fixture (source.reader.fixture) must be a fixture-only recording's file (.jsonl, .csv) or "
+                         f"null, got {fixture!r} ({found})")
+    if geometry is not None and not isinstance(geometry, (RigGeometry, Mapping)):
+        raise ValueError(f"geometry (source.reader.geometry) must be a mapping of the rig's values (e.g. "
+                         f"{{pivot_mm: 188, tilt_axis_offset_mm: -18}}) or null, got {geometry!r}")
+
+
 def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = None, fixture: str | Path | None = None,
                       geometry: RigGeometry | dict | None = None, calibration: str | Path | None = None,
                       centre: str = "extent", truncated: str = "drop", tail_fraction: float = 0.1,
@@ -448,6 +488,7 @@ def prepare_recording(path: str | Path, *, cross_section_mm2: float | None = Non
     Returns ``(raw scan in the rig's commanded coordinates, geometry, info)``; ``info["calibration"]`` names the
     calibration file (path, rig, tank, method, created) when the geometry is one's.
     """
+    check_reader_options(tail_fraction, tail_tol, fixture=fixture, geometry=geometry)
     raw = read_scan(path)
     # the section the file states (the authors' CSV states none: its default is the authors' tank)
     stated = None if Path(path).suffix.lower() == ".csv" else raw.header.tank_cross_section_mm2
@@ -605,6 +646,7 @@ def read_raw_recording(path: str | Path, grid: Grid, n_slabs: int | None = None,
         The measurement, ``metadata["recorded"]`` holding what was done (geometry, start heights,
         dropped dips, counts, the tank section used and the one the file states).
     """
+    check_reader_options(interpolate=interpolate)  # before the recording is read and prepared
     raw, geometry, info = prepare_recording(path, max_cross_section=max_object_section(grid), ndim=grid.ndim,
                                             slab_mm=grid.extent / (n_slabs or grid.n), **options)
     # cleaned once, by prepare_recording: complete dips kept, outliers repaired

@@ -458,3 +458,33 @@ def test_rotary_geometry_values_for_a_2d_recording_are_refused_naming_the_option
                                          r"source.reader.geometry.tilt_zero_deg=1.5\) to move: leave them 0"):
         read_raw_recording(path, Grid(16, ndim=2, extent=80.0), geometry={"pivot_mm": 20.0, "tilt_zero_deg": 1.5})
     read_raw_recording(path, Grid(16, ndim=2, extent=80.0), geometry={"step_scale": 1.01})  # applies in 2D
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"tail_fraction": 0}, r"tail_fraction \(source.reader.tail_fraction\) must be a fraction in \(0, 1\]"),
+    ({"tail_fraction": -1}, r"source.reader.tail_fraction"),
+    ({"tail_fraction": 2.0}, r"source.reader.tail_fraction"),
+    ({"tail_fraction": "abc"}, r"source.reader.tail_fraction"),
+    ({"tail_tol": math.nan}, r"tail_tol \(source.reader.tail_tol\) must be a fraction in \(0, 1\)"),
+    ({"tail_tol": math.inf}, r"source.reader.tail_tol"),
+    ({"tail_tol": 2.0}, r"source.reader.tail_tol"),
+    ({"tail_tol": True}, r"source.reader.tail_tol"),
+    ({"tail_tol": 0}, r"source.reader.tail_tol"),
+    ({"interpolate": {"n": 100, "max_angle_deg": -1}}, r"source.reader.interpolate.max_angle_deg must be an angle"),
+    ({"interpolate": {"n": 100, "max_angle_deg": math.nan}}, r"source.reader.interpolate.max_angle_deg"),
+    ({"interpolate": {"n": 100, "k": 0}}, r"source.reader.interpolate.k must be a whole number >= 1"),
+    ({"interpolate": {"n": 2.5}}, r"source.reader.interpolate.n must be a whole number"),
+    ({"interpolate": {"bogus": 1}}, r"interpolate \(source.reader.interpolate\) takes n"),
+    ({"interpolate": 5}, r"interpolate \(source.reader.interpolate\) must be null or"),
+    ({"fixture": 5}, r"fixture \(source.reader.fixture\) must be a fixture-only recording's file"),
+    ({"fixture": "."}, r"source.reader.fixture.* \(a folder\)"),
+    ({"geometry": 5}, r"geometry \(source.reader.geometry\) must be a mapping"),
+])
+def test_reader_options_out_of_range_are_refused_naming_the_option(tmp_path, options, message):
+    """Before: ``tail_tol`` NaN, inf or 2 (and ``tail_fraction`` 0 or -1) read every still-rising dip as complete,
+    ``interpolate.max_angle_deg=-1`` or NaN added no direction, ``interpolate.k=0`` interpolated from 0 neighbours,
+    all without a word; ``tail_fraction=2`` raised an ``IndexError``, ``interpolate={bogus: 1}`` a ``KeyError: 'n'``,
+    ``fixture=5`` and ``geometry=5`` a ``TypeError``, naming no option. Each is now refused before the file is read."""
+    path = tmp_path / "missing.jsonl"  # never read: the options are refused first
+    with pytest.raises(ValueError, match=message):
+        read_raw_recording(path, Grid(16, extent=80.0), **options)
