@@ -42,6 +42,7 @@ from tqdm.auto import tqdm
 
 from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig, distinct_rig_angles, make_directions
 from dipnet.core.atomic_write import write_atomically
+from dipnet.core.counts import is_real
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
 from dipnet.core.rawscan_writer import RawScanWriter, check_resumable
 from dipnet.core.warn import log_and_warn
@@ -236,10 +237,14 @@ class ScanPlan:
                           "(config: rig.geometry.pivot_mm)", DeprecationWarning, stacklevel=3)
             self.geometry = self.geometry.with_values(pivot_mm=float(self.pivot_mm))
         self.orientations = [(float(t), float(s)) for t, s in self.orientations]
-        if not (math.isfinite(self.start_mm) and math.isfinite(self.stop_mm) and self.step_mm > 0
-                and self.stop_mm > self.start_mm):
+        for name in ("start_mm", "stop_mm", "step_mm", "safe_mm"):  # step_mm=abc: a TypeError; step_mm=true: 1 mm
+            value = getattr(self, name)
+            if not is_real(value) or not math.isfinite(value):
+                raise ValueError(f"protocol.{name} must be a finite number (mm), got {value!r}; nothing moved")
+        if not (self.step_mm > 0 and self.stop_mm > self.start_mm):
             raise ValueError(f"need step_mm > 0 and stop_mm > start_mm, got step {self.step_mm}, "
-                             f"start {self.start_mm}, stop {self.stop_mm}")
+                             f"start {self.start_mm}, stop {self.stop_mm} (protocol.step_mm, protocol.start_mm, "
+                             "protocol.stop_mm, mm); nothing moved")
         if self.origin_height_mm is not None and not math.isfinite(self.origin_height_mm):
             raise ValueError(f"rig.origin_height_mm must be a finite height (mm) or null, "
                              f"got {self.origin_height_mm!r}; nothing moved")

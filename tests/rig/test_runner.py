@@ -146,6 +146,21 @@ def test_a_negative_retries_or_settle_time_is_refused_before_anything_moves(prot
         ScanPlan([(0.0, 0.0)], start_mm=0.0, stop_mm=30.0, step_mm=10.0, **protocol)
 
 
+@pytest.mark.parametrize("protocol, message", [
+    ({"step_mm": "abc"}, r"protocol.step_mm must be a finite number \(mm\), got 'abc'; nothing moved"),
+    ({"step_mm": True}, r"protocol.step_mm must be a finite number \(mm\), got True"),
+    ({"stop_mm": "110"}, r"protocol.stop_mm must be a finite number \(mm\), got '110'"),
+    ({"start_mm": float("nan")}, r"protocol.start_mm must be a finite number \(mm\), got nan"),
+    ({"safe_mm": False}, r"protocol.safe_mm must be a finite number \(mm\), got False"),
+    ({"step_mm": -4.0}, r"need step_mm > 0 .* \(protocol.step_mm, protocol.start_mm, protocol.stop_mm, mm\)"),
+])
+def test_a_protocol_height_that_is_not_a_number_is_refused_naming_the_option(protocol, message):
+    """Before: ``scan.py protocol.step_mm=abc`` raised "TypeError: '>' not supported between instances of 'str' and
+    'int'" (a traceback), ``protocol.step_mm=true`` scanned with a 1 mm step (True is 1), without a word."""
+    with pytest.raises(ValueError, match=message):
+        ScanPlan([(0.0, 0.0)], **{"start_mm": 0.0, "stop_mm": 30.0, "step_mm": 10.0, **protocol})
+
+
 def test_a_step_that_leaves_a_dip_fewer_than_four_readings_is_refused_before_anything_moves():
     """The audit's protocol.step_mm=200 over a 30 mm dip read once per orientation and finished with exit 0;
     a plan of fewer than MIN_READINGS_PER_DIP readings is refused, naming the option. Four are enough."""
