@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Mapping
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -30,6 +31,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from dipnet.core.counts import is_real, whole_number
 from dipnet.core.locks import run_directory_lock
 from dipnet.core.orientations import check_grid_angles
 from dipnet.core.console import report
@@ -88,6 +90,13 @@ def check_scan_options(cfg: DictConfig) -> None:
         if not isinstance(value, bool) and not (value is None and key == "home"):
             raise ValueError(f"{key} must be true or false{' or null' if key == 'home' else ''}, got {value!r}; "
                              "nothing moved")
+    if not is_real(cfg.get("max_tilt_deg")):  # max_tilt_deg=true spread the dips over 1 deg; abc: "could not convert"
+        raise ValueError(f"max_tilt_deg must be a number of degrees (the rig's tilt limit, e.g. 90), got "
+                         f"{cfg.get('max_tilt_deg')!r}; nothing moved")
+    metadata = cfg.get("metadata")
+    if metadata is not None and not isinstance(metadata, Mapping):  # metadata=5: "'int' object is not iterable"
+        raise ValueError(f"metadata must be a mapping of free-form notes (e.g. '+metadata={{object: cat}}') or empty, "
+                         f"got {metadata!r}; nothing moved")
     if cfg.get("orientations") == "grid":
         check_grid_angles(cfg.get("tilts"), cfg.get("spins"), float(cfg.max_tilt_deg))
     elif cfg.get("tilts") is not None or cfg.get("spins") is not None:
@@ -107,7 +116,8 @@ def monitoring(cfg: DictConfig, path: Path):
         return nullcontext()
     from dipnet.monitor.launch import scan_monitor
 
-    return scan_monitor(path, port=int(cfg.get("monitor_port", 8765)))
+    # monitor_port=abc was "invalid literal for int() with base 10: 'abc'", 8765.5 cut to 8765
+    return scan_monitor(path, port=whole_number("monitor_port", cfg.get("monitor_port", 8765), 1))
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ from typing import Any
 
 from dipnet.core.calibration_file import TANK_CONFIG_KEY, Calibration, load_calibration
 from dipnet.core.geometry import RigGeometry, as_geometry
+from dipnet.core.counts import whole_number
 from dipnet.core.grid import Grid
 from dipnet.core.orientations import Reach
 from dipnet.core.rawscan import RawScan, ScanHeader, read_rawscan
@@ -59,8 +60,10 @@ def orientations_from_config(cfg) -> list[tuple[float, float]]:
         return None if value is None else OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) \
             else value
 
-    return plan_orientations(str(cfg.orientations), n=int(cfg.n_dips), tilts=angles("tilts"), spins=angles("spins"),
-                             seed=int(cfg.seed), max_tilt_deg=float(cfg.max_tilt_deg))
+    # n_dips=1.5 scanned 1 dip and seed=1.5 used seed 1, without a word; seed=abc was "invalid literal for int()"
+    return plan_orientations(str(cfg.orientations), n=whole_number("n_dips", cfg.n_dips, 1), tilts=angles("tilts"),
+                             spins=angles("spins"), seed=whole_number("seed", cfg.seed, 0),
+                             max_tilt_deg=float(cfg.max_tilt_deg))
 
 
 def register_fake_rig(cfg):

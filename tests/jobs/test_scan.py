@@ -152,6 +152,18 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
     (["home=no"], "error: home must be true or false or null, got 'no'; nothing moved"),
     (["confirm_position=off"], "error: confirm_position must be true or false, got 'off'; nothing moved"),
     (["fsync=no"], "error: fsync must be true or false, got 'no'; nothing moved"),
+    # before: n_dips=1.5 scanned 1 dip and seed=1.5 used seed 1, exit 0; seed=abc "invalid literal for int() with base
+    # 10: 'abc'"; metadata=5 "TypeError: 'int' object is not iterable" (a traceback); max_tilt_deg=true spread the
+    # dips over 1 deg
+    (["n_dips=1.5"], "error: n_dips must be a whole number, got 1.5 (2.5 is not cut to 2)"),
+    (["seed=1.5"], "error: seed must be a whole number, got 1.5 (2.5 is not cut to 2)"),
+    (["seed=abc"], "error: seed must be a whole number, got 'abc' (2.5 is not cut to 2)"),
+    (["metadata=5"], "error: metadata must be a mapping of free-form notes (e.g. '+metadata={object: cat}') or "
+                     "empty, got 5; nothing moved"),
+    (["max_tilt_deg=true"], "error: max_tilt_deg must be a number of degrees (the rig's tilt limit, e.g. 90), got "
+                            "True; nothing moved"),
+    (["monitor=true", "monitor_port=abc"],
+     "error: monitor_port must be a whole number, got 'abc' (2.5 is not cut to 2)"),
 ])
 def test_scan_script_refuses_bad_options_before_anything_moves(tmp_path, script_run, overrides, message):
     assert _error_line(script_run("scan", tmp_path, *QUICK_SCAN, *overrides)) == message
