@@ -83,14 +83,20 @@ def check_options(args: argparse.Namespace) -> Ball:
     ``--cross-section``, an ``--output`` that cannot be written (:func:`check_output`)."""
     if not all(math.isfinite(c) for c in args.centre):
         raise ValueError(f"--centre must be 3 finite coordinates (mm), got {' '.join(f'{c:g}' for c in args.centre)}")
-    ball = Ball(args.ball_radius, center=tuple(args.centre))
+    try:  # the ball's own message: "ball radius must be ...", naming no flag
+        ball = Ball(args.ball_radius, center=tuple(args.centre))
+    except ValueError as exc:
+        raise ValueError(f"--ball-radius {args.ball_radius:g}: {exc}") from None
     if args.n < 4:  # was named after the scan was read, as "grid resolution n", no flag
         raise ValueError(f"--n must be a grid resolution >= 4 (voxels per axis of the final fit check), got {args.n}")
     check_reference_options(args.max_residual, args.height_tolerance, args.position_tolerance, args.section_tolerance)
     if not 0 <= args.sensor_lag <= MAX_SENSOR_LAG_S:  # NaN fails too
         raise ValueError(f"--sensor-lag must be a time constant in [0, {MAX_SENSOR_LAG_S:g}] s, "
                          f"got {args.sensor_lag:g}")
-    initial_geometry(args)  # an unphysical --cross-section is named before the scan is read
+    try:  # an unphysical --cross-section is named before the scan is read (the geometry's message names no flag)
+        initial_geometry(args)
+    except ValueError as exc:
+        raise ValueError(f"--cross-section {args.cross_section:g} (mm^2): {exc}") from None
     check_output(args.output)
     return ball
 

@@ -362,6 +362,9 @@ def test_a_reference_of_another_size_than_given_is_named_with_the_step_scale():
                                    "0.02) (calibrate.py --section-tolerance)"),
     (["--section-tolerance", "nan"], "got nan (calibrate.py --section-tolerance)"),
     (["--cross-section", "-5"], "cross_section_mm2 must be positive, got -5.0"),
+    # the ball's and the geometry's own messages named no flag ("ball radius must be ...")
+    (["--cross-section", "nan"], "--cross-section nan (mm^2): rig geometry cross_section_mm2 must be a finite number"),
+    (["--ball-radius", "0"], "--ball-radius 0: ball radius must be a finite, positive number of mm"),
     # was "grid resolution n must be an integer >= 4, got 0" once the scan was read, naming no flag
     (["--n", "0"], r"--n must be a grid resolution >= 4 (voxels per axis of the final fit check), got 0")])
 def test_calibrate_refuses_an_option_slip_before_reading_the_scan(tmp_path, monkeypatch, capsys, option, message):
