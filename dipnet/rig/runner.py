@@ -40,7 +40,8 @@ import serial
 import torch
 from tqdm.auto import tqdm
 
-from dipnet.core.orientations import Reach, check_grid_angles, direction_to_rig, distinct_rig_angles, make_directions
+from dipnet.core.orientations import (DIRECTION_SETS, Reach, check_grid_angles, direction_to_rig, distinct_rig_angles,
+                                      make_directions)
 from dipnet.core.atomic_write import write_atomically
 from dipnet.core.counts import is_real
 from dipnet.core.rawscan import RawScan, RawScanFileError, ScanHeader
@@ -147,6 +148,9 @@ def plan_orientations(kind: str = "fibonacci", n: int = 30, tilts=None, spins=No
                         "(spins 360 deg apart are one spin): %s; each pose is dipped once, %d dips", len(repeats),
                         len(pairs), named, len(kept))
         return kept
+    if kind not in DIRECTION_SETS:  # was make_directions' "choose fibonacci, random or uniform": no grid, no option
+        raise ValueError(f"orientations={kind!r} is not an orientation plan: choose grid (with tilts and spins) or "
+                         f"one of {', '.join(DIRECTION_SETS)} (with n_dips); nothing moved")
     tilt, spin = direction_to_rig(set_within_tilt(kind, int(n), seed, max_tilt_deg))
     return [(float(t), float(s)) for t, s in zip(np.round(tilt, 6), np.round(spin, 6))]
 

@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 import serial
 
+from dipnet.core.counts import whole_number
 from dipnet.core.flags import checked_flag
 from dipnet.core.optional import optional_import
 from dipnet.rig.controller import (LineChannel, PortLock, RigDisconnected, RigError, RigTimeout, SerialDevice,
@@ -383,8 +384,7 @@ class AveragingSensor:
     """
 
     def __init__(self, sensor: Sensor, n: int = 1, max_spread: float | None = None, interval_s: float = 0.0) -> None:
-        if int(n) < 1:
-            raise ValueError(f"n must be >= 1, got {n}")
+        n = whole_number("sensor.average.n", n, 1)  # 1.5 and true were cut to 1 reading, without a word
         if max_spread is not None and (isinstance(max_spread, bool) or not isinstance(max_spread, (int, float))
                                        or not 0 <= max_spread < np.inf):
             raise ValueError(f"sensor.average.max_spread must be a number >= 0 in the sensor's unit, or null (no "

@@ -161,6 +161,15 @@ def test_a_protocol_height_that_is_not_a_number_is_refused_naming_the_option(pro
         ScanPlan([(0.0, 0.0)], **{"start_mm": 0.0, "stop_mm": 30.0, "step_mm": 10.0, **protocol})
 
 
+def test_an_unknown_orientation_plan_is_refused_naming_the_option_and_the_grid():
+    """Before: ``scan.py orientations=grids`` was refused as "unknown orientation set 'grids'; choose fibonacci, random
+    or uniform": no option named, and the scan's grid plan left out of the choices."""
+    with pytest.raises(ValueError, match=r"orientations='grids' is not an orientation plan: choose grid \(with tilts "
+                                         r"and spins\) or one of fibonacci, random, uniform \(with n_dips\)"):
+        plan_orientations("grids", n=4)
+    assert len(plan_orientations("uniform", n=4)) == 4
+
+
 def test_a_step_that_leaves_a_dip_fewer_than_four_readings_is_refused_before_anything_moves():
     """The audit's protocol.step_mm=200 over a 30 mm dip read once per orientation and finished with exit 0;
     a plan of fewer than MIN_READINGS_PER_DIP readings is refused, naming the option. Four are enough."""

@@ -191,6 +191,18 @@ def test_an_averaging_that_cannot_work_is_refused_before_anything_moves():
     assert AveragingSensor(device, n=3, max_spread=None, interval_s=0).max_spread is None
 
 
+@pytest.mark.parametrize("n, message", [(1.5, r"got 1.5 \(2.5 is not cut to 2\)"), (True, r"got True"),
+                                        ("3", r"got '3'"), (0, r">= 1, got 0")])
+def test_an_averaging_count_that_is_not_a_whole_number_is_refused_naming_the_option(n, message):
+    """Before: ``sensor.average.n=1.5`` (or ``true``) averaged 1 reading, exit 0, without a word; 0 was refused as
+    "n must be >= 1", naming no option."""
+    from dipnet.rig.sensors import AveragingSensor, LineSensor
+
+    with pytest.raises(ValueError, match=r"^sensor\.average\.n must be a whole number.*" + message):
+        AveragingSensor(LineSensor("fakerig://nowhere/level"), n=n)
+    assert AveragingSensor(LineSensor("fakerig://nowhere/level"), n=3.0).n == 3
+
+
 class _MidLineStream:
     """A pyserial-like port of a level sensor streaming ``L=151.234 mm`` lines: dropping its input
     (``reset_input_buffer``) lands in the middle of the line then on the wire, as a real serial stream does."""
