@@ -66,6 +66,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {message}", file=sys.stderr)
             return 2
     out = args.out or args.dirs[0] / "compare"
+    job = next((run.path for run in runs if out.resolve() == Path(run.path).resolve()), None)
+    if job is not None:  # the sweep page overwrote the job's own report.html (--html), the tables mixed with its files
+        print(f"error: --out {out} is the folder of the job {job}, whose own files (report.html with --html) the "
+              "comparison would overwrite: give another folder (default: <first dir>/compare)", file=sys.stderr)
+        return 2
     if out.exists() and not out.is_dir():
         print(f"error: --out {out} is a file: give a folder for the comparison's tables and plots", file=sys.stderr)
         return 2

@@ -247,3 +247,14 @@ def test_an_output_folder_that_cannot_be_created_is_refused_in_one_line(sweep, t
     err = capsys.readouterr().err
     assert err.startswith(f"error: --out {out}: cannot create the folder") and err.count("\n") == 1, err
     assert (tmp_path / "notes.txt").read_text() == "kept"
+
+
+def test_an_output_folder_that_is_a_jobs_own_is_refused_in_one_line(tmp_path, capsys):
+    """``compare.py JOB -o JOB --html`` replaced the job's own ``report.html`` with the comparison's page, and wrote
+    the comparison's tables among the job's files, exit 0 without a word."""
+    job = write_job(tmp_path / "job", solver="minnorm", n_dips=8, snr_db=None, seed=0, metrics={"iou": 0.9})
+    (job / "report.html").write_text("the job's own page")
+    assert _load_compare().main([str(job), "-o", str(job), "--html"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --out {job} is the folder of the job {job}") and err.count("\n") == 1, err
+    assert (job / "report.html").read_text() == "the job's own page" and not (job / "runs.csv").exists()
