@@ -93,6 +93,10 @@ def check_scan_options(cfg: DictConfig) -> None:
     if not is_real(cfg.get("max_tilt_deg")):  # max_tilt_deg=true spread the dips over 1 deg; abc: "could not convert"
         raise ValueError(f"max_tilt_deg must be a number of degrees (the rig's tilt limit, e.g. 90), got "
                          f"{cfg.get('max_tilt_deg')!r}; nothing moved")
+    name = cfg.get("name")  # name=../x wrote the scan outside scans/, name= into scans/ itself, among other scans
+    if name is None or not str(name).strip() or Path(str(name)).name != str(name) or str(name) in (".", ".."):
+        raise ValueError(f"name must be a plain folder name, the scan's folder scans/<name> (no '/' or '..'), got "
+                         f"{name!r}; nothing moved (to write elsewhere, set hydra.run.dir)")
     metadata = cfg.get("metadata")
     if metadata is not None and not isinstance(metadata, Mapping):  # metadata=5: "'int' object is not iterable"
         raise ValueError(f"metadata must be a mapping of free-form notes (e.g. '+metadata={{object: cat}}') or empty, "

@@ -162,6 +162,11 @@ def _error_line(done: subprocess.CompletedProcess, code: int = 2) -> str:
                      "empty, got 5; nothing moved"),
     (["max_tilt_deg=true"], "error: max_tilt_deg must be a number of degrees (the rig's tilt limit, e.g. 90), got "
                             "True; nothing moved"),
+    # before: name=../x wrote the scan outside scans/ (scans/../x), name= into scans/ itself, exit 0
+    (["name=../x"], "error: name must be a plain folder name, the scan's folder scans/<name> (no '/' or '..'), got "
+                    "'../x'; nothing moved (to write elsewhere, set hydra.run.dir)"),
+    (["name="], "error: name must be a plain folder name, the scan's folder scans/<name> (no '/' or '..'), got "
+                "''; nothing moved (to write elsewhere, set hydra.run.dir)"),
     (["monitor=true", "monitor_port=abc"],
      "error: monitor_port must be a whole number, got 'abc' (2.5 is not cut to 2)"),
 ])
