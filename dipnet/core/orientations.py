@@ -237,6 +237,9 @@ def _check_count(k: int) -> None:
         raise ValueError(f"number of orientations must be a positive integer, got {k!r}")
 
 
+MAX_CANDIDATES = 100_000  # the planners score every candidate; at a 1 degree step the hemisphere holds ~21,000
+
+
 def reachable_candidates(tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0),
                          step_deg: float = 10.0) -> torch.Tensor:
     """The directions a rig can reach, on a grid of rig angles: the planners' candidate set, ``(C, 3)``.
@@ -255,7 +258,15 @@ def reachable_candidates(tilt_range_deg=(0.0, 90.0), spin_range_deg=(0.0, 360.0)
         raise ValueError(f"spin range must satisfy min <= max <= min + 360 degrees, got {spin_range_deg!r}")
     if not 0.0 < step <= 90.0:
         raise ValueError(f"candidate step must be in (0, 90] degrees, got {step_deg!r}")
-    tilts = np.linspace(t0, t1, max(1, math.ceil((t1 - t0) / step - 1e-9)) + 1) if t1 > t0 else np.array([t0])
+    n_tilts = max(1, math.ceil((t1 - t0) / step - 1e-9)) + 1 if t1 > t0 else 1
+    tilts = np.linspace(t0, t1, n_tilts) if n_tilts <= MAX_CANDIDATES else None
+    n_candidates = math.inf if tilts is None else int(np.maximum(
+        1, np.ceil((s1 - s0) * np.sin(np.radians(tilts)) / step - 1e-9)).sum())
+    if n_candidates > MAX_CANDIDATES:  # step_deg=0.001 built ~3e10 rig angles: the job ran out of memory, no message
+        raise ValueError(f"candidate step {step_deg!r} degrees gives "
+                         f"{'more than ' + format(MAX_CANDIDATES, ',') if tilts is None else format(n_candidates, ',')}"
+                         f" candidate directions over tilts {t0:g}-{t1:g} and spins {s0:g}-{s1:g} degrees, at most "
+                         f"{MAX_CANDIDATES:,}: give a larger step (reach.step_deg)")
     full_turn = s1 - s0 >= 360.0 - 1e-9
     pairs = []
     for tilt in tilts:
@@ -308,7 +319,10 @@ class Reach:
             object.__setattr__(self, name, tuple(float(v) for v in value))
         if not is_real(self.step_deg):
             raise ValueError(f"reach.step_deg must be a number of degrees, got {self.step_deg!r}")
-        reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)  # validates
+        try:
+            reachable_candidates(self.tilt_range_deg, self.spin_range_deg, self.step_deg)  # validates
+        except ValueError as exc:  # was "candidate step must be ...", naming no option
+            raise ValueError(f"reach (tilt_range_deg, spin_range_deg, step_deg): {exc}") from None
 
     def ranges(self) -> str:
         """The tilt and spin ranges as a message names them: ``"tilt 0-35 deg, spin 0-360 deg"``."""

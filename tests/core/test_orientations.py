@@ -140,6 +140,17 @@ def test_a_reach_of_the_wrong_shape_or_type_is_named(option, message):
     assert Reach(tilt_range_deg=np.array([0, 35]), spin_range_deg=[0.0, 90], step_deg=5).tilt_range_deg == (0.0, 35.0)
 
 
+@pytest.mark.parametrize("step", [0.3, 0.001, 1e-12])
+def test_a_candidate_step_too_fine_to_enumerate_is_refused_by_name(step):
+    """Before: ``reach.step_deg=0.001`` built ~2e10 rig angles (the job ran out of memory after minutes, no
+    message); 0.3 deg built 230,000 candidates for the planner to score."""
+    with pytest.raises(ValueError, match=r"reach .*step_deg.*: candidate step .* degrees gives .* candidate directions"
+                                         r".* at most 100,000: give a larger step \(reach.step_deg\)"):
+        Reach(step_deg=step)
+    assert len(Reach(step_deg=1).candidates()) < o.MAX_CANDIDATES  # a 1 degree step is allowed
+    assert len(Reach(tilt_range_deg=(0, 35), step_deg=0.3).candidates()) < o.MAX_CANDIDATES  # so is a fine one, small
+
+
 def test_direction_rig_round_trip():
     tilt, spin = np.array([0.0, 10.0, 35.0, 80.0]), np.array([0.0, 20.0, 300.0, 123.0])
     t2, s2 = direction_to_rig(rig_to_direction(tilt, spin))
