@@ -332,6 +332,10 @@ def family_of(seed: int) -> str:
     return make_solid(seed).family
 
 
+#: the finest marching-cubes grid of a generated shape (512^3 samples: 1 GB in float64)
+MAX_MESH_RESOLUTION = 512
+
+
 def generated_shape(seed: int = 0, family: str | None = None, radius: float = 45.0, mesh_resolution: int = 128,
                     ndim: int = 3) -> GeneratedShape:
     """The procedural solid of ``seed`` as a shape in mm whose farthest point is ``radius`` mm
@@ -361,6 +365,9 @@ class GeneratedShape(MeshShape):
 
         self.solid, self.radius_mm = solid, float(radius)
         n = int(mesh_resolution)
+        if n > MAX_MESH_RESOLUTION:  # 100000 failed as "MemoryError((1000000000000000,), dtype('float64'))"
+            raise ValueError(f"shape.mesh_resolution must be at most {MAX_MESH_RESOLUTION} (marching-cubes cells per "
+                             f"axis: {n}^3 samples of the solid do not fit in memory), got {mesh_resolution!r}")
         occ = np.pad(solid.occupancy(n, fill=1.0, supersample=1), 1)
         verts, faces, _, _ = measure.marching_cubes(occ, level=0.5)
         verts = ((verts[:, ::-1] - 0.5) * (2.0 / n) - 1.0) * radius  # (z, y, x) index -> (x, y, z) mm

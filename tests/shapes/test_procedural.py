@@ -140,3 +140,13 @@ def test_generated_shape_matches_its_occupancy_and_gives_exact_dips():
 def test_unknown_family_is_refused():
     with pytest.raises(ValueError, match="unknown shape family"):
         make_solid(0, "teapot")
+
+
+def test_a_mesh_resolution_too_fine_for_memory_is_refused_by_name():
+    """Before: ``shape.mesh_resolution=100000`` failed as "MemoryError((1000000000000000,), dtype('float64'))",
+    naming no option."""
+    from dipnet.shapes.procedural import MAX_MESH_RESOLUTION
+
+    with pytest.raises(ValueError, match=r"shape.mesh_resolution must be at most 512 .* got 100000"):
+        generated_shape(0, mesh_resolution=100000)
+    assert MAX_MESH_RESOLUTION >= 128  # the default
