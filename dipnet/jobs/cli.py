@@ -29,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from dipnet.core.console import report
+from dipnet.core.keywords import accepted_keywords
 from dipnet.core.optional import MissingExtraError
 from dipnet.jobs.warnings_once import log_warnings_once
 
@@ -49,7 +50,7 @@ def error_message(exc: BaseException) -> str:
     """The one-line message for ``exc``; a failed instantiation reports the user error behind it."""
     cause = exc.__cause__
     if isinstance(exc, InstantiationException) and isinstance(cause, USER_ERRORS):
-        return error_message(cause)
+        return _leaf_named(error_message(cause), exc)
     if isinstance(exc, InstantiationException) and isinstance(cause, TypeError):  # e.g. shape.radius=abc
         found = re.search(r"full_key: (\S+)", str(exc))  # Hydra names the node only in its message
         node = found.group(1) if found else "a config node"
@@ -71,6 +72,29 @@ def error_message(exc: BaseException) -> str:
     if "Could not find 'hydra/launcher/" in text:
         text += ' (the joblib and submitit launchers come with pip install "dipnet[sweeps]")'
     return text
+
+
+def _leaf_named(message: str, exc: InstantiationException) -> str:
+    """``message`` (of the error a target raised) with the option it opens with named by its path in the config:
+    ``protocol clearance_mm must be ...`` for the node ``source.simulator.protocol`` reads
+    ``source.simulator.protocol.clearance_mm must be ...``. The option is a keyword the target takes
+    (:func:`~dipnet.core.keywords.accepted_keywords`), alone or after the node's own name (``shape radius``,
+    ``shape.axis``); any other message is returned as it is."""
+    from hydra._internal.utils import _locate
+
+    node = re.search(r"full_key: (\S+)", str(exc))  # Hydra names the node and the target only in its message
+    target = re.search(r"call to target '([^']+)'", str(exc))
+    if node is None or target is None:
+        return message
+    try:
+        keys = accepted_keywords(_locate(target.group(1))) or set()
+    except (ImportError, ValueError, TypeError):  # a target that cannot be located or inspected: as it is
+        return message
+    path = node.group(1)
+    opening = re.match(rf"(?:{re.escape(path.rsplit('.', 1)[-1])}[ .])?(\w+)\b", message)
+    if opening is None or opening.group(1) not in keys:
+        return message
+    return f"{path}.{opening.group(1)}{message[opening.end():]}"
 
 
 def _making_run_dir(exc: OSError) -> str | None:

@@ -35,6 +35,25 @@ def test_a_wrong_type_behind_an_instantiation_names_the_config_node():
     assert "check the values given to shape.*" in message
 
 
+def test_an_option_a_target_refuses_is_named_by_its_path_in_the_config():
+    """source.simulator.protocol.clearance_mm=-1 said "protocol clearance_mm must be ...", shape.radius=-1 "shape
+    radius must be ...": the option the target names, a keyword it takes, is named by its full path."""
+    protocol = "Error in call to target 'dipnet.simulator.physics.DipProtocol':\nValueError(...)\n" \
+               "full_key: source.simulator.protocol"
+    shape = "Error in call to target 'dipnet.shapes.builtin.builtin_shape':\nValueError(...)\nfull_key: shape"
+    assert error_message(_instantiation_error(ValueError("protocol clearance_mm must be >= 0 (mm), got 'abc'"),
+                                              protocol)) == \
+        "source.simulator.protocol.clearance_mm must be >= 0 (mm), got 'abc'"
+    assert error_message(_instantiation_error(ValueError("step_mm must be positive"), protocol)) == \
+        "source.simulator.protocol.step_mm must be positive"
+    assert error_message(_instantiation_error(ValueError("shape radius must be positive"), shape)) == \
+        "shape.radius must be positive"
+    # not a keyword of the target, or no target named: the message as it is
+    assert error_message(_instantiation_error(ValueError("protocol speed must be positive"), protocol)) == \
+        "protocol speed must be positive"
+    assert error_message(_instantiation_error(ValueError("radius must be positive"))) == "radius must be positive"
+
+
 def test_user_errors_exit_2_with_one_line(capsys):
     with pytest.raises(SystemExit) as exit_info, user_errors():
         raise ValueError("bad option")

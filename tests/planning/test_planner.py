@@ -49,8 +49,8 @@ def test_a_negative_boundary_band_is_refused(band):
 
 def test_reconstruct_refuses_a_negative_band_before_any_dip(tmp_path, script_run):
     done = script_run("reconstruct", tmp_path, "planner=adaptive", "planner.planner.band_voxels=-1", "resolution=16")
-    assert one_line_error(done) == ("error: band_voxels must be >= 0 (the width of the uncertain boundary band, in "
-                                    "posterior-grid voxels; 0: no band), got -1.0")
+    assert one_line_error(done) == ("error: planner.planner.band_voxels must be >= 0 (the width of the uncertain "
+                                    "boundary band, in posterior-grid voxels; 0: no band), got -1.0")
 
 
 def test_the_planner_never_picks_a_measured_direction(box_problem):
