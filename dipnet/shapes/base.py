@@ -114,6 +114,15 @@ class Shape(ABC):
         warnings.warn(message, ShapeWarning, stacklevel=3)
 
 
+def check_radius(radius: float, what: str = "shape radius") -> float:
+    """``radius`` (mm) as a ``float`` after refusing, with a :class:`ShapeError` naming ``what``, anything but a
+    finite, positive real number: text, null and a boolean are refused, not compared (``shape.radius=abc`` failed
+    as a ``TypeError`` naming no option)."""
+    if not (is_real(radius) and 0 < radius < np.inf):  # NaN fails too
+        raise ShapeError(f"{what} must be a finite, positive number (mm), got {radius!r}")
+    return float(radius)
+
+
 def check_supersample(supersample: int) -> int:
     """``supersample`` as an ``int`` after refusing, with a ``ValueError`` naming it, anything but a whole number
     >= 1: every shape's :meth:`Shape.occupancy` checks it, those that answer exactly without sampling too (a box

@@ -12,7 +12,7 @@ from collections.abc import Callable
 import numpy as np
 
 from dipnet.shapes.analytic import Ball, Box, ChamberBox, Disk, Torus
-from dipnet.shapes.base import Shape, ShapeError
+from dipnet.shapes.base import Shape, ShapeError, check_radius
 from dipnet.shapes.mesh import load_mesh
 from dipnet.shapes.silhouettes import elephant, project_mesh
 
@@ -63,9 +63,7 @@ def builtin_shape(name: str, ndim: int, radius: float) -> Shape:
     names = builtin_names(ndim)
     if name not in names:
         raise ShapeError(f"unknown built-in {ndim}D shape {name!r}; choose one of {names}")
-    if not radius > 0:
-        raise ShapeError(f"shape radius must be positive (mm), got {radius!r}")
-    return _REGISTRY[ndim][name](float(radius))
+    return _REGISTRY[ndim][name](check_radius(radius))
 
 
 def shape_from_file(path: str, ndim: int, radius: float | None = None, fill_sealed_voids: bool = True,
@@ -86,6 +84,8 @@ def shape_from_file(path: str, ndim: int, radius: float | None = None, fill_seal
         ShapeError: a scale that is not positive, a scale beside a radius (the radius sets the size, and the
             scale would be ignored without a word), or an axis that is not ``"x"``, ``"y"`` or ``"z"``.
     """
+    if radius is not None:
+        check_radius(radius)
     if radius is None and not scale > 0:
         raise ShapeError(f"shape scale must be positive (mm per file unit), got {scale!r}")
     if radius is not None and scale != 1.0:

@@ -21,7 +21,7 @@ import trimesh
 
 from dipnet.core.optional import optional_import
 from dipnet.shapes.analytic import BALL_RADIUS_MM
-from dipnet.shapes.base import Shape, ShapeError, check_dips
+from dipnet.shapes.base import Shape, ShapeError, check_dips, check_radius
 from dipnet.shapes.divergence import PlaneSweep, boundary_volume_below
 from dipnet.shapes.holes import boundary_caps
 
@@ -184,8 +184,8 @@ def from_trimesh(
     Args: as :func:`load_mesh`; ``source`` names the origin of the mesh in messages.
     """
     where = source or name
-    if radius is not None and not 0 < radius < np.inf:  # NaN fails too
-        raise ShapeError(f"mesh {where}: radius must be a finite, positive number of mm, got {radius!r}")
+    if radius is not None:
+        check_radius(radius, f"mesh {where}: radius")
     if scale is not None and not 0 < scale < np.inf:
         raise ShapeError(f"mesh {where}: scale must be a finite, positive number of mm per file unit (1000 for a "
                          f"mesh in metres), got {scale!r}: 0 shrinks the mesh to a point, a negative scale mirrors it")

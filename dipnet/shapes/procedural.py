@@ -32,7 +32,7 @@ import numpy as np
 import trimesh
 
 from dipnet.core.grid import Grid
-from dipnet.shapes.base import ShapeError
+from dipnet.shapes.base import ShapeError, check_radius
 from dipnet.shapes.mesh import MeshShape
 
 FAMILIES = ("limbs", "polyhedron", "holes", "cavity", "blob", "organic")
@@ -351,9 +351,8 @@ def generated_shape(seed: int = 0, family: str | None = None, radius: float = 45
     """
     if int(ndim) != 3:
         raise ShapeError("generated shapes are 3D (ndim=3)")
-    if not radius > 0:
-        raise ShapeError(f"radius must be positive (mm), got {radius!r}")
-    return GeneratedShape(make_solid(seed, family), float(radius), int(mesh_resolution))
+    radius = check_radius(radius)  # before the solid is made
+    return GeneratedShape(make_solid(seed, family), radius, int(mesh_resolution))
 
 
 class GeneratedShape(MeshShape):

@@ -244,13 +244,15 @@ class DipProtocol:
     reorient_s: float = 30.0
 
     def __post_init__(self) -> None:
-        if isinstance(self.step_mm, bool) or not 0 < self.step_mm < math.inf:  # True was a 1 mm step
+        # is_real first: True was a 1 mm step, and text or null failed as a TypeError naming no option
+        if not is_real(self.step_mm) or not 0 < self.step_mm < math.inf:
             raise ValueError(f"step_mm must be a finite, positive number (mm), got {self.step_mm!r}")
         for name, unit in (("clearance_mm", "mm"), ("settle_s", "s"), ("reorient_s", "s")):
             value = getattr(self, name)
-            if isinstance(value, bool) or not 0 <= value < math.inf:  # NaN fails too
+            if not is_real(value) or not 0 <= value < math.inf:  # NaN fails too
                 raise ValueError(f"protocol {name} must be a finite number >= 0 ({unit}), got {value!r}")
-        if isinstance(self.extra_steps, bool) or int(self.extra_steps) != self.extra_steps or self.extra_steps < 0:
+        if not is_real(self.extra_steps) or not 0 <= self.extra_steps < math.inf \
+                or int(self.extra_steps) != self.extra_steps:
             raise ValueError(f"protocol extra_steps must be a whole number of readings >= 0, got {self.extra_steps!r}")
         self.extra_steps = int(self.extra_steps)
 

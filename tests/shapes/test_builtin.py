@@ -19,7 +19,7 @@ def test_names_dimensions_and_sizes_are_checked():
     assert {"ball", "torus", "chamber_box"} <= set(builtin_names(3)) and "disk" in builtin_names(2)
     with pytest.raises(ShapeError, match="unknown built-in 3D shape 'disk'"):
         builtin_shape("disk", 3, 10.0)
-    with pytest.raises(ShapeError, match="radius must be positive"):
+    with pytest.raises(ShapeError, match="radius must be a finite, positive number"):
         builtin_shape("ball", 3, 0.0)
     with pytest.raises(ShapeError, match="not 4D"):
         builtin_names(4)

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from dipnet.core.grid import Grid
-from dipnet.shapes.base import Shape, ShapeError, ShapeWarning, check_dips, check_supersample
+from dipnet.shapes.base import Shape, ShapeError, ShapeWarning, check_dips, check_radius, check_supersample
 
 
 class Square(Shape):
@@ -73,6 +73,15 @@ def test_check_supersample_refuses_anything_but_a_whole_number_from_one(bad):
     with pytest.raises(ValueError, match="supersample must be a positive integer"):
         check_supersample(bad)
     assert check_supersample(3) == 3 and check_supersample(np.int64(2)) == 2 and check_supersample(2.0) == 2
+
+
+@pytest.mark.parametrize("bad", [0, -1, float("nan"), float("inf"), True, "abc", None])
+def test_check_radius_refuses_anything_but_a_finite_positive_number(bad):
+    """shape.radius=abc or null failed as "shape: an option of the wrong type ('>' not supported ...)": the
+    radius was compared, not checked."""
+    with pytest.raises(ShapeError, match=r"shape radius must be a finite, positive number \(mm\), got "):
+        check_radius(bad)
+    assert check_radius(3) == 3.0 and type(check_radius(np.float32(2.5))) is float
 
 
 def test_a_repair_is_noted_and_warned():

@@ -88,6 +88,15 @@ def test_timing_and_schedule():
     ({"step_mm": float("inf")}, r"step_mm must be a finite, positive number \(mm\), got inf"),
     ({"extra_steps": 2.5}, r"extra_steps must be a whole number of readings >= 0, got 2.5"),
     ({"step_mm": True}, r"step_mm must be a finite, positive number \(mm\), got True"),  # was a 1 mm step, unsaid
+    # text and null were compared, a TypeError naming no option ("'<=' not supported between 'int' and 'str'"),
+    # or parsed: extra_steps='abc' gave "invalid literal for int() with base 10: 'abc'"
+    ({"clearance_mm": "abc"}, r"protocol clearance_mm must be a finite number >= 0 \(mm\), got 'abc'"),
+    ({"clearance_mm": None}, r"protocol clearance_mm must be a finite number >= 0 \(mm\), got None"),
+    ({"step_mm": "1"}, r"step_mm must be a finite, positive number \(mm\), got '1'"),
+    ({"extra_steps": "abc"}, r"extra_steps must be a whole number of readings >= 0, got 'abc'"),
+    ({"extra_steps": "3"}, r"extra_steps must be a whole number of readings >= 0, got '3'"),
+    ({"extra_steps": None}, r"extra_steps must be a whole number of readings >= 0, got None"),
+    ({"extra_steps": float("inf")}, r"extra_steps must be a whole number of readings >= 0, got inf"),
 ])
 def test_a_protocol_value_that_is_not_finite_is_named(option, message):
     """Before: DipProtocol(clearance_mm=nan) was accepted and the simulation failed with "cannot convert float NaN
