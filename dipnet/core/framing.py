@@ -29,6 +29,14 @@ def extent_around(radius_mm: float, resolution: int, fill: float) -> float:
     return 2.0 * resolution * radius_mm / (fill * (resolution - 2))
 
 
+def smallest_fill(radius_mm: float, volume: float, resolution: int, ndim: int) -> float:
+    """The smallest ``fill`` at which an object of bounding radius ``radius_mm`` and volume ``volume`` (mm^3, an
+    area in mm^2 in 2D) holds one voxel of the grid :func:`extent_around` chooses: below it the grid is so large that
+    the whole object is less than a voxel, which the measurement's check refuses as a unit slip. The voxel's side is
+    ``2 r / (fill (N - 2))``, so ``fill >= 2 r / ((N - 2) volume^(1/ndim))``."""
+    return 2.0 * radius_mm / ((resolution - 2) * volume ** (1.0 / ndim))
+
+
 def measurement_extent(path: str | Path) -> float | None:
     """The extent (mm) of the slabs of a saved ``.npz`` measurement (twice the largest ``|t|``
     its slabs reach), or ``None`` for other files (raw recordings need ``extent_mm``)."""

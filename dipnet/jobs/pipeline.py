@@ -29,7 +29,7 @@ from dipnet.shapes.isosurface import volume_to_mesh
 from dipnet.jobs.calibration_job import self_calibration_job
 from dipnet.jobs.deprecations import upgrade_config
 from dipnet.solvers.checkpoint import attach_checkpoint, checkpoint_directory
-from dipnet.core.framing import extent_around
+from dipnet.core.framing import extent_around, smallest_fill
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.strict_json import write_json
@@ -65,6 +65,12 @@ def build_grid(cfg: DictConfig, shape: Shape | None, source) -> Grid:
     extent = cfg.extent_mm
     if extent is None and shape is not None:
         extent = extent_around(shape.radius(), int(cfg.resolution), float(cfg.fill))
+        low = smallest_fill(shape.radius(), shape.volume, int(cfg.resolution), int(cfg.ndim))
+        if cfg.fill < low and low <= 1:  # was refused after the dips, naming an extent_mm the user never set
+            raise ConfigError(f"fill must be in [{low:.3g}, 1] for this object at resolution {cfg.resolution} "
+                              f"(the share of the working ball its bounding radius fills), got {cfg.fill!r}: the grid "
+                              f"chosen around it (extent_mm={extent:.3g}) makes the whole object, "
+                              f"{shape.volume:.4g} {'mm^3' if int(cfg.ndim) == 3 else 'mm^2'}, less than one voxel")
     elif extent is None:
         extent = source.extent_mm()
     if extent is None:

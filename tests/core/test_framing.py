@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dipnet.core.framing import extent_around, measurement_extent
+from dipnet.core.framing import extent_around, measurement_extent, smallest_fill
 from dipnet.core.grid import Grid
 from dipnet.core.measurement import DipMeasurement
 from dipnet.core.orientations import fibonacci_hemisphere
@@ -20,6 +20,12 @@ def test_bad_radius_or_fill_are_refused():
         extent_around(0.0, 16, 0.9)
     with pytest.raises(ValueError, match=r"fill must be in \(0, 1\]"):
         extent_around(10.0, 16, 1.5)
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_at_the_smallest_fill_the_object_holds_one_voxel(ndim):
+    radius, volume, n = 30.0, 5000.0, 16
+    fill = smallest_fill(radius, volume, n, ndim)
+    assert Grid(n, ndim, extent_around(radius, n, fill)).voxel_volume == pytest.approx(volume)
 
 def test_a_saved_measurement_knows_its_extent_and_other_files_do_not(tmp_path):
     k, m = 4, 10

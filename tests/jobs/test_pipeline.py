@@ -109,6 +109,14 @@ def test_bad_input_gets_a_one_line_error(tmp_path, cli, overrides, message):
     assert message in proc.stderr
 
 
+def test_a_fill_too_small_for_one_voxel_is_named_before_any_dip(tmp_path, cli):
+    """fill=1e-9 was refused after the dips were simulated, naming an extent_mm=1.08e+11 the user never set."""
+    proc = cli(tmp_path, "resolution=12", "n_dips=4", "fill=1e-9")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "error: fill must be in [0.181, 1] for this object at resolution 12" in proc.stderr
+    assert "got 1e-09" in proc.stderr and not (tmp_path / "measurement.npz").exists()
+
+
 @pytest.mark.slow
 def test_malformed_measurement_and_unknown_option(tmp_path, cli):
     bad = tmp_path / "bad.npz"
