@@ -23,7 +23,8 @@ def whole_number(name: str, value: Any, low: int | None = None) -> int:
     """
     if not is_real(value) or not math.isfinite(value) \
             or value != int(value):
-        raise ValueError(f"{name} must be a whole number, got {value!r} (2.5 is not cut to 2)")
+        cut = " (2.5 is not cut to 2)" if is_real(value) and math.isfinite(value) else ""  # not for 'abc', nan
+        raise ValueError(f"{name} must be a whole number, got {value!r}{cut}")
     if low is not None and value < low:
         raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
     return int(value)

@@ -16,6 +16,15 @@ def test_anything_else_is_refused_naming_the_option(value):
         whole_number("budget", value)
 
 
+@pytest.mark.parametrize("value", ["abc", True, None, float("nan")])
+def test_only_a_fraction_is_said_not_to_be_cut(value):
+    """planner.planner.seed=abc ended with "(2.5 is not cut to 2)", which speaks of a fraction."""
+    with pytest.raises(ValueError, match=r"seed must be a whole number, got \S+$"):
+        whole_number("seed", value)
+    with pytest.raises(ValueError, match=r"got 2.5 \(2.5 is not cut to 2\)$"):
+        whole_number("seed", 2.5)
+
+
 def test_a_lower_bound_is_named():
     assert whole_number("window", 1, low=1) == 1
     with pytest.raises(ValueError, match=r"window must be a whole number >= 1, got 0"):
