@@ -95,10 +95,15 @@ class AdaptivePlan:
 
     def __init__(self, budget: int = 41, batch_size: int = 8, initial_dips: int = 8,
                  stop_uncertainty: float | None = None, planner: Planner | None = None) -> None:
-        self.settings = AdaptiveSettings(budget=whole_number("budget", budget),
-                                         batch_size=whole_number("batch_size", batch_size),
-                                         initial_dips=whole_number("initial_dips", initial_dips),
-                                         stop_uncertainty=stop_uncertainty)
+        budget, batch_size = whole_number("budget", budget), whole_number("batch_size", batch_size)
+        initial_dips = whole_number("initial_dips", initial_dips)
+        try:
+            self.settings = AdaptiveSettings(budget=budget, batch_size=batch_size, initial_dips=initial_dips,
+                                             stop_uncertainty=stop_uncertainty)
+        except ValueError as exc:  # opened with the option at fault, which a job's error names by its path
+            if str(exc).startswith("need "):
+                raise ValueError(f"{'batch_size' if batch_size < 1 else 'initial_dips'}: {exc}") from None
+            raise
         self.planner = planner or NextBestDipPlanner()
 
     def run(self, acquire: Acquire, ndim: int, reach: Reach | None, solver=None,

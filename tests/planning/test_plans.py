@@ -105,6 +105,17 @@ def test_a_count_of_the_loop_that_is_not_whole_is_refused(option):
     assert AdaptivePlan(budget=40.0).settings.budget == 40  # a whole float is the number
 
 
+@pytest.mark.parametrize("options,opening", [
+    ({"initial_dips": 0}, "initial_dips: "), ({"initial_dips": 50, "budget": 12}, "initial_dips: "),
+    ({"batch_size": 0}, "batch_size: "),
+])
+def test_a_count_of_the_loop_out_of_range_opens_with_the_option(options, opening):
+    """planner.initial_dips=0 said "need 1 <= initial_dips <= budget ...", which a job's error could not name by
+    its path (planner.initial_dips): the message opens with the option at fault."""
+    with pytest.raises(ValueError, match=rf"^{opening}need 1 <= initial_dips <= budget and batch_size >= 1, got "):
+        AdaptivePlan(**options)
+
+
 def test_the_adaptive_loop_solves_without_the_surface_refit_and_the_job_refits_its_own_result(tmp_path, monkeypatch):
     """The loop reads each batch's occupancy only: before, every batch's solve refitted its surface too (about 40 s
     each for solver=voxel_learned at 64^3), for a mesh nobody read."""
