@@ -93,6 +93,9 @@ IGNORED: tuple[tuple[str, Callable[[DictConfig], bool], tuple[str, ...], str], .
      ("output.checkpoint_every",), "it sets how often output.checkpoint saves a solve, and no checkpoint is kept: "
      "set output.checkpoint=true (or a directory) to keep one"),
 )
+#: The most sub-voxel samples per axis of the truth occupancy (``output.truth_supersample``): a sampled shape tests
+#: their cube per voxel (16: 4096), and finer sampling changes only the partial volume of the boundary voxels.
+MAX_TRUTH_SUPERSAMPLE = 16
 #: Keys of the top-level ``symmetry`` (:func:`dipnet.preprocessing.symmetry.apply_symmetry`).
 SYMMETRY_KEYS = ("n_fold", "mirror", "mirror_azimuth_deg", "tol_deg")
 
@@ -205,6 +208,14 @@ def check_overrides(cfg: DictConfig, overrides: Sequence[str], groups: Sequence[
     if instantiates(cfg, "source", RecordedSource) and instantiates(cfg, "planner", AdaptivePlan):
         raise ConfigError("planner=adaptive is ignored with source=recorded: the recording's dips are fixed; plan "
                           "a scan dip by dip on the rig (scripts/scan.py +planner=adaptive) or with simulated dips")
+    typed = {o.key_or_group for o in parsed if not o.is_delete()}
+    posterior = OmegaConf.select(cfg, "planner.planner.resolution", default=None)
+    if "planner.planner.resolution" in typed and instantiates(cfg, "planner", AdaptivePlan) \
+            and isinstance(posterior, int) and isinstance(cfg.get("resolution"), int) and posterior > cfg.resolution:
+        raise ConfigError(f"planner.planner.resolution={posterior} is above the job's resolution={cfg.resolution}: "
+                          "the planner's posterior grid is at most the reconstruction's (it would run at "
+                          f"{cfg.resolution}, unsaid): give planner.planner.resolution <= {cfg.resolution}, or raise "
+                          "resolution")
     for choice, chosen, ignored, why in IGNORED:
         if not chosen(cfg):
             continue
@@ -424,7 +435,9 @@ def check_values(cfg: DictConfig) -> None:
     if not isinstance(formats, ListConfig) or any(f not in MESH_FORMATS for f in formats):
         raise ConfigError(f"output.mesh_formats must be a list of {', '.join(MESH_FORMATS)}, got "
                           f"{OmegaConf.to_container(formats) if isinstance(formats, ListConfig) else formats!r}")
-    _integer(cfg, "output.truth_supersample", 1)
+    _integer(cfg, "output.truth_supersample", 1, MAX_TRUTH_SUPERSAMPLE + 1,
+             meaning=" (sub-voxel samples per axis of the truth's partial volume: a sampled shape tests their cube "
+                     "in every voxel)")
     _integer(cfg, "output.checkpoint_every", 1)
     _integer(cfg, "output.uncertainty_samples", 2, nullable=True)
     method = cfg.output.get("uncertainty")

@@ -171,6 +171,9 @@ def test_ctrl_c_during_a_solve_says_how_to_resume(tmp_path):
     ("shape=generated shape.seed=-3", r"shape.seed must be an integer >= 0 \(which solid\), got -3"),
     # 2 slabs left no noise estimate: the residual limit was null and the residual check passed unsaid
     ("n_slabs=2", r"n_slabs must be an integer >= 3 or null \(slabs per profile: .*got 2"),
+    # 1000 sampled a ball's truth at 1e9 points per voxel and never ended (a box's exact occupancy ignored it)
+    ("output.truth_supersample=1000", r"output.truth_supersample must be a positive integer and below 17 \(sub-voxel "
+                                      r"samples per axis .*got 1000"),
 ])
 def test_out_of_range_values_are_refused_by_check_config(override, message):
     with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
@@ -239,6 +242,21 @@ def test_a_raw_reader_option_given_with_an_npz_measurement_is_refused(option):
     with pytest.raises(ConfigError, match=rf"option {key} is ignored with an .npz source.reader.path \(a "
                                           r"measurement file holds slab profiles already made from readings"):
         check_config(cfg, [*npz, option], ["source"])
+
+
+def test_a_typed_posterior_grid_finer_than_the_job_is_refused_and_a_default_one_is_not():
+    """planner=adaptive planner.planner.resolution=1000 ran the posterior at the job's resolution 16, unsaid."""
+    typed = ["planner=adaptive", "resolution=16", "planner.planner.resolution=1000"]
+    with initialize_config_module(config_module="dipnet.conf", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=typed)
+        default = ["planner=adaptive", "resolution=16"]  # its posterior grid, 32, is capped as documented
+        check_config(compose(config_name="config", overrides=default), default, ["planner"])
+        check_config(compose(config_name="config", overrides=typed[:2] + ["planner.planner.resolution=16"]),
+                     typed[:2] + ["planner.planner.resolution=16"], ["planner"])
+    with pytest.raises(ConfigError, match=r"^planner.planner.resolution=1000 is above the job's resolution=16: the "
+                                          r"planner's posterior grid is at most the reconstruction's .*give "
+                                          r"planner.planner.resolution <= 16"):
+        check_config(cfg, typed, ["planner"])
 
 
 @pytest.mark.parametrize("overrides,says,not_about", [
