@@ -66,7 +66,8 @@ from dipnet.shapes import load_mesh
 from dipnet.shapes.mesh import MeshShape
 from dipnet.solvers.implicit import ImplicitSolver
 from dipnet.solvers.voxel import VoxelSolver
-from dipnet.experiments.bench_options import count_type, number_type, refuse_bad_run_options, thread_count
+from dipnet.experiments.bench_options import (count_type, grid_size_type, number_type, refuse_bad_run_options,
+                                              thread_count)
 from dipnet.jobs.cli import user_errors
 
 MESHES = ("bunny", "hammer", "part_B13", "spot")
@@ -75,7 +76,7 @@ MESHES = ("bunny", "hammer", "part_B13", "spot")
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--rigs", type=count_type(1, "random rigs"), default=20, help="random rig geometries")
-    p.add_argument("--n", type=int, default=48, help="grid resolution N")
+    p.add_argument("--n", type=grid_size_type(3), default=48, help="grid resolution N")
     p.add_argument("--dips", type=count_type(1, "dips"), default=123, help="number of dips (Fibonacci hemisphere)")
     p.add_argument("--snr", type=float, default=30.0, help="level-sensor SNR (dB)")
     p.add_argument("--fill", type=float, default=0.8, help="mesh radius / working-ball radius")
@@ -92,10 +93,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), rigs=3, n=32, iterations=80)
     refuse_bad_run_options(p, args)  # --snr, --seed, --fill, --json: now, not at the first rig or after it
-    try:
-        Grid(args.n, 3)
-    except ValueError as exc:
-        p.error(f"--n: {exc}")
     return args
 
 

@@ -67,7 +67,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), trials=1, shapes=QUICK_SHAPES)
-    check_pool_options(p, args, random_resolution=True)
+    check_pool_options(p, args)
     return args
 
 

@@ -34,8 +34,7 @@ import threading
 import time
 from pathlib import Path
 
-from dipnet.core.grid import Grid
-from dipnet.experiments.bench_options import count_type, number_type
+from dipnet.experiments.bench_options import count_type, grid_size_type, number_type
 from dipnet.experiments.quick_mode import apply_quick, given_options
 from dipnet.jobs.cli import user_errors
 
@@ -133,14 +132,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="wait before each reading (s): the rig's pace")
     p.add_argument("--repeats", type=count_type(1, "runs each way"), default=3,
                    help="runs with and without the monitor")
-    p.add_argument("--resolution", type=int, default=48)
+    p.add_argument("--resolution", type=grid_size_type(3), default=48)
     args = p.parse_args(argv)
     if args.quick:  # the options given beside --quick keep their values
         apply_quick(args, given_options(p, argv), dips=6, step=4.0, repeats=2)
-    try:
-        Grid(args.resolution, 3)
-    except ValueError as exc:
-        p.error(f"--resolution: {exc}")
     return args
 
 

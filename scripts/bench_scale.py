@@ -52,7 +52,8 @@ from dipnet.shapes import load_mesh
 from dipnet.simulator.simulate import simulate_measurement
 from dipnet.solvers.minnorm import MinNormSolver
 from dipnet.solvers.voxel import VoxelSolver
-from dipnet.experiments.bench_options import count_type, number_type, refuse_bad_run_options, thread_count
+from dipnet.experiments.bench_options import (count_type, grid_size_type, number_type, refuse_bad_run_options,
+                                              thread_count)
 from dipnet.jobs.cli import user_errors
 
 
@@ -60,7 +61,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="128^3, bunny, 3%% of N^2, clean, short voxel run")
     p.add_argument("--meshes", nargs="+", default=["bunny", "hand"], help="bundled mesh names")
-    p.add_argument("--n", type=int, nargs="+", default=[64, 128, 240], help="grid resolutions N")
+    p.add_argument("--n", type=grid_size_type(3), nargs="+", default=[64, 128, 240], help="grid resolutions N")
     p.add_argument("--fractions", type=number_type("dips per N^2 (a share)", above=0), nargs="+",
                    default=[0.01, 0.03, 0.10], help="dips as a share of N^2")
     p.add_argument("--noise", nargs="+", default=["clean", "snr"], choices=["clean", "snr"])
@@ -89,11 +90,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     except FileNotFoundError as exc:  # now, not after the meshes before it
         p.error(f"--meshes: {exc}")
     refuse_bad_run_options(p, args)  # --snr, --fill, --json: now, not at the first noisy case or after the run
-    for n in args.n:
-        try:
-            Grid(n, 3)
-        except ValueError as exc:
-            p.error(f"--n: {exc}")
     return args
 
 

@@ -1,6 +1,7 @@
 """The benchmarks' run options, checked before any case runs: :func:`check_run_options` (``--snr``, ``--seed``,
 ``--threads``, ``--json``, ``--generated``, ``--fill``) and the ``argparse`` types :func:`count_type` (a count of at
-least some minimum) and :func:`number_type` (a finite number, e.g. positive), shared by every ``scripts/bench_*.py``.
+least some minimum), :func:`number_type` (a finite number, e.g. positive) and :func:`grid_size_type` (voxels per
+axis), shared by every ``scripts/bench_*.py``.
 
 A bad value of one of these used to surface late: ``--threads -1`` as a traceback, ``--threads 0`` not at all
 (torch's default taken unsaid), ``--seed -1`` at the first simulation, ``--snr nan`` at the first noisy case (after
@@ -14,6 +15,7 @@ import math
 from collections.abc import Callable
 
 from dipnet.core.counts import is_real
+from dipnet.core.grid import Grid
 from dipnet.simulator.physics import check_snr_db
 
 
@@ -87,6 +89,26 @@ def number_type(what: str, *, above: float | None = None, at_least: float | None
             raise argparse.ArgumentTypeError(f"must be a finite number of {what}{bound}, got {text!r}")
         return value
     parse.__name__ = f"number of {what}"
+    return parse
+
+
+def grid_size_type(ndim: int = 3, *, zero: str | None = None) -> Callable[[str], int]:
+    """The ``argparse`` type of a grid's voxels per axis N, as :class:`~dipnet.core.grid.Grid` takes it in ``ndim``
+    dimensions; ``zero``: what 0 means where it is allowed (e.g. ``"skip"``). Anything else is refused in one line
+    naming the option, exit 2, before any case."""
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a whole number of voxels per axis, got {text!r}") from None
+        if n == 0 and zero is not None:
+            return n
+        try:
+            Grid(n, ndim)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc) + (f" (or 0: {zero})" if zero is not None else "")) from None
+        return n
+    parse.__name__ = "grid size"
     return parse
 
 

@@ -17,8 +17,7 @@ import torch
 from dipnet.preprocessing.datasets import MESHES_DIR
 from dipnet.shapes import builtin_shape, shape_from_file
 from dipnet.shapes.base import Shape
-from dipnet.core.grid import Grid
-from dipnet.experiments.bench_options import count_type, refuse_bad_run_options, thread_count
+from dipnet.experiments.bench_options import count_type, grid_size_type, refuse_bad_run_options, thread_count
 
 BUILTINS = {2: ("disk", "chamber_box", "elephant"), 3: ("ball", "box", "torus", "chamber_box")}
 
@@ -50,28 +49,24 @@ def add_pool_options(parser: argparse.ArgumentParser, *, trials: int, resolution
                      resolution_help: str = "voxels per axis of the grid",
                      json_help: str = "also write every row to this JSON file") -> None:
     """Add the options of a benchmark over random scans of the pool to ``parser``: ``--trials`` (scans per shape),
-    ``--shapes``, ``--resolution``, ``--seed`` (2026), ``--threads`` (2) and ``--json``."""
+    ``--shapes``, ``--resolution`` (a default of 0: drawn per case, and 0 is allowed), ``--seed`` (2026), ``--threads``
+    (2) and ``--json``."""
     parser.add_argument("--trials", type=count_type(1, "random scans per shape"), default=trials,
                         help="random scans per shape")
     parser.add_argument("--shapes", nargs="+", metavar="NAME", help=shapes_help)
-    parser.add_argument("--resolution", type=int, default=resolution, help=resolution_help)
+    parser.add_argument("--resolution", type=grid_size_type(3, zero="drawn per case" if resolution == 0 else None),
+                        default=resolution, help=resolution_help)
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--threads", type=thread_count, default=2, help="torch threads")
     parser.add_argument("--json", type=Path, help=json_help)
 
 
-def check_pool_options(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
-                       random_resolution: bool = False) -> None:
+def check_pool_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse (``parser.error``: one line naming the option, exit 2) before any scan the options of
     :func:`add_pool_options` that no case could use: ``--seed`` below 0 and ``--json`` in a missing folder
-    (:func:`~dipnet.experiments.bench_options.check_run_options`), a ``--resolution`` no grid takes (``0`` too unless
-    ``random_resolution``: a resolution drawn per case). ``--trials`` and ``--threads`` are checked by their types."""
+    (:func:`~dipnet.experiments.bench_options.check_run_options`). ``--trials``, ``--resolution`` and ``--threads``
+    are checked by their types."""
     refuse_bad_run_options(parser, args)
-    if not (random_resolution and args.resolution == 0):
-        try:
-            Grid(args.resolution, 3)
-        except ValueError as exc:
-            parser.error(f"--resolution: {exc}" + (" (or 0: drawn per case)" if random_resolution else ""))
 
 
 def start_pool_run(args: argparse.Namespace) -> np.random.Generator:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from dipnet.experiments.bench_options import check_run_options, count_type, number_type
+from dipnet.experiments.bench_options import check_run_options, count_type, grid_size_type, number_type
 
 
 def _args(tmp_path: Path, **given) -> argparse.Namespace:
@@ -93,3 +93,16 @@ def test_a_limit_may_be_no_limit():
     assert parser.parse_args(["--limit", "inf"]).limit == float("inf")
     with pytest.raises(SystemExit):
         parser.parse_args(["--limit", "nan"])
+
+
+def test_a_grid_size_type_takes_what_a_grid_takes_and_zero_only_where_it_means_something(capsys):
+    parser = _parser(n=grid_size_type(3), radon=grid_size_type(2, zero="skip"))
+    assert vars(parser.parse_args(["--n", "4", "--radon", "0"])) == {"n": 4, "radon": 0}
+    for argv, message in [(["--n", "0"], r"argument --n: grid resolution n must be an integer >= 4, got 0$"),
+                          (["--n", "3.5"], r"argument --n: must be a whole number of voxels per axis, got '3.5'"),
+                          (["--radon", "-5"], r"argument --radon: grid resolution n must be an integer >= 4, got -5 "
+                                              r"\(or 0: skip\)")]:
+        with pytest.raises(SystemExit) as exit_:
+            parser.parse_args(argv)
+        err = capsys.readouterr().err.strip()
+        assert exit_.value.code == 2 and re.search(f"error: {message}", err), err

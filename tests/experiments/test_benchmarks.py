@@ -583,7 +583,7 @@ def test_threads_below_one_are_refused_by_every_benchmark(script, threads, capsy
     ("bench_calibration", ["--dips", "0"], r"argument --dips: must be 1 or more \(dips\), got 0"),
     ("bench_calibration", ["--iterations", "0"], r"argument --iterations: must be 1 or more"),
     ("bench_calibration", ["--json", "/nonexistent/dir/rigs.json"], r"--json /nonexistent/dir/rigs.json: no folder"),
-    ("bench_calibration", ["--n", "3"], r"--n: grid resolution n must be an integer >= 4, got 3"),
+    ("bench_calibration", ["--n", "3"], r"argument --n: grid resolution n must be an integer >= 4, got 3"),
     ("bench_calibration", ["--ball-offset", "nan"], r"argument --ball-offset: must be a finite number of mm off"),
     # bench_reference_plans: --snr nan was a ValueError traceback naming snr_db, rc 1
     ("bench_reference_plans", ["--quick", "--rigs", "1", "--snr", "nan"], r"--snr: snr_db must be a number of dB"),
@@ -596,19 +596,21 @@ def test_threads_below_one_are_refused_by_every_benchmark(script, threads, capsy
     ("bench_symmetry_check", ["--seed", "-3"], r"--seed must be 0 or more, got -3"),
     # the pool benchmarks (--trials, --seed, --resolution, --json of add_pool_options)
     ("bench_dip_agreement", ["--trials", "0"], r"argument --trials: must be 1 or more"),
-    ("bench_dip_agreement", ["--resolution", "-1"], r"--resolution: grid resolution n must be an integer >= 4, got -1 "
-                                                    r"\(or 0: drawn per case\)"),
+    ("bench_dip_agreement", ["--resolution", "-1"],
+     r"argument --resolution: grid resolution n must be an integer >= 4, got -1 \(or 0: drawn per case\)"),
     ("bench_dip_agreement", ["--json", "/nonexistent/dir/rows.json"], r"--json /nonexistent/dir/rows.json: no folder"),
-    ("bench_consistency", ["--resolution", "0"], r"--resolution: grid resolution n must be an integer >= 4, got 0"),
+    ("bench_consistency", ["--resolution", "0"],
+     r"argument --resolution: grid resolution n must be an integer >= 4, got 0"),
     ("bench_consistency", ["--seed", "-1"], r"--seed must be 0 or more, got -1"),
     ("bench_pockets", ["--dips", "30", "20"], r"--dips LOW HIGH: LOW must not be above HIGH, got 30 20"),
     ("bench_pockets", ["--dips", "0", "5"], r"argument --dips: must be 1 or more \(dips\), got 0"),
-    ("bench_pockets", ["--resolution", "2"], r"--resolution: grid resolution n must be an integer >= 4, got 2"),
+    ("bench_pockets", ["--resolution", "2"],
+     r"argument --resolution: grid resolution n must be an integer >= 4, got 2"),
     # bench_scale checked --meshes and --threads only
     # bench_quality --quantum-mm -1 / nan were an error naming quantum_mm, not the flag, at the first simulated case
     ("bench_quality", ["--quantum-mm", "-1"], r"argument --quantum-mm: must be a finite number of mm, 0 or more"),
     ("bench_quality", ["--quantum-mm", "nan"], r"argument --quantum-mm: must be a finite number of mm, 0 or more"),
-    ("bench_scale", ["--n", "3"], r"--n: grid resolution n must be an integer >= 4, got 3"),
+    ("bench_scale", ["--n", "3"], r"argument --n: grid resolution n must be an integer >= 4, got 3"),
     ("bench_scale", ["--fractions", "0"], r"argument --fractions: must be a finite number of dips per N\^2"),
     ("bench_scale", ["--snr", "nan"], r"--snr: snr_db must be a number of dB"),
     ("bench_scale", ["--fill", "0"], r"--fill must be in \(0, 1\]"),
@@ -623,14 +625,15 @@ def test_threads_below_one_are_refused_by_every_benchmark(script, threads, capsy
     ("bench_monitor", ["--step", "nan"], r"argument --step: must be a finite number of mm above 0, got 'nan'"),
     ("bench_monitor", ["--settle", "-1"], r"argument --settle: must be a finite number of seconds, 0 or more"),
     ("bench_monitor", ["--repeats", "0"], r"argument --repeats: must be 1 or more \(runs each way\), got 0"),
-    ("bench_monitor", ["--resolution", "2"], r"--resolution: grid resolution n must be an integer >= 4, got 2"),
-    ("bench_operator", ["--sizes", "64", "3"], r"--sizes: grid resolution n must be an integer >= 4, got 3"),
+    ("bench_monitor", ["--resolution", "2"],
+     r"argument --resolution: grid resolution n must be an integer >= 4, got 2"),
+    ("bench_operator", ["--sizes", "64", "3"], r"argument --sizes: grid resolution n must be an integer >= 4, got 3"),
     ("bench_operator", ["--orientations", "0"], r"argument --orientations: must be 1 or more \(dips\), got 0"),
     ("bench_operator", ["--limit", "nan"], r"argument --limit: must be a finite number of seconds above 0 \(inf: no "
                                            r"limit\), got 'nan'"),
     ("bench_operator", ["--memory-limit", "0"], r"argument --memory-limit: must be a finite number of GB above 0"),
-    ("bench_operator", ["--radon-size", "-5"], r"--radon-size: grid resolution n must be an integer >= 4, got -5 "
-                                               r"\(or 0: skip\)"),
+    ("bench_operator", ["--radon-size", "-5"],
+     r"argument --radon-size: grid resolution n must be an integer >= 4, got -5 \(or 0: skip\)"),
     ("bench_operator", ["--lsqr-iterations", "0"], r"argument --lsqr-iterations: must be 1 or more"),
 ])
 def test_bad_options_of_every_benchmark_are_refused_before_any_case(script, argv, message, capsys):
