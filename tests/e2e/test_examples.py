@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.seen_first]
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 # what each example must leave in the output directory it is given (a new example must be listed here)

@@ -143,6 +143,7 @@ def _render(page: Path, tmp_path: Path) -> dict:
 @pytest.mark.browser
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (apt-get install chromium)")
 @pytest.mark.slow
+@pytest.mark.seen_first
 def test_chromium_shows_the_meshes_without_console_errors(sweep, tmp_path):
     probe = _render(report.write_run_report(sweep / "0"), tmp_path)
     assert probe["errors"] == []

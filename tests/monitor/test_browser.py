@@ -25,7 +25,7 @@ from test_server import free_port, running
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
 
-pytestmark = [pytest.mark.browser, pytest.mark.slow,
+pytestmark = [pytest.mark.browser, pytest.mark.slow, pytest.mark.seen_first,
               pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
                                  reason="chromium or chromedriver not installed "
                                         "(apt-get install chromium chromium-driver)")]
