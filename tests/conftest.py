@@ -89,3 +89,20 @@ def console_and_log_file(tmp_path: Path):
     for handler in (console, logfile):
         root.removeHandler(handler)
     logfile.close()
+
+
+@pytest.fixture(autouse=True)
+def root_logger_kept():
+    """Every test leaves the root logger as it found it: a handler a script added in this process (``tune.py`` and
+    the monitor's command line call ``logging.basicConfig``, whose ``StreamHandler`` keeps the test's captured
+    ``stderr``) is removed and closed, and the root's level put back. Left in place, every later test's log line
+    went to that closed stream as a "Logging error" on the real ``stderr`` (``tests/jobs`` in one process:
+    ``test_tuning`` and ``test_warnings_once`` failed; pytest's own capture handlers are its to remove)."""
+    root = logging.getLogger()
+    before, level = set(root.handlers), root.level
+    yield
+    for handler in root.handlers[:]:
+        if handler not in before and type(handler).__module__ != "_pytest.logging":
+            root.removeHandler(handler)
+            handler.close()
+    root.setLevel(level)
