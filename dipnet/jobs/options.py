@@ -27,8 +27,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from dipnet.calibration.model import CalibrationError
 from dipnet.calibration.self_calibration import SelfCalibrator, check_section_change
 from dipnet.core.keywords import accepted_keywords
-from dipnet.operators import ALIASES
-from dipnet.operators import fourier
+from dipnet.operators import ALIASES, fourier
 from dipnet.planning.plans import AdaptivePlan
 from dipnet.preprocessing.sources import RecordedSource
 from dipnet.preprocessing.symmetry import MAX_MERGE_DEG
